@@ -1,0 +1,142 @@
+"""Camera–LiDAR geometry: KITTI calibration, projections and the depth-net crop.
+
+Frames: velodyne (x forward, y left, z up) → rectified camera (x right, y down,
+z forward) → image pixels. ``P2 · R0_rect · Tr_velo_to_cam · [x y z 1]ᵀ``.
+
+Depth here is always the projective depth of camera 2, the third row of
+``P2 · [X_rect, 1]ᵀ`` (the rectified z plus P2's small z offset); it is what
+KITTI depth PNGs store and what back-projection expects.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """KITTI object calibration: P2 (3×4), R0_rect (3×3), Tr_velo_to_cam (3×4), float64."""
+
+    P2: np.ndarray
+    R0_rect: np.ndarray
+    Tr_velo_to_cam: np.ndarray
+
+    # ---- derived matrices (cheap; computed on use so the dataclass stays plain)
+    @property
+    def velo_to_rect_matrix(self) -> np.ndarray:
+        """4×4 transform velodyne → rectified camera."""
+        m = np.eye(4)
+        m[:3, :4] = self.R0_rect @ self.Tr_velo_to_cam
+        return m
+
+    @property
+    def rect_to_velo_matrix(self) -> np.ndarray:
+        """4×4 transform rectified camera → velodyne (exact inverse)."""
+        return np.linalg.inv(self.velo_to_rect_matrix)
+
+    # ---- velodyne ↔ rectified camera
+    def velo_to_rect(self, xyz: np.ndarray) -> np.ndarray:
+        """(N, 3) velodyne points → (N, 3) rectified camera coordinates (float64)."""
+        m = self.velo_to_rect_matrix
+        return np.asarray(xyz, np.float64)[:, :3] @ m[:3, :3].T + m[:3, 3]
+
+    def rect_to_velo(self, xyz: np.ndarray) -> np.ndarray:
+        """(N, 3) rectified camera coordinates → (N, 3) velodyne points (float64)."""
+        m = self.rect_to_velo_matrix
+        return np.asarray(xyz, np.float64)[:, :3] @ m[:3, :3].T + m[:3, 3]
+
+    # ---- rectified camera ↔ image
+    def rect_to_image(self, xyz_rect: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project rectified points: returns pixel coordinates (N, 2) and depth (N,).
+
+        Points with depth ≤ 0 get non-finite pixel coordinates; filter on depth.
+        """
+        homog = np.asarray(xyz_rect, np.float64) @ self.P2[:, :3].T + self.P2[:, 3]
+        depth = homog[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = homog[:, :2] / depth[:, None]
+        return uv, depth
+
+    def image_to_rect(self, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Back-project pixels (u, v) with depth into (N, 3) rectified coordinates (exact inverse)."""
+        depth = np.asarray(depth, np.float64)
+        homog = np.stack([np.asarray(u, np.float64) * depth, np.asarray(v, np.float64) * depth, depth], axis=-1)
+        return (homog - self.P2[:, 3]) @ np.linalg.inv(self.P2[:, :3]).T
+
+    def velo_to_image(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Project velodyne points to pixels: (N, 2) pixel coordinates, (N,) depth."""
+        return self.rect_to_image(self.velo_to_rect(xyz))
+
+    def image_to_velo(self, u: np.ndarray, v: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Back-project pixels with depth into (N, 3) velodyne points."""
+        return self.rect_to_velo(self.image_to_rect(u, v, depth))
+
+    def shifted(self, left: float, top: float) -> "Calibration":
+        """Calibration of an image cropped at (left, top): P2 ← T·P2 with T a pixel translation.
+
+        Exact for any P2: both the principal point and P2's last column move,
+        so projective depth is unchanged and pixels shift by exactly (left, top).
+        """
+        shift = np.array([[1.0, 0.0, -left], [0.0, 1.0, -top], [0.0, 0.0, 1.0]])
+        return Calibration(P2=shift @ self.P2, R0_rect=self.R0_rect, Tr_velo_to_cam=self.Tr_velo_to_cam)
+
+
+# --------------------------------------------------------------------------- depth-net crop
+@dataclass(frozen=True)
+class CropWindow:
+    """A crop of the camera image: rows [top, top+height), columns [left, left+width)."""
+
+    top: int
+    left: int
+    height: int
+    width: int
+
+    def apply(self, image: np.ndarray) -> np.ndarray:
+        """Crop an (H, W, ...) array."""
+        return image[self.top : self.top + self.height, self.left : self.left + self.width]
+
+
+def depth_crop(image_hw: tuple[int, int], height: int = 352, width: int = 1216) -> CropWindow:
+    """The KITTI depth-completion crop: the bottom ``height`` rows, the centre ``width`` columns."""
+    img_h, img_w = int(image_hw[0]), int(image_hw[1])
+    if img_h < height or img_w < width:
+        raise InputError(
+            f"image: {img_w}×{img_h} pixels is smaller than the model's {width}×{height} crop"
+        )
+    return CropWindow(top=img_h - height, left=(img_w - width) // 2, height=height, width=width)
+
+
+def crop_calibration(calib: Calibration, crop: CropWindow) -> Calibration:
+    """The calibration of the cropped image (principal point and P2 offsets shifted exactly)."""
+    return calib.shifted(crop.left, crop.top)
+
+
+# --------------------------------------------------------------------------- sparse depth
+def sparse_depth_map(
+    points: np.ndarray, calib: Calibration, image_hw: tuple[int, int], min_depth: float = 0.1
+) -> np.ndarray:
+    """Project LiDAR points into a float32 (H, W) depth map in metres, 0 = no return.
+
+    Each point lands on the pixel nearest its projection (pixel centres at
+    integer coordinates, as P2 defines them); where several land on one pixel
+    the nearest return wins, as a camera would see it.
+    """
+    h, w = int(image_hw[0]), int(image_hw[1])
+    uv, depth = calib.velo_to_image(points[:, :3])
+    cols = np.rint(uv[:, 0])
+    rows = np.rint(uv[:, 1])
+    keep = (depth > min_depth) & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    flat = rows[keep].astype(np.int64) * w + cols[keep].astype(np.int64)
+    depth = depth[keep]
+    # Sort by pixel, then by depth: the first entry of each pixel run is the nearest return.
+    order = np.lexsort((depth, flat))
+    flat, depth = flat[order], depth[order]
+    first = np.ones(flat.size, dtype=bool)
+    first[1:] = flat[1:] != flat[:-1]
+    out = np.zeros(h * w, dtype=np.float32)
+    out[flat[first]] = depth[first]
+    return out.reshape(h, w)

@@ -1,0 +1,10 @@
+"""Errors a user can act on: each names the file or field and what is wrong with it."""
+
+
+class InputError(ValueError):
+    """A bad input file, array or request field.
+
+    The message always names the source (a file path, an upload field or an
+    argument name) and the problem, so that a CLI can print it and a service
+    can answer it as a 4xx without a traceback.
+    """

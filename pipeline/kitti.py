@@ -1,0 +1,268 @@
+"""KITTI file formats: velodyne scans, object calibration, label_2 lines, depth PNGs.
+
+Every reader has a ``parse_*`` twin that takes bytes or text plus a ``source``
+name, so files on disk and HTTP uploads share one validated code path. Errors
+are :class:`~pipeline.errors.InputError` naming the source and the problem.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.calib import Calibration
+from pipeline.errors import InputError
+
+POINT_BYTES = 16  # float32 x, y, z, reflectance
+
+
+# --------------------------------------------------------------------------- velodyne
+@dataclass(frozen=True)
+class Scan:
+    """A LiDAR scan in the velodyne frame.
+
+    points: float32 (N, 4) rows ``x, y, z, reflectance``, all finite, in file order
+    (the order carries the ring structure that beam emulation relies on).
+    dropped_nonfinite: rows removed because a value was NaN or infinite.
+    """
+
+    points: np.ndarray
+    dropped_nonfinite: int = 0
+    source: str = ""
+
+
+def parse_velodyne(data: bytes, source: str = "<points>") -> Scan:
+    """Decode a KITTI velodyne ``.bin`` payload; drop and count non-finite rows."""
+    if len(data) % POINT_BYTES != 0:
+        raise InputError(
+            f"{source}: size {len(data)} bytes is not a multiple of {POINT_BYTES} "
+            "(a KITTI scan is float32 rows x, y, z, reflectance)"
+        )
+    points = np.frombuffer(data, dtype="<f4").reshape(-1, 4)
+    finite = np.isfinite(points).all(axis=1)
+    dropped = int(points.shape[0] - np.count_nonzero(finite))
+    points = points[finite] if dropped else points.copy()
+    return Scan(points=points, dropped_nonfinite=dropped, source=source)
+
+
+def read_velodyne(path: str | Path) -> Scan:
+    """Read a KITTI velodyne ``.bin`` file."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read velodyne scan ({exc.strerror})") from exc
+    return parse_velodyne(data, str(path))
+
+
+def write_velodyne(path: str | Path, points: np.ndarray) -> None:
+    """Write (N, 4) points as a KITTI velodyne ``.bin`` (little-endian float32)."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 4:
+        raise InputError(f"{path}: points must have shape (N, 4), got {points.shape}")
+    Path(path).write_bytes(np.ascontiguousarray(points, dtype="<f4").tobytes())
+
+
+# --------------------------------------------------------------------------- calibration
+_CALIB_KEYS = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
+
+
+def parse_calib(text: str, source: str = "<calib>") -> Calibration:
+    """Parse a KITTI object ``calib/*.txt`` (keys P2, R0_rect, Tr_velo_to_cam are required)."""
+    values: dict[str, np.ndarray] = {}
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        if not line.strip():
+            continue
+        key, sep, rest = line.partition(":")
+        key = key.strip()
+        if not sep:
+            raise InputError(f"{source}, line {line_no}: expected 'KEY: numbers', got {line[:60]!r}")
+        if key not in _CALIB_KEYS:
+            continue  # P0, P1, P3, Tr_imu_to_velo: not needed
+        try:
+            numbers = np.array([float(v) for v in rest.split()], dtype=np.float64)
+        except ValueError as exc:
+            raise InputError(f"{source}, line {line_no}: {key} has a non-numeric value ({exc})") from exc
+        shape = _CALIB_KEYS[key]
+        if numbers.size != shape[0] * shape[1]:
+            raise InputError(
+                f"{source}, line {line_no}: {key} needs {shape[0] * shape[1]} numbers, got {numbers.size}"
+            )
+        if not np.isfinite(numbers).all():
+            raise InputError(f"{source}, line {line_no}: {key} has a non-finite value")
+        values[key] = numbers.reshape(shape)
+    missing = [k for k in _CALIB_KEYS if k not in values]
+    if missing:
+        raise InputError(f"{source}: missing calibration key(s) {', '.join(missing)}")
+    return Calibration(P2=values["P2"], R0_rect=values["R0_rect"], Tr_velo_to_cam=values["Tr_velo_to_cam"])
+
+
+def read_calib(path: str | Path) -> Calibration:
+    """Read a KITTI object calibration file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read calibration ({exc})") from exc
+    return parse_calib(text, str(path))
+
+
+def format_calib(calib: Calibration) -> str:
+    """KITTI calib text for ``calib`` (P0/P1/P3 written as copies of P2 so other tools can read it)."""
+
+    def row(name: str, m: np.ndarray) -> str:
+        return f"{name}: " + " ".join(f"{v:.12e}" for v in np.asarray(m, dtype=np.float64).ravel())
+
+    return "\n".join(
+        [
+            row("P0", calib.P2), row("P1", calib.P2), row("P2", calib.P2), row("P3", calib.P2),
+            row("R0_rect", calib.R0_rect), row("Tr_velo_to_cam", calib.Tr_velo_to_cam),
+            row("Tr_imu_to_velo", np.hstack([np.eye(3), np.zeros((3, 1))])),
+        ]
+    ) + "\n"
+
+
+def write_calib(path: str | Path, calib: Calibration) -> None:
+    """Write a KITTI object calibration file."""
+    Path(path).write_text(format_calib(calib), encoding="ascii")
+
+
+# --------------------------------------------------------------------------- labels
+@dataclass
+class Object3D:
+    """One KITTI ``label_2`` line (15 fields, or 16 with a score in result files).
+
+    bbox: 2D box (left, top, right, bottom) in image pixels.
+    dimensions: h, w, l in metres. location: x, y, z of the bottom centre in the
+    rectified camera frame. rotation_y: yaw around the camera's y axis.
+    """
+
+    type: str
+    truncated: float
+    occluded: int
+    alpha: float
+    bbox: tuple[float, float, float, float]
+    dimensions: tuple[float, float, float]
+    location: tuple[float, float, float]
+    rotation_y: float
+    score: float | None = None
+    extra: dict = field(default_factory=dict, repr=False)
+
+
+def parse_labels(text: str, source: str = "<labels>") -> list[Object3D]:
+    """Parse KITTI label lines; 15 fields (ground truth) or 16 (result with score)."""
+    objects: list[Object3D] = []
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        fields = line.split()
+        if not fields:
+            continue
+        if len(fields) not in (15, 16):
+            raise InputError(
+                f"{source}, line {line_no}: expected 15 fields (16 with a score), got {len(fields)}"
+            )
+        try:
+            v = [float(x) for x in fields[1:]]
+        except ValueError as exc:
+            raise InputError(f"{source}, line {line_no}: non-numeric field ({exc})") from exc
+        if not all(math.isfinite(x) for x in v):
+            raise InputError(f"{source}, line {line_no}: non-finite field")
+        objects.append(
+            Object3D(
+                type=fields[0], truncated=v[0], occluded=int(v[1]), alpha=v[2],
+                bbox=(v[3], v[4], v[5], v[6]), dimensions=(v[7], v[8], v[9]),
+                location=(v[10], v[11], v[12]), rotation_y=v[13],
+                score=v[14] if len(v) == 15 else None,
+            )
+        )
+    return objects
+
+
+def read_labels(path: str | Path) -> list[Object3D]:
+    """Read a KITTI ``label_2`` (or result) file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read labels ({exc})") from exc
+    return parse_labels(text, str(path))
+
+
+def format_label(obj: Object3D) -> str:
+    """One KITTI label line; with a score when ``obj.score`` is set (result format)."""
+    h, w, l = obj.dimensions
+    x, y, z = obj.location
+    parts = [
+        obj.type, f"{obj.truncated:.2f}", f"{int(obj.occluded)}", f"{obj.alpha:.2f}",
+        *(f"{b:.2f}" for b in obj.bbox), f"{h:.2f}", f"{w:.2f}", f"{l:.2f}",
+        f"{x:.2f}", f"{y:.2f}", f"{z:.2f}", f"{obj.rotation_y:.2f}",
+    ]
+    if obj.score is not None:
+        parts.append(f"{obj.score:.4f}")
+    return " ".join(parts)
+
+
+def write_labels(path: str | Path, objects: list[Object3D]) -> None:
+    """Write KITTI label lines (an empty file for no objects, as KITTI results expect)."""
+    Path(path).write_text("".join(format_label(o) + "\n" for o in objects), encoding="ascii")
+
+
+# --------------------------------------------------------------------------- images and depth
+DEPTH_SCALE = 256.0  # KITTI depth PNG: uint16, metres × 256, 0 = no measurement
+
+
+def decode_depth_png(data: bytes, source: str = "<depth>") -> np.ndarray:
+    """Decode a KITTI depth PNG into float32 metres (0 where there is no measurement)."""
+    raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise InputError(f"{source}: not a readable PNG")
+    if raw.dtype != np.uint16 or raw.ndim != 2:
+        raise InputError(f"{source}: a depth PNG must be single-channel uint16, got {raw.dtype} {raw.shape}")
+    return raw.astype(np.float32) / DEPTH_SCALE
+
+
+def read_depth_png(path: str | Path) -> np.ndarray:
+    """Read a KITTI depth PNG into float32 metres."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read depth PNG ({exc.strerror})") from exc
+    return decode_depth_png(data, str(path))
+
+
+def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
+    """Write float metres as a KITTI depth PNG (rounded to 1/256 m, clipped to the uint16 range)."""
+    depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    raw = np.clip(np.rint(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
+    if not cv2.imwrite(str(path), raw):
+        raise InputError(f"{path}: could not write depth PNG")
+
+
+def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
+    """Decode a PNG or JPEG into uint8 RGB (H, W, 3)."""
+    if not data:
+        raise InputError(f"{source}: empty image")
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise InputError(f"{source}: not a readable PNG or JPEG image")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """Read a camera image as uint8 RGB (H, W, 3)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read image ({exc.strerror})") from exc
+    return decode_image(data, str(path))
+
+
+def write_image(path: str | Path, rgb: np.ndarray) -> None:
+    """Write a uint8 RGB image (PNG or JPEG by extension)."""
+    if not cv2.imwrite(str(path), cv2.cvtColor(np.asarray(rgb, np.uint8), cv2.COLOR_RGB2BGR)):
+        raise InputError(f"{path}: could not write image")

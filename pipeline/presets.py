@@ -1,0 +1,166 @@
+"""Model presets: the one source of truth for geometry, network sizes and thresholds.
+
+A preset feeds training (models/), the ONNX manifest (export/) and the runtime
+(pipeline/, service/); a test checks they agree. ``paper`` is the paper's
+configuration; ``edge`` is designed to train and run on a 2-core CPU; ``tiny``
+keeps tests fast.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+
+@dataclass(frozen=True)
+class BevGrid:
+    """Bird's-eye-view grid in the LiDAR frame.
+
+    Layout of the voxelized tensor: float32 (channels, ny, nx); axis 1 = y bins
+    from ``y_min`` upward, axis 2 = x bins from ``x_min``; channel k < nz is the
+    occupancy of height slice [z_min + k·z_cell, z_min + (k+1)·z_cell); the last
+    channel is the mean reflectance of the cell's points.
+    """
+
+    x_min: float = 0.0
+    x_max: float = 70.0
+    y_min: float = -40.0
+    y_max: float = 40.0
+    z_min: float = -2.5
+    z_max: float = 1.0
+    cell: float = 0.1
+    z_cell: float = 0.1
+
+    @property
+    def nx(self) -> int:
+        return int(round((self.x_max - self.x_min) / self.cell))
+
+    @property
+    def ny(self) -> int:
+        return int(round((self.y_max - self.y_min) / self.cell))
+
+    @property
+    def nz(self) -> int:
+        return int(round((self.z_max - self.z_min) / self.z_cell))
+
+    @property
+    def channels(self) -> int:
+        return self.nz + 1
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """(channels, ny, nx) of the voxelized tensor."""
+        return (self.channels, self.ny, self.nx)
+
+
+@dataclass(frozen=True)
+class DepthNetConfig:
+    """Depth-completion network (Ma et al. sparse-to-dense, ResNet-18 encoder, GAMs, ASPP).
+
+    input_hw: (height, width) the network sees, after the KITTI crop and an
+    optional resize by ``input_scale``; stem_stride 1 is the paper (layer1 at
+    full resolution), 2 halves every feature map.
+    """
+
+    input_hw: tuple[int, int] = (352, 1216)
+    input_scale: float = 1.0  # crop is resized by this before the network
+    stem_stride: int = 1
+    depth_stem: int = 16  # conv1_d output channels
+    image_stem: int = 48  # conv1_img output channels
+    encoder_widths: tuple[int, int, int, int] = (64, 128, 256, 512)
+    encoder_blocks: tuple[int, int, int, int] = (2, 2, 2, 2)  # ResNet-18
+    bottleneck_width: int = 512  # conv6
+    decoder_widths: tuple[int, int, int, int, int] = (256, 128, 64, 64, 64)  # convt5 … convt1
+    use_gam: bool = True
+    use_aspp: bool = True
+    aspp_rates: tuple[int, ...] = (2, 4, 8, 16)
+    min_depth: float = 0.9  # metres, output floor at inference (Ma et al.)
+    max_depth: float = 85.0  # metres, clip for the pseudo cloud and the loss
+
+
+@dataclass(frozen=True)
+class PixorConfig:
+    """PIXOR detector: stem, bottleneck stages, FPN top-down path, header."""
+
+    stem_channels: int = 32
+    stage_widths: tuple[int, int, int, int] = (24, 48, 64, 96)  # bottleneck widths, ×4 expansion
+    stage_blocks: tuple[int, int, int, int] = (3, 6, 6, 3)
+    expansion: int = 4
+    fpn_channels: int = 96
+    header_channels: int = 96
+    header_convs: int = 4
+    output_stride: int = 4
+    prior: float = 0.01  # score bias initialisation
+
+
+@dataclass(frozen=True)
+class DecodeConfig:
+    """Turning network outputs into boxes, shared by export, runtime and evaluation."""
+
+    # Regression targets (cos θ, sin θ, dx, dy, log w, log l) are normalised as (t - mean) / std.
+    reg_mean: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.49, 1.36)
+    reg_std: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 0.1, 0.1)
+    score_threshold: float = 0.5
+    nms_iou: float = 0.1
+    max_candidates: int = 500  # top-scoring cells kept before NMS
+    max_detections: int = 100
+    car_height: float = 1.53  # metres, when no points lie inside a box
+    pseudo_stride: int = 1  # keep every k-th pseudo point (rows and columns)
+    pseudo_max_height: float = 1.0  # metres above the LiDAR, drop pseudo points above (sky, trees)
+
+
+@dataclass(frozen=True)
+class Preset:
+    """Everything a model directory needs to be run the same way everywhere."""
+
+    name: str
+    depth: DepthNetConfig = field(default_factory=DepthNetConfig)
+    pixor: PixorConfig = field(default_factory=PixorConfig)
+    bev: BevGrid = field(default_factory=BevGrid)
+    decode: DecodeConfig = field(default_factory=DecodeConfig)
+    crop_hw: tuple[int, int] = (352, 1216)  # the KITTI depth-completion crop
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able form, as written into the ONNX manifest."""
+        return asdict(self)
+
+
+PRESETS: dict[str, Preset] = {
+    # The paper: full-resolution depth net, PIXOR on the 0.1 m, 36-channel grid.
+    "paper": Preset(name="paper"),
+    # Designed for a 2-core CPU: half-resolution depth input with a strided stem and
+    # narrower widths; PIXOR on a 0.2 m grid with 0.2 m height slices and halved widths.
+    "edge": Preset(
+        name="edge",
+        depth=DepthNetConfig(
+            input_hw=(176, 608), input_scale=0.5, stem_stride=2, depth_stem=8, image_stem=24,
+            encoder_widths=(32, 64, 128, 256), bottleneck_width=256, decoder_widths=(128, 64, 32, 32, 32),
+        ),
+        pixor=PixorConfig(
+            stem_channels=16, stage_widths=(12, 24, 32, 48), stage_blocks=(2, 3, 3, 2),
+            fpn_channels=48, header_channels=48, header_convs=2,
+        ),
+        bev=BevGrid(cell=0.2, z_cell=0.2, z_max=1.1),
+    ),
+    # For tests only: small and fast, same code paths.
+    "tiny": Preset(
+        name="tiny",
+        depth=DepthNetConfig(
+            input_hw=(88, 304), input_scale=0.25, stem_stride=2, depth_stem=4, image_stem=12,
+            encoder_widths=(16, 16, 32, 32), encoder_blocks=(1, 1, 1, 1), bottleneck_width=32,
+            decoder_widths=(32, 16, 16, 16, 16), aspp_rates=(2, 4),
+        ),
+        pixor=PixorConfig(
+            stem_channels=8, stage_widths=(4, 8, 8, 8), stage_blocks=(1, 1, 1, 1),
+            fpn_channels=16, header_channels=16, header_convs=1,
+        ),
+        bev=BevGrid(cell=0.4, z_cell=0.5),
+    ),
+}
+
+
+def get_preset(name: str) -> Preset:
+    """Look up a preset by name, with an error that lists the valid ones."""
+    try:
+        return PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
