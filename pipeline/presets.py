@@ -139,7 +139,8 @@ PRESETS: dict[str, Preset] = {
             stem_channels=16, stage_widths=(12, 24, 32, 48), stage_blocks=(2, 3, 3, 2),
             fpn_channels=48, header_channels=48, header_convs=2,
         ),
-        bev=BevGrid(cell=0.2, z_cell=0.2, z_max=1.1),
+        # x_max 70.4: 352 columns, a multiple of the output stride 4 (70 m would give 350).
+        bev=BevGrid(cell=0.2, z_cell=0.2, z_max=1.1, x_max=70.4),
     ),
     # For tests only: small and fast, same code paths.
     "tiny": Preset(
@@ -153,7 +154,7 @@ PRESETS: dict[str, Preset] = {
             stem_channels=8, stage_widths=(4, 8, 8, 8), stage_blocks=(1, 1, 1, 1),
             fpn_channels=16, header_channels=16, header_convs=1,
         ),
-        bev=BevGrid(cell=0.4, z_cell=0.5),
+        bev=BevGrid(cell=0.4, z_cell=0.5, x_max=70.4),  # 176 columns: divisible by the output stride 4
     ),
 }
 

@@ -1,0 +1,186 @@
+"""Ring recovery and 64 → N beam emulation for KITTI HDL-64E scans.
+
+KITTI stores a scan ring after ring: within a ring the azimuth sweeps once
+around and wraps. Cutting the point sequence at every wrap recovers the rings
+(64–65 segments on real scans: the first and last rings are partial). When the
+order is lost (a shuffled or merged cloud) rings fall back to clustering the
+elevation angles. Rings are then ranked by elevation and thinned.
+
+CLI: ``python -m pipeline.beams --beams 16 SRC_DIR DST_DIR`` converts a whole
+velodyne folder, never writing into the source.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+log = logging.getLogger(__name__)
+
+# HDL-64E: about +2° … −24.9°; VLP-16: −15° … +15° in 2° steps.
+HDL64_ELEVATION_RANGE_DEG = (-24.9, 2.0)
+VLP16_ELEVATIONS_DEG = np.arange(-15.0, 15.1, 2.0)
+# A ring-ordered scan has one wrap per ring; far more segments means the order is lost.
+_MAX_PLAUSIBLE_SEGMENTS = 200
+_MIN_POINTS_PER_SEGMENT = 200
+
+
+@dataclass(frozen=True)
+class RingAssignment:
+    """Ring id per point, rings numbered 0 … n_rings-1 from the lowest elevation up.
+
+    ring: int32 (N,). elevation_deg: median elevation of each ring (n_rings,).
+    method: "azimuth-wrap" (file order) or "elevation-clusters" (fallback).
+    """
+
+    ring: np.ndarray
+    n_rings: int
+    elevation_deg: np.ndarray
+    method: str
+
+
+def elevation_deg(points: np.ndarray) -> np.ndarray:
+    """Elevation angle of each point seen from the sensor origin, in degrees."""
+    return np.degrees(np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1])))
+
+
+def _rank_by_elevation(segment: np.ndarray, elevation: np.ndarray, n_segments: int) -> tuple[np.ndarray, np.ndarray]:
+    """Renumber segments by median elevation (lowest = 0); return per-point ring and per-ring elevation."""
+    order = np.argsort(segment, kind="stable")
+    sorted_seg = segment[order]
+    starts = np.searchsorted(sorted_seg, np.arange(n_segments))
+    ends = np.searchsorted(sorted_seg, np.arange(n_segments), side="right")
+    sorted_elev = elevation[order]
+    # Median per segment: sort elevations within segments (lexsort), take the middle element.
+    within = np.lexsort((sorted_elev, sorted_seg))
+    elev_sorted = sorted_elev[within]
+    mid = np.clip((starts + ends - 1) // 2, 0, max(elevation.size - 1, 0))
+    medians = np.where(ends > starts, elev_sorted[mid], -np.inf)
+    rank_of_segment = np.empty(n_segments, dtype=np.int32)
+    rank_of_segment[np.argsort(medians, kind="stable")] = np.arange(n_segments, dtype=np.int32)
+    return rank_of_segment[segment], np.sort(medians)
+
+
+def _cluster_elevations(elevation: np.ndarray, n_clusters: int = 64, iterations: int = 25) -> np.ndarray:
+    """1-D k-means on elevation angles (centres start at quantiles); returns a cluster id per point."""
+    centres = np.quantile(elevation, (np.arange(n_clusters) + 0.5) / n_clusters)
+    labels = np.zeros(elevation.size, dtype=np.int64)
+    for _ in range(iterations):  # iterations over cluster updates, not points
+        centres = np.unique(centres)
+        bounds = (centres[1:] + centres[:-1]) / 2
+        labels = np.searchsorted(bounds, elevation)
+        sums = np.bincount(labels, weights=elevation, minlength=centres.size)
+        counts = np.bincount(labels, minlength=centres.size)
+        new = np.where(counts > 0, sums / np.maximum(counts, 1), centres)
+        if np.allclose(new, centres):
+            break
+        centres = new
+    return labels
+
+
+def recover_rings(points: np.ndarray, expected_rings: int = 64) -> RingAssignment:
+    """Assign every point to a laser ring (see module doc)."""
+    points = np.asarray(points)
+    if points.shape[0] == 0:
+        return RingAssignment(np.zeros(0, np.int32), 0, np.zeros(0), "azimuth-wrap")
+    elevation = elevation_deg(points)
+    azimuth = np.arctan2(points[:, 1], points[:, 0])
+    wraps = np.abs(np.diff(azimuth)) > np.pi
+    segment = np.concatenate([[0], np.cumsum(wraps)]).astype(np.int64)
+    n_segments = int(segment[-1]) + 1
+    method = "azimuth-wrap"
+    ordered = (
+        n_segments <= _MAX_PLAUSIBLE_SEGMENTS
+        and points.shape[0] / n_segments >= _MIN_POINTS_PER_SEGMENT
+        and n_segments >= expected_rings // 4
+    )
+    if not ordered:
+        segment = _cluster_elevations(elevation, expected_rings)
+        n_segments = int(segment.max()) + 1
+        method = "elevation-clusters"
+    ring, medians = _rank_by_elevation(segment, elevation, n_segments)
+    return RingAssignment(ring=ring, n_rings=n_segments, elevation_deg=medians, method=method)
+
+
+def select_rings(rings: RingAssignment, beams: int, mode: str = "stride") -> np.ndarray:
+    """Ring ids to keep.
+
+    mode "stride": every k-th ring in elevation order from the top, k = 64 / beams
+    (beams ∈ 32, 16, 8, 4), exactly ``beams`` rings even when a partial 65th segment exists.
+    mode "vlp16": for each VLP-16 elevation inside the HDL-64E field of view, the nearest ring.
+    """
+    if mode == "stride":
+        if beams <= 0 or 64 % beams != 0:
+            raise InputError(f"--beams: {beams} must divide 64 (32, 16, 8 or 4)")
+        step = 64 // beams
+        top = rings.n_rings - 1
+        kept = np.arange(top, -1, -step)[:beams]
+        return np.sort(kept).astype(np.int32)
+    if mode == "vlp16":
+        lo, hi = HDL64_ELEVATION_RANGE_DEG
+        targets = VLP16_ELEVATIONS_DEG[(VLP16_ELEVATIONS_DEG >= lo) & (VLP16_ELEVATIONS_DEG <= hi)]
+        nearest = np.argmin(np.abs(rings.elevation_deg[None, :] - targets[:, None]), axis=1)
+        return np.unique(nearest).astype(np.int32)
+    raise InputError(f"--mode: unknown beam emulation mode {mode!r} (stride or vlp16)")
+
+
+def emulate_beams(points: np.ndarray, beams: int = 16, mode: str = "stride") -> np.ndarray:
+    """Thin a 64-line scan to ``beams`` lines; returns the kept points in their original order."""
+    rings = recover_rings(points)
+    keep_rings = select_rings(rings, beams, mode)
+    return points[np.isin(rings.ring, keep_rings)]
+
+
+# --------------------------------------------------------------------------- CLI
+def convert_folder(src: Path, dst: Path, beams: int, mode: str = "stride", progress: bool = True) -> int:
+    """Write the beam-emulated copy of every ``*.bin`` in ``src`` into ``dst``; returns the file count."""
+    from tqdm import tqdm
+
+    from pipeline.kitti import read_velodyne, write_velodyne
+
+    src, dst = Path(src), Path(dst)
+    if not src.is_dir():
+        raise InputError(f"{src}: not a directory")
+    if dst.resolve() == src.resolve() or src.resolve() in dst.resolve().parents:
+        raise InputError(f"{dst}: the destination must not be the source folder or inside it")
+    files = sorted(src.glob("*.bin"))
+    if not files:
+        raise InputError(f"{src}: no velodyne .bin files")
+    dst.mkdir(parents=True, exist_ok=True)
+    for path in tqdm(files, desc=f"{beams}-line", unit="scan", disable=not progress):
+        scan = read_velodyne(path)
+        write_velodyne(dst / path.name, emulate_beams(scan.points, beams, mode))
+    return len(files)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m pipeline.beams",
+        description="Emulate a low-resolution LiDAR: thin every KITTI velodyne scan in SRC_DIR to N lines "
+        "and write it, with the same file name, into DST_DIR (the source is never modified).",
+    )
+    parser.add_argument("src_dir", type=Path, metavar="SRC_DIR", help="folder of KITTI velodyne .bin scans")
+    parser.add_argument("dst_dir", type=Path, metavar="DST_DIR", help="output folder (created if needed)")
+    parser.add_argument("--beams", type=int, default=16, help="lines to keep: 32, 16, 8 or 4 (default 16)")
+    parser.add_argument("--mode", choices=["stride", "vlp16"], default="stride",
+                        help="stride: every k-th ring by elevation; vlp16: rings nearest the VLP-16 angles")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        n = convert_folder(args.src_dir, args.dst_dir, args.beams, args.mode)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {n} scans to {args.dst_dir}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

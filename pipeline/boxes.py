@@ -1,0 +1,122 @@
+"""3D boxes in the LiDAR frame and their KITTI label form.
+
+A box array is float64 (N, 7): ``x, y, z, l, w, h, yaw`` — the box centre in
+the velodyne frame, length along the heading, width, height, heading about z.
+KITTI labels give the bottom centre in the rectified camera frame and
+``rotation_y``; ``rotation_y = -yaw - π/2`` (camera y points down, LiDAR z up).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.calib import Calibration
+from pipeline.iou import rect_corners
+from pipeline.kitti import Object3D
+
+BOX_FIELDS = ("x", "y", "z", "l", "w", "h", "yaw")
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
+    """Wrap angles to [-π, π)."""
+    return (np.asarray(angle, np.float64) + np.pi) % (2 * np.pi) - np.pi
+
+
+def labels_to_boxes(objects: list[Object3D], calib: Calibration) -> np.ndarray:
+    """KITTI label objects → (N, 7) LiDAR-frame boxes (centre, l, w, h, yaw)."""
+    if not objects:
+        return np.zeros((0, 7))
+    location = np.array([o.location for o in objects], np.float64)
+    h, w, l = np.array([o.dimensions for o in objects], np.float64).T
+    rotation_y = np.array([o.rotation_y for o in objects], np.float64)
+    bottom = calib.rect_to_velo(location)
+    centre = bottom + np.stack([np.zeros_like(h), np.zeros_like(h), h / 2], axis=1)
+    return np.column_stack([centre, l, w, h, wrap_angle(-rotation_y - np.pi / 2)])
+
+
+def box_corners_3d(boxes: np.ndarray) -> np.ndarray:
+    """(N, 7) boxes → (N, 8, 3) corners: the 4 BEV corners at the bottom, then at the top."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    bev = rect_corners(boxes[:, [0, 1, 3, 4, 6]])  # (N, 4, 2)
+    bottom = (boxes[:, 2] - boxes[:, 5] / 2)[:, None, None]
+    top = (boxes[:, 2] + boxes[:, 5] / 2)[:, None, None]
+    z = np.concatenate([np.repeat(bottom, 4, axis=1), np.repeat(top, 4, axis=1)], axis=1)
+    return np.concatenate([np.concatenate([bev, bev], axis=1), z], axis=2)
+
+
+def bev_corners(boxes: np.ndarray) -> np.ndarray:
+    """(N, 7) boxes → (N, 4, 2) BEV corners (x, y), counter-clockwise from front-left."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    return rect_corners(boxes[:, [0, 1, 3, 4, 6]])
+
+
+def image_boxes(boxes: np.ndarray, calib: Calibration, image_hw: tuple[int, int]) -> np.ndarray:
+    """2D boxes (left, top, right, bottom) of the projected 3D boxes, clipped to the image.
+
+    Boxes with a corner behind the camera are clipped at the image border on that side.
+    """
+    corners = box_corners_3d(boxes).reshape(-1, 3)
+    uv, depth = calib.velo_to_image(corners)
+    uv = uv.reshape(-1, 8, 2)
+    depth = depth.reshape(-1, 8)
+    h, w = image_hw
+    uv = np.where(depth[..., None] > 0.1, uv, np.nan)
+    with np.errstate(invalid="ignore"):
+        left = np.nan_to_num(np.nanmin(uv[..., 0], axis=1), nan=0.0)
+        right = np.nan_to_num(np.nanmax(uv[..., 0], axis=1), nan=w - 1.0)
+        top = np.nan_to_num(np.nanmin(uv[..., 1], axis=1), nan=0.0)
+        bottom = np.nan_to_num(np.nanmax(uv[..., 1], axis=1), nan=h - 1.0)
+    return np.column_stack([
+        np.clip(left, 0, w - 1), np.clip(top, 0, h - 1), np.clip(right, 0, w - 1), np.clip(bottom, 0, h - 1)
+    ])
+
+
+def boxes_to_objects(
+    boxes: np.ndarray,
+    calib: Calibration,
+    image_hw: tuple[int, int],
+    scores: np.ndarray | None = None,
+    label: str = "Car",
+) -> list[Object3D]:
+    """LiDAR-frame boxes → KITTI label objects (result format with scores when given).
+
+    The 2D box is the projection of the 3D box clipped to the image; truncation
+    and occlusion are unknown for detections and written as 0 (KITTI results
+    ignore them).
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    if boxes.shape[0] == 0:
+        return []
+    bottom = boxes[:, :3] - np.column_stack([np.zeros((len(boxes), 2)), boxes[:, 5] / 2])
+    location = calib.velo_to_rect(bottom)
+    rotation_y = wrap_angle(-boxes[:, 6] - np.pi / 2)
+    alpha = wrap_angle(rotation_y - np.arctan2(location[:, 0], location[:, 2]))
+    bbox = image_boxes(boxes, calib, image_hw)
+    return [
+        Object3D(
+            type=label, truncated=0.0, occluded=0, alpha=float(alpha[i]),
+            bbox=tuple(float(v) for v in bbox[i]),
+            dimensions=(float(boxes[i, 5]), float(boxes[i, 4]), float(boxes[i, 3])),
+            location=tuple(float(v) for v in location[i]),
+            rotation_y=float(rotation_y[i]),
+            score=None if scores is None else float(scores[i]),
+        )
+        for i in range(boxes.shape[0])
+    ]
+
+
+def points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(N, ≥3) points × (M, 7) boxes → (N, M) bool: point inside the box (boundary included).
+
+    For tests and small sets; the frame path uses raster look-ups instead.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    rel = np.asarray(points[:, :3], np.float64)[:, None, :] - boxes[None, :, :3]
+    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    along = rel[..., 0] * cos + rel[..., 1] * sin
+    across = -rel[..., 0] * sin + rel[..., 1] * cos
+    return (
+        (np.abs(along) <= boxes[:, 3] / 2)
+        & (np.abs(across) <= boxes[:, 4] / 2)
+        & (np.abs(rel[..., 2]) <= boxes[:, 5] / 2)
+    )

@@ -1,0 +1,62 @@
+"""A frame: what one detection runs on, loaded from a KITTI object layout folder."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.calib import Calibration
+from pipeline.errors import InputError
+from pipeline.kitti import Object3D, read_calib, read_image, read_labels, read_velodyne
+
+
+@dataclass
+class Frame:
+    """Camera image, LiDAR scan and calibration of one moment.
+
+    image: uint8 RGB (H, W, 3). points: float32 (N, 4) velodyne points.
+    labels: ground truth when the dataset has it. dropped_nonfinite: points
+    removed on load because a value was NaN or infinite.
+    """
+
+    frame_id: str
+    image: np.ndarray
+    points: np.ndarray
+    calib: Calibration
+    labels: list[Object3D] | None = None
+    dropped_nonfinite: int = 0
+
+    @property
+    def image_hw(self) -> tuple[int, int]:
+        return (int(self.image.shape[0]), int(self.image.shape[1]))
+
+
+def frame_ids(data_dir: str | Path, split_file: str | Path | None = None) -> list[str]:
+    """Frame ids of a KITTI object folder: from a split file (one id per line) or the velodyne folder."""
+    data_dir = Path(data_dir)
+    if split_file is not None:
+        try:
+            return [line.strip() for line in Path(split_file).read_text().splitlines() if line.strip()]
+        except OSError as exc:
+            raise InputError(f"{split_file}: cannot read split file ({exc.strerror})") from exc
+    velodyne = data_dir / "velodyne"
+    if not velodyne.is_dir():
+        raise InputError(f"{data_dir}: not a KITTI object folder (no velodyne/ inside)")
+    return sorted(p.stem for p in velodyne.glob("*.bin"))
+
+
+def load_frame(data_dir: str | Path, frame_id: str, with_labels: bool = True) -> Frame:
+    """Load ``image_2/ID.png``, ``velodyne/ID.bin``, ``calib/ID.txt`` (and ``label_2/ID.txt`` if present)."""
+    data_dir = Path(data_dir)
+    scan = read_velodyne(data_dir / "velodyne" / f"{frame_id}.bin")
+    label_path = data_dir / "label_2" / f"{frame_id}.txt"
+    return Frame(
+        frame_id=frame_id,
+        image=read_image(data_dir / "image_2" / f"{frame_id}.png"),
+        points=scan.points,
+        calib=read_calib(data_dir / "calib" / f"{frame_id}.txt"),
+        labels=read_labels(label_path) if with_labels and label_path.exists() else None,
+        dropped_nonfinite=scan.dropped_nonfinite,
+    )

@@ -1,0 +1,139 @@
+"""Exact rotated-rectangle IoU in the ground plane, vectorized over box pairs, and rotated NMS.
+
+Boxes here are rows ``[x, y, l, w, yaw]`` (float64) in any right-handed 2D frame:
+centre, length along the heading, width across it, heading angle.
+
+The intersection of two convex quadrilaterals is the convex polygon whose
+vertices are: corners of A inside B, corners of B inside A, and the crossing
+points of A's edges with B's edges. For every pair we gather those (at most
+24) candidates with a validity mask, order the valid ones by angle around
+their mean, and take the shoelace area — all as array operations over pairs.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_EPS = 1e-9
+
+
+def rect_corners(boxes: np.ndarray) -> np.ndarray:
+    """(N, 5) ``[x, y, l, w, yaw]`` → (N, 4, 2) corners, counter-clockwise."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
+    cos, sin = np.cos(boxes[:, 4]), np.sin(boxes[:, 4])
+    half_l, half_w = boxes[:, 2] / 2, boxes[:, 3] / 2
+    # Local corner offsets (front-left, rear-left, rear-right, front-right) are CCW.
+    local_x = np.array([1.0, -1.0, -1.0, 1.0])[None, :] * half_l[:, None]
+    local_y = np.array([1.0, 1.0, -1.0, -1.0])[None, :] * half_w[:, None]
+    # Order CCW: (+l,+w) → (-l,+w) → (-l,-w) → (+l,-w).
+    xs = boxes[:, 0:1] + local_x * cos[:, None] - local_y * sin[:, None]
+    ys = boxes[:, 1:2] + local_x * sin[:, None] + local_y * cos[:, None]
+    return np.stack([xs, ys], axis=-1)
+
+
+def _inside(points: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """(P, K, 2) points tested against (P, 4, 2) CCW quads → (P, K) bool (boundary counts as inside)."""
+    edge_start = poly[:, None, :, :]  # (P, 1, 4, 2)
+    edge_vec = np.roll(poly, -1, axis=1)[:, None, :, :] - edge_start
+    rel = points[:, :, None, :] - edge_start  # (P, K, 4, 2)
+    cross = edge_vec[..., 0] * rel[..., 1] - edge_vec[..., 1] * rel[..., 0]
+    scale = np.linalg.norm(edge_vec, axis=-1) + _EPS
+    return np.all(cross / scale >= -1e-9, axis=-1)
+
+
+def _edge_crossings(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Crossings of every edge of A with every edge of B: (P, 16, 2) points and (P, 16) validity."""
+    p = a[:, :, None, :]  # (P, 4, 1, 2) start of A's edges
+    r = (np.roll(a, -1, axis=1) - a)[:, :, None, :]
+    q = b[:, None, :, :]  # (P, 1, 4, 2)
+    s = (np.roll(b, -1, axis=1) - b)[:, None, :, :]
+    denom = r[..., 0] * s[..., 1] - r[..., 1] * s[..., 0]  # (P, 4, 4)
+    qp = q - p
+    parallel = np.abs(denom) < 1e-12
+    safe = np.where(parallel, 1.0, denom)
+    t = (qp[..., 0] * s[..., 1] - qp[..., 1] * s[..., 0]) / safe
+    u = (qp[..., 0] * r[..., 1] - qp[..., 1] * r[..., 0]) / safe
+    valid = ~parallel & (t >= -1e-12) & (t <= 1 + 1e-12) & (u >= -1e-12) & (u <= 1 + 1e-12)
+    points = p + t[..., None] * r
+    n = a.shape[0]
+    return points.reshape(n, 16, 2), valid.reshape(n, 16)
+
+
+def intersection_area_pairs(corners_a: np.ndarray, corners_b: np.ndarray) -> np.ndarray:
+    """Intersection areas of paired convex CCW quads (P, 4, 2) and (P, 4, 2) → (P,)."""
+    n = corners_a.shape[0]
+    if n == 0:
+        return np.zeros(0)
+    crossings, crossing_valid = _edge_crossings(corners_a, corners_b)
+    candidates = np.concatenate([corners_a, corners_b, crossings], axis=1)  # (P, 24, 2)
+    valid = np.concatenate([_inside(corners_a, corners_b), _inside(corners_b, corners_a), crossing_valid], axis=1)
+    count = valid.sum(axis=1)
+    weights = valid / np.maximum(count, 1)[:, None]
+    centre = np.einsum("pk,pkd->pd", weights, candidates)
+    rel = candidates - centre[:, None, :]
+    angle = np.where(valid, np.arctan2(rel[..., 1], rel[..., 0]), np.inf)
+    order = np.argsort(angle, axis=1)
+    ordered = np.take_along_axis(rel, order[..., None], axis=1)
+    ordered_valid = np.take_along_axis(valid, order, axis=1)
+    # Invalid slots (sorted last) repeat the first vertex: their shoelace terms vanish.
+    ordered = np.where(ordered_valid[..., None], ordered, ordered[:, :1, :])
+    nxt = np.roll(ordered, -1, axis=1)
+    area = 0.5 * np.abs(np.sum(ordered[..., 0] * nxt[..., 1] - ordered[..., 1] * nxt[..., 0], axis=1))
+    return np.where(count >= 3, area, 0.0)
+
+
+def rotated_iou_pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of paired boxes: (P, 5) and (P, 5) ``[x, y, l, w, yaw]`` → (P,)."""
+    a = np.asarray(a, np.float64).reshape(-1, 5)
+    b = np.asarray(b, np.float64).reshape(-1, 5)
+    inter = intersection_area_pairs(rect_corners(a), rect_corners(b))
+    union = a[:, 2] * a[:, 3] + b[:, 2] * b[:, 3] - inter
+    return np.where(union > 0, inter / np.maximum(union, _EPS), 0.0)
+
+
+def rotated_intersection_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, M) intersection areas; pairs whose circumscribed circles are apart are 0 without clipping."""
+    a = np.asarray(a, np.float64).reshape(-1, 5)
+    b = np.asarray(b, np.float64).reshape(-1, 5)
+    out = np.zeros((a.shape[0], b.shape[0]))
+    if out.size == 0:
+        return out
+    radius_a = 0.5 * np.hypot(a[:, 2], a[:, 3])
+    radius_b = 0.5 * np.hypot(b[:, 2], b[:, 3])
+    dist = np.hypot(a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1])
+    ia, ib = np.nonzero(dist <= radius_a[:, None] + radius_b[None, :])
+    if ia.size:
+        out[ia, ib] = intersection_area_pairs(rect_corners(a)[ia], rect_corners(b)[ib])
+    return out
+
+
+def rotated_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, 5) × (M, 5) ``[x, y, l, w, yaw]`` → (N, M) exact rotated IoU (a box with itself gives 1)."""
+    a = np.asarray(a, np.float64).reshape(-1, 5)
+    b = np.asarray(b, np.float64).reshape(-1, 5)
+    inter = rotated_intersection_matrix(a, b)
+    union = (a[:, 2] * a[:, 3])[:, None] + (b[:, 2] * b[:, 3])[None, :] - inter
+    return np.where(union > 0, inter / np.maximum(union, _EPS), 0.0)
+
+
+def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max_keep: int | None = None) -> np.ndarray:
+    """Greedy NMS on rotated BEV boxes: indices of kept boxes, best score first.
+
+    The IoU matrix is computed once for all pairs (vectorized); the greedy pass
+    then walks the boxes in score order, one row of that matrix at a time.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
+    order = np.argsort(-np.asarray(scores), kind="stable")
+    if order.size == 0:
+        return order
+    iou = rotated_iou_matrix(boxes[order], boxes[order])
+    suppressed = np.zeros(order.size, dtype=bool)
+    keep: list[int] = []
+    for i in range(order.size):
+        if suppressed[i]:
+            continue
+        keep.append(i)
+        if max_keep is not None and len(keep) >= max_keep:
+            break
+        suppressed |= iou[i] > iou_threshold
+    return order[np.asarray(keep, dtype=np.int64)]

@@ -1,0 +1,63 @@
+"""Model directory integrity: read ``manifest.json`` and check each file's sha256.
+
+Imports only json, hashlib and pathlib so the runtime (and the service
+container, which has no torch) can refuse a corrupted or swapped model file
+before ONNX Runtime ever parses it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+MANIFEST_NAME = "manifest.json"
+_CHUNK = 1 << 20
+
+
+class ModelFileError(RuntimeError):
+    """A model directory is missing a file, has a malformed manifest, or a file's checksum differs."""
+
+
+def sha256_file(path: str | Path) -> str:
+    """Hex sha256 of a file, read in 1 MiB chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for chunk in iter(lambda: handle.read(_CHUNK), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def load_manifest(directory: str | Path) -> dict:
+    """Parse ``directory/manifest.json``; ModelFileError if it is missing or not a manifest."""
+    path = Path(directory) / MANIFEST_NAME
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ModelFileError(f"{path}: no manifest; export the models with `python -m export`") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ModelFileError(f"{path}: unreadable manifest ({exc})") from exc
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict) or not manifest["files"]:
+        raise ModelFileError(f"{path}: manifest has no 'files' table with sha256 checksums")
+    return manifest
+
+
+def verify_sha256(directory: str | Path, manifest: dict) -> None:
+    """Check every file listed in ``manifest["files"]`` against its sha256.
+
+    Raises ModelFileError naming the first missing or mismatching file.
+    """
+    directory = Path(directory)
+    for name, entry in manifest["files"].items():
+        path = directory / name
+        expected = entry.get("sha256") if isinstance(entry, dict) else None
+        if not expected:
+            raise ModelFileError(f"{directory / MANIFEST_NAME}: no sha256 for {name}")
+        if not path.is_file():
+            raise ModelFileError(f"{path}: model file listed in the manifest is missing")
+        actual = sha256_file(path)
+        if actual != expected:
+            raise ModelFileError(
+                f"{path}: sha256 mismatch (manifest {expected[:12]}…, file {actual[:12]}…): "
+                "the file is corrupted or was replaced; re-export the model directory"
+            )

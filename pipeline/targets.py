@@ -1,0 +1,118 @@
+"""PIXOR targets: boxes ↔ (score map, 6-channel regression map) on the output grid.
+
+The output grid has the BEV grid's layout at 1/``stride`` resolution: row i,
+column j is the cell centred at ``y_min + (i + ½)·s``, ``x_min + (j + ½)·s``
+with ``s = cell · stride``. A cell is positive when its centre lies inside a
+box (the box with the nearest centre wins where boxes touch). Its regression
+target is ``cos θ, sin θ, dx, dy, log w, log l`` (dx, dy from the cell centre
+to the box centre), stored normalised as ``(t - mean) / std``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipeline.presets import BevGrid, DecodeConfig
+
+
+@dataclass(frozen=True)
+class OutputGrid:
+    """Geometry of the network's output maps."""
+
+    x_min: float
+    y_min: float
+    step: float  # metres per output cell
+    ny: int
+    nx: int
+
+    @classmethod
+    def from_bev(cls, grid: BevGrid, stride: int) -> "OutputGrid":
+        return cls(grid.x_min, grid.y_min, grid.cell * stride, grid.ny // stride, grid.nx // stride)
+
+    def centres(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ny, nx) arrays of cell-centre x and y."""
+        xs = self.x_min + (np.arange(self.nx) + 0.5) * self.step
+        ys = self.y_min + (np.arange(self.ny) + 0.5) * self.step
+        return np.meshgrid(xs, ys)
+
+
+@dataclass(frozen=True)
+class PixorTargets:
+    """score: float32 (ny, nx) 1 on positive cells; regression: float32 (6, ny, nx) normalised."""
+
+    score: np.ndarray
+    regression: np.ndarray
+
+
+def assign_cells(boxes: np.ndarray, out: OutputGrid) -> np.ndarray:
+    """Index of the box owning each output cell, -1 for background: int64 (ny, nx)."""
+    owner = np.full((out.ny, out.nx), -1, dtype=np.int64)
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    if boxes.shape[0] == 0:
+        return owner
+    cx, cy = out.centres()
+    rel_x = cx.reshape(-1, 1) - boxes[None, :, 0]
+    rel_y = cy.reshape(-1, 1) - boxes[None, :, 1]
+    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+    along = rel_x * cos + rel_y * sin
+    across = -rel_x * sin + rel_y * cos
+    inside = (np.abs(along) <= boxes[:, 3] / 2) & (np.abs(across) <= boxes[:, 4] / 2)
+    distance = np.where(inside, rel_x**2 + rel_y**2, np.inf)
+    nearest = np.argmin(distance, axis=1)
+    has_box = inside.any(axis=1)
+    owner.reshape(-1)[has_box] = nearest[has_box]
+    return owner
+
+
+def encode_targets(boxes: np.ndarray, grid: BevGrid, stride: int, decode: DecodeConfig) -> PixorTargets:
+    """(N, 7) LiDAR-frame boxes → PIXOR score and regression targets."""
+    out = OutputGrid.from_bev(grid, stride)
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    owner = assign_cells(boxes, out)
+    score = (owner >= 0).astype(np.float32)
+    regression = np.zeros((6, out.ny, out.nx), dtype=np.float32)
+    rows, cols = np.nonzero(owner >= 0)
+    if rows.size:
+        b = boxes[owner[rows, cols]]
+        cx, cy = out.centres()
+        raw = np.stack([
+            np.cos(b[:, 6]), np.sin(b[:, 6]),
+            b[:, 0] - cx[rows, cols], b[:, 1] - cy[rows, cols],
+            np.log(b[:, 4]), np.log(b[:, 3]),
+        ])
+        mean = np.asarray(decode.reg_mean)[:, None]
+        std = np.asarray(decode.reg_std)[:, None]
+        regression[:, rows, cols] = (raw - mean) / std
+    return PixorTargets(score=score, regression=regression)
+
+
+def decode_maps(
+    score: np.ndarray, regression: np.ndarray, grid: BevGrid, stride: int, decode: DecodeConfig,
+    score_threshold: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Network maps → candidate BEV boxes ``[x, y, l, w, yaw]`` (K, 5) and scores (K,), best first.
+
+    score: (ny, nx) probabilities; regression: (6, ny, nx) normalised targets.
+    Keeps cells above the threshold, at most ``decode.max_candidates`` of them.
+    """
+    threshold = decode.score_threshold if score_threshold is None else score_threshold
+    out = OutputGrid.from_bev(grid, stride)
+    flat_score = score.reshape(-1)
+    candidates = np.flatnonzero(flat_score >= threshold)
+    if candidates.size > decode.max_candidates:
+        top = np.argpartition(-flat_score[candidates], decode.max_candidates - 1)[: decode.max_candidates]
+        candidates = candidates[top]
+    candidates = candidates[np.argsort(-flat_score[candidates], kind="stable")]
+    rows, cols = np.divmod(candidates, out.nx)
+    mean = np.asarray(decode.reg_mean, np.float64)[:, None]
+    std = np.asarray(decode.reg_std, np.float64)[:, None]
+    raw = regression.reshape(6, -1)[:, candidates].astype(np.float64) * std + mean
+    cx = out.x_min + (cols + 0.5) * out.step
+    cy = out.y_min + (rows + 0.5) * out.step
+    boxes = np.column_stack([
+        cx + raw[2], cy + raw[3], np.exp(np.clip(raw[5], -3, 3)), np.exp(np.clip(raw[4], -3, 3)),
+        np.arctan2(raw[1], raw[0]),
+    ])
+    return boxes, flat_score[candidates].astype(np.float64)

@@ -1,0 +1,19 @@
+"""Shared fixtures: the real KITTI samples copied from ../shared/data (see tests/data/README.md)."""
+
+from pathlib import Path
+
+import pytest
+
+DATA = Path(__file__).parent / "data"
+KITTI = DATA / "kitti" / "training"
+FRAMES = ["000000", "000001", "000003", "000004", "000006"]
+
+
+@pytest.fixture(scope="session")
+def kitti_dir() -> Path:
+    return KITTI
+
+
+@pytest.fixture(scope="session")
+def depth_completion_dir() -> Path:
+    return DATA / "depth_completion"

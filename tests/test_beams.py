@@ -1,0 +1,106 @@
+"""Ring recovery and beam emulation on the real 64-line scans, and the folder command."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.beams import convert_folder, elevation_deg, emulate_beams, recover_rings, select_rings
+from pipeline.errors import InputError
+from pipeline.kitti import read_velodyne
+from tests.conftest import FRAMES, KITTI
+
+
+def scan(frame_id: str) -> np.ndarray:
+    return read_velodyne(KITTI / "velodyne" / f"{frame_id}.bin").points
+
+
+@pytest.mark.parametrize("frame_id", FRAMES)
+def test_ring_recovery_finds_64_rings(frame_id):
+    rings = recover_rings(scan(frame_id))
+    assert rings.method == "azimuth-wrap"
+    assert abs(rings.n_rings - 64) <= 1
+    # Rings are numbered by elevation: medians increase, spanning the HDL-64E field of view.
+    assert np.all(np.diff(rings.elevation_deg) >= 0)
+    assert -26 < rings.elevation_deg[0] < -22 and 1 < rings.elevation_deg[-1] < 3.5
+
+
+@pytest.mark.parametrize("frame_id", FRAMES)
+def test_16_line_emulation_keeps_16_rings_and_a_quarter(frame_id):
+    points = scan(frame_id)
+    kept = emulate_beams(points, 16)
+    assert 0.24 <= kept.shape[0] / points.shape[0] <= 0.26
+    again = recover_rings(kept, expected_rings=16)
+    assert again.n_rings == 16
+    # Kept points are a subset, in their original order.
+    source_index = {row.tobytes(): i for i, row in enumerate(points)}
+    positions = np.array([source_index[row.tobytes()] for row in kept[::97]])
+    assert np.all(np.diff(positions) > 0)
+
+
+@pytest.mark.parametrize("beams", [32, 16, 8, 4])
+def test_every_kth_ring(beams):
+    points = scan("000006")
+    rings = recover_rings(points)
+    kept = select_rings(rings, beams)
+    assert kept.size == beams
+    assert np.all(np.diff(kept) == 64 // beams)
+    assert kept[-1] == rings.n_rings - 1  # the top ring is always kept
+    fraction = emulate_beams(points, beams).shape[0] / points.shape[0]
+    assert fraction == pytest.approx(beams / 64, abs=0.02)
+
+
+def test_lost_order_falls_back_to_elevation_clusters():
+    points = scan("000006")
+    shuffled = points[np.random.default_rng(0).permutation(points.shape[0])]
+    rings = recover_rings(shuffled)
+    assert rings.method == "elevation-clusters"
+    assert rings.n_rings == 64
+    fraction = emulate_beams(shuffled, 16).shape[0] / points.shape[0]
+    assert 0.2 < fraction < 0.3
+
+
+def test_vlp16_mode_keeps_rings_near_vlp16_angles():
+    points = scan("000006")
+    rings = recover_rings(points)
+    kept = select_rings(rings, 16, "vlp16")
+    # −15° … +1° in 2° steps lie inside the HDL-64E field: 9 lines.
+    assert kept.size == 9
+    targets = np.arange(-15.0, 2.0, 2.0)
+    assert np.abs(rings.elevation_deg[kept] - targets).max() < 0.5
+    thinned = emulate_beams(points, 16, "vlp16")
+    assert np.abs(elevation_deg(thinned)).max() < 16
+
+
+def test_bad_beam_count():
+    with pytest.raises(InputError, match="must divide 64"):
+        emulate_beams(scan("000006"), 12)
+
+
+def test_folder_command_never_touches_source(tmp_path):
+    src = tmp_path / "velodyne"
+    src.mkdir()
+    for frame_id in ("000003", "000006"):
+        (src / f"{frame_id}.bin").write_bytes((KITTI / "velodyne" / f"{frame_id}.bin").read_bytes())
+    before = {p.name: p.read_bytes() for p in src.iterdir()}
+    dst = tmp_path / "velodyne16"
+    result = subprocess.run(
+        [sys.executable, "-m", "pipeline.beams", "--beams", "16", str(src), str(dst)],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert result.returncode == 0, result.stderr
+    assert {p.name: p.read_bytes() for p in src.iterdir()} == before
+    for name in before:
+        out = read_velodyne(dst / name).points
+        np.testing.assert_array_equal(out, emulate_beams(read_velodyne(src / name).points, 16))
+    refused = subprocess.run(
+        [sys.executable, "-m", "pipeline.beams", str(src), str(src / "inside")], capture_output=True, text=True,
+    )
+    assert refused.returncode == 2 and "must not be the source" in refused.stderr
+    assert "Traceback" not in refused.stderr
+
+
+def test_convert_folder_rejects_missing_source(tmp_path):
+    with pytest.raises(InputError, match="not a directory"):
+        convert_folder(tmp_path / "missing", tmp_path / "out", 16, progress=False)

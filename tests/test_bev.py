@@ -1,0 +1,81 @@
+"""BEV voxelization against a plain per-point reference loop."""
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.bev import BevVoxelizer, voxelize_bev
+from pipeline.kitti import read_velodyne
+from pipeline.presets import PRESETS, BevGrid
+from tests.conftest import KITTI
+
+
+def reference_voxelize(points: np.ndarray, grid: BevGrid) -> np.ndarray:
+    """The definition, one point at a time: floor bins, occupancy, mean reflectance."""
+    out = np.zeros(grid.shape, np.float32)
+    sums = np.zeros((grid.ny, grid.nx))
+    counts = np.zeros((grid.ny, grid.nx))
+    for x, y, z, r in points.tolist():
+        ix = math.floor((x - grid.x_min) / grid.cell)
+        iy = math.floor((y - grid.y_min) / grid.cell)
+        iz = math.floor((z - grid.z_min) / grid.z_cell)
+        if 0 <= ix < grid.nx and 0 <= iy < grid.ny and 0 <= iz < grid.nz:
+            out[iz, iy, ix] = 1.0
+            sums[iy, ix] += r
+            counts[iy, ix] += 1
+    np.divide(sums, counts, out=sums, where=counts > 0)
+    out[grid.nz] = sums
+    return out
+
+
+def random_cloud(grid: BevGrid, n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    margin = 2.0
+    points = np.column_stack([
+        rng.uniform(grid.x_min - margin, grid.x_max + margin, n),
+        rng.uniform(grid.y_min - margin, grid.y_max + margin, n),
+        rng.uniform(grid.z_min - margin, grid.z_max + margin, n),
+        rng.uniform(0, 1, n),
+    ])
+    # A third of the points exactly on bin edges (and the grid's own borders).
+    edges = rng.random((n, 3)) < 0.33
+    points[:, 0] = np.where(edges[:, 0], grid.x_min + rng.integers(-2, grid.nx + 2, n) * grid.cell, points[:, 0])
+    points[:, 1] = np.where(edges[:, 1], grid.y_min + rng.integers(-2, grid.ny + 2, n) * grid.cell, points[:, 1])
+    points[:, 2] = np.where(edges[:, 2], grid.z_min + rng.integers(-2, grid.nz + 2, n) * grid.z_cell, points[:, 2])
+    return points.astype(np.float32)
+
+
+@pytest.mark.parametrize("preset", ["paper", "edge", "tiny"])
+def test_equals_reference_loop_on_random_clouds(preset):
+    grid = PRESETS[preset].bev
+    points = random_cloud(grid, 20000, seed=1)
+    np.testing.assert_array_equal(voxelize_bev(points, grid), reference_voxelize(points, grid))
+
+
+def test_layout_of_a_single_point():
+    grid = BevGrid()
+    bev = voxelize_bev(np.array([[12.34, -5.0, 0.05, 0.7]], np.float32), grid)
+    assert bev.shape == (36, 800, 700) and bev.dtype == np.float32
+    # x 12.34 → column 123; y -5.0 (an edge) → row 350; z 0.05 → slice 25.
+    assert bev[25, 350, 123] == 1.0
+    assert bev[35, 350, 123] == pytest.approx(0.7)
+    assert np.count_nonzero(bev) == 2
+
+
+def test_reused_buffer_clears_previous_frame():
+    grid = PRESETS["edge"].bev
+    voxelizer = BevVoxelizer(grid)
+    first = random_cloud(grid, 5000, seed=2)
+    second = random_cloud(grid, 3000, seed=3)
+    voxelizer(first)
+    np.testing.assert_array_equal(voxelizer(second), reference_voxelize(second, grid))
+    np.testing.assert_array_equal(voxelizer(np.zeros((0, 4), np.float32)), np.zeros(grid.shape, np.float32))
+
+
+def test_real_scan_equals_reference():
+    points = read_velodyne(KITTI / "velodyne" / "000006.bin").points
+    grid = BevGrid()
+    bev = voxelize_bev(points, grid)
+    np.testing.assert_array_equal(bev, reference_voxelize(points, grid))
+    assert 10000 < np.count_nonzero(bev[:35]) < 60000

@@ -1,0 +1,135 @@
+"""Boxes: label ↔ LiDAR conversion on real labels, rotated IoU against shapely, targets, NMS."""
+
+import numpy as np
+import pytest
+from shapely.geometry import Polygon
+
+from pipeline.boxes import bev_corners, box_corners_3d, boxes_to_objects, labels_to_boxes, points_in_boxes
+from pipeline.frame import load_frame
+from pipeline.iou import rect_corners, rotated_iou_matrix, rotated_iou_pairs, rotated_nms
+from pipeline.presets import PRESETS
+from pipeline.targets import decode_maps, encode_targets
+from tests.conftest import FRAMES, KITTI
+
+
+def test_every_car_of_000006_contains_lidar_points():
+    frame = load_frame(KITTI, "000006")
+    cars = [o for o in frame.labels if o.type == "Car"]
+    boxes = labels_to_boxes(cars, frame.calib)
+    inside = points_in_boxes(frame.points, boxes).sum(axis=0)
+    assert len(cars) == 4 and (inside >= 5).all()
+    # The nearest car (19.7 m) holds by far the most points.
+    assert inside.argmax() == int(np.argmin(boxes[:, 0]))
+
+
+@pytest.mark.parametrize("frame_id", FRAMES)
+def test_label_box_label_roundtrip(frame_id):
+    frame = load_frame(KITTI, frame_id)
+    objects = [o for o in frame.labels if o.type != "DontCare"]
+    boxes = labels_to_boxes(objects, frame.calib)
+    back = boxes_to_objects(boxes, frame.calib, frame.image_hw, scores=np.ones(len(boxes)))
+    for original, again in zip(objects, back):
+        np.testing.assert_allclose(again.location, original.location, atol=1e-9)
+        np.testing.assert_allclose(again.dimensions, original.dimensions, atol=1e-12)
+        assert np.cos(again.rotation_y - original.rotation_y) == pytest.approx(1.0, abs=1e-12)
+        assert np.cos(again.alpha - original.alpha) == pytest.approx(1.0, abs=2e-4)  # labels give alpha to 0.01
+        if original.type == "Car" and original.truncated == 0:  # a car fills its projected 3D box
+            np.testing.assert_allclose(again.bbox, original.bbox, atol=3.0)
+
+
+def test_corners_layout():
+    box = np.array([[10.0, 2.0, -1.0, 4.0, 2.0, 1.5, np.pi / 2]])
+    corners = bev_corners(box)[0]
+    np.testing.assert_allclose(corners, [[9, 4], [9, 0], [11, 0], [11, 4]], atol=1e-12)
+    c3 = box_corners_3d(box)[0]
+    np.testing.assert_allclose(c3[:4, 2], -1.75) and np.testing.assert_allclose(c3[4:, 2], -0.25)
+
+
+def random_boxes(rng, n):
+    return np.column_stack([
+        rng.uniform(-3, 3, (n, 2)), rng.uniform(0.3, 6, n), rng.uniform(0.3, 3, n), rng.uniform(-np.pi, np.pi, n)
+    ])
+
+
+def shapely_iou(a, b):
+    pa, pb = Polygon(rect_corners(a)[0]), Polygon(rect_corners(b)[0])
+    return pa.intersection(pb).area / pa.union(pb).area
+
+
+def test_rotated_iou_matches_shapely_on_10000_pairs():
+    rng = np.random.default_rng(7)
+    a, b = random_boxes(rng, 10000), random_boxes(rng, 10000)
+    # Include pairs sharing a centre or an angle, the degenerate cases for clipping.
+    b[:1000, :2] = a[:1000, :2]
+    b[1000:2000, 4] = a[1000:2000, 4]
+    ours = rotated_iou_pairs(a, b)
+    reference = np.array([shapely_iou(a[i : i + 1], b[i : i + 1]) for i in range(len(a))])
+    assert np.abs(ours - reference).max() < 1e-6
+    assert 0.2 < (reference > 0).mean() < 0.9
+
+
+def test_rotated_iou_known_cases():
+    box = np.array([[0, 0, 4, 2, 0.3]])
+    assert rotated_iou_pairs(box, box)[0] == pytest.approx(1.0, abs=1e-12)
+    shifted = np.array([[2, 0, 4, 2, 0.0]])
+    assert rotated_iou_pairs(np.array([[0, 0, 4, 2, 0.0]]), shifted)[0] == pytest.approx(1 / 3)
+    turned = np.array([[0, 0, 2, 2, np.pi / 4]])  # a square against itself turned 45°
+    assert rotated_iou_pairs(np.array([[0, 0, 2, 2, 0.0]]), turned)[0] == pytest.approx((8 * (np.sqrt(2) - 1)) / (8 - 8 * (np.sqrt(2) - 1)))
+    far = np.array([[50, 50, 4, 2, 0.0]])
+    assert rotated_iou_pairs(box, far)[0] == 0.0
+    # Same box with heading flipped by π is the same rectangle.
+    assert rotated_iou_pairs(box, box + [0, 0, 0, 0, np.pi])[0] == pytest.approx(1.0, abs=1e-12)
+
+
+def test_iou_matrix_equals_pairs():
+    rng = np.random.default_rng(3)
+    a, b = random_boxes(rng, 30), random_boxes(rng, 20)
+    matrix = rotated_iou_matrix(a, b)
+    ia, ib = np.meshgrid(np.arange(30), np.arange(20), indexing="ij")
+    np.testing.assert_allclose(matrix.reshape(-1), rotated_iou_pairs(a[ia.ravel()], b[ib.ravel()]), atol=1e-12)
+    assert rotated_iou_matrix(a[:0], b).shape == (0, 20)
+
+
+def test_nms_keeps_what_it_should():
+    boxes = np.array([
+        [10, 0, 4, 2, 0.0],
+        [10.2, 0, 4, 2, 0.05],  # duplicate of 0, lower score → suppressed
+        [20, 5, 4, 2, 1.0],  # far away → kept
+        [10, 2.1, 4, 2, 0.0],  # touching but not overlapping box 0 → kept
+    ])
+    scores = np.array([0.9, 0.8, 0.7, 0.95])
+    keep = rotated_nms(boxes, scores, iou_threshold=0.1)
+    assert keep.tolist() == [3, 0, 2]
+    assert rotated_nms(boxes, scores, iou_threshold=0.1, max_keep=2).tolist() == [3, 0]
+    assert rotated_nms(boxes[:0], scores[:0], 0.1).size == 0
+
+
+@pytest.mark.parametrize("preset", ["paper", "edge"])
+def test_encode_decode_recovers_boxes(preset):
+    p = PRESETS[preset]
+    frame = load_frame(KITTI, "000006")
+    boxes = labels_to_boxes([o for o in frame.labels if o.type == "Car"], frame.calib)
+    targets = encode_targets(boxes, p.bev, p.pixor.output_stride, p.decode)
+    assert targets.score.shape == (p.bev.ny // 4, p.bev.nx // 4)
+    assert targets.regression.shape == (6, *targets.score.shape)
+    candidates, scores = decode_maps(targets.score, targets.regression, p.bev, p.pixor.output_stride, p.decode)
+    keep = rotated_nms(candidates, scores, 0.1)
+    decoded = candidates[keep]
+    assert len(decoded) == len(boxes)
+    iou = rotated_iou_matrix(decoded, boxes[:, [0, 1, 3, 4, 6]])
+    assert (iou.max(axis=0) > 0.999).all()
+
+
+def test_encoding_owner_is_nearest_box():
+    p = PRESETS["paper"]
+    # Two boxes overlapping in BEV: each cell goes to the closer centre.
+    boxes = np.array([[20.0, 0.0, -1, 4.0, 2.0, 1.5, 0.0], [22.0, 0.0, -1, 4.0, 2.0, 1.5, 0.0]])
+    targets = encode_targets(boxes, p.bev, 4, p.decode)
+    rows, cols = np.nonzero(targets.score)
+    std, mean = np.array(p.decode.reg_std), np.array(p.decode.reg_mean)
+    dx = targets.regression[2, rows, cols] * std[2] + mean[2]
+    cell_x = p.bev.x_min + (cols + 0.5) * p.bev.cell * 4
+    overlap = (cell_x > 20.0) & (cell_x < 22.0)
+    assert overlap.sum() > 0
+    assert np.abs(dx[overlap]).max() <= 1.0 + 1e-6  # never the farther of the two centres
+    assert np.abs(dx).max() > 1.5  # outside the overlap the only box owns the cell

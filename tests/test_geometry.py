@@ -1,0 +1,90 @@
+"""Calibration, projection, the depth-net crop, sparse depth and pseudo points on real frames."""
+
+import numpy as np
+import pytest
+
+from pipeline.calib import crop_calibration, depth_crop, sparse_depth_map
+from pipeline.errors import InputError
+from pipeline.frame import load_frame
+from pipeline.pseudo import depth_to_points, merge_points
+from tests.conftest import FRAMES, KITTI
+
+
+@pytest.mark.parametrize("frame_id", FRAMES)
+def test_project_and_backproject_within_1mm(frame_id):
+    frame = load_frame(KITTI, frame_id)
+    xyz = frame.points[:, :3].astype(np.float64)
+    uv, depth = frame.calib.velo_to_image(xyz)
+    front = depth > 1.0
+    back = frame.calib.image_to_velo(uv[front, 0], uv[front, 1], depth[front])
+    assert np.abs(back - xyz[front]).max() < 1e-3
+
+
+def test_velo_rect_roundtrip_is_exact():
+    frame = load_frame(KITTI, "000006")
+    xyz = frame.points[:1000, :3].astype(np.float64)
+    np.testing.assert_allclose(frame.calib.rect_to_velo(frame.calib.velo_to_rect(xyz)), xyz, atol=1e-9)
+
+
+@pytest.mark.parametrize("frame_id", FRAMES)
+def test_crop_shifts_intrinsics_exactly(frame_id):
+    frame = load_frame(KITTI, frame_id)
+    crop = depth_crop(frame.image_hw)
+    assert crop.top == frame.image_hw[0] - 352 and crop.height == 352 and crop.width == 1216
+    assert crop.left == (frame.image_hw[1] - 1216) // 2
+    cropped = crop_calibration(frame.calib, crop)
+    uv, depth = frame.calib.velo_to_image(frame.points[:, :3])
+    uv_c, depth_c = cropped.velo_to_image(frame.points[:, :3])
+    np.testing.assert_allclose(uv_c, uv - [crop.left, crop.top], atol=1e-9)
+    np.testing.assert_allclose(depth_c, depth, atol=1e-12)
+    assert crop.apply(frame.image).shape == (352, 1216, 3)
+
+
+def test_crop_refuses_small_image():
+    with pytest.raises(InputError, match="smaller than the model's 1216×352 crop"):
+        depth_crop((300, 1242))
+
+
+def test_sparse_depth_nearest_return_wins():
+    frame = load_frame(KITTI, "000006")
+    calib = frame.calib
+    # Three points on one camera ray: the nearest must win, wherever it is in the array.
+    xyz = calib.image_to_velo(np.full(3, 600.0), np.full(3, 200.0), np.array([20.0, 10.0, 30.0]))
+    points = np.column_stack([xyz, np.zeros(3)]).astype(np.float32)
+    depth_map = sparse_depth_map(points, calib, frame.image_hw)
+    assert np.count_nonzero(depth_map) == 1
+    assert depth_map[200, 600] == pytest.approx(10.0, rel=1e-6)
+
+
+def test_sparse_depth_of_real_scan_matches_projection():
+    frame = load_frame(KITTI, "000006")
+    depth_map = sparse_depth_map(frame.points, frame.calib, frame.image_hw)
+    filled = np.count_nonzero(depth_map) / depth_map.size
+    assert 0.03 < filled < 0.08  # a 64-line scan fills about 4–5 % of a KITTI image
+    # Every filled pixel is the minimum depth of the points landing on it.
+    uv, depth = frame.calib.velo_to_image(frame.points[:, :3])
+    cols, rows = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+    h, w = frame.image_hw
+    ok = (depth > 0.1) & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)
+    reference = np.full(h * w, np.inf)
+    np.minimum.at(reference, (rows[ok] * w + cols[ok]).astype(int), depth[ok])
+    reference[np.isinf(reference)] = 0
+    np.testing.assert_allclose(depth_map.reshape(-1), reference.astype(np.float32), rtol=1e-6)
+
+
+def test_pseudo_points_reproduce_the_scan_they_came_from():
+    frame = load_frame(KITTI, "000006")
+    depth_map = sparse_depth_map(frame.points, frame.calib, frame.image_hw)
+    pseudo = depth_to_points(depth_map, frame.calib, min_depth=0.9, max_depth=80.0)
+    assert pseudo.shape == (np.count_nonzero((depth_map >= 0.9) & (depth_map <= 80)), 4)
+    assert (pseudo[:, 3] == 0).all()
+    # Pixel rounding moves a point by at most half a pixel: under 3 cm at 80 m.
+    uv, _ = frame.calib.velo_to_image(pseudo[:, :3])
+    assert np.abs(uv - np.rint(uv)).max() < 1e-3
+    ranges = np.hypot(pseudo[:, 0], pseudo[:, 1])
+    assert ranges.max() < 81 and pseudo[:, 0].min() > 0
+    # Subsampling and height limit.
+    assert depth_to_points(depth_map, frame.calib, stride=2).shape[0] < pseudo.shape[0] / 3
+    assert (depth_to_points(depth_map, frame.calib, max_height=0.5)[:, 2] <= 0.5).all()
+    merged = merge_points(pseudo, frame.points)
+    assert merged.shape[0] == pseudo.shape[0] + frame.points.shape[0]

@@ -1,0 +1,123 @@
+"""KITTI file formats on the real samples, and clear errors on bad files."""
+
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.kitti import (
+    Object3D, decode_depth_png, format_label, parse_calib, parse_labels, parse_velodyne, read_calib,
+    read_depth_png, read_image, read_labels, read_velodyne, write_calib, write_depth_png, write_labels,
+    write_velodyne,
+)
+from tests.conftest import FRAMES, KITTI
+
+EXPECTED_POINTS = {"000000": 115384, "000001": 120268, "000003": 113110, "000004": 115976, "000006": 110089}
+EXPECTED_IMAGE = {"000000": (370, 1224), "000001": (375, 1242), "000006": (374, 1238)}
+
+
+@pytest.mark.parametrize("frame", FRAMES)
+def test_real_scans_read_with_expected_counts(frame):
+    scan = read_velodyne(KITTI / "velodyne" / f"{frame}.bin")
+    assert scan.points.shape == (EXPECTED_POINTS[frame], 4)
+    assert scan.points.dtype == np.float32
+    assert scan.dropped_nonfinite == 0
+
+
+def test_image_sizes_differ_per_frame():
+    for frame, hw in EXPECTED_IMAGE.items():
+        assert read_image(KITTI / "image_2" / f"{frame}.png").shape == (*hw, 3)
+
+
+def test_velodyne_roundtrip_and_nonfinite_dropped(tmp_path):
+    points = np.arange(40, dtype=np.float32).reshape(10, 4)
+    points[3, 1] = np.nan
+    points[7, 3] = np.inf
+    write_velodyne(tmp_path / "x.bin", points)
+    scan = read_velodyne(tmp_path / "x.bin")
+    assert scan.dropped_nonfinite == 2
+    assert np.isfinite(scan.points).all()
+    np.testing.assert_array_equal(scan.points, np.delete(points, [3, 7], axis=0))
+
+
+def test_velodyne_bad_size_names_file(tmp_path):
+    path = tmp_path / "broken.bin"
+    path.write_bytes(b"\0" * 17)
+    with pytest.raises(InputError, match=r"broken\.bin.*17 bytes.*multiple of 16"):
+        read_velodyne(path)
+
+
+def test_missing_scan_names_file(tmp_path):
+    with pytest.raises(InputError, match="nope.bin"):
+        read_velodyne(tmp_path / "nope.bin")
+
+
+def test_calib_roundtrip(tmp_path):
+    calib = read_calib(KITTI / "calib" / "000006.txt")
+    assert calib.P2[0, 0] == pytest.approx(718.3351)
+    write_calib(tmp_path / "c.txt", calib)
+    again = read_calib(tmp_path / "c.txt")
+    np.testing.assert_allclose(again.P2, calib.P2, rtol=1e-12)
+    np.testing.assert_allclose(again.R0_rect, calib.R0_rect, rtol=1e-12)
+    np.testing.assert_allclose(again.Tr_velo_to_cam, calib.Tr_velo_to_cam, rtol=1e-12)
+
+
+def test_calib_errors_name_key_and_line():
+    text = (KITTI / "calib" / "000006.txt").read_text()
+    without_r0 = "\n".join(line for line in text.splitlines() if not line.startswith("R0_rect"))
+    with pytest.raises(InputError, match=r"calib\.txt: missing calibration key\(s\) R0_rect"):
+        parse_calib(without_r0, "calib.txt")
+    short = text.replace("P2: 7.183351000000e+02 ", "P2: ")
+    with pytest.raises(InputError, match=r"line 3: P2 needs 12 numbers, got 11"):
+        parse_calib(short, "calib.txt")
+    with pytest.raises(InputError, match=r"line 5: R0_rect has a non-numeric value"):
+        parse_calib(text.replace("R0_rect: 9.999478000000e-01", "R0_rect: abc"), "calib.txt")
+
+
+def test_labels_read_and_roundtrip(tmp_path):
+    objects = read_labels(KITTI / "label_2" / "000006.txt")
+    assert [o.type for o in objects] == ["Car"] * 4 + ["DontCare"] * 2
+    assert objects[0].dimensions == (1.48, 1.56, 3.62)
+    assert objects[0].location == (-2.72, 0.82, 48.22)
+    write_labels(tmp_path / "l.txt", objects)
+    assert read_labels(tmp_path / "l.txt") == objects
+
+
+def test_label_lines_are_stable_and_scores_roundtrip(tmp_path):
+    objects = read_labels(KITTI / "label_2" / "000006.txt")
+    for obj in objects:
+        assert parse_labels(format_label(obj))[0] == obj
+    obj = Object3D("Car", 0.0, 0, 0.1, (1, 2, 3, 4), (1.5, 1.6, 3.9), (1.0, 1.5, 20.0), -1.2, score=0.8765)
+    write_labels(tmp_path / "r.txt", [obj])
+    line = (tmp_path / "r.txt").read_text().split()
+    assert len(line) == 16
+    assert read_labels(tmp_path / "r.txt")[0].score == pytest.approx(0.8765)
+
+
+def test_label_wrong_field_count_names_line():
+    text = "Car 0 0 0 1 2 3 4 1 1 1 1 1 1 0\nCar 0 0 0 1 2 3\n"
+    with pytest.raises(InputError, match=r"labels\.txt, line 2: expected 15 fields \(16 with a score\), got 7"):
+        parse_labels(text, "labels.txt")
+
+
+def test_depth_png_roundtrip_and_real_frame(tmp_path, depth_completion_dir):
+    gt = read_depth_png(depth_completion_dir / "groundtruth" / "0000000005.png")
+    assert gt.shape == (375, 1242)
+    assert 0.15 < np.count_nonzero(gt) / gt.size < 0.25  # 19.5 % filled (README)
+    assert gt.max() < 100
+    write_depth_png(tmp_path / "d.png", gt)
+    np.testing.assert_array_equal(read_depth_png(tmp_path / "d.png"), gt)
+
+
+def test_depth_png_rejects_8bit(tmp_path):
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "rgb.png"), np.zeros((4, 4), np.uint8))
+    with pytest.raises(InputError, match="uint16"):
+        decode_depth_png((tmp_path / "rgb.png").read_bytes(), "rgb.png")
+
+
+def test_parse_velodyne_copies_buffer():
+    data = np.ones((3, 4), np.float32).tobytes()
+    scan = parse_velodyne(data)
+    scan.points[0, 0] = 5  # writable, not a view of immutable bytes
+    assert scan.points.shape == (3, 4)
