@@ -119,21 +119,25 @@ def rotated_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max_keep: int | None = None) -> np.ndarray:
     """Greedy NMS on rotated BEV boxes: indices of kept boxes, best score first.
 
-    The IoU matrix is computed once for all pairs (vectorized); the greedy pass
-    then walks the boxes in score order, one row of that matrix at a time.
+    Walks the boxes in score order; each kept box computes its IoU with all
+    boxes still alive in one vectorized call, so the work is (kept boxes ×
+    candidates) rather than the full candidates² matrix.
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
     order = np.argsort(-np.asarray(scores), kind="stable")
-    if order.size == 0:
-        return order
-    iou = rotated_iou_matrix(boxes[order], boxes[order])
-    suppressed = np.zeros(order.size, dtype=bool)
+    boxes = boxes[order]
+    alive = np.ones(order.size, dtype=bool)
     keep: list[int] = []
-    for i in range(order.size):
-        if suppressed[i]:
-            continue
-        keep.append(i)
-        if max_keep is not None and len(keep) >= max_keep:
+    limit = order.size if max_keep is None else max_keep
+    while len(keep) < limit:
+        remaining = np.flatnonzero(alive)
+        if remaining.size == 0:
             break
-        suppressed |= iou[i] > iou_threshold
+        best = remaining[0]
+        keep.append(best)
+        alive[best] = False
+        rest = remaining[1:]
+        if rest.size:
+            iou = rotated_iou_matrix(boxes[best : best + 1], boxes[rest])[0]
+            alive[rest[iou > iou_threshold]] = False
     return order[np.asarray(keep, dtype=np.int64)]

@@ -103,7 +103,9 @@ class DecodeConfig:
     nms_iou: float = 0.1
     max_candidates: int = 500  # top-scoring cells kept before NMS
     max_detections: int = 100
-    car_height: float = 1.53  # metres, when no points lie inside a box
+    car_height: float = 1.53  # metres, when too few points lie inside a box
+    ground_z: float = -1.73  # metres, road level in the LiDAR frame (KITTI's sensor height)
+    min_occupied_for_height: int = 4  # occupied BEV voxels inside a box needed to measure its height
     pseudo_stride: int = 1  # keep every k-th pseudo point (rows and columns)
     pseudo_max_height: float = 1.0  # metres above the LiDAR, drop pseudo points above (sky, trees)
 
@@ -165,3 +167,23 @@ def get_preset(name: str) -> Preset:
         return PRESETS[name]
     except KeyError:
         raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+
+
+def _tuples(value):
+    """JSON lists back to the tuples the frozen dataclasses hold."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+def preset_from_dict(config: dict) -> Preset:
+    """Rebuild a :class:`Preset` from its ``to_dict()`` form (as stored in a model manifest)."""
+    try:
+        return Preset(
+            name=config["name"],
+            depth=DepthNetConfig(**{k: _tuples(v) for k, v in config["depth"].items()}),
+            pixor=PixorConfig(**{k: _tuples(v) for k, v in config["pixor"].items()}),
+            bev=BevGrid(**config["bev"]),
+            decode=DecodeConfig(**{k: _tuples(v) for k, v in config["decode"].items()}),
+            crop_hw=_tuples(config["crop_hw"]),
+        )
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"preset configuration does not match this version of lowres3d ({exc})") from exc

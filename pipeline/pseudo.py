@@ -13,6 +13,27 @@ import numpy as np
 from pipeline.calib import Calibration
 
 
+def pixel_rays(calib: Calibration, height: int, width: int, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel rays in the LiDAR frame: point(u, v, d) = d · ray[v, u] + origin, exactly.
+
+    Back-projection is affine in depth: X_rect = d·K⁻¹[u, v, 1]ᵀ − K⁻¹t with
+    P2 = [K | t], then X_velo = A·X_rect + b. Returns float32 rays
+    (3, H/stride, W/stride) and the float64 origin (3,).
+    """
+    k_inv = np.linalg.inv(calib.P2[:, :3])
+    to_velo = calib.rect_to_velo_matrix
+    direction = to_velo[:3, :3] @ k_inv  # columns: d/du, d/dv, constant
+    origin = to_velo[:3, 3] - to_velo[:3, :3] @ (k_inv @ calib.P2[:, 3])
+    u = np.arange(0, width, stride, dtype=np.float64)
+    v = np.arange(0, height, stride, dtype=np.float64)
+    rays = (
+        direction[:, 0, None, None] * u[None, None, :]
+        + direction[:, 1, None, None] * v[None, :, None]
+        + direction[:, 2, None, None]
+    )
+    return rays.astype(np.float32), origin
+
+
 def depth_to_points(
     depth: np.ndarray,
     calib: Calibration,
@@ -28,15 +49,17 @@ def depth_to_points(
     [min_depth, max_depth] are dropped, and with max_height points higher than
     that above the LiDAR (sky, tree tops: no cars up there).
     """
-    depth = np.asarray(depth)
-    sub = depth[::stride, ::stride]
-    rows, cols = np.nonzero((sub >= min_depth) & (sub <= max_depth))
-    d = sub[rows, cols]
-    xyz = calib.image_to_velo(cols * stride, rows * stride, d)
+    sub = np.asarray(depth, np.float32)[::stride, ::stride]
+    rays, origin = pixel_rays(calib, depth.shape[0], depth.shape[1], stride)
+    valid = (sub >= min_depth) & (sub <= max_depth)
     if max_height is not None:
-        xyz = xyz[xyz[:, 2] <= max_height]
-    points = np.zeros((xyz.shape[0], 4), dtype=np.float32)
-    points[:, :3] = xyz
+        # z = d·ray_z + origin_z ≤ max_height, tested before any point is built.
+        valid &= sub * rays[2] + np.float32(origin[2]) <= max_height
+    index = np.flatnonzero(valid)
+    d = sub.reshape(-1)[index]
+    points = np.zeros((index.size, 4), dtype=np.float32)
+    for axis in range(3):  # three coordinates, each one vectorized multiply-add
+        points[:, axis] = d * rays[axis].reshape(-1)[index] + np.float32(origin[axis])
     return points
 
 

@@ -46,23 +46,52 @@ class PixorTargets:
     regression: np.ndarray
 
 
-def assign_cells(boxes: np.ndarray, out: OutputGrid) -> np.ndarray:
-    """Index of the box owning each output cell, -1 for background: int64 (ny, nx)."""
-    owner = np.full((out.ny, out.nx), -1, dtype=np.int64)
+def box_cells(boxes: np.ndarray, out: OutputGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Output cells whose centre lies inside a box: (box index, row, col, squared distance to centre).
+
+    Each box is tested only against the cells of its bounding square (one
+    (K, W, W) block for all boxes), never against the whole map.
+    """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    empty = np.zeros(0, np.int64)
     if boxes.shape[0] == 0:
-        return owner
-    cx, cy = out.centres()
-    rel_x = cx.reshape(-1, 1) - boxes[None, :, 0]
-    rel_y = cy.reshape(-1, 1) - boxes[None, :, 1]
-    cos, sin = np.cos(boxes[:, 6]), np.sin(boxes[:, 6])
+        return empty, empty, empty, np.zeros(0)
+    radius = 0.5 * np.hypot(boxes[:, 3], boxes[:, 4])
+    window = int(np.ceil(2 * radius.max() / out.step)) + 2
+    col0 = np.floor((boxes[:, 0] - radius - out.x_min) / out.step).astype(np.int64)
+    row0 = np.floor((boxes[:, 1] - radius - out.y_min) / out.step).astype(np.int64)
+    offsets = np.arange(window)
+    rows = row0[:, None, None] + offsets[None, :, None]  # (K, W, 1)
+    cols = col0[:, None, None] + offsets[None, None, :]  # (K, 1, W)
+    rel_x = out.x_min + (cols + 0.5) * out.step - boxes[:, 0, None, None]
+    rel_y = out.y_min + (rows + 0.5) * out.step - boxes[:, 1, None, None]
+    cos, sin = np.cos(boxes[:, 6])[:, None, None], np.sin(boxes[:, 6])[:, None, None]
     along = rel_x * cos + rel_y * sin
     across = -rel_x * sin + rel_y * cos
-    inside = (np.abs(along) <= boxes[:, 3] / 2) & (np.abs(across) <= boxes[:, 4] / 2)
-    distance = np.where(inside, rel_x**2 + rel_y**2, np.inf)
-    nearest = np.argmin(distance, axis=1)
-    has_box = inside.any(axis=1)
-    owner.reshape(-1)[has_box] = nearest[has_box]
+    inside = (
+        (np.abs(along) <= boxes[:, 3, None, None] / 2) & (np.abs(across) <= boxes[:, 4, None, None] / 2)
+        & (rows >= 0) & (rows < out.ny) & (cols >= 0) & (cols < out.nx)
+    )
+    k, i, j = np.nonzero(inside)
+    distance = rel_x[k, 0, j] ** 2 + rel_y[k, i, 0] ** 2
+    return k, row0[k] + i, col0[k] + j, distance
+
+
+def assign_cells(boxes: np.ndarray, out: OutputGrid) -> np.ndarray:
+    """Index of the box owning each output cell, -1 for background: int64 (ny, nx).
+
+    Where boxes overlap, the box with the nearest centre owns the cell.
+    """
+    owner = np.full((out.ny, out.nx), -1, dtype=np.int64)
+    k, rows, cols, distance = box_cells(boxes, out)
+    if k.size == 0:
+        return owner
+    flat = rows * out.nx + cols
+    order = np.lexsort((distance, flat))  # per cell, nearest centre first
+    flat, k = flat[order], k[order]
+    first = np.ones(flat.size, dtype=bool)
+    first[1:] = flat[1:] != flat[:-1]
+    owner.reshape(-1)[flat[first]] = k[first]
     return owner
 
 

@@ -133,3 +133,42 @@ def test_encoding_owner_is_nearest_box():
     assert overlap.sum() > 0
     assert np.abs(dx[overlap]).max() <= 1.0 + 1e-6  # never the farther of the two centres
     assert np.abs(dx).max() > 1.5  # outside the overlap the only box owns the cell
+
+
+def test_cell_assignment_equals_brute_force():
+    from pipeline.targets import OutputGrid, assign_cells
+
+    p = PRESETS["paper"]
+    out = OutputGrid.from_bev(p.bev, 4)
+    rng = np.random.default_rng(5)
+    n = 40
+    boxes = np.column_stack([
+        rng.uniform(-2, 72, n), rng.uniform(-42, 42, n), np.zeros(n),
+        rng.uniform(2, 6, n), rng.uniform(1.4, 2.2, n), np.ones(n), rng.uniform(-np.pi, np.pi, n),
+    ])
+    boxes[1, :2] = boxes[0, :2] + 1.0  # an overlapping pair
+    cx, cy = out.centres()
+    rel_x, rel_y = cx[..., None] - boxes[:, 0], cy[..., None] - boxes[:, 1]
+    along = rel_x * np.cos(boxes[:, 6]) + rel_y * np.sin(boxes[:, 6])
+    across = -rel_x * np.sin(boxes[:, 6]) + rel_y * np.cos(boxes[:, 6])
+    inside = (np.abs(along) <= boxes[:, 3] / 2) & (np.abs(across) <= boxes[:, 4] / 2)
+    nearest = np.argmin(np.where(inside, rel_x**2 + rel_y**2, np.inf), axis=-1)
+    expected = np.where(inside.any(axis=-1), nearest, -1)
+    np.testing.assert_array_equal(assign_cells(boxes, out), expected)
+
+
+def test_heights_from_bev_occupancy():
+    from pipeline.bev import voxelize_bev
+    from pipeline.postprocess import estimate_heights
+
+    p = PRESETS["paper"]
+    frame = load_frame(KITTI, "000006")
+    cars = labels_to_boxes([o for o in frame.labels if o.type == "Car"], frame.calib)
+    bev = voxelize_bev(frame.points, p.bev)
+    z, h = estimate_heights(cars[:, [0, 1, 3, 4, 6]], bev, p)
+    near = cars[:, 0] < 35  # enough returns to measure
+    assert np.abs(z[near] - cars[near, 2]).max() < 0.3
+    assert np.abs(h[near] - cars[near, 5]).max() < 0.45
+    # An empty box sits on the road with the mean car height.
+    z0, h0 = estimate_heights(np.array([[60.0, -30.0, 4.0, 1.7, 0.0]]), np.zeros(p.bev.shape, np.float32), p)
+    assert h0[0] == p.decode.car_height and z0[0] == pytest.approx(p.decode.ground_z + p.decode.car_height / 2)

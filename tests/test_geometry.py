@@ -88,3 +88,37 @@ def test_pseudo_points_reproduce_the_scan_they_came_from():
     assert (depth_to_points(depth_map, frame.calib, max_height=0.5)[:, 2] <= 0.5).all()
     merged = merge_points(pseudo, frame.points)
     assert merged.shape[0] == pseudo.shape[0] + frame.points.shape[0]
+
+
+def test_pixel_rays_equal_exact_backprojection():
+    from pipeline.preprocess import network_view
+    from pipeline.presets import PRESETS
+
+    frame = load_frame(KITTI, "000006")
+    _, view_calib = network_view(frame.image, frame.calib, PRESETS["edge"])
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(1, 80, (176, 608)).astype(np.float32)
+    points = depth_to_points(depth, view_calib, 0.0, 1e9)
+    rows, cols = np.divmod(np.arange(depth.size), depth.shape[1])
+    exact = view_calib.image_to_velo(cols, rows, depth.reshape(-1))
+    assert np.abs(points[:, :3] - exact).max() < 2e-4  # float32 rays, metres
+
+
+def test_resized_view_calibration_matches_area_resampling():
+    from pipeline.preprocess import depth_inputs, network_view
+    from pipeline.presets import PRESETS
+
+    frame = load_frame(KITTI, "000006")
+    preset = PRESETS["edge"]
+    view, view_calib = network_view(frame.image, frame.calib, preset)
+    assert view.shape == (*preset.depth.input_hw, 3)
+    crop = depth_crop(frame.image_hw)
+    full_calib = crop_calibration(frame.calib, crop)
+    # A full-resolution pixel centre (u, v) lands at s·u + (s − 1)/2 in the half-resolution view.
+    xyz = frame.points[frame.points[:, 0] > 5, :3]
+    uv_full, _ = full_calib.velo_to_image(xyz)
+    uv_half, _ = view_calib.velo_to_image(xyz)
+    np.testing.assert_allclose(uv_half, 0.5 * uv_full - 0.25, atol=1e-9)
+    inputs = depth_inputs(frame.image, frame.points, frame.calib, preset)
+    assert inputs.rgb.shape == (1, 3, 176, 608) and inputs.sparse_depth.shape == (1, 1, 176, 608)
+    assert inputs.rgb.dtype == np.float32 and 0 < np.count_nonzero(inputs.sparse_depth)

@@ -1,0 +1,233 @@
+"""The ONNX Runtime two-stage detector: image + sparse scan + calibration → 3D car boxes.
+
+Stages (each timed): ``prepare`` (depth-net view and sparse depth) →
+``depth_net`` (depth.onnx) → ``pseudo_points`` (back-projection, merged with
+the real points) → ``voxelize`` (BEV tensor) → ``pixor`` (pixor.onnx) →
+``decode`` (candidates, rotated NMS, z and h). A model directory without
+``depth.onnx`` is a LiDAR-only PIXOR: it skips the first three stages.
+
+One Detector may be called from several threads at once: ONNX Runtime
+sessions are thread-safe and each thread gets its own BEV buffer.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from pipeline.beams import emulate_beams
+from pipeline.boxes import boxes_to_objects
+from pipeline.calib import Calibration
+from pipeline.bev import BevVoxelizer
+from pipeline.errors import InputError
+from pipeline.kitti import Object3D
+from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
+from pipeline.postprocess import boxes_from_maps
+from pipeline.preprocess import depth_inputs
+from pipeline.presets import Preset, preset_from_dict
+from pipeline.pseudo import depth_to_points, merge_points
+
+log = logging.getLogger(__name__)
+
+PROVIDER_PREFERENCE = ("TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider")
+PROVIDER_ALIASES = {
+    "tensorrt": "TensorrtExecutionProvider",
+    "cuda": "CUDAExecutionProvider",
+    "cpu": "CPUExecutionProvider",
+}
+MAX_POINTS = 2_000_000  # far beyond any real scan; protects memory from absurd inputs
+
+
+@dataclass
+class Detections:
+    """Boxes of one frame.
+
+    boxes: float64 (K, 7) ``x, y, z, l, w, h, yaw`` in the LiDAR frame; scores (K,),
+    best first. timings_ms: per stage and ``total``. warnings: what was
+    dropped or adjusted on the way.
+    """
+
+    boxes: np.ndarray
+    scores: np.ndarray
+    label: str = "Car"
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    points: np.ndarray | None = field(default=None, repr=False)  # the points PIXOR saw (for pictures)
+
+    def to_objects(self, calib: Calibration, image_hw: tuple[int, int]) -> list[Object3D]:
+        """KITTI result objects (label_2 format with score)."""
+        return boxes_to_objects(self.boxes, calib, image_hw, self.scores, self.label)
+
+
+def resolve_providers(requested: str | list[str] | None = None) -> list[str]:
+    """Execution providers to use: the requested ones, or TensorRT → CUDA → CPU, first available.
+
+    ``requested`` may be short names (cpu, cuda, tensorrt) or ONNX Runtime names;
+    CPU is always appended as the fallback.
+    """
+    available = ort.get_available_providers()
+    if requested:
+        names = [requested] if isinstance(requested, str) else list(requested)
+        chosen = []
+        for name in names:
+            full = PROVIDER_ALIASES.get(name.lower(), name)
+            if full not in available:
+                raise InputError(
+                    f"--provider: {name} is not available in this ONNX Runtime build "
+                    f"(available: {', '.join(available)})"
+                )
+            chosen.append(full)
+    else:
+        chosen = [p for p in PROVIDER_PREFERENCE if p in available][:1]
+    if "CPUExecutionProvider" not in chosen:
+        chosen.append("CPUExecutionProvider")
+    return chosen
+
+
+class Detector:
+    """Loads a model directory (checking its sha256s) and detects cars in frames."""
+
+    def __init__(
+        self,
+        model_dir: str | Path,
+        providers: str | list[str] | None = None,
+        intra_op_threads: int | None = None,
+        verify: bool = True,
+    ) -> None:
+        self.model_dir = Path(model_dir)
+        self.manifest = load_manifest(self.model_dir)
+        if verify:
+            verify_sha256(self.model_dir, self.manifest)
+        try:
+            self.preset: Preset = preset_from_dict(self.manifest["preset_config"])
+        except (KeyError, ValueError) as exc:
+            raise ModelFileError(f"{self.model_dir / 'manifest.json'}: {exc}") from exc
+        self.providers = resolve_providers(providers)
+        options = ort.SessionOptions()
+        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        if intra_op_threads:
+            options.intra_op_num_threads = intra_op_threads
+            options.inter_op_num_threads = 1
+        networks = self.manifest.get("networks", {})
+        if "pixor" not in networks:
+            raise ModelFileError(f"{self.model_dir / 'manifest.json'}: no 'pixor' network listed")
+        self.two_stage = "depth" in networks
+        self._sessions: dict[str, ort.InferenceSession] = {}
+        for name in ("depth", "pixor") if self.two_stage else ("pixor",):
+            path = self.model_dir / networks[name]["file"]
+            try:
+                self._sessions[name] = ort.InferenceSession(str(path), options, providers=self.providers)
+            except Exception as exc:  # ORT raises its own exception types for unreadable graphs
+                raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
+        self._local = threading.local()
+
+    # ------------------------------------------------------------------ info
+    @property
+    def providers_in_use(self) -> dict[str, list[str]]:
+        """The providers each session actually runs on (after ONNX Runtime's own fallback)."""
+        return {name: session.get_providers() for name, session in self._sessions.items()}
+
+    @property
+    def sha256(self) -> dict[str, str]:
+        return {name: entry["sha256"] for name, entry in self.manifest["files"].items()}
+
+    def _voxelizer(self) -> BevVoxelizer:
+        voxelizer = getattr(self._local, "voxelizer", None)
+        if voxelizer is None:
+            voxelizer = self._local.voxelizer = BevVoxelizer(self.preset.bev)
+        return voxelizer
+
+    # ------------------------------------------------------------------ stages
+    def dense_depth(self, image: np.ndarray, points: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
+        """Depth completion alone: (H, W) metres in the network's view, and that view's calibration."""
+        inputs = depth_inputs(image, points, calib, self.preset)
+        (depth,) = self._sessions["depth"].run(["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
+        return depth[0, 0], inputs.calib
+
+    def detect(
+        self,
+        image: np.ndarray | None,
+        points: np.ndarray,
+        calib: Calibration | None,
+        score_threshold: float | None = None,
+        emulate_to_beams: int | None = None,
+    ) -> Detections:
+        """Detect cars in one frame.
+
+        image: uint8 RGB (H, W, 3), required for a two-stage model. points:
+        (N, 4) float32 velodyne points, finite. calib: required for a
+        two-stage model. emulate_to_beams: thin a 64-line scan first.
+        """
+        timings: dict[str, float] = {}
+        warnings: list[str] = []
+        start = time.perf_counter()
+        points = self._check_points(points)
+
+        if emulate_to_beams:
+            tic = time.perf_counter()
+            before = points.shape[0]
+            points = emulate_beams(points, emulate_to_beams)
+            timings["emulate_beams"] = (time.perf_counter() - tic) * 1e3
+            warnings.append(f"emulated {emulate_to_beams} beams: kept {points.shape[0]} of {before} points")
+
+        if self.two_stage:
+            if image is None or calib is None:
+                raise InputError("image and calib: this model needs a camera image and a calibration")
+            tic = time.perf_counter()
+            inputs = depth_inputs(image, points, calib, self.preset)
+            timings["prepare"] = (time.perf_counter() - tic) * 1e3
+            tic = time.perf_counter()
+            (depth,) = self._sessions["depth"].run(
+                ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
+            )
+            timings["depth_net"] = (time.perf_counter() - tic) * 1e3
+            tic = time.perf_counter()
+            d = self.preset.decode
+            pseudo = depth_to_points(
+                depth[0, 0], inputs.calib, self.preset.depth.min_depth, self.preset.depth.max_depth,
+                d.pseudo_stride, d.pseudo_max_height,
+            )
+            cloud = merge_points(pseudo, points)
+            timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3
+        else:
+            cloud = points
+
+        tic = time.perf_counter()
+        bev = self._voxelizer()(cloud)
+        timings["voxelize"] = (time.perf_counter() - tic) * 1e3
+        tic = time.perf_counter()
+        score, regression = self._sessions["pixor"].run(["score", "regression"], {"bev": bev[None]})
+        timings["pixor"] = (time.perf_counter() - tic) * 1e3
+        tic = time.perf_counter()
+        boxes, scores = boxes_from_maps(score[0, 0], regression[0], bev, self.preset, score_threshold)
+        timings["decode"] = (time.perf_counter() - tic) * 1e3
+        timings["total"] = (time.perf_counter() - start) * 1e3
+        return Detections(boxes=boxes, scores=scores, timings_ms=timings, warnings=warnings, points=cloud)
+
+    def _check_points(self, points: np.ndarray) -> np.ndarray:
+        points = np.asarray(points)
+        if points.ndim != 2 or points.shape[1] != 4:
+            raise InputError(f"points: expected shape (N, 4) x, y, z, reflectance; got {points.shape}")
+        if points.shape[0] == 0:
+            raise InputError("points: the scan has no points")
+        if points.shape[0] > MAX_POINTS:
+            raise InputError(f"points: {points.shape[0]} points is more than the limit of {MAX_POINTS}")
+        if not np.isfinite(points).all():
+            raise InputError("points: NaN or infinite values (drop them first: pipeline.kitti.parse_velodyne does)")
+        return points.astype(np.float32, copy=False)
+
+    def warm_up(self, runs: int = 1) -> None:
+        """Run the networks on zero inputs so the first real request is not slow."""
+        for _ in range(runs):
+            if self.two_stage:
+                h, w = self.preset.depth.input_hw
+                self._sessions["depth"].run(
+                    ["depth"], {"rgb": np.zeros((1, 3, h, w), np.float32), "sparse_depth": np.zeros((1, 1, h, w), np.float32)}
+                )
+            self._sessions["pixor"].run(["score", "regression"], {"bev": np.zeros((1, *self.preset.bev.shape), np.float32)})

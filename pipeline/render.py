@@ -1,0 +1,64 @@
+"""Pictures people look at: the BEV view of points and boxes, and depth maps (OpenCV only)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from pipeline.boxes import bev_corners
+from pipeline.presets import BevGrid
+
+PREDICTION_BGR = (60, 220, 60)
+GROUND_TRUTH_BGR = (60, 60, 230)
+
+
+def _to_pixels(xy: np.ndarray, grid: BevGrid, scale: float) -> np.ndarray:
+    """LiDAR (x, y) → picture (column, row): x forward points up, y left points left."""
+    col = (grid.y_max - xy[..., 1]) / scale
+    row = (grid.x_max - xy[..., 0]) / scale
+    return np.stack([col, row], axis=-1)
+
+
+def render_bev(
+    points: np.ndarray,
+    grid: BevGrid,
+    boxes: np.ndarray | None = None,
+    scores: np.ndarray | None = None,
+    gt_boxes: np.ndarray | None = None,
+    metres_per_pixel: float = 0.1,
+) -> np.ndarray:
+    """BGR uint8 picture of the BEV grid: points (brighter where denser), ground truth in red,
+    predictions in green with their scores."""
+    width = int(round((grid.y_max - grid.y_min) / metres_per_pixel))
+    height = int(round((grid.x_max - grid.x_min) / metres_per_pixel))
+    density = np.zeros(height * width, np.float32)
+    pix = np.floor(_to_pixels(points[:, :2], grid, metres_per_pixel)).astype(np.int64)
+    ok = (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
+    density += np.bincount(pix[ok, 1] * width + pix[ok, 0], minlength=height * width)
+    grey = (np.clip(np.log1p(density) / np.log(20.0), 0, 1) * 255).astype(np.uint8).reshape(height, width)
+    canvas = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    # Range rings every 10 m help reading distances.
+    origin = tuple(int(v) for v in _to_pixels(np.array([0.0, 0.0]), grid, metres_per_pixel))
+    for r in range(10, int(grid.x_max) + 1, 10):
+        cv2.circle(canvas, origin, int(r / metres_per_pixel), (70, 70, 70), 1, cv2.LINE_AA)
+    for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
+        if drawn is None or len(drawn) == 0:
+            continue
+        corners = np.rint(_to_pixels(bev_corners(drawn), grid, metres_per_pixel)).astype(np.int32)
+        cv2.polylines(canvas, list(corners), True, colour, 2, cv2.LINE_AA)
+        front = np.rint(corners[:, [0, 3]].mean(axis=1)).astype(np.int32)  # mid front edge: heading
+        centre = np.rint(corners.mean(axis=1)).astype(np.int32)
+        for i in range(len(drawn)):  # one line and label per box: tens of boxes at most
+            cv2.line(canvas, tuple(centre[i]), tuple(front[i]), colour, 2, cv2.LINE_AA)
+            if with_score and scores is not None:
+                cv2.putText(canvas, f"{scores[i]:.2f}", tuple(corners[i, 0] + [4, -4]),
+                            cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
+    return canvas
+
+
+def render_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
+    """BGR uint8 colour map of a depth map (near = warm, far = cool, black = no depth)."""
+    scaled = np.clip(depth / max_depth, 0, 1)
+    colour = cv2.applyColorMap((255 * (1 - scaled)).astype(np.uint8), cv2.COLORMAP_TURBO)
+    colour[depth <= 0] = 0
+    return colour
