@@ -1,0 +1,11 @@
+"""Accuracy evaluation: the official KITTI object protocol (2D box, BEV and 3D AP) and
+KITTI depth-completion error metrics.
+
+Modules:
+    labels        KITTI label lines of one frame as typed arrays.
+    overlaps      2D box, BEV and 3D overlap matrices in the devkit's conventions.
+    kitti_eval    the official KITTI object evaluation (41 recall points, R11 / R40 AP).
+    frames        reading a ground-truth and a result directory into frames.
+    report        the paper's table, the JSON document and precision-recall plots.
+    depth_metrics RMSE, MAE, iRMSE, iMAE of a dense depth map against sparse ground truth.
+"""

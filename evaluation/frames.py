@@ -1,0 +1,98 @@
+"""Reading a KITTI ground-truth label directory and a result directory into evaluation frames."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from evaluation.labels import LabelArrays
+from pipeline.errors import InputError
+from pipeline.kitti import read_labels
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LabelSet:
+    """Ground truth and detections of the evaluated frames, in the same order.
+
+    missing_predictions: frame ids without a result file; they count as frames
+    without detections.
+    """
+
+    frame_ids: tuple[str, ...]
+    ground_truth: tuple[LabelArrays, ...]
+    detections: tuple[LabelArrays, ...]
+    missing_predictions: tuple[str, ...]
+
+
+def read_split_file(path: str | Path) -> list[str]:
+    """Frame ids, one per line (e.g. ``000123``), as in the ImageSets ``val.txt`` of Qian/Chen et al."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read split file ({exc})") from exc
+    ids = [line.strip() for line in text.splitlines() if line.strip()]
+    if not ids:
+        raise InputError(f"{path}: split file lists no frame ids")
+    return ids
+
+
+def _require_dir(path: Path, what: str) -> None:
+    if not path.is_dir():
+        raise InputError(f"{path}: {what} directory not found")
+
+
+def load_label_dirs(
+    gt_dir: str | Path,
+    pred_dir: str | Path,
+    frame_ids: Sequence[str] | None = None,
+    progress: bool = False,
+) -> LabelSet:
+    """Read ``<gt_dir>/<id>.txt`` and ``<pred_dir>/<id>.txt`` for every frame.
+
+    frame_ids: frames to evaluate; default every ``*.txt`` in ``gt_dir``. A listed
+    frame without a ground-truth file is an error; a frame without a result file
+    has no detections. Every result line needs a score (16 fields).
+    """
+    gt_dir, pred_dir = Path(gt_dir), Path(pred_dir)
+    _require_dir(gt_dir, "ground-truth label")
+    _require_dir(pred_dir, "prediction label")
+    if frame_ids is None:
+        frame_ids = sorted(p.stem for p in gt_dir.glob("*.txt"))
+        if not frame_ids:
+            raise InputError(f"{gt_dir}: no ground-truth label files (*.txt)")
+    ground_truth: list[LabelArrays] = []
+    detections: list[LabelArrays] = []
+    missing: list[str] = []
+    for frame_id in tqdm(frame_ids, desc="labels", disable=not progress):
+        gt_path = gt_dir / f"{frame_id}.txt"
+        if not gt_path.is_file():
+            raise InputError(f"{gt_path}: ground-truth label file not found for frame {frame_id}")
+        ground_truth.append(LabelArrays.from_objects(read_labels(gt_path)))
+        pred_path = pred_dir / f"{frame_id}.txt"
+        if not pred_path.is_file():
+            missing.append(frame_id)
+            detections.append(LabelArrays.empty())
+            continue
+        objects = read_labels(pred_path)
+        for k, obj in enumerate(objects, start=1):
+            if obj.score is None:
+                raise InputError(
+                    f"{pred_path}: object {k} ({obj.type}) has 15 fields; a result line needs a 16th, the score"
+                )
+        detections.append(LabelArrays.from_objects(objects))
+    if missing:
+        log.warning(
+            "%d of %d frames have no result file in %s (counted as no detections), e.g. %s",
+            len(missing), len(frame_ids), pred_dir, missing[0],
+        )
+    return LabelSet(
+        frame_ids=tuple(frame_ids), ground_truth=tuple(ground_truth), detections=tuple(detections),
+        missing_predictions=tuple(missing),
+    )

@@ -1,0 +1,426 @@
+"""The official KITTI object evaluation (devkit ``evaluate_object.cpp``), re-implemented with arrays.
+
+Protocol, per metric (2D box, BEV, 3D), overlap threshold and difficulty:
+
+1. Clean each frame. Ground truth of the class counts (``ignored_gt = 0``) unless it
+   is too occluded, too truncated or too small for the difficulty (box height
+   ``<=`` the minimum); then, like the neighbouring class (Van for Car), it is
+   ignored (``1``): it may absorb a detection but is neither found nor missed.
+   Other classes play no part (``-1``). A detection whose 2D box height is ``<``
+   the minimum is ignored (``1``) whatever its class; otherwise it counts (``0``)
+   if it is of the class and plays no part (``-1``) if not.
+2. First pass, no score threshold: walking the ground truth in file order, each
+   takes the highest-scoring unassigned detection that overlaps it by more than
+   the threshold; the scores of the true positives (counted ground truth ×
+   counted detection) over all frames give, with the number of counted ground
+   truth, the 41 recall-sampling score thresholds (``getThresholds``).
+3. Second pass, at each score threshold: detections scoring below it are dropped;
+   each ground truth takes the unassigned counted detection with the largest
+   overlap (ties: the first), else the first ignored detection above the
+   threshold. Counted ground truth left alone is a false negative; a counted
+   pair is a true positive; pairs involving an ignored side are discarded.
+   Unassigned counted detections are false positives, except, in the 2D-box
+   metric only, those covered by more than the threshold (intersection over
+   the detection's own area) by a DontCare region: those have no 3D extent.
+4. Precision at each threshold, made monotone by the maximum over the later
+   points; 11-point AP = mean of points 0, 4, ..., 40, 40-point AP = mean of
+   points 1 ... 40.
+
+Every frame is matched once per pass for all (metric, threshold, difficulty,
+score threshold) rows at the same time: the per-ground-truth loop of the
+devkit runs over (rows × detections) arrays.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from tqdm import tqdm
+
+from evaluation.labels import LabelArrays
+from evaluation.overlaps import bev_overlap, box3d_overlap, image_overlap
+
+log = logging.getLogger(__name__)
+
+DIFFICULTIES = ("easy", "moderate", "hard")
+MIN_HEIGHT = np.array([40.0, 25.0, 25.0])  # minimum 2D box height in pixels
+MAX_OCCLUSION = np.array([0, 1, 2])
+MAX_TRUNCATION = np.array([0.15, 0.30, 0.50])
+N_SAMPLE_PTS = 41
+METRICS = ("bbox", "bev", "3d")
+DEFAULT_IOU_THRESHOLDS = (0.7, 0.5)
+# A neighbouring class is ignored rather than counted as a false positive when detected.
+NEIGHBOUR_CLASSES = {"car": "van", "pedestrian": "person_sitting"}
+# The devkit's "no detection yet" score: a detection scoring at or below it can never match.
+NO_DETECTION = -10000000.0
+
+Points = Literal["R40", "R11"]
+
+
+@dataclass(frozen=True)
+class PrCurve:
+    """Precision-recall statistics of one (metric, overlap threshold, difficulty).
+
+    thresholds: (K,) score thresholds, K ≤ 41, from the first pass.
+    tp, fp, fn: (K,) int64 totals over all frames at each threshold.
+    precision: (41,) float64, precision at the K thresholds made monotone by the
+    maximum over later points, 0 beyond K (the devkit's stats-file row).
+    """
+
+    metric: str
+    iou_threshold: float
+    difficulty: str
+    n_ground_truth: int
+    thresholds: np.ndarray
+    tp: np.ndarray
+    fp: np.ndarray
+    fn: np.ndarray
+    precision: np.ndarray
+
+    @property
+    def recall(self) -> np.ndarray:
+        """(K,) recall ``tp / (tp + fn)`` at each score threshold."""
+        total = self.tp + self.fn
+        out = np.zeros(total.shape)
+        np.divide(self.tp, total, out=out, where=total > 0)
+        return out
+
+    @property
+    def ap_r40(self) -> float:
+        """40-point interpolated AP in percent (recall points 1/40 ... 1)."""
+        return float(self.precision[1:].sum() / 40.0 * 100.0)
+
+    @property
+    def ap_r11(self) -> float:
+        """11-point interpolated AP in percent (recall points 0, 0.1, ..., 1 = every 4th of 41)."""
+        return float(self.precision[0::4].sum() / 11.0 * 100.0)
+
+    def ap(self, points: Points) -> float:
+        """AP in percent with ``R40`` or ``R11`` interpolation."""
+        if points == "R40":
+            return self.ap_r40
+        if points == "R11":
+            return self.ap_r11
+        raise ValueError(f"points must be 'R40' or 'R11', got {points!r}")
+
+
+@dataclass(frozen=True)
+class KittiEvalResult:
+    """All curves of one evaluation run."""
+
+    class_name: str
+    n_frames: int
+    metrics: tuple[str, ...]
+    iou_thresholds: tuple[float, ...]
+    curves: tuple[PrCurve, ...]
+
+    def curve(self, metric: str, iou_threshold: float, difficulty: str) -> PrCurve:
+        """The curve for one metric, overlap threshold and difficulty name."""
+        for c in self.curves:
+            if c.metric == metric and c.iou_threshold == iou_threshold and c.difficulty == difficulty:
+                return c
+        raise KeyError(f"no curve for {metric} @ {iou_threshold} {difficulty}; metrics: {self.metrics}")
+
+    def ap(self, metric: str, iou_threshold: float, difficulty: str, points: Points = "R40") -> float:
+        """AP in percent."""
+        return self.curve(metric, iou_threshold, difficulty).ap(points)
+
+    def ap_table(self) -> dict[str, dict[str, dict[str, list[float]]]]:
+        """``{metric: {"0.7": {"R40": [easy, moderate, hard], "R11": [...]}}}`` in percent."""
+        return {
+            metric: {
+                f"{iou}": {
+                    points: [self.ap(metric, iou, d, points) for d in DIFFICULTIES] for points in ("R40", "R11")
+                }
+                for iou in self.iou_thresholds
+            }
+            for metric in self.metrics
+        }
+
+
+def recall_thresholds(tp_scores: np.ndarray, n_ground_truth: int) -> np.ndarray:
+    """Score thresholds that sample recall at ``N_SAMPLE_PTS`` evenly spaced points (``getThresholds``).
+
+    Scores are walked from best to worst; a score is kept when its recall is at
+    least as close to the next sampling point as the following score's recall,
+    and the last score is always kept. The sampling point advances by 1/40 in
+    floating point, as the devkit does, so ties at the boundaries break the same way.
+    """
+    scores = np.sort(np.asarray(tp_scores, np.float64))[::-1]
+    kept: list[float] = []
+    current_recall = 0.0
+    last = scores.size - 1
+    for i, score in enumerate(scores.tolist()):
+        left_recall = (i + 1) / n_ground_truth
+        right_recall = (i + 2) / n_ground_truth if i < last else left_recall
+        if i < last and (right_recall - current_recall) < (current_recall - left_recall):
+            continue
+        kept.append(score)
+        current_recall += 1.0 / (N_SAMPLE_PTS - 1.0)
+    if len(kept) > N_SAMPLE_PTS:
+        # Recall never exceeds 1, so at most 41 points are reachable; more would mean corrupt counts.
+        raise RuntimeError(f"{len(kept)} recall thresholds for {n_ground_truth} ground truth boxes")
+    return np.asarray(kept, dtype=np.float64)
+
+
+def available_metrics(detections: Sequence[LabelArrays], class_name: str = "Car") -> tuple[str, ...]:
+    """Metrics the detections support, by the devkit's rule.
+
+    A metric is evaluated when at least one detection of the class carries its
+    fields: 2D box with ``left >= 0``; BEV with ``x, z != -1000`` and ``w, l > 0``;
+    3D additionally ``y != -1000`` and ``h > 0``.
+    """
+    name = class_name.lower()
+    found = {"bbox": False, "bev": False, "3d": False}
+    for det in detections:
+        mine = det.types == name
+        if not mine.any():
+            continue
+        bbox, (h, w, l), loc = det.bbox[mine], det.dimensions[mine].T, det.location[mine]
+        found["bbox"] |= bool((bbox[:, 0] >= 0).any())
+        ground = (loc[:, 0] != -1000) & (loc[:, 2] != -1000) & (w > 0) & (l > 0)
+        found["bev"] |= bool(ground.any())
+        found["3d"] |= bool((ground & (loc[:, 1] != -1000) & (h > 0)).any())
+        if all(found.values()):
+            break
+    return tuple(m for m in METRICS if found[m])
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """One frame reduced to what matching needs.
+
+    scores: (D,) detection scores. ignored_det: (3, D) int8 per difficulty (-1, 0, 1).
+    ignored_gt: (3, G) int8 per difficulty (0 counted, 1 ignored). n_counted_gt: (3,).
+    overlaps: (M, D, G) per evaluated metric. dontcare: (D,) the largest
+    intersection-over-detection-area with a DontCare region (0 without one).
+    Only detections and ground truth that can take part are kept, order preserved.
+    """
+
+    scores: np.ndarray
+    ignored_det: np.ndarray
+    ignored_gt: np.ndarray
+    n_counted_gt: np.ndarray
+    overlaps: np.ndarray
+    dontcare: np.ndarray
+
+
+def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: Sequence[str]) -> _Frame:
+    """Clean one frame (``cleanData``) and compute its overlap matrices once."""
+    name = class_name.lower()
+    neighbour = NEIGHBOUR_CLASSES.get(name)
+    gt_mine = gt.types == name
+    keep_gt = gt_mine | (gt.types == neighbour) if neighbour else gt_mine
+    gt_kept = gt.select(keep_gt)
+    mine = gt_mine[keep_gt]
+    too_hard = (
+        (gt_kept.occluded[None, :] > MAX_OCCLUSION[:, None])
+        | (gt_kept.truncated[None, :] > MAX_TRUNCATION[:, None])
+        | (gt_kept.box_height[None, :] <= MIN_HEIGHT[:, None])
+    )
+    ignored_gt = np.where(mine[None, :] & ~too_hard, 0, 1).astype(np.int8)
+
+    # The devkit truncates the detection height to an integer before comparing with an
+    # integer minimum; for integer minima that is the same as comparing the real height.
+    det_height = np.abs(det.bbox[:, 3] - det.bbox[:, 1])
+    too_small = det_height[None, :] < MIN_HEIGHT[:, None]
+    ignored_det = np.where(too_small, 1, np.where(det.types == name, 0, -1)[None, :]).astype(np.int8)
+    takes_part = (ignored_det != -1).any(axis=0)
+    det_kept = det.select(takes_part)
+    ignored_det = ignored_det[:, takes_part]
+
+    overlaps = np.zeros((len(metrics), len(det_kept), len(gt_kept)))
+    if len(det_kept) and len(gt_kept):
+        for m, metric in enumerate(metrics):
+            if metric == "bbox":
+                overlaps[m] = image_overlap(det_kept.bbox, gt_kept.bbox)
+            elif metric == "bev":
+                overlaps[m] = bev_overlap(det_kept, gt_kept)
+            else:
+                overlaps[m] = box3d_overlap(det_kept, gt_kept)
+    dontcare = np.zeros(len(det_kept))
+    dontcare_boxes = gt.bbox[gt.types == "dontcare"]
+    if "bbox" in metrics and len(det_kept) and len(dontcare_boxes):
+        dontcare = image_overlap(det_kept.bbox, dontcare_boxes, criterion="detection").max(axis=1)
+    return _Frame(
+        scores=det_kept.score, ignored_det=ignored_det, ignored_gt=ignored_gt,
+        n_counted_gt=(ignored_gt == 0).sum(axis=1), overlaps=overlaps, dontcare=dontcare,
+    )
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """A batch of evaluation rows matched together: one (metric, overlap, difficulty[, score threshold]) each.
+
+    metric: (B,) index into the frame's overlap stack. difficulty: (B,) 0..2.
+    min_overlap: (B,) overlap that must be exceeded. score_threshold: (B,) minimum
+    score (``-inf`` in the first pass). is_bbox: (B,) whether DontCare regions apply.
+    """
+
+    metric: np.ndarray
+    difficulty: np.ndarray
+    min_overlap: np.ndarray
+    score_threshold: np.ndarray
+    is_bbox: np.ndarray
+
+
+@dataclass
+class _Assignment:
+    """Matching outcome of one frame for a batch of rows: (B,) counts and (B, D) masks."""
+
+    tp: np.ndarray
+    fn: np.ndarray
+    assigned: np.ndarray
+    tp_detections: np.ndarray
+
+
+def _assign(frame: _Frame, rows: _Rows, by_score: bool) -> _Assignment:
+    """Greedy ground-truth-order matching of one frame for all rows (``computeStatistics``).
+
+    by_score: first pass (each ground truth takes the best-scoring candidate);
+    otherwise the second pass (the largest-overlap counted candidate, else the
+    first ignored candidate).
+    """
+    n_rows, n_det = rows.metric.size, frame.scores.size
+    ignored_det = frame.ignored_det[rows.difficulty]  # (B, D)
+    ignored_gt = frame.ignored_gt[rows.difficulty]  # (B, G)
+    eligible = (ignored_det != -1) & (frame.scores[None, :] >= rows.score_threshold[:, None])
+    if by_score:
+        eligible &= frame.scores[None, :] > NO_DETECTION
+    counted_det = ignored_det == 0
+    assigned = np.zeros((n_rows, n_det), dtype=bool)
+    tp_detections = np.zeros((n_rows, n_det), dtype=bool)
+    tp = np.zeros(n_rows, dtype=np.int64)
+    fn = np.zeros(n_rows, dtype=np.int64)
+    row_index = np.arange(n_rows)
+    for g in range(ignored_gt.shape[1]):
+        overlap = frame.overlaps[:, :, g][rows.metric]  # (B, D)
+        candidate = eligible & ~assigned & (overlap > rows.min_overlap[:, None])
+        has = candidate.any(axis=1)
+        if by_score:
+            pick = np.where(candidate, frame.scores[None, :], -np.inf).argmax(axis=1)
+            pair_counts = counted_det[row_index, pick]
+        else:
+            counted_candidate = candidate & counted_det
+            pair_counts = counted_candidate.any(axis=1)
+            best_overlap = np.where(counted_candidate, overlap, -np.inf).argmax(axis=1)
+            pick = np.where(pair_counts, best_overlap, candidate.argmax(axis=1))
+        gt_counts = ignored_gt[:, g] == 0
+        fn += ~has & gt_counts
+        is_tp = has & gt_counts & pair_counts
+        tp += is_tp
+        assigned[row_index[has], pick[has]] = True
+        tp_detections[row_index[is_tp], pick[is_tp]] = True
+    return _Assignment(tp=tp, fn=fn, assigned=assigned, tp_detections=tp_detections)
+
+
+def _false_positives(frame: _Frame, rows: _Rows, assigned: np.ndarray) -> np.ndarray:
+    """(B,) counted, above-threshold, unassigned detections not covered by a DontCare region."""
+    counted = (frame.ignored_det[rows.difficulty] == 0) & (
+        frame.scores[None, :] >= rows.score_threshold[:, None]
+    )
+    under_dontcare = rows.is_bbox[:, None] & (frame.dontcare[None, :] > rows.min_overlap[:, None])
+    return (counted & ~assigned & ~under_dontcare).sum(axis=1)
+
+
+def evaluate(
+    ground_truth: Sequence[LabelArrays],
+    detections: Sequence[LabelArrays],
+    class_name: str = "Car",
+    iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
+    metrics: Sequence[str] | None = None,
+    progress: bool = False,
+) -> KittiEvalResult:
+    """Evaluate per-frame detections against per-frame ground truth, KITTI style.
+
+    ground_truth, detections: one entry per frame, same order (an empty
+    ``LabelArrays`` for a frame without detections). Detection scores must be set.
+    metrics: subset of ``METRICS``; default: those the detections support
+    (``available_metrics``). Returns every (metric, overlap threshold, difficulty) curve.
+    """
+    if len(ground_truth) != len(detections):
+        raise ValueError(f"{len(ground_truth)} ground-truth frames but {len(detections)} detection frames")
+    for i, det in enumerate(detections):
+        if np.isnan(det.score).any():
+            raise ValueError(f"frame {i}: detections need a score (16th label field)")
+    metrics = tuple(available_metrics(detections, class_name) if metrics is None else metrics)
+    unknown = set(metrics) - set(METRICS)
+    if unknown:
+        raise ValueError(f"unknown metric(s) {sorted(unknown)}; choose from {METRICS}")
+    iou_thresholds = tuple(float(t) for t in iou_thresholds)
+    if not metrics:
+        log.warning("no %s detection carries a 2D box or a ground-plane box: nothing to evaluate", class_name)
+
+    configs = [(m, iou, d) for m in range(len(metrics)) for iou in iou_thresholds for d in range(3)]
+    n_cfg = len(configs)
+    cfg_metric = np.array([c[0] for c in configs], dtype=np.int64)
+    cfg_iou = np.array([c[1] for c in configs], dtype=np.float64)
+    cfg_diff = np.array([c[2] for c in configs], dtype=np.int64)
+    cfg_bbox = np.array([metrics[c[0]] == "bbox" for c in configs], dtype=bool)
+
+    frames = [
+        _prepare_frame(gt, det, class_name, metrics)
+        for gt, det in tqdm(
+            zip(ground_truth, detections), total=len(ground_truth), desc="overlaps", disable=not progress
+        )
+    ]
+
+    # First pass: true-positive scores and counted ground truth per configuration.
+    first = _Rows(cfg_metric, cfg_diff, cfg_iou, np.full(n_cfg, -np.inf), cfg_bbox)
+    tp_scores: list[list[np.ndarray]] = [[] for _ in range(n_cfg)]
+    n_gt = np.zeros(n_cfg, dtype=np.int64)
+    for frame in tqdm(frames, desc="thresholds", disable=not progress):
+        n_gt += frame.n_counted_gt[cfg_diff]
+        if frame.scores.size == 0 or frame.ignored_gt.shape[1] == 0:
+            continue
+        outcome = _assign(frame, first, by_score=True)
+        for c in np.flatnonzero(outcome.tp):
+            tp_scores[c].append(frame.scores[outcome.tp_detections[c]])
+    thresholds = [
+        recall_thresholds(np.concatenate(s) if s else np.zeros(0), int(n)) for s, n in zip(tp_scores, n_gt)
+    ]
+    padded = np.full((n_cfg, N_SAMPLE_PTS), np.inf)  # +inf: no detection passes, the row is unused
+    for c, t in enumerate(thresholds):
+        padded[c, : t.size] = t
+
+    # Second pass: every configuration at each of its score thresholds, all rows at once.
+    second = _Rows(
+        np.repeat(cfg_metric, N_SAMPLE_PTS), np.repeat(cfg_diff, N_SAMPLE_PTS),
+        np.repeat(cfg_iou, N_SAMPLE_PTS), padded.ravel(), np.repeat(cfg_bbox, N_SAMPLE_PTS),
+    )
+    n_rows = n_cfg * N_SAMPLE_PTS
+    tp = np.zeros(n_rows, dtype=np.int64)
+    fp = np.zeros(n_rows, dtype=np.int64)
+    fn = np.zeros(n_rows, dtype=np.int64)
+    for frame in tqdm(frames, desc="precision", disable=not progress):
+        if frame.scores.size == 0:
+            fn += frame.n_counted_gt[second.difficulty]
+            continue
+        outcome = _assign(frame, second, by_score=False)
+        tp += outcome.tp
+        fn += outcome.fn
+        fp += _false_positives(frame, second, outcome.assigned)
+
+    curves = []
+    for c, (m, iou, d) in enumerate(configs):
+        k = thresholds[c].size
+        sl = slice(c * N_SAMPLE_PTS, c * N_SAMPLE_PTS + k)
+        precision = np.zeros(N_SAMPLE_PTS)
+        # tp + fp can only be 0 in contrived cases; the devkit would produce NaN there.
+        np.divide(tp[sl], tp[sl] + fp[sl], out=precision[:k], where=(tp[sl] + fp[sl]) > 0)
+        precision = np.maximum.accumulate(precision[::-1])[::-1]  # max over this and later points
+        curves.append(
+            PrCurve(
+                metric=metrics[m], iou_threshold=iou, difficulty=DIFFICULTIES[d], n_ground_truth=int(n_gt[c]),
+                thresholds=thresholds[c], tp=tp[sl].copy(), fp=fp[sl].copy(), fn=fn[sl].copy(),
+                precision=precision,
+            )
+        )
+    return KittiEvalResult(
+        class_name=class_name, n_frames=len(ground_truth), metrics=metrics,
+        iou_thresholds=iou_thresholds, curves=tuple(curves),
+    )

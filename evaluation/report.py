@@ -1,0 +1,93 @@
+"""Presenting a KITTI evaluation: the paper's AP table, a JSON document and precision-recall plots."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from evaluation.kitti_eval import DIFFICULTIES, N_SAMPLE_PTS, KittiEvalResult
+
+METRIC_TITLES = {"bev": "BEV", "3d": "3D", "bbox": "2D bbox"}
+
+
+def format_table(result: KittiEvalResult) -> str:
+    """The paper's table, one block per metric (BEV first): AP in percent per overlap threshold."""
+    ious = sorted(result.iou_thresholds)  # the paper lists IoU 0.5 before 0.7
+    header = "".join(f" | IoU {iou:<4} easy  mod.  hard" for iou in ious)
+    lines = [f"{result.class_name} AP (%), {result.n_frames} frames"]
+    for metric in sorted(result.metrics, key=("bev", "3d", "bbox").index):
+        lines.append(f"{METRIC_TITLES[metric]:<8}{header}")
+        for points in ("R40", "R11"):
+            cells = "".join(
+                " | " + " " * 8 + " ".join(f"{result.ap(metric, iou, d, points):5.2f}" for d in DIFFICULTIES)
+                for iou in ious
+            )
+            lines.append(f"  {points:<6}{cells}")
+    return "\n".join(lines)
+
+
+def to_json(result: KittiEvalResult) -> dict[str, Any]:
+    """``{class: {metric: {"0.7": {"R40": [e, m, h], "R11": [...]}}}, "details": ...}``, AP in percent.
+
+    ``details`` holds, per class, metric, threshold and difficulty, the number of
+    counted ground-truth boxes, the score thresholds, tp / fp / fn at each, and
+    the 41-point interpolated precision (the devkit's stats-file row).
+    """
+    details: dict[str, Any] = {}
+    for c in result.curves:
+        details.setdefault(c.metric, {}).setdefault(f"{c.iou_threshold}", {})[c.difficulty] = {
+            "num_ground_truth": c.n_ground_truth,
+            "score_thresholds": c.thresholds.tolist(),
+            "tp": c.tp.tolist(),
+            "fp": c.fp.tolist(),
+            "fn": c.fn.tolist(),
+            "recall": c.recall.tolist(),
+            "precision_41": c.precision.tolist(),
+        }
+    return {
+        result.class_name: result.ap_table(),
+        "frames": result.n_frames,
+        "metrics": list(result.metrics),
+        "details": {result.class_name: details},
+    }
+
+
+def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
+    """One PNG per difficulty: interpolated precision against the 41 sampled recall points.
+
+    Every (metric, overlap threshold) is a line, like the devkit's plots and the
+    paper's PR figure. Returns the written paths.
+    """
+    try:
+        import matplotlib
+    except ImportError as exc:  # a dev-only dependency: the runtime install has no plotting
+        raise RuntimeError("precision-recall plots need matplotlib: pip install -e '.[dev]'") from exc
+    matplotlib.use("Agg")  # files only; never needs a display
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    recall = np.arange(N_SAMPLE_PTS) / (N_SAMPLE_PTS - 1)
+    paths = []
+    for difficulty in DIFFICULTIES:
+        fig, ax = plt.subplots(figsize=(5.0, 3.6))
+        for metric in result.metrics:
+            for iou in result.iou_thresholds:
+                curve = result.curve(metric, iou, difficulty)
+                ax.plot(
+                    recall, curve.precision,
+                    label=f"{METRIC_TITLES[metric]} @{iou} (AP$_{{40}}$ {curve.ap_r40:.1f})",
+                )
+        ax.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="Recall", ylabel="Precision",
+               title=f"{result.class_name}, {difficulty}")
+        ax.grid(alpha=0.3)
+        if result.metrics:
+            ax.legend(fontsize=7, loc="lower left")
+        fig.tight_layout()
+        path = out_dir / f"pr_{result.class_name.lower()}_{difficulty}.png"
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+        paths.append(path)
+    return paths

@@ -1,0 +1,79 @@
+"""Depth-completion metrics: synthetic cases with known answers and the shared real KITTI frame."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation.depth_metrics import DepthMetrics, depth_metrics, mean_over_frames
+from pipeline.errors import InputError
+from pipeline.kitti import read_depth_png
+
+FRAME = Path(__file__).resolve().parent / "data" / "depth_completion"
+
+
+def test_constant_offset():
+    gt = np.zeros((4, 5))
+    gt[1, 1:4] = [10.0, 20.0, 40.0]
+    pred = np.full(gt.shape, 7.0)
+    pred[gt > 0] = gt[gt > 0] + 0.1  # 100 mm too far everywhere
+    m = depth_metrics(pred, gt)
+    assert m.n_pixels == 3
+    assert m.rmse_mm == pytest.approx(100.0) and m.mae_mm == pytest.approx(100.0)
+    inverse = [1000 / (d + 0.1) - 1000 / d for d in (10.0, 20.0, 40.0)]  # 1/km
+    assert m.imae_per_km == pytest.approx(np.mean(np.abs(inverse)))
+    assert m.irmse_per_km == pytest.approx(math.sqrt(np.mean(np.square(inverse))))
+
+
+def test_real_frame_velodyne_against_groundtruth():
+    gt = read_depth_png(FRAME / "groundtruth" / "0000000005.png")
+    sparse = read_depth_png(FRAME / "velodyne_raw" / "0000000005.png")
+    both = (gt > 0) & (sparse > 0)
+    full = depth_metrics(sparse, gt, valid_mask=sparse > 0)
+    assert full.n_pixels == int(both.sum()) > 1000
+
+    # A few pixels by hand, with scalar arithmetic.
+    rows, cols = np.nonzero(both)
+    picks = list(zip(rows[:: len(rows) // 6][:6].tolist(), cols[:: len(rows) // 6][:6].tolist()))
+    mask = np.zeros_like(both)
+    errors_mm, inverse_errors = [], []
+    for r, c in picks:
+        mask[r, c] = True
+        p, g = float(sparse[r, c]), float(gt[r, c])
+        errors_mm.append((p - g) * 1000.0)
+        inverse_errors.append(1.0 / (p / 1000.0) - 1.0 / (g / 1000.0))
+    few = depth_metrics(sparse, gt, valid_mask=mask)
+    assert few.n_pixels == len(picks)
+    assert few.rmse_mm == pytest.approx(math.sqrt(sum(e * e for e in errors_mm) / len(picks)))
+    assert few.mae_mm == pytest.approx(sum(abs(e) for e in errors_mm) / len(picks))
+    assert few.irmse_per_km == pytest.approx(math.sqrt(sum(e * e for e in inverse_errors) / len(picks)))
+    assert few.imae_per_km == pytest.approx(sum(abs(e) for e in inverse_errors) / len(picks))
+
+    # The raw scan agrees with the accumulated ground truth to within a few metres RMS
+    # (outliers at occlusion edges), far better than a constant guess.
+    assert 0 < full.mae_mm < full.rmse_mm < 5000
+    constant = depth_metrics(np.full(gt.shape, float(np.median(gt[gt > 0]))), gt, valid_mask=sparse > 0)
+    assert constant.mae_mm > 5 * full.mae_mm
+
+
+def test_mean_is_over_frames():
+    a = DepthMetrics(1000.0, 500.0, 4.0, 2.0, 10)
+    b = DepthMetrics(3000.0, 700.0, 6.0, 4.0, 30)
+    m = mean_over_frames([a, b])
+    assert (m.rmse_mm, m.mae_mm, m.irmse_per_km, m.imae_per_km, m.n_pixels) == (2000.0, 600.0, 5.0, 3.0, 40)
+
+
+def test_errors_name_the_problem():
+    gt = np.zeros((2, 2))
+    with pytest.raises(InputError, match="no pixel has ground truth"):
+        depth_metrics(np.ones((2, 2)), gt)
+    gt[0, 0] = 5.0
+    with pytest.raises(InputError, match="shape"):
+        depth_metrics(np.ones((3, 2)), gt)
+    with pytest.raises(InputError, match="not positive finite"):
+        depth_metrics(np.zeros((2, 2)), gt)
+    with pytest.raises(InputError, match="no frames"):
+        mean_over_frames([])

@@ -1,0 +1,365 @@
+"""KITTI object evaluation: hand-computed cases for every rule of the official protocol, the JSON
+document, the command line end to end, and the shared real KITTI labels.
+
+A property of the official devkit that the expected values below rely on: the k-th
+score threshold is credited to the k-th recall sampling point (k/40) whatever the
+recall actually reached there, so with fewer than 41 counted boxes even a perfect
+detector scores below 100 (one box: R40 = 0, R11 = 100/11). Cases that should give
+100 therefore replicate a frame 41 times.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation.kitti_eval import DIFFICULTIES, available_metrics, evaluate, recall_thresholds
+from evaluation.labels import LabelArrays
+from evaluation.overlaps import bev_overlap, box3d_overlap, image_overlap
+from evaluation.report import to_json
+from pipeline.kitti import Object3D, read_labels, write_labels
+
+REPO = Path(__file__).resolve().parents[1]
+LABEL_DIR = REPO / "tests" / "data" / "kitti" / "training" / "label_2"
+
+
+def obj(
+    kind: str = "Car", x: float = 0.0, z: float = 20.0, ry: float = 0.0, left: float = 100.0, top: float = 150.0,
+    height_px: float = 100.0, width_px: float = 100.0, truncated: float = 0.0, occluded: int = 0,
+    score: float | None = None, h: float = 1.5, w: float = 1.6, l: float = 4.0, y: float = 1.6,
+) -> Object3D:
+    """A label line with a 2D box ``left, top, left + width_px, top + height_px``."""
+    return Object3D(
+        type=kind, truncated=truncated, occluded=occluded, alpha=0.0,
+        bbox=(left, top, left + width_px, top + height_px), dimensions=(h, w, l), location=(x, y, z),
+        rotation_y=ry, score=score,
+    )
+
+
+def dontcare(left: float, top: float, right: float, bottom: float) -> Object3D:
+    return Object3D("DontCare", -1.0, -1, -10.0, (left, top, right, bottom), (-1.0, -1.0, -1.0),
+                    (-1000.0, -1000.0, -1000.0), -10.0)
+
+
+def frames(*objects_per_frame: list[Object3D]) -> list[LabelArrays]:
+    return [LabelArrays.from_objects(objs) for objs in objects_per_frame]
+
+
+def run_eval(gt: list[list[Object3D]], det: list[list[Object3D]], **kwargs):
+    return evaluate(frames(*gt), frames(*det), **kwargs)
+
+
+# ----------------------------------------------------------------------------- overlaps
+def test_box_against_itself_has_iou_exactly_one():
+    rng = np.random.default_rng(0)
+    objects = [
+        obj(x=rng.uniform(-30, 30), z=rng.uniform(2, 70), ry=ry, l=rng.uniform(0.3, 12), w=rng.uniform(0.3, 3),
+            h=rng.uniform(0.5, 4))
+        for ry in [0.0, math.pi / 2, math.pi / 4, -math.pi, 1e-9, *rng.uniform(-math.pi, math.pi, 20)]
+    ]
+    boxes = LabelArrays.from_objects(objects)
+    np.testing.assert_allclose(np.diag(bev_overlap(boxes, boxes)), 1.0, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.diag(box3d_overlap(boxes, boxes)), 1.0, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(np.diag(image_overlap(boxes.bbox, boxes.bbox)), 1.0)
+
+
+def test_overlaps_follow_devkit_geometry():
+    gt = LabelArrays.from_objects([obj(ry=0.3)])
+    # Shifted by a quarter length along the heading: BEV IoU (l - l/4) / (l + l/4) = 0.6.
+    # The devkit's heading in the (x, z) plane is (cos ry, -sin ry).
+    shifted = LabelArrays.from_objects([obj(x=math.cos(0.3), z=20.0 - math.sin(0.3), ry=0.3)])
+    assert bev_overlap(shifted, gt)[0, 0] == pytest.approx(0.6, abs=1e-12)
+    # Same ground-plane box, half the height overlapping: 3D IoU = (V/2) / (3V/2) = 1/3.
+    lifted = LabelArrays.from_objects([obj(ry=0.3, y=1.6 - 0.75)])
+    assert box3d_overlap(lifted, gt)[0, 0] == pytest.approx(1 / 3, abs=1e-12)
+    # 2D: no "+1 pixel"; "detection" criterion divides by the detection's own area.
+    a, b = np.array([[0.0, 0.0, 10.0, 10.0]]), np.array([[5.0, 0.0, 25.0, 10.0]])
+    assert image_overlap(a, b)[0, 0] == pytest.approx(50 / 250)
+    assert image_overlap(a, b, criterion="detection")[0, 0] == pytest.approx(0.5)
+
+
+# ----------------------------------------------------------------------------- thresholds
+def test_recall_thresholds_sample_41_points():
+    # Fewer counted boxes than sampling points: every true positive is a threshold.
+    np.testing.assert_array_equal(recall_thresholds(np.array([0.2, 0.9, 0.5]), 3), [0.9, 0.5, 0.2])
+    # 80 boxes: recall (i+1)/80 is kept when at least as close to k/40 as the next one,
+    # i.e. at i = 0 and i = 2k - 1 for k = 1..40.
+    scores = 1.0 - np.arange(80) / 100
+    expected = scores[[0, *range(1, 80, 2)]]
+    np.testing.assert_array_equal(recall_thresholds(scores, 80), expected)
+    assert recall_thresholds(np.zeros(0), 5).size == 0
+
+
+# ----------------------------------------------------------------------------- rules, by hand
+def test_one_box_perfectly_detected():
+    single = run_eval([[obj()]], [[obj(score=0.9)]], metrics=("bev",))
+    curve = single.curve("bev", 0.7, "easy")
+    assert (curve.n_ground_truth, curve.tp.tolist(), curve.fp.tolist(), curve.fn.tolist()) == (1, [1], [0], [0])
+    # One threshold credited to recall point 0 only.
+    assert curve.ap_r40 == 0.0 and curve.ap_r11 == pytest.approx(100 / 11)
+    replicated = run_eval([[obj()]] * 41, [[obj(score=0.9)]] * 41)
+    for metric in ("bbox", "bev", "3d"):
+        for difficulty in DIFFICULTIES:
+            assert replicated.ap(metric, 0.7, difficulty, "R40") == pytest.approx(100.0)
+            assert replicated.ap(metric, 0.7, difficulty, "R11") == pytest.approx(100.0)
+
+
+def test_miss_gives_no_threshold_and_zero_ap():
+    far = obj(x=15.0, left=600.0, score=0.9)  # no overlap in the image or on the ground
+    result = run_eval([[obj()]] * 41, [[far]] * 41)
+    for curve in result.curves:
+        assert curve.n_ground_truth == 41 and curve.thresholds.size == 0
+        assert curve.ap_r40 == 0.0 and curve.ap_r11 == 0.0
+
+
+def test_duplicate_is_one_true_positive_and_one_false_positive():
+    car1, car2 = obj(), obj(x=8.0, left=400.0)
+    # Duplicate of car1 shifted 0.2 m along its length and 5 px: IoU ≈ 0.9 in BEV, 3D and 2D.
+    duplicate = obj(x=0.2, left=105.0, score=0.8)
+    result = run_eval([[car1, car2]], [[obj(score=0.9), duplicate, obj(x=8.0, left=400.0, score=0.7)]])
+    for metric in ("bbox", "bev", "3d"):
+        curve = result.curve(metric, 0.7, "easy")
+        np.testing.assert_array_equal(curve.thresholds, [0.9, 0.7])
+        # @0.9: car1 found, car2 missed. @0.7: both found; the duplicate is left over.
+        assert curve.tp.tolist() == [1, 2] and curve.fp.tolist() == [0, 1] and curve.fn.tolist() == [1, 0]
+        np.testing.assert_allclose(curve.precision[:3], [1.0, 2 / 3, 0.0])
+        assert curve.ap_r40 == pytest.approx(100 * (2 / 3) / 40)
+        assert curve.ap_r11 == pytest.approx(100 / 11)
+
+
+@pytest.mark.parametrize(("other_class", "expected_fp"), [("Van", 0), ("Truck", 1)])
+def test_detection_on_a_van_is_ignored(other_class: str, expected_fp: int):
+    gt = [obj(), obj(other_class, x=8.0, left=400.0)]
+    det = [obj(score=0.9), obj(x=8.0, left=400.0, score=0.95)]
+    result = run_eval([gt], [det])
+    for curve in result.curves:
+        assert curve.n_ground_truth == 1
+        assert (curve.tp.tolist(), curve.fp.tolist()) == ([1], [expected_fp])
+
+
+def test_dontcare_discounts_detections_only_in_the_2d_metric():
+    gt = [obj(), dontcare(500.0, 150.0, 600.0, 260.0)]
+    under_dontcare = obj(x=-10.0, left=510.0, width_px=80.0, score=0.95)  # ground position far from any car
+    result = run_eval([gt], [[obj(score=0.9), under_dontcare]])
+    for iou in (0.7, 0.5):
+        assert result.curve("bbox", iou, "easy").fp.tolist() == [0]
+        assert result.curve("bev", iou, "easy").fp.tolist() == [1]
+        assert result.curve("3d", iou, "easy").fp.tolist() == [1]
+
+
+def test_too_small_boxes_are_ignored():
+    gt = [obj(), obj(x=8.0, left=400.0, height_px=20.0)]  # the second is below every minimum height
+    det = [
+        obj(score=0.9),
+        obj(x=8.0, left=400.0, height_px=20.0, score=0.95),  # on the small car: absorbed, not a FP
+        obj(x=-12.0, left=700.0, height_px=20.0, score=0.99),  # a tiny detection of nothing: ignored
+    ]
+    for curve in run_eval([gt], [det]).curves:
+        assert curve.n_ground_truth == 1
+        assert (curve.tp.tolist(), curve.fp.tolist(), curve.fn.tolist()) == ([1], [0], [0])
+
+
+def test_height_limits_are_inclusive_for_ground_truth_and_exclusive_for_detections():
+    # Ground truth exactly 40 px high is ignored for easy (height <= 40), counted for moderate.
+    result = run_eval([[obj(height_px=40.0)]], [[obj(height_px=40.0, score=0.9)]], metrics=("bev",))
+    assert result.curve("bev", 0.7, "easy").n_ground_truth == 0
+    assert result.curve("bev", 0.7, "moderate").n_ground_truth == 1
+    # A detection exactly 25 px high counts for moderate (only height < 25 is ignored).
+    result = run_eval([[obj()]], [[obj(height_px=25.0, score=0.9)]], metrics=("bev",))
+    assert result.curve("bev", 0.7, "moderate").tp.tolist() == [1]
+    assert result.curve("bev", 0.7, "easy").thresholds.size == 0  # ignored for easy: not a true positive
+
+
+def test_small_detection_of_any_class_absorbs_a_car():
+    # Frame 0: a car whose only detection is a Pedestrian-labelled detection on it. Frame 1: a
+    # normally detected car providing the score threshold 0.5.
+    def outcome(det_height_px: float) -> list[int]:
+        result = run_eval(
+            [[obj()], [obj()]],
+            [[obj("Pedestrian", height_px=det_height_px, score=0.9)], [obj(score=0.5)]],
+            metrics=("bev",),
+        )
+        curve = result.curve("bev", 0.7, "moderate")
+        return [*curve.tp.tolist(), *curve.fp.tolist(), *curve.fn.tolist()]
+
+    assert outcome(20.0) == [1, 0, 0]  # too small: ignored whatever its class, the car is not missed
+    assert outcome(100.0) == [1, 0, 1]  # another class at full size plays no part: the car is missed
+
+
+@pytest.mark.parametrize(
+    ("truncated", "occluded", "counted"),
+    [(0.0, 0, [1, 1, 1]), (0.2, 0, [0, 1, 1]), (0.4, 0, [0, 0, 1]), (0.6, 0, [0, 0, 0]),
+     (0.0, 1, [0, 1, 1]), (0.0, 2, [0, 0, 1]), (0.0, 3, [0, 0, 0])],
+)
+def test_truncation_and_occlusion_set_the_difficulty(truncated: float, occluded: int, counted: list[int]):
+    hard_car = obj(truncated=truncated, occluded=occluded)
+    plain_car = obj(x=8.0, left=400.0)
+    det = [obj(score=0.9), obj(x=8.0, left=400.0, score=0.8)]
+    result = run_eval([[hard_car, plain_car]], [det], metrics=("bev",))
+    for difficulty, is_counted in zip(DIFFICULTIES, counted):
+        curve = result.curve("bev", 0.7, difficulty)
+        assert curve.n_ground_truth == 1 + is_counted
+        # Where the hard car is ignored its detection is absorbed, never a false positive.
+        assert curve.fp[-1] == 0 and curve.tp[-1] == 1 + is_counted
+
+
+def test_score_sorted_multi_frame_ap_by_hand():
+    # 80 frames with one car each, detected exactly with scores 0.9, 0.895, ..., 0.505, and false
+    # positives (far from the car) each scoring just below one of the true positives in FP_AFTER.
+    tp_scores = 0.9 - 0.005 * np.arange(80)
+    fp_after = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 30, 31, 50, 70])
+    gt = [[obj()] for _ in range(80)]
+    det = [[obj(score=float(s))] for s in tp_scores]
+    for p in fp_after:
+        det[p].append(obj(x=-15.0, left=700.0, score=float(tp_scores[p] - 0.001)))
+    result = run_eval(gt, det)
+    # Thresholds are true positives i = 0 and i = 2k - 1 (see test_recall_thresholds_sample_41_points).
+    kept = np.array([0, *range(1, 80, 2)])
+    tp = kept + 1
+    fp = (fp_after[None, :] < kept[:, None]).sum(axis=1)  # false positives scoring above true positive i
+    raw = tp / (tp + fp)
+    interpolated = np.maximum.accumulate(raw[::-1])[::-1]
+    assert (interpolated > raw).sum() > 20  # the case exercises the max-over-later-points rule
+    expected_r40 = 100 * interpolated[1:].sum() / 40
+    expected_r11 = 100 * interpolated[::4].sum() / 11
+    for curve in result.curves:
+        np.testing.assert_allclose(curve.thresholds, tp_scores[kept])
+        np.testing.assert_array_equal(curve.tp, tp)
+        np.testing.assert_array_equal(curve.fp, fp)
+        np.testing.assert_allclose(curve.precision, interpolated, rtol=0, atol=1e-15)
+        assert curve.ap_r40 == pytest.approx(expected_r40, abs=1e-9)
+        assert curve.ap_r11 == pytest.approx(expected_r11, abs=1e-9)
+
+
+def test_metrics_follow_what_detections_carry():
+    with_3d = frames([obj(score=0.5)])
+    bev_only = frames([obj(score=0.5, h=-1.0, y=-1000.0)])
+    no_image_box = frames([dataclasses.replace(obj(score=0.5), bbox=(-1.0, -1.0, -1.0, -1.0))])
+    assert available_metrics(with_3d) == ("bbox", "bev", "3d")
+    assert available_metrics(bev_only) == ("bbox", "bev")
+    assert available_metrics(no_image_box) == ("bev", "3d")
+    assert available_metrics(frames([obj("Pedestrian", score=0.5)])) == ()
+
+
+def test_json_structure():
+    result = run_eval([[obj()]] * 41, [[obj(score=0.9)]] * 41)
+    document = json.loads(json.dumps(to_json(result)))
+    assert set(document["Car"]) == {"bbox", "bev", "3d"}
+    for metric in ("bbox", "bev", "3d"):
+        assert set(document["Car"][metric]) == {"0.7", "0.5"}
+        for iou in ("0.7", "0.5"):
+            assert document["Car"][metric][iou]["R40"] == pytest.approx([100.0] * 3)
+            assert document["Car"][metric][iou]["R11"] == pytest.approx([100.0] * 3)
+            assert len(document["details"]["Car"][metric][iou]["moderate"]["precision_41"]) == 41
+    assert document["frames"] == 41
+
+
+# ----------------------------------------------------------------------------- real labels
+def _real_frames() -> list[LabelArrays]:
+    return [LabelArrays.from_objects(read_labels(p)) for p in sorted(LABEL_DIR.glob("*.txt"))]
+
+
+def _as_detections(gt: LabelArrays, shift_along_heading: float = 0.0) -> LabelArrays:
+    """Ground truth turned into detections (score 1), optionally moved along each box's heading."""
+    ry = gt.rotation_y
+    location = gt.location.copy()
+    location[:, 0] += shift_along_heading * gt.dimensions[:, 2] * np.cos(ry)
+    location[:, 2] -= shift_along_heading * gt.dimensions[:, 2] * np.sin(ry)
+    return dataclasses.replace(gt, location=location, score=np.ones(len(gt)))
+
+
+def test_real_labels_ground_truth_as_predictions():
+    gt = _real_frames()
+    result = evaluate(gt, [_as_detections(g) for g in gt])
+    # Counted cars in the five frames: 3 easy (height > 40 px, unoccluded), 5 moderate and hard.
+    for difficulty, n in zip(DIFFICULTIES, (3, 5, 5)):
+        for curve in (c for c in result.curves if c.difficulty == difficulty):
+            assert curve.n_ground_truth == n
+            assert curve.fp.sum() == 0 and curve.tp[-1] == n and curve.fn[-1] == 0
+            # n < 41 thresholds, all at precision 1: the devkit credits points 0 .. n-1.
+            assert curve.ap_r40 == pytest.approx(100 * (n - 1) / 40)
+            assert curve.ap_r11 == pytest.approx(100 * math.ceil(n / 4) / 11)
+    replicated = evaluate(gt * 14, [_as_detections(g) for g in gt] * 14)  # 42 easy cars ≥ 41
+    assert all(c.ap_r40 == pytest.approx(100.0) and c.ap_r11 == pytest.approx(100.0) for c in replicated.curves)
+
+
+def test_real_labels_perturbed_predictions():
+    gt = _real_frames() * 14
+    exact = evaluate(gt, [_as_detections(g) for g in gt])
+    # A quarter length along the heading: ground-plane and 3D IoU 0.6 (heights unchanged), 2D box unchanged.
+    moved = evaluate(gt, [_as_detections(g, 0.25) for g in gt])
+    for curve in moved.curves:
+        reference = exact.curve(curve.metric, curve.iou_threshold, curve.difficulty)
+        if curve.metric == "bbox" or curve.iou_threshold == 0.5:
+            assert curve.ap_r40 == pytest.approx(reference.ap_r40) and curve.ap_r11 == pytest.approx(100.0)
+        else:
+            assert curve.ap_r40 == 0.0 and curve.ap_r11 == 0.0
+
+
+# ----------------------------------------------------------------------------- command line
+def _cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "accuracy.py"), *map(str, args), "--no-progress"],
+        check=False, capture_output=True, text=True, timeout=120,
+    )
+
+
+def test_cli_end_to_end(tmp_path: Path):
+    gt_dir, pred_dir = tmp_path / "gt", tmp_path / "pred"
+    gt_dir.mkdir()
+    pred_dir.mkdir()
+    for i in range(42):
+        write_labels(gt_dir / f"{i:06d}.txt", [obj(), dontcare(500, 150, 600, 260)])
+        if i < 41:  # frame 41 has no result file: its car is missed
+            write_labels(pred_dir / f"{i:06d}.txt", [obj(score=0.9)])
+    out = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir, "--json", tmp_path / "ap.json",
+               "--plots", tmp_path / "plots")
+    assert out.returncode == 0, out.stderr
+    assert "BEV" in out.stdout and "R40" in out.stdout and "R11" in out.stdout
+    assert "no result file" in out.stderr  # the missing frame is reported
+    document = json.loads((tmp_path / "ap.json").read_text())
+    assert document["missing_predictions"] == ["000041"]
+    # 42 cars, 41 found with precision 1. getThresholds skips the 31st true positive (recall
+    # 31/42 is farther from 30/40 than 32/42 is), so 40 thresholds (points 0..39): R40 = 39/40, R11 = 10/11.
+    assert document["Car"]["bev"]["0.7"]["R40"] == pytest.approx([97.5] * 3)
+    assert document["Car"]["bev"]["0.7"]["R11"] == pytest.approx([1000 / 11] * 3)
+    assert document["details"]["Car"]["bev"]["0.7"]["easy"]["fn"][-1] == 1
+    assert sorted(p.name for p in (tmp_path / "plots").glob("*.png")) == [
+        "pr_car_easy.png", "pr_car_hard.png", "pr_car_moderate.png"]
+
+    split = tmp_path / "split.txt"
+    split.write_text("000000\n000001\n")
+    out = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir, "--split-file", split, "--json", tmp_path / "s.json")
+    assert out.returncode == 0, out.stderr
+    assert json.loads((tmp_path / "s.json").read_text())["frames"] == 2
+
+
+def test_cli_reports_bad_input_without_traceback(tmp_path: Path):
+    gt_dir, pred_dir = tmp_path / "gt", tmp_path / "pred"
+    gt_dir.mkdir()
+    pred_dir.mkdir()
+    write_labels(gt_dir / "000000.txt", [obj()])
+    (pred_dir / "000000.txt").write_text("Car 0 0 0 1 2 3\n")
+    out = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert f"{pred_dir / '000000.txt'}, line 1" in out.stderr
+
+    out = _cli("--gt-labels", tmp_path / "nowhere", "--pred-labels", pred_dir)
+    assert out.returncode == 2 and str(tmp_path / "nowhere") in out.stderr and "Traceback" not in out.stderr
+
+    split = tmp_path / "split.txt"
+    split.write_text("000007\n")
+    out = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir, "--split-file", split)
+    assert out.returncode == 2 and str(gt_dir / "000007.txt") in out.stderr
+
+
+def test_cli_help():
+    out = _cli("--help")
+    assert out.returncode == 0 and "--gt-labels" in out.stdout and "--split-file" in out.stdout
