@@ -1,0 +1,184 @@
+"""Compare simulated frames with real KITTI frames: points per frame, points on cars vs distance
+(64 and 16 lines), car sizes, and a side-by-side picture (image | LiDAR projection | BEV).
+
+    python benchmarks/sim_report.py --sim DIR --kitti tests/data/kitti/training \
+        --figure docs/img/sim_vs_kitti.jpg
+
+Prints markdown tables (paste into docs/simulation.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.beams import emulate_beams
+from pipeline.boxes import box_corners_3d, labels_to_boxes, points_in_boxes
+from pipeline.calib import Calibration
+from pipeline.kitti import Object3D, read_calib, read_image, read_labels, read_velodyne
+
+DISTANCE_BINS = (0, 10, 20, 30, 40, 50, 60, 70)
+KITTI_CAR_SIZE = {"h": (1.53, 0.14), "w": (1.63, 0.10), "l": (3.88, 0.43)}
+
+
+@dataclass
+class FrameFiles:
+    """One frame read from a KITTI-layout folder."""
+
+    name: str
+    image: np.ndarray
+    points: np.ndarray
+    calib: Calibration
+    objects: list[Object3D]
+
+
+@dataclass
+class ReportConfig:
+    """Inputs: a simulated folder (generated with ``frames``/``seed`` if absent) and the real KITTI folder."""
+
+    kitti: Path
+    sim: Path | None = None
+    frames: int = 20
+    seed: int = 1
+    figure: Path | None = None
+
+
+def load(folder: Path, limit: int | None = None) -> list[FrameFiles]:
+    """Frames of a KITTI-layout folder (sorted by name)."""
+    names = sorted(p.stem for p in (folder / "velodyne").glob("*.bin"))[:limit]
+    return [FrameFiles(n, read_image(folder / "image_2" / f"{n}.png"),
+                       read_velodyne(folder / "velodyne" / f"{n}.bin").points,
+                       read_calib(folder / "calib" / f"{n}.txt"),
+                       read_labels(folder / "label_2" / f"{n}.txt")) for n in names]
+
+
+def car_points_by_distance(frames: list[FrameFiles]) -> dict[int, tuple[list[int], list[int]]]:
+    """Per distance bin: points inside each labelled car's box with 64 lines and with 16 lines."""
+    bins: dict[int, tuple[list[int], list[int]]] = {b: ([], []) for b in DISTANCE_BINS[:-1]}
+    for f in frames:
+        cars = [o for o in f.objects if o.type == "Car"]
+        if not cars:
+            continue
+        boxes = labels_to_boxes(cars, f.calib)
+        sparse = emulate_beams(f.points, beams=16)
+        n64 = points_in_boxes(f.points, boxes).sum(axis=0)
+        n16 = points_in_boxes(sparse, boxes).sum(axis=0)
+        for box, a, b in zip(boxes, n64, n16):
+            k = int(np.searchsorted(DISTANCE_BINS, np.hypot(box[0], box[1]), side="right")) - 1
+            if 0 <= k < len(DISTANCE_BINS) - 1:
+                bins[DISTANCE_BINS[k]][0].append(int(a))
+                bins[DISTANCE_BINS[k]][1].append(int(b))
+    return bins
+
+
+def _fmt(values: list[int]) -> str:
+    return f"{np.median(values):.0f} ({len(values)})" if values else "–"
+
+
+def tables(sim: list[FrameFiles], real: list[FrameFiles]) -> str:
+    """The report's markdown tables."""
+    lines = ["### Points per frame (64-line)", "", "| | frames | median | min | max |", "|---|---|---|---|---|"]
+    for label, frames in (("simulated", sim), ("KITTI", real)):
+        n = [f.points.shape[0] for f in frames]
+        lines.append(f"| {label} | {len(n)} | {np.median(n):,.0f} | {min(n):,} | {max(n):,} |")
+    lines += ["", "### Points inside a labelled car's box vs distance: median (cars)", "",
+              "| distance (m) | sim 64 | sim 16 | KITTI 64 | KITTI 16 |", "|---|---|---|---|---|"]
+    s_bins, r_bins = car_points_by_distance(sim), car_points_by_distance(real)
+    for lo, hi in itertools.pairwise(DISTANCE_BINS):
+        lines.append(f"| {lo}–{hi} | {_fmt(s_bins[lo][0])} | {_fmt(s_bins[lo][1])} | "
+                     f"{_fmt(r_bins[lo][0])} | {_fmt(r_bins[lo][1])} |")
+    lines += ["", "### Car sizes (labelled cars), mean ± std in metres", "",
+              "| | cars | h | w | l |", "|---|---|---|---|---|"]
+    lines.append("| KITTI training set (reference from the issue) | – | " + " | ".join(
+        f"{m:.2f} ± {s:.2f}" for m, s in KITTI_CAR_SIZE.values()) + " |")
+    for label, frames in (("simulated", sim), ("KITTI samples", real)):
+        dims = np.array([o.dimensions for f in frames for o in f.objects if o.type == "Car"]).reshape(-1, 3)
+        lines.append(f"| {label} | {len(dims)} | " + " | ".join(
+            f"{dims[:, k].mean():.2f} ± {dims[:, k].std():.2f}" for k in range(3)) + " |")
+    return "\n".join(lines)
+
+
+def figure(rows: list[tuple[str, FrameFiles]], path: Path) -> None:
+    """Image, LiDAR projection on the image (colour = depth), and BEV with car boxes, one row per frame."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(rows), 3, figsize=(22, 3.6 * len(rows)),
+                             gridspec_kw={"width_ratios": [1242 / 375, 1242 / 375, 0.9]})
+    for (title, f), ax in zip(rows, np.atleast_2d(axes)):
+        h, w = f.image.shape[:2]
+        ax[0].imshow(f.image)
+        ax[0].set_title(f"{title}: image")
+        uv, depth = f.calib.velo_to_image(f.points[:, :3])
+        ok = (depth > 1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        ax[1].imshow((f.image * 0.35).astype(np.uint8))
+        ax[1].scatter(uv[ok, 0], uv[ok, 1], c=np.minimum(depth[ok], 60), s=0.3, cmap="turbo")
+        ax[1].set_title(f"{title}: 64-line LiDAR projected")
+        keep = (f.points[:, 0] > -5) & (f.points[:, 0] < 70) & (np.abs(f.points[:, 1]) < 40)
+        ax[2].scatter(-f.points[keep, 1], f.points[keep, 0], s=0.1, c=f.points[keep, 2], cmap="viridis",
+                      vmin=-2, vmax=1)
+        cars = [o for o in f.objects if o.type in ("Car", "Van")]
+        for corners in box_corners_3d(labels_to_boxes(cars, f.calib))[:, :4, :2] if cars else []:
+            loop = np.vstack([corners, corners[:1]])
+            ax[2].plot(-loop[:, 1], loop[:, 0], "r-", lw=0.8)
+        ax[2].set_xlim(-40, 40)
+        ax[2].set_ylim(-5, 70)
+        ax[2].set_aspect("equal")
+        ax[2].set_title(f"{title}: BEV, cars red")
+        for a in ax[:2]:
+            a.axis("off")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def run(config: ReportConfig) -> str:
+    """Build the tables (and the figure when asked); returns the markdown."""
+    real = load(config.kitti)
+    if config.sim is None:
+        from simulation import RunConfig
+        from simulation import run as simulate
+
+        tmp = Path(tempfile.mkdtemp(prefix="sim_report_"))
+        simulate(RunConfig(out=tmp, frames=config.frames, seed=config.seed))
+        sim_dir = tmp
+    else:
+        sim_dir = config.sim
+    sim = load(sim_dir, config.frames)
+    if not sim:
+        raise ValueError(f"--sim: no frames in {sim_dir}")
+    if config.figure is not None:
+        real_frame = max(real, key=lambda f: sum(o.type == "Car" for o in f.objects))
+        figure([("simulated " + sim[0].name, sim[0]), ("KITTI " + real_frame.name, real_frame)], config.figure)
+    return tables(sim, real)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--kitti", type=Path, default=Path("tests/data/kitti/training"),
+                        help="real KITTI folder (image_2, velodyne, calib, label_2)")
+    parser.add_argument("--sim", type=Path, help="simulated folder; generated into a temp dir when omitted")
+    parser.add_argument("--frames", type=int, default=20, help="simulated frames to use (default 20)")
+    parser.add_argument("--seed", type=int, default=1, help="seed when generating (default 1)")
+    parser.add_argument("--figure", type=Path, help="write the side-by-side PNG here")
+    args = parser.parse_args(argv)
+    try:
+        print(run(ReportConfig(kitti=args.kitti, sim=args.sim, frames=args.frames, seed=args.seed,
+                               figure=args.figure)))
+    except (ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

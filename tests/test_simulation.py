@@ -1,0 +1,179 @@
+"""simulation/: generated frames are KITTI-shaped, self-consistent across sensors, labelled from the render."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.beams import emulate_beams, recover_rings
+from pipeline.boxes import labels_to_boxes, points_in_boxes
+from pipeline.kitti import read_calib, read_depth_png, read_image, read_labels, read_velodyne
+from simulation import RunConfig, generate_frame, run
+from simulation.constants import BASE_P2, BASE_R0_RECT, BASE_TR_VELO_TO_CAM, IMAGE_HW, OCCLUSION_LEVELS
+from simulation.labels import occlusion_level, visibility
+
+SEED = 2024
+FRAMES = 3
+KITTI_TYPES = {"Car", "Van", "Pedestrian", "Cyclist", "DontCare"}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Three frames written by the public run() (one worker)."""
+    out = tmp_path_factory.mktemp("sim")
+    run(RunConfig(out=out, frames=FRAMES, seed=SEED, progress=False))
+    return out
+
+
+@pytest.fixture(scope="module")
+def frame():
+    """Frame 0 in memory, with its scene and render."""
+    return generate_frame(SEED, 0)
+
+
+def _ids(dataset: Path) -> list[str]:
+    return (dataset / "ImageSets" / "train.txt").read_text().split()
+
+
+def test_files_read_back_through_pipeline_readers(dataset: Path) -> None:
+    ids = _ids(dataset)
+    assert ids == ["000000", "000001", "000002"]
+    for name in ids:
+        image = read_image(dataset / "image_2" / f"{name}.png")
+        assert image.shape == (*IMAGE_HW, 3) and image.std() > 10
+        scan = read_velodyne(dataset / "velodyne" / f"{name}.bin")
+        assert scan.dropped_nonfinite == 0
+        assert 90_000 <= scan.points.shape[0] <= 135_000
+        assert 0.0 <= scan.points[:, 3].min() and scan.points[:, 3].max() < 1.0
+        read_calib(dataset / "calib" / f"{name}.txt")
+        objects = read_labels(dataset / "label_2" / f"{name}.txt")
+        assert {o.type for o in objects} <= KITTI_TYPES
+        assert any(o.type == "Car" for o in objects)
+        depth = read_depth_png(dataset / "depth_2" / f"{name}.png")
+        assert depth.shape == IMAGE_HW
+        assert (depth > 0).mean() > 0.5  # dense: everything but the sky
+
+
+def test_base_calibration_is_real_kitti(kitti_dir: Path) -> None:
+    real = read_calib(kitti_dir / "calib" / "000003.txt")
+    np.testing.assert_allclose(BASE_P2, real.P2)
+    np.testing.assert_allclose(BASE_R0_RECT, real.R0_rect)
+    np.testing.assert_allclose(BASE_TR_VELO_TO_CAM, real.Tr_velo_to_cam)
+
+
+def test_calibration_varies_slightly_between_frames(dataset: Path) -> None:
+    calibs = [read_calib(dataset / "calib" / f"{n}.txt") for n in _ids(dataset)]
+    focal = [c.P2[0, 0] for c in calibs]
+    assert len(set(focal)) == len(focal)
+    assert all(abs(f - BASE_P2[0, 0]) < 15 for f in focal)
+    for c in calibs:  # the LiDAR sits about 1.73 m up, the camera about 1.65 m: their offset stays KITTI's
+        np.testing.assert_allclose(c.Tr_velo_to_cam[:, 3], BASE_TR_VELO_TO_CAM[:, 3], atol=0.05)
+
+
+def test_car_lidar_points_project_inside_their_2d_boxes(dataset: Path) -> None:
+    checked = 0
+    for name in _ids(dataset):
+        calib = read_calib(dataset / "calib" / f"{name}.txt")
+        points = read_velodyne(dataset / "velodyne" / f"{name}.bin").points
+        cars = [o for o in read_labels(dataset / "label_2" / f"{name}.txt") if o.type == "Car"]
+        boxes = labels_to_boxes(cars, calib)
+        inside = points_in_boxes(points, boxes)
+        for k, car in enumerate(cars):
+            on_car = points[inside[:, k] & (points[:, 2] > boxes[k, 2] - boxes[k, 5] / 2 + 0.15)]
+            uv, depth = calib.velo_to_image(on_car[:, :3])
+            in_image = (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] <= IMAGE_HW[1] - 1) & (uv[:, 1] >= 0) & (
+                uv[:, 1] <= IMAGE_HW[0] - 1)
+            uv = uv[in_image]
+            left, top, right, bottom = car.bbox
+            tol = 1.0  # pixel rounding of the silhouette and the label's two decimals
+            assert (uv[:, 0] >= left - tol).all() and (uv[:, 0] <= right + tol).all(), name
+            assert (uv[:, 1] >= top - tol).all() and (uv[:, 1] <= bottom + tol).all(), name
+            checked += int(uv.shape[0] > 0)
+    assert checked >= 3
+
+
+def test_rings_recovered_and_16_line_emulation(dataset: Path) -> None:
+    for name in _ids(dataset):
+        points = read_velodyne(dataset / "velodyne" / f"{name}.bin").points
+        rings = recover_rings(points)
+        assert rings.method == "azimuth-wrap" and rings.n_rings == 64
+        assert rings.elevation_deg.max() == pytest.approx(2.0, abs=0.3)
+        assert rings.elevation_deg.min() == pytest.approx(-24.9, abs=0.3)
+        kept = emulate_beams(points, beams=16)
+        assert recover_rings(kept).n_rings == 16
+        assert 0.22 <= kept.shape[0] / points.shape[0] <= 0.28
+
+
+def test_dense_depth_agrees_with_lidar(dataset: Path) -> None:
+    """Both sensors see one scene: LiDAR points land on the depth ground truth."""
+    name = _ids(dataset)[0]
+    calib = read_calib(dataset / "calib" / f"{name}.txt")
+    points = read_velodyne(dataset / "velodyne" / f"{name}.bin").points
+    depth = read_depth_png(dataset / "depth_2" / f"{name}.png")
+    uv, d = calib.velo_to_image(points[:, :3])
+    cols, rows = np.rint(uv[:, 0]), np.rint(uv[:, 1])
+    ok = (d > 1) & (cols >= 0) & (cols < IMAGE_HW[1]) & (rows >= 0) & (rows < IMAGE_HW[0])
+    gt = depth[rows[ok].astype(int), cols[ok].astype(int)]
+    rel = np.abs(gt - d[ok]) / d[ok]
+    assert ok.sum() > 10_000
+    assert np.median(rel) < 0.01  # the rest: occlusion boundaries seen from two viewpoints
+
+
+def test_occlusion_and_truncation_agree_with_render(frame) -> None:
+    """Label levels follow the visible fraction measured independently from the written depth map."""
+    calib, depth = frame.calib, frame.depth
+    vis = visibility(frame.scene, frame.render, calib)
+    labelled = [o for o in frame.objects if o.type != "DontCare"]
+    boxes = labels_to_boxes(labelled, calib)
+    assert len(labelled) >= 3
+    for obj, box in zip(labelled, boxes):
+        # Find the actor this label came from (same box centre).
+        index = int(np.argmin([np.linalg.norm(a.box[:2] - box[:2]) for a in frame.scene.actors]))
+        (rows, cols), mask = frame.render.cast.amodal[index]
+        rr, cc = np.nonzero(mask)
+        d = depth[rows][:, cols][rr, cc]
+        pts = calib.image_to_velo(cc + cols.start, rr + rows.start, d)
+        grown = box.copy()
+        grown[3:6] += 0.05
+        on_object = points_in_boxes(pts, grown[None])[:, 0] & (d > 0)
+        visible = on_object.mean()
+        near_threshold = np.min(np.abs(1 - visible - np.asarray(OCCLUSION_LEVELS))) < 0.02
+        assert near_threshold or occlusion_level(1 - visible) == obj.occluded, (obj, visible)
+        assert abs(vis[index].visible_pixels / vis[index].amodal_pixels - visible) < 0.02
+        # Truncation: inside the image ⇔ box clear of the borders.
+        left, _, right, bottom = obj.bbox
+        touches = left <= 0.5 or right >= IMAGE_HW[1] - 1.5 or bottom >= IMAGE_HW[0] - 1.5
+        if obj.truncated == 0.0:
+            assert not (left <= 0.5 or right >= IMAGE_HW[1] - 1.5)
+        if obj.truncated >= 0.1:
+            assert touches
+
+
+def test_labels_follow_kitti_rules(dataset: Path) -> None:
+    for name in _ids(dataset):
+        calib = read_calib(dataset / "calib" / f"{name}.txt")
+        objects = read_labels(dataset / "label_2" / f"{name}.txt")
+        real = [o for o in objects if o.type != "DontCare"]
+        assert objects[len(real):] == [o for o in objects if o.type == "DontCare"]  # DontCare last
+        for o in real:
+            assert o.occluded in (0, 1, 2) and 0.0 <= o.truncated <= 1.0
+            assert np.hypot(*labels_to_boxes([o], calib)[0, :2]) <= 75.5
+            assert -np.pi <= o.alpha <= np.pi
+        for o in (o for o in real if o.type == "Car"):
+            h, w, l = o.dimensions
+            assert 1.2 < h < 1.9 and 1.3 < w < 1.9 and 2.9 < l < 4.8
+
+
+def test_same_seed_same_bytes_any_workers_different_seed_differs(dataset: Path, tmp_path: Path) -> None:
+    again = tmp_path / "again"
+    run(RunConfig(out=again, frames=2, seed=SEED, start=1, workers=2, progress=False))
+    for sub, ext in (("image_2", "png"), ("velodyne", "bin"), ("calib", "txt"), ("label_2", "txt"),
+                     ("depth_2", "png")):
+        for name in ("000001", "000002"):
+            assert (again / sub / f"{name}.{ext}").read_bytes() == (dataset / sub / f"{name}.{ext}").read_bytes()
+    other = generate_frame(SEED + 1, 1)
+    mine = read_velodyne(dataset / "velodyne" / "000001.bin").points
+    assert other.points.shape != mine.shape or not np.array_equal(other.points, mine)
+    assert not np.array_equal(other.image, read_image(dataset / "image_2" / "000001.png"))
