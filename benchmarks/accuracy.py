@@ -2,14 +2,19 @@
 
     python benchmarks/accuracy.py --gt-labels DIR --pred-labels DIR [--split-file F]
                                   [--json OUT] [--plots DIR]
+    python benchmarks/accuracy.py --data DIR --models DIR --input lidar64|lidar16|lidar16+camera
+                                  [--frames LIST] [--out DIR] [--json OUT] [--plots DIR]
+    python benchmarks/accuracy.py --depth --data DIR --models DIR [--frames LIST] [--json OUT]
 
 prints the paper's table (Car BEV AP at IoU 0.7 and 0.5, easy / moderate / hard,
 40- and 11-point; 3D and 2D-box AP when the results carry them), writes every
 figure as JSON and one precision-recall PNG per difficulty.
 
 The mode is chosen by flags (no subcommands): ``--gt-labels`` / ``--pred-labels``
-evaluate existing result files; running the detector over a dataset first is a
-separate mode with its own flags.
+evaluate existing result files; ``--data`` / ``--models`` / ``--input`` run the
+detector over a KITTI-layout dataset first (results in ``--out``, default a
+folder beside the JSON or ``outputs/accuracy``) and evaluate them against its
+``label_2``; ``--depth`` measures depth completion (RMSE, MAE, iRMSE, iMAE).
 """
 
 from __future__ import annotations
@@ -91,6 +96,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="KITTI result files <id>.txt (label lines + score); a missing file means no detections",
     )
     labels.add_argument("--split-file", type=Path, metavar="F", help="frame ids to evaluate, one per line")
+    detect = parser.add_argument_group("run the detector over a dataset, then evaluate")
+    detect.add_argument("--data", type=Path, metavar="DIR", help="KITTI object folder (image_2, velodyne, calib, label_2)")
+    detect.add_argument("--models", type=Path, metavar="DIR", help="model directory trained for --input")
+    detect.add_argument("--input", choices=["lidar64", "lidar16", "lidar16+camera"], help="the paper's table row")
+    detect.add_argument("--frames", type=Path, metavar="LIST", help="frame ids to run, one per line (default all)")
+    detect.add_argument("--out", type=Path, metavar="DIR", help="where the result files go (default outputs/accuracy/INPUT)")
+    detect.add_argument("--score-threshold", type=float, default=0.05,
+                        help="keep detections above this score (default 0.05: AP needs the whole curve)")
+    detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")
+    depth = parser.add_argument_group("depth completion")
+    depth.add_argument("--depth", action="store_true",
+                       help="depth metrics with --data (KITTI depth-completion layout, or an object folder with depth_2/)")
     output = parser.add_argument_group("output")
     output.add_argument("--json", type=Path, metavar="OUT", help="write every figure as JSON (AP in percent)")
     output.add_argument("--plots", type=Path, metavar="DIR", help="write precision-recall PNGs per difficulty")
@@ -102,9 +119,11 @@ def main(argv: list[str] | None = None) -> int:
     """Parse flags, run, print the table; input errors are printed without a traceback (exit code 2)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    if args.gt_labels is None or args.pred_labels is None:
-        parser.error("give --gt-labels DIR and --pred-labels DIR")
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    if args.depth or args.data is not None:
+        return _main_run(parser, args)
+    if args.gt_labels is None or args.pred_labels is None:
+        parser.error("give --gt-labels DIR and --pred-labels DIR, or --data DIR --models DIR --input …, or --depth")
     config = LabelEvalConfig(
         gt_labels=args.gt_labels, pred_labels=args.pred_labels, split_file=args.split_file,
         json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
@@ -119,6 +138,46 @@ def main(argv: list[str] | None = None) -> int:
         print(f"JSON: {outcome.json_path}")
     for path in outcome.plot_paths:
         print(f"plot: {path}")
+    return 0
+
+
+def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+    """The dataset modes: run the networks, then evaluate."""
+    from evaluation.harness import run_depth, run_detection
+    from pipeline.model_files import ModelFileError
+
+    if args.data is None or args.models is None:
+        parser.error("--data DIR and --models DIR are both required to run the models")
+    try:
+        frames = read_split_file(args.frames) if args.frames else None
+        if args.depth:
+            outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=not args.no_progress)
+            m = outcome.mean
+            print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
+            print(f"RMSE {m.rmse_mm:.1f} mm   MAE {m.mae_mm:.1f} mm   iRMSE {m.irmse_per_km:.2f} 1/km   "
+                  f"iMAE {m.imae_per_km:.2f} 1/km   ({m.n_pixels} pixels)")
+            if args.json:
+                args.json.parent.mkdir(parents=True, exist_ok=True)
+                args.json.write_text(json.dumps({
+                    "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
+                    "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
+                              "imae_per_km": m.imae_per_km, "pixels": m.n_pixels},
+                }, indent=1) + "\n", encoding="utf-8")
+            return 0
+        if args.input is None:
+            parser.error("--input lidar64|lidar16|lidar16+camera is required with --data and --models")
+        out = args.out or Path("outputs") / "accuracy" / args.input.replace("+", "_")
+        predictions = run_detection(args.data, args.models, args.input, out, frames, args.provider,
+                                    progress=not args.no_progress, score_threshold=args.score_threshold)
+        outcome = run(LabelEvalConfig(
+            gt_labels=args.data / "label_2", pred_labels=predictions, split_file=args.frames,
+            json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
+        ))
+    except (InputError, ModelFileError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames), results in {predictions}")
+    print(outcome.table)
     return 0
 
 

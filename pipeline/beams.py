@@ -85,8 +85,12 @@ def _cluster_elevations(elevation: np.ndarray, n_clusters: int = 64, iterations:
     return labels
 
 
-def recover_rings(points: np.ndarray, expected_rings: int = 64) -> RingAssignment:
-    """Assign every point to a laser ring (see module doc)."""
+def recover_rings(points: np.ndarray, expected_rings: int = 64, method: str = "auto") -> RingAssignment:
+    """Assign every point to a laser ring (see module doc).
+
+    method: "auto" (azimuth wraps when the order looks like a scan, else elevation
+    clusters) or "elevation" (always cluster, for points whose order means nothing).
+    """
     points = np.asarray(points)
     if points.shape[0] == 0:
         return RingAssignment(np.zeros(0, np.int32), 0, np.zeros(0), "azimuth-wrap")
@@ -97,7 +101,8 @@ def recover_rings(points: np.ndarray, expected_rings: int = 64) -> RingAssignmen
     n_segments = int(segment[-1]) + 1
     method = "azimuth-wrap"
     ordered = (
-        n_segments <= _MAX_PLAUSIBLE_SEGMENTS
+        method != "elevation"
+        and n_segments <= _MAX_PLAUSIBLE_SEGMENTS
         and points.shape[0] / n_segments >= _MIN_POINTS_PER_SEGMENT
         and n_segments >= expected_rings // 4
     )
@@ -136,6 +141,24 @@ def emulate_beams(points: np.ndarray, beams: int = 16, mode: str = "stride") -> 
     rings = recover_rings(points)
     keep_rings = select_rings(rings, beams, mode)
     return points[np.isin(rings.ring, keep_rings)]
+
+
+def emulate_beams_on_depth_map(depth: np.ndarray, calib, beams: int = 16, mode: str = "stride") -> np.ndarray:
+    """Thin a projected 64-line depth map (KITTI depth completion's velodyne_raw) to ``beams`` lines.
+
+    A projected map has lost the scan order, so each pixel is back-projected
+    through the calibration into the LiDAR frame and assigned a beam by its
+    elevation angle (clustered into 64 rings); pixels of dropped beams become 0.
+    """
+    rows, cols = np.nonzero(depth > 0)
+    if rows.size == 0:
+        return np.zeros_like(depth)
+    xyz = calib.image_to_velo(cols, rows, depth[rows, cols])
+    rings = recover_rings(xyz, method="elevation")
+    keep = np.isin(rings.ring, select_rings(rings, beams, mode))
+    out = np.zeros_like(depth)
+    out[rows[keep], cols[keep]] = depth[rows[keep], cols[keep]]
+    return out
 
 
 # --------------------------------------------------------------------------- CLI

@@ -71,6 +71,19 @@ def image_boxes(boxes: np.ndarray, calib: Calibration, image_hw: tuple[int, int]
     ])
 
 
+def in_camera_view(boxes: np.ndarray, calib: Calibration, image_hw: tuple[int, int]) -> np.ndarray:
+    """(N,) bool: the box centre lies in front of the camera and projects inside the image.
+
+    KITTI labels only what the camera sees, so results outside its view would
+    all count as false positives.
+    """
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    uv, depth = calib.velo_to_image(boxes[:, :3])
+    h, w = image_hw
+    with np.errstate(invalid="ignore"):
+        return (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+
+
 def boxes_to_objects(
     boxes: np.ndarray,
     calib: Calibration,

@@ -22,7 +22,7 @@ import numpy as np
 import onnxruntime as ort
 
 from pipeline.beams import emulate_beams
-from pipeline.boxes import boxes_to_objects
+from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import Calibration
 from pipeline.bev import BevVoxelizer
 from pipeline.errors import InputError
@@ -61,8 +61,9 @@ class Detections:
     points: np.ndarray | None = field(default=None, repr=False)  # the points PIXOR saw (for pictures)
 
     def to_objects(self, calib: Calibration, image_hw: tuple[int, int]) -> list[Object3D]:
-        """KITTI result objects (label_2 format with score)."""
-        return boxes_to_objects(self.boxes, calib, image_hw, self.scores, self.label)
+        """KITTI result objects (label_2 format with score) of the boxes the camera sees."""
+        seen = in_camera_view(self.boxes, calib, image_hw)
+        return boxes_to_objects(self.boxes[seen], calib, image_hw, self.scores[seen], self.label)
 
 
 def resolve_providers(requested: str | list[str] | None = None) -> list[str]:
@@ -99,6 +100,7 @@ class Detector:
         providers: str | list[str] | None = None,
         intra_op_threads: int | None = None,
         verify: bool = True,
+        trt_cache_dir: str | Path | None = None,
     ) -> None:
         self.model_dir = Path(model_dir)
         self.manifest = load_manifest(self.model_dir)
@@ -109,6 +111,15 @@ class Detector:
         except (KeyError, ValueError) as exc:
             raise ModelFileError(f"{self.model_dir / 'manifest.json'}: {exc}") from exc
         self.providers = resolve_providers(providers)
+        session_providers: list = list(self.providers)
+        if "TensorrtExecutionProvider" in self.providers:
+            # Building TensorRT engines takes minutes: cache them (a volume in the container).
+            cache = Path(trt_cache_dir or self.model_dir / "trt_cache")
+            cache.mkdir(parents=True, exist_ok=True)
+            trt_options = {"trt_engine_cache_enable": True, "trt_engine_cache_path": str(cache),
+                           "trt_timing_cache_enable": True, "trt_timing_cache_path": str(cache)}
+            session_providers = [("TensorrtExecutionProvider", trt_options) if p == "TensorrtExecutionProvider" else p
+                                 for p in self.providers]
         options = ort.SessionOptions()
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
         if intra_op_threads:
@@ -122,7 +133,7 @@ class Detector:
         for name in ("depth", "pixor") if self.two_stage else ("pixor",):
             path = self.model_dir / networks[name]["file"]
             try:
-                self._sessions[name] = ort.InferenceSession(str(path), options, providers=self.providers)
+                self._sessions[name] = ort.InferenceSession(str(path), options, providers=session_providers)
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
         self._local = threading.local()
@@ -147,8 +158,14 @@ class Detector:
     def dense_depth(self, image: np.ndarray, points: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
         """Depth completion alone: (H, W) metres in the network's view, and that view's calibration."""
         inputs = depth_inputs(image, points, calib, self.preset)
-        (depth,) = self._sessions["depth"].run(["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
-        return depth[0, 0], inputs.calib
+        return self.run_depth_net(inputs.rgb, inputs.sparse_depth), inputs.calib
+
+    def run_depth_net(self, rgb: np.ndarray, sparse_depth: np.ndarray) -> np.ndarray:
+        """depth.onnx on prepared inputs (1, 3, H, W) and (1, 1, H, W) → (H, W) metres."""
+        if not self.two_stage:
+            raise InputError("models: this model directory has no depth network (LiDAR-only PIXOR)")
+        (depth,) = self._sessions["depth"].run(["depth"], {"rgb": rgb, "sparse_depth": sparse_depth})
+        return depth[0, 0]
 
     def detect(
         self,

@@ -111,6 +111,37 @@ def read_calib(path: str | Path) -> Calibration:
     return parse_calib(text, str(path))
 
 
+def _raw_calib_values(path: Path) -> dict[str, np.ndarray]:
+    values = {}
+    try:
+        text = path.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read calibration ({exc})") from exc
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        key, sep, rest = line.partition(":")
+        if not sep or key.strip() == "calib_time":
+            continue
+        try:
+            values[key.strip()] = np.array([float(v) for v in rest.split()])
+        except ValueError as exc:
+            raise InputError(f"{path}, line {line_no}: {key.strip()} has a non-numeric value ({exc})") from exc
+    return values
+
+
+def read_raw_calib(cam_to_cam: str | Path, velo_to_cam: str | Path) -> Calibration:
+    """Calibration from KITTI raw-data files (``calib_cam_to_cam.txt``, ``calib_velo_to_cam.txt``),
+    as the depth-completion drives need: P2 = P_rect_02, R0_rect = R_rect_00, Tr_velo_to_cam = [R | T]."""
+    cam, velo = _raw_calib_values(Path(cam_to_cam)), _raw_calib_values(Path(velo_to_cam))
+    for path, table, keys in ((cam_to_cam, cam, ("P_rect_02", "R_rect_00")), (velo_to_cam, velo, ("R", "T"))):
+        missing = [k for k in keys if k not in table]
+        if missing:
+            raise InputError(f"{path}: missing calibration key(s) {', '.join(missing)}")
+    return Calibration(
+        P2=cam["P_rect_02"].reshape(3, 4), R0_rect=cam["R_rect_00"].reshape(3, 3),
+        Tr_velo_to_cam=np.hstack([velo["R"].reshape(3, 3), velo["T"].reshape(3, 1)]),
+    )
+
+
 def format_calib(calib: Calibration) -> str:
     """KITTI calib text for ``calib`` (P0/P1/P3 written as copies of P2 so other tools can read it)."""
 

@@ -56,3 +56,37 @@ def depth_inputs(image: np.ndarray, points: np.ndarray, calib: Calibration, pres
     sparse = sparse_depth_map(points, view_calib, view.shape[:2])
     rgb = np.ascontiguousarray(view.transpose(2, 0, 1)[None], dtype=np.float32)
     return DepthInputs(rgb=rgb, sparse_depth=sparse[None, None], calib=view_calib)
+
+
+def downscale_sparse_depth(sparse: np.ndarray, factor: int) -> np.ndarray:
+    """Shrink a sparse depth map by an integer factor, nearest return per block (0 = none).
+
+    A block of factor × factor pixels becomes one pixel whose centre is the
+    block's centre, the same geometry as :func:`scale_calibration`.
+    """
+    if factor == 1:
+        return sparse
+    h, w = sparse.shape
+    if h % factor or w % factor:
+        raise ValueError(f"sparse depth {w}×{h} is not divisible by the factor {factor}")
+    blocks = np.where(sparse > 0, sparse, np.inf).reshape(h // factor, factor, w // factor, factor)
+    nearest = blocks.min(axis=(1, 3))
+    return np.where(np.isfinite(nearest), nearest, 0).astype(np.float32)
+
+
+def view_from_depth_png(image: np.ndarray, sparse: np.ndarray, preset: Preset) -> tuple[np.ndarray, np.ndarray]:
+    """Depth-net inputs from a KITTI depth-completion frame (image + projected sparse depth PNG).
+
+    Returns rgb float32 (1, 3, H, W) and sparse_depth float32 (1, 1, H, W) of the
+    network's view: the same crop as object frames, the sparse map shrunk by
+    nearest return (no calibration needed).
+    """
+    crop = depth_crop(image.shape[:2], *preset.crop_hw)
+    view = crop.apply(image)
+    sparse_view = crop.apply(sparse)
+    height, width = preset.depth.input_hw
+    if view.shape[:2] != (height, width):
+        view = cv2.resize(view, (width, height), interpolation=cv2.INTER_AREA)
+        sparse_view = downscale_sparse_depth(sparse_view, int(round(1 / preset.depth.input_scale)))
+    rgb = np.ascontiguousarray(view.transpose(2, 0, 1)[None], dtype=np.float32)
+    return rgb, np.ascontiguousarray(sparse_view[None, None], dtype=np.float32)

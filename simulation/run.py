@@ -50,6 +50,13 @@ def _make(seed: int, index: int, out: Path) -> float:
     return time.perf_counter() - t0
 
 
+def _complete(out: Path, index: int) -> bool:
+    """All five files of a frame exist (depth_2 is written last), so an interrupted run can resume."""
+    name = frame_name(index)
+    return all((out / sub / f"{name}{ext}").exists() for sub, ext in (
+        ("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt"), ("depth_2", ".png")))
+
+
 def run(config: RunConfig) -> RunResult:
     """Generate and write the frames; returns what was written."""
     if config.frames < 1:
@@ -59,8 +66,11 @@ def run(config: RunConfig) -> RunResult:
     out = Path(config.out)
     for sub in SUBDIRS:
         (out / sub).mkdir(parents=True, exist_ok=True)
-    indices = list(range(config.start, config.start + config.frames))
-    log.info("writing %d frames (seed %d) to %s with %d worker(s)", config.frames, config.seed, out, config.workers)
+    all_indices = list(range(config.start, config.start + config.frames))
+    indices = [i for i in all_indices if not _complete(out, i)]
+    if len(indices) < len(all_indices):
+        log.info("resuming: %d of %d frames already written", len(all_indices) - len(indices), len(all_indices))
+    log.info("writing %d frames (seed %d) to %s with %d worker(s)", len(indices), config.seed, out, config.workers)
     bar = tqdm(total=len(indices), unit="frame", desc="simulating", disable=not config.progress)
     times: list[float] = []
     if config.workers == 1:
@@ -73,7 +83,7 @@ def run(config: RunConfig) -> RunResult:
                 times.append(seconds)
                 bar.update()
     bar.close()
-    ids = [frame_name(i) for i in indices]
+    ids = [frame_name(i) for i in all_indices]
     list_file = out / "ImageSets" / f"{config.split}.txt"
     list_file.parent.mkdir(parents=True, exist_ok=True)
     list_file.write_text("".join(f"{i}\n" for i in ids), encoding="ascii")

@@ -17,3 +17,13 @@ def kitti_dir() -> Path:
 @pytest.fixture(scope="session")
 def depth_completion_dir() -> Path:
     return DATA / "depth_completion"
+
+
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory) -> Path:
+    """A tiny-preset model directory exported once per test session (initialised weights)."""
+    from export.exporter import ExportConfig, run
+
+    out = tmp_path_factory.mktemp("tiny_models")
+    run(ExportConfig(preset="tiny", out=out, parity=False))
+    return out

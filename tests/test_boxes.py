@@ -172,3 +172,13 @@ def test_heights_from_bev_occupancy():
     # An empty box sits on the road with the mean car height.
     z0, h0 = estimate_heights(np.array([[60.0, -30.0, 4.0, 1.7, 0.0]]), np.zeros(p.bev.shape, np.float32), p)
     assert h0[0] == p.decode.car_height and z0[0] == pytest.approx(p.decode.ground_z + p.decode.car_height / 2)
+
+
+def test_camera_view_filter():
+    from pipeline.boxes import in_camera_view
+
+    frame = load_frame(KITTI, "000006")
+    cars = labels_to_boxes([o for o in frame.labels if o.type == "Car"], frame.calib)
+    assert in_camera_view(cars, frame.calib, frame.image_hw).all()
+    outside = np.array([[5.0, 30.0, -1, 4, 1.7, 1.5, 0.0], [-10.0, 0.0, -1, 4, 1.7, 1.5, 0.0]])
+    assert not in_camera_view(outside, frame.calib, frame.image_hw).any()

@@ -122,3 +122,15 @@ def test_resized_view_calibration_matches_area_resampling():
     inputs = depth_inputs(frame.image, frame.points, frame.calib, preset)
     assert inputs.rgb.shape == (1, 3, 176, 608) and inputs.sparse_depth.shape == (1, 1, 176, 608)
     assert inputs.rgb.dtype == np.float32 and 0 < np.count_nonzero(inputs.sparse_depth)
+
+
+def test_downscale_sparse_depth_keeps_nearest_return_per_block():
+    from pipeline.preprocess import downscale_sparse_depth
+
+    sparse = np.zeros((4, 6), np.float32)
+    sparse[0, 0], sparse[1, 1] = 10.0, 7.0  # same 2×2 block: 7 wins
+    sparse[3, 5] = 3.0
+    small = downscale_sparse_depth(sparse, 2)
+    np.testing.assert_array_equal(small, [[7.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
+    with pytest.raises(ValueError, match="not divisible"):
+        downscale_sparse_depth(np.zeros((5, 6), np.float32), 2)

@@ -1,0 +1,322 @@
+"""Latency and throughput of the whole pipeline, measured the way the paper measured its GPUs.
+
+    python benchmarks/latency.py [--preset P | --models DIR] [--provider cpu|cuda|tensorrt]
+                                 [--threads N] [--frames K] [--warmup W] [--json OUT] [--plot OUT.png]
+                                 [--compare-torch [--checkpoints DIR]]
+
+Single stream (the paper's per-frame latency, 25.4 ms on an RTX 2080Ti and
+581.7 ms on a DRIVE PX2): one Detector using every core, per-stage and
+end-to-end latency over real frames after warm-up. ``--threads N`` (the paper's
+two-GPU mode, 3.4 fps on the PX2): N workers, each with its own sessions
+pinned to its own share of the cores, run frames concurrently; aggregate fps
+is compared with one worker on one share. Each network's achieved GFLOP/s is
+set against the machine's peak, measured in the same run (benchmarks/peak.py).
+
+Without ``--models`` the preset is exported first with initialised weights
+(latency does not depend on the weights' values).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import threading
+import time
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks.peak import measure_peak  # noqa: E402
+from pipeline.beams import emulate_beams  # noqa: E402
+from pipeline.detector import Detector  # noqa: E402
+from pipeline.frame import Frame, frame_ids, load_frame  # noqa: E402
+
+BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
+PAPER = {"RTX 2080Ti": {"ms": 25.4, "fps": 39.8}, "DRIVE PX2": {"ms": 581.7, "fps_two_threads": 3.4}}
+
+
+# ----------------------------------------------------------------------------- frames
+def load_frames(data: Path, count: int, beams: int | None) -> list[Frame]:
+    """Up to ``count`` frames of a KITTI-layout folder (cycled when there are fewer), scans thinned to ``beams``."""
+    ids = frame_ids(data)
+    frames = []
+    for frame_id in ids[: max(1, min(count, len(ids)))]:
+        frame = load_frame(data, frame_id, with_labels=False)
+        if beams:
+            frame.points = emulate_beams(frame.points, beams)
+        frames.append(frame)
+    return frames
+
+
+def summarize(samples: list[float]) -> dict:
+    s = np.asarray(samples)
+    return {"mean": float(s.mean()), "p50": float(np.percentile(s, 50)), "p90": float(np.percentile(s, 90)),
+            "p99": float(np.percentile(s, 99)), "n": int(s.size)}
+
+
+# ----------------------------------------------------------------------------- torch eager twin
+class TorchSession:
+    """Stands in for an ONNX Runtime session: same ``run(outputs, feeds)`` call, PyTorch eager inside."""
+
+    def __init__(self, module, input_names: list[str]) -> None:
+        self.module, self.input_names = module, input_names
+
+    def run(self, output_names, feeds):
+        import torch
+
+        with torch.inference_mode():
+            outputs = self.module(*(torch.from_numpy(feeds[name]) for name in self.input_names))
+        outputs = outputs if isinstance(outputs, tuple) else (outputs,)
+        return [o.numpy() for o in outputs]
+
+
+def torch_detector(models_dir: Path, networks: dict) -> Detector:
+    """The same Detector with its sessions swapped for the PyTorch modules (same weights)."""
+    detector = Detector(models_dir, providers="cpu")
+    inputs = {"depth": ["rgb", "sparse_depth"], "pixor": ["bev"]}
+    detector._sessions = {name: TorchSession(networks[name].eval(), inputs[name]) for name in detector._sessions}
+    return detector
+
+
+# ----------------------------------------------------------------------------- runs
+@dataclass
+class StreamResult:
+    end_to_end: list[float]
+    stages: dict[str, list[float]]
+    wall_s: float
+    frames: int
+
+
+def run_stream(detector: Detector, frames: list[Frame], count: int, warmup: int) -> StreamResult:
+    """Frames one after the other (cycling), after ``warmup`` untimed frames."""
+    for i in range(warmup):
+        f = frames[i % len(frames)]
+        detector.detect(f.image, f.points, f.calib)
+    stages: dict[str, list[float]] = {}
+    totals = []
+    tic = time.perf_counter()
+    for i in range(count):
+        f = frames[i % len(frames)]
+        result = detector.detect(f.image, f.points, f.calib)
+        totals.append(result.timings_ms["total"])
+        for stage, ms in result.timings_ms.items():
+            if stage != "total":
+                stages.setdefault(stage, []).append(ms)
+    return StreamResult(totals, stages, time.perf_counter() - tic, count)
+
+
+def run_workers(models: Path, provider: str | None, frames: list[Frame], workers: int, per_worker: int,
+                warmup: int, cores: list[int]) -> float:
+    """Aggregate fps of ``workers`` threads, each pinned to its share of ``cores`` with its own sessions."""
+    share = max(1, len(cores) // workers)
+    barrier = threading.Barrier(workers + 1)
+    done = threading.Barrier(workers + 1)
+    errors: list[BaseException] = []
+
+    def work(index: int) -> None:
+        try:
+            mine = cores[index * share : (index + 1) * share] or cores
+            os.sched_setaffinity(0, mine)  # this thread only; ORT threads created below inherit it
+            detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False)
+            for i in range(warmup):
+                f = frames[(i + index) % len(frames)]
+                detector.detect(f.image, f.points, f.calib)
+        except BaseException as exc:  # reported after the barrier
+            errors.append(exc)
+        barrier.wait()
+        try:
+            for i in range(per_worker):
+                f = frames[(i + index) % len(frames)]
+                detector.detect(f.image, f.points, f.calib)
+        except BaseException as exc:
+            errors.append(exc)
+        done.wait()
+
+    threads = [threading.Thread(target=work, args=(i,), daemon=True) for i in range(workers)]
+    for t in threads:
+        t.start()
+    barrier.wait()
+    tic = time.perf_counter()
+    done.wait()
+    wall = time.perf_counter() - tic
+    for t in threads:
+        t.join()
+    if errors:
+        raise errors[0]
+    return workers * per_worker / wall
+
+
+def versions() -> dict:
+    out = {}
+    for name in ("onnxruntime", "numpy", "opencv-python-headless", "torch"):
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def machine() -> dict:
+    cpu = platform.processor()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "system": platform.platform(),
+            "python": platform.python_version()}
+
+
+# ----------------------------------------------------------------------------- main job
+def run(preset: str = "edge", models: Path | None = None, provider: str | None = None, threads: int = 1,
+        frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
+        compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True) -> dict:
+    """Measure everything; returns the JSON-able report."""
+    cores = sorted(os.sched_getaffinity(0))
+    scratch = None
+    torch_networks = None
+    if models is None or compare_torch:
+        from export.exporter import ExportConfig
+        from export.exporter import run as export
+
+        if models is None:
+            scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
+            models = Path(scratch.name)
+            result = export(ExportConfig(preset=preset, out=models, parity=False, checkpoints=checkpoints))
+        else:
+            result = export(ExportConfig(preset=preset, out=Path(tempfile.mkdtemp(prefix="lowres3d-torch-")),
+                                         parity=False, checkpoints=checkpoints))
+        torch_networks = result.networks
+    detector = Detector(models, providers=provider, intra_op_threads=len(cores))
+    preset_name = detector.preset.name
+    pool = load_frames(data, max(frames, warmup), beams)
+
+    report: dict = {"preset": preset_name, "models": str(models) if scratch is None else "exported (initialised weights)",
+                    "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,
+                    "precision": detector.manifest.get("precision", "fp32"), "frames": frames, "warmup": warmup,
+                    "input": f"{beams}-line scan + camera" if beams else "scan as stored + camera",
+                    "data": str(data), "machine": machine(), "versions": versions(), "paper": PAPER}
+    stream = run_stream(detector, pool, frames, warmup)
+    report["end_to_end_ms"] = summarize(stream.end_to_end)
+    report["fps"] = 1e3 / report["end_to_end_ms"]["mean"]
+    report["stages_ms"] = {stage: summarize(v) for stage, v in stream.stages.items()}
+    between = sum(report["stages_ms"][s]["mean"] for s in report["stages_ms"] if s not in ("depth_net", "pixor"))
+    report["non_network_fraction"] = between / report["end_to_end_ms"]["mean"]
+
+    peak = measure_peak(len(cores))
+    report["peak_gflops"] = peak.peak_gflops
+    report["peak_detail"] = {"matmul_4096_gflops": peak.matmul_gflops, "conv3x3_256_gflops": peak.conv_gflops,
+                             "threads": peak.threads}
+    report["networks"] = {}
+    for name, stage in (("depth", "depth_net"), ("pixor", "pixor")):
+        if name in detector.manifest["networks"] and stage in report["stages_ms"]:
+            flops = detector.manifest["networks"][name]["flops"]
+            ms = report["stages_ms"][stage]["p50"]
+            achieved = flops / (ms / 1e3) / 1e9
+            report["networks"][name] = {"gflops": flops / 1e9, "ms": ms, "achieved_gflops_per_s": achieved,
+                                        "peak_fraction": achieved / peak.peak_gflops}
+
+    if threads > 1:
+        per_worker = max(frames // threads, 2)
+        one = run_workers(models, provider, pool, 1, per_worker, warmup, cores[: max(1, len(cores) // threads)])
+        many = run_workers(models, provider, pool, threads, per_worker, warmup, cores)
+        report["throughput"] = {"workers": threads, "fps": many, "fps_one_worker": one, "scaling": many / one,
+                                "cores_per_worker": max(1, len(cores) // threads)}
+    if compare_torch:
+        import torch
+
+        torch.set_num_threads(len(cores))
+        eager = run_stream(torch_detector(models, torch_networks), pool, frames, warmup)
+        report["torch_end_to_end_ms"] = summarize(eager.end_to_end)
+        report["torch_stages_ms"] = {stage: summarize(v) for stage, v in eager.stages.items()}
+        report["speedup_vs_torch"] = report["torch_end_to_end_ms"]["mean"] / report["end_to_end_ms"]["mean"]
+    if scratch is not None:
+        report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages}
+        scratch.cleanup()
+    else:
+        report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages}
+    return report
+
+
+def plot(report: dict, path: Path) -> None:
+    """Latency distribution per stage (box plots), end to end last."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    samples = report["_samples"]
+    names = list(samples["stages"]) + ["end to end"]
+    data = [samples["stages"][n] for n in samples["stages"]] + [samples["end_to_end"]]
+    fig, ax = plt.subplots(figsize=(8, 4))
+    ax.boxplot(data, vert=False, tick_labels=names, showfliers=True)
+    ax.set_xscale("log")
+    ax.set_xlabel("ms (log scale)")
+    ax.set_title(f"lowres3d {report['preset']} latency per stage, {report['frames']} frames, "
+                 f"{report['machine']['cores']} cores")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def print_report(report: dict) -> None:
+    e = report["end_to_end_ms"]
+    print(f"preset {report['preset']}, {report['frames']} frames after {report['warmup']} warm-up, "
+          f"{report['machine']['cpu']} ({report['machine']['cores']} cores), {report['provider']}")
+    print(f"end to end: mean {e['mean']:.1f} ms, p50 {e['p50']:.1f}, p90 {e['p90']:.1f}, p99 {e['p99']:.1f} → "
+          f"{report['fps']:.2f} fps")
+    for stage, s in report["stages_ms"].items():
+        print(f"  {stage:14s} mean {s['mean']:8.2f}  p50 {s['p50']:8.2f}  p99 {s['p99']:8.2f} ms")
+    print(f"between the networks: {100 * report['non_network_fraction']:.1f} % of end to end")
+    print(f"peak (best of MatMul {report['peak_detail']['matmul_4096_gflops']:.0f} and 3×3 conv "
+          f"{report['peak_detail']['conv3x3_256_gflops']:.0f} GFLOP/s): {report['peak_gflops']:.0f} GFLOP/s")
+    for name, n in report["networks"].items():
+        print(f"  {name:6s} {n['gflops']:.2f} GFLOP in {n['ms']:.1f} ms = {n['achieved_gflops_per_s']:.0f} GFLOP/s, "
+              f"{100 * n['peak_fraction']:.0f} % of peak")
+    if "throughput" in report:
+        t = report["throughput"]
+        print(f"{t['workers']} workers: {t['fps']:.2f} fps vs one worker {t['fps_one_worker']:.2f} fps "
+              f"→ scaling {t['scaling']:.2f}×")
+    if "speedup_vs_torch" in report:
+        print(f"PyTorch eager: mean {report['torch_end_to_end_ms']['mean']:.1f} ms → ONNX Runtime "
+              f"{report['speedup_vs_torch']:.2f}× faster")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    parser.add_argument("--preset", default="edge", help="preset to export and time when --models is not given")
+    parser.add_argument("--models", type=Path, help="model directory (default: export --preset with initialised weights)")
+    parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best)")
+    parser.add_argument("--threads", type=int, default=1, help="workers for the throughput mode (default 1: off)")
+    parser.add_argument("--frames", type=int, default=20, help="timed frames (default 20)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up frames (default 3)")
+    parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
+    parser.add_argument("--beams", type=int, default=16, help="thin scans to N lines before timing (0: keep)")
+    parser.add_argument("--compare-torch", action="store_true", help="also time the PyTorch eager pipeline")
+    parser.add_argument("--checkpoints", type=Path, help="checkpoints for --compare-torch with trained --models")
+    parser.add_argument("--json", type=Path, help="write the report as JSON")
+    parser.add_argument("--plot", type=Path, help="write the latency distribution per stage as PNG")
+    args = parser.parse_args(argv)
+    report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
+                 args.beams or None, args.compare_torch, args.checkpoints)
+    print_report(report)
+    if args.plot:
+        plot(report, args.plot)
+    if args.json:
+        args.json.write_text(json.dumps({k: v for k, v in report.items() if k != "_samples"}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,181 @@
+"""Per-network latency: ONNX Runtime vs PyTorch eager, same weights, same real KITTI input.
+
+    python -m benchmarks.network_latency --preset edge --repeats 5
+
+For each preset: export both networks with :func:`export.run` (no parity pass),
+then time forward passes of each network, batch 1, fp32, on CPU, alternating
+PyTorch eager (``torch.no_grad``, eval mode) and ONNX Runtime (CPU provider,
+full graph optimisation) run by run, after one warm-up run each. Reports
+parameters, GFLOP (counted from the ONNX graph), p50 and max latency.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import onnxruntime as ort
+import torch
+from tqdm import tqdm
+
+from export import run as export_run
+from export.exporter import ExportConfig
+from export.inputs import NetworkInputs, kitti_inputs
+from export.parity import cpu_session
+from pipeline.presets import PRESETS, get_preset
+
+
+@dataclass
+class LatencyRow:
+    """Latency of one network of one preset (milliseconds)."""
+
+    preset: str
+    network: str
+    parameters: int
+    gflops: float
+    torch_p50_ms: float
+    torch_max_ms: float
+    ort_p50_ms: float
+    ort_max_ms: float
+    repeats: int
+
+    @property
+    def speedup(self) -> float:
+        return self.torch_p50_ms / self.ort_p50_ms
+
+
+def _time_interleaved(
+    first: Callable[[], object], second: Callable[[], object], repeats: int, bar: tqdm
+) -> tuple[list[float], list[float]]:
+    """One warm-up call each, then ``repeats`` rounds of (first, second), timed in ms.
+
+    Interleaving matters on a shared machine: a burst of load from another process
+    then slows both runtimes alike instead of skewing one of them.
+    """
+    first()
+    second()
+    times: tuple[list[float], list[float]] = ([], [])
+    for _ in range(repeats):
+        for fn, out in ((first, times[0]), (second, times[1])):
+            start = time.perf_counter()
+            fn()
+            out.append((time.perf_counter() - start) * 1e3)
+            bar.update(1)
+    return times
+
+
+def _feeds(network: str, inputs: NetworkInputs) -> dict:
+    if network == "depth":
+        return {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
+    return {"bev": inputs.bev}
+
+
+def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> list[LatencyRow]:
+    """Export ``preset_name`` into ``workdir`` and time both networks."""
+    result = export_run(ExportConfig(preset=preset_name, out=workdir / preset_name, parity=False))
+    inputs = kitti_inputs(get_preset(preset_name))
+    rows = []
+    for network in ("depth", "pixor"):
+        module = result.networks[network]
+        feeds = _feeds(network, inputs)
+        tensors = [torch.from_numpy(v) for v in feeds.values()]
+        session: ort.InferenceSession = cpu_session(result.files[network])
+
+        def eager(module: torch.nn.Module = module, tensors: list[torch.Tensor] = tensors) -> object:
+            with torch.no_grad():
+                return module(*tensors)
+
+        bar.set_description(f"{preset_name} {network}")
+        torch_ms, ort_ms = _time_interleaved(
+            eager, lambda session=session, feeds=feeds: session.run(None, feeds), repeats, bar
+        )
+        entry = result.manifest["networks"][network]
+        rows.append(
+            LatencyRow(
+                preset=preset_name,
+                network=network,
+                parameters=entry["parameters"],
+                gflops=entry["flops"] / 1e9,
+                torch_p50_ms=statistics.median(torch_ms),
+                torch_max_ms=max(torch_ms),
+                ort_p50_ms=statistics.median(ort_ms),
+                ort_max_ms=max(ort_ms),
+                repeats=repeats,
+            )
+        )
+    return rows
+
+
+def run(presets: list[str], repeats: int = 5, threads: int | None = None, progress: bool = True) -> list[LatencyRow]:
+    """Measure every preset in ``presets``; returns one row per (preset, network)."""
+    if threads is not None:
+        torch.set_num_threads(threads)
+    rows: list[LatencyRow] = []
+    with tempfile.TemporaryDirectory(prefix="lowres3d-latency-") as tmp, tqdm(
+        total=len(presets) * 2 * 2 * repeats, disable=not progress, unit="run"
+    ) as bar:
+        for name in presets:
+            rows.extend(measure_preset(name, repeats, Path(tmp), bar))
+    return rows
+
+
+def hardware() -> str:
+    """CPU model and core count, for the table header."""
+    model = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{model}, {os.cpu_count()} logical CPUs"
+
+
+def format_table(rows: list[LatencyRow]) -> str:
+    """Markdown table of the rows."""
+    lines = [
+        "| preset | network | params | GFLOP | PyTorch eager p50 (max) ms | ONNX Runtime p50 (max) ms | speed-up |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r.preset} | {r.network} | {r.parameters / 1e6:.2f} M | {r.gflops:.2f} | "
+            f"{r.torch_p50_ms:.1f} ({r.torch_max_ms:.1f}) | {r.ort_p50_ms:.1f} ({r.ort_max_ms:.1f}) | {r.speedup:.2f}× |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m benchmarks.network_latency",
+        description="Per-network latency, ONNX Runtime vs PyTorch eager (fp32, CPU, batch 1, same weights and input).",
+    )
+    parser.add_argument("--preset", action="append", choices=sorted(PRESETS),
+                        help="preset to measure (repeatable; default: all)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per network and runtime (interleaved), after 1 warm-up")
+    parser.add_argument("--threads", type=int, default=None, help="PyTorch intra-op threads (default: torch's)")
+    args = parser.parse_args(argv)
+    if args.repeats < 1:
+        parser.error("--repeats must be at least 1")
+    presets = args.preset or list(PRESETS)
+    rows = run(presets, args.repeats, args.threads)
+    print(
+        f"{hardware()}; fp32, batch 1, CPUExecutionProvider (onnxruntime {ort.__version__}), "
+        f"torch {torch.__version__} with {torch.get_num_threads()} threads; {args.repeats} runs after 1 warm-up; "
+        "input: KITTI 000006"
+    )
+    print(format_table(rows))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""The machine's measured peak for ONNX Runtime fp32: a large MatMul and a 256-channel 3×3 convolution.
+
+Both graphs are built in memory with onnx.helper and timed with the same
+session options as the detector, so "fraction of peak" compares like with like.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+from onnx import TensorProto, helper, numpy_helper
+
+
+@dataclass(frozen=True)
+class PeakResult:
+    """GFLOP/s of each micro-benchmark (median of the timed runs) and the better of the two."""
+
+    matmul_gflops: float
+    conv_gflops: float
+    threads: int
+
+    @property
+    def peak_gflops(self) -> float:
+        return max(self.matmul_gflops, self.conv_gflops)
+
+
+def _session(model: onnx.ModelProto, threads: int) -> ort.InferenceSession:
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    return ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+
+
+def _median_seconds(session: ort.InferenceSession, feeds: dict, repeats: int) -> float:
+    session.run(None, feeds)
+    samples = []
+    for _ in range(repeats):
+        tic = time.perf_counter()
+        session.run(None, feeds)
+        samples.append(time.perf_counter() - tic)
+    return float(np.median(samples))
+
+
+def matmul_model(n: int) -> onnx.ModelProto:
+    """Y = A · B with B a constant n × n initializer."""
+    b = numpy_helper.from_array(np.random.default_rng(0).standard_normal((n, n)).astype(np.float32), "B")
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["A", "B"], ["Y"])], "matmul",
+        [helper.make_tensor_value_info("A", TensorProto.FLOAT, [n, n])],
+        [helper.make_tensor_value_info("Y", TensorProto.FLOAT, [n, n])], [b],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+
+
+def conv_model(channels: int, size: int) -> onnx.ModelProto:
+    """A 3×3 convolution, ``channels`` → ``channels``, padding 1, on a size × size map."""
+    w = numpy_helper.from_array(
+        (np.random.default_rng(0).standard_normal((channels, channels, 3, 3)) * 0.05).astype(np.float32), "W")
+    graph = helper.make_graph(
+        [helper.make_node("Conv", ["X", "W"], ["Y"], pads=[1, 1, 1, 1], kernel_shape=[3, 3])], "conv",
+        [helper.make_tensor_value_info("X", TensorProto.FLOAT, [1, channels, size, size])],
+        [helper.make_tensor_value_info("Y", TensorProto.FLOAT, [1, channels, size, size])], [w],
+    )
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
+
+
+def measure_peak(threads: int, repeats: int = 5, matmul_n: int = 4096, conv_channels: int = 256,
+                 conv_size: int = 96) -> PeakResult:
+    """Run both micro-benchmarks with ``threads`` intra-op threads."""
+    a = np.random.default_rng(1).standard_normal((matmul_n, matmul_n)).astype(np.float32)
+    t = _median_seconds(_session(matmul_model(matmul_n), threads), {"A": a}, repeats)
+    matmul = 2 * matmul_n**3 / t / 1e9
+    x = np.random.default_rng(2).standard_normal((1, conv_channels, conv_size, conv_size)).astype(np.float32)
+    t = _median_seconds(_session(conv_model(conv_channels, conv_size), threads), {"X": x}, repeats)
+    conv = 2 * conv_channels * conv_channels * 9 * conv_size * conv_size / t / 1e9
+    return PeakResult(matmul_gflops=matmul, conv_gflops=conv, threads=threads)

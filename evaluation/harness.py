@@ -1,0 +1,116 @@
+"""Accuracy runs: the detector over a KITTI-layout dataset, and depth completion against ground truth.
+
+Detection inputs (the paper's table rows):
+``lidar64`` — PIXOR on the scan as stored; ``lidar16`` — PIXOR on the scan
+thinned to 16 lines; ``lidar16+camera`` — the two-stage pipeline on the
+16-line scan and the image. Each needs a model directory trained for it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from tqdm import tqdm
+
+from evaluation.depth_metrics import DepthMetrics, depth_metrics, mean_over_frames
+from pipeline.beams import emulate_beams
+from pipeline.calib import depth_crop
+from pipeline.detector import Detector
+from pipeline.errors import InputError
+from pipeline.frame import frame_ids, load_frame
+from pipeline.kitti import read_depth_png, read_image
+from pipeline.preprocess import view_from_depth_png
+
+log = logging.getLogger(__name__)
+
+INPUTS = {"lidar64": None, "lidar16": 16, "lidar16+camera": 16}
+
+
+DEFAULT_SCORE_THRESHOLD = 0.05  # low: AP integrates over the whole precision–recall curve
+
+
+def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: list[str] | None = None,
+                  provider: str | None = None, progress: bool = True,
+                  score_threshold: float = DEFAULT_SCORE_THRESHOLD) -> Path:
+    """Detect on every frame and write KITTI result files; returns the result directory."""
+    from pipeline.detect import run as detect
+
+    if input_mode not in INPUTS:
+        raise InputError(f"--input: {input_mode!r} is not one of {', '.join(INPUTS)}")
+    detector = Detector(models, providers=provider)
+    wants_camera = input_mode == "lidar16+camera"
+    if detector.two_stage != wants_camera:
+        kind = "two-stage (depth.onnx + pixor.onnx)" if detector.two_stage else "LiDAR-only (pixor.onnx)"
+        raise InputError(f"--models: {models} is a {kind} model directory, which does not fit --input {input_mode}")
+    result = detect(models, out, data=data, frames=frames, emulate_beams=INPUTS[input_mode], provider=provider,
+                    pictures=False, progress=progress, score_threshold=score_threshold)
+    return out / "data" if result.result_files else out
+
+
+@dataclass(frozen=True)
+class DepthRun:
+    """Mean metrics over frames, per-frame metrics, and what the input was."""
+
+    mean: DepthMetrics
+    per_frame: dict[str, DepthMetrics]
+    layout: str
+    input: str
+
+
+def _crop_ground_truth(gt: np.ndarray, preset) -> np.ndarray:
+    return depth_crop(gt.shape, *preset.crop_hw).apply(gt)
+
+
+def _to_crop_resolution(prediction: np.ndarray, crop_hw: tuple[int, int]) -> np.ndarray:
+    """Bilinear resize of the network's view back to the crop (pixel centres aligned, as cv2 does)."""
+    if prediction.shape == tuple(crop_hw):
+        return prediction
+    return cv2.resize(prediction, (crop_hw[1], crop_hw[0]), interpolation=cv2.INTER_LINEAR)
+
+
+def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: int | None = 16,
+              provider: str | None = None, progress: bool = True) -> DepthRun:
+    """Depth completion metrics on the KITTI crop, at full resolution.
+
+    Layouts: KITTI depth completion (``image_02/``, ``velodyne_raw/``,
+    ``groundtruth/`` PNGs; the projected 64-line input is used as given), or a
+    KITTI object folder with dense ground truth in ``depth_2/`` (the synthetic
+    scenes), whose scan is thinned to ``beams`` lines first.
+    """
+    data = Path(data)
+    detector = Detector(models, providers=provider)
+    preset = detector.preset
+    per_frame: dict[str, DepthMetrics] = {}
+    if (data / "groundtruth").is_dir() and (data / "velodyne_raw").is_dir():
+        layout, used = "depth-completion", "velodyne_raw as given (projected 64-line scan)"
+        ids = frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png"))
+        for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
+            image = read_image(data / "image_02" / f"{fid}.png")
+            sparse = read_depth_png(data / "velodyne_raw" / f"{fid}.png")
+            gt = read_depth_png(data / "groundtruth" / f"{fid}.png")
+            rgb, sparse_view = view_from_depth_png(image, sparse, preset)
+            crop_gt = _crop_ground_truth(gt, preset)
+            prediction = _to_crop_resolution(detector.run_depth_net(rgb, sparse_view), crop_gt.shape)
+            per_frame[fid] = depth_metrics(prediction, crop_gt)
+    elif (data / "depth_2").is_dir():
+        layout = "object + depth_2"
+        used = f"{beams}-line emulated scan" if beams else "scan as stored"
+        ids = frames or frame_ids(data)
+        for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
+            frame = load_frame(data, fid, with_labels=False)
+            points = emulate_beams(frame.points, beams) if beams else frame.points
+            view_depth, _ = detector.dense_depth(frame.image, points, frame.calib)
+            crop_gt = _crop_ground_truth(read_depth_png(data / "depth_2" / f"{fid}.png"), preset)
+            per_frame[fid] = depth_metrics(_to_crop_resolution(view_depth, crop_gt.shape), crop_gt)
+    else:
+        raise InputError(
+            f"--data: {data} has neither groundtruth/ + velodyne_raw/ (KITTI depth completion) "
+            "nor depth_2/ (dense ground truth of an object folder)"
+        )
+    if not per_frame:
+        raise InputError(f"--data: {data} has no frames to evaluate")
+    return DepthRun(mean=mean_over_frames(list(per_frame.values())), per_frame=per_frame, layout=layout, input=used)

@@ -1,0 +1,51 @@
+"""``python -m export --preset P [--checkpoints DIR] --out DIR``: write depth.onnx, pixor.onnx, manifest.json."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from export.exporter import ExportConfig, run
+from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
+from pipeline.presets import PRESETS
+
+
+def parse_args(argv: list[str] | None = None) -> ExportConfig:
+    parser = argparse.ArgumentParser(
+        prog="python -m export",
+        description="Export a preset's depth-completion net and PIXOR to ONNX, check ONNX Runtime against "
+        "PyTorch on a real KITTI frame and random inputs, and write manifest.json.",
+    )
+    parser.add_argument("--preset", required=True, choices=sorted(PRESETS), help="model preset")
+    parser.add_argument("--out", required=True, type=Path, help="output model directory")
+    parser.add_argument(
+        "--checkpoints", type=Path, default=None,
+        help="directory with depth.pt and/or pixor.pt (models/checkpoint.py); default: initialised, untrained weights",
+    )
+    parser.add_argument("--kitti-dir", type=Path, default=DEFAULT_KITTI_DIR, help="KITTI training dir for the parity frame")
+    parser.add_argument("--frame", default=DEFAULT_FRAME, help="KITTI frame id for the parity check")
+    parser.add_argument("--seed", type=int, default=0, help="seed for initial weights and random parity inputs")
+    parser.add_argument("--no-parity", action="store_true", help="skip the ONNX Runtime vs PyTorch check")
+    args = parser.parse_args(argv)
+    return ExportConfig(
+        preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir,
+        frame=args.frame, seed=args.seed, parity=not args.no_parity, progress=True,
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    result = run(parse_args(argv))
+    manifest = result.manifest
+    print(f"wrote {result.directory} (preset {manifest['preset']}, weights: {manifest['weights']})")
+    for entry in manifest["networks"].values():
+        print(f"  {entry['file']}: {entry['parameters']:,} parameters, {entry['flops'] / 1e9:.2f} GFLOP")
+    for r in result.parity:
+        print(f"  parity {r.network} {r.source}: {r.metric} {r.error:.2e} (≤ {r.tolerance:.0e})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

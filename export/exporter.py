@@ -1,0 +1,159 @@
+"""Export a preset's two networks into a model directory: ONNX files, parity check, manifest."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from export.flops import count_flops
+from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR, kitti_inputs, random_inputs
+from export.manifest import UNTRAINED, NetworkEntry, build_manifest, verify_model_dir, write_manifest
+from export.onnx_export import EXPORTER, OPSET, NetworkIO, depth_io, export_onnx, pixor_io
+from export.parity import ParityResult, cpu_session, depth_parity, pixor_parity, require_parity
+from models import build_depth_net, build_pixor
+from models.checkpoint import find_checkpoints, load_checkpoint, load_network_weights
+from models.depth_net import IMAGENET_MEAN, IMAGENET_STD
+from pipeline.presets import Preset, get_preset
+
+log = logging.getLogger(__name__)
+
+FILES = {"depth": "depth.onnx", "pixor": "pixor.onnx"}
+
+
+@dataclass
+class ExportConfig:
+    """What to export and how to check it."""
+
+    preset: str
+    out: Path
+    checkpoints: Path | None = None  # directory with depth.pt and/or pixor.pt (models/checkpoint.py)
+    kitti_dir: Path = DEFAULT_KITTI_DIR  # real frame for the parity check
+    frame: str = DEFAULT_FRAME
+    seed: int = 0  # initialisation of untrained weights and the random parity inputs
+    parity: bool = True  # compare ONNX Runtime with PyTorch (a real frame + random inputs)
+    progress: bool = False
+
+
+@dataclass
+class ExportResult:
+    """What :func:`run` made."""
+
+    directory: Path
+    files: dict[str, Path]
+    manifest_path: Path
+    manifest: dict
+    parity: list[ParityResult] = field(default_factory=list)
+    networks: dict[str, torch.nn.Module] = field(default_factory=dict)  # the exported modules, eval mode
+
+
+def normalisation(preset: Preset) -> dict:
+    """Constants the runtime must agree with (the image normalisation itself is inside depth.onnx)."""
+    return {
+        "rgb_input": "raw RGB 0-255, float32, channels first; normalised inside depth.onnx",
+        "rgb_mean": [round(m * 255.0, 6) for m in IMAGENET_MEAN],
+        "rgb_std": [round(s * 255.0, 6) for s in IMAGENET_STD],
+        "depth_units": "metres",
+        "min_depth": preset.depth.min_depth,
+        "max_depth": preset.depth.max_depth,
+        "input_scale": preset.depth.input_scale,
+        "crop_hw": list(preset.crop_hw),
+        "regression_mean": list(preset.decode.reg_mean),
+        "regression_std": list(preset.decode.reg_std),
+    }
+
+
+def _load_weights(config: ExportConfig, preset: Preset, models: dict[str, torch.nn.Module]) -> dict[str, dict | None]:
+    """Load trained weights where checkpoints exist; returns network → training metadata (None = untrained)."""
+    training: dict[str, dict | None] = {name: None for name in models}
+    if config.checkpoints is None:
+        return training
+    for name, path in find_checkpoints(config.checkpoints).items():
+        checkpoint = load_checkpoint(path)
+        load_network_weights(models[name], checkpoint, name, preset)
+        training[name] = {"checkpoint": path.name, **checkpoint.metadata}
+    untrained = [name for name, meta in training.items() if meta is None]
+    if untrained:
+        log.warning("no checkpoint for %s in %s: exporting initialised weights", ", ".join(untrained), config.checkpoints)
+    return training
+
+
+@contextmanager
+def _step(bar: tqdm, label: str) -> Iterator[None]:
+    bar.set_description(label)
+    yield
+    bar.update(1)
+
+
+def run(config: ExportConfig) -> ExportResult:
+    """Build (and load) the networks, export both to ONNX, check them, write the manifest.
+
+    Raises ParityError when ONNX Runtime disagrees with PyTorch past tolerance, and
+    ValueError/FileNotFoundError for bad presets or checkpoints, before writing a manifest.
+    """
+    preset = get_preset(config.preset)
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(config.seed)
+    models = {"depth": build_depth_net(preset).eval(), "pixor": build_pixor(preset).eval()}
+    interfaces: dict[str, NetworkIO] = {
+        "depth": depth_io(preset.depth.input_hw),
+        "pixor": pixor_io(preset.bev.shape, preset.pixor.output_stride),
+    }
+    steps = 1 + 2 + (4 if config.parity else 0) + 1  # weights, two exports, parity, manifest
+    with tqdm(total=steps, disable=not config.progress, unit="step") as bar:
+        with _step(bar, "loading weights"):
+            training = _load_weights(config, preset, models)
+        files = {}
+        for name in ("depth", "pixor"):
+            with _step(bar, f"exporting {FILES[name]}"):
+                files[name] = export_onnx(models[name], interfaces[name], out / FILES[name])
+        results: list[ParityResult] = []
+        if config.parity:
+            sessions = {name: cpu_session(path) for name, path in files.items()}
+            sources = [kitti_inputs(preset, config.kitti_dir, config.frame), random_inputs(preset, config.seed)]
+            for inputs in sources:
+                with _step(bar, f"depth parity ({inputs.source.split()[0]})"):
+                    results.append(depth_parity(models["depth"], sessions["depth"], inputs))
+                with _step(bar, f"pixor parity ({inputs.source.split()[0]})"):
+                    results.extend(pixor_parity(models["pixor"], sessions["pixor"], inputs))
+            for result in results:
+                log.info("%s on %s: %s %.3g (tolerance %.3g)", result.network, result.source, result.metric,
+                         result.error, result.tolerance)
+            require_parity(results)
+        with _step(bar, "writing manifest"):
+            entries = {
+                name: NetworkEntry(
+                    file=FILES[name],
+                    inputs=interfaces[name].inputs,
+                    outputs=interfaces[name].outputs,
+                    parameters=sum(p.numel() for p in models[name].parameters()),
+                    flops=(flops := count_flops(files[name])).total,
+                    flops_by_op=flops.by_op,
+                    weights=UNTRAINED if training[name] is None else "trained",
+                    training=training[name],
+                )
+                for name in ("depth", "pixor")
+            }
+            manifest = build_manifest(
+                preset,
+                entries,
+                out,
+                normalisation(preset),
+                export_info={"exporter": EXPORTER, "opset": OPSET, "torch_seed": config.seed},
+                parity=(
+                    {"checked": True, "results": [r.to_dict() for r in results]}
+                    if config.parity
+                    else {"checked": False, "results": []}
+                ),
+            )
+            manifest_path = write_manifest(out, manifest)
+    verify_model_dir(out)  # the directory as written must pass the runtime's own check
+    return ExportResult(
+        directory=out, files=files, manifest_path=manifest_path, manifest=manifest, parity=results, networks=models
+    )

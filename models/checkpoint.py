@@ -1,0 +1,111 @@
+"""Checkpoint files shared by training and export.
+
+A checkpoint is a ``torch.save`` of a plain dict::
+
+    {"format": "lowres3d-checkpoint/1", "preset": name, "preset_config": preset.to_dict(),
+     "state_dicts": {"depth": {...}, "pixor": {...}},  # one or both networks
+     "metadata": {...}}                                # JSON-able: epochs, losses, data, git commit …
+
+Plain tensors and builtins only, so it loads with ``torch.load(weights_only=True)``.
+By convention a checkpoint directory holds ``depth.pt`` and/or ``pixor.pt``.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from pipeline.presets import Preset
+
+log = logging.getLogger(__name__)
+
+FORMAT = "lowres3d-checkpoint/1"
+CHECKPOINT_FILES: dict[str, str] = {"depth": "depth.pt", "pixor": "pixor.pt"}
+
+
+@dataclass
+class Checkpoint:
+    """A loaded checkpoint: which preset, the networks' state dicts, free-form JSON-able metadata."""
+
+    preset: str
+    preset_config: dict
+    state_dicts: dict[str, dict[str, torch.Tensor]]
+    metadata: dict = field(default_factory=dict)
+    path: Path | None = None
+
+
+def save_checkpoint(path: str | Path, preset: Preset, networks: dict[str, nn.Module], metadata: dict) -> Path:
+    """Write the state dicts of ``networks`` (name → module) with the preset and metadata."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": FORMAT,
+        "preset": preset.name,
+        "preset_config": preset.to_dict(),
+        "state_dicts": {name: module.state_dict() for name, module in networks.items()},
+        "metadata": dict(metadata),
+    }
+    # Write then rename: an interrupted save never leaves a truncated checkpoint behind.
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+    return path
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a checkpoint written by :func:`save_checkpoint`; ValueError if it is not one."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: checkpoint not found")
+    payload = torch.load(path, map_location="cpu", weights_only=True)
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise ValueError(f"{path}: not a lowres3d checkpoint (expected format {FORMAT!r})")
+    return Checkpoint(
+        preset=payload["preset"],
+        preset_config=payload["preset_config"],
+        state_dicts=payload["state_dicts"],
+        metadata=payload.get("metadata", {}),
+        path=path,
+    )
+
+
+def _as_lists(value: object) -> object:
+    """Tuples → lists recursively, so a preset dict compares equal to its JSON/pickled form."""
+    if isinstance(value, dict):
+        return {k: _as_lists(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_as_lists(v) for v in value]
+    return value
+
+
+def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str, preset: Preset) -> None:
+    """Load ``checkpoint.state_dicts[network]`` into ``model`` after checking the preset matches."""
+    if _as_lists(checkpoint.preset_config) != _as_lists(preset.to_dict()):
+        raise ValueError(
+            f"{checkpoint.path}: trained with preset {checkpoint.preset!r} whose configuration differs "
+            f"from the requested preset {preset.name!r}; export with --preset {checkpoint.preset} "
+            "or retrain"
+        )
+    if network not in checkpoint.state_dicts:
+        raise ValueError(
+            f"{checkpoint.path}: no {network!r} weights (it holds {', '.join(checkpoint.state_dicts) or 'none'})"
+        )
+    model.load_state_dict(checkpoint.state_dicts[network], strict=True)
+    log.info("loaded %s weights from %s", network, checkpoint.path)
+
+
+def find_checkpoints(directory: str | Path) -> dict[str, Path]:
+    """The checkpoint files present in ``directory`` (network → path); error if there are none."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise FileNotFoundError(f"{directory}: checkpoint directory not found")
+    found = {name: directory / file for name, file in CHECKPOINT_FILES.items() if (directory / file).is_file()}
+    if not found:
+        raise FileNotFoundError(
+            f"{directory}: no checkpoints; expected {' and/or '.join(CHECKPOINT_FILES.values())}"
+        )
+    return found

@@ -1,0 +1,186 @@
+"""Training data from KITTI-layout folders (real KITTI or the synthetic scenes), as torch Datasets.
+
+Every sample is built with the runtime's own NumPy code (pipeline/), so the
+networks train on exactly what the Detector feeds them at inference.
+
+Depth samples: the 16-line scan projected into the depth net's view, the
+image, and the target — ``depth_2/ID.png`` (dense ground truth of the
+synthetic scenes) when present, else the full 64-line scan projected into the
+view (real KITTI object frames have no dense ground truth).
+
+Detector samples: the BEV tensor of the chosen input — ``lidar64`` (scan as
+stored), ``lidar16`` (thinned), ``pseudo`` (pseudo points from a cached dense
+depth map in ``PSEUDO_DIR/ID.png`` plus the 16 real lines) — and PIXOR targets
+of the Car labels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from pipeline.beams import emulate_beams
+from pipeline.boxes import labels_to_boxes
+from pipeline.bev import voxelize_bev
+from pipeline.calib import depth_crop, sparse_depth_map
+from pipeline.errors import InputError
+from pipeline.frame import Frame, load_frame
+from pipeline.kitti import read_depth_png
+from pipeline.preprocess import depth_inputs, network_view
+from pipeline.presets import Preset
+from pipeline.pseudo import depth_to_points, merge_points
+from pipeline.targets import encode_targets
+
+DETECTOR_INPUTS = ("lidar64", "lidar16", "pseudo")
+
+
+def frame_points(frame: Frame, beams: int | None) -> np.ndarray:
+    """The scan as the sensor under test would give it."""
+    return emulate_beams(frame.points, beams) if beams else frame.points
+
+
+def depth_target(data_dir: Path, frame: Frame, preset: Preset) -> np.ndarray:
+    """(H, W) target depth in the network's view (metres, 0 = none)."""
+    dense_path = Path(data_dir) / "depth_2" / f"{frame.frame_id}.png"
+    height, width = preset.depth.input_hw
+    if dense_path.exists():
+        dense = read_depth_png(dense_path)
+        view = depth_crop(dense.shape, *preset.crop_hw).apply(dense)
+        if view.shape != (height, width):
+            # Nearest keeps depths real (no blending of foreground and background across edges).
+            view = cv2.resize(view, (width, height), interpolation=cv2.INTER_NEAREST)
+        return view.astype(np.float32)
+    _, view_calib = network_view(frame.image, frame.calib, preset)
+    return sparse_depth_map(frame.points, view_calib, (height, width))
+
+
+@dataclass
+class DepthDataset(Dataset):
+    """(rgb (3,H,W), sparse (1,H,W), target (1,H,W)) float32 tensors per frame."""
+
+    data_dir: Path
+    frame_ids: list[str]
+    preset: Preset
+    beams: int | None = 16
+    augment: bool = False
+    seed: int = 0
+    epoch: int = 0  # set by the training loop: augmentation differs per epoch, reproducibly
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        frame = load_frame(self.data_dir, self.frame_ids[index], with_labels=False)
+        inputs = depth_inputs(frame.image, frame_points(frame, self.beams), frame.calib, self.preset)
+        rgb, sparse = inputs.rgb[0], inputs.sparse_depth[0]
+        target = depth_target(self.data_dir, frame, self.preset)[None]
+        if self.augment:
+            rng = np.random.default_rng((self.seed, self.epoch, index))
+            if rng.random() < 0.5:  # mirror image, input and target together
+                rgb, sparse, target = rgb[..., ::-1], sparse[..., ::-1], target[..., ::-1]
+            rgb = np.clip(rgb * rng.uniform(0.8, 1.2) + rng.uniform(-10, 10), 0, 255)
+        return (torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
+                torch.from_numpy(np.ascontiguousarray(sparse, np.float32)),
+                torch.from_numpy(np.ascontiguousarray(target, np.float32)))
+
+
+def car_boxes(frame: Frame) -> np.ndarray:
+    """(N, 7) LiDAR-frame boxes of the labelled cars."""
+    return labels_to_boxes([o for o in (frame.labels or []) if o.type == "Car"], frame.calib)
+
+
+def detector_points(data_dir: Path, frame: Frame, preset: Preset, input_mode: str,
+                    pseudo_dir: Path | None) -> np.ndarray:
+    """The point cloud PIXOR sees for ``input_mode``."""
+    if input_mode == "lidar64":
+        return frame.points
+    lidar16 = emulate_beams(frame.points, 16)
+    if input_mode == "lidar16":
+        return lidar16
+    if input_mode != "pseudo":
+        raise InputError(f"--input: {input_mode!r} is not one of {', '.join(DETECTOR_INPUTS)}")
+    if pseudo_dir is None:
+        raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir)")
+    depth = read_depth_png(Path(pseudo_dir) / f"{frame.frame_id}.png")
+    _, view_calib = network_view(frame.image, frame.calib, preset)
+    d = preset.decode
+    pseudo = depth_to_points(depth, view_calib, preset.depth.min_depth, preset.depth.max_depth,
+                             d.pseudo_stride, d.pseudo_max_height)
+    return merge_points(pseudo, lidar16)
+
+
+@dataclass
+class DetectorDataset(Dataset):
+    """(bev (C,ny,nx), score target (1,h,w), regression target (6,h,w)) per frame."""
+
+    data_dir: Path
+    frame_ids: list[str]
+    preset: Preset
+    input_mode: str = "lidar16"
+    pseudo_dir: Path | None = None
+    augment: bool = False
+    seed: int = 0
+    epoch: int = 0  # set by the training loop: augmentation differs per epoch, reproducibly
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        frame = load_frame(self.data_dir, self.frame_ids[index])
+        points = detector_points(self.data_dir, frame, self.preset, self.input_mode, self.pseudo_dir)
+        boxes = car_boxes(frame)
+        if self.augment:
+            rng = np.random.default_rng((self.seed, self.epoch, index))
+            if rng.random() < 0.5:  # mirror left ↔ right: y → −y, yaw → −yaw
+                points = points.copy()
+                points[:, 1] *= -1
+                boxes = boxes.copy()
+                boxes[:, 1] *= -1
+                boxes[:, 6] *= -1
+        bev = voxelize_bev(points, self.preset.bev)
+        targets = encode_targets(boxes, self.preset.bev, self.preset.pixor.output_stride, self.preset.decode)
+        return (torch.from_numpy(bev), torch.from_numpy(targets.score[None]),
+                torch.from_numpy(targets.regression))
+
+
+@dataclass
+class DepthCompletionDataset(Dataset):
+    """KITTI depth-completion layout: ``image_02/``, ``velodyne_raw/``, ``groundtruth/`` PNGs of one drive.
+
+    The 64-line ``velodyne_raw`` map is thinned to ``beams`` lines through the
+    drive's calibration (each pixel's beam from its elevation angle), then
+    cropped and scaled like object frames; the target is ``groundtruth``.
+    """
+
+    root: Path
+    frame_ids: list[str]
+    preset: Preset
+    calib: object  # pipeline.calib.Calibration of the drive
+    beams: int | None = 16
+
+    def __len__(self) -> int:
+        return len(self.frame_ids)
+
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        from pipeline.beams import emulate_beams_on_depth_map
+        from pipeline.kitti import read_image
+        from pipeline.preprocess import view_from_depth_png
+
+        fid = self.frame_ids[index]
+        image = read_image(self.root / "image_02" / f"{fid}.png")
+        sparse = read_depth_png(self.root / "velodyne_raw" / f"{fid}.png")
+        if self.beams:
+            sparse = emulate_beams_on_depth_map(sparse, self.calib, self.beams)
+        rgb, sparse_view = view_from_depth_png(image, sparse, self.preset)
+        gt = read_depth_png(self.root / "groundtruth" / f"{fid}.png")
+        target = depth_crop(gt.shape, *self.preset.crop_hw).apply(gt)
+        height, width = self.preset.depth.input_hw
+        if target.shape != (height, width):
+            target = cv2.resize(target, (width, height), interpolation=cv2.INTER_NEAREST)
+        return (torch.from_numpy(rgb[0]), torch.from_numpy(sparse_view[0]),
+                torch.from_numpy(np.ascontiguousarray(target[None], np.float32)))

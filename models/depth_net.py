@@ -1,0 +1,305 @@
+"""Depth completion: Ma et al.'s sparse-to-dense network with a ResNet-18 encoder, GAMs and ASPP.
+
+Layout (paper preset, 352 × 1216 input, stem stride 1)::
+
+    conv1_d   1 → 16  ┐ 3×3, BN, ReLU          352 × 1216
+    conv1_img 3 → 48  ┘ concatenated → conv1 (64)
+    layer1 64, layer2 128 /2, layer3 256 /4, layer4 512 /8   (ResNet-18 BasicBlocks, no stem, no max-pool)
+    conv6 512 → 512, stride 2                                 /16
+    aspp (rates 2, 4, 8, 16)                                  /16
+    convt5 512 → 256 ⊕ gam(layer4)  → 768                     /8
+    convt4 768 → 128 ⊕ gam(layer3)  → 384                     /4
+    convt3 384 → 64  ⊕ gam(layer2)  → 192                     /2
+    convt2 192 → 64  ⊕ gam(layer1)  → 128                     /1
+    convt1 128 → 64 (stride 1) ⊕ gam(conv1) → 128             /1
+    convtf 128 → 1 (1×1)  → depth in metres
+
+``stem_stride`` 2 gives conv1_d and conv1_img stride 2, so every feature map is
+halved (a quarter of the FLOPs of everything after the stem); the 1-channel
+output is then upsampled ×2 bilinearly back to the input resolution. Inputs
+whose size is not a multiple of the total stride (16 × stem_stride) are padded
+bottom/right inside the network (sparse depth with 0 = "no measurement", the
+normalised image with 0 = the ImageNet mean colour) and the output is cropped
+back, so ONNX shapes stay static and exact.
+
+Module names follow Ma et al. and torchvision (``layer1.0.conv1.weight`` …), so a
+torchvision-format ResNet-18 checkpoint loads into ``layer1``–``layer4``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from pipeline.presets import DepthNetConfig
+
+log = logging.getLogger(__name__)
+
+# ImageNet statistics on 0–1 RGB; the network scales them to 0–255 so its input is raw RGB.
+IMAGENET_MEAN: tuple[float, float, float] = (0.485, 0.456, 0.406)
+IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
+# Ma et al. multiply the last 1×1 conv by 100: a unit-scale activation maps to tens of metres.
+OUTPUT_SCALE = 100.0
+LEAKY_SLOPE = 0.2
+
+
+def conv_bn_relu(in_channels: int, out_channels: int, kernel_size: int = 3, stride: int = 1) -> nn.Sequential:
+    """Conv (no bias, BN follows) + BN + ReLU, as Ma et al.'s encoder stems and conv6."""
+    return nn.Sequential(
+        nn.Conv2d(in_channels, out_channels, kernel_size, stride, kernel_size // 2, bias=False),
+        nn.BatchNorm2d(out_channels),
+        nn.ReLU(inplace=True),
+    )
+
+
+def convt_bn_relu(in_channels: int, out_channels: int, stride: int) -> nn.Sequential:
+    """3×3 transposed conv + BN + LeakyReLU(0.2); stride 2 doubles height and width exactly."""
+    return nn.Sequential(
+        nn.ConvTranspose2d(in_channels, out_channels, 3, stride, padding=1, output_padding=stride - 1, bias=False),
+        nn.BatchNorm2d(out_channels),
+        nn.LeakyReLU(LEAKY_SLOPE, inplace=True),
+    )
+
+
+class BasicBlock(nn.Module):
+    """torchvision's ResNet BasicBlock (same attribute names, so its checkpoints load)."""
+
+    def __init__(self, in_channels: int, out_channels: int, stride: int = 1) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(in_channels, out_channels, 3, stride, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(out_channels)
+        self.relu = nn.ReLU(inplace=True)
+        self.conv2 = nn.Conv2d(out_channels, out_channels, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(out_channels)
+        self.downsample: nn.Module | None = None
+        if stride != 1 or in_channels != out_channels:
+            self.downsample = nn.Sequential(
+                nn.Conv2d(in_channels, out_channels, 1, stride, bias=False), nn.BatchNorm2d(out_channels)
+            )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        identity = x if self.downsample is None else self.downsample(x)
+        out = self.relu(self.bn1(self.conv1(x)))
+        out = self.bn2(self.conv2(out))
+        return self.relu(out + identity)
+
+
+def make_layer(in_channels: int, out_channels: int, blocks: int, stride: int) -> nn.Sequential:
+    """A ResNet stage: the first block changes stride/width, the rest keep it."""
+    layers = [BasicBlock(in_channels, out_channels, stride)]
+    layers += [BasicBlock(out_channels, out_channels) for _ in range(blocks - 1)]
+    return nn.Sequential(*layers)
+
+
+class GlobalAttention(nn.Module):
+    """Global attention module on a skip: the decoder's higher-level feature, globally pooled,
+    goes through a 1×1 conv and a sigmoid to give one weight per skip channel.
+
+    Why this form: it is the paper's description (pool the higher-level feature,
+    1×1 conv, re-weight the skip), costs one (C_high × C_skip) matrix per skip, and
+    lets the decoder's semantic context suppress skip channels that carry texture
+    instead of depth edges.
+    """
+
+    def __init__(self, high_channels: int, skip_channels: int) -> None:
+        super().__init__()
+        self.pool = nn.AdaptiveAvgPool2d(1)
+        self.conv = nn.Conv2d(high_channels, skip_channels, 1, bias=True)
+
+    def forward(self, high: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        weights = torch.sigmoid(self.conv(self.pool(high)))
+        return skip * weights
+
+
+class ASPP(nn.Module):
+    """Atrous spatial pyramid pooling at the bottleneck: parallel 3×3 convs with the given
+    dilation rates, concatenated and fused by a 1×1 conv, added back to the input.
+
+    Each branch has ``channels // len(rates)`` outputs, so the concatenation has the
+    bottleneck's width and the fuse is a square 1×1 conv. The residual sum keeps Ma
+    et al.'s direct path from conv6 to the decoder: switching ASPP off is the exact
+    ablation, and switching it on starts near the same function.
+    """
+
+    def __init__(self, channels: int, rates: tuple[int, ...]) -> None:
+        super().__init__()
+        if not rates:
+            raise ValueError("ASPP needs at least one dilation rate")
+        branch = max(1, channels // len(rates))
+        self.branches = nn.ModuleList(
+            nn.Sequential(
+                nn.Conv2d(channels, branch, 3, padding=rate, dilation=rate, bias=False),
+                nn.BatchNorm2d(branch),
+                nn.ReLU(inplace=True),
+            )
+            for rate in rates
+        )
+        self.fuse = nn.Sequential(
+            nn.Conv2d(branch * len(rates), channels, 1, bias=False),
+            nn.BatchNorm2d(channels),
+            nn.ReLU(inplace=True),
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return x + self.fuse(torch.cat([b(x) for b in self.branches], dim=1))
+
+
+class DepthCompletionNet(nn.Module):
+    """Image-guided depth completion.
+
+    forward(rgb, sparse_depth): rgb float32 (N, 3, H, W) raw 0–255 RGB; sparse_depth
+    float32 (N, 1, H, W) metres, 0 = no return. Returns float32 (N, 1, H, W) depth in
+    metres; in eval mode clamped to ≥ ``config.min_depth``.
+    """
+
+    def __init__(self, config: DepthNetConfig) -> None:
+        super().__init__()
+        self.config = config
+        if config.stem_stride not in (1, 2):
+            raise ValueError(f"stem_stride must be 1 or 2, got {config.stem_stride}")
+        self.input_hw = (int(config.input_hw[0]), int(config.input_hw[1]))
+        self.total_stride = 16 * config.stem_stride  # layer2, layer3, layer4, conv6 halve; stem maybe
+        self.pad_hw = tuple(-size % self.total_stride for size in self.input_hw)
+        self.register_buffer("rgb_mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1) * 255.0, persistent=False)
+        self.register_buffer("rgb_std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1) * 255.0, persistent=False)
+
+        w1, w2, w3, w4 = config.encoder_widths
+        b1, b2, b3, b4 = config.encoder_blocks
+        d5, d4, d3, d2, d1 = config.decoder_widths
+        stem = config.depth_stem + config.image_stem
+        s = config.stem_stride
+        self.conv1_d = conv_bn_relu(1, config.depth_stem, 3, s)
+        self.conv1_img = conv_bn_relu(3, config.image_stem, 3, s)
+        self.layer1 = make_layer(stem, w1, b1, 1)
+        self.layer2 = make_layer(w1, w2, b2, 2)
+        self.layer3 = make_layer(w2, w3, b3, 2)
+        self.layer4 = make_layer(w3, w4, b4, 2)
+        self.conv6 = conv_bn_relu(w4, config.bottleneck_width, 3, 2)
+        self.aspp = ASPP(config.bottleneck_width, tuple(config.aspp_rates)) if config.use_aspp else None
+
+        self.convt5 = convt_bn_relu(config.bottleneck_width, d5, 2)
+        self.convt4 = convt_bn_relu(d5 + w4, d4, 2)
+        self.convt3 = convt_bn_relu(d4 + w3, d3, 2)
+        self.convt2 = convt_bn_relu(d3 + w2, d2, 2)
+        self.convt1 = convt_bn_relu(d2 + w1, d1, 1)
+        self.convtf = nn.Conv2d(d1 + stem, 1, 1, bias=True)
+        if config.use_gam:
+            self.gam5 = GlobalAttention(d5, w4)
+            self.gam4 = GlobalAttention(d4, w3)
+            self.gam3 = GlobalAttention(d3, w2)
+            self.gam2 = GlobalAttention(d2, w1)
+            self.gam1 = GlobalAttention(d1, stem)
+        self._init_weights()
+
+    def _init_weights(self) -> None:
+        """He init for convs, BN at identity: training starts from scratch here (no downloads)."""
+        for module in self.modules():
+            if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
+                nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
+                if module.bias is not None:
+                    nn.init.zeros_(module.bias)
+            elif isinstance(module, nn.BatchNorm2d):
+                nn.init.ones_(module.weight)
+                nn.init.zeros_(module.bias)
+        # Ma et al.'s ×100 output: a small last layer keeps the initial depths in metres, not km.
+        nn.init.normal_(self.convtf.weight, std=1e-3)
+        nn.init.constant_(self.convtf.bias, 0.2)  # ≈ 20 m, a typical KITTI depth
+
+    def _skip(self, name: str, high: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
+        """Concatenate a decoder feature with its (attention-weighted) encoder skip."""
+        if self.config.use_gam:
+            skip = getattr(self, name)(high, skip)
+        return torch.cat((high, skip), dim=1)
+
+    def forward(self, rgb: torch.Tensor, sparse_depth: torch.Tensor) -> torch.Tensor:
+        height, width = self.input_hw
+        exporting = torch.jit.is_tracing() or torch.onnx.is_in_onnx_export()
+        wrong_size = tuple(rgb.shape[-2:]) != self.input_hw or tuple(sparse_depth.shape[-2:]) != self.input_hw
+        if not exporting and wrong_size:
+            raise ValueError(
+                f"depth net built for {height}×{width} inputs, got rgb {tuple(rgb.shape)} "
+                f"and sparse_depth {tuple(sparse_depth.shape)}"
+            )
+        image = (rgb - self.rgb_mean) / self.rgb_std
+        depth = sparse_depth
+        pad_h, pad_w = self.pad_hw
+        if pad_h or pad_w:
+            image = F.pad(image, (0, pad_w, 0, pad_h))
+            depth = F.pad(depth, (0, pad_w, 0, pad_h))
+
+        conv1 = torch.cat((self.conv1_d(depth), self.conv1_img(image)), dim=1)
+        conv2 = self.layer1(conv1)
+        conv3 = self.layer2(conv2)
+        conv4 = self.layer3(conv3)
+        conv5 = self.layer4(conv4)
+        conv6 = self.conv6(conv5)
+        if self.aspp is not None:
+            conv6 = self.aspp(conv6)
+
+        convt5 = self.convt5(conv6)
+        y = self._skip("gam5", convt5, conv5)
+        convt4 = self.convt4(y)
+        y = self._skip("gam4", convt4, conv4)
+        convt3 = self.convt3(y)
+        y = self._skip("gam3", convt3, conv3)
+        convt2 = self.convt2(y)
+        y = self._skip("gam2", convt2, conv2)
+        convt1 = self.convt1(y)
+        y = self._skip("gam1", convt1, conv1)
+        out = OUTPUT_SCALE * self.convtf(y)
+
+        if self.config.stem_stride != 1:
+            # Padded size is a multiple of the stem stride: an exact ×2, pixel centres aligned.
+            out = F.interpolate(out, scale_factor=float(self.config.stem_stride), mode="bilinear", align_corners=False)
+        if pad_h or pad_w:
+            out = out[:, :, :height, :width]
+        if not self.training:
+            out = torch.clamp(out, min=self.config.min_depth)
+        return out
+
+
+def load_resnet18_encoder(model: DepthCompletionNet, path: str | Path) -> list[str]:
+    """Load ``layer1``–``layer4`` from a torchvision-format ResNet-18 checkpoint file.
+
+    Accepts a plain state dict or one nested under ``state_dict``/``model``, with or
+    without a ``module.`` prefix. Returns the loaded parameter names. Raises
+    ValueError naming the first mismatched tensor when widths differ (for example a
+    narrow preset), and when the file has no layer1–layer4 weights at all.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: ResNet-18 checkpoint not found")
+    state = torch.load(path, map_location="cpu", weights_only=True)
+    for key in ("state_dict", "model"):
+        if isinstance(state, dict) and isinstance(state.get(key), dict):
+            state = state[key]
+    if not isinstance(state, dict):
+        raise TypeError(f"{path}: expected a state dict, got {type(state).__name__}")
+    state = {k.removeprefix("module."): v for k, v in state.items()}
+    ours = model.state_dict()
+    wanted = {k: v for k, v in state.items() if k.split(".", 1)[0] in {"layer1", "layer2", "layer3", "layer4"}}
+    if not wanted:
+        raise ValueError(f"{path}: no layer1–layer4 tensors; is this a torchvision ResNet-18 checkpoint?")
+    for name, tensor in wanted.items():
+        if name not in ours:
+            raise ValueError(
+                f"{path}: {name} has no counterpart in the depth net "
+                f"(encoder_blocks={model.config.encoder_blocks}; ResNet-18 is (2, 2, 2, 2))"
+            )
+        if tuple(ours[name].shape) != tuple(tensor.shape):
+            raise ValueError(
+                f"{path}: {name} has shape {tuple(tensor.shape)} but the depth net expects "
+                f"{tuple(ours[name].shape)} (encoder_widths={model.config.encoder_widths}; "
+                "ResNet-18 needs (64, 128, 256, 512) and a 64-channel stem)"
+            )
+    missing = [k for k in ours if k.split(".", 1)[0] in {"layer1", "layer2", "layer3", "layer4"} and k not in wanted]
+    if missing:
+        raise ValueError(f"{path}: checkpoint lacks {len(missing)} encoder tensors, e.g. {missing[0]}")
+    model.load_state_dict(wanted, strict=False)
+    log.info("loaded %d ResNet-18 encoder tensors from %s", len(wanted), path)
+    return sorted(wanted)
+

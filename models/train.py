@@ -1,0 +1,433 @@
+"""Training: ``python -m models.train depth|detector|joint --data DIR --preset P --out RUN_DIR [--resume] …``
+
+* depth — the paper's recipe by default: batch 4, Adam lr 1e-4 halved every 5
+  epochs, 10 epochs, MSE on pixels with ground truth; input = 16-line sparse
+  depth + image.
+* detector — PIXOR from scratch: Adam, batch 8, lr 1e-3 halved when the
+  validation loss stops falling; ``--input lidar64|lidar16|pseudo``.
+* joint — both networks fine-tuned together through a differentiable BEV
+  occupancy (models/soft_bev.py); starts from the two trained checkpoints.
+
+Each epoch: a progress bar, validation metrics (depth RMSE/MAE; detector loss
+and KITTI BEV AP), one JSON line in ``RUN_DIR/log.jsonl``, the full training
+state in ``RUN_DIR/state.pt`` (exact resume with ``--resume``: weights,
+optimizer, schedule, RNG, the epoch's data order comes from the seed and the
+epoch number) and the best weights as ``RUN_DIR/depth.pt`` / ``pixor.pt`` in
+the checkpoint format ``python -m export --checkpoints RUN_DIR`` reads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import random
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch.utils.data import DataLoader
+from tqdm import tqdm
+
+from evaluation.kitti_eval import evaluate
+from evaluation.labels import LabelArrays
+from models import build_depth_net, build_pixor
+from models.checkpoint import load_checkpoint, load_network_weights, save_checkpoint
+from models.data import DETECTOR_INPUTS, DepthDataset, DetectorDataset, car_boxes, detector_points, frame_points
+from models.losses import masked_mse, pixor_loss
+from models.soft_bev import soft_occupancy
+from pipeline.bev import voxelize_bev
+from pipeline.boxes import boxes_to_objects, in_camera_view
+from pipeline.errors import InputError
+from pipeline.frame import frame_ids, load_frame
+from pipeline.postprocess import boxes_from_maps
+from pipeline.preprocess import depth_inputs
+from pipeline.presets import Preset, get_preset
+from pipeline.pseudo import pixel_rays
+from pipeline.targets import encode_targets
+
+log = logging.getLogger(__name__)
+TASKS = ("depth", "detector", "joint")
+
+
+@dataclass
+class TrainConfig:
+    """One training run. Defaults are the paper's recipe for the task (filled in by :func:`recipe`)."""
+
+    task: str
+    data: Path
+    preset: str
+    out: Path
+    val_data: Path | None = None  # default: --data with --val-split, else the training folder
+    train_split: Path | None = None
+    val_split: Path | None = None
+    input_mode: str = "lidar16"  # detector: lidar64 | lidar16 | pseudo
+    pseudo_dir: Path | None = None  # detector --input pseudo: cached dense depth PNGs
+    depth_checkpoint: Path | None = None  # joint (and pseudo caching): trained depth.pt
+    pixor_checkpoint: Path | None = None  # joint: trained pixor.pt
+    epochs: int | None = None
+    batch_size: int | None = None
+    lr: float | None = None
+    lr_step: int = 5  # depth: halve every lr_step epochs
+    lr_gamma: float = 0.5
+    max_train_frames: int | None = None
+    max_val_frames: int | None = None
+    workers: int = 0
+    seed: int = 0
+    resume: bool = False
+    quick: bool = False
+    progress: bool = True
+    threads: int | None = None
+
+
+@dataclass
+class TrainResult:
+    """What a run made."""
+
+    run_dir: Path
+    checkpoints: dict[str, Path]
+    history: list[dict] = field(default_factory=list)
+    first_loss: float = float("nan")  # mean training loss of the first epoch of this invocation
+    last_loss: float = float("nan")  # … and of the last
+
+
+RECIPES = {  # the paper's settings per task: (epochs, batch size, learning rate)
+    "depth": (10, 4, 1e-4),
+    "detector": (30, 8, 1e-3),
+    "joint": (3, 2, 1e-5),
+}
+
+
+def recipe(config: TrainConfig) -> TrainConfig:
+    """Fill unset epochs / batch size / lr from the task's recipe; ``quick`` shrinks everything."""
+    epochs, batch, lr = RECIPES[config.task]
+    config.epochs = config.epochs or epochs
+    config.batch_size = config.batch_size or batch
+    config.lr = config.lr or lr
+    if config.quick:
+        config.epochs = min(config.epochs, 3)
+        config.batch_size = min(config.batch_size, 2)
+        config.max_train_frames = config.max_train_frames or 4
+        config.max_val_frames = config.max_val_frames or 2
+    return config
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % (2**32))
+    torch.manual_seed(seed)
+
+
+# ----------------------------------------------------------------------------- data
+def split_ids(config: TrainConfig) -> tuple[Path, list[str], Path, list[str]]:
+    """(train dir, train ids, val dir, val ids) from folders and optional split files."""
+    train_ids = frame_ids(config.data, config.train_split)
+    val_dir = config.val_data or config.data
+    if config.val_data is None and config.val_split is None:
+        log.warning("no --val-data or --val-split: validating on the training frames")
+    val_ids = frame_ids(val_dir, config.val_split)
+    if config.max_train_frames:
+        train_ids = train_ids[: config.max_train_frames]
+    if config.max_val_frames:
+        val_ids = val_ids[: config.max_val_frames]
+    if not train_ids or not val_ids:
+        raise InputError(f"--data: no frames to train on in {config.data} or to validate on in {val_dir}")
+    return Path(config.data), train_ids, Path(val_dir), val_ids
+
+
+def loader(dataset, batch_size: int, shuffle: bool, seed: int, workers: int) -> DataLoader:
+    """Deterministic order: the shuffling generator is seeded per epoch by the caller."""
+    generator = torch.Generator().manual_seed(seed)
+    return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, generator=generator, num_workers=workers,
+                      drop_last=shuffle and len(dataset) > batch_size, persistent_workers=False)
+
+
+# ----------------------------------------------------------------------------- validation
+@torch.no_grad()
+def validate_depth(net, dataset: DepthDataset) -> dict:
+    net.eval()
+    sq, ab, n = 0.0, 0.0, 0
+    per_frame_rmse = []
+    for rgb, sparse, target in DataLoader(dataset, batch_size=2):
+        prediction = net(rgb, sparse)
+        valid = target > 0
+        err = (prediction - target)[valid] * 1000.0
+        sq += float((err**2).sum())
+        ab += float(err.abs().sum())
+        n += int(valid.sum())
+        for i in range(rgb.shape[0]):
+            v = valid[i]
+            if v.any():
+                per_frame_rmse.append(float(torch.sqrt((((prediction[i] - target[i])[v] * 1000) ** 2).mean())))
+    loss = sq / max(n, 1) / 1e6
+    return {"val_loss": loss, "rmse_mm": float(np.mean(per_frame_rmse)) if per_frame_rmse else float("nan"),
+            "mae_mm": ab / max(n, 1), "pixels": n}
+
+
+@torch.no_grad()
+def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], input_mode: str,
+                      pseudo_dir: Path | None, depth_net=None) -> dict:
+    """Validation loss and KITTI BEV AP (moderate, R40) of PIXOR on the validation frames."""
+    pixor.eval()
+    if depth_net is not None:
+        depth_net.eval()
+    gts, dets, losses = [], [], []
+    for fid in ids:
+        frame = load_frame(data_dir, fid)
+        if depth_net is not None:
+            points = joint_points(depth_net, frame, preset)
+        else:
+            points = detector_points(data_dir, frame, preset, input_mode, pseudo_dir)
+        bev = voxelize_bev(points, preset.bev)
+        targets = encode_targets(car_boxes(frame), preset.bev, preset.pixor.output_stride, preset.decode)
+        logits, regression = pixor.forward_logits(torch.from_numpy(bev)[None])
+        losses.append(float(pixor_loss(logits, regression, torch.from_numpy(targets.score)[None, None],
+                                       torch.from_numpy(targets.regression)[None]).total))
+        score = torch.sigmoid(logits)[0, 0].numpy()
+        boxes, scores = boxes_from_maps(score, regression[0].numpy(), bev, preset, score_threshold=0.05)
+        seen = in_camera_view(boxes, frame.calib, frame.image_hw)
+        objects = boxes_to_objects(boxes[seen], frame.calib, frame.image_hw, scores[seen])
+        gts.append(LabelArrays.from_objects(frame.labels or []))
+        dets.append(LabelArrays.from_objects(objects))
+    result = evaluate(gts, dets, metrics=("bev",))
+    table = result.ap_table()
+    return {"val_loss": float(np.mean(losses)),
+            "bev_ap_0.7_moderate": table["bev"]["0.7"]["R40"][1], "bev_ap_0.5_moderate": table["bev"]["0.5"]["R40"][1],
+            "bev_ap": table["bev"]}
+
+
+# ----------------------------------------------------------------------------- joint
+def joint_points(depth_net, frame, preset: Preset) -> np.ndarray:
+    """Pseudo + 16-line cloud from the (torch) depth net, for validation of the joint model."""
+    from pipeline.pseudo import depth_to_points, merge_points
+
+    lidar16 = frame_points(frame, 16)
+    inputs = depth_inputs(frame.image, lidar16, frame.calib, preset)
+    depth = depth_net(torch.from_numpy(inputs.rgb), torch.from_numpy(inputs.sparse_depth))[0, 0].numpy()
+    d = preset.decode
+    pseudo = depth_to_points(depth, inputs.calib, preset.depth.min_depth, preset.depth.max_depth,
+                             d.pseudo_stride, d.pseudo_max_height)
+    return merge_points(pseudo, lidar16)
+
+
+def joint_bev(depth: torch.Tensor, rays: torch.Tensor, origin: torch.Tensor, lidar16: np.ndarray,
+              preset: Preset) -> torch.Tensor:
+    """Differentiable BEV of one frame: soft occupancy of pseudo + real points, hard reflectance channel."""
+    d = preset.decode
+    stride = d.pseudo_stride
+    sub = depth[0, ::stride, ::stride]
+    points = sub[None] * rays + origin[:, None, None]  # (3, h, w)
+    valid = (sub >= preset.depth.min_depth) & (sub <= preset.depth.max_depth) & (points[2] <= d.pseudo_max_height)
+    pseudo = points.permute(1, 2, 0)[valid]
+    real = torch.from_numpy(lidar16[:, :3])
+    occupancy = soft_occupancy(torch.cat([pseudo, real]), preset.bev)
+    merged = np.concatenate([np.column_stack([pseudo.detach().numpy(), np.zeros(len(pseudo), np.float32)]), lidar16])
+    reflectance = torch.from_numpy(voxelize_bev(merged.astype(np.float32), preset.bev)[-1:])
+    return torch.cat([occupancy, reflectance])
+
+
+# ----------------------------------------------------------------------------- run
+def run(config: TrainConfig) -> TrainResult:
+    """Train one task; see the module docstring."""
+    if config.task not in TASKS:
+        raise InputError(f"task: {config.task!r} is not one of {', '.join(TASKS)}")
+    if config.task == "detector" and config.input_mode not in DETECTOR_INPUTS:
+        raise InputError(f"--input: {config.input_mode!r} is not one of {', '.join(DETECTOR_INPUTS)}")
+    config = recipe(config)
+    if config.threads:
+        torch.set_num_threads(config.threads)
+    preset = get_preset(config.preset)
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    state_path = out / "state.pt"
+    if state_path.exists() and not config.resume:
+        raise InputError(f"--out: {out} already holds a run (state.pt); pass --resume to continue it")
+    seed_everything(config.seed)
+    train_dir, train_ids, val_dir, val_ids = split_ids(config)
+
+    networks: dict[str, torch.nn.Module] = {}
+    if config.task in ("depth", "joint"):
+        networks["depth"] = build_depth_net(preset)
+    if config.task in ("detector", "joint"):
+        networks["pixor"] = build_pixor(preset)
+    for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
+        if name in networks and path is not None:
+            load_network_weights(networks[name], load_checkpoint(path), name, preset)
+    if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
+        raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
+    parameters = [p for net in networks.values() for p in net.parameters()]
+    optimizer = torch.optim.Adam(parameters, lr=config.lr)
+    if config.task == "detector":
+        scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=1)
+    else:
+        scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=config.lr_step, gamma=config.lr_gamma)
+
+    start_epoch, best, history = 0, float("inf"), []
+    if config.resume and state_path.exists():
+        state = torch.load(state_path, map_location="cpu", weights_only=False)
+        for name, net in networks.items():
+            net.load_state_dict(state["networks"][name])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        start_epoch, best, history = state["epoch"], state["best"], state["history"]
+        torch.set_rng_state(state["torch_rng"])
+        np.random.set_state(state["numpy_rng"])
+        random.setstate(state["python_rng"])
+        log.info("resuming %s at epoch %d", out, start_epoch + 1)
+
+    if config.task == "depth":
+        train_set = DepthDataset(train_dir, train_ids, preset, augment=not config.quick, seed=config.seed)
+        val_set = DepthDataset(val_dir, val_ids, preset)
+    elif config.task == "detector":
+        train_set = DetectorDataset(train_dir, train_ids, preset, config.input_mode, config.pseudo_dir,
+                                    augment=not config.quick, seed=config.seed)
+    first_loss = last_loss = float("nan")
+    metadata_base = {"task": config.task, "preset": preset.name, "data": str(train_dir), "train_frames": len(train_ids),
+                     "val_data": str(val_dir), "val_frames": len(val_ids), "input": config.input_mode,
+                     "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
+                                "optimizer": "Adam", "seed": config.seed}}
+    log_path = out / "log.jsonl"
+    for epoch in range(start_epoch, config.epochs):
+        tic = time.perf_counter()
+        for net in networks.values():
+            net.train()
+        epoch_losses = []
+        if config.task == "joint":
+            order = np.random.default_rng((config.seed, epoch)).permutation(len(train_ids))
+            batches = [order[i : i + config.batch_size] for i in range(0, len(order), config.batch_size)]
+            bar = tqdm(batches, desc=f"joint epoch {epoch + 1}/{config.epochs}", disable=not config.progress)
+            for batch in bar:
+                optimizer.zero_grad()
+                total = 0.0
+                for index in batch:
+                    loss = joint_step(networks, preset, train_dir, train_ids[index])
+                    (loss / len(batch)).backward()
+                    total += loss.item() / len(batch)
+                optimizer.step()
+                epoch_losses.append(total)
+                bar.set_postfix(loss=f"{total:.4f}")
+        else:
+            train_set.epoch = epoch
+            batches = loader(train_set, config.batch_size, True, config.seed * 1000 + epoch, config.workers)
+            bar = tqdm(batches, desc=f"{config.task} epoch {epoch + 1}/{config.epochs}", disable=not config.progress)
+            for batch in bar:
+                optimizer.zero_grad()
+                if config.task == "depth":
+                    rgb, sparse, target = batch
+                    loss = masked_mse(networks["depth"](rgb, sparse), target)
+                else:
+                    bev, score_t, reg_t = batch
+                    logits, regression = networks["pixor"].forward_logits(bev)
+                    loss = pixor_loss(logits, regression, score_t, reg_t).total
+                loss.backward()
+                optimizer.step()
+                epoch_losses.append(loss.item())
+                bar.set_postfix(loss=f"{loss.item():.4f}")
+        if not epoch_losses:
+            raise InputError(f"--data: no training batch (frames {len(train_ids)}, batch size {config.batch_size})")
+        if np.isnan(first_loss):
+            first_loss = float(np.mean(epoch_losses))
+        last_loss = float(np.mean(epoch_losses))
+
+        if config.task == "depth":
+            metrics = validate_depth(networks["depth"], val_set)
+        else:
+            metrics = validate_detector(networks["pixor"], preset, val_dir, val_ids, config.input_mode,
+                                        config.pseudo_dir, networks.get("depth") if config.task == "joint" else None)
+        if config.task == "detector":
+            scheduler.step(metrics["val_loss"])
+        else:
+            scheduler.step()
+        record = {"epoch": epoch + 1, "train_loss": float(np.mean(epoch_losses)), "lr": optimizer.param_groups[0]["lr"],
+                  "seconds": round(time.perf_counter() - tic, 1),
+                  **{k: v for k, v in metrics.items() if k != "bev_ap"}}
+        history.append(record)
+        with open(log_path, "a", encoding="utf-8") as handle:
+            handle.write(json.dumps(record) + "\n")
+        log.info("epoch %d: %s", epoch + 1, {k: round(v, 4) if isinstance(v, float) else v for k, v in record.items()})
+        improved = metrics["val_loss"] < best
+        if improved:
+            best = metrics["val_loss"]
+            for name, net in networks.items():
+                save_checkpoint(out / f"{name}.pt", preset, {name: net},
+                                {**metadata_base, "epoch": epoch + 1, "metrics": metrics})
+        torch.save({"networks": {n: net.state_dict() for n, net in networks.items()},
+                    "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                    "epoch": epoch + 1, "best": best, "history": history, "config": _jsonable(asdict(config)),
+                    "torch_rng": torch.get_rng_state(), "numpy_rng": np.random.get_state(),
+                    "python_rng": random.getstate()}, state_path.with_suffix(".tmp"))
+        state_path.with_suffix(".tmp").replace(state_path)
+    checkpoints = {name: out / f"{name}.pt" for name in networks if (out / f"{name}.pt").exists()}
+    return TrainResult(out, checkpoints, history, first_loss, last_loss)
+
+
+def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str) -> torch.Tensor:
+    """Loss of one frame through depth net → soft BEV → PIXOR (+ the depth loss)."""
+    from models.data import depth_target
+
+    frame = load_frame(data_dir, frame_id)
+    lidar16 = frame_points(frame, 16)
+    inputs = depth_inputs(frame.image, lidar16, frame.calib, preset)
+    depth = networks["depth"](torch.from_numpy(inputs.rgb), torch.from_numpy(inputs.sparse_depth))[0]
+    h, w = preset.depth.input_hw
+    rays, origin = pixel_rays(inputs.calib, h, w, preset.decode.pseudo_stride)
+    bev = joint_bev(depth, torch.from_numpy(rays), torch.from_numpy(origin.astype(np.float32)), lidar16, preset)
+    targets = encode_targets(car_boxes(frame), preset.bev, preset.pixor.output_stride, preset.decode)
+    logits, regression = networks["pixor"].forward_logits(bev[None])
+    detection = pixor_loss(logits, regression, torch.from_numpy(targets.score)[None, None],
+                           torch.from_numpy(targets.regression)[None]).total
+    target = torch.from_numpy(depth_target(data_dir, frame, preset))[None, None]
+    return detection + 0.1 * masked_mse(depth[None], target)
+
+
+def _jsonable(value):
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, Path):
+        return str(value)
+    return value
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n\n")[0],
+                                     epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("task", choices=TASKS)
+    parser.add_argument("--data", type=Path, required=True, help="KITTI-layout training folder")
+    parser.add_argument("--val-data", type=Path, help="KITTI-layout validation folder (default: --data + --val-split)")
+    parser.add_argument("--train-split", type=Path, help="training frame ids, one per line (default: all of --data)")
+    parser.add_argument("--val-split", type=Path, help="validation frame ids, one per line")
+    parser.add_argument("--preset", default="edge", help="model preset (default edge)")
+    parser.add_argument("--out", type=Path, required=True, help="run directory (log.jsonl, state.pt, depth.pt/pixor.pt)")
+    parser.add_argument("--input", dest="input_mode", default="lidar16", choices=DETECTOR_INPUTS,
+                        help="detector input (default lidar16)")
+    parser.add_argument("--pseudo-dir", type=Path, help="cached dense depth PNGs for --input pseudo")
+    parser.add_argument("--depth-checkpoint", type=Path, help="trained depth.pt (joint)")
+    parser.add_argument("--pixor-checkpoint", type=Path, help="trained pixor.pt (joint; or to continue training)")
+    parser.add_argument("--epochs", type=int, help="default: the task's recipe")
+    parser.add_argument("--batch-size", type=int, help="default: the task's recipe")
+    parser.add_argument("--lr", type=float, help="default: the task's recipe")
+    parser.add_argument("--max-train-frames", type=int, help="use only the first N training frames")
+    parser.add_argument("--max-val-frames", type=int, help="use only the first N validation frames")
+    parser.add_argument("--workers", type=int, default=0, help="data-loading processes (default 0)")
+    parser.add_argument("--threads", type=int, help="torch intra-op threads")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last epoch")
+    parser.add_argument("--quick", action="store_true", help="a few frames and epochs: a smoke test")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    config = TrainConfig(**{k: v for k, v in vars(args).items()})
+    try:
+        result = run(config)
+    except (InputError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"run {result.run_dir}: loss {result.first_loss:.4f} → {result.last_loss:.4f}; "
+          f"checkpoints {', '.join(str(p) for p in result.checkpoints.values())}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,78 @@
+"""benchmarks/accuracy.py dataset modes: the detector over a KITTI folder, and depth metrics."""
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evaluation.harness import run_depth, run_detection
+from pipeline.calib import depth_crop
+from pipeline.errors import InputError
+from pipeline.kitti import read_depth_png, read_labels, write_depth_png
+from pipeline.calib import sparse_depth_map
+from pipeline.frame import load_frame
+from tests.conftest import FRAMES, KITTI
+
+ACCURACY = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
+
+
+def test_detection_run_then_evaluation_end_to_end(tiny_models, tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ACCURACY), "--data", str(KITTI), "--models", str(tiny_models),
+         "--input", "lidar16+camera", "--score-threshold", "0.0", "--out", str(tmp_path / "run"),
+         "--json", str(tmp_path / "ap.json"), "--no-progress"],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr
+    for frame_id in FRAMES:
+        lines = (tmp_path / "run" / "data" / f"{frame_id}.txt").read_text().splitlines()
+        assert lines and all(len(line.split()) == 16 for line in lines)
+    document = json.loads((tmp_path / "ap.json").read_text())
+    for metric in ("bev", "3d", "bbox"):
+        for iou in ("0.7", "0.5"):
+            for interp in ("R40", "R11"):
+                values = document["Car"][metric][iou][interp]
+                assert len(values) == 3 and all(0 <= v <= 100 for v in values)
+    assert "Car AP" in result.stdout
+
+
+def test_detection_run_refuses_mismatched_models(tiny_models, tmp_path):
+    with pytest.raises(InputError, match="does not fit --input lidar16"):
+        run_detection(KITTI, tiny_models, "lidar16", tmp_path)
+    with pytest.raises(InputError, match="--input"):
+        run_detection(KITTI, tiny_models, "radar", tmp_path)
+
+
+def test_depth_metrics_on_real_depth_completion_frame(tiny_models, depth_completion_dir):
+    outcome = run_depth(depth_completion_dir, tiny_models, progress=False)
+    gt = read_depth_png(depth_completion_dir / "groundtruth" / "0000000005.png")
+    assert outcome.mean.n_pixels == np.count_nonzero(depth_crop(gt.shape).apply(gt))
+    assert outcome.layout == "depth-completion"
+    m = outcome.mean
+    assert np.isfinite([m.rmse_mm, m.mae_mm, m.irmse_per_km, m.imae_per_km]).all()
+    assert m.rmse_mm >= m.mae_mm > 0
+
+
+def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp_path):
+    data = tmp_path / "data"
+    for sub in ("image_2", "velodyne", "calib"):
+        shutil.copytree(KITTI / sub, data / sub)
+    (data / "depth_2").mkdir()
+    for frame_id in FRAMES:
+        frame = load_frame(KITTI, frame_id)
+        write_depth_png(data / "depth_2" / f"{frame_id}.png", sparse_depth_map(frame.points, frame.calib, frame.image_hw))
+    outcome = run_depth(data, tiny_models, frames=["000006", "000003"], progress=False)
+    assert set(outcome.per_frame) == {"000006", "000003"} and outcome.input == "16-line emulated scan"
+    assert outcome.mean.rmse_mm > 0
+
+
+def test_depth_mode_names_the_missing_layout(tiny_models, tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ACCURACY), "--depth", "--data", str(tmp_path), "--models", str(tiny_models)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 2 and "depth_2/" in result.stderr and "Traceback" not in result.stderr

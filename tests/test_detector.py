@@ -1,0 +1,171 @@
+"""The ONNX Runtime Detector and `python -m pipeline.detect` on a real KITTI frame (tiny preset)."""
+
+import json
+import shutil
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.beams import emulate_beams
+from pipeline.detector import Detector, resolve_providers
+from pipeline.errors import InputError
+from pipeline.frame import load_frame
+from pipeline.kitti import read_labels
+from pipeline.model_files import ModelFileError, sha256_file
+from pipeline.presets import PRESETS, preset_from_dict
+from tests.conftest import KITTI
+
+STAGES = {"prepare", "depth_net", "pseudo_points", "voxelize", "pixor", "decode", "total"}
+
+
+@pytest.fixture(scope="module")
+def detector(tiny_models):
+    return Detector(tiny_models)
+
+
+@pytest.fixture(scope="module")
+def frame():
+    return load_frame(KITTI, "000006")
+
+
+def test_detects_on_real_frame_with_wellformed_boxes(detector, frame):
+    lidar16 = emulate_beams(frame.points, 16)
+    result = detector.detect(frame.image, lidar16, frame.calib, score_threshold=0.0)
+    assert set(result.timings_ms) == STAGES
+    assert all(np.isfinite(v) and v >= 0 for v in result.timings_ms.values())
+    assert result.timings_ms["total"] >= sum(v for k, v in result.timings_ms.items() if k != "total") * 0.99
+    assert result.boxes.shape == (len(result.scores), 7) and len(result.scores) > 0
+    assert np.all(np.diff(result.scores) <= 0)  # best first
+    assert np.isfinite(result.boxes).all()
+    assert (result.boxes[:, 3:6] > 0).all()
+    grid = detector.preset.bev
+    assert (result.boxes[:, 0] > grid.x_min - 5).all() and (result.boxes[:, 0] < grid.x_max + 5).all()
+    # Kept boxes do not overlap beyond the NMS threshold.
+    from pipeline.iou import rotated_iou_matrix
+
+    iou = rotated_iou_matrix(result.boxes[:, [0, 1, 3, 4, 6]], result.boxes[:, [0, 1, 3, 4, 6]])
+    assert (iou[~np.eye(len(iou), dtype=bool)] <= detector.preset.decode.nms_iou + 1e-9).all()
+    # The cloud PIXOR saw is the pseudo cloud plus the 16 real lines.
+    assert result.points.shape[0] > lidar16.shape[0]
+    objects = result.to_objects(frame.calib, frame.image_hw)
+    assert all(o.type == "Car" and o.score is not None for o in objects)
+    assert len(objects) <= len(result.scores)
+
+
+def test_emulation_on_request_equals_emulating_first(detector, frame):
+    a = detector.detect(frame.image, frame.points, frame.calib, 0.0, emulate_to_beams=16)
+    b = detector.detect(frame.image, emulate_beams(frame.points, 16), frame.calib, 0.0)
+    np.testing.assert_array_equal(a.boxes, b.boxes)
+    assert "emulate_beams" in a.timings_ms and a.warnings
+
+
+def test_threads_give_the_same_answer(detector, frame):
+    lidar16 = emulate_beams(frame.points, 16)
+    reference = detector.detect(frame.image, lidar16, frame.calib, 0.0)
+    with ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(lambda _: detector.detect(frame.image, lidar16, frame.calib, 0.0), range(4)))
+    for r in results:
+        np.testing.assert_allclose(r.boxes, reference.boxes, rtol=1e-5, atol=1e-5)
+
+
+def test_bad_inputs_are_input_errors(detector, frame):
+    with pytest.raises(InputError, match="no points"):
+        detector.detect(frame.image, np.zeros((0, 4), np.float32), frame.calib)
+    with pytest.raises(InputError, match="shape"):
+        detector.detect(frame.image, np.zeros((10, 3), np.float32), frame.calib)
+    bad = frame.points.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        detector.detect(frame.image, bad, frame.calib)
+    with pytest.raises(InputError, match="smaller than the model's"):
+        detector.detect(frame.image[:200], frame.points, frame.calib)
+    with pytest.raises(InputError, match="image and calib"):
+        detector.detect(None, frame.points, frame.calib)
+
+
+def test_manifest_preset_is_the_code_preset(tiny_models, detector):
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    assert preset_from_dict(manifest["preset_config"]) == PRESETS["tiny"]
+    assert detector.preset == PRESETS["tiny"]
+    assert list(manifest["bev_grid"]["shape"]) == list(PRESETS["tiny"].bev.shape)
+
+
+def test_corrupted_model_file_is_refused(tiny_models, tmp_path):
+    broken = tmp_path / "models"
+    shutil.copytree(tiny_models, broken)
+    data = bytearray((broken / "pixor.onnx").read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (broken / "pixor.onnx").write_bytes(bytes(data))
+    with pytest.raises(ModelFileError, match=r"pixor\.onnx: sha256 mismatch"):
+        Detector(broken)
+    (broken / "pixor.onnx").unlink()
+    with pytest.raises(ModelFileError, match=r"pixor\.onnx: model file listed in the manifest is missing"):
+        Detector(broken)
+    with pytest.raises(ModelFileError, match="no manifest"):
+        Detector(tmp_path)
+
+
+def test_lidar_only_model_directory(tiny_models, tmp_path, frame):
+    lidar_only = tmp_path / "lidar"
+    lidar_only.mkdir()
+    shutil.copy(tiny_models / "pixor.onnx", lidar_only)
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    del manifest["networks"]["depth"]
+    manifest["files"] = {"pixor.onnx": {"sha256": sha256_file(lidar_only / "pixor.onnx")}}
+    (lidar_only / "manifest.json").write_text(json.dumps(manifest))
+    detector = Detector(lidar_only)
+    assert not detector.two_stage
+    result = detector.detect(None, frame.points, None, 0.0)
+    assert set(result.timings_ms) == {"voxelize", "pixor", "decode", "total"}
+    assert result.points.shape == frame.points.shape
+
+
+def test_provider_resolution():
+    assert resolve_providers("cpu") == ["CPUExecutionProvider"]
+    assert resolve_providers(None)[-1] == "CPUExecutionProvider"
+    with pytest.raises(InputError, match="not available"):
+        resolve_providers("tensorrt")
+
+
+def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
+    out = tmp_path / "out"
+    result = subprocess.run(
+        [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(KITTI),
+         "--frame", "000006", "--frame", "000003", "--emulate-beams", "16", "--score-threshold", "0.0",
+         "--out", str(out)],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    for frame_id in ("000006", "000003"):
+        objects = read_labels(out / "data" / f"{frame_id}.txt")
+        assert all(o.score is not None for o in objects)
+        picture = cv2.imread(str(out / "bev" / f"{frame_id}.png"))
+        assert picture is not None and picture.shape[2] == 3
+        assert (picture == [60, 60, 230]).all(axis=2).any()  # ground truth drawn in red
+    single = subprocess.run(
+        [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models),
+         "--image", str(KITTI / "image_2" / "000006.png"), "--points", str(KITTI / "velodyne" / "000006.bin"),
+         "--calib", str(KITTI / "calib" / "000006.txt"), "--out", str(tmp_path / "single"), "--no-pictures"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert single.returncode == 0, single.stderr
+    assert (tmp_path / "single" / "data" / "000006.txt").exists()
+    missing = subprocess.run(
+        [sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path), "--data", str(KITTI), "--out", str(tmp_path / "x")],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert missing.returncode == 2 and "no manifest" in missing.stderr and "Traceback" not in missing.stderr
+
+
+def test_runtime_never_imports_torch():
+    code = (
+        "import sys; sys.modules['torch'] = None\n"
+        "import pipeline.detector, pipeline.detect, pipeline.demo, pipeline.beams, pipeline.bev\n"
+        "assert 'torch' not in [m for m in sys.modules if sys.modules[m] is not None]\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr

@@ -1,0 +1,112 @@
+"""Training: data loaders on real frames, the differentiable BEV, a quick run, exact resume."""
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from models.data import DepthCompletionDataset, DepthDataset, DetectorDataset
+from models.soft_bev import soft_occupancy
+from models.train import TrainConfig, run
+from pipeline.beams import emulate_beams_on_depth_map
+from pipeline.bev import voxelize_bev
+from pipeline.kitti import read_calib, read_depth_png, read_velodyne
+from pipeline.presets import PRESETS
+from tests.conftest import KITTI
+
+
+def test_depth_dataset_on_real_object_frames():
+    preset = PRESETS["edge"]
+    dataset = DepthDataset(KITTI, ["000006", "000003"], preset)
+    rgb, sparse, target = dataset[0]
+    assert rgb.shape == (3, 176, 608) and sparse.shape == target.shape == (1, 176, 608)
+    # Without depth_2 the target is the full 64-line scan: about four times the 16-line input.
+    ratio = int((target > 0).sum()) / int((sparse > 0).sum())
+    assert 2.5 < ratio < 5.0
+
+
+def test_detector_dataset_targets_and_mirror():
+    preset = PRESETS["edge"]
+    plain = DetectorDataset(KITTI, ["000006"], preset, "lidar64")
+    bev, score, regression = plain[0]
+    assert bev.shape == preset.bev.shape and score.shape == (1, 100, 88) and regression.shape == (6, 100, 88)
+    assert int(score.sum()) > 10  # four cars
+    mirrored = DetectorDataset(KITTI, ["000006"], preset, "lidar64", augment=True)
+    flips = []
+    for epoch in range(6):
+        mirrored.epoch = epoch
+        m_bev, m_score, _ = mirrored[0]
+        flips.append(torch.equal(m_score[0], torch.flip(score[0], dims=[0])))
+        assert torch.equal(m_score, score) or flips[-1]
+    assert any(flips) and not all(flips)  # the mirror is drawn per epoch
+
+
+def test_depth_completion_layout_emulates_16_lines(depth_completion_dir):
+    calib = read_calib(KITTI / "calib" / "000003.txt")  # same recording day's calibration as the drive
+    raw = read_depth_png(depth_completion_dir / "velodyne_raw" / "0000000005.png")
+    thinned = emulate_beams_on_depth_map(raw, calib, 16)
+    kept = np.count_nonzero(thinned) / np.count_nonzero(raw)
+    assert 0.2 < kept < 0.3
+    assert np.all((thinned == 0) | (thinned == raw))
+    dataset = DepthCompletionDataset(depth_completion_dir, ["0000000005"], PRESETS["edge"], calib)
+    rgb, sparse, target = dataset[0]
+    assert rgb.shape == (3, 176, 608) and sparse.shape == target.shape == (1, 176, 608)
+    assert 0 < int((sparse > 0).sum()) < int((target > 0).sum())
+
+
+def test_soft_occupancy_forward_is_the_hard_grid_and_has_gradient():
+    grid = PRESETS["edge"].bev
+    points = read_velodyne(KITTI / "velodyne" / "000006.bin").points
+    xyz = torch.tensor(points[:, :3], requires_grad=True)
+    occupancy = soft_occupancy(xyz, grid)
+    np.testing.assert_array_equal(occupancy.detach().numpy(), voxelize_bev(points, grid)[:-1])
+    (occupancy * torch.rand_like(occupancy)).sum().backward()
+    inside = (points[:, 0] > 1) & (points[:, 0] < 69) & (np.abs(points[:, 1]) < 39) & (points[:, 2] > -2.3) & (points[:, 2] < 0.9)
+    assert torch.count_nonzero(xyz.grad[torch.from_numpy(inside)].abs().sum(dim=1)) > 0.9 * inside.sum()
+    assert torch.count_nonzero(xyz.grad[torch.from_numpy(points[:, 0] < -5)]) == 0
+
+
+@pytest.fixture(scope="module")
+def small_sim(tmp_path_factory):
+    from simulation.run import RunConfig
+    from simulation.run import run as simulate
+
+    out = tmp_path_factory.mktemp("sim")
+    simulate(RunConfig(out=out, frames=3, seed=11, workers=1, progress=False))
+    return out
+
+
+def test_quick_depth_and_detector_runs_reduce_the_loss(small_sim, tmp_path):
+    depth = run(TrainConfig(task="depth", data=small_sim, preset="tiny", out=tmp_path / "depth", quick=True,
+                            epochs=3, lr=1e-3, progress=False))
+    assert depth.last_loss < depth.first_loss
+    assert (tmp_path / "depth" / "depth.pt").exists() and (tmp_path / "depth" / "log.jsonl").exists()
+    assert {"rmse_mm", "mae_mm", "val_loss"} <= set(depth.history[-1])
+    detector = run(TrainConfig(task="detector", data=small_sim, preset="tiny", out=tmp_path / "det", quick=True,
+                               epochs=3, progress=False))
+    assert detector.last_loss < detector.first_loss
+    assert "bev_ap_0.7_moderate" in detector.history[-1]
+
+
+def test_resume_is_exact(small_sim, tmp_path):
+    common = dict(task="detector", data=small_sim, preset="tiny", epochs=2, batch_size=2, progress=False,
+                  max_train_frames=3, max_val_frames=1)
+    straight = run(TrainConfig(out=tmp_path / "straight", **common))
+    run(TrainConfig(out=tmp_path / "interrupted", **{**common, "epochs": 1}))
+    resumed = run(TrainConfig(out=tmp_path / "interrupted", resume=True, **common))
+    a = torch.load(tmp_path / "straight" / "state.pt", weights_only=False)["networks"]["pixor"]
+    b = torch.load(tmp_path / "interrupted" / "state.pt", weights_only=False)["networks"]["pixor"]
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+    for key in ("train_loss", "val_loss", "lr"):
+        assert [h[key] for h in straight.history] == [h[key] for h in resumed.history], key
+
+
+def test_refuses_to_overwrite_a_run(small_sim, tmp_path):
+    from pipeline.errors import InputError
+
+    config = dict(task="depth", data=small_sim, preset="tiny", out=tmp_path / "r", quick=True, epochs=1, progress=False)
+    run(TrainConfig(**config))
+    with pytest.raises(InputError, match="pass --resume"):
+        run(TrainConfig(**config))
