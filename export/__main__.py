@@ -18,7 +18,7 @@ def parse_args(argv: list[str] | None = None) -> ExportConfig:
         description="Export a preset's depth-completion net and PIXOR to ONNX, check ONNX Runtime against "
         "PyTorch on a real KITTI frame and random inputs, and write manifest.json.",
     )
-    parser.add_argument("--preset", required=True, choices=sorted(PRESETS), help="model preset")
+    parser.add_argument("--preset", required=True, help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with -no-gam or -no-aspp")
     parser.add_argument("--out", required=True, type=Path, help="output model directory")
     parser.add_argument(
         "--checkpoints", type=Path, default=None,
@@ -28,10 +28,12 @@ def parse_args(argv: list[str] | None = None) -> ExportConfig:
     parser.add_argument("--frame", default=DEFAULT_FRAME, help="KITTI frame id for the parity check")
     parser.add_argument("--seed", type=int, default=0, help="seed for initial weights and random parity inputs")
     parser.add_argument("--no-parity", action="store_true", help="skip the ONNX Runtime vs PyTorch check")
+    parser.add_argument("--networks", nargs="+", default=["depth", "pixor"], choices=["depth", "pixor"],
+                        help="networks to export (default both; 'pixor' alone for a LiDAR-only detector)")
     args = parser.parse_args(argv)
     return ExportConfig(
         preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir,
-        frame=args.frame, seed=args.seed, parity=not args.no_parity, progress=True,
+        frame=args.frame, seed=args.seed, parity=not args.no_parity, progress=True, networks=tuple(args.networks),
     )
 
 

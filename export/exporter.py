@@ -37,6 +37,7 @@ class ExportConfig:
     frame: str = DEFAULT_FRAME
     seed: int = 0  # initialisation of untrained weights and the random parity inputs
     parity: bool = True  # compare ONNX Runtime with PyTorch (a real frame + random inputs)
+    networks: tuple[str, ...] = ("depth", "pixor")  # ("pixor",) for a LiDAR-only model directory
     progress: bool = False
 
 
@@ -74,6 +75,8 @@ def _load_weights(config: ExportConfig, preset: Preset, models: dict[str, torch.
     if config.checkpoints is None:
         return training
     for name, path in find_checkpoints(config.checkpoints).items():
+        if name not in models:
+            continue
         checkpoint = load_checkpoint(path)
         load_network_weights(models[name], checkpoint, name, preset)
         training[name] = {"checkpoint": path.name, **checkpoint.metadata}
@@ -100,17 +103,21 @@ def run(config: ExportConfig) -> ExportResult:
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(config.seed)
-    models = {"depth": build_depth_net(preset).eval(), "pixor": build_pixor(preset).eval()}
+    unknown = set(config.networks) - set(FILES)
+    if unknown or "pixor" not in config.networks:
+        raise ValueError(f"--networks: {', '.join(config.networks)}; choose 'depth pixor' or 'pixor'")
+    builders = {"depth": build_depth_net, "pixor": build_pixor}
+    models = {name: builders[name](preset).eval() for name in FILES if name in config.networks}
     interfaces: dict[str, NetworkIO] = {
         "depth": depth_io(preset.depth.input_hw),
         "pixor": pixor_io(preset.bev.shape, preset.pixor.output_stride),
     }
-    steps = 1 + 2 + (4 if config.parity else 0) + 1  # weights, two exports, parity, manifest
+    steps = 1 + len(models) + (2 * len(models) if config.parity else 0) + 1  # weights, exports, parity, manifest
     with tqdm(total=steps, disable=not config.progress, unit="step") as bar:
         with _step(bar, "loading weights"):
             training = _load_weights(config, preset, models)
         files = {}
-        for name in ("depth", "pixor"):
+        for name in models:
             with _step(bar, f"exporting {FILES[name]}"):
                 files[name] = export_onnx(models[name], interfaces[name], out / FILES[name])
         results: list[ParityResult] = []
@@ -118,8 +125,9 @@ def run(config: ExportConfig) -> ExportResult:
             sessions = {name: cpu_session(path) for name, path in files.items()}
             sources = [kitti_inputs(preset, config.kitti_dir, config.frame), random_inputs(preset, config.seed)]
             for inputs in sources:
-                with _step(bar, f"depth parity ({inputs.source.split()[0]})"):
-                    results.append(depth_parity(models["depth"], sessions["depth"], inputs))
+                if "depth" in models:
+                    with _step(bar, f"depth parity ({inputs.source.split()[0]})"):
+                        results.append(depth_parity(models["depth"], sessions["depth"], inputs))
                 with _step(bar, f"pixor parity ({inputs.source.split()[0]})"):
                     results.extend(pixor_parity(models["pixor"], sessions["pixor"], inputs))
             for result in results:
@@ -138,7 +146,7 @@ def run(config: ExportConfig) -> ExportResult:
                     weights=UNTRAINED if training[name] is None else "trained",
                     training=training[name],
                 )
-                for name in ("depth", "pixor")
+                for name in models
             }
             manifest = build_manifest(
                 preset,

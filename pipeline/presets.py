@@ -8,7 +8,7 @@ keeps tests fast.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 
 @dataclass(frozen=True)
@@ -134,8 +134,8 @@ PRESETS: dict[str, Preset] = {
     "edge": Preset(
         name="edge",
         depth=DepthNetConfig(
-            input_hw=(176, 608), input_scale=0.5, stem_stride=2, depth_stem=8, image_stem=24,
-            encoder_widths=(32, 64, 128, 256), bottleneck_width=256, decoder_widths=(128, 64, 32, 32, 32),
+            input_hw=(176, 608), input_scale=0.5, stem_stride=2, depth_stem=8, image_stem=16,
+            encoder_widths=(24, 48, 96, 192), bottleneck_width=192, decoder_widths=(96, 48, 24, 24, 24),
         ),
         pixor=PixorConfig(
             stem_channels=16, stage_widths=(12, 24, 32, 48), stage_blocks=(2, 3, 3, 2),
@@ -161,12 +161,24 @@ PRESETS: dict[str, Preset] = {
 }
 
 
+ABLATIONS = {"-no-gam": {"use_gam": False}, "-no-aspp": {"use_aspp": False}}
+
+
 def get_preset(name: str) -> Preset:
-    """Look up a preset by name, with an error that lists the valid ones."""
+    """Look up a preset by name, with an error that lists the valid ones.
+
+    A suffix ``-no-gam`` or ``-no-aspp`` (e.g. ``edge-no-gam``) gives the paper's
+    ablation: the same preset with that part of the depth net switched off.
+    """
+    for suffix, change in ABLATIONS.items():
+        if name.endswith(suffix) and name[: -len(suffix)] in PRESETS:
+            base = PRESETS[name[: -len(suffix)]]
+            return replace(base, name=name, depth=replace(base.depth, **change))
     try:
         return PRESETS[name]
     except KeyError:
-        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}") from None
+        choices = ", ".join(list(PRESETS) + [f"{p}{s}" for p in PRESETS for s in ABLATIONS][:2] + ["…"])
+        raise ValueError(f"unknown preset {name!r}; choose one of {choices}") from None
 
 
 def _tuples(value):

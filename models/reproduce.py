@@ -1,0 +1,233 @@
+"""Reproduce the shipped weights and the paper's table on synthetic scenes, from scratch.
+
+    python -m models.reproduce [--out runs/edge] [--data data/sim] [--weights weights] [--quick]
+
+Stages (each resumes where it stopped: rerun the same command after an interruption):
+
+1. simulate the training set (seed 1) and the validation set (seed 2);
+2. train the depth net with and without GAMs (the paper's ablation), same budget;
+3. cache the trained depth net's dense depth for every frame (pseudo points);
+4. train PIXOR on 64-line, 16-line and pseudo + 16-line input;
+5. fine-tune the depth net and PIXOR together (joint, soft BEV occupancy);
+6. export every model directory, evaluate each on the validation set
+   (KITTI BEV AP, depth RMSE/MAE), write ``OUT/table.json`` and ``OUT/table.md``.
+
+The product's model directory lands in ``WEIGHTS/edge`` (16-line + camera),
+with ``WEIGHTS/edge-lidar16`` and ``WEIGHTS/edge-lidar64`` (PIXOR alone) for
+the table. ``--quick`` runs every stage on a handful of frames with the
+``tiny`` preset into ``OUT`` only, in a few minutes: a smoke test.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from evaluation.frames import load_label_dirs
+from evaluation.harness import run_depth, run_detection
+from evaluation.kitti_eval import evaluate
+from export.exporter import ExportConfig
+from export.exporter import run as export
+from models.cache_pseudo import run as cache_pseudo
+from models.train import TrainConfig
+from models.train import run as train
+from pipeline.errors import InputError
+from simulation.run import RunConfig
+from simulation.run import run as simulate
+
+log = logging.getLogger(__name__)
+ROWS = ("lidar64", "lidar16", "lidar16+camera", "lidar16+camera (joint)")
+
+
+@dataclass
+class Budget:
+    """Frames and epochs of each stage (the edge budget fits about two hours on this 2-core machine)."""
+
+    train_frames: int = 2000
+    val_frames: int = 300
+    depth_frames: int = 1200
+    depth_epochs: int = 4
+    detector_frames: int = 2000
+    detector_epochs: int = 2
+    joint_frames: int = 300
+    joint_epochs: int = 1
+    val_frames_during_training: int = 60
+
+
+QUICK = Budget(train_frames=6, val_frames=3, depth_frames=6, depth_epochs=2, detector_frames=6, detector_epochs=2,
+               joint_frames=3, joint_epochs=1, val_frames_during_training=2)
+
+
+@dataclass
+class ReproduceConfig:
+    """Where things go and how much to run."""
+
+    out: Path = Path("runs/edge")
+    data: Path = Path("data/sim")
+    weights: Path = Path("weights")
+    preset: str = "edge"
+    quick: bool = False
+    budget: Budget = field(default_factory=Budget)
+    sim_workers: int = 2
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        if self.quick:
+            self.budget, self.preset = QUICK, "tiny"
+            self.weights = self.out / "weights"  # a smoke test never overwrites the shipped weights
+
+
+def _train(config: ReproduceConfig, name: str, task: str, preset: str | None = None, **kwargs) -> dict:
+    b = config.budget
+    tic = time.perf_counter()
+    result = train(TrainConfig(
+        task=task, data=config.data / "train", val_data=config.data / "val", preset=preset or config.preset,
+        out=config.out / name, resume=True, progress=config.progress, seed=0,
+        max_val_frames=b.val_frames_during_training, **kwargs,
+    ))
+    seconds = time.perf_counter() - tic
+    log.info("%s: loss %.4f → %.4f in %.0f s", name, result.first_loss, result.last_loss, seconds)
+    return {"first_loss": result.first_loss, "last_loss": result.last_loss, "seconds": round(seconds, 1),
+            "history": result.history}
+
+
+def _export(config: ReproduceConfig, checkpoints: Path, target: Path, networks: tuple[str, ...],
+            preset: str | None = None) -> Path:
+    if target.exists():
+        shutil.rmtree(target)
+    export(ExportConfig(preset=preset or config.preset, out=target, checkpoints=checkpoints, networks=networks))
+    return target
+
+
+def _detection_ap(config: ReproduceConfig, models: Path, input_mode: str, name: str) -> dict:
+    """KITTI BEV AP (R40 and R11) of one model directory on the validation set."""
+    val = config.data / "val"
+    predictions = run_detection(val, models, input_mode, config.out / "eval" / name, progress=config.progress)
+    labels = load_label_dirs(val / "label_2", predictions)
+    return evaluate(labels.ground_truth, labels.detections, metrics=("bev",)).ap_table()["bev"]
+
+
+def run(config: ReproduceConfig) -> dict:
+    """All stages; returns the report (also written to OUT/table.json and OUT/table.md)."""
+    b, out = config.budget, config.out
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {"preset": config.preset, "budget": asdict(b), "stages": {}, "seconds": {}}
+    started = time.perf_counter()
+
+    def stage(name: str) -> None:
+        report["seconds"][name] = round(time.perf_counter() - started - sum(report["seconds"].values()), 1)
+        (out / "progress.json").write_text(json.dumps(report["seconds"], indent=1))
+
+    simulate(RunConfig(out=config.data / "val", frames=b.val_frames, seed=2, workers=config.sim_workers,
+                       split="val", progress=config.progress))
+    simulate(RunConfig(out=config.data / "train", frames=b.train_frames, seed=1, workers=config.sim_workers,
+                       split="train", progress=config.progress))
+    stage("simulate")
+
+    ablation = f"{config.preset}-no-gam"
+    report["stages"]["depth"] = _train(config, "depth", "depth", epochs=b.depth_epochs, max_train_frames=b.depth_frames)
+    report["stages"]["depth_no_gam"] = _train(config, "depth_no_gam", "depth", preset=ablation,
+                                              epochs=b.depth_epochs, max_train_frames=b.depth_frames)
+    stage("depth")
+
+    depth_models = _export(config, out / "depth", out / "models" / "depth", ("depth", "pixor"))
+    no_gam_models = _export(config, out / "depth_no_gam", out / "models" / "depth_no_gam", ("depth", "pixor"), ablation)
+    for split in ("train", "val"):
+        cache_pseudo(config.data / split, depth_models, out / "pseudo" / split, progress=config.progress)
+    stage("cache_pseudo")
+
+    for input_mode in ("lidar64", "lidar16", "pseudo"):
+        report["stages"][f"pixor_{input_mode}"] = _train(
+            config, f"pixor_{input_mode}", "detector", input_mode=input_mode, pseudo_dir=out / "pseudo" / "train",
+            epochs=b.detector_epochs, max_train_frames=b.detector_frames)
+    stage("detectors")
+
+    report["stages"]["joint"] = _train(
+        config, "joint", "joint", epochs=b.joint_epochs, max_train_frames=b.joint_frames,
+        depth_checkpoint=out / "depth" / "depth.pt", pixor_checkpoint=out / f"pixor_pseudo" / "pixor.pt")
+    stage("joint")
+
+    # The two-stage directory before joint fine-tuning: trained depth + pseudo-trained PIXOR.
+    before = out / "models" / "camera_before_joint"
+    before.mkdir(parents=True, exist_ok=True)
+    for name in ("depth", "pixor"):
+        source = out / ("depth" if name == "depth" else "pixor_pseudo") / f"{name}.pt"
+        (out / "checkpoints_before_joint").mkdir(exist_ok=True)
+        shutil.copy(source, out / "checkpoints_before_joint" / f"{name}.pt")
+    directories = {
+        "lidar64": _export(config, out / "pixor_lidar64", config.weights / f"{config.preset}-lidar64", ("pixor",)),
+        "lidar16": _export(config, out / "pixor_lidar16", config.weights / f"{config.preset}-lidar16", ("pixor",)),
+        "lidar16+camera": _export(config, out / "checkpoints_before_joint", before, ("depth", "pixor")),
+        "lidar16+camera (joint)": _export(config, out / "joint", out / "models" / "camera_joint", ("depth", "pixor")),
+    }
+    stage("export")
+
+    table = {}
+    for row, models in directories.items():
+        mode = "lidar16+camera" if row.startswith("lidar16+camera") else row
+        table[row] = _detection_ap(config, models, mode, row.replace("+", "_").replace(" ", "_").strip("()"))
+    depth_table = {}
+    for name, models in (("with GAMs", depth_models), ("without GAMs", no_gam_models)):
+        m = run_depth(config.data / "val", models, progress=config.progress).mean
+        depth_table[name] = {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
+                             "imae_per_km": m.imae_per_km}
+    stage("evaluate")
+
+    # Ship the better two-stage directory (by BEV AP at IoU 0.7, moderate) as the product.
+    joint_better = table["lidar16+camera (joint)"]["0.7"]["R40"][1] >= table["lidar16+camera"]["0.7"]["R40"][1]
+    shipped_from = directories["lidar16+camera (joint)" if joint_better else "lidar16+camera"]
+    product = config.weights / config.preset
+    if product.exists():
+        shutil.rmtree(product)
+    shutil.copytree(shipped_from, product)
+    report.update({"bev_ap": table, "depth": depth_table, "shipped": str(product),
+                   "shipped_from": "joint fine-tuning" if joint_better else "before joint fine-tuning"})
+    report["total_seconds"] = round(time.perf_counter() - started, 1)
+    (out / "table.json").write_text(json.dumps(report, indent=1))
+    (out / "table.md").write_text(format_table(report))
+    return report
+
+
+def format_table(report: dict) -> str:
+    """The paper's table as markdown (BEV AP %, R40; easy / moderate / hard) plus depth errors."""
+    lines = ["| input | IoU 0.5 easy | mod. | hard | IoU 0.7 easy | mod. | hard |", "|---|---|---|---|---|---|---|"]
+    for row, ap in report["bev_ap"].items():
+        cells = [f"{v:.1f}" for iou in ("0.5", "0.7") for v in ap[iou]["R40"]]
+        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    lines += ["", "| depth net | RMSE (mm) | MAE (mm) | iRMSE (1/km) | iMAE (1/km) |", "|---|---|---|---|---|"]
+    for name, m in report["depth"].items():
+        lines.append(f"| {name} | {m['rmse_mm']:.0f} | {m['mae_mm']:.0f} | {m['irmse_per_km']:.2f} | {m['imae_per_km']:.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m models.reproduce", description=__doc__.split("\n\n")[0],
+                                     epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("runs/edge"), help="run folder (default runs/edge)")
+    parser.add_argument("--data", type=Path, default=Path("data/sim"), help="synthetic data folder (default data/sim)")
+    parser.add_argument("--weights", type=Path, default=Path("weights"), help="where model directories ship (default weights)")
+    parser.add_argument("--preset", default="edge", help="preset (default edge)")
+    parser.add_argument("--sim-workers", type=int, default=2, help="simulation processes (default 2)")
+    parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
+    config = ReproduceConfig(out=args.out, data=args.data, weights=args.weights, preset=args.preset,
+                             quick=args.quick, sim_workers=args.sim_workers)
+    try:
+        report = run(config)
+    except (InputError, FileNotFoundError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(format_table(report))
+    print(f"shipped {report['shipped']} ({report['shipped_from']}); {report['total_seconds'] / 60:.1f} min in all")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
