@@ -180,8 +180,13 @@ def machine() -> dict:
 # ----------------------------------------------------------------------------- main job
 def run(preset: str = "edge", models: Path | None = None, provider: str | None = None, threads: int = 1,
         frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
-        compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True) -> dict:
-    """Measure everything; returns the JSON-able report."""
+        compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
+        precision: str | None = None) -> dict:
+    """Measure everything; returns the JSON-able report.
+
+    precision: with ``models`` it must match the directory's (a check); without,
+    the exported FP32 preset is converted (calibrated on the benchmark frames).
+    """
     cores = sorted(os.sched_getaffinity(0))
     scratch = None
     torch_networks = None
@@ -197,7 +202,16 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
             result = export(ExportConfig(preset=preset, out=Path(tempfile.mkdtemp(prefix="lowres3d-torch-")),
                                          parity=False, checkpoints=checkpoints))
         torch_networks = result.networks
+    if scratch is not None and precision not in (None, "fp32"):
+        from export.precision import convert_precision
+
+        reduced = Path(scratch.name) / precision
+        convert_precision(models, reduced, precision, data, calibration_frames=min(frames, 20))
+        models = reduced
     detector = Detector(models, providers=provider, intra_op_threads=len(cores))
+    actual = detector.manifest.get("precision", "fp32")
+    if precision and actual != precision:
+        raise SystemExit(f"error: --precision {precision}, but {models} holds {actual} models")
     preset_name = detector.preset.name
     pool = load_frames(data, max(frames, warmup), beams)
 
@@ -298,6 +312,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", default="edge", help="preset to export and time when --models is not given")
     parser.add_argument("--models", type=Path, help="model directory (default: export --preset with initialised weights)")
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best)")
+    parser.add_argument("--precision", choices=["fp32", "fp16", "int8"],
+                        help="with --models: check the directory is this precision; without: convert the export")
     parser.add_argument("--threads", type=int, default=1, help="workers for the throughput mode (default 1: off)")
     parser.add_argument("--frames", type=int, default=20, help="timed frames (default 20)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up frames (default 3)")
@@ -309,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--plot", type=Path, help="write the latency distribution per stage as PNG")
     args = parser.parse_args(argv)
     report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
-                 args.beams or None, args.compare_torch, args.checkpoints)
+                 args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision)
     print_report(report)
     if args.plot:
         plot(report, args.plot)

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import tempfile
+from dataclasses import replace
 import logging
 import sys
 from pathlib import Path
@@ -12,7 +14,7 @@ from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
 from pipeline.presets import PRESETS
 
 
-def parse_args(argv: list[str] | None = None) -> ExportConfig:
+def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Namespace]:
     parser = argparse.ArgumentParser(
         prog="python -m export",
         description="Export a preset's depth-completion net and PIXOR to ONNX, check ONNX Runtime against "
@@ -28,19 +30,35 @@ def parse_args(argv: list[str] | None = None) -> ExportConfig:
     parser.add_argument("--frame", default=DEFAULT_FRAME, help="KITTI frame id for the parity check")
     parser.add_argument("--seed", type=int, default=0, help="seed for initial weights and random parity inputs")
     parser.add_argument("--no-parity", action="store_true", help="skip the ONNX Runtime vs PyTorch check")
+    parser.add_argument("--precision", choices=["fp32", "fp16", "int8"], default="fp32",
+                        help="fp32 (default); fp16 for GPUs; int8 static QDQ quantization for CPUs")
+    parser.add_argument("--calibration-data", type=Path, default=DEFAULT_KITTI_DIR,
+                        help="KITTI-layout folder whose frames calibrate int8 (default: the bundled KITTI frames)")
+    parser.add_argument("--calibration-frames", type=int, default=300, help="frames used for calibration (default 300)")
     parser.add_argument("--networks", nargs="+", default=["depth", "pixor"], choices=["depth", "pixor"],
                         help="networks to export (default both; 'pixor' alone for a LiDAR-only detector)")
     args = parser.parse_args(argv)
     return ExportConfig(
         preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir,
         frame=args.frame, seed=args.seed, parity=not args.no_parity, progress=True, networks=tuple(args.networks),
-    )
+    ), args
 
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    result = run(parse_args(argv))
-    manifest = result.manifest
+    config, args = parse_args(argv)
+    if args.precision == "fp32":
+        result = run(config)
+        manifest = result.manifest
+    else:
+        from export.precision import convert_precision
+
+        with tempfile.TemporaryDirectory(prefix="lowres3d-fp32-") as fp32_dir:
+            result = run(replace(config, out=Path(fp32_dir)))
+            manifest = convert_precision(Path(fp32_dir), config.out, args.precision, args.calibration_data,
+                                         args.calibration_frames, progress=True)
+        result = replace(result, directory=config.out, manifest=manifest)
+        print(f"{args.precision}: deviation from fp32 {manifest['precision_info']['deviation_from_fp32']}")
     print(f"wrote {result.directory} (preset {manifest['preset']}, weights: {manifest['weights']})")
     for entry in manifest["networks"].values():
         print(f"  {entry['file']}: {entry['parameters']:,} parameters, {entry['flops'] / 1e9:.2f} GFLOP")

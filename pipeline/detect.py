@@ -27,7 +27,7 @@ from pipeline.model_files import ModelFileError
 from pipeline.render import render_bev
 
 log = logging.getLogger(__name__)
-DEFAULT_MODELS = Path(__file__).resolve().parents[1] / "models" / "edge"
+DEFAULT_MODELS = Path(__file__).resolve().parents[1] / "weights" / "edge"
 
 
 @dataclass

@@ -1,0 +1,144 @@
+"""Reduced-precision model directories: FP16 for GPUs, INT8 (static, QDQ) for CPUs with VNNI.
+
+    python -m export --preset P [--checkpoints DIR] --out DIR --precision fp16|int8
+                     [--calibration-data DIR] [--calibration-frames N]
+
+FP16 converts weights and activations and keeps float32 inputs and outputs,
+so the runtime feeds the same tensors. INT8 quantizes statically in QDQ
+format with unsigned 8-bit activations and signed per-channel weights (on
+this AVX-512 VNNI CPU signed activations gave no speed-up at all), calibrated
+on real frames run through the FP32 pipeline: ``depth.onnx`` sees the inputs
+inference gives it, ``pixor.onnx`` the BEV tensors of the pseudo clouds the
+FP32 depth net produces. The manifest records the precision, the calibration
+and each network's deviation from FP32 on the calibration frames.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import onnx
+from tqdm import tqdm
+
+from pipeline.beams import emulate_beams
+from pipeline.bev import voxelize_bev
+from pipeline.detector import Detector
+from pipeline.frame import frame_ids, load_frame
+from pipeline.model_files import MANIFEST_NAME, sha256_file, verify_sha256
+from pipeline.preprocess import depth_inputs
+
+log = logging.getLogger(__name__)
+PRECISIONS = ("fp32", "fp16", "int8")
+
+
+def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool = False) -> dict[str, list[dict]]:
+    """Inputs of each network on ``frames`` frames of ``data``, as the FP32 pipeline produces them."""
+    detector = Detector(model_dir)
+    training = detector.manifest["networks"]["pixor"].get("training") or {}
+    lidar_input = training.get("input", "lidar16")
+    feeds: dict[str, list[dict]] = {name: [] for name in ("depth", "pixor") if name in detector.manifest["networks"]}
+    ids = frame_ids(data)[:frames]
+    for fid in tqdm(ids, desc="calibration frames", unit="frame", disable=not progress):
+        frame = load_frame(data, fid, with_labels=False)
+        points = frame.points if lidar_input == "lidar64" else emulate_beams(frame.points, 16)
+        if detector.two_stage:
+            inputs = depth_inputs(frame.image, points, frame.calib, detector.preset)
+            feeds["depth"].append({"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
+            cloud = detector.detect(frame.image, points, frame.calib).points
+        else:
+            cloud = points
+        feeds["pixor"].append({"bev": voxelize_bev(cloud, detector.preset.bev)[None].astype(np.float16)})
+    return feeds
+
+
+class _Reader:
+    """ONNX Runtime's CalibrationDataReader protocol over a list of feeds (BEV kept as float16 to save memory)."""
+
+    def __init__(self, feeds: list[dict]) -> None:
+        self._iter: Iterator[dict] = iter(feeds)
+
+    def get_next(self) -> dict | None:
+        feed = next(self._iter, None)
+        return None if feed is None else {k: v.astype(np.float32) for k, v in feed.items()}
+
+
+def to_fp16(source: Path, target: Path) -> None:
+    """FP16 weights and activations, float32 inputs and outputs."""
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    model = convert_float_to_float16(onnx.load(str(source)), keep_io_types=True)
+    onnx.save(model, str(target))
+
+
+def to_int8(source: Path, target: Path, feeds: list[dict]) -> None:
+    """Static QDQ quantization: uint8 activations, int8 per-channel weights, percentile calibration."""
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    with tempfile.TemporaryDirectory() as scratch:
+        prepared = Path(scratch) / "prepared.onnx"
+        quant_pre_process(str(source), str(prepared), skip_symbolic_shape=True)
+        quantize_static(
+            str(prepared), str(target), _Reader(feeds), quant_format=QuantFormat.QDQ,
+            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+            calibrate_method=CalibrationMethod.Percentile, extra_options={"CalibPercentile": 99.999},
+        )
+
+
+def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -> dict:
+    """Max deviation of each reduced network from FP32 on the calibration inputs."""
+    import onnxruntime as ort
+
+    report = {}
+    for name, samples in feeds.items():
+        ref = ort.InferenceSession(str(fp32_dir / f"{name}.onnx"), providers=["CPUExecutionProvider"])
+        low = ort.InferenceSession(str(reduced_dir / f"{name}.onnx"), providers=["CPUExecutionProvider"])
+        errors = []
+        for feed in samples[: min(len(samples), 8)]:
+            feed = {k: v.astype(np.float32) for k, v in feed.items()}
+            a, b = ref.run(None, feed)[0], low.run(None, feed)[0]
+            errors.append(float(np.max(np.abs(a - b) / np.maximum(np.abs(a), 1.0))) if name == "depth"
+                          else float(np.max(np.abs(a - b))))
+        report[name] = {"metric": "max relative error (depth)" if name == "depth" else "max absolute score error",
+                        "value": max(errors)}
+    return report
+
+
+def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_data: Path,
+                      calibration_frames: int = 300, progress: bool = False) -> dict:
+    """Write ``out`` as a copy of the FP32 directory ``fp32_dir`` at ``precision``; returns the manifest."""
+    if precision not in PRECISIONS:
+        raise ValueError(f"--precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
+    fp32_dir, out = Path(fp32_dir), Path(out)
+    manifest = json.loads((fp32_dir / MANIFEST_NAME).read_text())
+    verify_sha256(fp32_dir, manifest)
+    if out.resolve() != fp32_dir.resolve():
+        if out.exists():
+            shutil.rmtree(out)
+        shutil.copytree(fp32_dir, out)
+    if precision == "fp32":
+        return manifest
+    feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames, progress)
+    for name in feeds:
+        path = out / manifest["networks"][name]["file"]
+        if precision == "fp16":
+            to_fp16(fp32_dir / path.name, path)
+        else:
+            to_int8(fp32_dir / path.name, path, feeds[name])
+        manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+    manifest["precision"] = precision
+    manifest["precision_info"] = {
+        "calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
+        **({"activations": "uint8", "weights": "int8 per channel", "format": "QDQ",
+            "calibration": "percentile 99.999"} if precision == "int8" else {"io": "float32 (keep_io_types)"}),
+        "deviation_from_fp32": deviation(fp32_dir, out, feeds),
+    }
+    (out / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
+    verify_sha256(out, manifest)
+    return manifest

@@ -1,0 +1,81 @@
+"""The FastAPI application: :func:`create_app` wires settings, runtime, routes, middleware and errors.
+
+Start-up (the lifespan): load the model directory (sha256 checked; a bad file
+stops the start), start the inference pool, then warm the networks up in the
+background; ``/readyz`` answers 503 until that is done. Shutdown: after the
+server has let in-flight requests finish, the pool drains and stops.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import Depends, FastAPI
+
+from service.deps import require_token
+from service.errors import install_error_handlers
+from service.metrics import Metrics
+from service.middleware import BodyLimitMiddleware, RequestContextMiddleware
+from service.routes import detect, health, model
+from service.routes import metrics as metrics_route
+from service.runtime import Runtime, load_runtime
+from service.settings import Settings
+
+log = logging.getLogger(__name__)
+
+DESCRIPTION = """\
+3D car detection from a 16-line LiDAR scan plus a camera image (depth completion →
+pseudo point cloud → BEV → PIXOR), on ONNX Runtime.
+
+Send a frame as multipart/form-data to `POST /v1/detect`: `image` (PNG/JPEG), `points`
+(KITTI velodyne `.bin`) and `calib` (KITTI `calib.txt`, optional when the server has a
+default). Boxes come back in the LiDAR frame (x forward, y left, z up).
+
+Every error is JSON `{"error": {"code", "message", "request_id"}}`; the message names the
+field at fault. A full queue answers 503 with `Retry-After`.
+"""
+
+
+def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metrics | None = None) -> FastAPI:
+    """Build the app. ``runtime``: models already loaded (``python -m service`` loads them before
+    binding the port so a bad model directory fails fast); None loads them in the lifespan."""
+    metrics = metrics or Metrics()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        loaded = runtime if runtime is not None else await asyncio.to_thread(load_runtime, settings, metrics)
+        app.state.runtime = loaded
+        warm_up = asyncio.create_task(asyncio.to_thread(loaded.warm_up, settings.warmup_runs))
+        warm_up.add_done_callback(lambda _: metrics.ready.set(1 if loaded.ready.is_set() else 0))
+        try:
+            yield
+        finally:
+            await warm_up
+            metrics.ready.set(0)
+            await asyncio.to_thread(loaded.pool.shutdown)
+            log.info("inference pool stopped")
+
+    app = FastAPI(
+        title="lowres3d detection service",
+        version="0.1.0",
+        description=DESCRIPTION,
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.metrics = metrics
+    app.state.runtime = None
+    install_error_handlers(app)
+    # /v1/* needs the bearer token when one is configured (and only then does the schema declare it);
+    # probes and metrics stay open for orchestrators and scrapers.
+    auth = [Depends(require_token)] if settings.token is not None else []
+    app.include_router(detect.router, dependencies=auth)
+    app.include_router(model.router, dependencies=auth)
+    app.include_router(health.router)
+    app.include_router(metrics_route.router)
+    # Added last = outermost: the request context wraps the body limit so 413s are counted and carry an id.
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    app.add_middleware(RequestContextMiddleware, metrics=metrics)
+    return app

@@ -1,0 +1,91 @@
+"""FastAPI dependencies: settings, runtime and metrics of the app, bearer-token auth, multipart check.
+
+Use them as ``Annotated`` types in route signatures (``settings: SettingsDep``).
+"""
+
+from __future__ import annotations
+
+import hmac
+from typing import Annotated
+
+from fastapi import Depends, Request
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+
+from service.errors import ServiceError, request_id_of
+from service.metrics import Metrics
+from service.runtime import Runtime
+from service.settings import Settings
+
+_bearer = HTTPBearer(
+    auto_error=False,
+    description="Required on /v1/* when the server has a token configured (LOWRES3D_TOKEN).",
+)
+
+
+def get_settings(request: Request) -> Settings:
+    """The Settings the app was created with."""
+    return request.app.state.settings
+
+
+def get_metrics(request: Request) -> Metrics:
+    """The app's metrics."""
+    return request.app.state.metrics
+
+
+def get_runtime(request: Request) -> Runtime:
+    """The loaded runtime; 503 while it is still loading."""
+    runtime: Runtime | None = getattr(request.app.state, "runtime", None)
+    if runtime is None:
+        raise ServiceError(503, "not_ready", "models are still loading", {"Retry-After": "1"})
+    return runtime
+
+
+def get_ready_runtime(runtime: Annotated[Runtime, Depends(get_runtime)]) -> Runtime:
+    """The runtime once warmed up; 503 before."""
+    if not runtime.ready.is_set():
+        message = runtime.warm_up_error or "models are warming up"
+        raise ServiceError(503, "not_ready", message, {"Retry-After": "1"})
+    return runtime
+
+
+def get_request_id(request: Request) -> str:
+    """The id given to this request by service.middleware.RequestContextMiddleware."""
+    return request_id_of(request.scope) or ""
+
+
+SettingsDep = Annotated[Settings, Depends(get_settings)]
+MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+RuntimeDep = Annotated[Runtime, Depends(get_runtime)]
+ReadyRuntimeDep = Annotated[Runtime, Depends(get_ready_runtime)]
+RequestIdDep = Annotated[str, Depends(get_request_id)]
+
+
+def require_token(
+    settings: SettingsDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
+) -> None:
+    """401 unless the request carries ``Authorization: Bearer <token>`` (when a token is configured).
+
+    The comparison is constant-time (hmac.compare_digest) so response timing
+    does not reveal how much of a guess was right.
+    """
+    if settings.token is None:
+        return
+    expected = settings.token.get_secret_value().encode()
+    given = credentials.credentials.encode() if credentials is not None else b""
+    if credentials is None or not hmac.compare_digest(given, expected):
+        raise ServiceError(
+            401, "unauthorized", "Authorization: a valid bearer token is required",
+            {"WWW-Authenticate": 'Bearer realm="lowres3d"'},
+        )
+
+
+def require_multipart(request: Request) -> None:
+    """415 unless the body is multipart/form-data."""
+    content_type = request.headers.get("content-type", "")
+    if content_type.split(";", 1)[0].strip().lower() != "multipart/form-data":
+        shown = content_type.split(";", 1)[0].strip() or "none"
+        raise ServiceError(
+            415, "unsupported_media_type",
+            f"Content-Type: expected multipart/form-data with parts image, points (and calib), got {shown}",
+        )

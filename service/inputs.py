@@ -1,0 +1,161 @@
+"""Uploaded frame parts → validated arrays, or an error that names the part.
+
+Two steps: :func:`check_upload` runs on the event loop and only looks at sizes
+and headers (empty parts, a scan size that is not a multiple of 16 bytes, too
+many points, an image that is not PNG/JPEG or has too many pixels — read from
+its header, before any decoding); :func:`decode_frame` does the real decoding
+on an inference worker.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.calib import Calibration
+from pipeline.errors import InputError
+from pipeline.kitti import POINT_BYTES, decode_image, parse_calib, parse_velodyne
+from service.errors import ServiceError
+from service.schemas import NonFinitePolicy
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+JPEG_SIGNATURE = b"\xff\xd8\xff"
+# JPEG start-of-frame markers (baseline, progressive, lossless, arithmetic); C4, C8, CC are not frames.
+_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
+_JPEG_NO_LENGTH = {0x01, *range(0xD0, 0xD9)}  # TEM, RST0-7, SOI
+
+
+@dataclass(frozen=True)
+class FrameUpload:
+    """The raw parts of one request: image bytes, scan bytes, calibration bytes (None: the default)."""
+
+    image: bytes
+    points: bytes
+    calib: bytes | None
+
+
+@dataclass
+class DecodedFrame:
+    """A frame ready for the Detector: uint8 RGB (H, W, 3), float32 (N, 4) finite points, calibration."""
+
+    image: np.ndarray
+    points: np.ndarray
+    calib: Calibration
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def image_hw(self) -> tuple[int, int]:
+        return (int(self.image.shape[0]), int(self.image.shape[1]))
+
+
+def _png_size(data: bytes) -> tuple[int, int]:
+    if len(data) < 24 or data[12:16] != b"IHDR":
+        raise InputError("image: corrupt PNG (no IHDR header)")
+    width, height = struct.unpack(">II", data[16:24])
+    return width, height
+
+
+def _jpeg_size(data: bytes) -> tuple[int, int]:
+    i = 2
+    while i + 4 <= len(data):
+        if data[i] != 0xFF:
+            break
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in _JPEG_NO_LENGTH:
+            i += 2
+            continue
+        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
+        if marker in _JPEG_SOF:
+            if i + 9 > len(data):
+                break
+            height, width = struct.unpack(">HH", data[i + 5 : i + 9])
+            return width, height
+        if marker == 0xDA or length < 2:  # start of scan before a frame header, or a broken segment
+            break
+        i += 2 + length
+    raise InputError("image: corrupt JPEG (no frame header)")
+
+
+def image_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a PNG or JPEG header without decoding; 415 for other formats."""
+    if not data:
+        raise InputError("image: the part is empty (0 bytes)")
+    if data.startswith(PNG_SIGNATURE):
+        width, height = _png_size(data)
+    elif data.startswith(JPEG_SIGNATURE):
+        width, height = _jpeg_size(data)
+    else:
+        raise ServiceError(415, "unsupported_media_type", "image: expected a PNG or JPEG image")
+    if width == 0 or height == 0:
+        raise InputError(f"image: the header says {width}×{height} pixels")
+    return width, height
+
+
+def check_upload(
+    upload: FrameUpload, max_points: int, max_image_pixels: int, crop_hw: tuple[int, int] | None
+) -> None:
+    """Cheap checks before a frame takes a worker; raises InputError (422) or ServiceError.
+
+    crop_hw: the smallest image (height, width) the depth net accepts; None for a LiDAR-only model.
+    """
+    width, height = image_size(upload.image)
+    if width * height > max_image_pixels:
+        raise InputError(f"image: {width}×{height} pixels is more than the limit of {max_image_pixels} pixels")
+    if crop_hw is not None and (height < crop_hw[0] or width < crop_hw[1]):
+        crop_h, crop_w = crop_hw
+        raise InputError(f"image: {width}×{height} pixels is smaller than the model's {crop_w}×{crop_h} crop")
+    if not upload.points:
+        raise InputError("points: the scan is empty (0 bytes)")
+    if len(upload.points) % POINT_BYTES:
+        raise InputError(
+            f"points: size {len(upload.points)} bytes is not a multiple of {POINT_BYTES} "
+            "(a KITTI scan is float32 rows x, y, z, reflectance)"
+        )
+    count = len(upload.points) // POINT_BYTES
+    if count > max_points:
+        raise InputError(f"points: {count} points is more than the limit of {max_points}")
+    if upload.calib is not None and not upload.calib.strip():
+        raise InputError("calib: the part is empty")
+
+
+def decode_calib(data: bytes) -> Calibration:
+    """KITTI calib text → Calibration; InputError naming ``calib`` for anything else."""
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError:
+        raise InputError("calib: not text (expected a KITTI calib.txt)") from None
+    return parse_calib(text, "calib")
+
+
+def decode_points(data: bytes, policy: NonFinitePolicy) -> tuple[np.ndarray, list[str]]:
+    """Scan bytes → finite float32 (N, 4) points and warnings; rows with NaN/Inf dropped or rejected."""
+    scan = parse_velodyne(data, "points")
+    warnings: list[str] = []
+    if scan.dropped_nonfinite:
+        if policy is NonFinitePolicy.reject:
+            raise InputError(
+                f"points: {scan.dropped_nonfinite} rows have NaN or infinite values "
+                "(nonfinite=reject; send nonfinite=drop to have them dropped)"
+            )
+        warnings.append(f"points: dropped {scan.dropped_nonfinite} rows with NaN or infinite values")
+    if scan.points.shape[0] == 0:
+        raise InputError("points: the scan has no finite points")
+    return scan.points, warnings
+
+
+def decode_frame(upload: FrameUpload, default_calib: Calibration | None, policy: NonFinitePolicy) -> DecodedFrame:
+    """Decode every part (on a worker thread: PNG/JPEG decoding is the costly step)."""
+    if upload.calib is not None:
+        calib = decode_calib(upload.calib)
+    elif default_calib is not None:
+        calib = default_calib
+    else:
+        raise InputError("calib: required (this server has no default calibration configured)")
+    points, warnings = decode_points(upload.points, policy)
+    image = decode_image(upload.image, "image")
+    return DecodedFrame(image=image, points=points, calib=calib, warnings=warnings)

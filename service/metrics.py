@@ -1,0 +1,67 @@
+"""Prometheus metrics of one app instance (its own registry: several apps in one process do not mix).
+
+Exposed at ``GET /metrics``: request counts by route, method and status;
+request latency per route; per-stage latency of the detector; inference queue
+depth and in-flight frames; HTTP requests in flight; readiness; and the
+process collector's memory and CPU (``process_resident_memory_bytes``, Linux).
+"""
+
+from __future__ import annotations
+
+from prometheus_client import (
+    CONTENT_TYPE_LATEST,
+    CollectorRegistry,
+    Counter,
+    Gauge,
+    Histogram,
+    Info,
+    ProcessCollector,
+    generate_latest,
+)
+
+# Seconds: from a fast stage of a tiny model (~0.1 ms) to a paper-size frame on a CPU (~10 s).
+LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
+
+
+class Metrics:
+    """The service's metric families, registered in a private registry."""
+
+    content_type = CONTENT_TYPE_LATEST
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry(auto_describe=True)
+        ProcessCollector(registry=self.registry)
+        self.requests = Counter(
+            "lowres3d_http_requests", "HTTP requests answered", ["route", "method", "status"], registry=self.registry
+        )
+        self.request_latency = Histogram(
+            "lowres3d_http_request_duration_seconds", "HTTP request latency, first byte in to last byte out",
+            ["route"], buckets=LATENCY_BUCKETS, registry=self.registry,
+        )
+        self.http_in_flight = Gauge(
+            "lowres3d_http_requests_in_flight", "HTTP requests being handled", registry=self.registry
+        )
+        self.stage_latency = Histogram(
+            "lowres3d_stage_duration_seconds", "latency of each detection stage (total = queue + parse + detector)",
+            ["stage"], buckets=LATENCY_BUCKETS, registry=self.registry,
+        )
+        self.queue_depth = Gauge(
+            "lowres3d_inference_queue_depth", "frames admitted and waiting for a worker", registry=self.registry
+        )
+        self.in_flight = Gauge(
+            "lowres3d_inference_in_flight", "frames being processed by a worker", registry=self.registry
+        )
+        self.rejected = Counter(
+            "lowres3d_inference_rejected", "frames refused or abandoned", ["reason"], registry=self.registry
+        )
+        self.ready = Gauge("lowres3d_ready", "1 when models are loaded and warmed up", registry=self.registry)
+        self.model = Info("lowres3d_model", "the loaded model directory", registry=self.registry)
+
+    def observe_stages(self, timings_ms: dict[str, float]) -> None:
+        """Record one frame's per-stage timings (milliseconds)."""
+        for stage, ms in timings_ms.items():
+            self.stage_latency.labels(stage=stage).observe(ms / 1000.0)
+
+    def render(self) -> bytes:
+        """The Prometheus text exposition of every metric."""
+        return generate_latest(self.registry)

@@ -1,0 +1,147 @@
+"""Pure ASGI middleware: request ids, metrics and the last-resort 500; the request body limit (413).
+
+:class:`RequestContextMiddleware` is the outermost layer: it gives each request
+an id (``X-Request-ID``, echoed in every answer and error), counts and times
+it, and turns any unhandled exception into a 500 that carries only the request
+id while the trace goes to the log. :class:`BodyLimitMiddleware` counts body
+bytes as they arrive, so a client that sends no Content-Length (chunked) is
+cut off as soon as it passes the limit, and answers 413 itself.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+import time
+import uuid
+from collections.abc import Awaitable, Callable, MutableMapping
+from typing import Any
+
+from service.errors import error_bytes
+from service.metrics import Metrics
+
+log = logging.getLogger(__name__)
+
+Scope = MutableMapping[str, Any]
+Message = MutableMapping[str, Any]
+Receive = Callable[[], Awaitable[Message]]
+Send = Callable[[Message], Awaitable[None]]
+ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
+
+_SAFE_REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+
+
+def _header(scope: Scope, name: bytes) -> str | None:
+    for key, value in scope.get("headers", []):
+        if key.lower() == name:
+            return value.decode("latin-1")
+    return None
+
+
+async def send_error(send: Send, status: int, code: str, message: str, request_id: str | None,
+                     extra_headers: list[tuple[bytes, bytes]] | None = None) -> None:
+    """Answer an error from middleware (no Response object available)."""
+    body = error_bytes(code, message, request_id)
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    await send({"type": "http.response.start", "status": status, "headers": headers + (extra_headers or [])})
+    await send({"type": "http.response.body", "body": body})
+
+
+class RequestContextMiddleware:
+    """Request id, request metrics, and a JSON 500 (trace logged, never returned) for unhandled errors."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+        self.app = app
+        self.metrics = metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        incoming = _header(scope, b"x-request-id")
+        request_id = incoming if incoming and _SAFE_REQUEST_ID.match(incoming) else uuid.uuid4().hex
+        scope.setdefault("state", {})["request_id"] = request_id
+        status = 500
+        started = False
+
+        async def send_with_id(message: Message) -> None:
+            nonlocal status, started
+            if message["type"] == "http.response.start":
+                status = message["status"]
+                started = True
+                message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
+            await send(message)
+
+        self.metrics.http_in_flight.inc()
+        tic = time.perf_counter()
+        try:
+            await self.app(scope, receive, send_with_id)
+        except Exception:
+            log.exception("internal error on %s %s (request id %s)", scope.get("method"), scope.get("path"), request_id)
+            status = 500
+            if not started:
+                await send_error(
+                    send, 500, "internal_error",
+                    f"internal error; the server log has the details under request id {request_id}", request_id,
+                    [(b"x-request-id", request_id.encode())],
+                )
+        finally:
+            self.metrics.http_in_flight.dec()
+            route = scope.get("route")
+            label = getattr(route, "path", None) or "unmatched"
+            self.metrics.requests.labels(route=label, method=scope.get("method", ""), status=str(status)).inc()
+            self.metrics.request_latency.labels(route=label).observe(time.perf_counter() - tic)
+
+
+class BodyLimitMiddleware:
+    """413 for bodies over ``max_bytes``: by Content-Length up front, else by counting received bytes."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+        self.app = app
+        self.max_bytes = max_bytes
+
+    def _message(self) -> str:
+        return f"request body: larger than the limit of {self.max_bytes} bytes"
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        request_id = (scope.get("state") or {}).get("request_id")
+        close = [(b"connection", b"close")]
+        declared = _header(scope, b"content-length")
+        if declared is not None and declared.strip().isdigit() and int(declared) > self.max_bytes:
+            await send_error(send, 413, "body_too_large", self._message(), request_id, close)
+            return
+
+        received = 0
+        exceeded = False
+        app_started = False
+
+        async def counting_receive() -> Message:
+            nonlocal received, exceeded
+            if exceeded:
+                return {"type": "http.disconnect"}
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.max_bytes:
+                    exceeded = True  # the app sees a client disconnect and stops reading
+                    return {"type": "http.disconnect"}
+            return message
+
+        async def guarded_send(message: Message) -> None:
+            nonlocal app_started
+            if exceeded and not app_started:
+                return  # the app's answer to the "disconnect" is replaced by the 413 below
+            if message["type"] == "http.response.start":
+                app_started = True
+            await send(message)
+
+        try:
+            await self.app(scope, counting_receive, guarded_send)
+        except Exception:
+            if not exceeded or app_started:
+                raise
+        if exceeded and not app_started:
+            await send_error(send, 413, "body_too_large", self._message(), request_id, close)

@@ -1,0 +1,159 @@
+"""A bounded inference pool: worker threads off the event loop, a counted queue, a deadline per job.
+
+At most ``workers`` frames run at once and at most ``queue_size`` more wait;
+a job that finds the pool full is refused at once (:class:`PoolFull`, the
+service answers 503 with ``Retry-After``), so a burst never becomes an
+unbounded backlog. A job that misses its deadline raises :class:`PoolTimeout`
+(504); if it is still waiting it is cancelled, if it is already running it
+finishes in its thread and keeps its slot until then (a thread cannot be
+stopped), so the bound on concurrent work always holds.
+
+Sessions: ``detectors`` holds either one Detector shared by every worker
+(ONNX Runtime sessions are thread-safe) or one per worker thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Generic, TypeVar
+
+from pipeline.detector import Detector
+from service.metrics import Metrics
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+
+class PoolFull(Exception):
+    """Every worker is busy and the queue is full."""
+
+    def __init__(self, retry_after_s: int) -> None:
+        super().__init__(f"the inference queue is full; retry in {retry_after_s} s")
+        self.retry_after_s = retry_after_s
+
+
+class PoolTimeout(Exception):
+    """The job did not finish before its deadline."""
+
+
+class PoolClosed(Exception):
+    """The pool is shutting down and takes no new jobs."""
+
+
+@dataclass(frozen=True)
+class JobResult(Generic[T]):
+    """What a job returned, and how long it waited for a worker (ms)."""
+
+    value: T
+    queue_wait_ms: float
+
+
+class InferencePool:
+    """Runs ``job(detector)`` callables on worker threads with admission control."""
+
+    def __init__(self, detectors: Sequence[Detector], workers: int, queue_size: int, metrics: Metrics) -> None:
+        if not detectors:
+            raise ValueError("detectors: at least one Detector is needed")
+        if len(detectors) not in (1, workers):
+            raise ValueError(f"detectors: give 1 (shared) or {workers} (one per worker), got {len(detectors)}")
+        self.detectors = list(detectors)
+        self.workers = workers
+        self.queue_size = queue_size
+        self.capacity = workers + queue_size
+        self._metrics = metrics
+        self._lock = threading.Lock()
+        self._admitted = 0  # waiting + running
+        self._running = 0
+        self._mean_job_s = 0.0  # exponential moving average of job durations
+        self._next_detector = itertools.count()
+        self._local = threading.local()
+        self._executor = ThreadPoolExecutor(
+            max_workers=workers, thread_name_prefix="lowres3d-infer", initializer=self._init_thread
+        )
+        self._closed = False
+
+    # ------------------------------------------------------------------ worker side
+    def _init_thread(self) -> None:
+        index = next(self._next_detector) % len(self.detectors)
+        self._local.detector = self.detectors[index]
+
+    def _update_gauges(self) -> None:
+        self._metrics.queue_depth.set(self._admitted - self._running)
+        self._metrics.in_flight.set(self._running)
+
+    def _run(self, job: Callable[[Detector], T], admitted_at: float) -> JobResult[T]:
+        started = time.perf_counter()
+        with self._lock:
+            self._running += 1
+            self._update_gauges()
+        try:
+            return JobResult(job(self._local.detector), (started - admitted_at) * 1e3)
+        finally:
+            elapsed = time.perf_counter() - started
+            with self._lock:
+                self._running -= 1
+                self._mean_job_s = elapsed if self._mean_job_s == 0 else 0.8 * self._mean_job_s + 0.2 * elapsed
+                self._update_gauges()
+
+    def _release(self, _: Future) -> None:
+        with self._lock:
+            self._admitted -= 1
+            self._update_gauges()
+
+    # ------------------------------------------------------------------ event-loop side
+    @property
+    def depth(self) -> tuple[int, int]:
+        """(waiting, running) right now."""
+        with self._lock:
+            return self._admitted - self._running, self._running
+
+    def retry_after_s(self) -> int:
+        """Seconds until a slot is likely free: the queue ahead divided among the workers."""
+        with self._lock:
+            estimate = self._mean_job_s * self._admitted / self.workers
+        return max(1, math.ceil(estimate))
+
+    async def run(self, job: Callable[[Detector], T], timeout_s: float) -> JobResult[T]:
+        """Run ``job`` on a worker; PoolFull at once when over capacity, PoolTimeout after ``timeout_s``."""
+        with self._lock:
+            if self._closed:
+                raise PoolClosed("the service is shutting down")
+            full = self._admitted >= self.capacity
+            if not full:
+                self._admitted += 1
+                self._update_gauges()
+        if full:
+            self._metrics.rejected.labels(reason="queue_full").inc()
+            raise PoolFull(self.retry_after_s())
+        try:
+            future = self._executor.submit(self._run, job, time.perf_counter())
+        except RuntimeError:  # the executor was shut down between the check and the submit
+            self._release(Future())
+            raise PoolClosed("the service is shutting down") from None
+        future.add_done_callback(self._release)
+        try:
+            return await asyncio.wait_for(asyncio.wrap_future(future), timeout_s)
+        except TimeoutError:
+            future.cancel()  # succeeds only while the job is still waiting
+            self._metrics.rejected.labels(reason="timeout").inc()
+            raise PoolTimeout(f"the frame took longer than {timeout_s:g} s") from None
+
+    def warm_up(self, runs: int) -> None:
+        """Run every distinct Detector's networks ``runs`` times (blocking; call it off the event loop)."""
+        for detector in self.detectors:
+            detector.warm_up(runs)
+
+    def shutdown(self) -> None:
+        """Refuse new jobs, let running and waiting ones finish, stop the threads."""
+        with self._lock:
+            self._closed = True
+        self._executor.shutdown(wait=True)

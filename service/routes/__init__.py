@@ -1,0 +1,1 @@
+"""HTTP routes: detection (``detect``), model info (``model``), health probes (``health``), ``metrics``."""

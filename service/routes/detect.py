@@ -1,0 +1,231 @@
+"""``POST /v1/detect`` (JSON or KITTI lines) and ``POST /v1/detect/bev.png`` (the BEV picture).
+
+Both take multipart/form-data parts ``image``, ``points`` and optionally
+``calib``. Cheap checks run on the event loop; decoding, detection and
+rendering run on the inference pool.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Annotated
+
+import cv2
+from fastapi import APIRouter, Depends, File, Query, UploadFile
+from fastapi.responses import PlainTextResponse, Response
+
+from pipeline.boxes import bev_corners
+from pipeline.calib import Calibration
+from pipeline.detector import Detections, Detector
+from pipeline.kitti import format_label
+from pipeline.render import render_bev
+from service.deps import MetricsDep, ReadyRuntimeDep, RequestIdDep, SettingsDep, require_multipart
+from service.errors import ServiceError
+from service.inputs import DecodedFrame, FrameUpload, check_upload, decode_frame
+from service.metrics import Metrics
+from service.pool import JobResult, PoolClosed, PoolFull, PoolTimeout
+from service.routes.responses import error_responses
+from service.runtime import Runtime
+from service.schemas import BeamCount, Box, Detection, DetectResponse, ModelRef, NonFinitePolicy, OutputFormat
+from service.settings import Settings
+
+router = APIRouter(prefix="/v1", tags=["detect"])
+
+_KITTI_EXAMPLE = "Car 0.00 0 -1.59 582.33 178.06 629.75 207.93 1.52 1.63 3.88 -0.95 1.68 25.30 -1.61 0.9137\n"
+
+
+@dataclass(frozen=True)
+class FrameOptions:
+    """Query options shared by both detection routes."""
+
+    score_threshold: float | None
+    emulate_beams: int | None
+    nonfinite: NonFinitePolicy
+
+
+def frame_options(
+    score_threshold: Annotated[
+        float | None,
+        Query(ge=0.0, le=1.0, description="minimum score (default: the model's)", examples=[0.5]),
+    ] = None,
+    emulate_beams: Annotated[
+        BeamCount | None,
+        Query(description="thin a 64-line scan to this many lines on the server first", examples=[16]),
+    ] = None,
+    nonfinite: Annotated[
+        NonFinitePolicy,
+        Query(description="scan rows with NaN/Inf: `drop` them (with a warning) or `reject` the request (422)"),
+    ] = NonFinitePolicy.drop,
+) -> FrameOptions:
+    """Collect the query options."""
+    return FrameOptions(score_threshold, int(emulate_beams) if emulate_beams is not None else None, nonfinite)
+
+
+FrameOptionsDep = Annotated[FrameOptions, Depends(frame_options)]
+ImagePart = Annotated[UploadFile, File(description="camera image, PNG or JPEG (at least the model's crop)")]
+PointsPart = Annotated[UploadFile, File(description="KITTI velodyne .bin: little-endian float32 rows x, y, z, reflectance")]
+CalibPart = Annotated[
+    UploadFile | None, File(description="KITTI object calib.txt (P2, R0_rect, Tr_velo_to_cam); optional with a server default")
+]
+
+
+@dataclass
+class FrameResult:
+    """What a worker made of one frame."""
+
+    frame: DecodedFrame
+    detections: Detections
+    timings_ms: dict[str, float]
+    png: bytes | None = None
+
+
+def _detect_job(
+    upload: FrameUpload, options: FrameOptions, default_calib: Calibration | None, picture: bool
+) -> Callable[[Detector], FrameResult]:
+    """The work of one frame on a worker: decode the parts, detect, optionally render the BEV PNG."""
+
+    def job(detector: Detector) -> FrameResult:
+        tic = time.perf_counter()
+        frame = decode_frame(upload, default_calib, options.nonfinite)
+        parse_ms = (time.perf_counter() - tic) * 1e3
+        detections = detector.detect(
+            frame.image, frame.points, frame.calib, options.score_threshold, options.emulate_beams
+        )
+        timings = {"parse_inputs": parse_ms, **{k: v for k, v in detections.timings_ms.items() if k != "total"}}
+        png = None
+        if picture:
+            tic = time.perf_counter()
+            points = detections.points if detections.points is not None else frame.points
+            bgr = render_bev(points, detector.preset.bev, detections.boxes, detections.scores)
+            ok, encoded = cv2.imencode(".png", bgr)
+            if not ok:
+                raise RuntimeError("PNG encoding of the BEV picture failed")
+            png = encoded.tobytes()
+            timings["render"] = (time.perf_counter() - tic) * 1e3
+        return FrameResult(frame, detections, timings, png)
+
+    return job
+
+
+async def _run_frame(
+    runtime: Runtime, settings: Settings, metrics: Metrics, upload: FrameUpload, options: FrameOptions,
+    picture: bool,
+) -> FrameResult:
+    """Check, queue and run one frame; pool conditions become 503/504 answers."""
+    check_upload(upload, settings.max_points, settings.max_image_pixels, runtime.crop_hw)
+    job = _detect_job(upload, options, runtime.default_calib, picture)
+    started = time.perf_counter()
+    try:
+        outcome: JobResult[FrameResult] = await runtime.pool.run(job, settings.request_timeout_s)
+    except PoolFull as exc:
+        raise ServiceError(
+            503, "overloaded", f"inference queue: full ({runtime.pool.capacity} frames admitted); retry later",
+            {"Retry-After": str(exc.retry_after_s)},
+        ) from None
+    except PoolTimeout as exc:
+        raise ServiceError(504, "timeout", f"request: {exc}") from None
+    except PoolClosed:
+        raise ServiceError(503, "shutting_down", "the service is shutting down", {"Retry-After": "1"}) from None
+    result = outcome.value
+    result.timings_ms = {
+        "queue_wait": outcome.queue_wait_ms, **result.timings_ms, "total": (time.perf_counter() - started) * 1e3
+    }
+    metrics.observe_stages(result.timings_ms)
+    return result
+
+
+async def _read_upload(image: UploadFile, points: UploadFile, calib: UploadFile | None) -> FrameUpload:
+    return FrameUpload(
+        image=await image.read(), points=await points.read(), calib=await calib.read() if calib is not None else None
+    )
+
+
+def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> DetectResponse:
+    detections = result.detections
+    corners = bev_corners(detections.boxes)
+    return DetectResponse(
+        detections=[
+            Detection(
+                label=detections.label,
+                score=float(score),
+                box=Box(**dict(zip(("x", "y", "z", "l", "w", "h", "yaw"), map(float, box), strict=True))),
+                bev_corners=[[float(x), float(y)] for x, y in corners[i]],
+            )
+            for i, (box, score) in enumerate(zip(detections.boxes, detections.scores, strict=True))
+        ],
+        timings_ms={k: round(v, 3) for k, v in result.timings_ms.items()},
+        model=ModelRef(preset=runtime.detector.preset.name, sha256=runtime.detector.sha256),
+        warnings=result.frame.warnings + detections.warnings,
+        request_id=request_id,
+    )
+
+
+@router.post(
+    "/detect",
+    summary="Detect cars in one frame",
+    response_model=DetectResponse,
+    dependencies=[Depends(require_multipart)],
+    responses={
+        200: {
+            "description": "detections (JSON), or KITTI result lines with `format=kitti`",
+            "content": {"text/plain": {"schema": {"type": "string"}, "example": _KITTI_EXAMPLE}},
+        },
+        **error_responses(401, 413, 415, 422, 500, 503, 504),
+    },
+)
+async def detect(
+    runtime: ReadyRuntimeDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+    options: FrameOptionsDep,
+    image: ImagePart,
+    points: PointsPart,
+    calib: CalibPart = None,
+    *,
+    output_format: Annotated[
+        OutputFormat, Query(
+            alias="format",
+            description="`json`, or `kitti` for KITTI label_2 result lines (the boxes the camera sees)",
+        )
+    ] = OutputFormat.json,
+    request_id: RequestIdDep,
+) -> DetectResponse | Response:
+    """Boxes in the LiDAR frame with scores, per-stage timings, the model's identity and warnings.
+
+    Example: `curl -F image=@000006.png -F points=@000006.bin -F calib=@000006.txt
+    'http://127.0.0.1:8000/v1/detect?emulate_beams=16'`
+    """
+    upload = await _read_upload(image, points, calib)
+    result = await _run_frame(runtime, settings, metrics, upload, options, picture=False)
+    if output_format is OutputFormat.kitti:
+        objects = result.detections.to_objects(result.frame.calib, result.frame.image_hw)
+        return PlainTextResponse("".join(format_label(o) + "\n" for o in objects))
+    return _to_response(result, runtime, request_id)
+
+
+@router.post(
+    "/detect/bev.png",
+    summary="Detect cars and answer the bird's-eye-view picture",
+    dependencies=[Depends(require_multipart)],
+    response_class=Response,
+    responses={
+        200: {"description": "BEV picture: points, detected boxes and scores", "content": {"image/png": {}}},
+        **error_responses(401, 413, 415, 422, 500, 503, 504),
+    },
+)
+async def detect_bev_png(
+    runtime: ReadyRuntimeDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+    options: FrameOptionsDep,
+    image: ImagePart,
+    points: PointsPart,
+    calib: CalibPart = None,
+) -> Response:
+    """The same inputs as `/v1/detect`; the answer is a PNG (x forward points up)."""
+    upload = await _read_upload(image, points, calib)
+    result = await _run_frame(runtime, settings, metrics, upload, options, picture=True)
+    assert result.png is not None
+    return Response(result.png, media_type="image/png")

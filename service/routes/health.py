@@ -1,0 +1,53 @@
+"""Health probes: ``/healthz`` and ``/readyz``, and the Open Inference Protocol's ``/v2/health/*``.
+
+Liveness answers 200 while the process serves HTTP; readiness answers 200
+only once the models are loaded and warmed up (503 with ``Retry-After``
+before), so an orchestrator sends traffic only to a replica that can take it.
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from pydantic import BaseModel
+
+from service.deps import ReadyRuntimeDep
+from service.routes.responses import error_responses
+from service.schemas import Health
+
+router = APIRouter(tags=["health"])
+
+
+class LiveResponse(BaseModel):
+    """Open Inference Protocol liveness."""
+
+    live: bool
+
+
+class ReadyResponse(BaseModel):
+    """Open Inference Protocol readiness."""
+
+    ready: bool
+
+
+@router.get("/healthz", summary="Liveness: the process answers HTTP")
+async def healthz() -> Health:
+    """Always 200 while the server runs."""
+    return Health(status="ok")
+
+
+@router.get("/readyz", summary="Readiness: models loaded and warmed up", responses=error_responses(503))
+async def readyz(_: ReadyRuntimeDep) -> Health:
+    """200 once the models are warmed up; 503 before."""
+    return Health(status="ready", ready=True)
+
+
+@router.get("/v2/health/live", summary="Open Inference Protocol liveness")
+async def v2_live() -> LiveResponse:
+    """Always 200 while the server runs."""
+    return LiveResponse(live=True)
+
+
+@router.get("/v2/health/ready", summary="Open Inference Protocol readiness", responses=error_responses(503))
+async def v2_ready(_: ReadyRuntimeDep) -> ReadyResponse:
+    """200 once the models are warmed up; 503 before."""
+    return ReadyResponse(ready=True)

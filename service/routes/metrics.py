@@ -1,0 +1,22 @@
+"""``GET /metrics``: Prometheus text exposition of the app's metrics (open, like the health probes)."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+from fastapi.responses import Response
+
+from service.deps import MetricsDep
+
+router = APIRouter(tags=["metrics"])
+
+
+@router.get(
+    "/metrics",
+    summary="Prometheus metrics",
+    response_class=Response,
+    responses={200: {"description": "Prometheus text exposition format", "content": {"text/plain": {}}}},
+)
+async def metrics(metrics: MetricsDep) -> Response:
+    """Request counts by route and status, latency histograms per route and per stage, queue depth,
+    in-flight frames and requests, readiness, process memory (`process_resident_memory_bytes`)."""
+    return Response(metrics.render(), media_type=metrics.content_type)

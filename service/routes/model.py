@@ -1,0 +1,34 @@
+"""``GET /v1/model``: the loaded model directory, its manifest and the execution providers in use."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter
+
+from service.deps import RuntimeDep, SettingsDep
+from service.routes.responses import error_responses
+from service.schemas import ModelInfo
+
+router = APIRouter(tags=["model"])
+
+
+@router.get(
+    "/v1/model",
+    summary="The loaded model directory",
+    responses=error_responses(401, 503),
+)
+async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
+    """Manifest, preset, sha256 of each file and the execution providers each network actually runs on."""
+    detector = runtime.detector
+    return ModelInfo(
+        preset=detector.preset.name,
+        sha256=detector.sha256,
+        providers_in_use=detector.providers_in_use,
+        two_stage=detector.two_stage,
+        workers=settings.workers,
+        sessions=settings.sessions,
+        intra_op_threads=settings.resolved_intra_op_threads(),
+        queue_size=settings.queue_size,
+        crop_hw=list(detector.preset.crop_hw),
+        default_calib=runtime.default_calib is not None,
+        manifest=detector.manifest,
+    )

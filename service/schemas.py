@@ -1,0 +1,142 @@
+"""Request and response bodies of the HTTP API (pydantic models with examples for the OpenAPI schema)."""
+
+from __future__ import annotations
+
+from enum import Enum, IntEnum
+from typing import Annotated
+
+from pydantic import BaseModel, ConfigDict, Field
+
+
+class OutputFormat(str, Enum):
+    """How ``POST /v1/detect`` answers."""
+
+    json = "json"
+    kitti = "kitti"
+
+
+class BeamCount(IntEnum):
+    """Lines a 64-line scan can be thinned to on the server."""
+
+    four = 4
+    eight = 8
+    sixteen = 16
+    thirty_two = 32
+
+
+class NonFinitePolicy(str, Enum):
+    """What to do with scan rows holding NaN or infinite values."""
+
+    drop = "drop"
+    reject = "reject"
+
+
+class Box(BaseModel):
+    """A 3D box in the LiDAR frame (x forward, y left, z up; metres, radians)."""
+
+    x: float = Field(description="centre, forward")
+    y: float = Field(description="centre, left")
+    z: float = Field(description="centre, up")
+    l: float = Field(description="length (along the heading)")
+    w: float = Field(description="width")
+    h: float = Field(description="height")
+    yaw: float = Field(description="heading about z, radians; KITTI rotation_y = -yaw - π/2")
+
+
+class Detection(BaseModel):
+    """One detected object."""
+
+    label: str = Field(examples=["Car"])
+    score: float = Field(ge=0.0, le=1.0)
+    box: Box
+    bev_corners: list[Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
+        min_length=4, max_length=4, description="[x, y] of the four BEV corners, counter-clockwise from front-left"
+    )
+
+
+class ModelRef(BaseModel):
+    """Which models answered."""
+
+    preset: str = Field(examples=["edge"])
+    sha256: dict[str, str] = Field(description="sha256 of each model file")
+
+
+_DETECT_EXAMPLE = {
+    "detections": [
+        {
+            "label": "Car",
+            "score": 0.91,
+            "box": {"x": 12.4, "y": -3.1, "z": -0.9, "l": 3.9, "w": 1.6, "h": 1.5, "yaw": 0.02},
+            "bev_corners": [[14.35, -2.26], [10.45, -2.34], [10.45, -3.94], [14.35, -3.86]],
+        }
+    ],
+    "timings_ms": {
+        "queue_wait": 0.1, "parse_inputs": 9.8, "prepare": 4.1, "depth_net": 180.2, "pseudo_points": 2.0,
+        "voxelize": 3.1, "pixor": 95.4, "decode": 0.9, "total": 296.0,
+    },
+    "model": {"preset": "edge", "sha256": {"depth.onnx": "3f1c…", "pixor.onnx": "9a0b…"}},
+    "warnings": ["points: dropped 3 rows with NaN or infinite values"],
+    "request_id": "5f0c8e7a9b2d4c1e8f3a6b7c9d0e1f2a",
+}
+
+
+class DetectResponse(BaseModel):
+    """The answer of ``POST /v1/detect`` (``format=json``)."""
+
+    model_config = ConfigDict(json_schema_extra={"examples": [_DETECT_EXAMPLE]})
+
+    detections: list[Detection]
+    timings_ms: dict[str, float] = Field(
+        description="per stage; `total` is the server time from entering the queue to the result"
+    )
+    model: ModelRef
+    warnings: list[str] = Field(description="what was dropped or adjusted on the way")
+    request_id: str
+
+
+class ErrorDetail(BaseModel):
+    """What went wrong; ``message`` names the field or part at fault."""
+
+    code: str = Field(examples=["invalid_input"])
+    message: str = Field(examples=["points: size 100 bytes is not a multiple of 16"])
+    request_id: str | None = Field(None, description="quote it when reporting a problem")
+
+
+class ErrorResponse(BaseModel):
+    """Every error answer has this shape."""
+
+    model_config = ConfigDict(
+        json_schema_extra={
+            "examples": [
+                {"error": {"code": "invalid_input", "message": "calib: missing calibration key(s) P2",
+                           "request_id": "5f0c8e7a9b2d4c1e8f3a6b7c9d0e1f2a"}}
+            ]
+        }
+    )
+
+    error: ErrorDetail
+
+
+class Health(BaseModel):
+    """Liveness or readiness."""
+
+    status: str = Field(examples=["ok"])
+    ready: bool | None = Field(None, description="models loaded and warmed up")
+
+
+class ModelInfo(BaseModel):
+    """The loaded model directory: its manifest and the execution providers actually in use."""
+
+    preset: str
+    sha256: dict[str, str]
+    providers_in_use: dict[str, list[str]] = Field(description="per network, after ONNX Runtime's own fallback")
+    two_stage: bool = Field(description="depth completion + PIXOR (true) or LiDAR-only PIXOR (false)")
+    workers: int
+    sessions: str = Field(description="'shared' or 'per-worker'")
+    intra_op_threads: int = Field(description="ONNX Runtime intra-op threads per session")
+    queue_size: int
+    crop_hw: list[int] = Field(
+        min_length=2, max_length=2, description="smallest image [height, width] the model accepts"
+    )
+    default_calib: bool = Field(description="a default calibration is configured (calib is optional)")
+    manifest: dict = Field(description="manifest.json of the model directory")

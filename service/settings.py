@@ -1,0 +1,73 @@
+"""Service configuration: one ``Settings`` object, read from ``LOWRES3D_*`` environment variables.
+
+Every command-line option of ``python -m service`` is a field here and an
+environment variable (``--queue-size`` ↔ ``LOWRES3D_QUEUE_SIZE``); the command
+line wins over the environment, the environment over the defaults. Nothing is
+read at import time: build ``Settings()`` in ``main`` (or a test) and pass it to
+:func:`service.app.create_app`.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Literal
+
+from pydantic import Field, SecretStr
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+from pipeline.detector import MAX_POINTS
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_MODELS = REPO_ROOT / "weights" / "edge"
+
+ENV_PREFIX = "LOWRES3D_"
+
+
+class Settings(BaseSettings):
+    """Everything the detection service needs to start; validated when built."""
+
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, extra="forbid", frozen=True)
+
+    models: Path = Field(DEFAULT_MODELS, description="model directory (manifest.json, depth.onnx, pixor.onnx)")
+    host: str = Field("127.0.0.1", description="address to listen on (0.0.0.0 exposes the service to the network)")
+    port: int = Field(8000, ge=0, le=65535, description="TCP port (0 = any free port)")
+    workers: int = Field(2, ge=1, le=64, description="inference threads: frames processed at the same time")
+    queue_size: int = Field(4, ge=0, le=1024, description="frames allowed to wait for a worker; beyond: 503")
+    sessions: Literal["shared", "per-worker"] = Field(
+        "shared", description="one ONNX Runtime session pair for all workers, or one per worker"
+    )
+    provider: Literal["cpu", "cuda", "tensorrt"] | None = Field(
+        None, description="execution provider (default: the best available, TensorRT → CUDA → CPU)"
+    )
+    intra_op_threads: int | None = Field(
+        None, ge=1, le=256,
+        description="ONNX Runtime intra-op threads per session (default: usable CPUs // workers, at least 1)",
+    )
+    trt_cache_dir: Path | None = Field(
+        None, description="TensorRT engine cache (a volume in the container; default: MODELS/trt_cache)"
+    )
+    request_timeout_s: float = Field(30.0, gt=0, le=3600, description="per-request deadline, queue wait included; beyond: 504")
+    max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest request body; beyond: 413")
+    max_points: int = Field(1_000_000, ge=1, le=MAX_POINTS, description="most points a scan may have; beyond: 422")
+    max_image_pixels: int = Field(
+        16 * 1024 * 1024, ge=1, description="most pixels an uploaded image may have (checked before decoding)"
+    )
+    token: SecretStr | None = Field(
+        None, description="bearer token required on /v1/* when set (prefer the environment variable over --token)"
+    )
+    default_calib: Path | None = Field(
+        None, description="KITTI calib.txt used when a request sends none (a fixed camera–LiDAR rig)"
+    )
+    warmup_runs: int = Field(1, ge=0, le=1000, description="network runs on zero inputs before /readyz says ready")
+    shutdown_timeout_s: float = Field(
+        60.0, gt=0, description="on SIGTERM, how long in-flight requests may take to finish"
+    )
+    log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="logging level")
+
+    def resolved_intra_op_threads(self) -> int:
+        """The configured intra-op threads, or the usable CPUs divided among the workers (docs/service.md)."""
+        if self.intra_op_threads is not None:
+            return self.intra_op_threads
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+        return max(1, cpus // self.workers)

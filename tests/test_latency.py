@@ -1,0 +1,50 @@
+"""benchmarks/latency.py end to end on the tiny preset: the report's keys and the plot (no timing targets)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+
+LATENCY = Path(__file__).resolve().parents[1] / "benchmarks" / "latency.py"
+
+
+def test_latency_report_with_two_workers_and_torch(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(LATENCY), "--preset", "tiny", "--frames", "4", "--warmup", "1", "--threads", "2",
+         "--compare-torch", "--json", str(tmp_path / "lat.json"), "--plot", str(tmp_path / "lat.png")],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((tmp_path / "lat.json").read_text())
+    assert set(report["end_to_end_ms"]) >= {"mean", "p50", "p90", "p99"}
+    assert report["fps"] > 0
+    assert set(report["stages_ms"]) == {"prepare", "depth_net", "pseudo_points", "voxelize", "pixor", "decode"}
+    assert all(set(s) >= {"mean", "p50", "p99"} for s in report["stages_ms"].values())
+    t = report["throughput"]
+    assert t["workers"] == 2 and t["fps"] > 0 and t["fps_one_worker"] > 0
+    assert abs(t["scaling"] - t["fps"] / t["fps_one_worker"]) < 1e-9
+    for name in ("depth", "pixor"):
+        n = report["networks"][name]
+        assert n["gflops"] > 0 and n["ms"] > 0 and 0 < n["peak_fraction"]
+    assert report["peak_gflops"] > 1
+    assert report["torch_end_to_end_ms"]["mean"] > 0 and report["speedup_vs_torch"] > 0
+    assert report["machine"]["cores"] >= 1 and report["versions"]["onnxruntime"]
+    picture = cv2.imread(str(tmp_path / "lat.png"))
+    assert picture is not None and picture.shape[0] > 100
+
+
+def test_latency_int8_and_precision_check(tmp_path, tiny_models):
+    ok = subprocess.run(
+        [sys.executable, str(LATENCY), "--preset", "tiny", "--precision", "int8", "--frames", "2", "--warmup", "1",
+         "--json", str(tmp_path / "q.json")],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert ok.returncode == 0, ok.stderr[-2000:]
+    assert json.loads((tmp_path / "q.json").read_text())["precision"] == "int8"
+    mismatch = subprocess.run(
+        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--precision", "int8", "--frames", "1"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert mismatch.returncode != 0 and "holds fp32 models" in mismatch.stderr

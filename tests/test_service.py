@@ -1,0 +1,550 @@
+"""The detection service end to end in-process: real tiny ONNX models, a real KITTI frame, httpx over ASGI.
+
+Each test talks HTTP to the FastAPI app (lifespan included) through
+``httpx.ASGITransport``; the app loads a model directory exported with the
+``tiny`` preset once per session. Real uvicorn processes are in
+``test_service_process.py``.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import logging
+import os
+import struct
+import threading
+import time
+from collections.abc import AsyncIterator, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Self
+
+import anyio.from_thread
+import cv2
+import httpx
+import numpy as np
+import pytest
+
+from pipeline.boxes import bev_corners, in_camera_view
+from pipeline.kitti import parse_calib, parse_labels
+from service.__main__ import _OPTIONS, settings_from_args
+from service.app import create_app
+from service.metrics import Metrics
+from service.pool import InferencePool, PoolFull, PoolTimeout
+from service.settings import Settings
+
+KITTI = Path(__file__).parent / "data" / "kitti" / "training"
+FRAME = "000006"
+STAGES = {"queue_wait", "parse_inputs", "prepare", "depth_net", "pseudo_points", "voxelize", "pixor", "decode", "total"}
+
+
+# --------------------------------------------------------------------------- fixtures
+@pytest.fixture(scope="session")
+def tiny_models(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A model directory exported with the ``tiny`` preset (untrained weights), shared by the session."""
+    out = tmp_path_factory.getbasetemp() / "service-tiny-models"
+    if not (out / "manifest.json").is_file():
+        from export.exporter import ExportConfig, run
+
+        run(ExportConfig(preset="tiny", out=out, parity=False))
+    return out
+
+
+@pytest.fixture(scope="session")
+def frame() -> dict[str, bytes]:
+    """The raw files of KITTI frame 000006: PNG image, 64-line velodyne scan, calibration."""
+    return {
+        "image": (KITTI / "image_2" / f"{FRAME}.png").read_bytes(),
+        "points": (KITTI / "velodyne" / f"{FRAME}.bin").read_bytes(),
+        "calib": (KITTI / "calib" / f"{FRAME}.txt").read_bytes(),
+    }
+
+
+def parts(frame: dict[str, bytes], **replace: bytes | None) -> dict[str, tuple[str, bytes, str]]:
+    """Multipart files for httpx; ``replace`` swaps a part's bytes, None leaves it out."""
+    names = {"image": ("000006.png", "image/png"), "points": ("000006.bin", "application/octet-stream"),
+             "calib": ("000006.txt", "text/plain")}
+    files = {}
+    for key, (filename, content_type) in names.items():
+        data = replace.get(key, frame[key]) if key in replace else frame[key]
+        if data is not None:
+            files[key] = (filename, data, content_type)
+    return files
+
+
+class AppClient:
+    """A synchronous httpx client for an ASGI app: runs the app's lifespan and the requests on one
+    event loop in a background thread (an anyio blocking portal), so tests can also send requests
+    from several threads at once."""
+
+    def __init__(self, app: Any) -> None:
+        self.app = app
+
+    def __enter__(self) -> Self:
+        self._portal_cm = anyio.from_thread.start_blocking_portal()
+        self.portal = self._portal_cm.__enter__()
+        self._lifespan = self.app.router.lifespan_context(self.app)
+        self.portal.call(self._lifespan.__aenter__)
+        transport = httpx.ASGITransport(app=self.app, raise_app_exceptions=False)
+        self._client = httpx.AsyncClient(transport=transport, base_url="http://service", timeout=60)
+        return self
+
+    def request(self, method: str, url: str, **kwargs: Any) -> httpx.Response:
+        return self.portal.call(functools.partial(self._client.request, method, url, **kwargs))
+
+    def get(self, url: str, **kwargs: Any) -> httpx.Response:
+        return self.request("GET", url, **kwargs)
+
+    def post(self, url: str, **kwargs: Any) -> httpx.Response:
+        return self.request("POST", url, **kwargs)
+
+    def wait_ready(self, timeout_s: float = 20.0) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.get("/readyz").status_code == 200:
+                return
+            time.sleep(0.02)
+        raise TimeoutError("the app did not become ready")
+
+    def __exit__(self, *exc: object) -> None:
+        self.portal.call(self._client.aclose)
+        self.portal.call(self._lifespan.__aexit__, None, None, None)
+        self._portal_cm.__exit__(None, None, None)
+
+
+@contextmanager
+def service(models: Path, **overrides: Any) -> Iterator[AppClient]:
+    """A ready app on ``models`` with Settings overrides."""
+    with AppClient(create_app(Settings(models=models, **overrides))) as client:
+        client.wait_ready()
+        yield client
+
+
+@pytest.fixture(scope="module")
+def client(tiny_models: Path) -> Iterator[AppClient]:
+    """The default configuration: 2 workers, shared session, no token, no default calibration."""
+    with service(tiny_models) as app_client:
+        yield app_client
+
+
+def assert_error(response: httpx.Response, status: int, code: str, *words: str) -> dict:
+    """The response is the JSON error shape with this status and code; its message mentions ``words``."""
+    assert response.status_code == status, response.text
+    assert response.headers["content-type"].startswith("application/json")
+    error = response.json()["error"]
+    assert error["code"] == code, error
+    for word in words:
+        assert word in error["message"], error
+    assert error["request_id"] == response.headers["x-request-id"]
+    return error
+
+
+# --------------------------------------------------------------------------- the contract
+def test_detect_json_contract(client: AppClient, frame: dict[str, bytes], tiny_models: Path) -> None:
+    response = client.post("/v1/detect", params={"score_threshold": 0.0}, files=parts(frame))
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert body["request_id"] == response.headers["x-request-id"]
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    assert body["model"]["preset"] == "tiny"
+    assert body["model"]["sha256"] == {name: entry["sha256"] for name, entry in manifest["files"].items()}
+    assert body["model"]["sha256"]["pixor.onnx"] == hashlib.sha256((tiny_models / "pixor.onnx").read_bytes()).hexdigest()
+    assert STAGES <= set(body["timings_ms"])
+    detector_ms = sum(v for k, v in body["timings_ms"].items() if k != "total")
+    assert body["timings_ms"]["total"] >= detector_ms * 0.99
+    assert body["warnings"] == []
+    # score 0 keeps every NMS survivor of the untrained tiny PIXOR: boxes to check the geometry on.
+    assert body["detections"]
+    scores = [d["score"] for d in body["detections"]]
+    assert scores == sorted(scores, reverse=True)
+    for detection in body["detections"]:
+        assert detection["label"] == "Car"
+        box = detection["box"]
+        as_array = np.array([[box[k] for k in ("x", "y", "z", "l", "w", "h", "yaw")]])
+        assert np.isfinite(as_array).all() and box["l"] > 0 and box["w"] > 0 and box["h"] > 0
+        np.testing.assert_allclose(detection["bev_corners"], bev_corners(as_array)[0], atol=1e-9)
+
+
+def test_detect_default_threshold_and_beam_emulation(client: AppClient, frame: dict[str, bytes]) -> None:
+    response = client.post("/v1/detect", params={"emulate_beams": 16}, files=parts(frame))
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert "emulate_beams" in body["timings_ms"]
+    assert any(w.startswith("emulated 16 beams: kept") for w in body["warnings"])
+    assert all(d["score"] >= 0.5 for d in body["detections"])  # the tiny preset's threshold
+
+
+def test_detect_kitti_lines_match_json(client: AppClient, frame: dict[str, bytes]) -> None:
+    params = {"score_threshold": 0.0}
+    as_json = client.post("/v1/detect", params=params, files=parts(frame)).json()
+    response = client.post("/v1/detect", params={**params, "format": "kitti"}, files=parts(frame))
+    assert response.status_code == 200
+    assert response.headers["content-type"].startswith("text/plain")
+    objects = parse_labels(response.text, "response")
+    # KITTI results hold the boxes the camera sees, in the JSON answer's order.
+    boxes = np.array([[d["box"][k] for k in ("x", "y", "z", "l", "w", "h", "yaw")] for d in as_json["detections"]])
+    seen = in_camera_view(boxes, parse_calib(frame["calib"].decode(), "calib"), (375, 1242))
+    expected = [d for d, keep in zip(as_json["detections"], seen, strict=True) if keep]
+    assert 0 < len(objects) == len(expected) < len(boxes)
+    for obj, detection in zip(objects, expected, strict=True):
+        assert obj.type == "Car"
+        assert obj.score == pytest.approx(detection["score"], abs=1e-4)
+        assert obj.dimensions == pytest.approx((detection["box"]["h"], detection["box"]["w"], detection["box"]["l"]), abs=0.01)
+
+
+def test_bev_png(client: AppClient, frame: dict[str, bytes]) -> None:
+    response = client.post("/v1/detect/bev.png", params={"score_threshold": 0.0}, files=parts(frame))
+    assert response.status_code == 200
+    assert response.headers["content-type"] == "image/png"
+    picture = cv2.imdecode(np.frombuffer(response.content, np.uint8), cv2.IMREAD_COLOR)
+    assert picture.shape == (704, 800, 3)  # the tiny grid: x 0–70.4 m up, y −40–40 m across, 0.1 m pixels
+    assert (picture == (60, 220, 60)).all(axis=2).any()  # predicted boxes drawn in green
+
+
+def test_jpeg_image_accepted(client: AppClient, frame: dict[str, bytes]) -> None:
+    bgr = cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR)
+    jpeg = cv2.imencode(".jpg", bgr)[1].tobytes()
+    response = client.post("/v1/detect", files=parts(frame, image=jpeg))
+    assert response.status_code == 200, response.text
+
+
+def test_nonfinite_points_dropped_with_warning(client: AppClient, frame: dict[str, bytes]) -> None:
+    points = np.frombuffer(frame["points"], "<f4").reshape(-1, 4).copy()
+    points[:5, 0] = np.nan
+    points[5:7, 2] = np.inf
+    response = client.post("/v1/detect", files=parts(frame, points=points.tobytes()))
+    assert response.status_code == 200, response.text
+    assert "points: dropped 7 rows with NaN or infinite values" in response.json()["warnings"]
+    rejected = client.post("/v1/detect", params={"nonfinite": "reject"}, files=parts(frame, points=points.tobytes()))
+    assert_error(rejected, 422, "invalid_input", "points", "7 rows", "NaN")
+
+
+def test_default_calibration(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    with service(tiny_models, default_calib=KITTI / "calib" / f"{FRAME}.txt") as app_client:
+        response = app_client.post("/v1/detect", files=parts(frame, calib=None))
+        assert response.status_code == 200, response.text
+        assert app_client.get("/v1/model").json()["default_calib"] is True
+
+
+# --------------------------------------------------------------------------- bad inputs
+def _png_header(width: int, height: int) -> bytes:
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + struct.pack(">II", width, height) + b"\x08\x02\x00\x00\x00"
+
+
+BAD_PARTS = {
+    "empty image": ({"image": b""}, 422, "invalid_input", ("image", "empty")),
+    "corrupt png": ({"image": _png_header(1242, 375) + b"\x00" * 500}, 422, "invalid_input", ("image", "not a readable")),
+    "no IHDR": ({"image": b"\x89PNG\r\n\x1a\n" + b"\x00" * 40}, 422, "invalid_input", ("image", "IHDR")),
+    "gif image": ({"image": b"GIF89a" + b"\x00" * 100}, 415, "unsupported_media_type", ("image", "PNG or JPEG")),
+    "text image": ({"image": b"hello"}, 415, "unsupported_media_type", ("image",)),
+    "decompression bomb": ({"image": _png_header(60000, 60000)}, 422, "invalid_input", ("image", "limit")),
+    "scan size": ({"points": b"\x00" * 100}, 422, "invalid_input", ("points", "100 bytes", "multiple of 16")),
+    "zero points": ({"points": b""}, 422, "invalid_input", ("points", "empty")),
+    "all nan": ({"points": np.full((10, 4), np.nan, np.float32).tobytes()}, 422, "invalid_input", ("points", "no finite")),
+    "calib missing keys": ({"calib": b"P2: 1 0 0 0 0 1 0 0 0 0 1 0\n"}, 422, "invalid_input", ("calib", "R0_rect")),
+    "calib malformed": ({"calib": b"P2: 1 2 three\nR0_rect: 1\n"}, 422, "invalid_input", ("calib", "line 1", "non-numeric")),
+    "calib short row": ({"calib": b"P2: 1 2 3\n"}, 422, "invalid_input", ("calib", "P2 needs 12 numbers")),
+    "calib no colon": ({"calib": b"garbage line\n"}, 422, "invalid_input", ("calib", "KEY: numbers")),
+    "calib binary": ({"calib": b"\xff\xfe\x00\x81"}, 422, "invalid_input", ("calib", "not text")),
+    "calib empty": ({"calib": b"  \n"}, 422, "invalid_input", ("calib", "empty")),
+    "missing points": ({"points": None}, 422, "invalid_input", ("points", "required")),
+    "missing image": ({"image": None}, 422, "invalid_input", ("image", "required")),
+    "missing calib, no default": ({"calib": None}, 422, "invalid_input", ("calib", "default")),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_PARTS), ids=list(BAD_PARTS))
+def test_bad_parts_answer_4xx_naming_the_part(client: AppClient, frame: dict[str, bytes], case: str) -> None:
+    replace, status, code, words = BAD_PARTS[case]
+    response = client.post("/v1/detect", files=parts(frame, **replace))
+    assert_error(response, status, code, *words)
+
+
+def test_image_smaller_than_crop(client: AppClient, frame: dict[str, bytes]) -> None:
+    small = cv2.imencode(".png", np.zeros((200, 600, 3), np.uint8))[1].tobytes()
+    response = client.post("/v1/detect", files=parts(frame, image=small))
+    assert_error(response, 422, "invalid_input", "image", "600×200", "1216×352")
+
+
+def test_too_many_points(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    with service(tiny_models, max_points=1000) as app_client:
+        response = app_client.post("/v1/detect", files=parts(frame))
+        assert_error(response, 422, "invalid_input", "points", "110089 points", "limit of 1000")
+
+
+@pytest.mark.parametrize(
+    ("params", "field"),
+    [({"score_threshold": 2}, "score_threshold"), ({"score_threshold": "high"}, "score_threshold"),
+     ({"emulate_beams": 15}, "emulate_beams"), ({"format": "xml"}, "format"), ({"nonfinite": "keep"}, "nonfinite")],
+)
+def test_bad_query_names_the_field(client: AppClient, frame: dict[str, bytes], params: dict, field: str) -> None:
+    assert_error(client.post("/v1/detect", params=params, files=parts(frame)), 422, "invalid_input", field)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "shown"),
+    [({"json": {"image": "x"}}, "application/json"), ({"content": b"raw", "headers": {"content-type": "image/png"}}, "image/png"),
+     ({"data": {"image": "x"}}, "application/x-www-form-urlencoded"), ({}, "none")],
+)
+def test_non_multipart_body_is_415(client: AppClient, kwargs: dict, shown: str) -> None:
+    for route in ("/v1/detect", "/v1/detect/bev.png"):
+        assert_error(client.post(route, **kwargs), 415, "unsupported_media_type", "multipart/form-data", shown)
+
+
+def test_oversized_body_is_413_with_and_without_content_length(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    limit = 1024 * 1024  # above the image (749 kB), below image + scan (2.5 MB)
+    with service(tiny_models, max_body_bytes=limit) as app_client:
+        declared = app_client.post("/v1/detect", files=parts(frame))
+        assert_error(declared, 413, "body_too_large", f"{limit} bytes")
+        assert declared.headers["connection"] == "close"
+
+        boundary = "lowres3dboundary"
+
+        async def chunks() -> AsyncIterator[bytes]:  # a well-formed multipart start, then 2 MiB of scan: chunked
+            yield (f"--{boundary}\r\nContent-Disposition: form-data; name=\"points\"; filename=\"a.bin\"\r\n"
+                   "Content-Type: application/octet-stream\r\n\r\n").encode()
+            for _ in range(128):
+                yield b"\x00" * 16384
+
+        streamed = app_client.post(
+            "/v1/detect", content=chunks(), headers={"content-type": f"multipart/form-data; boundary={boundary}"}
+        )
+        assert_error(streamed, 413, "body_too_large")
+        # Under the limit, the same app still answers normally.
+        small = app_client.post("/v1/detect", files=parts(frame, points=frame["points"][: 16 * 1000]))
+        assert small.status_code == 200, small.text
+
+
+def test_unknown_route_and_method_are_json(client: AppClient) -> None:
+    assert_error(client.get("/v1/nothing"), 404, "not_found")
+    assert_error(client.get("/v1/detect"), 405, "method_not_allowed")
+
+
+# --------------------------------------------------------------------------- auth
+def test_bearer_token(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    with service(tiny_models, token="s3cret-token") as app_client:
+        for headers in ({}, {"Authorization": "Bearer wrong"}, {"Authorization": "Basic czNjcmV0LXRva2Vu"},
+                        {"Authorization": "Bearer s3cret-token-longer"}):
+            response = app_client.post("/v1/detect", files=parts(frame), headers=headers)
+            assert_error(response, 401, "unauthorized", "bearer token")
+            assert response.headers["www-authenticate"].startswith("Bearer")
+            assert_error(app_client.get("/v1/model", headers=headers), 401, "unauthorized")
+        good = {"Authorization": "Bearer s3cret-token"}
+        assert app_client.post("/v1/detect", files=parts(frame), headers=good).status_code == 200
+        assert app_client.get("/v1/model", headers=good).status_code == 200
+        security = app_client.get("/openapi.json").json()["paths"]["/v1/detect"]["post"]["security"]
+        assert security == [{"HTTPBearer": []}]
+        # Probes and metrics stay open for orchestrators and scrapers.
+        for route in ("/healthz", "/readyz", "/v2/health/live", "/v2/health/ready", "/metrics"):
+            assert app_client.get(route).status_code == 200
+
+
+# --------------------------------------------------------------------------- load and faults
+def test_queue_full_answers_503_with_retry_after(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    # A 64-line scan tiled ×4 (440k points) keeps each frame busy long enough for the burst to overflow.
+    heavy = parts(frame, points=frame["points"] * 4)
+    with service(tiny_models, workers=1, queue_size=1) as app_client:
+        with ThreadPoolExecutor(8) as burst:
+            responses = list(burst.map(lambda _: app_client.post("/v1/detect", files=heavy), range(8)))
+        statuses = sorted(r.status_code for r in responses)
+        assert set(statuses) == {200, 503}, statuses
+        assert statuses.count(200) >= 2  # the running frame and the queued one
+        for response in responses:
+            if response.status_code == 503:
+                assert_error(response, 503, "overloaded", "queue")
+                assert int(response.headers["retry-after"]) >= 1
+        metrics = app_client.get("/metrics").text
+        rejected = statuses.count(503)
+        assert f'lowres3d_inference_rejected_total{{reason="queue_full"}} {float(rejected)}' in metrics
+        assert f'lowres3d_http_requests_total{{method="POST",route="/v1/detect",status="503"}} {float(rejected)}' in metrics
+        assert "lowres3d_inference_queue_depth 0.0" in metrics
+
+
+def test_pool_admission_is_bounded_and_deadlines_cancel_waiting_jobs(tiny_models: Path) -> None:
+    from pipeline.detector import Detector
+
+    metrics = Metrics()
+    pool = InferencePool([Detector(tiny_models)], workers=1, queue_size=1, metrics=metrics)
+    release = threading.Event()
+    started = threading.Event()
+    ran: list[str] = []
+
+    def blocking(detector: Detector) -> str:
+        started.set()
+        release.wait(10)
+        ran.append("blocking")
+        return detector.preset.name
+
+    def quick(_: Detector) -> str:
+        ran.append("quick")
+        return "quick"
+
+    async def scenario() -> None:
+        async with anyio.create_task_group() as group:
+            results: dict[str, Any] = {}
+
+            async def first() -> None:
+                results["first"] = await pool.run(blocking, timeout_s=10)
+
+            group.start_soon(first)
+            await anyio.to_thread.run_sync(started.wait, 5)
+            assert pool.depth == (0, 1)
+            with pytest.raises(PoolTimeout):  # queued behind the blocked job, misses its deadline, is cancelled
+                await pool.run(quick, timeout_s=0.05)
+            assert pool.depth == (0, 1)  # the cancelled job gave its slot back
+
+            async def second() -> None:
+                results["second"] = await pool.run(quick, timeout_s=10)
+
+            group.start_soon(second)
+            await anyio.sleep(0.05)
+            assert pool.depth == (1, 1)
+            with pytest.raises(PoolFull) as full:
+                await pool.run(quick, timeout_s=10)
+            assert full.value.retry_after_s >= 1
+            release.set()
+        assert results["first"].value == "tiny" and results["second"].value == "quick"
+        assert results["second"].queue_wait_ms > 0
+
+    anyio.run(scenario)
+    assert ran == ["blocking", "quick"]  # the timed-out job never ran
+    assert pool.depth == (0, 0)
+    pool.shutdown()
+
+
+def test_request_timeout_is_504(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    with service(tiny_models, request_timeout_s=0.001) as app_client:
+        assert_error(app_client.post("/v1/detect", files=parts(frame)), 504, "timeout", "0.001 s")
+        assert 'lowres3d_inference_rejected_total{reason="timeout"} 1.0' in app_client.get("/metrics").text
+
+
+def test_internal_error_answers_only_a_request_id(
+    tiny_models: Path, frame: dict[str, bytes], caplog: pytest.LogCaptureFixture
+) -> None:
+    with service(tiny_models) as app_client:
+        runtime = app_client.app.state.runtime
+
+        def broken(*args: Any, **kwargs: Any) -> None:
+            raise RuntimeError("secret detail /srv/models/internal.onnx")
+
+        runtime.detector.detect = broken  # a fault inside the worker, as a bug or a provider crash would raise
+        with caplog.at_level(logging.ERROR, logger="service.middleware"):
+            response = app_client.post("/v1/detect", files=parts(frame), headers={"X-Request-ID": "req-42"})
+        error = assert_error(response, 500, "internal_error", "req-42")
+        assert "secret" not in response.text and "/srv" not in response.text and "Traceback" not in response.text
+        assert error["request_id"] == "req-42"
+        logged = "\n".join(r.getMessage() + (r.exc_text or "") for r in caplog.records)
+        assert "req-42" in logged and "secret detail" in logged and "RuntimeError" in logged
+        # The service keeps answering after the fault.
+        assert app_client.get("/healthz").status_code == 200
+
+
+def test_unsafe_request_ids_are_replaced(client: AppClient) -> None:
+    assert client.get("/healthz", headers={"X-Request-ID": "abc-123"}).headers["x-request-id"] == "abc-123"
+    replaced = client.get("/healthz", headers={"X-Request-ID": "bad id\twith spaces"}).headers["x-request-id"]
+    assert replaced != "bad id\twith spaces" and len(replaced) == 32
+
+
+# --------------------------------------------------------------------------- health, model, metrics
+def test_health_routes(client: AppClient) -> None:
+    assert client.get("/healthz").json() == {"status": "ok", "ready": None}
+    assert client.get("/readyz").json() == {"status": "ready", "ready": True}
+    assert client.get("/v2/health/live").json() == {"live": True}
+    assert client.get("/v2/health/ready").json() == {"ready": True}
+
+
+def test_not_ready_until_warmed_up(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    from service.metrics import Metrics as MetricsClass
+    from service.runtime import load_runtime
+
+    settings = Settings(models=tiny_models)
+    metrics = MetricsClass()
+    runtime = load_runtime(settings, metrics)
+    gate = threading.Event()
+    original = runtime.detector.warm_up
+
+    def slow_warm_up(runs: int = 1) -> None:  # hold the warm-up until the test has probed
+        gate.wait(10)
+        original(runs)
+
+    runtime.detector.warm_up = slow_warm_up
+    with AppClient(create_app(settings, runtime=runtime, metrics=metrics)) as app_client:
+        assert app_client.get("/healthz").status_code == 200
+        for route in ("/readyz", "/v2/health/ready"):
+            assert_error(app_client.get(route), 503, "not_ready", "warming up")
+        assert_error(app_client.post("/v1/detect", files=parts(frame)), 503, "not_ready")
+        assert "lowres3d_ready 0.0" in app_client.get("/metrics").text
+        gate.set()
+        app_client.wait_ready()
+        assert "lowres3d_ready 1.0" in app_client.get("/metrics").text
+
+
+def test_model_info(client: AppClient, tiny_models: Path) -> None:
+    info = client.get("/v1/model").json()
+    assert info["preset"] == "tiny" and info["two_stage"] is True
+    assert info["providers_in_use"] == {"depth": ["CPUExecutionProvider"], "pixor": ["CPUExecutionProvider"]}
+    assert info["manifest"] == json.loads((tiny_models / "manifest.json").read_text())
+    assert (info["workers"], info["sessions"], info["queue_size"]) == (2, "shared", 4)
+    assert info["intra_op_threads"] == max(1, len(os.sched_getaffinity(0)) // 2)
+    assert info["crop_hw"] == [352, 1216]
+
+
+def test_metrics_exposition(client: AppClient, frame: dict[str, bytes]) -> None:
+    assert client.post("/v1/detect", files=parts(frame)).status_code == 200
+    response = client.get("/metrics")
+    assert response.status_code == 200 and response.headers["content-type"].startswith("text/plain")
+    text = response.text
+    assert 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status="200"}' in text
+    for stage in ("depth_net", "pixor", "voxelize", "queue_wait", "total"):
+        assert f'lowres3d_stage_duration_seconds_count{{stage="{stage}"}}' in text
+    for family in ("lowres3d_inference_queue_depth", "lowres3d_inference_in_flight", "lowres3d_http_requests_in_flight",
+                   "process_resident_memory_bytes", 'lowres3d_model_info{'):
+        assert family in text
+    assert 'route="unmatched"' not in text or "404" in text
+
+
+# --------------------------------------------------------------------------- OpenAPI and settings
+def test_openapi_documents_the_contract(client: AppClient) -> None:
+    schema = client.get("/openapi.json").json()
+    detect = schema["paths"]["/v1/detect"]["post"]
+    assert set(detect["responses"]) >= {"200", "401", "413", "415", "422", "503", "504"}
+    assert detect["responses"]["503"]["content"]["application/json"]["schema"]["$ref"].endswith("/ErrorResponse")
+    assert "text/plain" in detect["responses"]["200"]["content"]
+    body_ref = detect["requestBody"]["content"]["multipart/form-data"]["schema"]["$ref"].rsplit("/", 1)[1]
+    body = schema["components"]["schemas"][body_ref]
+    assert set(body["required"]) == {"image", "points"} and "calib" in body["properties"]
+    params = {p["name"]: p for p in detect["parameters"]}
+    assert set(params) == {"score_threshold", "emulate_beams", "nonfinite", "format"}
+    assert params["score_threshold"]["schema"]["anyOf"][0]["maximum"] == 1.0
+    assert schema["components"]["schemas"]["DetectResponse"]["examples"]
+    assert schema["components"]["schemas"]["ErrorResponse"]["examples"]
+    assert "image/png" in schema["paths"]["/v1/detect/bev.png"]["post"]["responses"]["200"]["content"]
+    assert "security" not in detect  # no token configured: the schema asks for none
+    for path in ("/healthz", "/readyz", "/v1/model", "/metrics", "/v2/health/live", "/v2/health/ready"):
+        assert path in schema["paths"]
+
+
+def test_every_setting_is_a_cli_option_and_an_env_var(monkeypatch: pytest.MonkeyPatch, tiny_models: Path) -> None:
+    assert {flag[2:].replace("-", "_") for flag, _, _ in _OPTIONS} == set(Settings.model_fields)
+    monkeypatch.setenv("LOWRES3D_QUEUE_SIZE", "7")
+    monkeypatch.setenv("LOWRES3D_WORKERS", "3")
+    monkeypatch.setenv("LOWRES3D_MODELS", str(tiny_models))
+    settings = settings_from_args(["--workers", "1", "--sessions", "per-worker", "--token", "tok-XYZ"])
+    assert (settings.queue_size, settings.workers, settings.sessions, settings.models) == (7, 1, "per-worker", tiny_models)
+    assert settings.token is not None and settings.token.get_secret_value() == "tok-XYZ"
+    assert "tok-XYZ" not in repr(settings)
+    assert Settings().models == tiny_models
+    monkeypatch.delenv("LOWRES3D_MODELS")
+    assert Settings().models == Path(__file__).resolve().parents[1] / "weights" / "edge"
+
+
+def test_per_worker_sessions(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    with service(tiny_models, workers=2, sessions="per-worker") as app_client:
+        runtime = app_client.app.state.runtime
+        assert len(runtime.detectors) == 2 and runtime.detectors[0] is not runtime.detectors[1]
+        with ThreadPoolExecutor(2) as burst:
+            responses = list(burst.map(lambda _: app_client.post("/v1/detect", files=parts(frame)), range(4)))
+        assert [r.status_code for r in responses] == [200] * 4

@@ -1,0 +1,227 @@
+"""The detection service as a real process: ``python -m service`` under uvicorn on 127.0.0.1.
+
+Covers what only a real server shows: HTTP over a socket (chunked uploads,
+Content-Length), the OpenAPI schema fuzzed by schemathesis, SIGTERM letting
+in-flight requests finish, and a corrupted model directory stopping the start.
+Every server gets a free port, a bounded start-up time, and is killed in teardown.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+import schemathesis
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis.errors import Unsatisfiable
+from schemathesis.generation import GenerationMode
+
+from tests.test_service import assert_error, frame, parts, tiny_models  # noqa: F401 - fixtures
+
+REPO = Path(__file__).resolve().parents[1]
+START_TIMEOUT_S = 30.0
+
+
+@dataclass
+class Server:
+    """A running ``python -m service`` process."""
+
+    url: str
+    process: subprocess.Popen
+    log_path: Path
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _stop(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.terminate()
+        try:
+            process.wait(10)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(5)
+
+
+@contextmanager
+def running_service(models: Path, log_path: Path, *args: str) -> Iterator[Server]:
+    """Start the service, wait until /readyz answers 200, stop it (SIGTERM, then SIGKILL) afterwards."""
+    port = free_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
+    with open(log_path, "w") as log_file:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "service", "--models", str(models), "--port", str(port), *args],
+            cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT,
+        )
+    server = Server(f"http://127.0.0.1:{port}", process, log_path)
+    try:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while True:
+            if process.poll() is not None:
+                pytest.fail(f"the service exited with {process.returncode} during start:\n{server.log()}")
+            try:
+                if httpx.get(f"{server.url}/readyz", timeout=1).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail(f"the service was not ready within {START_TIMEOUT_S} s:\n{server.log()}")
+            time.sleep(0.1)
+        yield server
+    finally:
+        _stop(process)
+
+
+@pytest.fixture(scope="module")
+def server(tiny_models: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:  # noqa: F811
+    """One server for the contract and fuzz tests; a 3 MB body limit (the frame is 2.5 MB)."""
+    log_path = tmp_path_factory.mktemp("server") / "service.log"
+    with running_service(tiny_models, log_path, "--max-body-bytes", "3000000") as running:
+        yield running
+
+
+# --------------------------------------------------------------------------- contract over a socket
+def test_contract_over_http(server: Server, frame: dict[str, bytes]) -> None:  # noqa: F811
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        body = client.post("/v1/detect", params={"emulate_beams": 16}, files=parts(frame)).json()
+        assert body["model"]["preset"] == "tiny" and "emulate_beams" in body["timings_ms"]
+        kitti = client.post("/v1/detect", params={"format": "kitti", "score_threshold": 0}, files=parts(frame))
+        assert kitti.status_code == 200 and len(kitti.text.splitlines()[0].split()) == 16
+        png = client.post("/v1/detect/bev.png", files=parts(frame))
+        assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
+        assert_error(client.post("/v1/detect", json={}), 415, "unsupported_media_type")
+        assert_error(client.post("/v1/detect", files=parts(frame, points=b"1234")), 422, "invalid_input", "points")
+        assert client.get("/v2/health/live").json() == {"live": True}
+        info = client.get("/v1/model").json()
+        assert info["providers_in_use"]["pixor"] == ["CPUExecutionProvider"]
+        metrics = client.get("/metrics").text
+        assert 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status="200"} 2.0' in metrics
+        assert re.search(r"^process_resident_memory_bytes \d", metrics, re.MULTILINE)
+
+
+def test_body_limit_over_http(server: Server, frame: dict[str, bytes]) -> None:  # noqa: F811
+    big = parts(frame, points=frame["points"] * 2)  # 4.3 MB
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        assert_error(client.post("/v1/detect", files=big), 413, "body_too_large", "3000000 bytes")
+        boundary = "b0undary"
+        head = (f"--{boundary}\r\nContent-Disposition: form-data; name=\"points\"; filename=\"p.bin\"\r\n"
+                "Content-Type: application/octet-stream\r\n\r\n").encode()
+
+        def chunked() -> Iterator[bytes]:  # no Content-Length: Transfer-Encoding: chunked
+            yield head
+            for _ in range(64):
+                yield b"\x00" * 65536
+
+        response = client.post(
+            "/v1/detect", content=chunked(), headers={"content-type": f"multipart/form-data; boundary={boundary}"}
+        )
+        assert_error(response, 413, "body_too_large")
+    # The server is still healthy afterwards.
+    assert httpx.get(f"{server.url}/readyz", timeout=5).status_code == 200
+
+
+# --------------------------------------------------------------------------- schemathesis
+FUZZ_EXAMPLES = 12  # per operation and generation mode: 8 operations × 2 modes × 12 ≈ 200 requests
+
+
+def test_openapi_fuzz_has_no_server_errors(server: Server) -> None:
+    """Schema-generated requests, valid and invalid, never get a 5xx; answers match the schema (status
+    codes, bodies, headers, content types), and schema-invalid requests are rejected."""
+    api = schemathesis.openapi.from_url(f"{server.url}/openapi.json")
+    operations = [result.ok() for result in api.get_all_operations()]
+    assert {op.label for op in operations} >= {"POST /v1/detect", "POST /v1/detect/bev.png", "GET /readyz"}
+    for operation in operations:
+        for mode in (GenerationMode.POSITIVE, GenerationMode.NEGATIVE):
+
+            @given(case=operation.as_strategy(generation_mode=mode))
+            @settings(max_examples=FUZZ_EXAMPLES, deadline=None, database=None, derandomize=True,
+                      phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
+            def check(case: schemathesis.Case) -> None:
+                # Every default check except positive_data_acceptance: a schema cannot say "a valid PNG",
+                # so schema-valid random bytes rightly get a 4xx naming the part.
+                case.call_and_validate(timeout=30, excluded_checks=[schemathesis.checks.positive_data_acceptance])
+
+            try:
+                check()
+            except Unsatisfiable:
+                # A route without parameters or body has no invalid request to generate.
+                assert mode is GenerationMode.NEGATIVE, operation.label
+
+
+# --------------------------------------------------------------------------- lifecycle
+def test_sigterm_lets_in_flight_requests_finish(
+    tiny_models: Path, frame: dict[str, bytes], tmp_path: Path  # noqa: F811
+) -> None:
+    heavy = parts(frame, points=frame["points"] * 6)  # 660k points: each frame takes a while on one worker
+    with running_service(tiny_models, tmp_path / "service.log", "--workers", "1", "--queue-size", "4") as running:
+        with ThreadPoolExecutor(3) as clients:
+            futures = [clients.submit(httpx.post, f"{running.url}/v1/detect", files=heavy, timeout=60) for _ in range(3)]
+            deadline = time.monotonic() + 20
+            while "lowres3d_inference_in_flight 1.0" not in httpx.get(f"{running.url}/metrics").text:
+                assert time.monotonic() < deadline, "no frame got in flight"
+                time.sleep(0.01)
+            running.process.send_signal(signal.SIGTERM)
+            responses = [f.result() for f in futures]
+        assert [r.status_code for r in responses] == [200, 200, 200], [r.text for r in responses]
+        # uvicorn re-raises the captured SIGTERM after its graceful shutdown: the conventional status.
+        assert running.process.wait(30) in (0, -signal.SIGTERM)
+        log = running.log()
+        assert "Shutting down" in log and "inference pool stopped" in log and "Application shutdown complete" in log
+        with pytest.raises(httpx.TransportError):
+            httpx.get(f"{running.url}/healthz", timeout=2)
+
+
+def _start_fails(models: Path, *args: str) -> tuple[int, str]:
+    result = subprocess.run(
+        [sys.executable, "-m", "service", "--models", str(models), "--port", str(free_port()), *args],
+        check=False, cwd=REPO, capture_output=True, text=True, timeout=START_TIMEOUT_S,
+        env={k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")},
+    )
+    return result.returncode, result.stdout + result.stderr
+
+
+def test_corrupted_model_file_stops_the_start(tiny_models: Path, tmp_path: Path) -> None:  # noqa: F811
+    corrupted = tmp_path / "models"
+    shutil.copytree(tiny_models, corrupted)
+    pixor = corrupted / "pixor.onnx"
+    data = bytearray(pixor.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    pixor.write_bytes(bytes(data))
+    code, output = _start_fails(corrupted)
+    assert code == 2, output
+    assert f"{pixor}: sha256 mismatch" in output and "re-export" in output
+    assert "Traceback" not in output and "Uvicorn running" not in output
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [((), "model directory not found"), (("--workers", "0"), "workers"), (("--provider", "tensorrt"), "tensorrt")],
+    ids=["missing models", "bad setting", "unavailable provider"],
+)
+def test_bad_start_configuration_exits_with_a_message(
+    tiny_models: Path, tmp_path: Path, args: tuple[str, ...], message: str  # noqa: F811
+) -> None:
+    models = tmp_path / "nowhere" if not args else tiny_models
+    code, output = _start_fails(models, *args)
+    assert code == 2, output
+    assert message in output and "Traceback" not in output
