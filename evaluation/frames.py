@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from evaluation.labels import LabelArrays
 from pipeline.errors import InputError
+from pipeline.frame import read_split_file  # noqa: F401  (re-exported: evaluation's callers use it)
 from pipeline.kitti import read_labels
 
 log = logging.getLogger(__name__)
@@ -28,19 +29,6 @@ class LabelSet:
     ground_truth: tuple[LabelArrays, ...]
     detections: tuple[LabelArrays, ...]
     missing_predictions: tuple[str, ...]
-
-
-def read_split_file(path: str | Path) -> list[str]:
-    """Frame ids, one per line (e.g. ``000123``), as in the ImageSets ``val.txt`` of Qian/Chen et al."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read split file ({exc})") from exc
-    ids = [line.strip() for line in text.splitlines() if line.strip()]
-    if not ids:
-        raise InputError(f"{path}: split file lists no frame ids")
-    return ids
 
 
 def _require_dir(path: Path, what: str) -> None:

@@ -142,3 +142,35 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     (out / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
     verify_sha256(out, manifest)
     return manifest
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m export.precision --models DIR --precision int8 --out DIR``: convert an existing directory."""
+    import argparse
+    import sys
+
+    from pipeline.errors import InputError
+    from pipeline.model_files import ModelFileError
+
+    parser = argparse.ArgumentParser(prog="python -m export.precision",
+                                     description="Convert an FP32 model directory to FP16 or INT8 (QDQ).")
+    parser.add_argument("--models", type=Path, required=True, help="FP32 model directory (manifest.json + ONNX files)")
+    parser.add_argument("--precision", choices=["fp16", "int8"], required=True)
+    parser.add_argument("--out", type=Path, required=True, help="output model directory")
+    parser.add_argument("--calibration-data", type=Path, required=True, help="KITTI-layout folder for calibration")
+    parser.add_argument("--calibration-frames", type=int, default=300, help="frames used (default 300)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    try:
+        manifest = convert_precision(args.models, args.out, args.precision, args.calibration_data,
+                                     args.calibration_frames, progress=True)
+    except (InputError, ModelFileError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {args.out} ({args.precision}); deviation from fp32: "
+          f"{json.dumps(manifest['precision_info']['deviation_from_fp32'])}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -33,14 +33,24 @@ class Frame:
         return (int(self.image.shape[0]), int(self.image.shape[1]))
 
 
+def read_split_file(path: str | Path) -> list[str]:
+    """Frame ids, one per line (e.g. ``000123``), as in the ImageSets ``val.txt`` of Qian/Chen et al."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read split file ({exc})") from exc
+    ids = [line.strip() for line in text.splitlines() if line.strip()]
+    if not ids:
+        raise InputError(f"{path}: split file lists no frame ids")
+    return ids
+
+
 def frame_ids(data_dir: str | Path, split_file: str | Path | None = None) -> list[str]:
     """Frame ids of a KITTI object folder: from a split file (one id per line) or the velodyne folder."""
     data_dir = Path(data_dir)
     if split_file is not None:
-        try:
-            return [line.strip() for line in Path(split_file).read_text().splitlines() if line.strip()]
-        except OSError as exc:
-            raise InputError(f"{split_file}: cannot read split file ({exc.strerror})") from exc
+        return read_split_file(split_file)
     velodyne = data_dir / "velodyne"
     if not velodyne.is_dir():
         raise InputError(f"{data_dir}: not a KITTI object folder (no velodyne/ inside)")
