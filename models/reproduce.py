@@ -145,6 +145,7 @@ def run(config: ReproduceConfig) -> dict:
     for input_mode in ("lidar64", "lidar16", "pseudo"):
         report["stages"][f"pixor_{input_mode}"] = _train(
             config, f"pixor_{input_mode}", "detector", input_mode=input_mode, pseudo_dir=out / "pseudo" / "train",
+            val_pseudo_dir=out / "pseudo" / "val",
             epochs=b.detector_epochs, max_train_frames=b.detector_frames)
     stage("detectors")
 

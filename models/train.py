@@ -65,7 +65,8 @@ class TrainConfig:
     train_split: Path | None = None
     val_split: Path | None = None
     input_mode: str = "lidar16"  # detector: lidar64 | lidar16 | pseudo
-    pseudo_dir: Path | None = None  # detector --input pseudo: cached dense depth PNGs
+    pseudo_dir: Path | None = None  # detector --input pseudo: cached dense depth PNGs of the training frames
+    val_pseudo_dir: Path | None = None  # … of the validation frames (default: pseudo_dir, one folder for both)
     depth_checkpoint: Path | None = None  # joint (and pseudo caching): trained depth.pt
     pixor_checkpoint: Path | None = None  # joint: trained pixor.pt
     epochs: int | None = None
@@ -336,7 +337,8 @@ def run(config: TrainConfig) -> TrainResult:
             metrics = validate_depth(networks["depth"], val_set)
         else:
             metrics = validate_detector(networks["pixor"], preset, val_dir, val_ids, config.input_mode,
-                                        config.pseudo_dir, networks.get("depth") if config.task == "joint" else None)
+                                        config.val_pseudo_dir or config.pseudo_dir,
+                                        networks.get("depth") if config.task == "joint" else None)
         if config.task == "detector":
             scheduler.step(metrics["val_loss"])
         else:
@@ -403,7 +405,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="run directory (log.jsonl, state.pt, depth.pt/pixor.pt)")
     parser.add_argument("--input", dest="input_mode", default="lidar16", choices=DETECTOR_INPUTS,
                         help="detector input (default lidar16)")
-    parser.add_argument("--pseudo-dir", type=Path, help="cached dense depth PNGs for --input pseudo")
+    parser.add_argument("--pseudo-dir", type=Path, help="cached dense depth PNGs for --input pseudo (training frames)")
+    parser.add_argument("--val-pseudo-dir", type=Path, help="… of the validation frames (default: --pseudo-dir)")
     parser.add_argument("--depth-checkpoint", type=Path, help="trained depth.pt (joint)")
     parser.add_argument("--pixor-checkpoint", type=Path, help="trained pixor.pt (joint; or to continue training)")
     parser.add_argument("--epochs", type=int, help="default: the task's recipe")

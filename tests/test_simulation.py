@@ -163,7 +163,7 @@ def test_labels_follow_kitti_rules(dataset: Path) -> None:
             assert -np.pi <= o.alpha <= np.pi
         for o in (o for o in real if o.type == "Car"):
             h, w, l = o.dimensions
-            assert 1.2 < h < 1.9 and 1.3 < w < 1.9 and 2.9 < l < 4.8
+            assert h > 1.2 and h < 1.9 and w > 1.3 and w < 1.9 and l > 2.9 and l < 4.8
 
 
 def test_same_seed_same_bytes_any_workers_different_seed_differs(dataset: Path, tmp_path: Path) -> None:

@@ -110,3 +110,16 @@ def test_refuses_to_overwrite_a_run(small_sim, tmp_path):
     run(TrainConfig(**config))
     with pytest.raises(InputError, match="pass --resume"):
         run(TrainConfig(**config))
+
+
+def test_pseudo_detector_validates_on_the_validation_depth_maps(small_sim, tmp_path, tiny_models):
+    from models.cache_pseudo import run as cache_pseudo
+
+    train_pseudo, val_pseudo = tmp_path / "pseudo_train", tmp_path / "pseudo_val"
+    cache_pseudo(small_sim, tiny_models, val_pseudo, progress=False)
+    cache_pseudo(small_sim, tiny_models, train_pseudo, progress=False)
+    (train_pseudo / "000002.png").unlink()  # only the validation folder has frame 000002
+    result = run(TrainConfig(task="detector", data=small_sim, preset="tiny", out=tmp_path / "run", input_mode="pseudo",
+                             pseudo_dir=train_pseudo, val_pseudo_dir=val_pseudo, epochs=1, batch_size=2,
+                             max_train_frames=2, progress=False))
+    assert result.history[0]["val_loss"] > 0
