@@ -123,3 +123,13 @@ def test_pseudo_detector_validates_on_the_validation_depth_maps(small_sim, tmp_p
                              pseudo_dir=train_pseudo, val_pseudo_dir=val_pseudo, epochs=1, batch_size=2,
                              max_train_frames=2, progress=False))
     assert result.history[0]["val_loss"] > 0
+
+
+def test_detector_checkpoints_are_selected_by_ap_not_loss():
+    from models.train import selection_criterion
+
+    epoch1 = {"val_loss": 1.50, "bev_ap_0.7_moderate": 31.6, "bev_ap_0.5_moderate": 74.1}
+    epoch2 = {"val_loss": 1.54, "bev_ap_0.7_moderate": 55.3, "bev_ap_0.5_moderate": 80.0}
+    assert selection_criterion("detector", epoch2) < selection_criterion("detector", epoch1)
+    assert selection_criterion("joint", epoch2) < selection_criterion("joint", epoch1)
+    assert selection_criterion("depth", {"val_loss": 1.0}) < selection_criterion("depth", {"val_loss": 2.0})

@@ -1,0 +1,75 @@
+# syntax=docker/dockerfile:1
+# lowres3d detection service: runtime images for CPUs, NVIDIA GPUs and NVIDIA Jetson.
+#
+#   docker build -t lowres3d:cpu .                                   # x86-64 or arm64 CPU (onnxruntime)
+#   docker build -t lowres3d:gpu --build-arg TARGET=gpu .            # x86-64 + NVIDIA GPU (onnxruntime-gpu, TensorRT)
+#   docker build -t lowres3d:jetson --build-arg TARGET=jetson .      # Jetson Orin, JetPack 6 (build on the Jetson)
+#
+# The image holds only what the service needs: pipeline/ and service/ (no torch, no compilers), the
+# shipped models, a non-root user. Settings are LOWRES3D_* environment variables (docs/deploy.md).
+
+ARG TARGET=cpu
+ARG CPU_BASE=python:3.11-slim-bookworm
+ARG GPU_BASE=nvidia/cuda:12.6.3-cudnn-runtime-ubuntu24.04
+ARG JETSON_BASE=nvcr.io/nvidia/l4t-jetpack:r36.4.0
+
+# --------------------------------------------------------------------------- CPU (x86-64, arm64)
+FROM ${CPU_BASE} AS runtime-cpu
+COPY requirements/service-cpu.txt /tmp/requirements.txt
+RUN python -m venv /opt/venv \
+    && /opt/venv/bin/pip install --no-cache-dir -r /tmp/requirements.txt \
+    && rm /tmp/requirements.txt
+
+# --------------------------------------------------------------------------- NVIDIA GPU (x86-64)
+FROM ${GPU_BASE} AS runtime-gpu
+# TensorRT runtime libraries from the CUDA apt repository the base image already trusts.
+ARG TENSORRT_PACKAGES="libnvinfer10 libnvinfer-plugin10 libnvonnxparsers10"
+# hadolint ignore=DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends python3 python3-venv ${TENSORRT_PACKAGES} \
+    && rm -rf /var/lib/apt/lists/*
+COPY requirements/service-gpu.txt /tmp/requirements.txt
+RUN python3 -m venv /opt/venv \
+    && /opt/venv/bin/pip install --no-cache-dir -r /tmp/requirements.txt \
+    && rm /tmp/requirements.txt
+
+# --------------------------------------------------------------------------- NVIDIA Jetson (JetPack 6)
+FROM ${JETSON_BASE} AS runtime-jetson
+# JetPack 6 ships Python 3.10 with CUDA 12.6 and TensorRT 10; its onnxruntime-gpu wheels come from the
+# Jetson AI Lab index (PyPI has no CUDA builds for aarch64).
+ARG JETSON_INDEX=https://pypi.jetson-ai-lab.io/jp6/cu126
+ARG ORT_GPU_VERSION=1.23.0
+# hadolint ignore=DL3008
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends python3-venv \
+    && rm -rf /var/lib/apt/lists/*
+COPY requirements/service-jetson.txt /tmp/requirements.txt
+RUN python3 -m venv /opt/venv \
+    && /opt/venv/bin/pip install --no-cache-dir --extra-index-url "${JETSON_INDEX}" \
+       "onnxruntime-gpu==${ORT_GPU_VERSION}" -r /tmp/requirements.txt \
+    && rm /tmp/requirements.txt
+
+# --------------------------------------------------------------------------- the service
+# hadolint ignore=DL3006
+FROM runtime-${TARGET} AS service
+WORKDIR /app
+COPY pipeline/ /app/pipeline/
+COPY service/ /app/service/
+COPY weights/edge/ /app/weights/edge/
+RUN useradd --system --uid 10001 --home-dir /app --shell /usr/sbin/nologin lowres3d \
+    && mkdir -p /var/cache/lowres3d/tensorrt \
+    && chown lowres3d /var/cache/lowres3d/tensorrt
+ENV PATH=/opt/venv/bin:$PATH \
+    PYTHONPATH=/app \
+    PYTHONUNBUFFERED=1 \
+    LOWRES3D_MODELS=/app/weights/edge \
+    LOWRES3D_HOST=0.0.0.0 \
+    LOWRES3D_PORT=8000 \
+    LOWRES3D_TRT_CACHE_DIR=/var/cache/lowres3d/tensorrt
+# TensorRT builds its engines once per box and model: keep them on a volume.
+VOLUME ["/var/cache/lowres3d/tensorrt"]
+USER 10001
+EXPOSE 8000
+HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \
+    CMD ["python", "-c", "import os, sys, urllib.request; url = 'http://127.0.0.1:%s/readyz' % os.environ.get('LOWRES3D_PORT', '8000'); sys.exit(0 if urllib.request.urlopen(url, timeout=4).status == 200 else 1)"]
+CMD ["python", "-m", "service"]
