@@ -29,7 +29,6 @@ from tqdm import tqdm
 from export import run as export_run
 from export.exporter import ExportConfig
 from export.inputs import NetworkInputs, kitti_inputs
-from export.parity import cpu_session
 from pipeline.presets import PRESETS, get_preset
 
 
@@ -87,7 +86,11 @@ def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> 
         module = result.networks[network]
         feeds = _feeds(network, inputs)
         tensors = [torch.from_numpy(v) for v in feeds.values()]
-        session: ort.InferenceSession = cpu_session(result.files[network])
+        # ORT's pool spin-waits after a run by default, which steals the cores from the PyTorch run
+        # interleaved right after it; without spinning both runtimes start from idle cores.
+        options = ort.SessionOptions()
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        session = ort.InferenceSession(str(result.files[network]), options, providers=["CPUExecutionProvider"])
 
         def eager(module: torch.nn.Module = module, tensors: list[torch.Tensor] = tensors) -> object:
             with torch.no_grad():

@@ -122,6 +122,10 @@ class Detector:
                                  for p in self.providers]
         options = ort.SessionOptions()
         options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        # ONNX Runtime's thread pools spin-wait after each run. Two sessions run one after the other
+        # with NumPy stages between them, so a spinning idle pool steals the cores from the stage that
+        # is working: measured here, spinning made an edge frame 69 ms instead of 43 ms.
+        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
         if intra_op_threads:
             options.intra_op_num_threads = intra_op_threads
             options.inter_op_num_threads = 1
