@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from models.init import init_conv_and_bn
 from pipeline.presets import DepthNetConfig
 
 log = logging.getLogger(__name__)
@@ -197,14 +198,7 @@ class DepthCompletionNet(nn.Module):
 
     def _init_weights(self) -> None:
         """He init for convs, BN at identity: training starts from scratch here (no downloads)."""
-        for module in self.modules():
-            if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
-                nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
-                if module.bias is not None:
-                    nn.init.zeros_(module.bias)
-            elif isinstance(module, nn.BatchNorm2d):
-                nn.init.ones_(module.weight)
-                nn.init.zeros_(module.bias)
+        init_conv_and_bn(self)
         # Ma et al.'s ×100 output: a small last layer keeps the initial depths in metres, not km.
         nn.init.normal_(self.convtf.weight, std=1e-3)
         nn.init.constant_(self.convtf.bias, 0.2)  # ≈ 20 m, a typical KITTI depth

@@ -27,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from models.init import init_conv_and_bn
 from pipeline.presets import PixorConfig
 
 STAGE_STRIDES = (2, 4, 8, 16)  # cumulative stride of block2 … block5
@@ -126,14 +127,7 @@ class Pixor(nn.Module):
 
     def _init_weights(self) -> None:
         """He init; score bias for the prior π so the focal loss starts balanced (RetinaNet)."""
-        for module in self.modules():
-            if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)):
-                nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
-                if module.bias is not None:
-                    nn.init.zeros_(module.bias)
-            elif isinstance(module, nn.BatchNorm2d):
-                nn.init.ones_(module.weight)
-                nn.init.zeros_(module.bias)
+        init_conv_and_bn(self)
         nn.init.normal_(self.score.weight, std=0.01)
         nn.init.constant_(self.score.bias, -math.log((1.0 - self.config.prior) / self.config.prior))
         nn.init.normal_(self.regression.weight, std=0.01)
