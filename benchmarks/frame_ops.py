@@ -23,15 +23,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.beams import emulate_beams  # noqa: E402
-from pipeline.bev import BevVoxelizer  # noqa: E402
-from pipeline.boxes import labels_to_boxes  # noqa: E402
-from pipeline.frame import load_frame  # noqa: E402
-from pipeline.postprocess import boxes_from_maps  # noqa: E402
-from pipeline.preprocess import depth_inputs, network_view  # noqa: E402
-from pipeline.presets import get_preset  # noqa: E402
-from pipeline.pseudo import depth_to_points, merge_points  # noqa: E402
-from pipeline.targets import encode_targets  # noqa: E402
+from pipeline.beams import emulate_beams
+from pipeline.bev import BevVoxelizer
+from pipeline.boxes import labels_to_boxes
+from pipeline.frame import load_frame
+from pipeline.postprocess import boxes_from_maps
+from pipeline.preprocess import depth_inputs, network_view
+from pipeline.presets import get_preset
+from pipeline.pseudo import depth_to_points, merge_points
+from pipeline.targets import encode_targets
 
 KITTI = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 
@@ -76,7 +76,7 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper")
     lidar16 = emulate_beams(frame.points, 16)
     # A dense depth map of the depth-net view: nearest-neighbour fill of the 64-line sparse depth stands in
     # for the network's output, so the pseudo cloud has the real geometry and the full 428k-point size.
-    view, view_calib = network_view(frame.image, frame.calib, preset)
+    _, view_calib = network_view(frame.image, frame.calib, preset)
     sparse = depth_inputs(frame.image, frame.points, frame.calib, preset).sparse_depth[0, 0]
     import cv2
 

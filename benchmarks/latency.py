@@ -34,10 +34,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.peak import measure_peak  # noqa: E402
-from pipeline.beams import emulate_beams  # noqa: E402
-from pipeline.detector import Detector  # noqa: E402
-from pipeline.frame import Frame, frame_ids, load_frame  # noqa: E402
+from benchmarks.peak import measure_peak
+from pipeline.beams import emulate_beams
+from pipeline.detector import Detector
+from pipeline.frame import Frame, frame_ids, load_frame
 
 BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 PAPER = {"RTX 2080Ti": {"ms": 25.4, "fps": 39.8}, "DRIVE PX2": {"ms": 581.7, "fps_two_threads": 3.4}}
@@ -119,7 +119,7 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame], workers
     share = max(1, len(cores) // workers)
     barrier = threading.Barrier(workers + 1)
     done = threading.Barrier(workers + 1)
-    errors: list[BaseException] = []
+    errors: list[Exception] = []
 
     def work(index: int) -> None:
         try:
@@ -129,14 +129,14 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame], workers
             for i in range(warmup):
                 f = frames[(i + index) % len(frames)]
                 detector.detect(f.image, f.points, f.calib)
-        except BaseException as exc:  # reported after the barrier
+        except Exception as exc:  # noqa: BLE001 — re-raised in the main thread after the barrier
             errors.append(exc)
         barrier.wait()
         try:
             for i in range(per_worker):
                 f = frames[(i + index) % len(frames)]
                 detector.detect(f.image, f.points, f.calib)
-        except BaseException as exc:
+        except Exception as exc:  # noqa: BLE001 — re-raised in the main thread
             errors.append(exc)
         done.wait()
 

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import tempfile
-from dataclasses import replace
 import logging
 import sys
+import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 from export.exporter import ExportConfig, run

@@ -117,9 +117,9 @@ def run(config: ExportConfig) -> ExportResult:
         with _step(bar, "loading weights"):
             training = _load_weights(config, preset, models)
         files = {}
-        for name in models:
+        for name, module in models.items():
             with _step(bar, f"exporting {FILES[name]}"):
-                files[name] = export_onnx(models[name], interfaces[name], out / FILES[name])
+                files[name] = export_onnx(module, interfaces[name], out / FILES[name])
         results: list[ParityResult] = []
         if config.parity:
             sessions = {name: cpu_session(path) for name, path in files.items()}

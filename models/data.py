@@ -25,8 +25,8 @@ import torch
 from torch.utils.data import Dataset
 
 from pipeline.beams import emulate_beams
-from pipeline.boxes import labels_to_boxes
 from pipeline.bev import voxelize_bev
+from pipeline.boxes import labels_to_boxes
 from pipeline.calib import depth_crop, sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame

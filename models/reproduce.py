@@ -151,7 +151,7 @@ def run(config: ReproduceConfig) -> dict:
 
     report["stages"]["joint"] = _train(
         config, "joint", "joint", epochs=b.joint_epochs, max_train_frames=b.joint_frames,
-        depth_checkpoint=out / "depth" / "depth.pt", pixor_checkpoint=out / f"pixor_pseudo" / "pixor.pt")
+        depth_checkpoint=out / "depth" / "depth.pt", pixor_checkpoint=out / "pixor_pseudo" / "pixor.pt")
     stage("joint")
 
     # The two-stage directory before joint fine-tuning: trained depth + pseudo-trained PIXOR.

@@ -36,7 +36,14 @@ from evaluation.kitti_eval import evaluate
 from evaluation.labels import LabelArrays
 from models import build_depth_net, build_pixor
 from models.checkpoint import load_checkpoint, load_network_weights, save_checkpoint
-from models.data import DETECTOR_INPUTS, DepthDataset, DetectorDataset, car_boxes, detector_points, frame_points
+from models.data import (
+    DETECTOR_INPUTS,
+    DepthDataset,
+    DetectorDataset,
+    car_boxes,
+    detector_points,
+    frame_points,
+)
 from models.losses import masked_mse, pixor_loss
 from models.soft_bev import soft_occupancy
 from pipeline.bev import voxelize_bev

@@ -75,7 +75,7 @@ class Calibration:
         """Back-project pixels with depth into (N, 3) velodyne points."""
         return self.rect_to_velo(self.image_to_rect(u, v, depth))
 
-    def shifted(self, left: float, top: float) -> "Calibration":
+    def shifted(self, left: float, top: float) -> Calibration:
         """Calibration of an image cropped at (left, top): P2 ← T·P2 with T a pixel translation.
 
         Exact for any P2: both the principal point and P2's last column move,

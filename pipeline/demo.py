@@ -60,7 +60,7 @@ def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
         "kept_fraction": round(lidar16.shape[0] / frame.points.shape[0], 4),
         "sparse_depth_pixels": int(np.count_nonzero(inputs.sparse_depth)),
         "occupied_voxels_64": int(np.count_nonzero(bev64[:-1])), "occupied_voxels_16": int(np.count_nonzero(bev16[:-1])),
-        "labelled_cars": int(len(cars)), "core_ms": round(elapsed, 1), "pictures": str(out),
+        "labelled_cars": len(cars), "core_ms": round(elapsed, 1), "pictures": str(out),
     }
 
 

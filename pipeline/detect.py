@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
-import numpy as np
 
 from pipeline.boxes import labels_to_boxes
 from pipeline.errors import InputError

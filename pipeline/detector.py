@@ -22,9 +22,9 @@ import numpy as np
 import onnxruntime as ort
 
 from pipeline.beams import emulate_beams
+from pipeline.bev import BevVoxelizer
 from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import Calibration
-from pipeline.bev import BevVoxelizer
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D
 from pipeline.model_files import ModelFileError, load_manifest, verify_sha256

@@ -87,6 +87,6 @@ def view_from_depth_png(image: np.ndarray, sparse: np.ndarray, preset: Preset) -
     height, width = preset.depth.input_hw
     if view.shape[:2] != (height, width):
         view = cv2.resize(view, (width, height), interpolation=cv2.INTER_AREA)
-        sparse_view = downscale_sparse_depth(sparse_view, int(round(1 / preset.depth.input_scale)))
+        sparse_view = downscale_sparse_depth(sparse_view, round(1 / preset.depth.input_scale))
     rgb = np.ascontiguousarray(view.transpose(2, 0, 1)[None], dtype=np.float32)
     return rgb, np.ascontiguousarray(sparse_view[None, None], dtype=np.float32)

@@ -32,15 +32,15 @@ class BevGrid:
 
     @property
     def nx(self) -> int:
-        return int(round((self.x_max - self.x_min) / self.cell))
+        return round((self.x_max - self.x_min) / self.cell)
 
     @property
     def ny(self) -> int:
-        return int(round((self.y_max - self.y_min) / self.cell))
+        return round((self.y_max - self.y_min) / self.cell)
 
     @property
     def nz(self) -> int:
-        return int(round((self.z_max - self.z_min) / self.z_cell))
+        return round((self.z_max - self.z_min) / self.z_cell)
 
     @property
     def channels(self) -> int:

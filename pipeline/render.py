@@ -29,8 +29,8 @@ def render_bev(
 ) -> np.ndarray:
     """BGR uint8 picture of the BEV grid: points (brighter where denser), ground truth in red,
     predictions in green with their scores."""
-    width = int(round((grid.y_max - grid.y_min) / metres_per_pixel))
-    height = int(round((grid.x_max - grid.x_min) / metres_per_pixel))
+    width = round((grid.y_max - grid.y_min) / metres_per_pixel)
+    height = round((grid.x_max - grid.x_min) / metres_per_pixel)
     density = np.zeros(height * width, np.float32)
     pix = np.floor(_to_pixels(points[:, :2], grid, metres_per_pixel)).astype(np.int64)
     ok = (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)

@@ -28,7 +28,7 @@ class OutputGrid:
     nx: int
 
     @classmethod
-    def from_bev(cls, grid: BevGrid, stride: int) -> "OutputGrid":
+    def from_bev(cls, grid: BevGrid, stride: int) -> OutputGrid:
         return cls(grid.x_min, grid.y_min, grid.cell * stride, grid.ny // stride, grid.nx // stride)
 
     def centres(self) -> tuple[np.ndarray, np.ndarray]:
