@@ -14,6 +14,11 @@ state in ``RUN_DIR/state.pt`` (exact resume with ``--resume``: weights,
 optimizer, schedule, RNG, the epoch's data order comes from the seed and the
 epoch number) and the best weights as ``RUN_DIR/depth.pt`` / ``pixor.pt`` in
 the checkpoint format ``python -m export --checkpoints RUN_DIR`` reads.
+
+Arithmetic: bf16 autocast with channels-last tensors where the CPU supports it
+(``--precision auto``, the default; ``fp32`` to turn it off). Weights, optimizer
+state and losses stay fp32, so checkpoints and exported models are the same
+either way.
 """
 
 from __future__ import annotations
@@ -89,6 +94,7 @@ class TrainConfig:
     quick: bool = False
     progress: bool = True
     threads: int | None = None
+    precision: str = "auto"  # auto | bf16 | fp32 (bf16 = autocast; weights and optimizer stay fp32)
 
 
 @dataclass
@@ -121,6 +127,45 @@ def recipe(config: TrainConfig) -> TrainConfig:
         config.max_train_frames = config.max_train_frames or 4
         config.max_val_frames = config.max_val_frames or 2
     return config
+
+
+def resolve_precision(precision: str) -> str:
+    """``auto`` → bf16 where the CPU has native bf16 dot products (AVX-512 BF16 or AMX), else fp32.
+
+    Measured here (2-core AMD EPYC with AVX-512 BF16), one training step: bf16 autocast with channels-last
+    tensors took PIXOR (edge, batch 8) from 1.42 s to 0.41 s and the depth net (edge, batch 4) from 0.33 s
+    to 0.17 s; weights, optimizer state and losses stay fp32.
+    """
+    if precision not in ("auto", "bf16", "fp32"):
+        raise InputError(f"--precision: {precision!r} is not one of auto, bf16, fp32")
+    if precision == "auto":
+        supported = torch.backends.mkldnn.is_available() and torch.cpu._is_avx512_bf16_supported()
+        return "bf16" if supported else "fp32"
+    return precision
+
+
+def channels_last_safe(networks: dict[str, torch.nn.Module]) -> bool:
+    """False when a network has a convolution oneDNN's channels-last path mishandles.
+
+    Found here (torch 2.13.0, oneDNN 3.12): the backward pass of a 1×1 stride-2 convolution with 8 input
+    channels in channels-last layout corrupts the heap ("double free or corruption"), in fp32 and bf16.
+    Such thin layers exist only in the ``tiny`` test preset; ``edge`` and ``paper`` start at 16 channels.
+    """
+    return all(m.in_channels >= 16 or m.stride == (1, 1)
+               for net in networks.values() for m in net.modules() if isinstance(m, torch.nn.Conv2d))
+
+
+def autocast(precision: str):
+    """Mixed-precision context for the forward pass (a no-op in fp32)."""
+    return torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16")
+
+
+def channels_last(tensor: torch.Tensor) -> torch.Tensor:
+    """NHWC layout (oneDNN's fast path for convolutions on the CPU) when the run uses it."""
+    return tensor.contiguous(memory_format=_LAYOUT["memory_format"])
+
+
+_LAYOUT = {"memory_format": torch.channels_last}  # set per run by :func:`run`
 
 
 def seed_everything(seed: int) -> None:
@@ -247,6 +292,7 @@ def run(config: TrainConfig) -> TrainResult:
     config = recipe(config)
     if config.threads:
         torch.set_num_threads(config.threads)
+    config.precision = resolve_precision(config.precision)
     preset = get_preset(config.preset)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -266,6 +312,9 @@ def run(config: TrainConfig) -> TrainResult:
             load_network_weights(networks[name], load_checkpoint(path), name, preset)
     if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
+    _LAYOUT["memory_format"] = torch.channels_last if channels_last_safe(networks) else torch.contiguous_format
+    for net in networks.values():
+        net.to(memory_format=_LAYOUT["memory_format"])
     parameters = [p for net in networks.values() for p in net.parameters()]
     optimizer = torch.optim.Adam(parameters, lr=config.lr)
     if config.task == "detector":
@@ -296,7 +345,7 @@ def run(config: TrainConfig) -> TrainResult:
     metadata_base = {"task": config.task, "preset": preset.name, "data": str(train_dir), "train_frames": len(train_ids),
                      "val_data": str(val_dir), "val_frames": len(val_ids), "input": config.input_mode,
                      "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
-                                "optimizer": "Adam", "seed": config.seed}}
+                                "optimizer": "Adam", "seed": config.seed, "precision": config.precision}}
     log_path = out / "log.jsonl"
     for epoch in range(start_epoch, config.epochs):
         tic = time.perf_counter()
@@ -311,7 +360,7 @@ def run(config: TrainConfig) -> TrainResult:
                 optimizer.zero_grad()
                 total = 0.0
                 for index in batch:
-                    loss = joint_step(networks, preset, train_dir, train_ids[index])
+                    loss = joint_step(networks, preset, train_dir, train_ids[index], config.precision)
                     (loss / len(batch)).backward()
                     total += loss.item() / len(batch)
                 optimizer.step()
@@ -325,11 +374,14 @@ def run(config: TrainConfig) -> TrainResult:
                 optimizer.zero_grad()
                 if config.task == "depth":
                     rgb, sparse, target = batch
-                    loss = masked_mse(networks["depth"](rgb, sparse), target)
+                    with autocast(config.precision):
+                        prediction = networks["depth"](channels_last(rgb), channels_last(sparse))
+                    loss = masked_mse(prediction.float(), target)
                 else:
                     bev, score_t, reg_t = batch
-                    logits, regression = networks["pixor"].forward_logits(bev)
-                    loss = pixor_loss(logits, regression, score_t, reg_t).total
+                    with autocast(config.precision):
+                        logits, regression = networks["pixor"].forward_logits(channels_last(bev))
+                    loss = pixor_loss(logits.float(), regression.float(), score_t, reg_t).total
                 loss.backward()
                 optimizer.step()
                 epoch_losses.append(loss.item())
@@ -383,20 +435,23 @@ def selection_criterion(task: str, metrics: dict) -> float:
     return -0.5 * (metrics["bev_ap_0.7_moderate"] + metrics["bev_ap_0.5_moderate"])
 
 
-def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str) -> torch.Tensor:
+def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str, precision: str = "fp32") -> torch.Tensor:
     """Loss of one frame through depth net → soft BEV → PIXOR (+ the depth loss)."""
     from models.data import depth_target
 
     frame = load_frame(data_dir, frame_id)
     lidar16 = frame_points(frame, 16)
     inputs = depth_inputs(frame.image, lidar16, frame.calib, preset)
-    depth = networks["depth"](torch.from_numpy(inputs.rgb), torch.from_numpy(inputs.sparse_depth))[0]
+    with autocast(precision):
+        depth = networks["depth"](channels_last(torch.from_numpy(inputs.rgb)),
+                                  channels_last(torch.from_numpy(inputs.sparse_depth)))[0].float()
     h, w = preset.depth.input_hw
     rays, origin = pixel_rays(inputs.calib, h, w, preset.decode.pseudo_stride)
     bev = joint_bev(depth, torch.from_numpy(rays), torch.from_numpy(origin.astype(np.float32)), lidar16, preset)
     targets = encode_targets(car_boxes(frame), preset.bev, preset.pixor.output_stride, preset.decode)
-    logits, regression = networks["pixor"].forward_logits(bev[None])
-    detection = pixor_loss(logits, regression, torch.from_numpy(targets.score)[None, None],
+    with autocast(precision):
+        logits, regression = networks["pixor"].forward_logits(channels_last(bev[None]))
+    detection = pixor_loss(logits.float(), regression.float(), torch.from_numpy(targets.score)[None, None],
                            torch.from_numpy(targets.regression)[None]).total
     target = torch.from_numpy(depth_target(data_dir, frame, preset))[None, None]
     return detection + 0.1 * masked_mse(depth[None], target)
@@ -434,6 +489,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=0, help="data-loading processes (default 0)")
     parser.add_argument("--threads", type=int, help="torch intra-op threads")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--precision", default="auto", choices=("auto", "bf16", "fp32"),
+                        help="training arithmetic: bf16 autocast where the CPU has AVX-512 BF16 (auto, default)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last epoch")
     parser.add_argument("--quick", action="store_true", help="a few frames and epochs: a smoke test")
     args = parser.parse_args(argv)
