@@ -133,3 +133,26 @@ def test_detector_checkpoints_are_selected_by_ap_not_loss():
     assert selection_criterion("detector", epoch2) < selection_criterion("detector", epoch1)
     assert selection_criterion("joint", epoch2) < selection_criterion("joint", epoch1)
     assert selection_criterion("depth", {"val_loss": 1.0}) < selection_criterion("depth", {"val_loss": 2.0})
+
+
+def test_precision_and_layout_choices():
+    from models import build_depth_net, build_pixor
+    from models.train import autocast, channels_last_safe, resolve_precision
+    from pipeline.errors import InputError
+
+    assert resolve_precision("auto") in ("bf16", "fp32")
+    with pytest.raises(InputError, match="--precision"):
+        resolve_precision("fp16")
+    # tiny has the 8-channel 1x1 stride-2 shortcut that oneDNN's channels-last backward corrupts; edge has none.
+    assert not channels_last_safe({"pixor": build_pixor(PRESETS["tiny"])})
+    assert channels_last_safe({"pixor": build_pixor(PRESETS["edge"]), "depth": build_depth_net(PRESETS["edge"])})
+    # bf16 autocast stays close to fp32 on the edge PIXOR (what the training loop runs).
+    torch.manual_seed(0)
+    pixor = build_pixor(PRESETS["edge"]).eval().to(memory_format=torch.channels_last)
+    bev = (torch.rand(1, *PRESETS["edge"].bev.shape) > 0.97).float().contiguous(memory_format=torch.channels_last)
+    with torch.no_grad():
+        reference, _ = pixor.forward_logits(bev)
+        with autocast("bf16"):
+            low, _ = pixor.forward_logits(bev)
+    assert low.dtype == torch.bfloat16
+    assert torch.allclose(low.float(), reference, atol=0.05 * float(reference.abs().max()))
