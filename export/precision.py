@@ -50,7 +50,7 @@ def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool =
         if detector.two_stage:
             inputs = depth_inputs(frame.image, points, frame.calib, detector.preset)
             feeds["depth"].append({"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
-            cloud = detector.detect(frame.image, points, frame.calib).points
+            cloud = detector.detect(frame.image, points, frame.calib, keep_points=True).points
         else:
             cloud = points
         feeds["pixor"].append({"bev": voxelize_bev(cloud, detector.preset.bev)[None].astype(np.float16)})

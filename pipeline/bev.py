@@ -19,23 +19,28 @@ from pipeline.presets import BevGrid
 
 
 def bev_indices(points: np.ndarray, grid: BevGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Bin indices (iz, iy, ix) of the points inside the grid, and the indices of those points.
+    """Bin indices (iz, iy, ix) of the (N, ≥3) points inside the grid, and the indices of those points."""
+    return bev_indices_xyz(points[:, 0], points[:, 1], points[:, 2], grid)
+
+
+def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`bev_indices` of points given as coordinate arrays.
 
     Bins are ``floor((v - v_min) / cell)`` computed in float64, so a point on an
     edge goes to the bin above it. A coarse float32 range test with a one-cell
     margin first discards the points far outside (half of a 360° scan), so the
     exact float64 arithmetic runs only on candidates.
     """
-    xyz = points[:, :3]
     margin = max(grid.cell, grid.z_cell)
     near = np.flatnonzero(
-        (xyz[:, 0] > grid.x_min - margin) & (xyz[:, 0] < grid.x_max + margin)
-        & (xyz[:, 1] > grid.y_min - margin) & (xyz[:, 1] < grid.y_max + margin)
-        & (xyz[:, 2] > grid.z_min - margin) & (xyz[:, 2] < grid.z_max + margin)
+        (x > grid.x_min - margin) & (x < grid.x_max + margin)
+        & (y > grid.y_min - margin) & (y < grid.y_max + margin)
+        & (z > grid.z_min - margin) & (z < grid.z_max + margin)
     )
-    ix = np.floor((xyz[near, 0].astype(np.float64) - grid.x_min) / grid.cell)
-    iy = np.floor((xyz[near, 1].astype(np.float64) - grid.y_min) / grid.cell)
-    iz = np.floor((xyz[near, 2].astype(np.float64) - grid.z_min) / grid.z_cell)
+    ix = np.floor((x[near].astype(np.float64) - grid.x_min) / grid.cell)
+    iy = np.floor((y[near].astype(np.float64) - grid.y_min) / grid.cell)
+    iz = np.floor((z[near].astype(np.float64) - grid.z_min) / grid.z_cell)
     inside = np.flatnonzero(
         (ix >= 0) & (ix < grid.nx) & (iy >= 0) & (iy < grid.ny) & (iz >= 0) & (iz < grid.nz)
     )
@@ -54,8 +59,14 @@ class BevVoxelizer:
         self._flat = self._out.reshape(-1)
         self._touched = np.zeros(0, dtype=np.int64)
 
-    def __call__(self, points: np.ndarray) -> np.ndarray:
-        """(N, 4) points ``x, y, z, reflectance`` → float32 ``grid.shape`` tensor."""
+    def __call__(self, points: np.ndarray, pseudo: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                 ) -> np.ndarray:
+        """(N, 4) points ``x, y, z, reflectance`` → float32 ``grid.shape`` tensor.
+
+        pseudo: optional extra points as (x, y, z) arrays with reflectance 0
+        (:func:`pipeline.pseudo.pseudo_xyz`); the result equals voxelizing
+        ``merge_points(pseudo, points)`` without building that merged array.
+        """
         grid = self.grid
         plane = grid.ny * grid.nx
         self._flat[self._touched] = 0.0  # clear only what the last frame set
@@ -63,10 +74,18 @@ class BevVoxelizer:
         cell = iy * grid.nx + ix
         occupancy = iz * plane + cell
         self._flat[occupancy] = 1.0
-        # Mean reflectance of each occupied cell, written only where there are points.
-        # Each point writes its cell's mean (duplicates write the same value), which
-        # avoids scanning the whole plane for the occupied cells.
-        counts = np.bincount(cell, minlength=plane)
+        counted = cell
+        if pseudo is not None:
+            p_iz, p_iy, p_ix, _ = bev_indices_xyz(*pseudo, grid)
+            p_cell = p_iy * grid.nx + p_ix
+            p_occupancy = p_iz * plane + p_cell
+            self._flat[p_occupancy] = 1.0
+            occupancy = np.concatenate([occupancy, p_occupancy])
+            counted = np.concatenate([cell, p_cell])
+        # Mean reflectance of each cell with real returns (pseudo points add 0 to the sum but
+        # count), written only there: each point writes its cell's mean (duplicates write the
+        # same value), which avoids scanning the whole plane for the occupied cells.
+        counts = np.bincount(counted, minlength=plane)
         sums = np.bincount(cell, weights=points[kept, 3], minlength=plane)
         reflectance_index = grid.nz * plane + cell
         self._flat[reflectance_index] = sums[cell] / counts[cell]

@@ -126,7 +126,18 @@ def sparse_depth_map(
     the nearest return wins, as a camera would see it.
     """
     h, w = int(image_hw[0]), int(image_hw[1])
-    uv, depth = calib.velo_to_image(points[:, :3])
+    # A float32 pass finds the points that can land in the image (most of a 360° scan cannot);
+    # the exact float64 projection then runs on those alone. The 2-pixel and 1 cm margins are far
+    # wider than float32's error at LiDAR ranges, so the result equals projecting every point.
+    project = (calib.P2 @ calib.velo_to_rect_matrix).astype(np.float32)  # 3×4, velodyne → image
+    homog = points[:, :3].astype(np.float32, copy=False) @ project[:, :3].T + project[:, 3]
+    near = homog[:, 2]
+    candidates = np.flatnonzero(
+        (near > min_depth - 0.01)
+        & (homog[:, 0] > -2.0 * near) & (homog[:, 0] < (w + 2.0) * near)
+        & (homog[:, 1] > -2.0 * near) & (homog[:, 1] < (h + 2.0) * near)
+    )
+    uv, depth = calib.velo_to_image(points[candidates, :3])
     cols = np.rint(uv[:, 0])
     rows = np.rint(uv[:, 1])
     keep = (depth > min_depth) & (cols >= 0) & (cols < w) & (rows >= 0) & (rows < h)

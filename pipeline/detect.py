@@ -76,7 +76,8 @@ def run(
     count = 0
     for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
         frame = loader(fid)
-        detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams)
+        detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams,
+                                         keep_points=True)
         count += len(detections.scores)
         for stage, ms in detections.timings_ms.items():
             totals[stage] = totals.get(stage, 0.0) + ms

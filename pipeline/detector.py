@@ -1,8 +1,8 @@
 """The ONNX Runtime two-stage detector: image + sparse scan + calibration → 3D car boxes.
 
 Stages (each timed): ``prepare`` (depth-net view and sparse depth) →
-``depth_net`` (depth.onnx) → ``pseudo_points`` (back-projection, merged with
-the real points) → ``voxelize`` (BEV tensor) → ``pixor`` (pixor.onnx) →
+``depth_net`` (depth.onnx) → ``pseudo_points`` (back-projection) →
+``voxelize`` (BEV tensor of pseudo + real points) → ``pixor`` (pixor.onnx) →
 ``decode`` (candidates, rotated NMS, z and h). A model directory without
 ``depth.onnx`` is a LiDAR-only PIXOR: it skips the first three stages.
 
@@ -31,7 +31,7 @@ from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import Preset, preset_from_dict
-from pipeline.pseudo import depth_to_points, merge_points
+from pipeline.pseudo import merge_points, pseudo_xyz
 
 log = logging.getLogger(__name__)
 
@@ -178,12 +178,16 @@ class Detector:
         calib: Calibration | None,
         score_threshold: float | None = None,
         emulate_to_beams: int | None = None,
+        keep_points: bool = False,
     ) -> Detections:
         """Detect cars in one frame.
 
         image: uint8 RGB (H, W, 3), required for a two-stage model. points:
         (N, 4) float32 velodyne points, finite. calib: required for a
         two-stage model. emulate_to_beams: thin a 64-line scan first.
+        keep_points: also return the point cloud PIXOR saw (pseudo + real),
+        for pictures; otherwise the pseudo points are voxelized straight
+        from their coordinate arrays and never gathered into one cloud.
         """
         timings: dict[str, float] = {}
         warnings: list[str] = []
@@ -210,17 +214,16 @@ class Detector:
             timings["depth_net"] = (time.perf_counter() - tic) * 1e3
             tic = time.perf_counter()
             d = self.preset.decode
-            pseudo = depth_to_points(
+            pseudo = pseudo_xyz(
                 depth[0, 0], inputs.calib, self.preset.depth.min_depth, self.preset.depth.max_depth,
                 d.pseudo_stride, d.pseudo_max_height,
             )
-            cloud = merge_points(pseudo, points)
             timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3
         else:
-            cloud = points
+            pseudo = None
 
         tic = time.perf_counter()
-        bev = self._voxelizer()(cloud)
+        bev = self._voxelizer()(points, pseudo)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         score, regression = self._sessions["pixor"].run(["score", "regression"], {"bev": bev[None]})
@@ -229,6 +232,10 @@ class Detector:
         boxes, scores = boxes_from_maps(score[0, 0], regression[0], bev, self.preset, score_threshold)
         timings["decode"] = (time.perf_counter() - tic) * 1e3
         timings["total"] = (time.perf_counter() - start) * 1e3
+        cloud = None
+        if keep_points:
+            cloud = points if pseudo is None else merge_points(
+                np.column_stack([*pseudo, np.zeros_like(pseudo[0])]), points)
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, warnings=warnings, points=cloud)
 
     def _check_points(self, points: np.ndarray) -> np.ndarray:

@@ -8,6 +8,9 @@ points are merged in they keep their measured reflectance.
 
 from __future__ import annotations
 
+from collections import OrderedDict
+from dataclasses import dataclass
+
 import numpy as np
 
 from pipeline.calib import Calibration
@@ -34,6 +37,60 @@ def pixel_rays(calib: Calibration, height: int, width: int, stride: int = 1) -> 
     return rays.astype(np.float32), origin
 
 
+@dataclass(frozen=True)
+class RayTable:
+    """Rays of every (strided) pixel of one view, flattened: point = d · rays[:, i] + origin."""
+
+    rays: np.ndarray  # float32 (3, H·W / stride²)
+    origin: np.ndarray  # float32 (3,)
+    shape: tuple[int, int]  # (H, W) of the depth map the table is for (before striding)
+    stride: int
+
+
+_RAY_TABLES: OrderedDict[tuple, RayTable] = OrderedDict()
+_RAY_TABLES_MAX = 8  # a deployment sees one or a few calibrations; KITTI one per drive
+
+
+def ray_table(calib: Calibration, height: int, width: int, stride: int = 1) -> RayTable:
+    """:func:`pixel_rays` of a view, cached by calibration (a frame's rays cost more than using them)."""
+    key = (calib.P2.tobytes(), calib.R0_rect.tobytes(), calib.Tr_velo_to_cam.tobytes(), height, width, stride)
+    table = _RAY_TABLES.get(key)
+    if table is None:
+        rays, origin = pixel_rays(calib, height, width, stride)
+        table = RayTable(np.ascontiguousarray(rays.reshape(3, -1)), origin.astype(np.float32), (height, width), stride)
+        _RAY_TABLES[key] = table  # a racing thread may build the same table: equal, harmless
+        while len(_RAY_TABLES) > _RAY_TABLES_MAX:
+            _RAY_TABLES.popitem(last=False)
+    return table
+
+
+def pseudo_xyz(
+    depth: np.ndarray,
+    calib: Calibration,
+    min_depth: float = 0.9,
+    max_depth: float = 80.0,
+    stride: int = 1,
+    max_height: float | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Back-project an (H, W) depth map (metres, camera 2 projective depth) → float32 x, y, z arrays.
+
+    calib: the calibration of this exact depth map (cropped and scaled as the
+    map is). stride keeps every k-th row and column. Pixels outside
+    [min_depth, max_depth] are dropped, and with max_height points higher than
+    that above the LiDAR (sky, tree tops: no cars up there). Three separate
+    arrays, not an (N, 3) block: the voxelizer reads them column by column.
+    """
+    table = ray_table(calib, depth.shape[0], depth.shape[1], stride)
+    d = np.asarray(depth, np.float32)[::stride, ::stride].reshape(-1)
+    valid = (d >= min_depth) & (d <= max_depth)
+    if max_height is not None:
+        # z = d·ray_z + origin_z ≤ max_height, tested before any point is built.
+        valid &= d * table.rays[2] + table.origin[2] <= max_height
+    index = np.flatnonzero(valid)
+    d = d[index]
+    return tuple(d * table.rays[axis][index] + table.origin[axis] for axis in range(3))
+
+
 def depth_to_points(
     depth: np.ndarray,
     calib: Calibration,
@@ -42,24 +99,10 @@ def depth_to_points(
     stride: int = 1,
     max_height: float | None = None,
 ) -> np.ndarray:
-    """Back-project an (H, W) depth map (metres, camera 2 projective depth) → float32 (N, 4) points.
-
-    calib: the calibration of this exact depth map (cropped and scaled as the
-    map is). stride keeps every k-th row and column. Pixels outside
-    [min_depth, max_depth] are dropped, and with max_height points higher than
-    that above the LiDAR (sky, tree tops: no cars up there).
-    """
-    sub = np.asarray(depth, np.float32)[::stride, ::stride]
-    rays, origin = pixel_rays(calib, depth.shape[0], depth.shape[1], stride)
-    valid = (sub >= min_depth) & (sub <= max_depth)
-    if max_height is not None:
-        # z = d·ray_z + origin_z ≤ max_height, tested before any point is built.
-        valid &= sub * rays[2] + np.float32(origin[2]) <= max_height
-    index = np.flatnonzero(valid)
-    d = sub.reshape(-1)[index]
-    points = np.zeros((index.size, 4), dtype=np.float32)
-    for axis in range(3):  # three coordinates, each one vectorized multiply-add
-        points[:, axis] = d * rays[axis].reshape(-1)[index] + np.float32(origin[axis])
+    """:func:`pseudo_xyz` as float32 (N, 4) points with reflectance 0."""
+    x, y, z = pseudo_xyz(depth, calib, min_depth, max_depth, stride, max_height)
+    points = np.zeros((x.size, 4), dtype=np.float32)
+    points[:, 0], points[:, 1], points[:, 2] = x, y, z
     return points
 
 

@@ -79,3 +79,23 @@ def test_real_scan_equals_reference():
     bev = voxelize_bev(points, grid)
     np.testing.assert_array_equal(bev, reference_voxelize(points, grid))
     assert 10000 < np.count_nonzero(bev[:35]) < 60000
+
+
+def test_pseudo_arrays_voxelize_like_the_merged_cloud():
+    """The Detector's fused path (pseudo x, y, z arrays + real points) equals voxelizing the merged cloud."""
+    from pipeline.frame import load_frame
+    from pipeline.preprocess import network_view
+    from pipeline.pseudo import depth_to_points, merge_points, pseudo_xyz
+
+    frame = load_frame(KITTI, "000006")
+    preset = PRESETS["edge"]
+    _, view_calib = network_view(frame.image, frame.calib, preset)
+    depth = np.random.default_rng(4).uniform(0.5, 90, preset.depth.input_hw).astype(np.float32)
+    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    voxelizer = BevVoxelizer(preset.bev)
+    voxelizer(frame.points)  # a previous frame in the reused buffer
+    fused = voxelizer(frame.points, pseudo_xyz(depth, view_calib, *limits)).copy()
+    merged = merge_points(depth_to_points(depth, view_calib, *limits), frame.points)
+    np.testing.assert_array_equal(fused, reference_voxelize(merged, preset.bev))
+    # Pseudo points dilute the reflectance of the cells they share with real returns.
+    assert 0 < np.count_nonzero(fused[-1]) < np.count_nonzero(fused[:-1].any(axis=0))

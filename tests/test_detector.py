@@ -34,7 +34,7 @@ def frame():
 
 def test_detects_on_real_frame_with_wellformed_boxes(detector, frame):
     lidar16 = emulate_beams(frame.points, 16)
-    result = detector.detect(frame.image, lidar16, frame.calib, score_threshold=0.0)
+    result = detector.detect(frame.image, lidar16, frame.calib, score_threshold=0.0, keep_points=True)
     assert set(result.timings_ms) == STAGES
     assert all(np.isfinite(v) and v >= 0 for v in result.timings_ms.values())
     assert result.timings_ms["total"] >= sum(v for k, v in result.timings_ms.items() if k != "total") * 0.99
@@ -51,6 +51,7 @@ def test_detects_on_real_frame_with_wellformed_boxes(detector, frame):
     assert (iou[~np.eye(len(iou), dtype=bool)] <= detector.preset.decode.nms_iou + 1e-9).all()
     # The cloud PIXOR saw is the pseudo cloud plus the 16 real lines.
     assert result.points.shape[0] > lidar16.shape[0]
+    assert detector.detect(frame.image, lidar16, frame.calib).points is None  # only on request
     objects = result.to_objects(frame.calib, frame.image_hw)
     assert all(o.type == "Car" and o.score is not None for o in objects)
     assert len(objects) <= len(result.scores)
@@ -119,7 +120,7 @@ def test_lidar_only_model_directory(tiny_models, tmp_path, frame):
     (lidar_only / "manifest.json").write_text(json.dumps(manifest))
     detector = Detector(lidar_only)
     assert not detector.two_stage
-    result = detector.detect(None, frame.points, None, 0.0)
+    result = detector.detect(None, frame.points, None, 0.0, keep_points=True)
     assert set(result.timings_ms) == {"voxelize", "pixor", "decode", "total"}
     assert result.points.shape == frame.points.shape
 

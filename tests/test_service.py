@@ -294,6 +294,15 @@ def test_non_multipart_body_is_415(client: AppClient, kwargs: dict, shown: str) 
         assert_error(client.post(route, **kwargs), 415, "unsupported_media_type", "multipart/form-data", shown)
 
 
+def test_malformed_multipart_is_400_not_500(client: AppClient) -> None:
+    """A body that claims multipart but has no parsable part (found by the OpenAPI fuzzer) is documented."""
+    boundary = "0d37f771f3609e9baf6be26654101f5f"
+    response = client.post("/v1/detect", content=f"--{boundary}\r\nTrue--{boundary}--\r\n".encode(),
+                           headers={"content-type": f"multipart/form-data; boundary={boundary}"})
+    assert_error(response, 400, "bad_request", "multipart")
+    assert "400" in client.get("/openapi.json").json()["paths"]["/v1/detect"]["post"]["responses"]
+
+
 def test_oversized_body_is_413_with_and_without_content_length(tiny_models: Path, frame: dict[str, bytes]) -> None:
     limit = 1024 * 1024  # above the image (749 kB), below image + scan (2.5 MB)
     with service(tiny_models, max_body_bytes=limit) as app_client:

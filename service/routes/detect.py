@@ -91,7 +91,8 @@ def _detect_job(
         frame = decode_frame(upload, default_calib, options.nonfinite)
         parse_ms = (time.perf_counter() - tic) * 1e3
         detections = detector.detect(
-            frame.image, frame.points, frame.calib, options.score_threshold, options.emulate_beams
+            frame.image, frame.points, frame.calib, options.score_threshold, options.emulate_beams,
+            keep_points=picture,
         )
         timings = {"parse_inputs": parse_ms, **{k: v for k, v in detections.timings_ms.items() if k != "total"}}
         png = None
@@ -172,7 +173,7 @@ def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> Dete
             "description": "detections (JSON), or KITTI result lines with `format=kitti`",
             "content": {"text/plain": {"schema": {"type": "string"}, "example": _KITTI_EXAMPLE}},
         },
-        **error_responses(401, 413, 415, 422, 500, 503, 504),
+        **error_responses(400, 401, 413, 415, 422, 500, 503, 504),
     },
 )
 async def detect(
@@ -212,7 +213,7 @@ async def detect(
     response_class=Response,
     responses={
         200: {"description": "BEV picture: points, detected boxes and scores", "content": {"image/png": {}}},
-        **error_responses(401, 413, 415, 422, 500, 503, 504),
+        **error_responses(400, 401, 413, 415, 422, 500, 503, 504),
     },
 )
 async def detect_bev_png(

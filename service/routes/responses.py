@@ -7,6 +7,7 @@ from typing import Any
 from service.schemas import ErrorResponse
 
 _DESCRIPTIONS = {
+    400: "the multipart body itself is malformed (boundary, part headers) and cannot be parsed",
     401: "a token is configured and the request has no valid `Authorization: Bearer` header",
     413: "the request body is larger than the configured limit",
     415: "the body is not multipart/form-data, or the image is not PNG/JPEG",
