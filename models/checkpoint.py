@@ -46,7 +46,8 @@ def save_checkpoint(path: str | Path, preset: Preset, networks: dict[str, nn.Mod
         "format": FORMAT,
         "preset": preset.name,
         "preset_config": preset.to_dict(),
-        "state_dicts": {name: module.state_dict() for name, module in networks.items()},
+        "state_dicts": {name: {k: v.detach().cpu() for k, v in module.state_dict().items()}  # GPU runs too
+                        for name, module in networks.items()},
         "metadata": dict(metadata),
     }
     # Write then rename: an interrupted save never leaves a truncated checkpoint behind.

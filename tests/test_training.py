@@ -156,3 +156,16 @@ def test_precision_and_layout_choices():
             low, _ = pixor.forward_logits(bev)
     assert low.dtype == torch.bfloat16
     assert torch.allclose(low.float(), reference, atol=0.05 * float(reference.abs().max()))
+
+
+def test_device_choice_is_checked():
+    from models.train import resolve_device
+    from pipeline.errors import InputError
+
+    assert resolve_device("cpu").type == "cpu"
+    assert resolve_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(InputError, match="--device"):
+        resolve_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(InputError, match="sees no CUDA GPU"):
+            resolve_device("cuda")
