@@ -26,6 +26,7 @@ import numpy as np
 import onnx
 from tqdm import tqdm
 
+from export.rewrite import boundary_nodes, rewrite_transposed_convs
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.detector import Detector
@@ -86,26 +87,32 @@ def to_fp16(source: Path, target: Path) -> None:
     onnx.save(model, str(target))
 
 
-def to_int8(source: Path, target: Path, feeds: list[dict]) -> None:
+def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = True) -> dict:
     """Static QDQ quantization: uint8 activations, int8 per-channel weights, min–max calibration.
 
-    Min–max runs in strides of a few frames: ONNX Runtime's histogram calibrators keep every
-    intermediate tensor of every calibration frame in memory (300 frames of the edge depth net
-    exceeded 24 GB here).
+    Transposed convs are rewritten as convs first so they are quantized too, and the nodes
+    between the last conv and the outputs (and with ``inputs_fp32`` between the inputs and the
+    first conv) stay fp32 (export/rewrite.py says why). Min–max runs in strides of a few frames: ONNX
+    Runtime's histogram calibrators keep every intermediate tensor of every calibration frame
+    in memory (300 frames of the edge depth net exceeded 24 GB here). Returns what was done.
     """
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
     with tempfile.TemporaryDirectory() as scratch:
-        prepared = Path(scratch) / "prepared.onnx"
-        quant_pre_process(str(source), str(prepared), skip_symbolic_shape=True)
+        rewritten_path, prepared = Path(scratch) / "rewritten.onnx", Path(scratch) / "prepared.onnx"
+        rewritten, count = rewrite_transposed_convs(onnx.load(str(source)))
+        onnx.save(rewritten, str(rewritten_path))
+        quant_pre_process(str(rewritten_path), str(prepared), skip_symbolic_shape=True)
+        kept_fp32 = boundary_nodes(onnx.load(str(prepared)), inputs=inputs_fp32)
         quantize_static(
             str(prepared), str(target), _Reader(feeds), quant_format=QuantFormat.QDQ,
             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
-            calibrate_method=CalibrationMethod.MinMax,
+            calibrate_method=CalibrationMethod.MinMax, nodes_to_exclude=kept_fp32,
             # ONNX Runtime wants the stride to divide the frame count: the largest divisor up to 10.
             extra_options={"CalibStridedMinMax": max(d for d in range(1, 11) if len(feeds) % d == 0)},
         )
+    return {"transposed_convs_rewritten": count, "fp32_nodes": kept_fp32}
 
 
 def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -> dict:
@@ -142,18 +149,21 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     if precision == "fp32":
         return manifest
     feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames, progress)
+    int8_info: dict[str, dict] = {}
     for name in feeds:
         path = out / manifest["networks"][name]["file"]
         if precision == "fp16":
             to_fp16(fp32_dir / path.name, path)
         else:
-            to_int8(fp32_dir / path.name, path, feeds[name])
+            # The depth net's inputs span 0–255 and 0–85 m; PIXOR's BEV is 0/1 occupancy: uint8 holds it.
+            int8_info[name] = to_int8(fp32_dir / path.name, path, feeds[name], inputs_fp32=name == "depth")
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
     manifest["precision"] = precision
     manifest["precision_info"] = {
         "calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
         **({"activations": "uint8", "weights": "int8 per channel", "format": "QDQ",
-            "calibration": "min-max"} if precision == "int8" else {"io": "float32 (keep_io_types)"}),
+            "calibration": "min-max", "graph": int8_info} if precision == "int8"
+           else {"io": "float32 (keep_io_types)"}),
         "deviation_from_fp32": deviation(fp32_dir, out, feeds),
     }
     (out / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")

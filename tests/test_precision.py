@@ -32,6 +32,12 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     ops = {node.op_type for node in pixor.graph.node}
     if precision == "int8":
         assert {"QuantizeLinear", "DequantizeLinear"} <= ops
+        # Transposed convs were rewritten (and so quantized); the output heads stay fp32.
+        depth = onnx.load(str(out / "depth.onnx"))
+        assert "ConvTranspose" not in {node.op_type for node in depth.graph.node} | ops
+        assert info["graph"]["depth"]["transposed_convs_rewritten"] == 5
+        heads = [n for n in pixor.graph.node if n.output[0] in ("score", "regression")]
+        assert heads and all(n.op_type != "DequantizeLinear" for n in heads)
         weights = [i for i in pixor.graph.initializer if i.data_type == onnx.TensorProto.INT8]
         assert weights  # signed weights
         assert info["deviation_from_fp32"]["pixor"]["value"] < 0.05
@@ -50,3 +56,29 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
 def test_unknown_precision(tiny_models, tmp_path):
     with pytest.raises(ValueError, match="--precision"):
         convert_precision(tiny_models, tmp_path / "x", "int4", KITTI)
+
+
+@pytest.mark.parametrize("network", ["depth", "pixor"])
+def test_transposed_conv_rewrite_is_exact(tiny_models, network):
+    """The sub-pixel (stride 2) and flipped-kernel (stride 1) forms give ONNX Runtime the same outputs."""
+    import onnxruntime as ort
+
+    from export.rewrite import boundary_nodes, rewrite_transposed_convs
+
+    model = onnx.load(str(tiny_models / f"{network}.onnx"))
+    rewritten, count = rewrite_transposed_convs(model)
+    onnx.checker.check_model(rewritten)
+    assert count == {"depth": 5, "pixor": 2}[network]
+    assert "ConvTranspose" not in {n.op_type for n in rewritten.graph.node}
+    assert "DepthToSpace" in {n.op_type for n in rewritten.graph.node}
+    sessions = [ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"])
+                for m in (model, rewritten)]
+    rng = np.random.default_rng(1)
+    feeds = {i.name: (rng.random(i.shape) * 40).astype(np.float32) for i in sessions[0].get_inputs()}
+    for a, b in zip(*(s.run(None, feeds) for s in sessions), strict=True):
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5 * float(np.abs(a).max()))
+    # The fp32 ends: input-side and output-side nodes up to the first and last conv.
+    ends = boundary_nodes(rewritten)
+    by_name = {n.name: n for n in rewritten.graph.node}
+    assert sum(by_name[n].op_type == "Conv" for n in ends) == 3  # depth: conv1_img, conv1_d, convtf; pixor: stem, score, regression
+    assert set(boundary_nodes(rewritten, inputs=False)) < set(ends)
