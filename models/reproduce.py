@@ -7,14 +7,19 @@ Stages (each resumes where it stopped: rerun the same command after an interrupt
 1. simulate the training set (seed 1) and the validation set (seed 2);
 2. train the depth net (with GAMs);
 3. cache its dense depth for every frame (pseudo points);
-4. train PIXOR on pseudo + 16-line, 16-line and 64-line input;
+4. train PIXOR on 16-line input, then on pseudo + 16-line input starting from
+   the 16-line weights, then on 64-line input;
 5. fine-tune the depth net and PIXOR together (joint, soft BEV occupancy);
 6. train the depth net without GAMs, same budget (the paper's ablation);
 7. export every model directory, evaluate each on the validation set
    (KITTI BEV AP, depth RMSE/MAE), write ``OUT/table.json`` and ``OUT/table.md``.
 
-The camera pipeline comes first so its numbers exist early; the ablation, which
-nothing else needs, comes last.
+The ablation, which nothing else needs, comes last. The camera pipeline's PIXOR
+starts from the 16-line PIXOR: trained from scratch on pseudo + 16-line points
+it reached 15.8 BEV AP (IoU 0.7, moderate) after 2 epochs where 16-line PIXOR
+reaches about 55 — the smeared pseudo points hide the real returns' sharp
+outlines, and learning to see through them from scratch needs more epochs than
+this budget. The 16+camera system then uses strictly more data and training.
 
 The product's model directory lands in ``WEIGHTS/edge`` (16-line + camera),
 with ``WEIGHTS/edge-lidar16`` and ``WEIGHTS/edge-lidar64`` (PIXOR alone) for
@@ -149,11 +154,11 @@ def run(config: ReproduceConfig) -> dict:
         cache_pseudo(config.data / split, depth_models, out / "pseudo" / split, progress=config.progress)
     stage("cache_pseudo")
 
-    for input_mode in ("pseudo", "lidar16", "lidar64"):
+    for input_mode in ("lidar16", "pseudo", "lidar64"):
         report["stages"][f"pixor_{input_mode}"] = _train(
             config, f"pixor_{input_mode}", "detector", input_mode=input_mode, pseudo_dir=out / "pseudo" / "train",
-            val_pseudo_dir=out / "pseudo" / "val",
-            epochs=b.detector_epochs, max_train_frames=b.detector_frames)
+            val_pseudo_dir=out / "pseudo" / "val", epochs=b.detector_epochs, max_train_frames=b.detector_frames,
+            pixor_checkpoint=out / "pixor_lidar16" / "pixor.pt" if input_mode == "pseudo" else None)
     stage("detectors")
 
     report["stages"]["joint"] = _train(
