@@ -119,16 +119,30 @@ def rotated_iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max_keep: int | None = None) -> np.ndarray:
     """Greedy NMS on rotated BEV boxes: indices of kept boxes, best score first.
 
-    Walks the boxes in score order; each kept box computes its IoU with all
-    boxes still alive in one vectorized call, so the work is (kept boxes ×
-    candidates) rather than the full candidates² matrix.
+    Only pairs whose circumscribed circles overlap can have a non-zero IoU, so
+    the exact IoU runs once, vectorized, on those pairs (a car's cluster of
+    candidates, not every pair of the frame); the greedy walk over kept boxes
+    then only reads which later boxes each one suppresses. Each IoU call has a
+    fixed cost of about 0.15 ms here, which one call per kept box used to pay.
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
     order = np.argsort(-np.asarray(scores), kind="stable")
     boxes = boxes[order]
-    alive = np.ones(order.size, dtype=bool)
+    n = order.size
+    radius = 0.5 * np.hypot(boxes[:, 2], boxes[:, 3])
+    gap = boxes[:, None, :2] - boxes[None, :, :2]
+    near = (gap**2).sum(axis=2) < (radius[:, None] + radius[None, :]) ** 2
+    if iou_threshold < 0:  # IoU 0 > a negative threshold: every pair suppresses
+        near[:] = True
+    first, second = np.nonzero(np.triu(near, 1))  # first < second: in score order, row-major = sorted by first
+    if first.size:
+        overlap = rotated_iou_pairs(boxes[first], boxes[second])
+        suppressing = overlap > iou_threshold
+        first, second = first[suppressing], second[suppressing]
+    starts = np.searchsorted(first, np.arange(n + 1))
+    alive = np.ones(n, dtype=bool)
     keep: list[int] = []
-    limit = order.size if max_keep is None else max_keep
+    limit = n if max_keep is None else max_keep
     while len(keep) < limit:
         remaining = np.flatnonzero(alive)
         if remaining.size == 0:
@@ -136,8 +150,5 @@ def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max
         best = remaining[0]
         keep.append(best)
         alive[best] = False
-        rest = remaining[1:]
-        if rest.size:
-            iou = rotated_iou_matrix(boxes[best : best + 1], boxes[rest])[0]
-            alive[rest[iou > iou_threshold]] = False
+        alive[second[starts[best] : starts[best + 1]]] = False
     return order[np.asarray(keep, dtype=np.int64)]

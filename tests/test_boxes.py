@@ -182,3 +182,29 @@ def test_camera_view_filter():
     assert in_camera_view(cars, frame.calib, frame.image_hw).all()
     outside = np.array([[5.0, 30.0, -1, 4, 1.7, 1.5, 0.0], [-10.0, 0.0, -1, 4, 1.7, 1.5, 0.0]])
     assert not in_camera_view(outside, frame.calib, frame.image_hw).any()
+
+
+def test_nms_equals_plain_greedy_on_clustered_candidates():
+    """The circle prefilter changes no decision: compare with greedy NMS over the full IoU matrix."""
+
+    def greedy(boxes, scores, threshold, max_keep=None):
+        order = np.argsort(-scores, kind="stable")
+        iou = rotated_iou_matrix(boxes[order], boxes[order])
+        alive, keep = np.ones(len(order), bool), []
+        for i in range(len(order)):
+            if alive[i] and (max_keep is None or len(keep) < max_keep):
+                keep.append(i)
+                alive[iou[i] > threshold] = False
+        return order[keep]
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        centres = rng.uniform([0, -30], [60, 30], (6, 2))  # a few cars, each with jittered candidates
+        n = rng.integers(1, 120)
+        pick = rng.integers(0, 6, n)
+        boxes = np.column_stack([centres[pick] + rng.normal(0, 0.8, (n, 2)), rng.uniform(3.2, 4.8, n),
+                                 rng.uniform(1.4, 2.0, n), rng.uniform(-np.pi, np.pi, n)])
+        scores = rng.uniform(0, 1, n)
+        for threshold, max_keep in ((0.1, None), (0.5, None), (0.0, 3)):
+            np.testing.assert_array_equal(rotated_nms(boxes, scores, threshold, max_keep),
+                                          greedy(boxes, scores, threshold, max_keep))
