@@ -184,12 +184,9 @@ def autocast(precision: str, device: torch.device | None = None):
     return torch.autocast(device_type, dtype=torch.bfloat16, enabled=precision == "bf16")
 
 
-def channels_last(tensor: torch.Tensor) -> torch.Tensor:
-    """NHWC layout (oneDNN's fast path for convolutions on the CPU) when the run uses it."""
-    return tensor.contiguous(memory_format=_LAYOUT["memory_format"])
-
-
-_LAYOUT = {"memory_format": torch.channels_last}  # set per run by :func:`run`
+def run_layout(networks: dict[str, torch.nn.Module]) -> torch.memory_format:
+    """NHWC (oneDNN's fast path for convolutions on the CPU) unless a network trips the defect above."""
+    return torch.channels_last if channels_last_safe(networks) else torch.contiguous_format
 
 
 def seed_everything(seed: int) -> None:
@@ -339,9 +336,9 @@ def run(config: TrainConfig) -> TrainResult:
             load_network_weights(networks[name], load_checkpoint(path), name, preset)
     if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
-    _LAYOUT["memory_format"] = torch.channels_last if channels_last_safe(networks) else torch.contiguous_format
+    layout = run_layout(networks)
     for net in networks.values():
-        net.to(device=device, memory_format=_LAYOUT["memory_format"])
+        net.to(device=device, memory_format=layout)
     parameters = [p for net in networks.values() for p in net.parameters()]
     optimizer = torch.optim.Adam(parameters, lr=config.lr)
     if config.task == "detector":
@@ -387,7 +384,7 @@ def run(config: TrainConfig) -> TrainResult:
                 optimizer.zero_grad()
                 total = 0.0
                 for index in batch:
-                    loss = joint_step(networks, preset, train_dir, train_ids[index], config.precision, device)
+                    loss = joint_step(networks, preset, train_dir, train_ids[index], config.precision, device, layout)
                     (loss / len(batch)).backward()
                     total += loss.item() / len(batch)
                 optimizer.step()
@@ -403,12 +400,13 @@ def run(config: TrainConfig) -> TrainResult:
                 if config.task == "depth":
                     rgb, sparse, target = batch
                     with autocast(config.precision, device):
-                        prediction = networks["depth"](channels_last(rgb), channels_last(sparse))
+                        prediction = networks["depth"](rgb.contiguous(memory_format=layout),
+                                                       sparse.contiguous(memory_format=layout))
                     loss = masked_mse(prediction.float(), target)
                 else:
                     bev, score_t, reg_t = batch
                     with autocast(config.precision, device):
-                        logits, regression = networks["pixor"].forward_logits(channels_last(bev))
+                        logits, regression = networks["pixor"].forward_logits(bev.contiguous(memory_format=layout))
                     loss = pixor_loss(logits.float(), regression.float(), score_t, reg_t).total
                 loss.backward()
                 optimizer.step()
@@ -464,7 +462,7 @@ def selection_criterion(task: str, metrics: dict) -> float:
 
 
 def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str, precision: str = "fp32",
-               device: torch.device = CPU) -> torch.Tensor:
+               device: torch.device = CPU, layout: torch.memory_format = torch.contiguous_format) -> torch.Tensor:
     """Loss of one frame through depth net → soft BEV → PIXOR (+ the depth loss)."""
     from models.data import depth_target
 
@@ -472,15 +470,16 @@ def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str, pr
     lidar16 = frame_points(frame, 16)
     inputs = depth_inputs(frame.image, lidar16, frame.calib, preset)
     with autocast(precision, device):
-        depth = networks["depth"](channels_last(torch.from_numpy(inputs.rgb).to(device)),
-                                  channels_last(torch.from_numpy(inputs.sparse_depth).to(device)))[0].float()
+        depth = networks["depth"](torch.from_numpy(inputs.rgb).to(device).contiguous(memory_format=layout),
+                                  torch.from_numpy(inputs.sparse_depth).to(device).contiguous(memory_format=layout))
+    depth = depth[0].float()
     h, w = preset.depth.input_hw
     rays, origin = pixel_rays(inputs.calib, h, w, preset.decode.pseudo_stride)
     bev = joint_bev(depth, torch.from_numpy(rays).to(device), torch.from_numpy(origin.astype(np.float32)).to(device),
                     lidar16, preset)
     targets = encode_targets(car_boxes(frame), preset.bev, preset.pixor.output_stride, preset.decode)
     with autocast(precision, device):
-        logits, regression = networks["pixor"].forward_logits(channels_last(bev[None]))
+        logits, regression = networks["pixor"].forward_logits(bev[None].contiguous(memory_format=layout))
     detection = pixor_loss(logits.float(), regression.float(), torch.from_numpy(targets.score)[None, None].to(device),
                            torch.from_numpy(targets.regression)[None].to(device)).total
     target = torch.from_numpy(depth_target(data_dir, frame, preset))[None, None].to(device)

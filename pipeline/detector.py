@@ -31,7 +31,7 @@ from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import Preset, preset_from_dict
-from pipeline.pseudo import merge_points, pseudo_xyz
+from pipeline.pseudo import merge_points, pseudo_xyz, xyz_to_points
 
 log = logging.getLogger(__name__)
 
@@ -234,8 +234,7 @@ class Detector:
         timings["total"] = (time.perf_counter() - start) * 1e3
         cloud = None
         if keep_points:
-            cloud = points if pseudo is None else merge_points(
-                np.column_stack([*pseudo, np.zeros_like(pseudo[0])]), points)
+            cloud = points if pseudo is None else merge_points(xyz_to_points(*pseudo), points)
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, warnings=warnings, points=cloud)
 
     def _check_points(self, points: np.ndarray) -> np.ndarray:

@@ -100,7 +100,11 @@ def depth_to_points(
     max_height: float | None = None,
 ) -> np.ndarray:
     """:func:`pseudo_xyz` as float32 (N, 4) points with reflectance 0."""
-    x, y, z = pseudo_xyz(depth, calib, min_depth, max_depth, stride, max_height)
+    return xyz_to_points(*pseudo_xyz(depth, calib, min_depth, max_depth, stride, max_height))
+
+
+def xyz_to_points(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Coordinate arrays → float32 (N, 4) points with reflectance 0 (the camera measures none)."""
     points = np.zeros((x.size, 4), dtype=np.float32)
     points[:, 0], points[:, 1], points[:, 2] = x, y, z
     return points

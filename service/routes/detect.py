@@ -163,6 +163,10 @@ def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> Dete
     )
 
 
+# Both detection routes answer the same errors (documented for clients and the OpenAPI fuzz test).
+DETECT_ERRORS = error_responses(400, 401, 413, 415, 422, 500, 503, 504)
+
+
 @router.post(
     "/detect",
     summary="Detect cars in one frame",
@@ -173,7 +177,7 @@ def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> Dete
             "description": "detections (JSON), or KITTI result lines with `format=kitti`",
             "content": {"text/plain": {"schema": {"type": "string"}, "example": _KITTI_EXAMPLE}},
         },
-        **error_responses(400, 401, 413, 415, 422, 500, 503, 504),
+        **DETECT_ERRORS,
     },
 )
 async def detect(
@@ -213,7 +217,7 @@ async def detect(
     response_class=Response,
     responses={
         200: {"description": "BEV picture: points, detected boxes and scores", "content": {"image/png": {}}},
-        **error_responses(400, 401, 413, 415, 422, 500, 503, 504),
+        **DETECT_ERRORS,
     },
 )
 async def detect_bev_png(
