@@ -114,17 +114,20 @@ def boundary_nodes(model: onnx.ModelProto, inputs: bool = True, outputs: bool = 
             consumers[name].append(node)
         for name in node.output:
             producer[name] = node
-    chosen: dict[str, onnx.NodeProto] = {}
+    chosen: set[str] = set()
 
     def walk(start: list[onnx.NodeProto], step) -> None:
-        stack = list(start)
+        # Each walk keeps its own visited set: a node both walks reach (the depth net's filled input
+        # is added to its output) must not stop the second walk before it reaches its conv.
+        stack, seen = list(start), set()
         while stack:
             node = stack.pop()
-            if node.name in chosen:
+            if node.name in seen:
                 continue
-            chosen[node.name] = node
+            seen.add(node.name)
             if node.op_type != "Conv":
                 stack.extend(step(node))
+        chosen.update(seen)
 
     initializers = {init.name for init in model.graph.initializer}
     if inputs:

@@ -22,6 +22,16 @@ bottom/right inside the network (sparse depth with 0 = "no measurement", the
 normalised image with 0 = the ImageNet mean colour) and the output is cropped
 back, so ONNX shapes stay static and exact.
 
+With ``prefill_passes`` > 0 (the edge preset) the network first fills the sparse
+map's gaps itself (:class:`SparsePrefill`), conv1_d reads the sparse map and
+the filled one (2 → depth_stem), and convtf's output is a correction added to
+the filled map. Why: trained from scratch on a few thousand frames, the plain
+network reproduced even the measured depths poorly (median error 0.45 m at
+0–10 m and 2.0 m at 30–40 m on the synthetic validation set, where simply
+copying the nearest return gave 0.10 and 0.23 m); starting from the filled
+map, it only has to learn where the image says the fill is wrong. The fill is
+part of the graph, so the runtime and ONNX inputs are unchanged.
+
 Module names follow Ma et al. and torchvision (``layer1.0.conv1.weight`` …), so a
 torchvision-format ResNet-18 checkpoint loads into ``layer1``–``layer4``.
 """
@@ -45,6 +55,10 @@ IMAGENET_MEAN: tuple[float, float, float] = (0.485, 0.456, 0.406)
 IMAGENET_STD: tuple[float, float, float] = (0.229, 0.224, 0.225)
 # Ma et al. multiply the last 1×1 conv by 100: a unit-scale activation maps to tens of metres.
 OUTPUT_SCALE = 100.0
+# With the prefill the same output is a correction to the filled map, mostly small: ×100 made every
+# optimizer step move all depths by metres (median error at 0–10 m grew from 0.10 m, the filled
+# map's, to 0.73 m after one epoch), so the correction is scaled by 10 instead.
+CORRECTION_SCALE = 10.0
 LEAKY_SLOPE = 0.2
 
 
@@ -145,6 +159,32 @@ class ASPP(nn.Module):
         return x + self.fuse(torch.cat([b(x) for b in self.branches], dim=1))
 
 
+class SparsePrefill(nn.Module):
+    """Fill a sparse depth map's gaps by repeated max-pooling of inverse depth; 0 stays "none".
+
+    Each pass gives every empty pixel the largest inverse depth (the nearest return) within the
+    kernel, so measured pixels never change and, at an occlusion edge, the foreground grows over
+    the background, as a depth sensor's dilation does. Pixels still empty after all passes
+    (above the top beam) stay 0. No parameters: the same in training, PyTorch and ONNX.
+    """
+
+    def __init__(self, passes: int, kernel: tuple[int, int]) -> None:
+        super().__init__()
+        self.passes = int(passes)
+        self.kernel = (int(kernel[0]), int(kernel[1]))
+        if self.passes < 1 or min(self.kernel) < 1 or not all(k % 2 for k in self.kernel):
+            raise ValueError(f"prefill needs ≥ 1 pass and an odd kernel, got {passes} × {kernel}")
+
+    def forward(self, sparse_depth: torch.Tensor) -> torch.Tensor:
+        measured = sparse_depth > 0
+        inverse = torch.where(measured, 1.0 / sparse_depth.clamp(min=1e-3), torch.zeros_like(sparse_depth))
+        padding = (self.kernel[0] // 2, self.kernel[1] // 2)
+        for _ in range(self.passes):
+            pooled = F.max_pool2d(inverse, self.kernel, stride=1, padding=padding)
+            inverse = torch.where(inverse > 0, inverse, pooled)
+        return torch.where(inverse > 0, 1.0 / inverse.clamp(min=1e-6), torch.zeros_like(inverse))
+
+
 class DepthCompletionNet(nn.Module):
     """Image-guided depth completion.
 
@@ -169,7 +209,8 @@ class DepthCompletionNet(nn.Module):
         d5, d4, d3, d2, d1 = config.decoder_widths
         stem = config.depth_stem + config.image_stem
         s = config.stem_stride
-        self.conv1_d = conv_bn_relu(1, config.depth_stem, 3, s)
+        self.prefill = SparsePrefill(config.prefill_passes, config.prefill_kernel) if config.prefill_passes else None
+        self.conv1_d = conv_bn_relu(1 if self.prefill is None else 2, config.depth_stem, 3, s)
         self.conv1_img = conv_bn_relu(3, config.image_stem, 3, s)
         self.layer1 = make_layer(stem, w1, b1, 1)
         self.layer2 = make_layer(w1, w2, b2, 2)
@@ -197,7 +238,8 @@ class DepthCompletionNet(nn.Module):
         init_conv_and_bn(self)
         # Ma et al.'s ×100 output: a small last layer keeps the initial depths in metres, not km.
         nn.init.normal_(self.convtf.weight, std=1e-3)
-        nn.init.constant_(self.convtf.bias, 0.2)  # ≈ 20 m, a typical KITTI depth
+        # ≈ 20 m, a typical KITTI depth; with the prefill the output starts as the filled map.
+        nn.init.constant_(self.convtf.bias, 0.2 if self.prefill is None else 0.0)
 
     def _skip(self, name: str, high: torch.Tensor, skip: torch.Tensor) -> torch.Tensor:
         """Concatenate a decoder feature with its (attention-weighted) encoder skip."""
@@ -215,7 +257,8 @@ class DepthCompletionNet(nn.Module):
                 f"and sparse_depth {tuple(sparse_depth.shape)}"
             )
         image = (rgb - self.rgb_mean) / self.rgb_std
-        depth = sparse_depth
+        prior = None if self.prefill is None else self.prefill(sparse_depth)
+        depth = sparse_depth if prior is None else torch.cat((sparse_depth, prior), dim=1)
         pad_h, pad_w = self.pad_hw
         if pad_h or pad_w:
             image = F.pad(image, (0, pad_w, 0, pad_h))
@@ -240,13 +283,15 @@ class DepthCompletionNet(nn.Module):
         y = self._skip("gam2", convt2, conv2)
         convt1 = self.convt1(y)
         y = self._skip("gam1", convt1, conv1)
-        out = OUTPUT_SCALE * self.convtf(y)
+        out = (OUTPUT_SCALE if prior is None else CORRECTION_SCALE) * self.convtf(y)
 
         if self.config.stem_stride != 1:
             # Padded size is a multiple of the stem stride: an exact ×2, pixel centres aligned.
             out = F.interpolate(out, scale_factor=float(self.config.stem_stride), mode="bilinear", align_corners=False)
         if pad_h or pad_w:
             out = out[:, :, :height, :width]
+        if prior is not None:
+            out = out + prior
         if not self.training:
             out = torch.clamp(out, min=self.config.min_depth)
         return out

@@ -71,3 +71,18 @@ def masked_mse(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     if not valid.any():
         return prediction.sum() * 0.0
     return ((prediction[valid] - target[valid]) ** 2).mean()
+
+
+def masked_l1(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean absolute error over the pixels with ground truth (target > 0).
+
+    Where foreground and background are both plausible (an object's outline) the L1 optimum
+    is one of the two depths, the L2 optimum their mean: a point floating between them.
+    """
+    valid = target > 0
+    if not valid.any():
+        return prediction.sum() * 0.0
+    return (prediction[valid] - target[valid]).abs().mean()
+
+
+DEPTH_LOSSES = {"mse": masked_mse, "l1": masked_l1}  # --depth-loss; mse is the paper's

@@ -67,6 +67,7 @@ class Budget:
     depth_frames: int = 2000
     depth_epochs: int = 10
     depth_lr: float = 1e-3
+    depth_loss: str = "l1"
     detector_frames: int = 2000
     detector_epochs: int = 6
     joint_frames: int = 2000
@@ -146,7 +147,7 @@ def run(config: ReproduceConfig) -> dict:
     stage("simulate")
 
     report["stages"]["depth"] = _train(config, "depth", "depth", epochs=b.depth_epochs, max_train_frames=b.depth_frames,
-                                       lr=b.depth_lr)
+                                       lr=b.depth_lr, depth_loss=b.depth_loss)
     stage("depth")
 
     depth_models = _export(config, out / "depth", out / "models" / "depth", ("depth", "pixor"))
@@ -162,13 +163,14 @@ def run(config: ReproduceConfig) -> dict:
     stage("detectors")
 
     report["stages"]["joint"] = _train(
-        config, "joint", "joint", epochs=b.joint_epochs, max_train_frames=b.joint_frames,
+        config, "joint", "joint", epochs=b.joint_epochs, max_train_frames=b.joint_frames, depth_loss=b.depth_loss,
         depth_checkpoint=out / "depth" / "depth.pt", pixor_checkpoint=out / "pixor_pseudo" / "pixor.pt")
     stage("joint")
 
     ablation = f"{config.preset}-no-gam"
     report["stages"]["depth_no_gam"] = _train(config, "depth_no_gam", "depth", preset=ablation, epochs=b.depth_epochs,
-                                              max_train_frames=b.depth_frames, lr=b.depth_lr)
+                                              max_train_frames=b.depth_frames, lr=b.depth_lr,
+                                              depth_loss=b.depth_loss)
     no_gam_models = _export(config, out / "depth_no_gam", out / "models" / "depth_no_gam", ("depth", "pixor"), ablation)
     stage("depth_ablation")
 

@@ -49,7 +49,7 @@ from models.data import (
     detector_points,
     frame_points,
 )
-from models.losses import masked_mse, pixor_loss
+from models.losses import DEPTH_LOSSES, pixor_loss
 from models.soft_bev import soft_occupancy
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import boxes_to_objects, in_camera_view
@@ -86,6 +86,7 @@ class TrainConfig:
     batch_size: int | None = None
     lr: float | None = None
     lr_step: int = 5  # depth: halve every lr_step epochs
+    depth_loss: str = "mse"  # depth and joint: mse (the paper) | l1 (models/reproduce.py says why)
     lr_gamma: float = 0.5
     max_train_frames: int | None = None
     max_val_frames: int | None = None
@@ -221,7 +222,8 @@ def loader(dataset, batch_size: int, shuffle: bool, seed: int, workers: int) -> 
 
 # ----------------------------------------------------------------------------- validation
 @torch.no_grad()
-def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU) -> dict:
+def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU, loss: str = "mse") -> dict:
+    """RMSE and MAE (mm) of the validation frames; val_loss is the training loss (MSE in m², or L1 in m)."""
     net.eval()
     sq, ab, n = 0.0, 0.0, 0
     per_frame_rmse = []
@@ -236,8 +238,8 @@ def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU) -> di
             v = valid[i]
             if v.any():
                 per_frame_rmse.append(float(torch.sqrt((((prediction[i] - target[i])[v] * 1000) ** 2).mean())))
-    loss = sq / max(n, 1) / 1e6
-    return {"val_loss": loss, "rmse_mm": float(np.mean(per_frame_rmse)) if per_frame_rmse else float("nan"),
+    val_loss = sq / max(n, 1) / 1e6 if loss == "mse" else ab / max(n, 1) / 1e3
+    return {"val_loss": val_loss, "rmse_mm": float(np.mean(per_frame_rmse)) if per_frame_rmse else float("nan"),
             "mae_mm": ab / max(n, 1), "pixels": n}
 
 
@@ -384,7 +386,8 @@ def run(config: TrainConfig) -> TrainResult:
                 optimizer.zero_grad()
                 total = 0.0
                 for index in batch:
-                    loss = joint_step(networks, preset, train_dir, train_ids[index], config.precision, device, layout)
+                    loss = joint_step(networks, preset, train_dir, train_ids[index], config.precision, device, layout,
+                                      config.depth_loss)
                     (loss / len(batch)).backward()
                     total += loss.item() / len(batch)
                 optimizer.step()
@@ -402,7 +405,7 @@ def run(config: TrainConfig) -> TrainResult:
                     with autocast(config.precision, device):
                         prediction = networks["depth"](rgb.contiguous(memory_format=layout),
                                                        sparse.contiguous(memory_format=layout))
-                    loss = masked_mse(prediction.float(), target)
+                    loss = DEPTH_LOSSES[config.depth_loss](prediction.float(), target)
                 else:
                     bev, score_t, reg_t = batch
                     with autocast(config.precision, device):
@@ -419,7 +422,7 @@ def run(config: TrainConfig) -> TrainResult:
         last_loss = float(np.mean(epoch_losses))
 
         if config.task == "depth":
-            metrics = validate_depth(networks["depth"], val_set, device)
+            metrics = validate_depth(networks["depth"], val_set, device, config.depth_loss)
         else:
             metrics = validate_detector(networks["pixor"], preset, val_dir, val_ids, config.input_mode,
                                         config.val_pseudo_dir or config.pseudo_dir,
@@ -453,7 +456,7 @@ def run(config: TrainConfig) -> TrainResult:
 
 
 def selection_criterion(task: str, metrics: dict) -> float:
-    """Lower is better. Depth: validation MSE. Detector and joint: minus the mean of BEV AP at IoU 0.7 and
+    """Lower is better. Depth: the validation loss (MSE or L1, as trained). Detector and joint: minus the mean of BEV AP at IoU 0.7 and
     0.5 (moderate) — the validation loss can fall while AP does not (seen here: PIXOR on 16-line input had
     a lower loss after its first epoch but 24 points less AP at IoU 0.7), and AP is what the table reports."""
     if task == "depth":
@@ -462,7 +465,8 @@ def selection_criterion(task: str, metrics: dict) -> float:
 
 
 def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str, precision: str = "fp32",
-               device: torch.device = CPU, layout: torch.memory_format = torch.contiguous_format) -> torch.Tensor:
+               device: torch.device = CPU, layout: torch.memory_format = torch.contiguous_format,
+               depth_loss: str = "mse") -> torch.Tensor:
     """Loss of one frame through depth net → soft BEV → PIXOR (+ the depth loss)."""
     from models.data import depth_target
 
@@ -483,7 +487,7 @@ def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str, pr
     detection = pixor_loss(logits.float(), regression.float(), torch.from_numpy(targets.score)[None, None].to(device),
                            torch.from_numpy(targets.regression)[None].to(device)).total
     target = torch.from_numpy(depth_target(data_dir, frame, preset))[None, None].to(device)
-    return detection + 0.1 * masked_mse(depth[None], target)
+    return detection + 0.1 * DEPTH_LOSSES[depth_loss](depth[None], target)
 
 
 def _jsonable(value):
@@ -513,6 +517,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=int, help="default: the task's recipe")
     parser.add_argument("--batch-size", type=int, help="default: the task's recipe")
     parser.add_argument("--lr", type=float, help="default: the task's recipe")
+    parser.add_argument("--depth-loss", default="mse", choices=tuple(DEPTH_LOSSES),
+                        help="depth and joint: per-pixel loss on the depth map (default mse, the paper's)")
     parser.add_argument("--max-train-frames", type=int, help="use only the first N training frames")
     parser.add_argument("--max-val-frames", type=int, help="use only the first N validation frames")
     parser.add_argument("--workers", type=int, default=0, help="data-loading processes (default 0)")

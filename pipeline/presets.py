@@ -73,6 +73,11 @@ class DepthNetConfig:
     use_gam: bool = True
     use_aspp: bool = True
     aspp_rates: tuple[int, ...] = (2, 4, 8, 16)
+    # Prefill (0 = off, the paper): the sparse input is filled inside the network by this many
+    # max-pool passes over inverse depth (the nearest return wins), fed to conv1_d beside the
+    # sparse map, and the network predicts a correction to it (models/depth_net.py says why).
+    prefill_passes: int = 0
+    prefill_kernel: tuple[int, int] = (5, 3)  # rows × columns per pass: beams are rows apart
     min_depth: float = 0.9  # metres, output floor at inference (Ma et al.)
     max_depth: float = 85.0  # metres, clip for the pseudo cloud and the loss
 
@@ -136,6 +141,7 @@ PRESETS: dict[str, Preset] = {
         depth=DepthNetConfig(
             input_hw=(176, 608), input_scale=0.5, stem_stride=2, depth_stem=8, image_stem=16,
             encoder_widths=(24, 48, 96, 192), bottleneck_width=192, decoder_widths=(96, 48, 24, 24, 24),
+            prefill_passes=4,  # 16 beams are 7–15 rows apart at half resolution: ±8 rows closes the gaps
         ),
         pixor=PixorConfig(
             stem_channels=16, stage_widths=(12, 24, 32, 48), stage_blocks=(2, 3, 3, 2),
@@ -150,7 +156,7 @@ PRESETS: dict[str, Preset] = {
         depth=DepthNetConfig(
             input_hw=(88, 304), input_scale=0.25, stem_stride=2, depth_stem=4, image_stem=12,
             encoder_widths=(16, 16, 32, 32), encoder_blocks=(1, 1, 1, 1), bottleneck_width=32,
-            decoder_widths=(32, 16, 16, 16, 16), aspp_rates=(2, 4),
+            decoder_widths=(32, 16, 16, 16, 16), aspp_rates=(2, 4), prefill_passes=2,
         ),
         pixor=PixorConfig(
             stem_channels=8, stage_widths=(4, 8, 8, 8), stage_blocks=(1, 1, 1, 1),

@@ -30,6 +30,9 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
         assert n["gflops"] > 0 and n["ms"] > 0 and 0 < n["peak_fraction"]
     assert report["peak_gflops"] > 1
     assert report["torch_end_to_end_ms"]["mean"] > 0 and report["speedup_vs_torch"] > 0
+    assert report["torch_end_to_end_ms"]["n"] == report["paired_end_to_end_ms"]["n"] == report["frames"]
+    b = report["speedup_vs_torch_blocks"]
+    assert b["blocks"] >= 1 and b["min"] <= b["p50"] <= b["max"]
     assert report["machine"]["cores"] >= 1 and report["versions"]["onnxruntime"]
     picture = cv2.imread(str(tmp_path / "lat.png"))
     assert picture is not None and picture.shape[0] > 100

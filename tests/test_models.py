@@ -11,8 +11,8 @@ from torch import nn
 
 from models import build_depth_net, build_network, build_pixor
 from models.checkpoint import find_checkpoints, load_checkpoint, load_network_weights, save_checkpoint
-from models.depth_net import load_resnet18_encoder
-from models.losses import focal_loss, masked_mse, pixor_loss
+from models.depth_net import SparsePrefill, load_resnet18_encoder
+from models.losses import focal_loss, masked_l1, masked_mse, pixor_loss
 from pipeline.presets import get_preset
 
 PAPER = get_preset("paper")
@@ -198,6 +198,38 @@ def test_tiny_depth_forward_shapes_and_min_depth_clamp() -> None:
     assert depth.min().item() == pytest.approx(TINY.depth.min_depth)
 
 
+def test_prefill_keeps_returns_fills_gaps_with_the_nearest_and_leaves_far_pixels_empty() -> None:
+    sparse = torch.zeros(1, 1, 12, 9)
+    sparse[0, 0, 2, :] = 20.0  # an upper beam
+    sparse[0, 0, 6, :] = 10.0  # a lower beam, nearer
+    sparse[0, 0, 6, 4] = 0.0  # a missing return inside the lower beam
+    filled = SparsePrefill(passes=2, kernel=(3, 3))(sparse)[0, 0]
+    measured = sparse[0, 0] > 0
+    assert torch.equal(filled[measured], sparse[0, 0][measured])
+    assert filled[6, 4] == 10.0  # the gap in a beam takes its neighbours
+    assert filled[4, 2] == 10.0  # between the beams, two rows from each: the nearer return wins
+    assert filled[3, 2] == 20.0 and filled[5, 2] == 10.0  # one row away from only one beam
+    assert filled[0, 2] == 20.0  # two passes of ±1 row reach two rows above the top beam …
+    assert torch.all(filled[9:] == 0.0)  # … and no further below the bottom one
+
+
+def test_prefill_net_starts_from_the_filled_map() -> None:
+    torch.manual_seed(0)
+    model = build_depth_net(TINY).eval()
+    assert model.prefill is not None and model.conv1_d[0].in_channels == 2
+    height, width = TINY.depth.input_hw
+    sparse = torch.zeros(1, 1, height, width)
+    sparse[..., ::6, :] = torch.linspace(5.0, 60.0, width)  # beams every 6 rows
+    with torch.no_grad():
+        model.convtf.weight.zero_()
+        model.convtf.bias.zero_()
+        depth = model(torch.rand(1, 3, height, width) * 255, sparse)
+        prior = model.prefill(sparse)
+    assert (prior > 0).float().mean() > 0.9
+    covered = prior > 0
+    assert torch.allclose(depth[covered], prior[covered].clamp(min=TINY.depth.min_depth))
+
+
 def test_depth_net_rejects_wrong_input_size() -> None:
     model = build_depth_net(TINY).eval()
     with pytest.raises(ValueError, match="built for 88×304"):
@@ -282,6 +314,18 @@ def test_focal_loss_matches_formula() -> None:
         - 0.75 * p[2] ** 2 * torch.log(1 - p[2])
     )
     assert focal_loss(logits, targets).item() == pytest.approx(expected.item(), rel=1e-5)
+
+
+def test_masked_l1_ignores_pixels_without_ground_truth_and_prefers_a_surface() -> None:
+    target = torch.tensor([[[[10.0, 30.0, 0.0]]]])
+    assert masked_l1(torch.tensor([[[[12.0, 27.0, 99.0]]]]), target).item() == pytest.approx(2.5)
+    # One pixel, seen as foreground (10 m) in one frame and background (30 m) in another: the
+    # mean depth (20 m) is the MSE optimum, while L1 is no worse on a surface than between them.
+    both = torch.tensor([10.0, 30.0]).view(2, 1, 1, 1)
+    at = lambda d: torch.full((2, 1, 1, 1), d)  # noqa: E731
+    assert masked_mse(at(20.0), both) < masked_mse(at(10.0), both)
+    assert masked_l1(at(10.0), both) == masked_l1(at(20.0), both)
+    assert masked_l1(torch.zeros(1, 1, 2, 2), torch.zeros(1, 1, 2, 2)).item() == 0.0
 
 
 def test_focal_loss_is_finite_for_confident_cells() -> None:
