@@ -156,12 +156,15 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
             print(f"RMSE {m.rmse_mm:.1f} mm   MAE {m.mae_mm:.1f} mm   iRMSE {m.irmse_per_km:.2f} 1/km   "
                   f"iMAE {m.imae_per_km:.2f} 1/km   ({m.n_pixels} pixels)")
+            print("median |error| by ground-truth depth: "
+                  + ", ".join(f"{band} m {mm:.0f} mm" for band, mm in m.median_abs_mm_by_band.items()))
             if args.json:
                 args.json.parent.mkdir(parents=True, exist_ok=True)
                 args.json.write_text(json.dumps({
                     "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
                     "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
-                              "imae_per_km": m.imae_per_km, "pixels": m.n_pixels},
+                              "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
+                              "median_abs_mm_by_band": m.median_abs_mm_by_band},
                 }, indent=1) + "\n", encoding="utf-8")
             return 0
         if args.input is None:

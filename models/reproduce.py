@@ -197,7 +197,7 @@ def run(config: ReproduceConfig) -> dict:
     for name, models in (("with GAMs", depth_models), ("without GAMs", no_gam_models)):
         m = run_depth(config.data / "val", models, progress=config.progress).mean
         depth_table[name] = {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
-                             "imae_per_km": m.imae_per_km}
+                             "imae_per_km": m.imae_per_km, "median_abs_mm_by_band": m.median_abs_mm_by_band}
     stage("evaluate")
 
     # Ship the better two-stage directory (by BEV AP at IoU 0.7, moderate) as the product.
@@ -221,9 +221,14 @@ def format_table(report: dict) -> str:
     for row, ap in report["bev_ap"].items():
         cells = [f"{v:.1f}" for iou in ("0.5", "0.7") for v in ap[iou]["R40"]]
         lines.append(f"| {row} | " + " | ".join(cells) + " |")
-    lines += ["", "| depth net | RMSE (mm) | MAE (mm) | iRMSE (1/km) | iMAE (1/km) |", "|---|---|---|---|---|"]
+    bands = list(next(iter(report["depth"].values())).get("median_abs_mm_by_band", {}))
+    lines += ["", "| depth net | RMSE (mm) | MAE (mm) | iRMSE (1/km) | iMAE (1/km) | "
+              + "".join(f"median error {b} m (mm) | " for b in bands),
+              "|---|---|---|---|---|" + "---|" * len(bands)]
     for name, m in report["depth"].items():
-        lines.append(f"| {name} | {m['rmse_mm']:.0f} | {m['mae_mm']:.0f} | {m['irmse_per_km']:.2f} | {m['imae_per_km']:.2f} |")
+        medians = "".join(f" {m['median_abs_mm_by_band'][b]:.0f} |" for b in bands)
+        lines.append(f"| {name} | {m['rmse_mm']:.0f} | {m['mae_mm']:.0f} | {m['irmse_per_km']:.2f} | "
+                     f"{m['imae_per_km']:.2f} |{medians}")
     return "\n".join(lines) + "\n"
 
 

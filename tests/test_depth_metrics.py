@@ -59,6 +59,20 @@ def test_real_frame_velodyne_against_groundtruth():
     assert constant.mae_mm > 5 * full.mae_mm
 
 
+def test_median_error_per_depth_band():
+    gt = np.array([[5.0, 8.0, 9.0, 15.0, 35.0, 60.0]])
+    pred = gt + np.array([[0.1, -0.3, 0.2, 2.0, -1.0, 9.0]])
+    m = depth_metrics(pred, gt)
+    assert m.median_abs_mm_by_band["0-10"] == pytest.approx(200.0)  # median of 100, 300, 200 mm
+    assert m.median_abs_mm_by_band["10-20"] == pytest.approx(2000.0)
+    assert math.isnan(m.median_abs_mm_by_band["20-30"])  # no pixel there; 60 m is past every band
+    assert m.median_abs_mm_by_band["30-40"] == pytest.approx(1000.0)
+    other = depth_metrics(gt + 0.4, gt)
+    mean = mean_over_frames([m, other])
+    assert mean.median_abs_mm_by_band["20-30"] != mean.median_abs_mm_by_band["20-30"]  # NaN in both frames
+    assert mean.median_abs_mm_by_band["0-10"] == pytest.approx(300.0)  # (200 + 400) / 2
+
+
 def test_mean_is_over_frames():
     a = DepthMetrics(1000.0, 500.0, 4.0, 2.0, 10)
     b = DepthMetrics(3000.0, 700.0, 6.0, 4.0, 30)
