@@ -74,6 +74,13 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     )
 
 
+# The preset sections each network's weights depend on: its layers, and what its input and output mean.
+NETWORK_SECTIONS: dict[str, tuple[str, ...]] = {
+    "depth": ("depth", "crop_hw"),
+    "pixor": ("pixor", "bev", "decode"),
+}
+
+
 def _as_lists(value: object) -> object:
     """Tuples → lists recursively, so a preset dict compares equal to its JSON/pickled form."""
     if isinstance(value, dict):
@@ -84,12 +91,18 @@ def _as_lists(value: object) -> object:
 
 
 def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str, preset: Preset) -> None:
-    """Load ``checkpoint.state_dicts[network]`` into ``model`` after checking the preset matches."""
-    if _as_lists(checkpoint.preset_config) != _as_lists(preset.to_dict()):
+    """Load ``checkpoint.state_dicts[network]`` into ``model`` after checking the preset matches.
+
+    Only the sections that give this network's weights their meaning are compared (see
+    ``NETWORK_SECTIONS``): a PIXOR stays valid when the preset's depth net changes.
+    """
+    saved, wanted = _as_lists(checkpoint.preset_config), _as_lists(preset.to_dict())
+    differing = [key for key in NETWORK_SECTIONS.get(network, tuple(wanted)) if saved.get(key) != wanted.get(key)]
+    if differing:
         raise ValueError(
-            f"{checkpoint.path}: trained with preset {checkpoint.preset!r} whose configuration differs "
-            f"from the requested preset {preset.name!r}; export with --preset {checkpoint.preset} "
-            "or retrain"
+            f"{checkpoint.path}: trained with preset {checkpoint.preset!r} whose {', '.join(differing)} "
+            f"configuration differs from the requested preset {preset.name!r}; export with "
+            f"--preset {checkpoint.preset} or retrain"
         )
     if network not in checkpoint.state_dicts:
         raise ValueError(

@@ -386,3 +386,17 @@ def test_checkpoint_refuses_other_preset(tmp_path: Path) -> None:
         load_network_weights(build_pixor(edge), checkpoint, "pixor", edge)
     with pytest.raises(ValueError, match="no 'depth' weights"):
         load_network_weights(build_depth_net(TINY), checkpoint, "depth", TINY)
+
+
+def test_checkpoint_compares_only_the_sections_its_network_depends_on(tmp_path: Path) -> None:
+    from dataclasses import replace
+
+    save_checkpoint(tmp_path / "both.pt", TINY, {"pixor": build_pixor(TINY), "depth": build_depth_net(TINY)}, {})
+    checkpoint = load_checkpoint(tmp_path / "both.pt")
+    other_depth = replace(TINY, depth=replace(TINY.depth, prefill_passes=3))
+    load_network_weights(build_pixor(other_depth), checkpoint, "pixor", other_depth)  # PIXOR unaffected
+    with pytest.raises(ValueError, match="whose depth configuration differs"):
+        load_network_weights(build_depth_net(other_depth), checkpoint, "depth", other_depth)
+    other_grid = replace(TINY, bev=replace(TINY.bev, x_max=80.0))
+    with pytest.raises(ValueError, match="whose bev configuration differs"):
+        load_network_weights(build_pixor(other_grid), checkpoint, "pixor", other_grid)
