@@ -87,7 +87,7 @@ def to_fp16(source: Path, target: Path) -> None:
     onnx.save(model, str(target))
 
 
-def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = True) -> dict:
+def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = True, output_convs: int = 1) -> dict:
     """Static QDQ quantization: uint8 activations, int8 per-channel weights, min–max calibration.
 
     Transposed convs are rewritten as convs first so they are quantized too, and the nodes
@@ -104,7 +104,7 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
         rewritten, count = rewrite_transposed_convs(onnx.load(str(source)))
         onnx.save(rewritten, str(rewritten_path))
         quant_pre_process(str(rewritten_path), str(prepared), skip_symbolic_shape=True)
-        kept_fp32 = boundary_nodes(onnx.load(str(prepared)), inputs=inputs_fp32)
+        kept_fp32 = boundary_nodes(onnx.load(str(prepared)), inputs=inputs_fp32, output_convs=output_convs)
         quantize_static(
             str(prepared), str(target), _Reader(feeds), quant_format=QuantFormat.QDQ,
             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
@@ -156,7 +156,11 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
             to_fp16(fp32_dir / path.name, path)
         else:
             # The depth net's inputs span 0–255 and 0–85 m; PIXOR's BEV is 0/1 occupancy: uint8 holds it.
-            int8_info[name] = to_int8(fp32_dir / path.name, path, feeds[name], inputs_fp32=name == "depth")
+            # The depth net's last decoder stage stays fp32 too (output_convs 2): with the prefill its output
+            # is a correction of centimetres to the filled map, and uint8 decoder features put 0.19 m of
+            # median error at 0–10 m where fp32 has 0.08 m (BEV AP at IoU 0.7 moderate 77.3 vs 82.6).
+            int8_info[name] = to_int8(fp32_dir / path.name, path, feeds[name], inputs_fp32=name == "depth",
+                                      output_convs=2 if name == "depth" else 1)
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
     manifest["precision"] = precision
     manifest["precision_info"] = {

@@ -102,9 +102,10 @@ def rewrite_transposed_convs(model: onnx.ModelProto) -> tuple[onnx.ModelProto, i
     return model, rewritten
 
 
-def boundary_nodes(model: onnx.ModelProto, inputs: bool = True, outputs: bool = True) -> list[str]:
-    """Names of the nodes between each graph input and its first Conv (``inputs``), and between the last
-    Conv and each output (``outputs``).
+def boundary_nodes(model: onnx.ModelProto, inputs: bool = True, outputs: bool = True,
+                   output_convs: int = 1) -> list[str]:
+    """Names of the nodes between each graph input and its first Conv (``inputs``), and between the
+    ``output_convs``-th last Conv on each path and each output (``outputs``).
 
     The Convs themselves are included: the first layer reads the raw input, the last one writes the output.
     """
@@ -116,17 +117,18 @@ def boundary_nodes(model: onnx.ModelProto, inputs: bool = True, outputs: bool = 
             producer[name] = node
     chosen: set[str] = set()
 
-    def walk(start: list[onnx.NodeProto], step) -> None:
+    def walk(start: list[onnx.NodeProto], step, convs: int = 1) -> None:
         # Each walk keeps its own visited set: a node both walks reach (the depth net's filled input
         # is added to its output) must not stop the second walk before it reaches its conv.
-        stack, seen = list(start), set()
+        stack, seen = [(node, convs) for node in start], set()
         while stack:
-            node = stack.pop()
+            node, left = stack.pop()
             if node.name in seen:
                 continue
             seen.add(node.name)
-            if node.op_type != "Conv":
-                stack.extend(step(node))
+            left -= node.op_type == "Conv"
+            if left > 0:
+                stack.extend((n, left) for n in step(node))
         chosen.update(seen)
 
     initializers = {init.name for init in model.graph.initializer}
@@ -135,5 +137,5 @@ def boundary_nodes(model: onnx.ModelProto, inputs: bool = True, outputs: bool = 
              lambda node: [n for out in node.output for n in consumers[out]])
     if outputs:
         walk([producer[o.name] for o in model.graph.output if o.name in producer],
-             lambda node: [producer[i] for i in node.input if i in producer])
+             lambda node: [producer[i] for i in node.input if i in producer], output_convs)
     return sorted(chosen)

@@ -82,3 +82,9 @@ def test_transposed_conv_rewrite_is_exact(tiny_models, network):
     by_name = {n.name: n for n in rewritten.graph.node}
     assert sum(by_name[n].op_type == "Conv" for n in ends) == 3  # depth: conv1_img, conv1_d, convtf; pixor: stem, score, regression
     assert set(boundary_nodes(rewritten, inputs=False)) < set(ends)
+    # One conv deeper from the outputs: the depth net's last decoder stage (convt1, rewritten as a conv,
+    # and its attention conv) joins the fp32 tail; PIXOR's header conv before each head.
+    deeper = boundary_nodes(rewritten, inputs=False, output_convs=2)
+    assert set(boundary_nodes(rewritten, inputs=False)) < set(deeper)
+    assert sum(by_name[n].op_type == "Conv" for n in deeper) > sum(
+        by_name[n].op_type == "Conv" for n in boundary_nodes(rewritten, inputs=False))
