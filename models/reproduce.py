@@ -79,7 +79,7 @@ class Budget:
 
 
 QUICK = Budget(train_frames=6, val_frames=3, depth_frames=6, depth_epochs=2, depth_lr=1e-4, detector_frames=6,
-               detector_epochs=2, pseudo_branch_epochs=1,
+               detector_epochs=3, pseudo_branch_epochs=1,
                joint_frames=3, joint_epochs=1, val_frames_during_training=2)
 
 
@@ -111,9 +111,11 @@ def _train(config: ReproduceConfig, name: str, task: str, preset: str | None = N
         max_val_frames=b.val_frames_during_training, **kwargs,
     ))
     seconds = time.perf_counter() - tic
-    log.info("%s: loss %.4f → %.4f in %.0f s", name, result.first_loss, result.last_loss, seconds)
-    return {"first_loss": result.first_loss, "last_loss": result.last_loss, "seconds": round(seconds, 1),
-            "history": result.history}
+    # Over the whole run, not this invocation: a stage may resume (and the 16-line PIXOR runs in two legs).
+    first, last = (result.history[0]["train_loss"], result.history[-1]["train_loss"]) if result.history else (
+        result.first_loss, result.last_loss)
+    log.info("%s: loss %.4f → %.4f in %.0f s", name, first, last, seconds)
+    return {"first_loss": first, "last_loss": last, "seconds": round(seconds, 1), "history": result.history}
 
 
 def _export(config: ReproduceConfig, checkpoints: Path, target: Path, networks: tuple[str, ...],
