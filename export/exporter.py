@@ -116,10 +116,11 @@ def run(config: ExportConfig) -> ExportResult:
     with tqdm(total=steps, disable=not config.progress, unit="step") as bar:
         with _step(bar, "loading weights"):
             training = _load_weights(config, preset, models)
-        files = {}
+        files, rewrites = {}, {}
         for name, module in models.items():
             with _step(bar, f"exporting {FILES[name]}"):
-                files[name] = export_onnx(module, interfaces[name], out / FILES[name])
+                files[name] = out / FILES[name]
+                rewrites[name] = export_onnx(module, interfaces[name], files[name])
         results: list[ParityResult] = []
         if config.parity:
             sessions = {name: cpu_session(path) for name, path in files.items()}
@@ -153,7 +154,8 @@ def run(config: ExportConfig) -> ExportResult:
                 entries,
                 out,
                 normalisation(preset),
-                export_info={"exporter": EXPORTER, "opset": OPSET, "torch_seed": config.seed},
+                export_info={"exporter": EXPORTER, "opset": OPSET, "torch_seed": config.seed,
+                             "cpu_rewrites": rewrites},
                 parity=(
                     {"checked": True, "results": [r.to_dict() for r in results]}
                     if config.parity

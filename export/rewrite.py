@@ -1,24 +1,35 @@
-"""ONNX graph rewrites that prepare an FP32 network for INT8 (imports only onnx and numpy).
+"""ONNX graph rewrites for ONNX Runtime's CPU kernels and for INT8 (imports only onnx and numpy).
 
-1. Transposed convolutions as ordinary ones. ONNX Runtime has no quantized
-   ``ConvTranspose`` kernel, so a QDQ model runs them in fp32 between a
-   dequantize and a quantize: measured here, the edge depth net's five
-   transposed convs took 44 % of its INT8 time. Each 3×3 stride-2 one (padding 1,
-   output padding 1) becomes its *sub-pixel* form: output pixel (2i + a, 2j + b)
-   only sees inputs (i, j), (i, j + 1), (i + 1, j) and (i + 1, j + 1), so one 2×2
-   convolution with one extra row and column of zero padding at the bottom and
-   right computes the four phases a, b ∈ {0, 1} as 4·C_out channels, and
-   ``DepthToSpace`` (CRD order) interleaves them. A stride-1 transposed conv is a
-   convolution with the kernel flipped and the channel axes swapped. Both are
-   exact (a test compares ONNX Runtime outputs). In fp32 the sub-pixel form was
-   not faster here (its 2×2 kernels do 16/9 the multiply-adds, 7 of 16 taps being
-   zeros), so only the INT8 conversion uses it.
-2. The ends of the network stay in fp32. uint8 steps over the depth net's 0–85 m
-   output are 0.33 m, and its sparse-depth input has the same range; PIXOR's
-   score and box heads decide what is a car (its BEV input, 0/1 occupancy and a
-   reflectance in [0, 1], quantizes well). :func:`boundary_nodes` names the
-   nodes from each graph input to its first convolution and from the last
-   convolution before each output to that output, for ``nodes_to_exclude``.
+1. Transposed convolutions as ordinary ones. A stride-1 transposed conv is a
+   convolution with the kernel flipped and the channel axes swapped: same
+   multiply-adds, but ONNX Runtime runs ``Conv`` in its blocked NCHWc kernels and
+   ``ConvTranspose`` through a slower generic path (measured here: the edge depth
+   net's last 3×3 transposed conv took 3.1 ms of 22, and the whole net 4 % less
+   as a conv). Each 3×3 stride-2 one (padding 1, output padding 1) becomes its
+   *sub-pixel* form: output pixel (2i + a, 2j + b) only sees inputs (i, j),
+   (i, j + 1), (i + 1, j) and (i + 1, j + 1), so one 2×2 convolution with one
+   extra row and column of zero padding at the bottom and right computes the
+   four phases a, b ∈ {0, 1} as 4·C_out channels, and ``DepthToSpace`` (CRD
+   order) interleaves them. In fp32 the sub-pixel form was not faster here (its
+   2×2 kernels do 16/9 the multiply-adds, 7 of 16 taps being zeros), so only the
+   INT8 conversion uses it: ONNX Runtime has no quantized ``ConvTranspose``
+   kernel, and the edge depth net's five transposed convs took 44 % of its INT8
+   time. Both forms are exact (a test compares ONNX Runtime outputs).
+2. A convolution reading a graph input whose channel count is not a multiple of
+   the NCHWc block (16 floats of AVX-512) and not below it stays in ONNX
+   Runtime's plain NCHW kernel: PIXOR's first conv on the 19-channel BEV took a
+   quarter of the edge PIXOR's time. :func:`split_input_convs` slices the input
+   into its first 16·k channels and the rest, convolves each (both get blocked
+   kernels) and adds them: exact up to float summation order.
+3. The ends of the network stay in fp32 under INT8. uint8 steps over the depth
+   net's 0–85 m output are 0.33 m, and its sparse-depth input has the same
+   range; PIXOR's score and box heads decide what is a car (its BEV input, 0/1
+   occupancy and a reflectance in [0, 1], quantizes well). :func:`boundary_nodes`
+   names the nodes from each graph input to its first convolution and from the
+   last convolution before each output to that output, for ``nodes_to_exclude``.
+
+:func:`lower_for_cpu` applies the fp32 rewrites (the stride-1 half of 1, and 2);
+the exporter runs it on every network before the parity check.
 """
 
 from __future__ import annotations
@@ -52,8 +63,9 @@ def _attributes(node: onnx.NodeProto) -> dict:
     return {a.name: helper.get_attribute_value(a) for a in node.attribute}
 
 
-def rewrite_transposed_convs(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
-    """A copy of ``model`` with its 3×3 stride-2 and stride-1 ConvTranspose nodes as Conv (+ DepthToSpace).
+def rewrite_transposed_convs(model: onnx.ModelProto, subpixel: bool = True) -> tuple[onnx.ModelProto, int]:
+    """A copy of ``model`` with its 3×3 stride-1 ConvTranspose nodes as Conv, and with ``subpixel``
+    its 3×3 stride-2 ones as Conv + DepthToSpace.
 
     Returns the new model and the number of nodes rewritten. Transposed convs with other
     settings, or whose weights are not stored in the graph, are left as they are.
@@ -71,7 +83,8 @@ def rewrite_transposed_convs(model: onnx.ModelProto) -> tuple[onnx.ModelProto, i
         strides = list(attrs.get("strides", [1, 1]))
         pads = list(attrs.get("pads", [0, 0, 0, 0]))
         output_padding = list(attrs.get("output_padding", [0, 0]))
-        if not plain or pads != [1, 1, 1, 1] or (strides, output_padding) not in (([2, 2], [1, 1]), ([1, 1], [0, 0])):
+        forms = (([2, 2], [1, 1]), ([1, 1], [0, 0])) if subpixel else (([1, 1], [0, 0]),)
+        if not plain or pads != [1, 1, 1, 1] or (strides, output_padding) not in forms:
             nodes.append(node)
             continue
         weight = numpy_helper.to_array(initializers[node.input[1]])
@@ -93,13 +106,65 @@ def rewrite_transposed_convs(model: onnx.ModelProto) -> tuple[onnx.ModelProto, i
         graph.initializer.extend([numpy_helper.from_array(conv_weight.astype(weight.dtype), f"{name}_w"),
                                   numpy_helper.from_array(conv_bias.astype(weight.dtype), f"{name}_b")])
         rewritten += 1
+    _replace_nodes(graph, nodes)
+    return model, rewritten
+
+
+def _replace_nodes(graph: onnx.GraphProto, nodes: list[onnx.NodeProto]) -> None:
+    """Set the graph's nodes and drop the initializers no node reads any more."""
     del graph.node[:]
     graph.node.extend(nodes)
     used = {name for node in graph.node for name in node.input}
     kept = [init for init in graph.initializer if init.name in used]
     del graph.initializer[:]
     graph.initializer.extend(kept)
-    return model, rewritten
+
+
+def split_input_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.ModelProto, int]:
+    """A copy of ``model`` where each plain Conv reading a graph input with C ≥ ``block`` channels,
+    C not a multiple of ``block``, is split into a conv on channels [0, C − C mod block) and one on
+    the rest, summed (the bias goes with the first). Returns the new model and the number split.
+    """
+    model = onnx.ModelProto.FromString(model.SerializeToString())
+    graph = model.graph
+    initializers = {init.name: init for init in graph.initializer}
+    graph_inputs = {value.name for value in graph.input} - set(initializers)
+    nodes, split = [], 0
+    for node in graph.node:
+        attrs = _attributes(node)
+        weight = (numpy_helper.to_array(initializers[node.input[1]])
+                  if node.op_type == "Conv" and node.input[1] in initializers else None)
+        channels = weight.shape[1] if weight is not None else 0
+        if (node.input[0] not in graph_inputs or attrs.get("group", 1) != 1 or channels < block
+                or channels % block == 0):
+            nodes.append(node)
+            continue
+        aligned = channels - channels % block
+        name = node.name or node.output[0]
+        bounds = {f"{name}_c0": 0, f"{name}_c1": aligned, f"{name}_c2": channels, f"{name}_axis": 1}
+        graph.initializer.extend(numpy_helper.from_array(np.array([v], np.int64), k) for k, v in bounds.items())
+        graph.initializer.extend([numpy_helper.from_array(np.ascontiguousarray(weight[:, :aligned]), f"{name}_wa"),
+                                  numpy_helper.from_array(np.ascontiguousarray(weight[:, aligned:]), f"{name}_wb")])
+        bias = list(node.input[2:3])
+        nodes.extend([
+            helper.make_node("Slice", [node.input[0], f"{name}_c0", f"{name}_c1", f"{name}_axis"], [f"{name}_xa"],
+                             name=f"{name}_slice_a"),
+            helper.make_node("Slice", [node.input[0], f"{name}_c1", f"{name}_c2", f"{name}_axis"], [f"{name}_xb"],
+                             name=f"{name}_slice_b"),
+            helper.make_node("Conv", [f"{name}_xa", f"{name}_wa", *bias], [f"{name}_ya"], name=f"{name}_a", **attrs),
+            helper.make_node("Conv", [f"{name}_xb", f"{name}_wb"], [f"{name}_yb"], name=f"{name}_b", **attrs),
+            helper.make_node("Add", [f"{name}_ya", f"{name}_yb"], [node.output[0]], name=f"{name}_sum"),
+        ])
+        split += 1
+    _replace_nodes(graph, nodes)
+    return model, split
+
+
+def lower_for_cpu(model: onnx.ModelProto) -> tuple[onnx.ModelProto, dict[str, int]]:
+    """The exact fp32 rewrites (module docstring, 1 and 2); returns the model and how many nodes each changed."""
+    model, transposed = rewrite_transposed_convs(model, subpixel=False)
+    model, split = split_input_convs(model)
+    return model, {"stride1_transposed_convs": transposed, "split_input_convs": split}
 
 
 def boundary_nodes(model: onnx.ModelProto, inputs: bool = True, outputs: bool = True,

@@ -31,7 +31,7 @@ from pipeline.calib import depth_crop, sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
 from pipeline.kitti import read_depth_png
-from pipeline.preprocess import depth_inputs, network_view
+from pipeline.preprocess import depth_inputs, view_calibration
 from pipeline.presets import Preset
 from pipeline.pseudo import depth_to_points, merge_points
 from pipeline.targets import encode_targets
@@ -55,7 +55,7 @@ def depth_target(data_dir: Path, frame: Frame, preset: Preset) -> np.ndarray:
             # Nearest keeps depths real (no blending of foreground and background across edges).
             view = cv2.resize(view, (width, height), interpolation=cv2.INTER_NEAREST)
         return view.astype(np.float32)
-    _, view_calib = network_view(frame.image, frame.calib, preset)
+    view_calib = view_calibration(frame.image_hw, frame.calib, preset)
     return sparse_depth_map(frame.points, view_calib, (height, width))
 
 
@@ -107,7 +107,7 @@ def detector_points(data_dir: Path, frame: Frame, preset: Preset, input_mode: st
     if pseudo_dir is None:
         raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir)")
     depth = read_depth_png(Path(pseudo_dir) / f"{frame.frame_id}.png")
-    _, view_calib = network_view(frame.image, frame.calib, preset)
+    view_calib = view_calibration(frame.image_hw, frame.calib, preset)
     d = preset.decode
     pseudo = depth_to_points(depth, view_calib, preset.depth.min_depth, preset.depth.max_depth,
                              d.pseudo_stride, d.pseudo_max_height)
@@ -131,7 +131,7 @@ class DetectorDataset(Dataset):
         return len(self.frame_ids)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        frame = load_frame(self.data_dir, self.frame_ids[index])
+        frame = load_frame(self.data_dir, self.frame_ids[index], with_image=False)  # PIXOR sees no pixels
         points = detector_points(self.data_dir, frame, self.preset, self.input_mode, self.pseudo_dir)
         boxes = car_boxes(frame)
         if self.augment:

@@ -252,7 +252,7 @@ def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], inp
         depth_net.eval()
     gts, dets, losses = [], [], []
     for fid in ids:
-        frame = load_frame(data_dir, fid)
+        frame = load_frame(data_dir, fid, with_image=depth_net is not None)  # only joint runs the camera net
         if depth_net is not None:
             points = joint_points(depth_net, frame, preset, device)
         else:

@@ -9,27 +9,31 @@ import numpy as np
 
 from pipeline.calib import Calibration
 from pipeline.errors import InputError
-from pipeline.kitti import Object3D, read_calib, read_image, read_labels, read_velodyne
+from pipeline.kitti import Object3D, read_calib, read_image, read_image_size, read_labels, read_velodyne
 
 
 @dataclass
 class Frame:
     """Camera image, LiDAR scan and calibration of one moment.
 
-    image: uint8 RGB (H, W, 3). points: float32 (N, 4) velodyne points.
+    image: uint8 RGB (H, W, 3), or None when loaded without pixels (then
+    ``size_hw`` holds its size). points: float32 (N, 4) velodyne points.
     labels: ground truth when the dataset has it. dropped_nonfinite: points
     removed on load because a value was NaN or infinite.
     """
 
     frame_id: str
-    image: np.ndarray
+    image: np.ndarray | None
     points: np.ndarray
     calib: Calibration
     labels: list[Object3D] | None = None
     dropped_nonfinite: int = 0
+    size_hw: tuple[int, int] | None = None
 
     @property
     def image_hw(self) -> tuple[int, int]:
+        if self.image is None:
+            return self.size_hw
         return (int(self.image.shape[0]), int(self.image.shape[1]))
 
 
@@ -57,14 +61,19 @@ def frame_ids(data_dir: str | Path, split_file: str | Path | None = None) -> lis
     return sorted(p.stem for p in velodyne.glob("*.bin"))
 
 
-def load_frame(data_dir: str | Path, frame_id: str, with_labels: bool = True) -> Frame:
-    """Load ``image_2/ID.png``, ``velodyne/ID.bin``, ``calib/ID.txt`` (and ``label_2/ID.txt`` if present)."""
+def load_frame(data_dir: str | Path, frame_id: str, with_labels: bool = True, with_image: bool = True) -> Frame:
+    """Load ``image_2/ID.png``, ``velodyne/ID.bin``, ``calib/ID.txt`` (and ``label_2/ID.txt`` if present).
+
+    ``with_image=False`` reads only the image's size (LiDAR-side training samples need no pixels).
+    """
     data_dir = Path(data_dir)
     scan = read_velodyne(data_dir / "velodyne" / f"{frame_id}.bin")
     label_path = data_dir / "label_2" / f"{frame_id}.txt"
+    image_path = data_dir / "image_2" / f"{frame_id}.png"
     return Frame(
         frame_id=frame_id,
-        image=read_image(data_dir / "image_2" / f"{frame_id}.png"),
+        image=read_image(image_path) if with_image else None,
+        size_hw=None if with_image else read_image_size(image_path),
         points=scan.points,
         calib=read_calib(data_dir / "calib" / f"{frame_id}.txt"),
         labels=read_labels(label_path) if with_labels and label_path.exists() else None,

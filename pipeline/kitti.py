@@ -293,6 +293,21 @@ def read_image(path: str | Path) -> np.ndarray:
     return decode_image(data, str(path))
 
 
+def read_image_size(path: str | Path) -> tuple[int, int]:
+    """(height, width) of a camera image; for PNG from its header alone (training loaders that only
+    need the size skip decoding a million pixels), otherwise by decoding it."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as handle:
+            header = handle.read(24)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read image ({exc.strerror})") from exc
+    if header[:8] == b"\x89PNG\r\n\x1a\n" and header[12:16] == b"IHDR":
+        width, height = int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
+        return height, width
+    return read_image(path).shape[:2]
+
+
 def write_image(path: str | Path, rgb: np.ndarray) -> None:
     """Write a uint8 RGB image (PNG or JPEG by extension)."""
     if not cv2.imwrite(str(path), cv2.cvtColor(np.asarray(rgb, np.uint8), cv2.COLOR_RGB2BGR)):

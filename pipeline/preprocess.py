@@ -47,7 +47,13 @@ def network_view(image: np.ndarray, calib: Calibration, preset: Preset) -> tuple
     height, width = preset.depth.input_hw
     if view.shape[:2] != (height, width):
         view = cv2.resize(view, (width, height), interpolation=cv2.INTER_AREA)
-    return view, scale_calibration(crop_calibration(calib, crop), preset.depth.input_scale)
+    return view, view_calibration(image.shape[:2], calib, preset)
+
+
+def view_calibration(image_hw: tuple[int, int], calib: Calibration, preset: Preset) -> Calibration:
+    """The calibration of the depth net's view of an image of this size (:func:`network_view` without pixels)."""
+    crop = depth_crop(image_hw, *preset.crop_hw)
+    return scale_calibration(crop_calibration(calib, crop), preset.depth.input_scale)
 
 
 def depth_inputs(image: np.ndarray, points: np.ndarray, calib: Calibration, preset: Preset) -> DepthInputs:

@@ -177,6 +177,52 @@ def test_edge_is_ten_times_cheaper_than_paper(edge_export: ExportResult, paper_e
     assert paper_export.manifest["networks"]["depth"]["flops"] > 300e9
 
 
+def test_export_lowers_graphs_for_cpu_kernels(edge_export: ExportResult) -> None:
+    """The edge export (parity-checked by its fixture) has no stride-1 ConvTranspose and no conv on the
+    19-channel BEV input itself: that conv is split at 16 channels (export/rewrite.py says why)."""
+    rewrites = edge_export.manifest["export"]["cpu_rewrites"]
+    assert rewrites == {"depth": {"stride1_transposed_convs": 1, "split_input_convs": 0},
+                        "pixor": {"stride1_transposed_convs": 0, "split_input_convs": 1}}
+    depth = onnx.load(str(edge_export.files["depth"]))
+    strides = [list(a.ints) for n in depth.graph.node if n.op_type == "ConvTranspose"
+               for a in n.attribute if a.name == "strides"]
+    assert strides and all(s == [2, 2] for s in strides)
+    pixor = onnx.load(str(edge_export.files["pixor"]))
+    assert [n.op_type for n in pixor.graph.node if "bev" in n.input] == ["Slice", "Slice"]
+
+
+def test_split_input_conv_is_exact() -> None:
+    """A 19-channel input conv split at 16 gives ONNX Runtime the same output; 8 and 32 channels stay whole."""
+    import onnxruntime as ort
+    from onnx import numpy_helper
+
+    from export.rewrite import split_input_convs
+
+    rng = np.random.default_rng(0)
+
+    def conv_graph(channels: int) -> onnx.ModelProto:
+        weight = numpy_helper.from_array(rng.standard_normal((16, channels, 3, 3)).astype(np.float32), "w")
+        bias = numpy_helper.from_array(rng.standard_normal(16).astype(np.float32), "b")
+        graph = helper.make_graph(
+            [helper.make_node("Conv", ["x", "w", "b"], ["y"], pads=[1, 1, 1, 1], kernel_shape=[3, 3], strides=[2, 2]),
+             helper.make_node("Relu", ["y"], ["out"])], "g",
+            [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, channels, 20, 24])],
+            [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 16, 10, 12])], [weight, bias])
+        return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=8)
+
+    for channels, expected in ((19, 1), (8, 0), (32, 0)):
+        model = conv_graph(channels)
+        split, count = split_input_convs(model)
+        assert count == expected
+        onnx.checker.check_model(split, full_check=True)
+        x = {"x": rng.standard_normal((1, channels, 20, 24)).astype(np.float32)}
+        a, b = (ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, x)[0]
+                for m in (model, split))
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5)
+    assert [n.op_type for n in split_input_convs(conv_graph(19))[0].graph.node] == [
+        "Slice", "Slice", "Conv", "Conv", "Add", "Relu"]
+
+
 # --------------------------------------------------------------------------- manifest and checksums
 def test_manifest_contents(tiny_export: ExportResult) -> None:
     manifest = json.loads(tiny_export.manifest_path.read_text())

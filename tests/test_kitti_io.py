@@ -28,6 +28,18 @@ def test_image_sizes_differ_per_frame():
         assert read_image(KITTI / "image_2" / f"{frame}.png").shape == (*hw, 3)
 
 
+def test_image_size_from_png_header_and_jpeg_fallback(tmp_path):
+    from pipeline.kitti import read_image, read_image_size, write_image
+
+    for fid in ("000006", "000003"):  # 374 × 1238 and 375 × 1242
+        path = KITTI / "image_2" / f"{fid}.png"
+        assert read_image_size(path) == read_image(path).shape[:2]
+    write_image(tmp_path / "x.jpg", np.zeros((7, 11, 3), np.uint8))
+    assert read_image_size(tmp_path / "x.jpg") == (7, 11)
+    with pytest.raises(InputError, match="missing.png"):
+        read_image_size(tmp_path / "missing.png")
+
+
 def test_velodyne_roundtrip_and_nonfinite_dropped(tmp_path):
     points = np.arange(40, dtype=np.float32).reshape(10, 4)
     points[3, 1] = np.nan

@@ -42,6 +42,21 @@ def test_detector_dataset_targets_and_mirror():
     assert any(flips) and not all(flips)  # the mirror is drawn per epoch
 
 
+def test_detector_samples_without_pixels_equal_those_with(tmp_path):
+    """Detector samples read only the image's size; pseudo points still land where the full frame puts them."""
+    from models.data import detector_points
+    from pipeline.frame import load_frame
+    from pipeline.kitti import write_depth_png
+
+    preset = PRESETS["edge"]
+    write_depth_png(tmp_path / "000006.png", np.full(preset.depth.input_hw, 12.5, np.float32))
+    full, light = load_frame(KITTI, "000006"), load_frame(KITTI, "000006", with_image=False)
+    assert light.image is None and light.image_hw == full.image_hw == (374, 1238)
+    for mode in ("lidar64", "lidar16", "pseudo"):
+        np.testing.assert_array_equal(detector_points(KITTI, light, preset, mode, tmp_path),
+                                      detector_points(KITTI, full, preset, mode, tmp_path))
+
+
 def test_depth_completion_layout_emulates_16_lines(depth_completion_dir):
     calib = read_calib(KITTI / "calib" / "000003.txt")  # same recording day's calibration as the drive
     raw = read_depth_png(depth_completion_dir / "velodyne_raw" / "0000000005.png")
