@@ -11,7 +11,6 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from export.flops import count_flops
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR, kitti_inputs, random_inputs
 from export.manifest import UNTRAINED, NetworkEntry, build_manifest, verify_model_dir, write_manifest
 from export.onnx_export import EXPORTER, OPSET, NetworkIO, depth_io, export_onnx, pixor_io
@@ -116,11 +115,11 @@ def run(config: ExportConfig) -> ExportResult:
     with tqdm(total=steps, disable=not config.progress, unit="step") as bar:
         with _step(bar, "loading weights"):
             training = _load_weights(config, preset, models)
-        files, rewrites = {}, {}
+        graphs = {}
         for name, module in models.items():
             with _step(bar, f"exporting {FILES[name]}"):
-                files[name] = out / FILES[name]
-                rewrites[name] = export_onnx(module, interfaces[name], files[name])
+                graphs[name] = export_onnx(module, interfaces[name], out / FILES[name])
+        files = {name: graph.path for name, graph in graphs.items()}
         results: list[ParityResult] = []
         if config.parity:
             sessions = {name: cpu_session(path) for name, path in files.items()}
@@ -142,8 +141,8 @@ def run(config: ExportConfig) -> ExportResult:
                     inputs=interfaces[name].inputs,
                     outputs=interfaces[name].outputs,
                     parameters=sum(p.numel() for p in models[name].parameters()),
-                    flops=(flops := count_flops(files[name])).total,
-                    flops_by_op=flops.by_op,
+                    flops=graphs[name].flops.total,
+                    flops_by_op=graphs[name].flops.by_op,
                     weights=UNTRAINED if training[name] is None else "trained",
                     training=training[name],
                 )
@@ -155,7 +154,7 @@ def run(config: ExportConfig) -> ExportResult:
                 out,
                 normalisation(preset),
                 export_info={"exporter": EXPORTER, "opset": OPSET, "torch_seed": config.seed,
-                             "cpu_rewrites": rewrites},
+                             "cpu_rewrites": {name: graph.rewrites for name, graph in graphs.items()}},
                 parity=(
                     {"checked": True, "results": [r.to_dict() for r in results]}
                     if config.parity

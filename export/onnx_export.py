@@ -22,6 +22,7 @@ import onnx
 import torch
 from torch import nn
 
+from export.flops import FlopCount, count_flops
 from export.manifest import TensorSpec
 from export.rewrite import lower_for_cpu
 
@@ -62,13 +63,22 @@ def pixor_io(bev_shape: tuple[int, int, int], output_stride: int) -> NetworkIO:
     )
 
 
+@dataclass(frozen=True)
+class ExportedGraph:
+    """What :func:`export_onnx` wrote: the network's FLOPs (counted before lowering, so zero-padded
+    channels do not count as work) and how many nodes each lowering rewrite changed."""
+
+    path: Path
+    flops: FlopCount
+    rewrites: dict[str, int]
+
+
 def export_onnx(model: nn.Module, io: NetworkIO, path: str | Path, opset: int = OPSET,
-                lower: bool = True) -> dict[str, int]:
+                lower: bool = True) -> ExportedGraph:
     """Trace ``model`` (eval mode) on zero inputs of the declared shapes and write a checked ONNX file.
 
-    With ``lower`` the graph is rewritten for ONNX Runtime's CPU kernels (exactly); returns how many
-    nodes each rewrite changed. Raises ValueError if the exported graph's input/output names or
-    shapes differ from ``io``.
+    With ``lower`` the graph is rewritten for ONNX Runtime's CPU kernels (exactly). Raises
+    ValueError if the exported graph's input/output names or shapes differ from ``io``.
     """
     path = Path(path)
     model.eval()
@@ -96,13 +106,15 @@ def export_onnx(model: nn.Module, io: NetworkIO, path: str | Path, opset: int = 
             )
     finally:
         registry_log.setLevel(previous_level)
+    traced = onnx.load(str(path))
+    flops = count_flops(traced)
     rewrites: dict[str, int] = {}
     if lower:
-        lowered, rewrites = lower_for_cpu(onnx.load(str(path)))
+        lowered, rewrites = lower_for_cpu(traced)
         onnx.save(lowered, str(path))
     onnx.checker.check_model(str(path), full_check=True)
     check_interface(onnx.load(str(path)), io, path)
-    return rewrites
+    return ExportedGraph(path, flops, rewrites)
 
 
 def _graph_shapes(values: list[onnx.ValueInfoProto]) -> dict[str, tuple[int, ...]]:

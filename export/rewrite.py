@@ -160,11 +160,79 @@ def split_input_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.Mod
     return model, split
 
 
+_ELEMENTWISE_ZERO_KEEPING = ("Relu", "LeakyRelu")  # f(0) = 0: padded channels stay zero through them
+
+
+def pad_narrow_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.ModelProto, int]:
+    """A copy of ``model`` where each Conv with fewer than ``block`` output channels, whose output reaches
+    only plain Convs (directly or through one Relu/LeakyRelu), gets zero output channels up to ``block``
+    and its consumers matching zero input weights. Returns the new model and the number padded.
+
+    The padded channels are exactly zero (zero weights and bias, then f(0) = 0) and are read with zero
+    weights, so outputs are unchanged.
+    """
+    model = onnx.ModelProto.FromString(model.SerializeToString())
+    graph = model.graph
+    initializers = {init.name: init for init in graph.initializer}
+    consumers = defaultdict(list)
+    for node in graph.node:
+        for name in node.input:
+            consumers[name].append(node)
+    outputs = {value.name for value in graph.output}
+
+    def plain_conv(node: onnx.NodeProto) -> bool:
+        return (node.op_type == "Conv" and _attributes(node).get("group", 1) == 1
+                and all(name in initializers for name in node.input[1:] if name))
+
+    def readers(node: onnx.NodeProto) -> list[onnx.NodeProto] | None:
+        """The Convs reading the node's output as their data (through one zero-keeping activation);
+        None when anything else reads it."""
+        found = []
+        for user in consumers[node.output[0]]:
+            if user.op_type in _ELEMENTWISE_ZERO_KEEPING and user.output[0] not in outputs:
+                found.extend((user.output[0], reader) for reader in consumers[user.output[0]])
+            else:
+                found.append((node.output[0], user))
+        if not found or not all(plain_conv(reader) and reader.input[0] == tensor for tensor, reader in found):
+            return None
+        return [reader for _, reader in found]
+
+    def replace(name: str, array: np.ndarray) -> None:
+        initializers[name].CopyFrom(numpy_helper.from_array(array.astype(np.float32), name))
+
+    padded = 0
+    for node in graph.node:
+        if not plain_conv(node) or node.output[0] in outputs:
+            continue
+        weight = numpy_helper.to_array(initializers[node.input[1]])
+        narrow = weight.shape[0]
+        users = readers(node)
+        if narrow >= block or users is None:
+            continue
+        shared = {u.input[1] for u in users} | {node.input[1]}
+        if len(shared) != len(users) + 1:  # a weight shared between nodes cannot be padded for one alone
+            continue
+        extra = block - narrow
+        replace(node.input[1], np.concatenate([weight, np.zeros((extra, *weight.shape[1:]), weight.dtype)]))
+        if len(node.input) > 2 and node.input[2]:
+            bias = numpy_helper.to_array(initializers[node.input[2]])
+            replace(node.input[2], np.concatenate([bias, np.zeros(extra, bias.dtype)]))
+        for user in users:
+            w = numpy_helper.to_array(initializers[user.input[1]])
+            zeros = np.zeros((w.shape[0], extra, *w.shape[2:]), w.dtype)
+            replace(user.input[1], np.concatenate([w, zeros], axis=1))
+        padded += 1
+    # Shapes recorded by an earlier inference are stale for the padded tensors.
+    del graph.value_info[:]
+    return model, padded
+
+
 def lower_for_cpu(model: onnx.ModelProto) -> tuple[onnx.ModelProto, dict[str, int]]:
-    """The exact fp32 rewrites (module docstring, 1 and 2); returns the model and how many nodes each changed."""
+    """The exact fp32 rewrites (module docstring, 1 to 3); returns the model and how many nodes each changed."""
     model, transposed = rewrite_transposed_convs(model, subpixel=False)
     model, split = split_input_convs(model)
-    return model, {"stride1_transposed_convs": transposed, "split_input_convs": split}
+    model, padded = pad_narrow_convs(model)
+    return model, {"stride1_transposed_convs": transposed, "split_input_convs": split, "padded_narrow_convs": padded}
 
 
 def boundary_nodes(model: onnx.ModelProto, inputs: bool = True, outputs: bool = True,

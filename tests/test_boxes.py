@@ -184,6 +184,31 @@ def test_camera_view_filter():
     assert not in_camera_view(outside, frame.calib, frame.image_hw).any()
 
 
+def test_nms_quick_accept_is_a_true_lower_bound():
+    """The inscribed-circle test NMS uses to skip clipping never calls a pair over the threshold that
+    is not (checked against shapely), and does call most pairs of a car's candidate cluster."""
+    from shapely.geometry import Point
+
+    from pipeline.iou import _certainly_over
+
+    rng = np.random.default_rng(11)
+    a = random_boxes(rng, 3000)
+    b = a + np.column_stack([rng.normal(0, 0.6, (3000, 2)), rng.normal(0, 0.3, (3000, 2)), rng.normal(0, 0.5, 3000)])
+    b[:, 2:4] = np.abs(b[:, 2:4]) + 0.5
+    exact = rotated_iou_pairs(a, b)
+    for threshold in (0.05, 0.1, 0.3):
+        sure = _certainly_over(a, b, threshold)
+        assert not np.any(sure & (exact <= threshold))
+    assert _certainly_over(a, b, 0.1).mean() > 0.3
+    # The lens itself, against shapely's (polygonal) circles, through the bound at threshold ε.
+    for i in range(20):
+        r1, r2 = min(a[i, 2:4]) / 2, min(b[i, 2:4]) / 2
+        lens = Point(a[i, :2]).buffer(r1, 256).intersection(Point(b[i, :2]).buffer(r2, 256)).area
+        areas = a[i, 2] * a[i, 3] + b[i, 2] * b[i, 3]
+        assert bool(_certainly_over(a[i : i + 1], b[i : i + 1], 0.98 * lens / areas)[0]) == (lens > 0)
+        assert not _certainly_over(a[i : i + 1], b[i : i + 1], 1.02 * lens / areas + 1e-12)[0]
+
+
 def test_nms_equals_plain_greedy_on_clustered_candidates():
     """The circle prefilter changes no decision: compare with greedy NMS over the full IoU matrix."""
 

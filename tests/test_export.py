@@ -178,17 +178,20 @@ def test_edge_is_ten_times_cheaper_than_paper(edge_export: ExportResult, paper_e
 
 
 def test_export_lowers_graphs_for_cpu_kernels(edge_export: ExportResult) -> None:
-    """The edge export (parity-checked by its fixture) has no stride-1 ConvTranspose and no conv on the
-    19-channel BEV input itself: that conv is split at 16 channels (export/rewrite.py says why)."""
+    """The edge export (parity-checked by its fixture) has no stride-1 ConvTranspose, no conv on the
+    19-channel BEV input itself (split at 16 channels) and no 12-channel conv outputs (padded to 16)."""
     rewrites = edge_export.manifest["export"]["cpu_rewrites"]
-    assert rewrites == {"depth": {"stride1_transposed_convs": 1, "split_input_convs": 0},
-                        "pixor": {"stride1_transposed_convs": 0, "split_input_convs": 1}}
+    assert rewrites == {"depth": {"stride1_transposed_convs": 1, "split_input_convs": 0, "padded_narrow_convs": 0},
+                        "pixor": {"stride1_transposed_convs": 0, "split_input_convs": 1, "padded_narrow_convs": 4}}
     depth = onnx.load(str(edge_export.files["depth"]))
     strides = [list(a.ints) for n in depth.graph.node if n.op_type == "ConvTranspose"
                for a in n.attribute if a.name == "strides"]
     assert strides and all(s == [2, 2] for s in strides)
     pixor = onnx.load(str(edge_export.files["pixor"]))
     assert [n.op_type for n in pixor.graph.node if "bev" in n.input] == ["Slice", "Slice"]
+    weights = {init.name: init.dims for init in pixor.graph.initializer}
+    widths = {weights[n.input[1]][0] for n in pixor.graph.node if n.op_type == "Conv"}
+    assert 12 not in widths and 16 in widths  # edge PIXOR's 12-wide first stage now runs 16 wide
 
 
 def test_split_input_conv_is_exact() -> None:
@@ -223,8 +226,51 @@ def test_split_input_conv_is_exact() -> None:
         "Slice", "Slice", "Conv", "Conv", "Add", "Relu"]
 
 
+def test_pad_narrow_convs_is_exact_and_only_where_safe() -> None:
+    """8-channel convs read only by convs (through a Relu) are padded to 16; one whose output is added
+    to something else, or is a graph output, is left alone. ONNX Runtime gives the same outputs."""
+    import onnxruntime as ort
+    from onnx import numpy_helper
+
+    from export.rewrite import pad_narrow_convs
+
+    rng = np.random.default_rng(0)
+
+    def weight(name: str, shape: tuple[int, ...]) -> onnx.TensorProto:
+        return numpy_helper.from_array(rng.standard_normal(shape).astype(np.float32), name)
+
+    nodes = [
+        helper.make_node("Conv", ["x", "w1", "b1"], ["a"], kernel_shape=[1, 1]),  # 8 out → Relu → Conv: padded
+        helper.make_node("Relu", ["a"], ["a_relu"]),
+        helper.make_node("Conv", ["a_relu", "w2", "b2"], ["c"], kernel_shape=[3, 3], pads=[1, 1, 1, 1]),  # 8 out → Add
+        helper.make_node("Add", ["c", "x8"], ["d"]),
+        helper.make_node("Conv", ["d", "w3"], ["out"], kernel_shape=[1, 1]),  # 4 out, a graph output
+    ]
+    inits = [weight("w1", (8, 16, 1, 1)), weight("b1", (8,)), weight("w2", (8, 8, 3, 3)), weight("b2", (8,)),
+             weight("w3", (4, 8, 1, 1))]
+    graph = helper.make_graph(
+        nodes, "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 16, 12, 10]),
+         helper.make_tensor_value_info("x8", TensorProto.FLOAT, [1, 8, 12, 10])],
+        [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 4, 12, 10])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=8)
+    padded, count = pad_narrow_convs(model)
+    assert count == 1
+    onnx.checker.check_model(padded, full_check=True)
+    dims = {init.name: tuple(init.dims) for init in padded.graph.initializer}
+    assert dims["w1"] == (16, 16, 1, 1) and dims["b1"] == (16,) and dims["w2"] == (8, 16, 3, 3)
+    assert dims["w3"] == (4, 8, 1, 1)
+    feeds = {"x": rng.standard_normal((1, 16, 12, 10)).astype(np.float32),
+             "x8": rng.standard_normal((1, 8, 12, 10)).astype(np.float32)}
+    a, b = (ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, feeds)[0]
+            for m in (model, padded))
+    np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5)
+
+
 # --------------------------------------------------------------------------- manifest and checksums
-def test_manifest_contents(tiny_export: ExportResult) -> None:
+def test_manifest_contents(tiny_export: ExportResult, tmp_path: Path) -> None:
+    from export.onnx_export import depth_io, export_onnx, pixor_io
+
     manifest = json.loads(tiny_export.manifest_path.read_text())
     preset = get_preset("tiny")
     assert manifest["preset"] == "tiny"
@@ -237,7 +283,12 @@ def test_manifest_contents(tiny_export: ExportResult) -> None:
     for name, file in (("depth", "depth.onnx"), ("pixor", "pixor.onnx")):
         entry = manifest["networks"][name]
         assert entry["file"] == file and entry["weights"] == "initialised (untrained)"
-        assert entry["flops"] == count_flops(tiny_export.directory / file).total > 0
+        # FLOPs of the network as traced: the zero channels lowering pads in (tiny PIXOR) are not work.
+        io = depth_io(preset.depth.input_hw) if name == "depth" else pixor_io(preset.bev.shape, preset.pixor.output_stride)
+        traced = export_onnx(tiny_export.networks[name], io, tmp_path / file, lower=False)
+        assert entry["flops"] == count_flops(traced.path).total > 0
+        if name == "pixor":
+            assert count_flops(tiny_export.directory / file).total > entry["flops"]
         assert entry["parameters"] == sum(p.numel() for p in (build_depth_net if name == "depth" else build_pixor)(preset).parameters())
         assert manifest["files"][file]["sha256"] == sha256_file(tiny_export.directory / file)
     assert [i["name"] for i in manifest["networks"]["depth"]["inputs"]] == ["rgb", "sparse_depth"]
