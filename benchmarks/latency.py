@@ -2,7 +2,7 @@
 
     python benchmarks/latency.py [--preset P | --models DIR] [--provider cpu|cuda|tensorrt]
                                  [--threads N] [--frames K] [--warmup W] [--json OUT] [--plot OUT.png]
-                                 [--compare-torch [--checkpoints DIR]]
+                                 [--compare-torch [--checkpoints DIR]] [--baseline DIR]
 
 Single stream (the paper's per-frame latency, 25.4 ms on an RTX 2080Ti and
 581.7 ms on a DRIVE PX2): one Detector using every core, per-stage and
@@ -13,7 +13,9 @@ is compared with one worker on one share. Each network's achieved GFLOP/s is
 set against the machine's peak, measured in the same run (benchmarks/peak.py).
 ``--compare-torch`` runs the same Detector with PyTorch eager networks in blocks
 of frames alternating with ONNX Runtime, and reports the ratio and its spread
-over the blocks.
+over the blocks. ``--baseline DIR`` does the same with another model directory
+(an INT8 directory against its FP32 source, say): on a shared machine, two
+separate runs minutes apart differed by more than the precisions did.
 
 Without ``--models`` the preset is exported first with initialised weights
 (latency does not depend on the weights' values).
@@ -40,7 +42,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.peak import measure_peak
 from pipeline.beams import emulate_beams
 from pipeline.detector import Detector
+from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
+from pipeline.model_files import ModelFileError
 
 BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 PAPER = {"RTX 2080Ti": {"ms": 25.4, "fps": 39.8}, "DRIVE PX2": {"ms": 581.7, "fps_two_threads": 3.4}}
@@ -218,7 +222,7 @@ def machine() -> dict:
 def run(preset: str = "edge", models: Path | None = None, provider: str | None = None, threads: int = 1,
         frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
-        precision: str | None = None) -> dict:
+        precision: str | None = None, baseline: Path | None = None) -> dict:
     """Measure everything; returns the JSON-able report.
 
     precision: with ``models`` it must match the directory's (a check); without,
@@ -246,6 +250,8 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
         convert_precision(models, reduced, precision, data, calibration_frames=min(frames, 20))
         models = reduced
     detector = Detector(models, providers=provider, intra_op_threads=len(cores))
+    # Loaded now, so a bad directory is refused before minutes of timing.
+    other = None if baseline is None else Detector(baseline, providers=provider, intra_op_threads=len(cores))
     actual = detector.manifest.get("precision", "fp32")
     if precision and actual != precision:
         raise SystemExit(f"error: --precision {precision}, but {models} holds {actual} models")
@@ -295,6 +301,16 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
         report["speedup_vs_torch"] = report["torch_end_to_end_ms"]["mean"] / report["paired_end_to_end_ms"]["mean"]
         report["speedup_vs_torch_blocks"] = {"p50": float(np.median(ratios)), "min": float(min(ratios)),
                                              "max": float(max(ratios)), "blocks": len(ratios)}
+    if other is not None:
+        paired, base, ratios = run_paired(detector, other, pool, frames, warmup)
+        report["baseline"] = {"models": str(baseline), "precision": other.manifest.get("precision", "fp32"),
+                              "end_to_end_ms": summarize(base.end_to_end),
+                              "stages_ms": {stage: summarize(v) for stage, v in base.stages.items()},
+                              "paired_end_to_end_ms": summarize(paired.end_to_end),
+                              "paired_stages_ms": {stage: summarize(v) for stage, v in paired.stages.items()}}
+        report["speedup_vs_baseline"] = float(np.mean(base.end_to_end) / np.mean(paired.end_to_end))
+        report["speedup_vs_baseline_blocks"] = {"p50": float(np.median(ratios)), "min": float(min(ratios)),
+                                                "max": float(max(ratios)), "blocks": len(ratios)}
     if scratch is not None:
         report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages}
         scratch.cleanup()
@@ -348,6 +364,14 @@ def print_report(report: dict) -> None:
               f"{report['paired_end_to_end_ms']['mean']:.1f} ms in alternating blocks → ONNX Runtime "
               f"{report['speedup_vs_torch']:.2f}× faster (per block: median {b['p50']:.2f}×, "
               f"{b['min']:.2f}–{b['max']:.2f}× over {b['blocks']} blocks)")
+    if "speedup_vs_baseline" in report:
+        base, b = report["baseline"], report["speedup_vs_baseline_blocks"]
+        nets = "".join(f", {stage} {base['stages_ms'][stage]['p50']:.1f} → {base['paired_stages_ms'][stage]['p50']:.1f} ms"
+                       for stage in ("depth_net", "pixor") if stage in base["stages_ms"])
+        print(f"baseline {base['models']} ({base['precision']}): mean {base['end_to_end_ms']['mean']:.1f} ms vs "
+              f"{base['paired_end_to_end_ms']['mean']:.1f} ms in alternating blocks → "
+              f"{report['speedup_vs_baseline']:.2f}× faster (per block: median {b['p50']:.2f}×, "
+              f"{b['min']:.2f}–{b['max']:.2f}× over {b['blocks']} blocks){nets} (p50)")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -365,11 +389,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--beams", type=int, default=16, help="thin scans to N lines before timing (0: keep)")
     parser.add_argument("--compare-torch", action="store_true", help="also time the PyTorch eager pipeline, in blocks alternating with ONNX Runtime")
     parser.add_argument("--checkpoints", type=Path, help="checkpoints for --compare-torch with trained --models")
+    parser.add_argument("--baseline", type=Path,
+                        help="another model directory to time in blocks alternating with --models, for the ratio")
     parser.add_argument("--json", type=Path, help="write the report as JSON")
     parser.add_argument("--plot", type=Path, help="write the latency distribution per stage as PNG")
     args = parser.parse_args(argv)
-    report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
-                 args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision)
+    try:
+        report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
+                     args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision,
+                     baseline=args.baseline)
+    except (InputError, ModelFileError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print_report(report)
     if args.plot:
         plot(report, args.plot)

@@ -51,3 +51,25 @@ def test_latency_int8_and_precision_check(tmp_path, tiny_models):
         capture_output=True, text=True, timeout=300,
     )
     assert mismatch.returncode != 0 and "holds fp32 models" in mismatch.stderr
+
+
+def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny_models):
+    result = subprocess.run(
+        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--baseline", str(tiny_models), "--frames", "8",
+         "--warmup", "1", "--json", str(tmp_path / "b.json")],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((tmp_path / "b.json").read_text())
+    base = report["baseline"]
+    assert base["precision"] == "fp32" and base["end_to_end_ms"]["n"] == base["paired_end_to_end_ms"]["n"] == 8
+    assert set(base["stages_ms"]) == set(report["stages_ms"])
+    b = report["speedup_vs_baseline_blocks"]
+    assert b["blocks"] == 2 and b["min"] <= b["p50"] <= b["max"] and report["speedup_vs_baseline"] > 0
+    assert "in alternating blocks" in result.stdout
+    missing = subprocess.run(
+        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--baseline", str(tmp_path / "nowhere"),
+         "--frames", "1", "--warmup", "1"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert missing.returncode == 2 and "nowhere" in missing.stderr and "Traceback" not in missing.stderr
