@@ -298,6 +298,7 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
         report["torch_stages_ms"] = {stage: summarize(v) for stage, v in eager.stages.items()}
         # Against the ONNX Runtime frames interleaved with the PyTorch ones, not the stream above.
         report["paired_end_to_end_ms"] = summarize(paired.end_to_end)
+        report["paired_stages_ms"] = {stage: summarize(v) for stage, v in paired.stages.items()}
         report["speedup_vs_torch"] = report["torch_end_to_end_ms"]["mean"] / report["paired_end_to_end_ms"]["mean"]
         report["speedup_vs_torch_blocks"] = {"p50": float(np.median(ratios)), "min": float(min(ratios)),
                                              "max": float(max(ratios)), "blocks": len(ratios)}

@@ -31,6 +31,7 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     assert report["peak_gflops"] > 1
     assert report["torch_end_to_end_ms"]["mean"] > 0 and report["speedup_vs_torch"] > 0
     assert report["torch_end_to_end_ms"]["n"] == report["paired_end_to_end_ms"]["n"] == report["frames"]
+    assert set(report["paired_stages_ms"]) == set(report["torch_stages_ms"]) == set(report["stages_ms"])
     b = report["speedup_vs_torch_blocks"]
     assert b["blocks"] >= 1 and b["min"] <= b["p50"] <= b["max"]
     assert report["machine"]["cores"] >= 1 and report["versions"]["onnxruntime"]
