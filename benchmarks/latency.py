@@ -9,7 +9,7 @@ Single stream (the paper's per-frame latency, 25.4 ms on an RTX 2080Ti and
 end-to-end latency over real frames after warm-up. ``--threads N`` (the paper's
 two-GPU mode, 3.4 fps on the PX2): N workers, each with its own sessions
 pinned to its own share of the cores, run frames concurrently; aggregate fps
-is compared with one worker on one share. Each network's achieved GFLOP/s is
+is compared with one worker on one share, in three alternating rounds of each. Each network's achieved GFLOP/s is
 set against the machine's peak, measured in the same run (benchmarks/peak.py).
 ``--compare-torch`` runs the same Detector with PyTorch eager networks in blocks
 of frames alternating with ONNX Runtime, and reports the ratio and its spread
@@ -195,6 +195,22 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame], workers
     return workers * per_worker / wall
 
 
+def run_throughput(models: Path, provider: str | None, frames: list[Frame], workers: int, per_worker: int,
+                   warmup: int, cores: list[int], rounds: int = 3) -> dict:
+    """One worker on its share of the cores and ``workers`` workers on all of them, in alternating rounds
+    (1 N N 1 1 N), so a change of load on a shared machine touches both; medians over the rounds."""
+    share = max(1, len(cores) // workers)
+    one, many = [], []
+    for r in range(rounds):
+        for n in ((1, workers) if r % 2 == 0 else (workers, 1)):
+            fps = run_workers(models, provider, frames, n, per_worker, warmup, cores[:share] if n == 1 else cores)
+            (one if n == 1 else many).append(fps)
+    fps_one, fps_many = float(np.median(one)), float(np.median(many))
+    return {"workers": workers, "fps": fps_many, "fps_one_worker": fps_one, "scaling": fps_many / fps_one,
+            "cores_per_worker": share, "rounds": rounds,
+            "scaling_per_round": [m / o for m, o in zip(many, one, strict=True)]}
+
+
 def versions() -> dict:
     out = {}
     for name in ("onnxruntime", "numpy", "opencv-python-headless", "torch"):
@@ -284,11 +300,8 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
                                         "peak_fraction": achieved / peak.peak_gflops}
 
     if threads > 1:
-        per_worker = max(frames // threads, 2)
-        one = run_workers(models, provider, pool, 1, per_worker, warmup, cores[: max(1, len(cores) // threads)])
-        many = run_workers(models, provider, pool, threads, per_worker, warmup, cores)
-        report["throughput"] = {"workers": threads, "fps": many, "fps_one_worker": one, "scaling": many / one,
-                                "cores_per_worker": max(1, len(cores) // threads)}
+        report["throughput"] = run_throughput(models, provider, pool, threads, max(frames // threads, 2), warmup,
+                                              cores)
     if compare_torch:
         import torch
 
@@ -357,8 +370,9 @@ def print_report(report: dict) -> None:
               f"{100 * n['peak_fraction']:.0f} % of peak")
     if "throughput" in report:
         t = report["throughput"]
+        per_round = ", ".join(f"{r:.2f}" for r in t["scaling_per_round"])
         print(f"{t['workers']} workers: {t['fps']:.2f} fps vs one worker {t['fps_one_worker']:.2f} fps "
-              f"→ scaling {t['scaling']:.2f}×")
+              f"→ scaling {t['scaling']:.2f}× (medians of {t['rounds']} alternating rounds; per round {per_round})")
     if "speedup_vs_torch" in report:
         b = report["speedup_vs_torch_blocks"]
         print(f"PyTorch eager: mean {report['torch_end_to_end_ms']['mean']:.1f} ms vs ONNX Runtime "

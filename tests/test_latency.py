@@ -25,6 +25,7 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     t = report["throughput"]
     assert t["workers"] == 2 and t["fps"] > 0 and t["fps_one_worker"] > 0
     assert abs(t["scaling"] - t["fps"] / t["fps_one_worker"]) < 1e-9
+    assert t["rounds"] == len(t["scaling_per_round"]) == 3 and all(r > 0 for r in t["scaling_per_round"])
     for name in ("depth", "pixor"):
         n = report["networks"][name]
         assert n["gflops"] > 0 and n["ms"] > 0 and 0 < n["peak_fraction"]
