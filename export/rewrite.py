@@ -21,14 +21,20 @@
    quarter of the edge PIXOR's time. :func:`split_input_convs` slices the input
    into its first 16·k channels and the rest, convolves each (both get blocked
    kernels) and adds them: exact up to float summation order.
-3. The ends of the network stay in fp32 under INT8. uint8 steps over the depth
+3. A convolution with fewer output channels than the block, read only by
+   convolutions (directly or through a ReLU), makes ONNX Runtime reorder its
+   output back to NCHW and run the next conv on its first-layer kernel: edge
+   PIXOR's 12-wide first stage did that at full resolution.
+   :func:`pad_narrow_convs` gives it zero output channels up to 16 and its
+   readers zero input weights for them: exact.
+4. The ends of the network stay in fp32 under INT8. uint8 steps over the depth
    net's 0–85 m output are 0.33 m, and its sparse-depth input has the same
    range; PIXOR's score and box heads decide what is a car (its BEV input, 0/1
    occupancy and a reflectance in [0, 1], quantizes well). :func:`boundary_nodes`
    names the nodes from each graph input to its first convolution and from the
    last convolution before each output to that output, for ``nodes_to_exclude``.
 
-:func:`lower_for_cpu` applies the fp32 rewrites (the stride-1 half of 1, and 2);
+:func:`lower_for_cpu` applies the fp32 rewrites (the stride-1 half of 1, 2 and 3);
 the exporter runs it on every network before the parity check.
 """
 
@@ -209,9 +215,9 @@ def pad_narrow_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.Mode
         users = readers(node)
         if narrow >= block or users is None:
             continue
-        shared = {u.input[1] for u in users} | {node.input[1]}
-        if len(shared) != len(users) + 1:  # a weight shared between nodes cannot be padded for one alone
-            continue
+        touched = [node.input[1], *node.input[2:3], *(u.input[1] for u in users)]
+        if any(len(consumers[name]) != 1 for name in touched if name):
+            continue  # an initializer shared between nodes cannot be padded for one of them alone
         extra = block - narrow
         replace(node.input[1], np.concatenate([weight, np.zeros((extra, *weight.shape[1:]), weight.dtype)]))
         if len(node.input) > 2 and node.input[2]:
