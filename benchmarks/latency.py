@@ -297,7 +297,8 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
             ms = report["stages_ms"][stage]["p50"]
             achieved = flops / (ms / 1e3) / 1e9
             report["networks"][name] = {"gflops": flops / 1e9, "ms": ms, "achieved_gflops_per_s": achieved,
-                                        "peak_fraction": achieved / peak.peak_gflops}
+                                        "peak_fraction": achieved / peak.peak_gflops,
+                                        "matmul_peak_fraction": achieved / peak.matmul_gflops}
 
     if threads > 1:
         report["throughput"] = run_throughput(models, provider, pool, threads, max(frames // threads, 2), warmup,
@@ -367,7 +368,7 @@ def print_report(report: dict) -> None:
           f"{report['peak_detail']['conv3x3_256_gflops']:.0f} GFLOP/s): {report['peak_gflops']:.0f} GFLOP/s")
     for name, n in report["networks"].items():
         print(f"  {name:6s} {n['gflops']:.2f} GFLOP in {n['ms']:.1f} ms = {n['achieved_gflops_per_s']:.0f} GFLOP/s, "
-              f"{100 * n['peak_fraction']:.0f} % of peak")
+              f"{100 * n['peak_fraction']:.0f} % of peak ({100 * n['matmul_peak_fraction']:.0f} % of the MatMul's)")
     if "throughput" in report:
         t = report["throughput"]
         per_round = ", ".join(f"{r:.2f}" for r in t["scaling_per_round"])
