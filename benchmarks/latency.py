@@ -9,8 +9,9 @@ Single stream (the paper's per-frame latency, 25.4 ms on an RTX 2080Ti and
 end-to-end latency over real frames after warm-up. ``--threads N`` (the paper's
 two-GPU mode, 3.4 fps on the PX2): N workers, each with its own sessions
 pinned to its own share of the cores, run frames concurrently; aggregate fps
-is compared with one worker on one share, in three alternating rounds of each. Each network's achieved GFLOP/s is
-set against the machine's peak, measured in the same run (benchmarks/peak.py).
+is compared with one worker on one share, in three alternating rounds of each.
+Each network's achieved GFLOP/s is set against the machine's peak, measured in
+the same run (benchmarks/peak.py).
 ``--compare-torch`` runs the same Detector with PyTorch eager networks in blocks
 of frames alternating with ONNX Runtime, and reports the ratio and its spread
 over the blocks. ``--baseline DIR`` does the same with another model directory
@@ -67,6 +68,17 @@ def summarize(samples: list[float]) -> dict:
     s = np.asarray(samples)
     return {"mean": float(s.mean()), "p50": float(np.percentile(s, 50)), "p90": float(np.percentile(s, 90)),
             "p99": float(np.percentile(s, 99)), "n": int(s.size)}
+
+
+def summarize_stages(stream: StreamResult) -> dict:
+    """:func:`summarize` of each stage of a stream."""
+    return {stage: summarize(v) for stage, v in stream.stages.items()}
+
+
+def block_spread(ratios: list[float]) -> dict:
+    """Median, min and max of the per-block ratios of :func:`run_paired`."""
+    return {"p50": float(np.median(ratios)), "min": float(min(ratios)), "max": float(max(ratios)),
+            "blocks": len(ratios)}
 
 
 # ----------------------------------------------------------------------------- torch eager twin
@@ -282,7 +294,7 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
     stream = run_stream(detector, pool, frames, warmup)
     report["end_to_end_ms"] = summarize(stream.end_to_end)
     report["fps"] = 1e3 / report["end_to_end_ms"]["mean"]
-    report["stages_ms"] = {stage: summarize(v) for stage, v in stream.stages.items()}
+    report["stages_ms"] = summarize_stages(stream)
     between = sum(report["stages_ms"][s]["mean"] for s in report["stages_ms"] if s not in ("depth_net", "pixor"))
     report["non_network_fraction"] = between / report["end_to_end_ms"]["mean"]
 
@@ -309,23 +321,21 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
         torch.set_num_threads(len(cores))
         paired, eager, ratios = run_paired(detector, torch_detector(models, torch_networks), pool, frames, warmup)
         report["torch_end_to_end_ms"] = summarize(eager.end_to_end)
-        report["torch_stages_ms"] = {stage: summarize(v) for stage, v in eager.stages.items()}
+        report["torch_stages_ms"] = summarize_stages(eager)
         # Against the ONNX Runtime frames interleaved with the PyTorch ones, not the stream above.
         report["paired_end_to_end_ms"] = summarize(paired.end_to_end)
-        report["paired_stages_ms"] = {stage: summarize(v) for stage, v in paired.stages.items()}
+        report["paired_stages_ms"] = summarize_stages(paired)
         report["speedup_vs_torch"] = report["torch_end_to_end_ms"]["mean"] / report["paired_end_to_end_ms"]["mean"]
-        report["speedup_vs_torch_blocks"] = {"p50": float(np.median(ratios)), "min": float(min(ratios)),
-                                             "max": float(max(ratios)), "blocks": len(ratios)}
+        report["speedup_vs_torch_blocks"] = block_spread(ratios)
     if other is not None:
         paired, base, ratios = run_paired(detector, other, pool, frames, warmup)
         report["baseline"] = {"models": str(baseline), "precision": other.manifest.get("precision", "fp32"),
                               "end_to_end_ms": summarize(base.end_to_end),
-                              "stages_ms": {stage: summarize(v) for stage, v in base.stages.items()},
+                              "stages_ms": summarize_stages(base),
                               "paired_end_to_end_ms": summarize(paired.end_to_end),
-                              "paired_stages_ms": {stage: summarize(v) for stage, v in paired.stages.items()}}
+                              "paired_stages_ms": summarize_stages(paired)}
         report["speedup_vs_baseline"] = float(np.mean(base.end_to_end) / np.mean(paired.end_to_end))
-        report["speedup_vs_baseline_blocks"] = {"p50": float(np.median(ratios)), "min": float(min(ratios)),
-                                                "max": float(max(ratios)), "blocks": len(ratios)}
+        report["speedup_vs_baseline_blocks"] = block_spread(ratios)
     if scratch is not None:
         report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages}
         scratch.cleanup()

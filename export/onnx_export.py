@@ -106,14 +106,14 @@ def export_onnx(model: nn.Module, io: NetworkIO, path: str | Path, opset: int = 
             )
     finally:
         registry_log.setLevel(previous_level)
-    traced = onnx.load(str(path))
-    flops = count_flops(traced)
+    graph = onnx.load(str(path))
+    flops = count_flops(graph)
     rewrites: dict[str, int] = {}
     if lower:
-        lowered, rewrites = lower_for_cpu(traced)
-        onnx.save(lowered, str(path))
+        graph, rewrites = lower_for_cpu(graph)
+        onnx.save(graph, str(path))
     onnx.checker.check_model(str(path), full_check=True)
-    check_interface(onnx.load(str(path)), io, path)
+    check_interface(graph, io, path)
     return ExportedGraph(path, flops, rewrites)
 
 
