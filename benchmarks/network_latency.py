@@ -29,6 +29,7 @@ from tqdm import tqdm
 from export import run as export_run
 from export.exporter import ExportConfig
 from export.inputs import NetworkInputs, kitti_inputs
+from pipeline.detector import session_options
 from pipeline.presets import PRESETS, get_preset
 
 
@@ -86,11 +87,10 @@ def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> 
         module = result.networks[network]
         feeds = _feeds(network, inputs)
         tensors = [torch.from_numpy(v) for v in feeds.values()]
-        # ORT's pool spin-waits after a run by default, which steals the cores from the PyTorch run
-        # interleaved right after it; without spinning both runtimes start from idle cores.
-        options = ort.SessionOptions()
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        session = ort.InferenceSession(str(result.files[network]), options, providers=["CPUExecutionProvider"])
+        # The Detector's options: ORT's pool spins within a run and stops when it ends, so it does not
+        # steal the cores from the PyTorch run interleaved right after it.
+        session = ort.InferenceSession(str(result.files[network]), session_options(),
+                                       providers=["CPUExecutionProvider"])
 
         def eager(module: torch.nn.Module = module, tensors: list[torch.Tensor] = tensors) -> object:
             with torch.no_grad():

@@ -23,28 +23,38 @@ def bev_indices(points: np.ndarray, grid: BevGrid) -> tuple[np.ndarray, np.ndarr
     return bev_indices_xyz(points[:, 0], points[:, 1], points[:, 2], grid)
 
 
-def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid
+def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid, prefilter: bool = True
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`bev_indices` of points given as coordinate arrays.
 
     Bins are ``floor((v - v_min) / cell)`` computed in float64, so a point on an
-    edge goes to the bin above it. A coarse float32 range test with a one-cell
-    margin first discards the points far outside (half of a 360° scan), so the
-    exact float64 arithmetic runs only on candidates.
+    edge goes to the bin above it; the range test runs on those float bins, so
+    any finite or infinite coordinate is either binned or dropped. prefilter: a
+    coarse float32 range test with a one-cell margin first discards the points
+    far outside (half of a 360° scan), so the float64 arithmetic runs only on
+    candidates; pseudo points, which mostly lie inside, are better off without it.
     """
-    margin = max(grid.cell, grid.z_cell)
-    near = np.flatnonzero(
-        (x > grid.x_min - margin) & (x < grid.x_max + margin)
-        & (y > grid.y_min - margin) & (y < grid.y_max + margin)
-        & (z > grid.z_min - margin) & (z < grid.z_max + margin)
-    )
-    ix = np.floor((x[near].astype(np.float64) - grid.x_min) / grid.cell)
-    iy = np.floor((y[near].astype(np.float64) - grid.y_min) / grid.cell)
-    iz = np.floor((z[near].astype(np.float64) - grid.z_min) / grid.z_cell)
+    near = None
+    if prefilter:
+        margin = max(grid.cell, grid.z_cell)
+        near = np.flatnonzero(
+            (x > grid.x_min - margin) & (x < grid.x_max + margin)
+            & (y > grid.y_min - margin) & (y < grid.y_max + margin)
+            & (z > grid.z_min - margin) & (z < grid.z_max + margin)
+        )
+        x, y, z = x[near], y[near], z[near]
+    bins = []
+    for values, low, cell in ((z, grid.z_min, grid.z_cell), (y, grid.y_min, grid.cell), (x, grid.x_min, grid.cell)):
+        b = np.subtract(values, low, dtype=np.float64)  # in place from here on: each pass is a full array
+        b /= cell
+        np.floor(b, out=b)
+        bins.append(b)
+    fz, fy, fx = bins
     inside = np.flatnonzero(
-        (ix >= 0) & (ix < grid.nx) & (iy >= 0) & (iy < grid.ny) & (iz >= 0) & (iz < grid.nz)
+        (fx >= 0) & (fx < grid.nx) & (fy >= 0) & (fy < grid.ny) & (fz >= 0) & (fz < grid.nz)
     )
-    return iz[inside].astype(np.int64), iy[inside].astype(np.int64), ix[inside].astype(np.int64), near[inside]
+    kept = inside if near is None else near[inside]
+    return fz[inside].astype(np.int64), fy[inside].astype(np.int64), fx[inside].astype(np.int64), kept
 
 
 class BevVoxelizer:
@@ -76,7 +86,7 @@ class BevVoxelizer:
         self._flat[occupancy] = 1.0
         counted = cell
         if pseudo is not None:
-            p_iz, p_iy, p_ix, _ = bev_indices_xyz(*pseudo, grid)
+            p_iz, p_iy, p_ix, _ = bev_indices_xyz(*pseudo, grid, prefilter=False)
             p_cell = p_iy * grid.nx + p_ix
             p_occupancy = p_iz * plane + p_cell
             self._flat[p_occupancy] = 1.0

@@ -91,6 +91,27 @@ def resolve_providers(requested: str | list[str] | None = None) -> list[str]:
     return chosen
 
 
+def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
+    """The ONNX Runtime session options every Detector session runs with (and the benchmarks time).
+
+    intra_op_threads: the session's thread pool size (None: ONNX Runtime's default, one per core).
+    """
+    options = ort.SessionOptions()
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    # The pool threads spin-wait for work. Inside a run that saves waking them for each operator;
+    # after a run, two sessions run one after the other with NumPy stages between them, and a
+    # spinning idle pool steals the cores from the stage that is working (measured here: an edge
+    # frame took 69 ms instead of 43 with spinning throughout). So the threads spin within a run and
+    # stop when it ends: against no spinning at all, an edge frame went 38.6 → 36.6 ms (alternating
+    # runs of benchmarks/latency.py).
+    options.add_session_config_entry("session.intra_op.allow_spinning", "1")
+    options.add_session_config_entry("session.force_spinning_stop", "1")
+    if intra_op_threads:
+        options.intra_op_num_threads = intra_op_threads
+        options.inter_op_num_threads = 1
+    return options
+
+
 class Detector:
     """Loads a model directory (checking its sha256s) and detects cars in frames."""
 
@@ -120,15 +141,7 @@ class Detector:
                            "trt_timing_cache_enable": True, "trt_timing_cache_path": str(cache)}
             session_providers = [("TensorrtExecutionProvider", trt_options) if p == "TensorrtExecutionProvider" else p
                                  for p in self.providers]
-        options = ort.SessionOptions()
-        options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        # ONNX Runtime's thread pools spin-wait after each run. Two sessions run one after the other
-        # with NumPy stages between them, so a spinning idle pool steals the cores from the stage that
-        # is working: measured here, spinning made an edge frame 69 ms instead of 43 ms.
-        options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        if intra_op_threads:
-            options.intra_op_num_threads = intra_op_threads
-            options.inter_op_num_threads = 1
+        options = session_options(intra_op_threads)
         networks = self.manifest.get("networks", {})
         if "pixor" not in networks:
             raise ModelFileError(f"{self.model_dir / 'manifest.json'}: no 'pixor' network listed")

@@ -29,12 +29,13 @@ def pixel_rays(calib: Calibration, height: int, width: int, stride: int = 1) -> 
     origin = to_velo[:3, 3] - to_velo[:3, :3] @ (k_inv @ calib.P2[:, 3])
     u = np.arange(0, width, stride, dtype=np.float64)
     v = np.arange(0, height, stride, dtype=np.float64)
-    rays = (
-        direction[:, 0, None, None] * u[None, None, :]
-        + direction[:, 1, None, None] * v[None, :, None]
-        + direction[:, 2, None, None]
-    )
-    return rays.astype(np.float32), origin
+    # ray = d/du·u + d/dv·v + constant, per axis: an outer sum of a row and a column term, then the
+    # constant, in float64 and rounded once to float32. A frame with a new calibration pays this
+    # (synthetic frames all have their own), so it is built with two full-size passes per axis.
+    rays = np.empty((3, v.size, u.size), dtype=np.float32)
+    for axis in range(3):
+        np.add(np.add.outer(direction[axis, 1] * v, direction[axis, 0] * u), direction[axis, 2], out=rays[axis])
+    return rays, origin
 
 
 @dataclass(frozen=True)
