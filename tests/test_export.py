@@ -181,9 +181,12 @@ def test_export_lowers_graphs_for_cpu_kernels(edge_export: ExportResult) -> None
     """The edge export (parity-checked by its fixture) has no stride-1 ConvTranspose, no conv on the
     19-channel BEV input itself (split at 16 channels) and no 12-channel conv outputs (padded to 16)."""
     rewrites = edge_export.manifest["export"]["cpu_rewrites"]
-    assert rewrites == {"depth": {"stride1_transposed_convs": 1, "split_input_convs": 0, "padded_narrow_convs": 0},
-                        "pixor": {"stride1_transposed_convs": 0, "split_input_convs": 1, "padded_narrow_convs": 4}}
+    assert rewrites == {"depth": {"stride1_transposed_convs": 1, "split_input_convs": 0, "padded_narrow_convs": 0,
+                                  "where_as_arithmetic": 6},
+                        "pixor": {"stride1_transposed_convs": 0, "split_input_convs": 1, "padded_narrow_convs": 4,
+                                  "where_as_arithmetic": 0}}
     depth = onnx.load(str(edge_export.files["depth"]))
+    assert not [n for n in depth.graph.node if n.op_type == "Where"]  # the prefill's six, as arithmetic
     strides = [list(a.ints) for n in depth.graph.node if n.op_type == "ConvTranspose"
                for a in n.attribute if a.name == "strides"]
     assert strides and all(s == [2, 2] for s in strides)
@@ -265,6 +268,87 @@ def test_pad_narrow_convs_is_exact_and_only_where_safe() -> None:
     a, b = (ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, feeds)[0]
             for m in (model, padded))
     np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5)
+
+
+def test_where_as_arithmetic_is_exact_and_only_on_finite_branches() -> None:
+    """The prefill's pattern (Where over a clipped reciprocal and a max-pool of it) becomes arithmetic with
+    ONNX Runtime giving the same values; a Where whose branch may be infinite (1/x unclipped) stays."""
+    import onnxruntime as ort
+    from onnx import numpy_helper
+
+    from export.rewrite import where_as_arithmetic
+
+    zero = numpy_helper.from_array(np.zeros((1, 1, 8, 12), np.float32), "zeros")
+    scalars = [numpy_helper.from_array(np.array(v, np.float32), n) for n, v in (("zero", 0.0), ("eps", 1e-3))]
+    nodes = [
+        helper.make_node("Greater", ["x", "zero"], ["measured"]),
+        helper.make_node("Clip", ["x", "eps"], ["clipped"]),
+        helper.make_node("Reciprocal", ["clipped"], ["inverse"]),
+        helper.make_node("Where", ["measured", "inverse", "zeros"], ["filled0"]),  # finite branches: rewritten
+        helper.make_node("MaxPool", ["filled0"], ["pooled"], kernel_shape=[3, 3], pads=[1, 1, 1, 1]),
+        helper.make_node("Greater", ["filled0", "zero"], ["kept"]),
+        helper.make_node("Where", ["kept", "filled0", "pooled"], ["filled"]),  # finite branches: rewritten
+        helper.make_node("Reciprocal", ["x"], ["raw_inverse"]),  # 1/0 = inf where x is 0
+        helper.make_node("Where", ["measured", "raw_inverse", "zeros"], ["unsafe"]),  # may be inf: kept
+    ]
+    shape = [1, 1, 8, 12]
+    graph = helper.make_graph(
+        nodes, "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, shape)],
+        [helper.make_tensor_value_info(n, TensorProto.FLOAT, shape) for n in ("filled", "unsafe")], [zero, *scalars])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=8)
+    rewritten, count = where_as_arithmetic(model)
+    assert count == 2
+    onnx.checker.check_model(rewritten, full_check=True)
+    assert [n.output[0] for n in rewritten.graph.node if n.op_type == "Where"] == ["unsafe"]
+    rng = np.random.default_rng(3)
+    x = np.where(rng.random(shape) < 0.3, rng.uniform(1, 80, shape), 0).astype(np.float32)
+    a, b = (ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, {"x": x})
+            for m in (model, rewritten))
+    for before, after in zip(a, b, strict=True):
+        np.testing.assert_array_equal(after, before)
+    assert np.isinf(a[1]).sum() == 0 and (a[0] > 0).mean() > 0.5  # the fill spread; 1/x stayed masked
+
+
+def test_lower_command_upgrades_an_old_directory_and_is_idempotent(tiny_export: ExportResult, tmp_path: Path) -> None:
+    """A directory exported before the lowering (the depth net's Where ops, a stride-1 ConvTranspose) gets
+    the lowered graphs, the same outputs and a manifest whose sha256s the Detector accepts."""
+    from export.lower import main as lower_main
+    from export.lower import run as lower_run
+    from export.onnx_export import depth_io, export_onnx
+    from pipeline.detector import Detector
+
+    old = tmp_path / "old"
+    shutil.copytree(tiny_export.directory, old)
+    preset = get_preset("tiny")
+    export_onnx(tiny_export.networks["depth"], depth_io(preset.depth.input_hw), old / "depth.onnx", lower=False)
+    manifest = json.loads((old / "manifest.json").read_text())
+    manifest["files"]["depth.onnx"]["sha256"] = sha256_file(old / "depth.onnx")
+    manifest["export"]["cpu_rewrites"]["depth"] = {}  # as an exporter without the lowering wrote it
+    (old / "manifest.json").write_text(json.dumps(manifest))
+    assert [n for n in onnx.load(str(old / "depth.onnx")).graph.node if n.op_type == "Where"]
+
+    result = lower_run(old, tmp_path / "new")
+    assert result.rewrites["depth"]["where_as_arithmetic"] == 4  # tiny's two prefill passes
+    assert result.rewrites["depth"]["stride1_transposed_convs"] == 1
+    assert not any(result.rewrites["pixor"].values()) and max(result.max_abs_difference.values()) <= 1e-5
+    lowered = onnx.load(str(tmp_path / "new" / "depth.onnx"))
+    assert not [n for n in lowered.graph.node if n.op_type in ("Where",)]
+    inputs = kitti_inputs(preset)
+    feeds = {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
+    before = cpu_session(old / "depth.onnx").run(None, feeds)[0]
+    after = cpu_session(tmp_path / "new" / "depth.onnx").run(None, feeds)[0]
+    np.testing.assert_allclose(after, before, rtol=1e-5, atol=1e-5)
+    Detector(tmp_path / "new")  # sha256s verified
+    counts = json.loads((tmp_path / "new" / "manifest.json").read_text())["export"]["cpu_rewrites"]["depth"]
+    assert counts == result.rewrites["depth"]
+
+    again = tmp_path / "new" / "depth.onnx"
+    digest = sha256_file(again)
+    assert lower_main(["--models", str(tmp_path / "new")]) == 0  # in place: nothing left to rewrite
+    assert sha256_file(again) == digest
+
+    (old / "pixor.onnx").write_bytes(b"broken")
+    assert lower_main(["--models", str(old), "--out", str(tmp_path / "x")]) == 2  # refused, with a message
 
 
 # --------------------------------------------------------------------------- manifest and checksums

@@ -1,0 +1,124 @@
+"""Re-apply the current CPU lowering to an existing FP32 model directory, without its checkpoints.
+
+    python -m export.lower --models DIR [--out DIR]
+
+The exporter lowers every graph it traces (:func:`export.rewrite.lower_for_cpu`),
+but a directory exported before a rewrite existed keeps its older graphs, and
+shipped weights come without their training checkpoints. The rewrites are
+exact graph transformations, so they can be applied to the ONNX files
+themselves: this command does that, checks ONNX Runtime's outputs of the new
+graphs against the old ones on a real KITTI frame and on random inputs, and
+rewrites the manifest's sha256s and ``export.cpu_rewrites``. Applying it twice
+changes nothing (every rewrite skips what it already lowered, and a directory
+with nothing left to rewrite is not touched).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+
+from export.inputs import kitti_inputs, random_inputs
+from export.rewrite import lower_for_cpu
+from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
+from pipeline.presets import preset_from_dict
+
+TOLERANCE = 1e-5  # absolute and relative: the rewrites are exact up to float summation order
+
+
+@dataclass
+class LowerResult:
+    """What :func:`run` changed: rewrites per network and the largest output difference it measured."""
+
+    directory: Path
+    rewrites: dict[str, dict[str, int]]
+    max_abs_difference: dict[str, float]
+
+
+def _feeds(name: str, inputs) -> dict[str, np.ndarray]:
+    return ({"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth} if name == "depth" else {"bev": inputs.bev})
+
+
+def run(models: Path, out: Path | None = None) -> LowerResult:
+    """Lower the graphs of ``models`` into ``out`` (default: in place); returns what changed.
+
+    Raises ModelFileError for a directory that is not an intact FP32 model directory, and ValueError
+    when ONNX Runtime's outputs of a lowered graph differ from the original past :data:`TOLERANCE`
+    (nothing is written then).
+    """
+    models = Path(models)
+    out = models if out is None else Path(out)
+    manifest = load_manifest(models)
+    verify_sha256(models, manifest)
+    if manifest.get("precision", "fp32") != "fp32":
+        raise ModelFileError(f"{models / MANIFEST_NAME}: precision {manifest['precision']}; lower the FP32 "
+                             "directory and convert it again (python -m export.precision)")
+    preset = preset_from_dict(manifest["preset_config"])
+    samples = [kitti_inputs(preset), random_inputs(preset, seed=1)]
+    lowered: dict[str, onnx.ModelProto] = {}
+    rewrites: dict[str, dict[str, int]] = {}
+    differences: dict[str, float] = {}
+    for name, entry in manifest["networks"].items():
+        source = onnx.load(str(models / entry["file"]))
+        graph, counts = lower_for_cpu(source)
+        onnx.checker.check_model(graph, full_check=True)
+        before, after = (ort.InferenceSession(g.SerializeToString(), providers=["CPUExecutionProvider"])
+                         for g in (source, graph))
+        worst = 0.0
+        for sample in samples:
+            for a, b in zip(before.run(None, _feeds(name, sample)), after.run(None, _feeds(name, sample)), strict=True):
+                if not np.allclose(b, a, rtol=TOLERANCE, atol=TOLERANCE):
+                    raise ValueError(f"{models / entry['file']}: the lowered graph differs from the original by "
+                                     f"{float(np.max(np.abs(a - b))):.3g} on {sample.source}")
+                worst = max(worst, float(np.max(np.abs(a - b))))
+        lowered[name], rewrites[name], differences[name] = graph, counts, worst
+
+    if out.resolve() == models.resolve() and not any(any(counts.values()) for counts in rewrites.values()):
+        return LowerResult(out, rewrites, differences)  # already lowered: leave the directory as it is
+    if out.resolve() != models.resolve():
+        if out.exists():
+            shutil.rmtree(out)
+        shutil.copytree(models, out)
+    recorded = manifest.setdefault("export", {}).setdefault("cpu_rewrites", {})
+    for name, graph in lowered.items():
+        path = out / manifest["networks"][name]["file"]
+        onnx.save(graph, str(path))
+        manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+        totals = recorded.setdefault(name, {})
+        for rewrite, count in rewrites[name].items():
+            totals[rewrite] = totals.get(rewrite, 0) + count
+    manifest["export"]["relowered"] = {"by": "python -m export.lower", "max_abs_difference": differences,
+                                       "checked_on": [sample.source for sample in samples]}
+    (out / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
+    verify_sha256(out, manifest)
+    return LowerResult(out, rewrites, differences)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m export.lower", description=__doc__.split("\n\n")[0],
+                                     epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--models", type=Path, required=True, help="FP32 model directory (manifest.json + ONNX files)")
+    parser.add_argument("--out", type=Path, help="output model directory (default: rewrite --models in place)")
+    args = parser.parse_args(argv)
+    try:
+        result = run(args.models, args.out)
+    except (ModelFileError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for name, counts in result.rewrites.items():
+        changed = ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "nothing to rewrite"
+        print(f"{name}: {changed}; max |difference| {result.max_abs_difference[name]:.3g}")
+    print(f"wrote {result.directory}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
