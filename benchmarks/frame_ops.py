@@ -91,18 +91,21 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper")
     rng = np.random.default_rng(0)
     score = np.clip(0.9 * targets.score + rng.uniform(0, 0.45, targets.score.shape), 0, 1).astype(np.float32)
     bev_pseudo = voxelize(cloud).copy()
-    pseudo_arrays = pseudo_xyz(dense, view_calib, preset.depth.min_depth, preset.depth.max_depth)
+    # The Detector's limits: depth range, stride, and no pseudo points above pseudo_max_height (sky, trees).
+    limits = (preset.depth.min_depth, preset.depth.max_depth, preset.decode.pseudo_stride,
+              preset.decode.pseudo_max_height)
+    pseudo_arrays = pseudo_xyz(dense, view_calib, *limits)
 
     steps = {
         "emulate_16_beams (64-line scan)": lambda: emulate_beams(frame.points, 16),
         "prepare: crop + sparse depth (16-line)": lambda: depth_inputs(frame.image, lidar16, frame.calib, preset),
         f"pseudo_points ({dense.shape[1]}x{dense.shape[0]} depth map), as the Detector runs it": lambda: pseudo_xyz(
-            dense, view_calib, preset.depth.min_depth, preset.depth.max_depth),
+            dense, view_calib, *limits),
         "voxelize (64-line scan)": lambda: voxelize(frame.points),
-        f"voxelize (16-line scan + {pseudo.shape[0]} pseudo points), as the Detector runs it": lambda: voxelize(
+        f"voxelize (16-line scan + {pseudo_arrays[0].size} pseudo points), as the Detector runs it": lambda: voxelize(
             lidar16, pseudo_arrays),
         "for comparison: pseudo (N, 4) cloud + merge, then voxelize the merged cloud": lambda: voxelize(merge_points(
-            depth_to_points(dense, view_calib, preset.depth.min_depth, preset.depth.max_depth), lidar16)),
+            depth_to_points(dense, view_calib, *limits), lidar16)),
         "decode + NMS + heights": lambda: boxes_from_maps(score, targets.regression, bev_pseudo, preset, 0.5),
     }
     results = {name: timed(fn, repeats) for name, fn in steps.items()}

@@ -355,7 +355,7 @@ def plot(report: dict, path: Path) -> None:
     names = list(samples["stages"]) + ["end to end"]
     data = [samples["stages"][n] for n in samples["stages"]] + [samples["end_to_end"]]
     fig, ax = plt.subplots(figsize=(8, 4))
-    ax.boxplot(data, vert=False, tick_labels=names, showfliers=True)
+    ax.boxplot(data, orientation="horizontal", tick_labels=names, showfliers=True)
     ax.set_xscale("log")
     ax.set_xlabel("ms (log scale)")
     ax.set_title(f"lowres3d {report['preset']} latency per stage, {report['frames']} frames, "
