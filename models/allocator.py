@@ -5,12 +5,12 @@ on the fly up to 32 MB) with a fresh ``mmap`` and unmaps it on ``free``, and it
 trims the heap's top once more than its trim threshold is free. A training
 step allocates and frees the same activation and gradient buffers every
 iteration, so without this the kernel maps, zeroes and faults in megabytes of
-pages per step. Measured here (2 vCPUs, torch 2.13 CPU, bf16): an edge PIXOR
-epoch of 160 frames took 13.0 / 14.1 / 13.4 s with glibc's defaults and
-10.9 / 10.9 / 11.3 s with the thresholds fixed high, with the same loss to the
-last digit; a depth-net epoch of 80 frames 6.5 → 6.1 s. The simulator showed
-no difference, and the runtime does not use this (a service must give memory
-back).
+pages per step. Measured here (2 vCPUs, torch 2.13 CPU, bf16), one edge PIXOR
+epoch on 16-line input, alternating with the code before this module: 2,000
+frames 159.9 → 134.9 s, 480 frames 42.9 / 39.7 → 34.1 / 33.8 s, with the same
+loss to the last digit. The depth net gained little (its 10-epoch stage of the
+reproduce took 25.4 min, as before), the simulator nothing, and the runtime
+does not use this (a long-running service must give memory back).
 
 The cost: freed memory stays in the process for reuse, so its resident size
 stays at its peak, which training reaches in its first steps anyway.
