@@ -194,3 +194,32 @@ def test_training_keeps_freed_memory_on_glibc():
 
     expected = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
     assert keep_freed_memory() is expected
+
+
+def test_sample_cache_gives_the_samples_a_fresh_load_gives():
+    """Datasets keep each frame's pre-augmentation sample in memory: every epoch's augmented tensors equal
+    those of a dataset that loads the frame again, the cache stays intact, and the byte budget holds."""
+    from models.data import DepthDataset, SampleCache
+
+    preset = PRESETS["edge"]
+    ids = ["000006", "000001"]
+    datasets = {
+        "depth": (DepthDataset(KITTI, ids, preset, augment=True), DepthDataset(KITTI, ids, preset, augment=True,
+                                                                              cache=SampleCache(max_bytes=0))),
+        "detector": (DetectorDataset(KITTI, ids, preset, "lidar16", augment=True),
+                     DetectorDataset(KITTI, ids, preset, "lidar16", augment=True, cache=SampleCache(max_bytes=0))),
+    }
+    for name, (cached, fresh) in datasets.items():
+        for epoch in range(4):  # the mirror and brightness draws differ per epoch
+            cached.epoch = fresh.epoch = epoch
+            for index in range(len(ids)):
+                for a, b in zip(cached[index], fresh[index], strict=True):
+                    assert torch.equal(a, b), (name, epoch, index)
+        assert len(cached.cache.items) == 2 and not fresh.cache.items, name
+        assert cached.cache.nbytes == sum(a.nbytes for item in cached.cache.items.values() for a in item)
+    rgb = datasets["depth"][0].cache.items[0][0]
+    assert rgb.dtype == np.uint8  # the view's pixels, exact, a quarter of float32's memory
+    budget = SampleCache(max_bytes=datasets["depth"][0].cache.nbytes // 2 + 1)  # room for one of the two
+    one = DepthDataset(KITTI, ids, preset, cache=budget)
+    one[0], one[1]
+    assert list(budget.items) == [0] and budget.nbytes <= budget.max_bytes
