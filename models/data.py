@@ -48,7 +48,8 @@ class SampleCache:
     Loading a depth sample (PNG decodes, 16-line emulation, projection) took 20 ms here, a quarter of
     a training step's time per frame, and gives the same arrays every epoch: augmentation comes after
     it. Samples past the budget are loaded each time, as without the cache. Callers must not modify
-    the arrays they get.
+    the arrays they get. With data-loading worker processes (``--workers``, off by default) each
+    worker fills its own copy, which ends with the epoch's workers: the cache then saves nothing.
     """
 
     max_bytes: int = SAMPLE_CACHE_BYTES
