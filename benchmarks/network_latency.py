@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from export import run as export_run
 from export.exporter import ExportConfig
-from export.inputs import NetworkInputs, kitti_inputs
+from export.inputs import kitti_inputs
 from pipeline.detector import session_options
 from pipeline.presets import PRESETS, get_preset
 
@@ -72,12 +72,6 @@ def _time_interleaved(
     return times
 
 
-def _feeds(network: str, inputs: NetworkInputs) -> dict:
-    if network == "depth":
-        return {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
-    return {"bev": inputs.bev}
-
-
 def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> list[LatencyRow]:
     """Export ``preset_name`` into ``workdir`` and time both networks."""
     result = export_run(ExportConfig(preset=preset_name, out=workdir / preset_name, parity=False))
@@ -85,7 +79,7 @@ def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> 
     rows = []
     for network in ("depth", "pixor"):
         module = result.networks[network]
-        feeds = _feeds(network, inputs)
+        feeds = inputs.feeds(network)
         tensors = [torch.from_numpy(v) for v in feeds.values()]
         # The Detector's options: ORT's pool spins within a run and stops when it ends, so it does not
         # steal the cores from the PyTorch run interleaved right after it.

@@ -36,6 +36,10 @@ class NetworkInputs:
     bev: np.ndarray
     source: str
 
+    def feeds(self, network: str) -> dict[str, np.ndarray]:
+        """The ONNX feeds of ``network`` ("depth" or "pixor")."""
+        return {"rgb": self.rgb, "sparse_depth": self.sparse_depth} if network == "depth" else {"bev": self.bev}
+
 
 def kitti_inputs(preset: Preset, kitti_dir: str | Path = DEFAULT_KITTI_DIR, frame: str = DEFAULT_FRAME) -> NetworkInputs:
     """Inputs built from a real KITTI object frame (image_2, velodyne, calib)."""

@@ -43,10 +43,6 @@ class LowerResult:
     max_abs_difference: dict[str, float]
 
 
-def _feeds(name: str, inputs) -> dict[str, np.ndarray]:
-    return ({"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth} if name == "depth" else {"bev": inputs.bev})
-
-
 def run(models: Path, out: Path | None = None) -> LowerResult:
     """Lower the graphs of ``models`` into ``out`` (default: in place); returns what changed.
 
@@ -74,7 +70,8 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
                          for g in (source, graph))
         worst = 0.0
         for sample in samples:
-            for a, b in zip(before.run(None, _feeds(name, sample)), after.run(None, _feeds(name, sample)), strict=True):
+            feeds = sample.feeds(name)
+            for a, b in zip(before.run(None, feeds), after.run(None, feeds), strict=True):
                 if not np.allclose(b, a, rtol=TOLERANCE, atol=TOLERANCE):
                     raise ValueError(f"{models / entry['file']}: the lowered graph differs from the original by "
                                      f"{float(np.max(np.abs(a - b))):.3g} on {sample.source}")
