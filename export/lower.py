@@ -46,9 +46,9 @@ class LowerResult:
 def run(models: Path, out: Path | None = None) -> LowerResult:
     """Lower the graphs of ``models`` into ``out`` (default: in place); returns what changed.
 
-    Raises ModelFileError for a directory that is not an intact FP32 model directory, and ValueError
-    when ONNX Runtime's outputs of a lowered graph differ from the original past :data:`TOLERANCE`
-    (nothing is written then).
+    Raises ModelFileError for a directory that is not an intact FP32 model directory (or an ``out``
+    that holds something else), and ValueError when ONNX Runtime's outputs of a lowered graph differ
+    from the original past :data:`TOLERANCE`; nothing is written then.
     """
     models = Path(models)
     out = models if out is None else Path(out)
@@ -78,15 +78,21 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
                 worst = max(worst, float(np.max(np.abs(a - b))))
         lowered[name], rewrites[name], differences[name] = graph, counts, worst
 
-    if out.resolve() == models.resolve() and not any(any(counts.values()) for counts in rewrites.values()):
+    in_place = out.resolve() == models.resolve()
+    if in_place and not any(any(counts.values()) for counts in rewrites.values()):
         return LowerResult(out, rewrites, differences)  # already lowered: leave the directory as it is
-    if out.resolve() != models.resolve():
-        if out.exists():
-            shutil.rmtree(out)
-        shutil.copytree(models, out)
+    if not in_place and out.exists() and any(out.iterdir()) and not (out / MANIFEST_NAME).exists():
+        raise ModelFileError(f"--out {out}: exists and is not a model directory; give a new or empty folder")
+
+    # Everything is written into a staging copy first and swapped in at the end, so a failure (a full
+    # disk, an unwritable folder) leaves the source and any earlier --out as they were.
+    staging = out.parent / f".{out.name}.lowering"
+    if staging.exists():
+        shutil.rmtree(staging)
+    shutil.copytree(models, staging)
     recorded = manifest.setdefault("export", {}).setdefault("cpu_rewrites", {})
     for name, graph in lowered.items():
-        path = out / manifest["networks"][name]["file"]
+        path = staging / manifest["networks"][name]["file"]
         onnx.save(graph, str(path))
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
         totals = recorded.setdefault(name, {})
@@ -94,8 +100,17 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
             totals[rewrite] = totals.get(rewrite, 0) + count
     manifest["export"]["relowered"] = {"by": "python -m export.lower", "max_abs_difference": differences,
                                        "checked_on": [sample.source for sample in samples]}
-    (out / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
-    verify_sha256(out, manifest)
+    (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
+    verify_sha256(staging, manifest)
+    if out.exists():
+        previous = out.parent / f".{out.name}.previous"
+        if previous.exists():
+            shutil.rmtree(previous)
+        out.rename(previous)
+        staging.rename(out)
+        shutil.rmtree(previous)
+    else:
+        staging.rename(out)
     return LowerResult(out, rewrites, differences)
 
 
@@ -109,6 +124,9 @@ def main(argv: list[str] | None = None) -> int:
         result = run(args.models, args.out)
     except (ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # an unwritable or full --out: the source is untouched
+        print(f"error: {exc.filename or args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     for name, counts in result.rewrites.items():
         changed = ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "nothing to rewrite"

@@ -347,6 +347,14 @@ def test_lower_command_upgrades_an_old_directory_and_is_idempotent(tiny_export: 
     assert lower_main(["--models", str(tmp_path / "new")]) == 0  # in place: nothing left to rewrite
     assert sha256_file(again) == digest
 
+    other = tmp_path / "notes"
+    other.mkdir()
+    (other / "keep.txt").write_text("mine")
+    assert lower_main(["--models", str(old), "--out", str(other)]) == 2  # not a model directory: refused
+    assert [p.name for p in other.iterdir()] == ["keep.txt"]
+    assert lower_main(["--models", str(old), "--out", str(tmp_path / "new")]) == 0  # a model directory: replaced
+    assert sha256_file(again) == digest and not list(tmp_path.glob(".new.*"))  # no staging copies left
+
     (old / "pixor.onnx").write_bytes(b"broken")
     assert lower_main(["--models", str(old), "--out", str(tmp_path / "x")]) == 2  # refused, with a message
 
