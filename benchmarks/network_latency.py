@@ -23,14 +23,22 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import onnxruntime as ort
-import torch
 from tqdm import tqdm
 
 from export import run as export_run
-from export.exporter import ExportConfig
 from export.inputs import kitti_inputs
 from pipeline.detector import session_options
+from pipeline.errors import TORCH_MISSING
 from pipeline.presets import PRESETS, get_preset
+
+try:
+    import torch
+
+    from export.exporter import ExportConfig
+except ModuleNotFoundError as exc:
+    if exc.name != "torch":
+        raise
+    raise SystemExit(TORCH_MISSING) from exc
 
 
 @dataclass

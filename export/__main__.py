@@ -9,9 +9,16 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from export.exporter import ExportConfig, run
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
+from pipeline.errors import TORCH_MISSING
 from pipeline.presets import PRESETS
+
+try:
+    from export.exporter import ExportConfig, run
+except ModuleNotFoundError as exc:
+    if exc.name != "torch":
+        raise
+    raise SystemExit(TORCH_MISSING) from exc
 
 
 def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Namespace]:

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
-from torch import nn
+from pipeline.errors import TORCH_MISSING
+
+try:
+    from torch import nn
+except ModuleNotFoundError as exc:  # every `python -m models.…` command passes through here first
+    raise SystemExit(TORCH_MISSING) from exc
 
 from models.depth_net import DepthCompletionNet
 from models.pixor import Pixor

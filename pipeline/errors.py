@@ -8,3 +8,8 @@ class InputError(ValueError):
     argument name) and the problem, so that a CLI can print it and a service
     can answer it as a 4xx without a traceback.
     """
+
+
+# The runtime install (`make demo`, `pip install -e .`) has no torch; the commands that need it say so.
+TORCH_MISSING = ("error: training and export need PyTorch, which the runtime install leaves out; "
+                 "install it with `make setup-dev` (pip install -e '.[train]', CPU torch 2.13.0 pinned)")

@@ -442,3 +442,17 @@ def test_runtime_side_modules_do_not_import_torch() -> None:
         "assert 'torch' not in sys.modules, 'torch imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+@pytest.mark.parametrize("module", ["export", "models.train", "models.reproduce"])
+def test_commands_without_torch_say_what_to_install(module: str) -> None:
+    """With the runtime install alone (no torch), the torch commands answer one line, not a traceback;
+    export.lower, which needs no torch, still works."""
+    hide_torch = "import runpy, sys; sys.modules['torch'] = None; sys.argv = ['x', '--help']; "
+    result = subprocess.run([sys.executable, "-c", hide_torch + f"runpy.run_module({module!r}, run_name='__main__')"],
+                            capture_output=True, text=True)
+    assert result.returncode != 0
+    assert "make setup-dev" in result.stderr and "Traceback" not in result.stderr
+    lower = subprocess.run([sys.executable, "-c", hide_torch + "runpy.run_module('export.lower', run_name='__main__')"],
+                           capture_output=True, text=True)
+    assert lower.returncode == 0 and "--models" in lower.stdout
