@@ -25,9 +25,12 @@ from pipeline.model_files import ModelFileError
 
 
 def run(data: Path, models: Path, out: Path, split_file: Path | None = None, beams: int = 16,
-        progress: bool = True) -> int:
-    """Write one depth PNG per frame into ``out``; returns how many were computed (not skipped)."""
-    detector = Detector(models)
+        progress: bool = True, threads: int | None = None) -> int:
+    """Write one depth PNG per frame into ``out``; returns how many were computed (not skipped).
+
+    threads: ONNX Runtime's intra-op threads (None: one per core).
+    """
+    detector = Detector(models, intra_op_threads=threads)
     if not detector.two_stage:
         raise InputError(f"--models: {models} has no depth network")
     out = Path(out)

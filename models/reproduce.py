@@ -1,6 +1,6 @@
 """Reproduce the shipped weights and the paper's table on synthetic scenes, from scratch.
 
-    python -m models.reproduce [--out runs/edge] [--data data/sim] [--weights weights] [--quick]
+    python -m models.reproduce [--out runs/edge] [--data data/sim] [--weights weights] [--lanes 2] [--quick]
 
 Stages (each resumes where it stopped: rerun the same command after an interruption):
 
@@ -15,7 +15,12 @@ Stages (each resumes where it stopped: rerun the same command after an interrupt
 7. export every model directory, evaluate each on the validation set
    (KITTI BEV AP, depth RMSE/MAE), write ``OUT/table.json`` and ``OUT/table.md``.
 
-The ablation, which nothing else needs, comes last. The camera pipeline's PIXOR
+The training stages (2–6) run as jobs on two lanes side by side, one core
+each, a job starting when the stages it needs are done (models/schedule.py:
+1.3× the work per hour of one stage after the other with both cores). With
+one core per job the float sums run in another order than with two, so
+``--lanes 1`` and ``--lanes 2`` train slightly different weights; each is
+deterministic. The camera pipeline's PIXOR
 starts from the 16-line PIXOR: trained from scratch on pseudo + 16-line points
 it reached 15.8 BEV AP (IoU 0.7, moderate) after 2 epochs where 16-line PIXOR
 reaches about 55 — the smeared pseudo points hide the real returns' sharp
@@ -38,6 +43,7 @@ import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
+from functools import partial
 from pathlib import Path
 
 from evaluation.frames import load_label_dirs
@@ -46,6 +52,7 @@ from evaluation.kitti_eval import evaluate
 from export.exporter import ExportConfig
 from export.exporter import run as export
 from models.cache_pseudo import run as cache_pseudo
+from models.schedule import Job, JobFailed, run_jobs
 from models.train import TrainConfig
 from models.train import run as train
 from pipeline.errors import InputError
@@ -94,6 +101,7 @@ class ReproduceConfig:
     quick: bool = False
     budget: Budget = field(default_factory=Budget)
     sim_workers: int = 2
+    lanes: int = 2  # training jobs side by side (models/schedule.py); 1: one after the other, all cores each
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -107,7 +115,7 @@ def _train(config: ReproduceConfig, name: str, task: str, preset: str | None = N
     tic = time.perf_counter()
     result = train(TrainConfig(
         task=task, data=config.data / "train", val_data=config.data / "val", preset=preset or config.preset,
-        out=config.out / name, resume=True, progress=config.progress, seed=0,
+        out=config.out / name, resume=True, progress=_bars(config), seed=0,
         max_val_frames=b.val_frames_during_training, **kwargs,
     ))
     seconds = time.perf_counter() - tic
@@ -134,6 +142,99 @@ def _detection_ap(config: ReproduceConfig, models: Path, input_mode: str, name: 
     return evaluate(labels.ground_truth, labels.detections, metrics=("bev",)).ap_table()["bev"]
 
 
+STAGE_REPORTS = ("depth", "pixor_lidar16", "pixor_pseudo", "pixor_lidar64", "joint", "depth_no_gam")
+
+
+def training_jobs(config: ReproduceConfig) -> list[Job]:
+    """The training stages as jobs, in the order the scheduler prefers them.
+
+    The camera branch (depth → pseudo depth → pseudo PIXOR → joint) is the
+    longest chain and goes first; the 64-line PIXOR, the second half of the
+    16-line PIXOR and the depth ablation fill the other lane.
+    """
+    def job(name: str, *after: str) -> Job:
+        return Job(name, partial(run_stage, config, name), after)
+
+    return [
+        job("depth"),
+        job("pixor_lidar16_branch"),
+        job("cache_pseudo", "depth"),
+        job("pixor_pseudo", "cache_pseudo", "pixor_lidar16_branch"),
+        job("joint", "pixor_pseudo"),
+        job("pixor_lidar64"),
+        job("pixor_lidar16", "pixor_lidar16_branch"),
+        job("depth_no_gam"),
+    ]
+
+
+def run_stage(config: ReproduceConfig, name: str, threads: int | None = None) -> dict:
+    """One training stage of the recipe (a job of :func:`training_jobs`); ``threads`` None: all cores."""
+    b, out = config.budget, config.out
+    branch = out / "pixor_lidar16" / f"pixor_epoch{b.pseudo_branch_epochs}.pt"
+
+    # Every PIXOR trains detector_epochs in all: the camera pipeline's branches off the 16-line one
+    # after pseudo_branch_epochs and spends the rest on pseudo + 16-line points.
+    def detector(input_mode: str, epochs: int, start: Path | None = None) -> dict:
+        pseudo = {"pseudo_dir": out / "pseudo" / "train", "val_pseudo_dir": out / "pseudo" / "val"}
+        return _train(config, f"pixor_{input_mode}", "detector", threads=threads, input_mode=input_mode,
+                      epochs=epochs, max_train_frames=b.detector_frames, pixor_checkpoint=start,
+                      **(pseudo if input_mode == "pseudo" else {}))
+
+    def depth(run_name: str, preset: str) -> dict:
+        return _train(config, run_name, "depth", preset=preset, threads=threads, epochs=b.depth_epochs,
+                      max_train_frames=b.depth_frames, lr=b.depth_lr, depth_loss=b.depth_loss)
+
+    if name == "depth":
+        return depth("depth", config.preset)
+    if name == "depth_no_gam":  # the paper's ablation, same budget
+        return depth("depth_no_gam", f"{config.preset}-no-gam")
+    if name == "cache_pseudo":
+        tic = time.perf_counter()
+        models = _export(config, out / "depth", out / "models" / "depth", ("depth", "pixor"))
+        for split in ("train", "val"):
+            cache_pseudo(config.data / split, models, out / "pseudo" / split, progress=_bars(config), threads=threads)
+        return {"seconds": round(time.perf_counter() - tic, 1)}
+    if name == "pixor_lidar16_branch":
+        if not branch.exists():
+            result = detector("lidar16", b.pseudo_branch_epochs)
+            if len(result["history"]) != b.pseudo_branch_epochs:
+                raise RuntimeError(f"{branch.parent}: trained {len(result['history'])} epochs, past the branch "
+                                   f"point ({b.pseudo_branch_epochs}) whose weights the camera PIXOR starts "
+                                   "from; remove that folder and rerun")
+            shutil.copy2(out / "pixor_lidar16" / "pixor.pt", branch)
+        return {"branch": str(branch)}
+    if name == "pixor_lidar16":
+        return detector("lidar16", b.detector_epochs)
+    if name == "pixor_pseudo":
+        return detector("pseudo", b.detector_epochs - b.pseudo_branch_epochs, branch)
+    if name == "pixor_lidar64":
+        return detector("lidar64", b.detector_epochs)
+    if name == "joint":
+        return _train(config, "joint", "joint", threads=threads, epochs=b.joint_epochs,
+                      max_train_frames=b.joint_frames, depth_loss=b.depth_loss,
+                      depth_checkpoint=out / "depth" / "depth.pt", pixor_checkpoint=out / "pixor_pseudo" / "pixor.pt")
+    raise ValueError(f"no training stage called {name!r}")
+
+
+def _epochs_planned(b: Budget) -> int:
+    return 2 * b.depth_epochs + 2 * b.detector_epochs + (b.detector_epochs - b.pseudo_branch_epochs) + b.joint_epochs
+
+
+def _epochs_logged(out: Path) -> int:
+    """Epochs finished so far by every run of the recipe (lines of their logs)."""
+    total = 0
+    for run_dir in ("depth", "depth_no_gam", "pixor_lidar16", "pixor_pseudo", "pixor_lidar64", "joint"):
+        log_path = out / run_dir / "log.jsonl"
+        if log_path.exists():
+            total += sum(1 for line in log_path.read_text().splitlines() if line.strip())
+    return total
+
+
+def _bars(config: ReproduceConfig) -> bool:
+    """Per-stage progress bars only with one lane: side by side they would overwrite each other."""
+    return config.progress and config.lanes <= 1
+
+
 def run(config: ReproduceConfig) -> dict:
     """All stages; returns the report (also written to OUT/table.json and OUT/table.md)."""
     b, out = config.budget, config.out
@@ -151,47 +252,21 @@ def run(config: ReproduceConfig) -> dict:
                        split="train", progress=config.progress))
     stage("simulate")
 
-    report["stages"]["depth"] = _train(config, "depth", "depth", epochs=b.depth_epochs, max_train_frames=b.depth_frames,
-                                       lr=b.depth_lr, depth_loss=b.depth_loss)
-    stage("depth")
+    done: list[str] = []
 
-    depth_models = _export(config, out / "depth", out / "models" / "depth", ("depth", "pixor"))
-    for split in ("train", "val"):
-        cache_pseudo(config.data / split, depth_models, out / "pseudo" / split, progress=config.progress)
-    stage("cache_pseudo")
+    def job_done(name: str, _: dict) -> None:
+        done.append(name)
+        (out / "progress.json").write_text(json.dumps({**report["seconds"], "training_done": done}, indent=1))
 
-    # Every PIXOR trains detector_epochs in all: the camera pipeline's branches off the 16-line one
-    # after pseudo_branch_epochs and spends the rest on pseudo + 16-line points.
-    def detector(input_mode: str, epochs: int, start: Path | None = None) -> dict:
-        return _train(config, f"pixor_{input_mode}", "detector", input_mode=input_mode,
-                      pseudo_dir=out / "pseudo" / "train", val_pseudo_dir=out / "pseudo" / "val", epochs=epochs,
-                      max_train_frames=b.detector_frames, pixor_checkpoint=start)
+    results, timeline = run_jobs(training_jobs(config), config.lanes, units=lambda: _epochs_logged(out),
+                                 total_units=_epochs_planned(b), on_done=job_done, progress=config.progress)
+    report["stages"] = {name: results[name] for name in STAGE_REPORTS}
+    report["schedule"] = {"lanes": config.lanes, "jobs": timeline}
+    stage("training")
 
-    branch = out / "pixor_lidar16" / f"pixor_epoch{b.pseudo_branch_epochs}.pt"
-    if not branch.exists():
-        done = len(detector("lidar16", b.pseudo_branch_epochs)["history"])
-        if done != b.pseudo_branch_epochs:
-            raise RuntimeError(f"{branch.parent}: trained {done} epochs, past the branch point "
-                               f"({b.pseudo_branch_epochs}) whose weights the camera PIXOR starts from; "
-                               "remove that folder and rerun")
-        shutil.copy2(out / "pixor_lidar16" / "pixor.pt", branch)
-    report["stages"]["pixor_lidar16"] = detector("lidar16", b.detector_epochs)
-    report["stages"]["pixor_pseudo"] = detector("pseudo", b.detector_epochs - b.pseudo_branch_epochs, branch)
-    report["stages"]["pixor_lidar64"] = detector("lidar64", b.detector_epochs)
-    stage("detectors")
-
-    report["stages"]["joint"] = _train(
-        config, "joint", "joint", epochs=b.joint_epochs, max_train_frames=b.joint_frames, depth_loss=b.depth_loss,
-        depth_checkpoint=out / "depth" / "depth.pt", pixor_checkpoint=out / "pixor_pseudo" / "pixor.pt")
-    stage("joint")
-
-    ablation = f"{config.preset}-no-gam"
-    report["stages"]["depth_no_gam"] = _train(config, "depth_no_gam", "depth", preset=ablation, epochs=b.depth_epochs,
-                                              max_train_frames=b.depth_frames, lr=b.depth_lr,
-                                              depth_loss=b.depth_loss)
-    no_gam_models = _export(config, out / "depth_no_gam", out / "models" / "depth_no_gam", ("depth", "pixor"), ablation)
-    stage("depth_ablation")
-
+    depth_models = out / "models" / "depth"  # exported by the cache_pseudo stage
+    no_gam_models = _export(config, out / "depth_no_gam", out / "models" / "depth_no_gam", ("depth", "pixor"),
+                            f"{config.preset}-no-gam")
     # The two-stage directory before joint fine-tuning: trained depth + pseudo-trained PIXOR.
     before = out / "models" / "camera_before_joint"
     before.mkdir(parents=True, exist_ok=True)
@@ -258,16 +333,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weights", type=Path, default=Path("weights"), help="where model directories ship (default weights)")
     parser.add_argument("--preset", default="edge", help="preset (default edge)")
     parser.add_argument("--sim-workers", type=int, default=2, help="simulation processes (default 2)")
+    parser.add_argument("--lanes", type=int, default=2,
+                        help="training jobs side by side, each with its share of the cores (default 2; 1: in turn)")
     parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     config = ReproduceConfig(out=args.out, data=args.data, weights=args.weights, preset=args.preset,
-                             quick=args.quick, sim_workers=args.sim_workers)
+                             quick=args.quick, sim_workers=args.sim_workers,
+                             lanes=args.lanes)
     try:
         report = run(config)
     except (InputError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except JobFailed as exc:  # a crash's traceback is above, from its own process
+        print(f"error: {exc}; rerun the same command to resume", file=sys.stderr)
+        return 2 if exc.user_error else 1
     print(format_table(report))
     print(f"shipped {report['shipped']} ({report['shipped_from']}); {report['total_seconds'] / 60:.1f} min in all")
     return 0
