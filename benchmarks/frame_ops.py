@@ -24,7 +24,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.beams import emulate_beams
-from pipeline.bev import BevVoxelizer
+from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import labels_to_boxes
 from pipeline.frame import load_frame
 from pipeline.postprocess import boxes_from_maps
@@ -94,16 +94,18 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper")
     # The Detector's limits: depth range, stride, and no pseudo points above pseudo_max_height (sky, trees).
     limits = (preset.depth.min_depth, preset.depth.max_depth, preset.decode.pseudo_stride,
               preset.decode.pseudo_max_height)
-    pseudo_arrays = pseudo_xyz(dense, view_calib, *limits)
+    bins = pseudo_bins(dense, view_calib, preset.bev, *limits)
 
     steps = {
         "emulate_16_beams (64-line scan)": lambda: emulate_beams(frame.points, 16),
         "prepare: crop + sparse depth (16-line)": lambda: depth_inputs(frame.image, lidar16, frame.calib, preset),
-        f"pseudo_points ({dense.shape[1]}x{dense.shape[0]} depth map), as the Detector runs it": lambda: pseudo_xyz(
-            dense, view_calib, *limits),
+        f"pseudo_points ({dense.shape[1]}x{dense.shape[0]} depth map to BEV bins), as the Detector runs it":
+            lambda: pseudo_bins(dense, view_calib, preset.bev, *limits),
         "voxelize (64-line scan)": lambda: voxelize(frame.points),
-        f"voxelize (16-line scan + {pseudo_arrays[0].size} pseudo points), as the Detector runs it": lambda: voxelize(
-            lidar16, pseudo_arrays),
+        f"voxelize (16-line scan + {bins.cell.size} pseudo points), as the Detector runs it": lambda: voxelize(
+            lidar16, bins),
+        "for comparison: pseudo x, y, z arrays, then voxelize them with the 16-line scan": lambda: voxelize(
+            lidar16, pseudo_xyz(dense, view_calib, *limits)),
         "for comparison: pseudo (N, 4) cloud + merge, then voxelize the merged cloud": lambda: voxelize(merge_points(
             depth_to_points(dense, view_calib, *limits), lidar16)),
         "decode + NMS + heights": lambda: boxes_from_maps(score, targets.regression, bev_pseudo, preset, 0.5),

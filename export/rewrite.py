@@ -39,9 +39,15 @@
    (0.53 ms each with its Greater, against 0.07 ms as a·float(c) + b·float(¬c)).
    :func:`where_as_arithmetic` rewrites those whose two branches are provably
    finite: exact (x·1 = x, x·0 = ±0).
+6. Parallel convolutions merged. The depth net's early fusion concatenates
+   ``Relu(Conv(depth))`` and ``Relu(Conv(image))``: ONNX Runtime reordered both
+   outputs from its blocked layout to NCHW for the Concat and back for the next
+   conv, and with an NCHW identity the first stage's residual Adds ran in NCHW
+   as well. :func:`merge_parallel_convs` makes it one conv on the concatenated
+   inputs with block-diagonal weights (exact zeros across).
 
-:func:`lower_for_cpu` applies the fp32 rewrites (the stride-1 half of 1, 2, 3
-and 5); the exporter runs it on every network before the parity check, and
+:func:`lower_for_cpu` applies the fp32 rewrites (the stride-1 half of 1, 2, 3,
+5 and 6); the exporter runs it on every network before the parity check, and
 ``python -m export.lower`` applies it to an existing model directory.
 """
 
@@ -310,14 +316,88 @@ def where_as_arithmetic(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
     return model, rewritten
 
 
+def merge_parallel_convs(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
+    """A copy of ``model`` where each channel ``Concat`` of ``Relu(Conv(x_i))`` branches, the convs alike
+    but for their channels, becomes one ``Relu(Conv(Concat(x_i)))`` with block-diagonal weights.
+    Returns the new model and the number merged.
+
+    The depth net's early fusion is such a Concat (module docstring, 6). The cross weights are exact
+    zeros, so the sums are the same up to float summation order. Branches whose convs differ in
+    anything but channels (the ASPP's dilations) stay as they are.
+    """
+    model = onnx.ModelProto.FromString(model.SerializeToString())
+    graph = model.graph
+    initializers = {init.name: init for init in graph.initializer}
+    producers = {name: node for node in graph.node for name in node.output}
+    uses = defaultdict(int)
+    for node in graph.node:
+        for name in node.input:
+            uses[name] += 1
+    outputs = {value.name for value in graph.output}
+
+    def branch(name: str) -> tuple[onnx.NodeProto, onnx.NodeProto] | None:
+        """(Relu, Conv) producing ``name``, each read only by the next step, with constant weights."""
+        relu = producers.get(name)
+        conv = producers.get(relu.input[0]) if relu is not None and relu.op_type == "Relu" else None
+        if (conv is None or conv.op_type != "Conv" or uses[relu.output[0]] != 1 or uses[conv.output[0]] != 1
+                or name in outputs or not all(n in initializers and uses[n] == 1 for n in conv.input[1:] if n)):
+            return None
+        return relu, conv
+
+    merged_away: set[str] = set()
+    replacements: dict[str, list[onnx.NodeProto]] = {}
+    for node in graph.node:
+        if node.op_type != "Concat" or _attributes(node).get("axis") != 1 or len(node.input) < 2:
+            continue
+        branches = [branch(name) for name in node.input]
+        if any(b is None for b in branches):
+            continue
+        convs = [conv for _, conv in branches]
+        attrs = [_attributes(conv) for conv in convs]
+        if any(a != attrs[0] for a in attrs) or attrs[0].get("group", 1) != 1:
+            continue
+        weights = [numpy_helper.to_array(initializers[conv.input[1]]) for conv in convs]
+        biases = [numpy_helper.to_array(initializers[conv.input[2]]) if len(conv.input) > 2 and conv.input[2]
+                  else np.zeros(w.shape[0], np.float32) for conv, w in zip(convs, weights)]
+        weight = np.zeros((sum(w.shape[0] for w in weights), sum(w.shape[1] for w in weights),
+                           *weights[0].shape[2:]), np.float32)
+        row = col = 0
+        for w in weights:
+            weight[row:row + w.shape[0], col:col + w.shape[1]] = w
+            row, col = row + w.shape[0], col + w.shape[1]
+        name = node.name or node.output[0]
+        graph.initializer.extend([numpy_helper.from_array(weight, f"{name}_merged_w"),
+                                  numpy_helper.from_array(np.concatenate(biases).astype(np.float32), f"{name}_merged_b")])
+        replacements[node.name or node.output[0]] = [
+            helper.make_node("Concat", [conv.input[0] for conv in convs], [f"{name}_merged_x"], axis=1,
+                             name=f"{name}_merged_inputs"),
+            helper.make_node("Conv", [f"{name}_merged_x", f"{name}_merged_w", f"{name}_merged_b"],
+                             [f"{name}_merged_y"], name=f"{name}_merged_conv", **attrs[0]),
+            helper.make_node("Relu", [f"{name}_merged_y"], [node.output[0]], name=f"{name}_merged_relu"),
+        ]
+        merged_away.update(n.name or n.output[0] for pair in branches for n in pair)
+    nodes = []
+    for node in graph.node:
+        key = node.name or node.output[0]
+        if key in replacements:
+            nodes.extend(replacements[key])
+        elif key not in merged_away:
+            nodes.append(node)
+    _replace_nodes(graph, nodes)
+    del graph.value_info[:]
+    return model, len(replacements)
+
+
 def lower_for_cpu(model: onnx.ModelProto) -> tuple[onnx.ModelProto, dict[str, int]]:
-    """The exact fp32 rewrites (module docstring, 1 to 3 and 5); returns the model and how many nodes each changed."""
+    """The exact fp32 rewrites (module docstring, 1 to 3, 5 and 6); returns the model and how many nodes each
+    changed."""
     model, transposed = rewrite_transposed_convs(model, subpixel=False)
+    model, merged = merge_parallel_convs(model)
     model, split = split_input_convs(model)
     model, padded = pad_narrow_convs(model)
     model, wheres = where_as_arithmetic(model)
-    return model, {"stride1_transposed_convs": transposed, "split_input_convs": split, "padded_narrow_convs": padded,
-                   "where_as_arithmetic": wheres}
+    return model, {"stride1_transposed_convs": transposed, "merged_parallel_convs": merged,
+                   "split_input_convs": split, "padded_narrow_convs": padded, "where_as_arithmetic": wheres}
 
 
 def boundary_nodes(model: onnx.ModelProto, inputs: bool = True, outputs: bool = True,

@@ -149,8 +149,12 @@ def training_jobs(config: ReproduceConfig) -> list[Job]:
     """The training stages as jobs, in the order the scheduler prefers them.
 
     The camera branch (depth → pseudo depth → pseudo PIXOR → joint) is the
-    longest chain and goes first; the 64-line PIXOR, the second half of the
-    16-line PIXOR and the depth ablation fill the other lane.
+    longest chain and goes first. The other lane runs the 16-line PIXOR's
+    first half, the 64-line PIXOR, the depth ablation, then the 16-line
+    PIXOR's second half: a depth net beside a PIXOR keeps about 0.7 of its
+    two-thread speed, each of two PIXORs side by side only about 0.5
+    (docs/models.md, "Two lanes"), so the ablation goes where it runs beside
+    PIXORs and the lanes end together.
     """
     def job(name: str, *after: str) -> Job:
         return Job(name, partial(run_stage, config, name), after)
@@ -162,8 +166,8 @@ def training_jobs(config: ReproduceConfig) -> list[Job]:
         job("pixor_pseudo", "cache_pseudo", "pixor_lidar16_branch"),
         job("joint", "pixor_pseudo"),
         job("pixor_lidar64"),
-        job("pixor_lidar16", "pixor_lidar16_branch"),
         job("depth_no_gam"),
+        job("pixor_lidar16", "pixor_lidar16_branch"),
     ]
 
 

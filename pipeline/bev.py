@@ -9,18 +9,27 @@ The output is large (80 MB for the paper grid) while a frame touches well under
 1 % of it, so :class:`BevVoxelizer` keeps one output buffer and, on the next
 frame, zeroes only the cells it set before instead of allocating and clearing
 the whole tensor.
+
+Pseudo points go straight from the dense depth map to their bins
+(:func:`pseudo_bins`), without their coordinates: each bin coordinate is
+affine in depth per pixel.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
+from pipeline.calib import Calibration
 from pipeline.presets import BevGrid
+from pipeline.pseudo import bin_rays
 
 
 def bev_indices(points: np.ndarray, grid: BevGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Bin indices (iz, iy, ix) of the (N, ≥3) points inside the grid, and the indices of those points."""
-    return bev_indices_xyz(points[:, 0], points[:, 1], points[:, 2], grid)
+    x, y, z = points[:, :3].T.copy()  # contiguous rows: the range tests stream (20 % faster than columns)
+    return bev_indices_xyz(x, y, z, grid)
 
 
 def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid, prefilter: bool = True
@@ -57,6 +66,65 @@ def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid, 
     return fz[inside].astype(np.int64), fy[inside].astype(np.int64), fx[inside].astype(np.int64), kept
 
 
+@dataclass(frozen=True)
+class PseudoBins:
+    """Pseudo points as BEV bins: flat occupancy index ``iz·ny·nx + iy·nx + ix`` and cell ``iy·nx + ix``."""
+
+    occupancy: np.ndarray  # int64 (N,)
+    cell: np.ndarray  # int64 (N,)
+
+
+def bins_of_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid) -> PseudoBins:
+    """:class:`PseudoBins` of points given as coordinate arrays (the reference :func:`pseudo_bins` follows)."""
+    iz, iy, ix, _ = bev_indices_xyz(x, y, z, grid, prefilter=False)
+    cell = iy * grid.nx + ix
+    return PseudoBins(iz * (grid.ny * grid.nx) + cell, cell)
+
+
+def pseudo_bins(
+    depth: np.ndarray,
+    calib: Calibration,
+    grid: BevGrid,
+    min_depth: float = 0.9,
+    max_depth: float = 80.0,
+    stride: int = 1,
+    max_height: float | None = None,
+) -> PseudoBins:
+    """BEV bins of the pseudo points of an (H, W) depth map, straight from the map.
+
+    The same points as :func:`pipeline.pseudo.pseudo_xyz` with the same
+    arguments, binned like :func:`bins_of_xyz` — but never built: a pixel's
+    bin coordinate on each axis, ``(d·ray + origin − v_min) / cell``, is one
+    float32 multiply-add with rays in bin units (:func:`pipeline.pseudo.bin_rays`,
+    cached per calibration). That rounds once where the reference rounds
+    three times, so a point within float32 rounding of a bin edge (about
+    1e-6 of a cell) can land in the neighbouring bin: on 40 synthetic
+    validation frames with the edge depth net, 51 of 2.8 million points and 14
+    of 603,000 occupied voxels, far below any depth error.
+    """
+    table = bin_rays(calib, depth.shape[0], depth.shape[1], stride, grid)
+    d = np.asarray(depth, np.float32)[::stride, ::stride].reshape(-1)
+    keep = (d >= min_depth) & (d <= max_depth)
+    work = np.empty_like(d)
+    bins = []
+    # Bins beyond int32 cast to its minimum (x86) or saturate (Arm): outside the grid either way,
+    # and the unsigned view tests 0 ≤ bin < size in one comparison.
+    with np.errstate(invalid="ignore"):
+        for axis, size in ((2, grid.nz), (1, grid.ny), (0, grid.nx)):
+            np.multiply(d, table.rays[axis], out=work)
+            work += table.origin[axis]
+            if axis == 2 and max_height is not None:  # z ≤ max_height, in bin units
+                keep &= work <= np.float32((max_height - grid.z_min) / grid.z_cell)
+            np.floor(work, out=work)
+            b = work.astype(np.int32)
+            keep &= b.view(np.uint32) < size
+            bins.append(b)
+    kept = np.flatnonzero(keep)
+    iz, iy, ix = (b[kept].astype(np.int64) for b in bins)
+    cell = iy * grid.nx + ix
+    return PseudoBins(iz * (grid.ny * grid.nx) + cell, cell)
+
+
 class BevVoxelizer:
     """Voxelizes frames into one reused output buffer (not thread-safe: one per worker).
 
@@ -69,11 +137,12 @@ class BevVoxelizer:
         self._flat = self._out.reshape(-1)
         self._touched = np.zeros(0, dtype=np.int64)
 
-    def __call__(self, points: np.ndarray, pseudo: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-                 ) -> np.ndarray:
+    def __call__(self, points: np.ndarray,
+                 pseudo: PseudoBins | tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
         """(N, 4) points ``x, y, z, reflectance`` → float32 ``grid.shape`` tensor.
 
-        pseudo: optional extra points as (x, y, z) arrays with reflectance 0
+        pseudo: optional extra points with reflectance 0, as their bins
+        (:func:`pseudo_bins`) or as (x, y, z) arrays
         (:func:`pipeline.pseudo.pseudo_xyz`); the result equals voxelizing
         ``merge_points(pseudo, points)`` without building that merged array.
         """
@@ -86,12 +155,11 @@ class BevVoxelizer:
         self._flat[occupancy] = 1.0
         counted = cell
         if pseudo is not None:
-            p_iz, p_iy, p_ix, _ = bev_indices_xyz(*pseudo, grid, prefilter=False)
-            p_cell = p_iy * grid.nx + p_ix
-            p_occupancy = p_iz * plane + p_cell
-            self._flat[p_occupancy] = 1.0
-            occupancy = np.concatenate([occupancy, p_occupancy])
-            counted = np.concatenate([cell, p_cell])
+            if not isinstance(pseudo, PseudoBins):
+                pseudo = bins_of_xyz(*pseudo, grid)
+            self._flat[pseudo.occupancy] = 1.0
+            occupancy = np.concatenate([occupancy, pseudo.occupancy])
+            counted = np.concatenate([cell, pseudo.cell])
         # Mean reflectance of each cell with real returns (pseudo points add 0 to the sum but
         # count), written only there: each point writes its cell's mean (duplicates write the
         # same value), which avoids scanning the whole plane for the occupied cells.

@@ -130,12 +130,12 @@ def sparse_depth_map(
     # the exact float64 projection then runs on those alone. The 2-pixel and 1 cm margins are far
     # wider than float32's error at LiDAR ranges, so the result equals projecting every point.
     project = (calib.P2 @ calib.velo_to_rect_matrix).astype(np.float32)  # 3×4, velodyne → image
-    homog = points[:, :3].astype(np.float32, copy=False) @ project[:, :3].T + project[:, 3]
-    near = homog[:, 2]
+    # (3, N): each coordinate a contiguous row, so the range tests below stream through memory.
+    su, sv, near = project[:, :3] @ points[:, :3].astype(np.float32, copy=False).T + project[:, 3:]
     candidates = np.flatnonzero(
         (near > min_depth - 0.01)
-        & (homog[:, 0] > -2.0 * near) & (homog[:, 0] < (w + 2.0) * near)
-        & (homog[:, 1] > -2.0 * near) & (homog[:, 1] < (h + 2.0) * near)
+        & (su > -2.0 * near) & (su < (w + 2.0) * near)
+        & (sv > -2.0 * near) & (sv < (h + 2.0) * near)
     )
     uv, depth = calib.velo_to_image(points[candidates, :3])
     cols = np.rint(uv[:, 0])

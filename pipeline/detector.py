@@ -1,8 +1,8 @@
 """The ONNX Runtime two-stage detector: image + sparse scan + calibration → 3D car boxes.
 
 Stages (each timed): ``prepare`` (depth-net view and sparse depth) →
-``depth_net`` (depth.onnx) → ``pseudo_points`` (back-projection) →
-``voxelize`` (BEV tensor of pseudo + real points) → ``pixor`` (pixor.onnx) →
+``depth_net`` (depth.onnx) → ``pseudo_points`` (back-projection, straight to
+BEV bins) → ``voxelize`` (BEV tensor of pseudo + real points) → ``pixor`` (pixor.onnx) →
 ``decode`` (candidates, rotated NMS, z and h). A model directory without
 ``depth.onnx`` is a LiDAR-only PIXOR: it skips the first three stages.
 
@@ -22,7 +22,7 @@ import numpy as np
 import onnxruntime as ort
 
 from pipeline.beams import emulate_beams
-from pipeline.bev import BevVoxelizer
+from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import Calibration
 from pipeline.errors import InputError
@@ -31,7 +31,7 @@ from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import Preset, preset_from_dict
-from pipeline.pseudo import merge_points, pseudo_xyz, xyz_to_points
+from pipeline.pseudo import depth_to_points, merge_points
 
 log = logging.getLogger(__name__)
 
@@ -199,8 +199,8 @@ class Detector:
         (N, 4) float32 velodyne points, finite. calib: required for a
         two-stage model. emulate_to_beams: thin a 64-line scan first.
         keep_points: also return the point cloud PIXOR saw (pseudo + real),
-        for pictures; otherwise the pseudo points are voxelized straight
-        from their coordinate arrays and never gathered into one cloud.
+        for pictures; otherwise the pseudo points go from the depth map
+        straight to their BEV bins and are never built.
         """
         timings: dict[str, float] = {}
         warnings: list[str] = []
@@ -227,10 +227,8 @@ class Detector:
             timings["depth_net"] = (time.perf_counter() - tic) * 1e3
             tic = time.perf_counter()
             d = self.preset.decode
-            pseudo = pseudo_xyz(
-                depth[0, 0], inputs.calib, self.preset.depth.min_depth, self.preset.depth.max_depth,
-                d.pseudo_stride, d.pseudo_max_height,
-            )
+            limits = (self.preset.depth.min_depth, self.preset.depth.max_depth, d.pseudo_stride, d.pseudo_max_height)
+            pseudo = pseudo_bins(depth[0, 0], inputs.calib, self.preset.bev, *limits)
             timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3
         else:
             pseudo = None
@@ -247,7 +245,7 @@ class Detector:
         timings["total"] = (time.perf_counter() - start) * 1e3
         cloud = None
         if keep_points:
-            cloud = points if pseudo is None else merge_points(xyz_to_points(*pseudo), points)
+            cloud = points if pseudo is None else merge_points(depth_to_points(depth[0, 0], inputs.calib, *limits), points)
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, warnings=warnings, points=cloud)
 
     def _check_points(self, points: np.ndarray) -> np.ndarray:

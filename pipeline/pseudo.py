@@ -14,19 +14,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.calib import Calibration
+from pipeline.presets import BevGrid
 
 
-def pixel_rays(calib: Calibration, height: int, width: int, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+def pixel_rays(calib: Calibration, height: int, width: int, stride: int = 1,
+               scale: tuple[float, float, float] = (1.0, 1.0, 1.0)) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel rays in the LiDAR frame: point(u, v, d) = d · ray[v, u] + origin, exactly.
 
     Back-projection is affine in depth: X_rect = d·K⁻¹[u, v, 1]ᵀ − K⁻¹t with
     P2 = [K | t], then X_velo = A·X_rect + b. Returns float32 rays
-    (3, H/stride, W/stride) and the float64 origin (3,).
+    (3, H/stride, W/stride) and the float64 origin (3,). scale multiplies each
+    axis (x, y, z) of both before the one rounding (the BEV's bin units: 1 / cell).
     """
     k_inv = np.linalg.inv(calib.P2[:, :3])
     to_velo = calib.rect_to_velo_matrix
-    direction = to_velo[:3, :3] @ k_inv  # columns: d/du, d/dv, constant
-    origin = to_velo[:3, 3] - to_velo[:3, :3] @ (k_inv @ calib.P2[:, 3])
+    factor = np.asarray(scale, np.float64)
+    direction = factor[:, None] * (to_velo[:3, :3] @ k_inv)  # columns: d/du, d/dv, constant
+    origin = factor * (to_velo[:3, 3] - to_velo[:3, :3] @ (k_inv @ calib.P2[:, 3]))
     u = np.arange(0, width, stride, dtype=np.float64)
     v = np.arange(0, height, stride, dtype=np.float64)
     # ray = d/du·u + d/dv·v + constant, per axis: an outer sum of a row and a column term, then the
@@ -48,21 +52,47 @@ class RayTable:
     stride: int
 
 
-_RAY_TABLES: OrderedDict[tuple, RayTable] = OrderedDict()
-_RAY_TABLES_MAX = 8  # a deployment sees one or a few calibrations; KITTI one per drive
+_TABLES: OrderedDict[tuple, object] = OrderedDict()
+_TABLES_MAX = 16  # a deployment sees one or a few calibrations; KITTI one per drive
+
+
+def _cached(key: tuple, build):
+    """The table under key, built on first use (least recently built dropped past _TABLES_MAX)."""
+    table = _TABLES.get(key)
+    if table is None:
+        table = _TABLES[key] = build()  # a racing thread may build the same table: equal, harmless
+        while len(_TABLES) > _TABLES_MAX:
+            _TABLES.popitem(last=False)
+    return table
+
+
+def _calibration_key(calib: Calibration, height: int, width: int, stride: int) -> tuple:
+    return (calib.P2.tobytes(), calib.R0_rect.tobytes(), calib.Tr_velo_to_cam.tobytes(), height, width, stride)
 
 
 def ray_table(calib: Calibration, height: int, width: int, stride: int = 1) -> RayTable:
     """:func:`pixel_rays` of a view, cached by calibration (a frame's rays cost more than using them)."""
-    key = (calib.P2.tobytes(), calib.R0_rect.tobytes(), calib.Tr_velo_to_cam.tobytes(), height, width, stride)
-    table = _RAY_TABLES.get(key)
-    if table is None:
+    def build() -> RayTable:
         rays, origin = pixel_rays(calib, height, width, stride)
-        table = RayTable(np.ascontiguousarray(rays.reshape(3, -1)), origin.astype(np.float32), (height, width), stride)
-        _RAY_TABLES[key] = table  # a racing thread may build the same table: equal, harmless
-        while len(_RAY_TABLES) > _RAY_TABLES_MAX:
-            _RAY_TABLES.popitem(last=False)
-    return table
+        return RayTable(np.ascontiguousarray(rays.reshape(3, -1)), origin.astype(np.float32), (height, width), stride)
+
+    return _cached(("rays", *_calibration_key(calib, height, width, stride)), build)
+
+
+def bin_rays(calib: Calibration, height: int, width: int, stride: int, grid: BevGrid) -> RayTable:
+    """The rays of :func:`ray_table` in the BEV's bin units: bin coordinate = d · rays[:, i] + origin.
+
+    origin here is ``(origin − (x_min, y_min, z_min)) / cell`` per axis; built
+    from the calibration in float64 and rounded once, cached like the rays.
+    """
+    def build() -> RayTable:
+        scale = (1 / grid.cell, 1 / grid.cell, 1 / grid.z_cell)
+        rays, origin = pixel_rays(calib, height, width, stride, scale)
+        low = np.array([grid.x_min, grid.y_min, grid.z_min]) * np.asarray(scale)
+        return RayTable(np.ascontiguousarray(rays.reshape(3, -1)), (origin - low).astype(np.float32),
+                        (height, width), stride)
+
+    return _cached(("bins", grid, *_calibration_key(calib, height, width, stride)), build)
 
 
 def pseudo_xyz(

@@ -1,6 +1,7 @@
 """BEV voxelization against a plain per-point reference loop."""
 
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -99,3 +100,58 @@ def test_pseudo_arrays_voxelize_like_the_merged_cloud():
     np.testing.assert_array_equal(fused, reference_voxelize(merged, preset.bev))
     # Pseudo points dilute the reflectance of the cells they share with real returns.
     assert 0 < np.count_nonzero(fused[-1]) < np.count_nonzero(fused[:-1].any(axis=0))
+
+
+def _kitti_view(preset_name: str = "edge"):
+    from pipeline.frame import load_frame
+    from pipeline.preprocess import network_view
+
+    frame = load_frame(KITTI, "000006")
+    preset = PRESETS[preset_name]
+    _, view_calib = network_view(frame.image, frame.calib, preset)
+    return frame, preset, view_calib
+
+
+def test_pseudo_bins_straight_from_depth_match_binning_the_points():
+    """The Detector bins pseudo points from the depth map without building them; it matches binning the
+    points themselves but for float32 rounding at bin edges (pipeline.bev.pseudo_bins says why)."""
+    from pipeline.bev import bins_of_xyz, pseudo_bins
+    from pipeline.pseudo import pseudo_xyz
+
+    frame, preset, view_calib = _kitti_view()
+    h, w = preset.depth.input_hw
+    # A road-like map: depth grows towards the horizon, plus noise (every value a fresh float).
+    rows = np.linspace(80, 2, h, dtype=np.float32)[:, None]
+    depth = (rows + np.random.default_rng(5).uniform(-1, 1, (h, w))).astype(np.float32)
+    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    fused = pseudo_bins(depth, view_calib, preset.bev, *limits)
+    reference = bins_of_xyz(*pseudo_xyz(depth, view_calib, *limits), preset.bev)
+    assert reference.cell.size > 30000
+    assert abs(fused.cell.size - reference.cell.size) <= 1e-3 * reference.cell.size
+    ours, theirs = np.unique(fused.occupancy), np.unique(reference.occupancy)
+    assert np.setxor1d(ours, theirs).size <= 1e-3 * theirs.size
+    np.testing.assert_array_equal(fused.occupancy % (preset.bev.ny * preset.bev.nx), fused.cell)
+    # The same voxelizer output but for those few voxels.
+    voxelizer = BevVoxelizer(preset.bev)
+    with_bins = voxelizer(frame.points, fused).copy()
+    with_xyz = voxelizer(frame.points, reference).copy()
+    assert np.count_nonzero(with_bins != with_xyz) <= 1e-3 * np.count_nonzero(with_xyz)
+
+
+def test_pseudo_bins_drop_what_is_outside_without_warnings():
+    from pipeline.bev import pseudo_bins
+
+    _, preset, view_calib = _kitti_view()
+    depth = np.full(preset.depth.input_hw, 20.0, np.float32)
+    depth[0, :4] = [np.nan, np.inf, 1e30, -5.0]  # not depths, or far beyond int32 bins
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        bins = pseudo_bins(depth, view_calib, preset.bev, 0.9, 80.0, 1, None)
+    grid = preset.bev
+    assert bins.cell.size > 0 and bins.cell.min() >= 0 and bins.occupancy.max() < grid.nz * grid.ny * grid.nx
+    # Every kept point sits 20 m ahead (the 20 m depth plane), whatever row its bin came from.
+    ix = bins.cell % grid.nx
+    assert np.all(np.abs(grid.x_min + (ix + 0.5) * grid.cell - 20.0) < 1.5)
+    # Another grid on the same calibration gets its own bin rays.
+    other = pseudo_bins(depth, view_calib, PRESETS["paper"].bev, 0.9, 80.0, 1, None)
+    assert other.occupancy.max() >= grid.nz * grid.ny * grid.nx  # the paper grid is larger
