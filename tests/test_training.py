@@ -1,5 +1,6 @@
 """Training: data loaders on real frames, the differentiable BEV, a quick run, exact resume."""
 
+import json
 import shutil
 
 import numpy as np
@@ -223,3 +224,38 @@ def test_sample_cache_gives_the_samples_a_fresh_load_gives():
     one = DepthDataset(KITTI, ids, preset, cache=budget)
     one[0], one[1]
     assert list(budget.items) == [0] and budget.nbytes <= budget.max_bytes
+
+
+def test_compile_choice():
+    from models.train import COMPILE_MIN_STEPS, resolve_compile
+    from pipeline.errors import InputError
+
+    assert not resolve_compile("off", "detector", 10**6)
+    assert not resolve_compile("auto", "joint", 10**6)  # joint stays eager
+    assert not resolve_compile("auto", "detector", COMPILE_MIN_STEPS - 1)  # a smoke test does not pay a minute
+    if shutil.which("c++") or shutil.which("g++") or shutil.which("clang++"):
+        assert resolve_compile("auto", "depth", COMPILE_MIN_STEPS)
+        assert resolve_compile("on", "detector", 1)
+    with pytest.raises(InputError, match="--compile"):
+        resolve_compile("sometimes", "detector", 1)
+
+
+@pytest.mark.skipif(not (shutil.which("c++") or shutil.which("g++")), reason="torch.compile on the CPU needs a C++ compiler")
+def test_compiled_training_computes_what_eager_training_does(small_sim, tmp_path):
+    """The same detector run, compiled and eager: the same losses up to float rounding, and the checkpoint
+    of the compiled run is the module's own state (no wrapper prefixes), so export reads it as always."""
+    from models.checkpoint import load_checkpoint
+
+    common = {"task": "detector", "data": small_sim, "preset": "tiny", "epochs": 2, "batch_size": 2,
+              "progress": False, "max_train_frames": 4, "max_val_frames": 1, "precision": "fp32"}
+    eager = run(TrainConfig(out=tmp_path / "eager", compile="off", **common))
+    compiled = run(TrainConfig(out=tmp_path / "compiled", compile="on", **common))
+    for a, b in zip(eager.history, compiled.history):
+        assert b["train_loss"] == pytest.approx(a["train_loss"], rel=1e-4)
+        assert b["val_loss"] == pytest.approx(a["val_loss"], rel=1e-4)
+    log = [json.loads(line) for line in (tmp_path / "compiled" / "log.jsonl").read_text().splitlines()]
+    assert [entry["epoch"] for entry in log] == [1, 2]
+    state = load_checkpoint(compiled.checkpoints["pixor"])
+    eager_state = load_checkpoint(eager.checkpoints["pixor"])
+    assert state.metadata["recipe"]["compiled"] and not eager_state.metadata["recipe"]["compiled"]
+    assert set(state.state_dicts["pixor"]) == set(eager_state.state_dicts["pixor"])
