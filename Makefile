@@ -29,7 +29,7 @@ test: $(VENV)/.dev
 	$(BIN)/python -m pytest -q
 
 lint: $(VENV)/.dev
-	$(BIN)/ruff check pipeline service models export evaluation simulation benchmarks
+	$(BIN)/ruff check pipeline service models export evaluation simulation benchmarks tests
 
 clean:
 	rm -rf $(VENV) outputs

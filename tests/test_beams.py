@@ -87,7 +87,7 @@ def test_folder_command_never_touches_source(tmp_path):
     dst = tmp_path / "velodyne16"
     result = subprocess.run(
         [sys.executable, "-m", "pipeline.beams", "--beams", "16", str(src), str(dst)],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True, text=True, timeout=120, check=False,
     )
     assert result.returncode == 0, result.stderr
     assert {p.name: p.read_bytes() for p in src.iterdir()} == before
@@ -95,7 +95,7 @@ def test_folder_command_never_touches_source(tmp_path):
         out = read_velodyne(dst / name).points
         np.testing.assert_array_equal(out, emulate_beams(read_velodyne(src / name).points, 16))
     refused = subprocess.run(
-        [sys.executable, "-m", "pipeline.beams", str(src), str(src / "inside")], capture_output=True, text=True,
+        [sys.executable, "-m", "pipeline.beams", str(src), str(src / "inside")], capture_output=True, text=True, check=False,
     )
     assert refused.returncode == 2 and "must not be the source" in refused.stderr
     assert "Traceback" not in refused.stderr

@@ -29,7 +29,7 @@ def instructions() -> list[tuple[str, str]]:
 
 def test_hadolint_is_clean():
     hadolint = Path(sys.executable).parent / "hadolint"
-    result = subprocess.run([str(hadolint), str(DOCKERFILE)], capture_output=True, text=True, timeout=120)
+    result = subprocess.run([str(hadolint), str(DOCKERFILE)], capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stdout + result.stderr
 
 
@@ -106,5 +106,5 @@ def test_requirements_resolve(tmp_path, requirements, arch, python):
                "-r", str(REQUIREMENTS / requirements)]
     for platform in platforms:
         command += ["--platform", platform]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 0, result.stderr[-2000:]

@@ -5,8 +5,20 @@ import pytest
 
 from pipeline.errors import InputError
 from pipeline.kitti import (
-    Object3D, decode_depth_png, format_label, parse_calib, parse_labels, parse_velodyne, read_calib,
-    read_depth_png, read_image, read_labels, read_velodyne, write_calib, write_depth_png, write_labels,
+    Object3D,
+    decode_depth_png,
+    format_label,
+    parse_calib,
+    parse_labels,
+    parse_velodyne,
+    read_calib,
+    read_depth_png,
+    read_image,
+    read_labels,
+    read_velodyne,
+    write_calib,
+    write_depth_png,
+    write_labels,
     write_velodyne,
 )
 from tests.conftest import FRAMES, KITTI

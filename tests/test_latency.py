@@ -14,7 +14,7 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     result = subprocess.run(
         [sys.executable, str(LATENCY), "--preset", "tiny", "--frames", "4", "--warmup", "1", "--threads", "2",
          "--compare-torch", "--json", str(tmp_path / "lat.json"), "--plot", str(tmp_path / "lat.png")],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, text=True, timeout=600, check=False,
     )
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((tmp_path / "lat.json").read_text())
@@ -44,13 +44,13 @@ def test_latency_int8_and_precision_check(tmp_path, tiny_models):
     ok = subprocess.run(
         [sys.executable, str(LATENCY), "--preset", "tiny", "--precision", "int8", "--frames", "2", "--warmup", "1",
          "--json", str(tmp_path / "q.json")],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, text=True, timeout=600, check=False,
     )
     assert ok.returncode == 0, ok.stderr[-2000:]
     assert json.loads((tmp_path / "q.json").read_text())["precision"] == "int8"
     mismatch = subprocess.run(
         [sys.executable, str(LATENCY), "--models", str(tiny_models), "--precision", "int8", "--frames", "1"],
-        capture_output=True, text=True, timeout=300,
+        capture_output=True, text=True, timeout=300, check=False,
     )
     assert mismatch.returncode != 0 and "holds fp32 models" in mismatch.stderr
 
@@ -59,7 +59,7 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
     result = subprocess.run(
         [sys.executable, str(LATENCY), "--models", str(tiny_models), "--baseline", str(tiny_models), "--frames", "8",
          "--warmup", "1", "--json", str(tmp_path / "b.json")],
-        capture_output=True, text=True, timeout=600,
+        capture_output=True, text=True, timeout=600, check=False,
     )
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((tmp_path / "b.json").read_text())
@@ -72,6 +72,6 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
     missing = subprocess.run(
         [sys.executable, str(LATENCY), "--models", str(tiny_models), "--baseline", str(tmp_path / "nowhere"),
          "--frames", "1", "--warmup", "1"],
-        capture_output=True, text=True, timeout=300,
+        capture_output=True, text=True, timeout=300, check=False,
     )
     assert missing.returncode == 2 and "nowhere" in missing.stderr and "Traceback" not in missing.stderr

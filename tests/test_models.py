@@ -322,7 +322,7 @@ def test_masked_l1_ignores_pixels_without_ground_truth_and_prefers_a_surface() -
     # One pixel, seen as foreground (10 m) in one frame and background (30 m) in another: the
     # mean depth (20 m) is the MSE optimum, while L1 is no worse on a surface than between them.
     both = torch.tensor([10.0, 30.0]).view(2, 1, 1, 1)
-    at = lambda d: torch.full((2, 1, 1, 1), d)  # noqa: E731
+    at = lambda d: torch.full((2, 1, 1, 1), d)
     assert masked_mse(at(20.0), both) < masked_mse(at(10.0), both)
     assert masked_l1(at(10.0), both) == masked_l1(at(20.0), both)
     assert masked_l1(torch.zeros(1, 1, 2, 2), torch.zeros(1, 1, 2, 2)).item() == 0.0

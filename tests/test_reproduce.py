@@ -13,7 +13,7 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     result = subprocess.run(
         [sys.executable, "-m", "models.reproduce", "--quick", "--out", str(out), "--data", str(tmp_path / "sim"),
          "--sim-workers", "1"],
-        capture_output=True, text=True, timeout=900,
+        capture_output=True, text=True, timeout=900, check=False,
     )
     assert result.returncode == 0, result.stderr[-3000:]
     report = json.loads((out / "table.json").read_text())

@@ -37,7 +37,7 @@ def test_detector_dataset_targets_and_mirror():
     flips = []
     for epoch in range(6):
         mirrored.epoch = epoch
-        m_bev, m_score, _ = mirrored[0]
+        _m_bev, m_score, _ = mirrored[0]
         flips.append(torch.equal(m_score[0], torch.flip(score[0], dims=[0])))
         assert torch.equal(m_score, score) or flips[-1]
     assert any(flips) and not all(flips)  # the mirror is drawn per epoch
@@ -106,8 +106,8 @@ def test_quick_depth_and_detector_runs_reduce_the_loss(small_sim, tmp_path):
 
 
 def test_resume_is_exact(small_sim, tmp_path):
-    common = dict(task="detector", data=small_sim, preset="tiny", epochs=2, batch_size=2, progress=False,
-                  max_train_frames=3, max_val_frames=1)
+    common = {"task": "detector", "data": small_sim, "preset": "tiny", "epochs": 2, "batch_size": 2,
+              "progress": False, "max_train_frames": 3, "max_val_frames": 1}
     straight = run(TrainConfig(out=tmp_path / "straight", **common))
     run(TrainConfig(out=tmp_path / "interrupted", **{**common, "epochs": 1}))
     resumed = run(TrainConfig(out=tmp_path / "interrupted", resume=True, **common))
@@ -122,7 +122,8 @@ def test_resume_is_exact(small_sim, tmp_path):
 def test_refuses_to_overwrite_a_run(small_sim, tmp_path):
     from pipeline.errors import InputError
 
-    config = dict(task="depth", data=small_sim, preset="tiny", out=tmp_path / "r", quick=True, epochs=1, progress=False)
+    config = {"task": "depth", "data": small_sim, "preset": "tiny", "out": tmp_path / "r", "quick": True,
+              "epochs": 1, "progress": False}
     run(TrainConfig(**config))
     with pytest.raises(InputError, match="pass --resume"):
         run(TrainConfig(**config))
