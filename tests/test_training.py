@@ -260,3 +260,19 @@ def test_compiled_training_computes_what_eager_training_does(small_sim, tmp_path
     eager_state = load_checkpoint(eager.checkpoints["pixor"])
     assert state.metadata["recipe"]["compiled"] and not eager_state.metadata["recipe"]["compiled"]
     assert set(state.state_dicts["pixor"]) == set(eager_state.state_dicts["pixor"])
+
+
+def test_batches_come_in_the_training_layout_with_the_values_of_a_plain_stack(small_sim):
+    """The loader builds the network inputs of a batch straight in channels-last; targets stay as stacked."""
+    from torch.utils.data import default_collate
+
+    from models.train import loader
+    from pipeline.frame import frame_ids
+
+    dataset = DetectorDataset(small_sim, frame_ids(small_sim), PRESETS["tiny"], "lidar16")
+    (bev, score, regression), = list(loader(dataset, 3, False, 0, 0, inputs=1, layout=torch.channels_last))
+    plain = default_collate([dataset[i] for i in range(3)])
+    assert bev.is_contiguous(memory_format=torch.channels_last) and bev.stride(1) == 1
+    assert score.is_contiguous() and regression.is_contiguous() and regression.stride(1) != 1
+    for got, expected in zip((bev, score, regression), plain):
+        assert torch.equal(got, expected)
