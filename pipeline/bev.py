@@ -172,5 +172,9 @@ class BevVoxelizer:
 
 
 def voxelize_bev(points: np.ndarray, grid: BevGrid) -> np.ndarray:
-    """One-off voxelization into a fresh array (use :class:`BevVoxelizer` in a frame loop)."""
-    return BevVoxelizer(grid)(points).copy()
+    """One-off voxelization into a fresh array (use :class:`BevVoxelizer` in a frame loop).
+
+    The throwaway voxelizer's buffer is the result: no other call can overwrite it, so it needs no copy
+    (an edge BEV, 10.7 MB: 5.4 → 1.2 ms per call with glibc's default malloc, 2.0 → 1.2 ms in training).
+    """
+    return BevVoxelizer(grid)(points)
