@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -91,6 +92,7 @@ def depth_target(data_dir: Path, frame: Frame, preset: Preset) -> np.ndarray:
 class DepthDataset(Dataset):
     """(rgb (3,H,W), sparse (1,H,W), target (1,H,W)) float32 tensors per frame."""
 
+    inputs: ClassVar[int] = 2  # leading fields that are network inputs (rgb, sparse); the rest are targets
     data_dir: Path
     frame_ids: list[str]
     preset: Preset
@@ -152,6 +154,7 @@ def detector_points(data_dir: Path, frame: Frame, preset: Preset, input_mode: st
 class DetectorDataset(Dataset):
     """(bev (C,ny,nx), score target (1,h,w), regression target (6,h,w)) per frame."""
 
+    inputs: ClassVar[int] = 1  # leading fields that are network inputs (bev); the rest are targets
     data_dir: Path
     frame_ids: list[str]
     preset: Preset

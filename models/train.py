@@ -470,9 +470,8 @@ def run(config: TrainConfig) -> TrainResult:
                 bar.set_postfix(loss=f"{total:.4f}")
         else:
             train_set.epoch = epoch
-            inputs = 2 if config.task == "depth" else 1  # (rgb, sparse, target) or (bev, score, regression)
             batches = loader(train_set, config.batch_size, True, config.seed * 1000 + epoch, config.workers,
-                             inputs, layout)
+                             train_set.inputs, layout)
             bar = tqdm(batches, desc=f"{config.task} epoch {epoch + 1}/{config.epochs}", disable=not config.progress)
             for batch in bar:
                 optimizer.zero_grad()

@@ -270,7 +270,7 @@ def test_batches_come_in_the_training_layout_with_the_values_of_a_plain_stack(sm
     from pipeline.frame import frame_ids
 
     dataset = DetectorDataset(small_sim, frame_ids(small_sim), PRESETS["tiny"], "lidar16")
-    (bev, score, regression), = list(loader(dataset, 3, False, 0, 0, inputs=1, layout=torch.channels_last))
+    (bev, score, regression), = list(loader(dataset, 3, False, 0, 0, inputs=dataset.inputs, layout=torch.channels_last))
     plain = default_collate([dataset[i] for i in range(3)])
     assert bev.is_contiguous(memory_format=torch.channels_last) and bev.stride(1) == 1
     assert score.is_contiguous() and regression.is_contiguous() and regression.stride(1) != 1
