@@ -1,7 +1,7 @@
 """Latency and throughput of the whole pipeline, measured the way the paper measured its GPUs.
 
     python benchmarks/latency.py [--preset P | --models DIR] [--provider cpu|cuda|tensorrt]
-                                 [--threads N] [--frames K] [--warmup W] [--json OUT] [--plot OUT.png]
+                                 [--threads N [--workers thread|process]] [--frames K] [--warmup W] [--json OUT] [--plot OUT.png]
                                  [--compare-torch [--checkpoints DIR]] [--baseline DIR]
 
 Single stream (the paper's per-frame latency, 25.4 ms on an RTX 2080Ti and
@@ -10,6 +10,9 @@ end-to-end latency over real frames after warm-up. ``--threads N`` (the paper's
 two-GPU mode, 3.4 fps on the PX2): N workers, each with its own sessions
 pinned to its own share of the cores, run frames concurrently; aggregate fps
 is compared with one worker on one share, in three alternating rounds of each.
+A worker is a thread of this process by default; ``--workers process`` gives
+each its own process, which shares no interpreter lock with the others (the
+NumPy stages between the networks hold it between calls).
 Each network's achieved GFLOP/s is set against the machine's peak, measured in
 the same run (benchmarks/peak.py).
 ``--compare-torch`` runs the same Detector with PyTorch eager networks in blocks
@@ -26,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
 import os
 import platform
 import sys
@@ -166,60 +170,123 @@ def run_paired(first: Detector, second: Detector, frames: list[Frame], count: in
     return streams[0], streams[1], ratios
 
 
-def run_workers(models: Path, provider: str | None, frames: list[Frame], workers: int, per_worker: int,
-                warmup: int, cores: list[int]) -> float:
-    """Aggregate fps of ``workers`` threads, each pinned to its share of ``cores`` with its own sessions."""
-    share = max(1, len(cores) // workers)
-    barrier = threading.Barrier(workers + 1)
-    done = threading.Barrier(workers + 1)
-    errors: list[Exception] = []
+@dataclass(frozen=True)
+class FrameSource:
+    """Where the benchmark's frames come from, so a worker process can load its own copy."""
 
-    def work(index: int) -> None:
-        try:
-            mine = cores[index * share : (index + 1) * share] or cores
-            os.sched_setaffinity(0, mine)  # this thread only; ORT threads created below inherit it
-            detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False)
-            for i in range(warmup):
-                f = frames[(i + index) % len(frames)]
-                detector.detect(f.image, f.points, f.calib)
-        except Exception as exc:  # noqa: BLE001 — re-raised in the main thread after the barrier
-            errors.append(exc)
-        barrier.wait()
-        try:
-            for i in range(per_worker):
-                f = frames[(i + index) % len(frames)]
-                detector.detect(f.image, f.points, f.calib)
-        except Exception as exc:  # noqa: BLE001 — re-raised in the main thread
-            errors.append(exc)
-        done.wait()
+    data: Path
+    count: int
+    beams: int | None
 
-    threads = [threading.Thread(target=work, args=(i,), daemon=True) for i in range(workers)]
-    for t in threads:
-        t.start()
-    barrier.wait()
-    tic = time.perf_counter()
+    def load(self) -> list[Frame]:
+        return load_frames(self.data, self.count, self.beams)
+
+
+def _frames_on(detector: Detector, frames: list[Frame], count: int, offset: int) -> None:
+    for i in range(count):
+        f = frames[(i + offset) % len(frames)]
+        detector.detect(f.image, f.points, f.calib)
+
+
+def _thread_worker(index: int, models: Path, provider: str | None, frames: list[Frame], per_worker: int,
+                   warmup: int, mine: list[int], start, done, errors: list) -> None:
+    try:
+        os.sched_setaffinity(0, mine)  # this thread only; ORT threads created below inherit it
+        detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False)
+        _frames_on(detector, frames, warmup, index)
+    except Exception as exc:  # noqa: BLE001 — re-raised in the main thread
+        errors.append(exc)
+        start.abort()
+        return
+    try:
+        start.wait()
+    except threading.BrokenBarrierError:  # another worker failed: nothing to time
+        return
+    try:
+        _frames_on(detector, frames, per_worker, index)
+    except Exception as exc:  # noqa: BLE001 — re-raised in the main thread
+        errors.append(exc)
     done.wait()
-    wall = time.perf_counter() - tic
-    for t in threads:
-        t.join()
-    if errors:
-        raise errors[0]
+
+
+def _process_worker(index: int, models: Path, provider: str | None, source: FrameSource, per_worker: int,
+                    warmup: int, mine: list[int], start, done, errors) -> None:
+    """A worker process: its own interpreter, so no lock is shared with the other workers."""
+    try:
+        os.sched_setaffinity(0, mine)
+        frames = source.load()
+        detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False)
+        _frames_on(detector, frames, warmup, index)
+    except Exception as exc:  # noqa: BLE001 — sent to the parent, which raises it
+        errors.put(f"worker {index}: {type(exc).__name__}: {exc}")
+        start.abort()
+        return
+    try:
+        start.wait()
+    except threading.BrokenBarrierError:  # another worker failed: nothing to time
+        return
+    try:
+        _frames_on(detector, frames, per_worker, index)
+    except Exception as exc:  # noqa: BLE001 — sent to the parent
+        errors.put(f"worker {index}: {type(exc).__name__}: {exc}")
+    done.wait()
+
+
+def run_workers(models: Path, provider: str | None, source: FrameSource, frames: list[Frame], workers: int,
+                per_worker: int, warmup: int, cores: list[int], mode: str = "thread") -> float:
+    """Aggregate fps of ``workers`` workers, each pinned to its share of ``cores`` with its own sessions.
+
+    mode ``thread``: threads of this process (as the paper ran its PX2's two GPUs), sharing Python's
+    interpreter lock between NumPy calls. ``process``: one process each (spawned; each loads its own
+    copy of the frames before the clock starts), sharing nothing.
+    """
+    share = max(1, len(cores) // workers)
+    shares = [cores[i * share : (i + 1) * share] or cores for i in range(workers)]
+    if mode == "thread":
+        start, done, errors = threading.Barrier(workers + 1), threading.Barrier(workers + 1), []
+        pool = [threading.Thread(target=_thread_worker, daemon=True,
+                                 args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors))
+                for i in range(workers)]
+    elif mode == "process":
+        context = multiprocessing.get_context("spawn")  # no forked copy of this process's ORT thread pools
+        start, done, errors = context.Barrier(workers + 1), context.Barrier(workers + 1), context.Queue()
+        pool = [context.Process(target=_process_worker, daemon=True,
+                                args=(i, models, provider, source, per_worker, warmup, shares[i], start, done, errors))
+                for i in range(workers)]
+    else:
+        raise ValueError(f"workers mode {mode!r}: expected 'thread' or 'process'")
+    for worker in pool:
+        worker.start()
+    try:
+        start.wait()
+        tic = time.perf_counter()
+        done.wait()
+        wall = time.perf_counter() - tic
+    except threading.BrokenBarrierError:
+        wall = None  # a worker failed before the clock started; its error is raised below
+    for worker in pool:
+        worker.join()
+    failures = list(errors) if mode == "thread" else [errors.get() for _ in range(errors.qsize())]
+    if failures or wall is None:
+        failure = failures[0] if failures else "a worker stopped before the clock started"
+        raise failure if isinstance(failure, Exception) else RuntimeError(failure)
     return workers * per_worker / wall
 
 
-def run_throughput(models: Path, provider: str | None, frames: list[Frame], workers: int, per_worker: int,
-                   warmup: int, cores: list[int], rounds: int = 3) -> dict:
+def run_throughput(models: Path, provider: str | None, source: FrameSource, frames: list[Frame], workers: int,
+                   per_worker: int, warmup: int, cores: list[int], rounds: int = 3, mode: str = "thread") -> dict:
     """One worker on its share of the cores and ``workers`` workers on all of them, in alternating rounds
     (1 N N 1 1 N), so a change of load on a shared machine touches both; medians over the rounds."""
     share = max(1, len(cores) // workers)
     one, many = [], []
     for r in range(rounds):
         for n in ((1, workers) if r % 2 == 0 else (workers, 1)):
-            fps = run_workers(models, provider, frames, n, per_worker, warmup, cores[:share] if n == 1 else cores)
+            fps = run_workers(models, provider, source, frames, n, per_worker, warmup,
+                              cores[:share] if n == 1 else cores, mode)
             (one if n == 1 else many).append(fps)
     fps_one, fps_many = float(np.median(one)), float(np.median(many))
-    return {"workers": workers, "fps": fps_many, "fps_one_worker": fps_one, "scaling": fps_many / fps_one,
-            "cores_per_worker": share, "rounds": rounds,
+    return {"workers": workers, "mode": mode, "fps": fps_many, "fps_one_worker": fps_one,
+            "scaling": fps_many / fps_one, "cores_per_worker": share, "rounds": rounds,
             "scaling_per_round": [m / o for m, o in zip(many, one, strict=True)]}
 
 
@@ -250,7 +317,7 @@ def machine() -> dict:
 def run(preset: str = "edge", models: Path | None = None, provider: str | None = None, threads: int = 1,
         frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
-        precision: str | None = None, baseline: Path | None = None) -> dict:
+        precision: str | None = None, baseline: Path | None = None, workers: str = "thread") -> dict:
     """Measure everything; returns the JSON-able report.
 
     precision: with ``models`` it must match the directory's (a check); without,
@@ -284,7 +351,8 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
     if precision and actual != precision:
         raise SystemExit(f"error: --precision {precision}, but {models} holds {actual} models")
     preset_name = detector.preset.name
-    pool = load_frames(data, max(frames, warmup), beams)
+    source = FrameSource(data, max(frames, warmup), beams)
+    pool = source.load()
 
     report: dict = {"preset": preset_name, "models": str(models) if scratch is None else "exported (initialised weights)",
                     "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,
@@ -313,8 +381,8 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
                                         "matmul_peak_fraction": achieved / peak.matmul_gflops}
 
     if threads > 1:
-        report["throughput"] = run_throughput(models, provider, pool, threads, max(frames // threads, 2), warmup,
-                                              cores)
+        report["throughput"] = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
+                                              warmup, cores, mode=workers)
     if compare_torch:
         import torch
 
@@ -382,7 +450,7 @@ def print_report(report: dict) -> None:
     if "throughput" in report:
         t = report["throughput"]
         per_round = ", ".join(f"{r:.2f}" for r in t["scaling_per_round"])
-        print(f"{t['workers']} workers: {t['fps']:.2f} fps vs one worker {t['fps_one_worker']:.2f} fps "
+        print(f"{t['workers']} {t['mode']} workers: {t['fps']:.2f} fps vs one worker {t['fps_one_worker']:.2f} fps "
               f"→ scaling {t['scaling']:.2f}× (medians of {t['rounds']} alternating rounds; per round {per_round})")
     if "speedup_vs_torch" in report:
         b = report["speedup_vs_torch_blocks"]
@@ -409,6 +477,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", choices=["fp32", "fp16", "int8"],
                         help="with --models: check the directory is this precision; without: convert the export")
     parser.add_argument("--threads", type=int, default=1, help="workers for the throughput mode (default 1: off)")
+    parser.add_argument("--workers", choices=["thread", "process"], default="thread",
+                        help="what a throughput worker is: a thread of this process (default, as the paper ran "
+                             "two GPUs) or a process of its own (no interpreter lock shared)")
     parser.add_argument("--frames", type=int, default=20, help="timed frames (default 20)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up frames (default 3)")
     parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
@@ -423,7 +494,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
                      args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision,
-                     baseline=args.baseline)
+                     baseline=args.baseline, workers=args.workers)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -23,7 +23,7 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     assert set(report["stages_ms"]) == {"prepare", "depth_net", "pseudo_points", "voxelize", "pixor", "decode"}
     assert all(set(s) >= {"mean", "p50", "p99"} for s in report["stages_ms"].values())
     t = report["throughput"]
-    assert t["workers"] == 2 and t["fps"] > 0 and t["fps_one_worker"] > 0
+    assert t["workers"] == 2 and t["mode"] == "thread" and t["fps"] > 0 and t["fps_one_worker"] > 0
     assert abs(t["scaling"] - t["fps"] / t["fps_one_worker"]) < 1e-9
     assert t["rounds"] == len(t["scaling_per_round"]) == 3 and all(r > 0 for r in t["scaling_per_round"])
     for name in ("depth", "pixor"):
@@ -75,3 +75,29 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert missing.returncode == 2 and "nowhere" in missing.stderr and "Traceback" not in missing.stderr
+
+
+def test_latency_throughput_with_worker_processes(tmp_path, tiny_models):
+    result = subprocess.run(
+        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--threads", "2", "--workers", "process",
+         "--frames", "4", "--warmup", "1", "--json", str(tmp_path / "p.json")],
+        capture_output=True, text=True, timeout=600, check=False,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    t = json.loads((tmp_path / "p.json").read_text())["throughput"]
+    assert t["mode"] == "process" and t["workers"] == 2 and t["fps"] > 0 and t["fps_one_worker"] > 0
+    assert abs(t["scaling"] - t["fps"] / t["fps_one_worker"]) < 1e-9
+    assert "2 process workers" in result.stdout
+
+
+def test_a_worker_process_that_fails_is_reported_instead_of_waited_for(tmp_path, tiny_models):
+    import os
+
+    import pytest
+
+    from benchmarks.latency import FrameSource, run_workers
+
+    source = FrameSource(tmp_path / "nowhere", count=2, beams=16)  # the workers' frames cannot load
+    cores = sorted(os.sched_getaffinity(0))
+    with pytest.raises(RuntimeError, match="worker [01]: .*nowhere"):
+        run_workers(tiny_models, None, source, [], workers=2, per_worker=2, warmup=1, cores=cores, mode="process")
