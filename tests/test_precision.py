@@ -28,6 +28,8 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     info = manifest["precision_info"]
     assert info["calibration_frames"] == 3
     assert set(info["deviation_from_fp32"]) == {"depth", "pixor"}
+    if precision == "int8":
+        assert info["calibration"] == {"depth": "min-max", "pixor": "min-max, moving average (0.01)"}
     pixor = onnx.load(str(out / "pixor.onnx"))
     ops = {node.op_type for node in pixor.graph.node}
     if precision == "int8":
@@ -89,3 +91,46 @@ def test_transposed_conv_rewrite_is_exact(tiny_models, network):
     assert set(boundary_nodes(rewritten, inputs=False)) < set(deeper)
     assert sum(by_name[n].op_type == "Conv" for n in deeper) > sum(
         by_name[n].op_type == "Conv" for n in boundary_nodes(rewritten, inputs=False))
+
+
+def _three_convs() -> onnx.ModelProto:
+    """x (1, 4, 8, 8) → Conv → Relu → Conv → Relu → Conv → y: a network small enough to read its scales."""
+    from onnx import TensorProto, helper, numpy_helper
+
+    rng = np.random.default_rng(0)
+    nodes, inits, name = [], [], "x"
+    for i in range(3):
+        w = numpy_helper.from_array(rng.normal(0, 0.3, (4, 4, 3, 3)).astype(np.float32), f"w{i}")
+        inits.append(w)
+        out = "y" if i == 2 else f"c{i}"
+        nodes.append(helper.make_node("Conv", [name, f"w{i}"], [out], pads=[1, 1, 1, 1], name=f"conv{i}"))
+        if i < 2:
+            nodes.append(helper.make_node("Relu", [out], [f"r{i}"], name=f"relu{i}"))
+            out = f"r{i}"
+        name = out
+    graph = helper.make_graph(nodes, "three_convs", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 4, 8, 8])],
+                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 4, 8, 8])], inits)
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+
+
+def test_moving_average_calibration_is_not_stretched_by_one_outlying_frame(tmp_path):
+    from export.precision import to_int8
+
+    source = tmp_path / "fp32.onnx"
+    onnx.save(_three_convs(), str(source))
+    rng = np.random.default_rng(1)
+    feeds = [{"x": rng.uniform(0, 1, (1, 4, 8, 8)).astype(np.float32)} for _ in range(10)]
+    feeds[3]["x"] *= 50  # one frame far outside the others
+    scales = {}
+    for moving in (False, True):
+        target = tmp_path / f"int8_{moving}.onnx"
+        info = to_int8(source, target, feeds, inputs_fp32=False, moving_average=moving)
+        assert info["calibration"] == ("min-max, moving average (0.01)" if moving else "min-max")
+        model = onnx.load(str(target))
+        initializers = {i.name: onnx.numpy_helper.to_array(i) for i in model.graph.initializer}
+        (quantize,) = [n for n in model.graph.node if n.op_type == "QuantizeLinear" and n.input[0] == "x"]
+        scales[moving] = float(initializers[quantize.input[1]])
+    # Extremes over all frames: x spans 0–50, so one uint8 step is about 50/255. Averaged per-frame
+    # extremes: (9 · 1 + 50) / 10 ≈ 5.9, a step about 5.9/255.
+    assert scales[False] == pytest.approx(50 / 255, rel=0.05)
+    assert scales[True] == pytest.approx(5.9 / 255, rel=0.1)
