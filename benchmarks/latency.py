@@ -188,14 +188,27 @@ def _frames_on(detector: Detector, frames: list[Frame], count: int, offset: int)
         detector.detect(f.image, f.points, f.calib)
 
 
-def _thread_worker(index: int, models: Path, provider: str | None, frames: list[Frame], per_worker: int,
-                   warmup: int, mine: list[int], start, done, errors: list) -> None:
+def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] | FrameSource, per_worker: int,
+            warmup: int, mine: list[int], start, done, errors) -> None:
+    """One throughput worker, a thread or a process: pin itself, load, warm up, wait for the start, run.
+
+    A thread gets the frames and a list for its errors; a process gets a :class:`FrameSource` (it
+    loads its own copy) and a queue, which carries the errors as text.
+    """
+    def fail(exc: Exception) -> None:
+        if isinstance(errors, list):
+            errors.append(exc)  # re-raised as it is in the main thread
+        else:
+            errors.put(f"worker {index}: {type(exc).__name__}: {exc}")
+
     try:
-        os.sched_setaffinity(0, mine)  # this thread only; ORT threads created below inherit it
+        os.sched_setaffinity(0, mine)  # this thread or process only; ORT threads created below inherit it
+        if isinstance(frames, FrameSource):
+            frames = frames.load()
         detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False)
         _frames_on(detector, frames, warmup, index)
-    except Exception as exc:  # noqa: BLE001 — re-raised in the main thread
-        errors.append(exc)
+    except Exception as exc:  # noqa: BLE001 — reported to the caller of run_workers
+        fail(exc)
         start.abort()
         return
     try:
@@ -204,31 +217,8 @@ def _thread_worker(index: int, models: Path, provider: str | None, frames: list[
         return
     try:
         _frames_on(detector, frames, per_worker, index)
-    except Exception as exc:  # noqa: BLE001 — re-raised in the main thread
-        errors.append(exc)
-    done.wait()
-
-
-def _process_worker(index: int, models: Path, provider: str | None, source: FrameSource, per_worker: int,
-                    warmup: int, mine: list[int], start, done, errors) -> None:
-    """A worker process: its own interpreter, so no lock is shared with the other workers."""
-    try:
-        os.sched_setaffinity(0, mine)
-        frames = source.load()
-        detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False)
-        _frames_on(detector, frames, warmup, index)
-    except Exception as exc:  # noqa: BLE001 — sent to the parent, which raises it
-        errors.put(f"worker {index}: {type(exc).__name__}: {exc}")
-        start.abort()
-        return
-    try:
-        start.wait()
-    except threading.BrokenBarrierError:  # another worker failed: nothing to time
-        return
-    try:
-        _frames_on(detector, frames, per_worker, index)
-    except Exception as exc:  # noqa: BLE001 — sent to the parent
-        errors.put(f"worker {index}: {type(exc).__name__}: {exc}")
+    except Exception as exc:  # noqa: BLE001 — reported to the caller of run_workers
+        fail(exc)
     done.wait()
 
 
@@ -244,13 +234,13 @@ def run_workers(models: Path, provider: str | None, source: FrameSource, frames:
     shares = [cores[i * share : (i + 1) * share] or cores for i in range(workers)]
     if mode == "thread":
         start, done, errors = threading.Barrier(workers + 1), threading.Barrier(workers + 1), []
-        pool = [threading.Thread(target=_thread_worker, daemon=True,
+        pool = [threading.Thread(target=_worker, daemon=True,
                                  args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors))
                 for i in range(workers)]
     elif mode == "process":
         context = multiprocessing.get_context("spawn")  # no forked copy of this process's ORT thread pools
         start, done, errors = context.Barrier(workers + 1), context.Barrier(workers + 1), context.Queue()
-        pool = [context.Process(target=_process_worker, daemon=True,
+        pool = [context.Process(target=_worker, daemon=True,
                                 args=(i, models, provider, source, per_worker, warmup, shares[i], start, done, errors))
                 for i in range(workers)]
     else:
