@@ -150,6 +150,7 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     fp32_dir, out = Path(fp32_dir), Path(out)
     manifest = json.loads((fp32_dir / MANIFEST_NAME).read_text())
     verify_sha256(fp32_dir, manifest)
+    source_files = dict(manifest["files"])
     if out.resolve() != fp32_dir.resolve():
         if out.exists():
             shutil.rmtree(out)
@@ -177,6 +178,8 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
     manifest["precision"] = precision
     manifest["precision_info"] = {
+        # Which FP32 files this directory was converted from (their manifest's sha256s).
+        "source": {"directory": str(fp32_dir), "sha256": {name: entry["sha256"] for name, entry in source_files.items()}},
         "calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
         **({"activations": "uint8", "weights": "int8 per channel", "format": "QDQ",
             "calibration": {name: info["calibration"] for name, info in int8_info.items()},

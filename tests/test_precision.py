@@ -27,6 +27,8 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     verify_sha256(out, manifest)
     info = manifest["precision_info"]
     assert info["calibration_frames"] == 3
+    source = json.loads((tiny_models / "manifest.json").read_text())["files"]
+    assert info["source"]["sha256"] == {file: entry["sha256"] for file, entry in source.items()}
     assert set(info["deviation_from_fp32"]) == {"depth", "pixor"}
     if precision == "int8":
         assert info["calibration"] == {"depth": "min-max", "pixor": "min-max, moving average (0.01)"}

@@ -1,0 +1,60 @@
+"""The model directories shipped in weights/: intact, loadable, small, and INT8 agreeing with its FP32 source."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.detector import Detector
+from pipeline.frame import frame_ids, load_frame
+from pipeline.iou import rotated_iou_matrix
+from pipeline.model_files import verify_sha256
+from tests.conftest import KITTI
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
+SHIPPED = {"edge": ("fp32", True), "edge-int8": ("int8", True), "edge-lidar16": ("fp32", False),
+           "edge-lidar64": ("fp32", False)}
+BEV = [0, 1, 3, 4, 6]  # x, y, l, w, yaw of a (K, 7) box
+
+
+def _manifest(name: str) -> dict:
+    return json.loads((WEIGHTS / name / "manifest.json").read_text())
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_shipped_directory_is_intact_and_loads(name):
+    precision, two_stage = SHIPPED[name]
+    manifest = _manifest(name)
+    verify_sha256(WEIGHTS / name, manifest)
+    assert manifest["weights"] == "trained" and manifest.get("precision", "fp32") == precision
+    assert Detector(WEIGHTS / name).two_stage == two_stage
+
+
+def test_shipped_files_stay_under_30_mb():
+    assert {p.name for p in WEIGHTS.iterdir() if p.is_dir()} == set(SHIPPED)
+    assert sum(p.stat().st_size for p in WEIGHTS.rglob("*") if p.is_file()) < 30e6
+
+
+def test_int8_directory_is_the_shipped_fp32_one_converted():
+    source = _manifest("edge-int8")["precision_info"]["source"]
+    assert source["sha256"] == {file: entry["sha256"] for file, entry in _manifest("edge")["files"].items()}
+    info = _manifest("edge-int8")["precision_info"]
+    assert info["calibration_frames"] == 300 and info["calibration"]["pixor"].startswith("min-max, moving average")
+
+
+def test_int8_finds_the_cars_fp32_finds_on_real_frames():
+    """Every box FP32 scores ≥ 0.5 on the shared 16-line frames has an INT8 box over it (BEV IoU ≥ 0.7)."""
+    fp32, int8 = Detector(WEIGHTS / "edge"), Detector(WEIGHTS / "edge-int8")
+    confident = 0
+    for frame_id in frame_ids(KITTI):
+        frame = load_frame(KITTI, frame_id, with_labels=False)
+        a = fp32.detect(frame.image, frame.points, frame.calib, 0.5, emulate_to_beams=16)
+        b = int8.detect(frame.image, frame.points, frame.calib, 0.3, emulate_to_beams=16)
+        if len(a.scores) == 0:
+            continue
+        assert len(b.scores), f"frame {frame_id}: INT8 found nothing where FP32 found {len(a.scores)} boxes"
+        best = rotated_iou_matrix(a.boxes[:, BEV], b.boxes[:, BEV]).max(axis=1)
+        assert (best >= 0.7).all(), f"frame {frame_id}: best INT8 IoU per FP32 box {np.round(best, 2)}"
+        confident += len(a.scores)
+    assert confident >= 5  # the frames do exercise the comparison
