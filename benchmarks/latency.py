@@ -222,13 +222,14 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
     done.wait()
 
 
-def run_workers(models: Path, provider: str | None, source: FrameSource, frames: list[Frame], workers: int,
+def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameSource, workers: int,
                 per_worker: int, warmup: int, cores: list[int], mode: str = "thread") -> float:
     """Aggregate fps of ``workers`` workers, each pinned to its share of ``cores`` with its own sessions.
 
     mode ``thread``: threads of this process (as the paper ran its PX2's two GPUs), sharing Python's
-    interpreter lock between NumPy calls. ``process``: one process each (spawned; each loads its own
-    copy of the frames before the clock starts), sharing nothing.
+    interpreter lock between NumPy calls. ``process``: one process each (spawned), sharing nothing;
+    ``frames`` must then be a :class:`FrameSource`, from which each loads its own copy before the
+    clock starts (a thread given one does the same).
     """
     share = max(1, len(cores) // workers)
     shares = [cores[i * share : (i + 1) * share] or cores for i in range(workers)]
@@ -238,10 +239,12 @@ def run_workers(models: Path, provider: str | None, source: FrameSource, frames:
                                  args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors))
                 for i in range(workers)]
     elif mode == "process":
+        if not isinstance(frames, FrameSource):
+            raise ValueError("process workers load their own frames: pass a FrameSource")
         context = multiprocessing.get_context("spawn")  # no forked copy of this process's ORT thread pools
         start, done, errors = context.Barrier(workers + 1), context.Barrier(workers + 1), context.Queue()
         pool = [context.Process(target=_worker, daemon=True,
-                                args=(i, models, provider, source, per_worker, warmup, shares[i], start, done, errors))
+                                args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors))
                 for i in range(workers)]
     else:
         raise ValueError(f"workers mode {mode!r}: expected 'thread' or 'process'")
@@ -271,7 +274,7 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
     one, many = [], []
     for r in range(rounds):
         for n in ((1, workers) if r % 2 == 0 else (workers, 1)):
-            fps = run_workers(models, provider, source, frames, n, per_worker, warmup,
+            fps = run_workers(models, provider, source if mode == "process" else frames, n, per_worker, warmup,
                               cores[:share] if n == 1 else cores, mode)
             (one if n == 1 else many).append(fps)
     fps_one, fps_many = float(np.median(one)), float(np.median(many))

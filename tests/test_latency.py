@@ -101,8 +101,8 @@ def test_a_worker_that_fails_is_reported_instead_of_waited_for(tmp_path, tiny_mo
     cores = sorted(os.sched_getaffinity(0))
     source = FrameSource(tmp_path / "nowhere", count=2, beams=16)  # a worker process's frames cannot load
     with pytest.raises(RuntimeError, match="worker [01]: .*nowhere"):
-        run_workers(tiny_models, None, source, [], workers=2, per_worker=2, warmup=1, cores=cores, mode="process")
+        run_workers(tiny_models, None, source, workers=2, per_worker=2, warmup=1, cores=cores, mode="process")
     # A thread's error is raised as it was: here the model directory is missing.
     with pytest.raises(ModelFileError, match="no-models"):
-        run_workers(tmp_path / "no-models", None, source, [], workers=2, per_worker=2, warmup=1, cores=cores,
+        run_workers(tmp_path / "no-models", None, [], workers=2, per_worker=2, warmup=1, cores=cores,
                     mode="thread")
