@@ -32,7 +32,7 @@ from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.detector import Detector
 from pipeline.frame import frame_ids, load_frame
-from pipeline.model_files import MANIFEST_NAME, sha256_file, verify_sha256
+from pipeline.model_files import MANIFEST_NAME, load_manifest, sha256_file, verify_sha256
 from pipeline.preprocess import depth_inputs
 
 log = logging.getLogger(__name__)
@@ -148,7 +148,7 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     if precision not in PRECISIONS:
         raise ValueError(f"--precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
     fp32_dir, out = Path(fp32_dir), Path(out)
-    manifest = json.loads((fp32_dir / MANIFEST_NAME).read_text())
+    manifest = load_manifest(fp32_dir)  # ModelFileError naming the file when it is missing or broken
     verify_sha256(fp32_dir, manifest)
     source_files = dict(manifest["files"])
     if out.resolve() != fp32_dir.resolve():

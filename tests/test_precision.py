@@ -62,6 +62,20 @@ def test_unknown_precision(tiny_models, tmp_path):
         convert_precision(tiny_models, tmp_path / "x", "int4", KITTI)
 
 
+def test_a_missing_model_directory_is_refused_in_one_line(tmp_path):
+    import subprocess
+    import sys
+
+    result = subprocess.run(
+        [sys.executable, "-m", "export.precision", "--models", str(tmp_path / "nowhere"), "--precision", "int8",
+         "--calibration-data", str(KITTI), "--out", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "nowhere" in result.stderr and "no manifest" in result.stderr
+    assert not (tmp_path / "out").exists()  # nothing written
+
+
 @pytest.mark.parametrize("network", ["depth", "pixor"])
 def test_transposed_conv_rewrite_is_exact(tiny_models, network):
     """The sub-pixel (stride 2) and flipped-kernel (stride 1) forms give ONNX Runtime the same outputs."""
