@@ -27,7 +27,7 @@ import numpy as np
 import onnx
 from tqdm import tqdm
 
-from export.rewrite import boundary_nodes, rewrite_transposed_convs
+from export.rewrite import boundary_nodes, merge_split_input_convs, pad_input_convs, rewrite_transposed_convs
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.detector import Detector
@@ -96,7 +96,8 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
     ``CalibMovingAverage``, constant 0.01, as PyTorch's ``MovingAverageMinMaxObserver``) instead of the
     extremes over all frames, so a few outlying frames do not stretch the 256 steps.
 
-    Transposed convs are rewritten as convs first so they are quantized too, and the nodes
+    Transposed convs are rewritten as convs first so they are quantized too, quantized convs on a graph input
+    read it whole and padded to a multiple of four channels (export/rewrite.py, 7), and the nodes
     between the last conv and the outputs (and with ``inputs_fp32`` between the inputs and the
     first conv) stay fp32 (export/rewrite.py says why). Min–max runs in strides of a few frames: ONNX
     Runtime's histogram calibrators keep every intermediate tensor of every calibration frame
@@ -108,9 +109,16 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
     with tempfile.TemporaryDirectory() as scratch:
         rewritten_path, prepared = Path(scratch) / "rewritten.onnx", Path(scratch) / "prepared.onnx"
         rewritten, count = rewrite_transposed_convs(onnx.load(str(source)))
+        # Quantized input convs read whole, padded inputs (export/rewrite.py, 7); fp32 ones keep their split.
+        kept_fp32 = frozenset(boundary_nodes(rewritten, inputs=inputs_fp32, output_convs=output_convs))
+        rewritten, merged = merge_split_input_convs(rewritten, skip=kept_fp32)
+        rewritten, padded = pad_input_convs(rewritten, skip=kept_fp32)
         onnx.save(rewritten, str(rewritten_path))
         quant_pre_process(str(rewritten_path), str(prepared), skip_symbolic_shape=True)
-        kept_fp32 = boundary_nodes(onnx.load(str(prepared)), inputs=inputs_fp32, output_convs=output_convs)
+        # The channel Pads run on the fp32 input, so the padded tensor is quantized once.
+        pads = [node.name for node in onnx.load(str(prepared)).graph.node if node.op_type == "Pad"
+                and node.name.endswith("_pad")]
+        kept_fp32 = boundary_nodes(onnx.load(str(prepared)), inputs=inputs_fp32, output_convs=output_convs) + pads
         quantize_static(
             str(prepared), str(target), _Reader(feeds), quant_format=QuantFormat.QDQ,
             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
@@ -119,7 +127,8 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
             extra_options={"CalibStridedMinMax": max(d for d in range(1, 11) if len(feeds) % d == 0),
                            "CalibMovingAverage": moving_average},
         )
-    return {"transposed_convs_rewritten": count, "fp32_nodes": kept_fp32,
+    return {"transposed_convs_rewritten": count, "input_convs_merged": merged, "input_convs_padded": padded,
+            "fp32_nodes": kept_fp32,
             "calibration": "min-max, moving average (0.01)" if moving_average else "min-max"}
 
 

@@ -233,6 +233,49 @@ def test_split_input_conv_is_exact() -> None:
         "Slice", "Slice", "Conv", "Conv", "Add", "Relu"]
 
 
+def test_merge_and_pad_input_convs_are_exact() -> None:
+    """For INT8: a split input conv merges back whole, then reads its 19-channel input padded to 20: the
+    same outputs; skipped, aligned or inner convs stay as they are."""
+    import onnxruntime as ort
+    from onnx import numpy_helper
+
+    from export.rewrite import merge_split_input_convs, pad_input_convs, split_input_convs
+
+    rng = np.random.default_rng(2)
+
+    def input_conv(channels: int) -> onnx.ModelProto:
+        inits = [numpy_helper.from_array(rng.standard_normal((16, channels, 3, 3)).astype(np.float32), "w"),
+                 numpy_helper.from_array(rng.standard_normal(16).astype(np.float32), "b"),
+                 numpy_helper.from_array(rng.standard_normal((8, 16, 3, 3)).astype(np.float32), "w2")]
+        graph = helper.make_graph(
+            [helper.make_node("Conv", ["x", "w", "b"], ["y"], name="stem", pads=[1, 1, 1, 1], kernel_shape=[3, 3]),
+             helper.make_node("Relu", ["y"], ["r"], name="relu"),
+             helper.make_node("Conv", ["r", "w2"], ["out"], name="inner", pads=[1, 1, 1, 1], kernel_shape=[3, 3])],
+            "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, channels, 12, 10])],
+            [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 8, 12, 10])], inits)
+        return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=8)
+
+    def run(model: onnx.ModelProto, x: np.ndarray) -> np.ndarray:
+        onnx.checker.check_model(model, full_check=True)
+        return ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, {"x": x})[0]
+
+    model = input_conv(19)
+    x = rng.standard_normal((1, 19, 12, 10)).astype(np.float32)
+    split, _ = split_input_convs(model)
+    merged, count = merge_split_input_convs(split)
+    assert count == 1 and [n.op_type for n in merged.graph.node] == ["Conv", "Relu", "Conv"]
+    assert merge_split_input_convs(split, skip=frozenset({"stem_a"}))[1] == 0
+    padded, count = pad_input_convs(merged)
+    assert count == 1 and [n.op_type for n in padded.graph.node] == ["Pad", "Conv", "Relu", "Conv"]
+    assert padded.graph.node[0].input[0] == "x"
+    reference = run(model, x)
+    for rewritten in (merged, padded):
+        # Float summation order only: the scale of the outputs (hundreds) times a few float32 steps.
+        np.testing.assert_allclose(run(rewritten, x), reference, rtol=1e-5, atol=1e-6 * float(np.abs(reference).max()))
+    assert pad_input_convs(merged, skip=frozenset({"stem"}))[1] == 0
+    assert pad_input_convs(input_conv(20))[1] == 0  # already a multiple of 4; the inner conv never reads an input
+
+
 def test_pad_narrow_convs_is_exact_and_only_where_safe() -> None:
     """8-channel convs read only by convs (through a Relu) are padded to 16; one whose output is added
     to something else, or is a graph output, is left alone. ONNX Runtime gives the same outputs."""
