@@ -27,7 +27,13 @@ import numpy as np
 import onnx
 from tqdm import tqdm
 
-from export.rewrite import boundary_nodes, merge_split_input_convs, pad_input_convs, rewrite_transposed_convs
+from export.rewrite import (
+    boundary_nodes,
+    merge_split_input_convs,
+    pad_input_convs,
+    quantize_before_pad,
+    rewrite_transposed_convs,
+)
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.detector import Detector
@@ -115,7 +121,8 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
         rewritten, padded = pad_input_convs(rewritten, skip=kept_fp32)
         onnx.save(rewritten, str(rewritten_path))
         quant_pre_process(str(rewritten_path), str(prepared), skip_symbolic_shape=True)
-        # The channel Pads run on the fp32 input, so the padded tensor is quantized once.
+        # The channel Pads stay out of the quantizer's hands (it would run them on dequantized floats between
+        # two more Q/DQ pairs); quantize_before_pad then moves each behind its input's QuantizeLinear.
         pads = [node.name for node in onnx.load(str(prepared)).graph.node if node.op_type == "Pad"
                 and node.name.endswith("_pad")]
         kept_fp32 = boundary_nodes(onnx.load(str(prepared)), inputs=inputs_fp32, output_convs=output_convs) + pads
@@ -127,7 +134,11 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
             extra_options={"CalibStridedMinMax": max(d for d in range(1, 11) if len(feeds) % d == 0),
                            "CalibMovingAverage": moving_average},
         )
+        quantized, moved = quantize_before_pad(onnx.load(str(target)))
+        if moved:
+            onnx.save(quantized, str(target))
     return {"transposed_convs_rewritten": count, "input_convs_merged": merged, "input_convs_padded": padded,
+            "pads_after_quantize": moved,
             "fp32_nodes": kept_fp32,
             "calibration": "min-max, moving average (0.01)" if moving_average else "min-max"}
 

@@ -150,3 +150,70 @@ def test_moving_average_calibration_is_not_stretched_by_one_outlying_frame(tmp_p
     # extremes: (9 · 1 + 50) / 10 ≈ 5.9, a step about 5.9/255.
     assert scales[False] == pytest.approx(50 / 255, rel=0.05)
     assert scales[True] == pytest.approx(5.9 / 255, rel=0.1)
+
+
+def test_int8_input_conv_reads_the_whole_input_padded_in_uint8(tmp_path):
+    """A 19-channel input conv, split for the fp32 kernels, is quantized whole: the input is quantized once,
+    padded to 20 channels in uint8 with its zero point, and the INT8 output stays close to fp32."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    from export.precision import to_int8
+    from export.rewrite import split_input_convs
+
+    rng = np.random.default_rng(3)
+    inits = [numpy_helper.from_array(rng.normal(0, 0.2, (16, 19, 3, 3)).astype(np.float32), "w"),
+             numpy_helper.from_array(rng.normal(0, 0.1, 16).astype(np.float32), "b"),
+             numpy_helper.from_array(rng.normal(0, 0.2, (4, 16, 3, 3)).astype(np.float32), "w2")]
+    graph = helper.make_graph(
+        [helper.make_node("Conv", ["x", "w", "b"], ["y"], name="stem", pads=[1, 1, 1, 1]),
+         helper.make_node("Relu", ["y"], ["r"], name="relu"),
+         helper.make_node("Conv", ["r", "w2"], ["out"], name="head", pads=[1, 1, 1, 1])],
+        "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 19, 16, 16])],
+        [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 4, 16, 16])], inits)
+    lowered, _ = split_input_convs(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]))
+    source, target = tmp_path / "fp32.onnx", tmp_path / "int8.onnx"
+    onnx.save(lowered, str(source))
+    feeds = [{"x": (rng.random((1, 19, 16, 16)) > 0.8).astype(np.float32)} for _ in range(10)]
+    info = to_int8(source, target, feeds, inputs_fp32=False, output_convs=1)
+    assert (info["input_convs_merged"], info["input_convs_padded"], info["pads_after_quantize"]) == (1, 1, 1)
+    model = onnx.load(str(target))
+    onnx.checker.check_model(model)
+    assert "Slice" not in {n.op_type for n in model.graph.node}
+    (quantize,) = [n for n in model.graph.node if "x" in n.input]
+    (pad,) = [n for n in model.graph.node if quantize.output[0] in n.input]
+    (dequantize,) = [n for n in model.graph.node if pad.output[0] in n.input]
+    assert (quantize.op_type, pad.op_type, dequantize.op_type) == ("QuantizeLinear", "Pad", "DequantizeLinear")
+    assert pad.input[2] == quantize.input[2]  # padded with the zero point
+    x = feeds[0]
+    a, b = (ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, x)[0] for p in (source, target))
+    assert np.abs(a - b).max() < 0.05 * np.abs(a).max()
+
+
+def test_quantize_before_pad_is_exact():
+    """Padding the uint8 tensor with the zero point equals quantizing the zero-padded floats."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    from export.rewrite import quantize_before_pad
+
+    inits = [numpy_helper.from_array(np.array([0, 0, 0, 0, 0, 1, 0, 0], np.int64), "pads"),
+             numpy_helper.from_array(np.array(0.02, np.float32), "s"), numpy_helper.from_array(np.array(37, np.uint8), "z")]
+    graph = helper.make_graph(
+        [helper.make_node("Pad", ["x", "pads"], ["xp"], name="pad", mode="constant"),
+         helper.make_node("QuantizeLinear", ["xp", "s", "z"], ["q"], name="q"),
+         helper.make_node("DequantizeLinear", ["q", "s", "z"], ["out"], name="dq")],
+        "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, 5, 7])],
+        [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 4, 5, 7])], inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    moved, count = quantize_before_pad(model)
+    assert count == 1 and [n.op_type for n in moved.graph.node] == ["QuantizeLinear", "Pad", "DequantizeLinear"]
+    onnx.checker.check_model(moved, full_check=True)
+    x = {"x": np.random.default_rng(0).uniform(-0.7, 4.0, (1, 3, 5, 7)).astype(np.float32)}
+    a, b = (ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(None, x)[0]
+            for m in (model, moved))
+    np.testing.assert_array_equal(b, a)
+    assert b[0, 3].max() == 0.0  # the padded channel is zero after dequantization
+    # A Pad read by more than its QuantizeLinear stays where it is.
+    graph.output.append(helper.make_tensor_value_info("xp", TensorProto.FLOAT, [1, 4, 5, 7]))
+    assert quantize_before_pad(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]))[1] == 0

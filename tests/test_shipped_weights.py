@@ -41,8 +41,9 @@ def test_int8_directory_is_the_shipped_fp32_one_converted():
     assert source["sha256"] == {file: entry["sha256"] for file, entry in _manifest("edge")["files"].items()}
     info = _manifest("edge-int8")["precision_info"]
     assert info["calibration_frames"] == 300 and info["calibration"]["pixor"].startswith("min-max, moving average")
-    # PIXOR's quantized first conv reads the whole BEV padded to 20 channels (export/rewrite.py, 7).
-    assert info["graph"]["pixor"]["input_convs_merged"] == 1 and info["graph"]["pixor"]["input_convs_padded"] == 1
+    # PIXOR's quantized first conv reads the whole BEV padded to 20 channels in uint8 (export/rewrite.py, 7).
+    graph = info["graph"]["pixor"]
+    assert (graph["input_convs_merged"], graph["input_convs_padded"], graph["pads_after_quantize"]) == (1, 1, 1)
 
 
 def test_int8_finds_the_cars_fp32_finds_on_real_frames():
