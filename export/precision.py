@@ -123,9 +123,9 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
         quant_pre_process(str(rewritten_path), str(prepared), skip_symbolic_shape=True)
         # The channel Pads stay out of the quantizer's hands (it would run them on dequantized floats between
         # two more Q/DQ pairs); quantize_before_pad then moves each behind its input's QuantizeLinear.
-        pads = [node.name for node in onnx.load(str(prepared)).graph.node if node.op_type == "Pad"
-                and node.name.endswith("_pad")]
-        kept_fp32 = boundary_nodes(onnx.load(str(prepared)), inputs=inputs_fp32, output_convs=output_convs) + pads
+        prepared_model = onnx.load(str(prepared))
+        pads = [node.name for node in prepared_model.graph.node if node.op_type == "Pad" and node.name.endswith("_pad")]
+        kept_fp32 = boundary_nodes(prepared_model, inputs=inputs_fp32, output_convs=output_convs) + pads
         quantize_static(
             str(prepared), str(target), _Reader(feeds), quant_format=QuantFormat.QDQ,
             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,

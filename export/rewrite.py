@@ -150,6 +150,21 @@ def _replace_nodes(graph: onnx.GraphProto, nodes: list[onnx.NodeProto]) -> None:
     graph.initializer.extend(kept)
 
 
+def _input_conv_weights(graph: onnx.GraphProto):
+    """A function giving a node's weight array when it is a plain (group 1) Conv reading a graph input, else
+    None: the convs :func:`split_input_convs` and :func:`pad_input_convs` rewrite."""
+    initializers = {init.name: init for init in graph.initializer}
+    graph_inputs = {value.name for value in graph.input} - set(initializers)
+
+    def weight(node: onnx.NodeProto) -> np.ndarray | None:
+        if (node.op_type != "Conv" or node.input[0] not in graph_inputs or node.input[1] not in initializers
+                or _attributes(node).get("group", 1) != 1):
+            return None
+        return numpy_helper.to_array(initializers[node.input[1]])
+
+    return weight
+
+
 def split_input_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.ModelProto, int]:
     """A copy of ``model`` where each plain Conv reading a graph input with C ≥ ``block`` channels,
     C not a multiple of ``block``, is split into a conv on channels [0, C − C mod block) and one on
@@ -157,16 +172,13 @@ def split_input_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.Mod
     """
     model = onnx.ModelProto.FromString(model.SerializeToString())
     graph = model.graph
-    initializers = {init.name: init for init in graph.initializer}
-    graph_inputs = {value.name for value in graph.input} - set(initializers)
+    input_conv_weight = _input_conv_weights(graph)
     nodes, split = [], 0
     for node in graph.node:
         attrs = _attributes(node)
-        weight = (numpy_helper.to_array(initializers[node.input[1]])
-                  if node.op_type == "Conv" and node.input[1] in initializers else None)
+        weight = input_conv_weight(node)
         channels = weight.shape[1] if weight is not None else 0
-        if (node.input[0] not in graph_inputs or attrs.get("group", 1) != 1 or channels < block
-                or channels % block == 0):
+        if channels < block or channels % block == 0:
             nodes.append(node)
             continue
         aligned = channels - channels % block
@@ -234,14 +246,11 @@ def pad_input_convs(model: onnx.ModelProto, multiple: int = 4, skip: frozenset[s
     """
     model = onnx.ModelProto.FromString(model.SerializeToString())
     graph = model.graph
-    initializers = {init.name: init for init in graph.initializer}
-    graph_inputs = {value.name for value in graph.input} - set(initializers)
+    input_conv_weight = _input_conv_weights(graph)
     nodes, padded = [], 0
     for node in graph.node:
-        weight = (numpy_helper.to_array(initializers[node.input[1]])
-                  if node.op_type == "Conv" and node.input[1] in initializers else None)
-        if (weight is None or node.input[0] not in graph_inputs or node.name in skip
-                or _attributes(node).get("group", 1) != 1 or weight.shape[1] % multiple == 0):
+        weight = input_conv_weight(node)
+        if weight is None or node.name in skip or weight.shape[1] % multiple == 0:
             nodes.append(node)
             continue
         extra = multiple - weight.shape[1] % multiple
