@@ -52,6 +52,7 @@ from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.model_files import ModelFileError
 
 BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
+DEFAULT_PRESET = "edge"
 PAPER = {"RTX 2080Ti": {"ms": 25.4, "fps": 39.8}, "DRIVE PX2": {"ms": 581.7, "fps_two_threads": 3.4}}
 
 
@@ -99,6 +100,20 @@ class TorchSession:
             outputs = self.module(*(torch.from_numpy(feeds[name]) for name in self.input_names))
         outputs = outputs if isinstance(outputs, tuple) else (outputs,)
         return [o.numpy() for o in outputs]
+
+
+def torch_twin(preset: str, networks: tuple[str, ...], checkpoints: Path | None) -> dict:
+    """PyTorch eager networks of ``preset`` (from ``checkpoints`` where given, else initialised as the exporter
+    initialises them), exported through a throwaway directory so that they are exactly what export builds."""
+    from export.exporter import ExportConfig
+    from export.exporter import run as export
+
+    with tempfile.TemporaryDirectory(prefix="lowres3d-torch-") as scratch:
+        try:
+            return export(ExportConfig(preset=preset, out=Path(scratch), parity=False, checkpoints=checkpoints,
+                                       networks=networks)).networks
+        except (ValueError, FileNotFoundError) as exc:  # the exporter's word on a checkpoint that does not fit
+            raise InputError(f"--checkpoints: {exc}") from exc
 
 
 def torch_detector(models_dir: Path, networks: dict) -> Detector:
@@ -307,29 +322,26 @@ def machine() -> dict:
 
 
 # ----------------------------------------------------------------------------- main job
-def run(preset: str = "edge", models: Path | None = None, provider: str | None = None, threads: int = 1,
+def run(preset: str | None = None, models: Path | None = None, provider: str | None = None, threads: int = 1,
         frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
         precision: str | None = None, baseline: Path | None = None, workers: str = "thread") -> dict:
     """Measure everything; returns the JSON-able report.
 
-    precision: with ``models`` it must match the directory's (a check); without,
-    the exported FP32 preset is converted (calibrated on the benchmark frames).
+    preset: the preset to export and time when ``models`` is None (default :data:`DEFAULT_PRESET`); with
+    ``models`` it may only name the directory's own preset. precision: with ``models`` it must match the
+    directory's (a check); without, the exported FP32 preset is converted (calibrated on the benchmark frames).
     """
     cores = sorted(os.sched_getaffinity(0))
     scratch = None
     torch_networks = None
-    if models is None or compare_torch:
+    if models is None:
         from export.exporter import ExportConfig
         from export.exporter import run as export
 
-        if models is None:
-            scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
-            models = Path(scratch.name)
-            result = export(ExportConfig(preset=preset, out=models, parity=False, checkpoints=checkpoints))
-        else:
-            result = export(ExportConfig(preset=preset, out=Path(tempfile.mkdtemp(prefix="lowres3d-torch-")),
-                                         parity=False, checkpoints=checkpoints))
+        scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
+        models = Path(scratch.name)
+        result = export(ExportConfig(preset=preset or DEFAULT_PRESET, out=models, parity=False, checkpoints=checkpoints))
         torch_networks = result.networks
     if scratch is not None and precision not in (None, "fp32"):
         from export.precision import convert_precision
@@ -344,6 +356,12 @@ def run(preset: str = "edge", models: Path | None = None, provider: str | None =
     if precision and actual != precision:
         raise SystemExit(f"error: --precision {precision}, but {models} holds {actual} models")
     preset_name = detector.preset.name
+    if preset and preset != preset_name:
+        raise InputError(f"--preset {preset}: {models} holds {preset_name} models (leave --preset out with --models)")
+    if compare_torch and torch_networks is None:
+        # The PyTorch twin of a model directory is built for that directory's preset and networks, before
+        # any timing, so a mismatch is refused at once instead of after minutes of measurements.
+        torch_networks = torch_twin(preset_name, tuple(detector.manifest["networks"]), checkpoints)
     source = FrameSource(data, max(frames, warmup), beams)
     pool = source.load()
 
@@ -464,7 +482,8 @@ def print_report(report: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    parser.add_argument("--preset", default="edge", help="preset to export and time when --models is not given")
+    parser.add_argument("--preset", help=f"preset to export and time when --models is not given (default "
+                                          f"{DEFAULT_PRESET}); with --models it must be the directory's")
     parser.add_argument("--models", type=Path, help="model directory (default: export --preset with initialised weights)")
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best)")
     parser.add_argument("--precision", choices=["fp32", "fp16", "int8"],

@@ -106,3 +106,23 @@ def test_a_worker_that_fails_is_reported_instead_of_waited_for(tmp_path, tiny_mo
     with pytest.raises(ModelFileError, match="no-models"):
         run_workers(tmp_path / "no-models", None, [], workers=2, per_worker=2, warmup=1, cores=cores,
                     mode="thread")
+
+
+def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, tiny_models):
+    """--compare-torch with --models times PyTorch networks of the directory's preset (tiny here), not the
+    default one's; a --preset that contradicts the directory is refused at once, in one line."""
+    result = subprocess.run(
+        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--compare-torch", "--frames", "2",
+         "--warmup", "1", "--json", str(tmp_path / "t.json")],
+        capture_output=True, text=True, timeout=600, check=False,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((tmp_path / "t.json").read_text())
+    assert report["preset"] == "tiny" and report["torch_end_to_end_ms"]["n"] == 2 and report["speedup_vs_torch"] > 0
+    wrong = subprocess.run(
+        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--preset", "paper", "--compare-torch",
+         "--frames", "1", "--warmup", "1"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )
+    assert wrong.returncode == 2 and "Traceback" not in wrong.stderr
+    assert "--preset paper" in wrong.stderr and "holds tiny models" in wrong.stderr
