@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 
+from export.directory import check_destination, staged_copy
 from export.inputs import kitti_inputs, random_inputs
 from export.rewrite import lower_for_cpu
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
@@ -81,36 +81,23 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
     in_place = out.resolve() == models.resolve()
     if in_place and not any(any(counts.values()) for counts in rewrites.values()):
         return LowerResult(out, rewrites, differences)  # already lowered: leave the directory as it is
-    if not in_place and out.exists() and any(out.iterdir()) and not (out / MANIFEST_NAME).exists():
-        raise ModelFileError(f"--out {out}: exists and is not a model directory; give a new or empty folder")
+    if not in_place:
+        check_destination(out)
 
-    # Everything is written into a staging copy first and swapped in at the end, so a failure (a full
-    # disk, an unwritable folder) leaves the source and any earlier --out as they were.
-    staging = out.parent / f".{out.name}.lowering"
-    if staging.exists():
-        shutil.rmtree(staging)
-    shutil.copytree(models, staging)
-    recorded = manifest.setdefault("export", {}).setdefault("cpu_rewrites", {})
-    for name, graph in lowered.items():
-        path = staging / manifest["networks"][name]["file"]
-        onnx.save(graph, str(path))
-        manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
-        totals = recorded.setdefault(name, {})
-        for rewrite, count in rewrites[name].items():
-            totals[rewrite] = totals.get(rewrite, 0) + count
-    manifest["export"]["relowered"] = {"by": "python -m export.lower", "max_abs_difference": differences,
-                                       "checked_on": [sample.source for sample in samples]}
-    (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
-    verify_sha256(staging, manifest)
-    if out.exists():
-        previous = out.parent / f".{out.name}.previous"
-        if previous.exists():
-            shutil.rmtree(previous)
-        out.rename(previous)
-        staging.rename(out)
-        shutil.rmtree(previous)
-    else:
-        staging.rename(out)
+    # Everything is written into a staging copy first and swapped in at the end (export.directory).
+    with staged_copy(models, out) as staging:
+        recorded = manifest.setdefault("export", {}).setdefault("cpu_rewrites", {})
+        for name, graph in lowered.items():
+            path = staging / manifest["networks"][name]["file"]
+            onnx.save(graph, str(path))
+            manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+            totals = recorded.setdefault(name, {})
+            for rewrite, count in rewrites[name].items():
+                totals[rewrite] = totals.get(rewrite, 0) + count
+        manifest["export"]["relowered"] = {"by": "python -m export.lower", "max_abs_difference": differences,
+                                           "checked_on": [sample.source for sample in samples]}
+        (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
+        verify_sha256(staging, manifest)
     return LowerResult(out, rewrites, differences)
 
 

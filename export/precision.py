@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import json
 import logging
-import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,6 +26,7 @@ import numpy as np
 import onnx
 from tqdm import tqdm
 
+from export.directory import check_destination, staged_copy
 from export.rewrite import (
     boundary_nodes,
     merge_split_input_convs,
@@ -38,7 +38,7 @@ from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.detector import Detector
 from pipeline.frame import frame_ids, load_frame
-from pipeline.model_files import MANIFEST_NAME, load_manifest, sha256_file, verify_sha256
+from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
 from pipeline.preprocess import depth_inputs
 
 log = logging.getLogger(__name__)
@@ -170,16 +170,33 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     fp32_dir, out = Path(fp32_dir), Path(out)
     manifest = load_manifest(fp32_dir)  # ModelFileError naming the file when it is missing or broken
     verify_sha256(fp32_dir, manifest)
-    source_files = dict(manifest["files"])
-    if out.resolve() != fp32_dir.resolve():
-        if out.exists():
-            shutil.rmtree(out)
-        shutil.copytree(fp32_dir, out)
+    held = manifest.get("precision", "fp32")
+    if held != "fp32":  # quantizing a quantized graph again gives an invalid model
+        came_from = manifest.get("precision_info", {}).get("source", {}).get("directory")
+        raise ModelFileError(f"--models {fp32_dir}: holds {held} models; convert the FP32 directory"
+                             + (f" it came from ({came_from})" if came_from else "") + " instead")
     if precision == "fp32":
+        if out.resolve() != fp32_dir.resolve():
+            check_destination(out)
+            with staged_copy(fp32_dir, out):
+                pass
         return manifest
+    if out.resolve() == fp32_dir.resolve():
+        raise ModelFileError(f"--out {out}: is --models itself; the FP32 source must stay (its manifest records "
+                             "where a converted directory came from): give a new folder")
+    check_destination(out)
+    source_files = dict(manifest["files"])
     feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames, progress)
+    with staged_copy(fp32_dir, out) as staging:
+        _convert(fp32_dir, staging, manifest, source_files, feeds, precision, calibration_data)
+    return manifest
+
+
+def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feeds: dict, precision: str,
+             calibration_data: Path) -> None:
+    """Convert the networks of the copy ``out`` in place and write its manifest (see :func:`convert_precision`)."""
     int8_info: dict[str, dict] = {}
-    for name in feeds:
+    for name, frames in feeds.items():
         path = out / manifest["networks"][name]["file"]
         if precision == "fp16":
             to_fp16(fp32_dir / path.name, path)
@@ -193,7 +210,7 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
             # with PIXOR's averaged it gained 0.1 (82.7); on 300 training frames not used for calibration
             # it lost 0.3 and 0.6. The depth net keeps the extremes: averaged, its median error at 0–10 m
             # grew from 122 to 140 mm (fp32: 80).
-            int8_info[name] = to_int8(fp32_dir / path.name, path, feeds[name], inputs_fp32=name == "depth",
+            int8_info[name] = to_int8(fp32_dir / path.name, path, frames, inputs_fp32=name == "depth",
                                       output_convs=2 if name == "depth" else 1, moving_average=name == "pixor")
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
     manifest["precision"] = precision
@@ -209,7 +226,6 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     }
     (out / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
     verify_sha256(out, manifest)
-    return manifest
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -234,6 +250,9 @@ def main(argv: list[str] | None = None) -> int:
                                      args.calibration_frames, progress=True)
     except (InputError, ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # an unwritable or full --out: the source and any earlier --out are untouched
+        print(f"error: {exc.filename or args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     print(f"wrote {args.out} ({args.precision}); deviation from fp32: "
           f"{json.dumps(manifest['precision_info']['deviation_from_fp32'])}")

@@ -35,6 +35,11 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     assert set(report["paired_stages_ms"]) == set(report["torch_stages_ms"]) == set(report["stages_ms"])
     b = report["speedup_vs_torch_blocks"]
     assert b["blocks"] >= 1 and b["min"] <= b["p50"] <= b["max"]
+    nets = report["speedup_vs_torch_networks"]
+    assert set(nets) == {"depth_net", "pixor"}
+    for stage, ratio in nets.items():
+        assert ratio == report["torch_stages_ms"][stage]["p50"] / report["paired_stages_ms"][stage]["p50"]
+    assert report["torch_weights"].startswith("initialised")
     assert report["machine"]["cores"] >= 1 and report["versions"]["onnxruntime"]
     picture = cv2.imread(str(tmp_path / "lat.png"))
     assert picture is not None and picture.shape[0] > 100

@@ -76,6 +76,45 @@ def test_a_missing_model_directory_is_refused_in_one_line(tmp_path):
     assert not (tmp_path / "out").exists()  # nothing written
 
 
+def test_conversions_that_would_lose_or_break_something_are_refused(tiny_models, tmp_path):
+    """Converting a converted directory, writing over --models, or over a folder that is not a model
+    directory is refused with a one-line reason; a conversion that fails leaves an earlier --out intact."""
+    import subprocess
+    import sys
+
+    from pipeline.model_files import ModelFileError
+
+    int8 = tmp_path / "int8"
+    convert_precision(tiny_models, int8, "int8", KITTI, calibration_frames=2)
+    before = {p.name: p.read_bytes() for p in int8.iterdir()}
+    # Quantizing the INT8 graphs again would write an invalid model: refused, naming the FP32 source.
+    with pytest.raises(ModelFileError, match=f"holds int8 models; convert the FP32 directory it came from \\({tiny_models}"):
+        convert_precision(int8, tmp_path / "again", "int8", KITTI, calibration_frames=2)
+    assert not (tmp_path / "again").exists()
+    # The FP32 source must stay: --out may not be --models.
+    with pytest.raises(ModelFileError, match="is --models itself"):
+        convert_precision(tiny_models, tiny_models, "fp16", KITTI, calibration_frames=2)
+    verify_sha256(tiny_models, json.loads((tiny_models / "manifest.json").read_text()))
+    # A folder that is not a model directory is never replaced.
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "keep.txt").write_text("mine")
+    result = subprocess.run(
+        [sys.executable, "-m", "export.precision", "--models", str(tiny_models), "--precision", "int8",
+         "--calibration-data", str(KITTI), "--calibration-frames", "2", "--out", str(notes)],
+        capture_output=True, text=True, timeout=300, check=False,
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "is not a model directory" in result.stderr and (notes / "keep.txt").read_text() == "mine"
+    # A conversion that fails (no calibration frames here) leaves the earlier --out as it was.
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises((ValueError, ModelFileError)):
+        convert_precision(tiny_models, int8, "int8", empty, calibration_frames=2)
+    assert {p.name: p.read_bytes() for p in int8.iterdir()} == before
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging copy left behind
+
+
 @pytest.mark.parametrize("network", ["depth", "pixor"])
 def test_transposed_conv_rewrite_is_exact(tiny_models, network):
     """The sub-pixel (stride 2) and flipped-kernel (stride 1) forms give ONNX Runtime the same outputs."""
