@@ -387,11 +387,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.url is None and not args.models.is_dir():
         parser.error(f"--models: {args.models} is not a directory (export one with `python -m export`)")
     duration = args.duration if args.duration is not None else (None if args.requests else 20.0)
-    result = run(
-        url=args.url, models=args.models, clients=args.clients, duration_s=duration, requests=args.requests,
-        frame=args.frame, emulate_beams=args.emulate_beams or None, token=args.token, backoff_s=args.backoff_s,
-        server_args=server_args, plot=args.plot,
-    )
+    try:
+        result = run(
+            url=args.url, models=args.models, clients=args.clients, duration_s=duration, requests=args.requests,
+            frame=args.frame, emulate_beams=args.emulate_beams or None, token=args.token, backoff_s=args.backoff_s,
+            server_args=server_args, plot=args.plot,
+        )
+    except httpx.TransportError as exc:  # nothing listening at --url, or it went away before the load began
+        where = f"--url {args.url}" if args.url else "the service started here"
+        print(f"error: {where}: cannot reach the service ({exc}); start it first (python -m service) "
+              "or leave --url out to start one here", file=sys.stderr)
+        return 2
     print(format_report(result))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)

@@ -11,10 +11,12 @@ from pathlib import Path
 
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
 from pipeline.errors import TORCH_MISSING
-from pipeline.presets import PRESETS
+from pipeline.model_files import ModelFileError
+from pipeline.presets import PRESETS, get_preset
 
 try:
     from export.exporter import ExportConfig, run
+    from export.parity import ParityError
 except ModuleNotFoundError as exc:
     if exc.name != "torch":
         raise
@@ -45,6 +47,10 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
     parser.add_argument("--networks", nargs="+", default=["depth", "pixor"], choices=["depth", "pixor"],
                         help="networks to export (default both; 'pixor' alone for a LiDAR-only detector)")
     args = parser.parse_args(argv)
+    try:
+        get_preset(args.preset)
+    except ValueError as exc:
+        parser.error(f"--preset: {exc}")
     return ExportConfig(
         preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir,
         frame=args.frame, seed=args.seed, parity=not args.no_parity, progress=True, networks=tuple(args.networks),
@@ -54,6 +60,18 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     config, args = parse_args(argv)
+    try:
+        return export(config, args)
+    except (ValueError, FileNotFoundError, ModelFileError) as exc:  # checkpoints, calibration data, --out
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ParityError as exc:  # the ONNX files are written; the numbers say why they are not to be used
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+
+
+def export(config: ExportConfig, args: argparse.Namespace) -> int:
+    """Export (and convert) as ``args`` asks; prints what was written."""
     if args.precision == "fp32":
         result = run(config)
         manifest = result.manifest

@@ -532,6 +532,18 @@ def test_cli_help() -> None:
     assert "--preset" in done.stdout and "--checkpoints" in done.stdout and "--out" in done.stdout
 
 
+@pytest.mark.parametrize(("extra", "says"), [
+    (["--preset", "edge-large"], "--preset: unknown preset 'edge-large'"),
+    (["--preset", "tiny", "--checkpoints", "{tmp}/no-runs"], "no-runs: checkpoint directory not found"),
+])
+def test_cli_bad_preset_or_checkpoints_answer_one_line(tmp_path: Path, extra: list[str], says: str) -> None:
+    args = [a.replace("{tmp}", str(tmp_path)) for a in extra]
+    done = subprocess.run([sys.executable, "-m", "export", *args, "--out", str(tmp_path / "out"), "--no-parity"],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert says.replace("{tmp}", str(tmp_path)) in done.stderr
+
+
 def test_runtime_side_modules_do_not_import_torch() -> None:
     code = (
         "import sys, export, export.flops, export.manifest, export.inputs, pipeline.model_files; "

@@ -1,0 +1,40 @@
+"""benchmarks/load.py against a real service it starts on 127.0.0.1 (tiny models, a few requests)."""
+
+import json
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+
+LOAD = Path(__file__).resolve().parents[1] / "benchmarks" / "load.py"
+
+
+def test_load_test_drives_a_started_service_and_reports(tmp_path, tiny_models):
+    result = subprocess.run(
+        [sys.executable, str(LOAD), "--models", str(tiny_models), "--clients", "2", "--requests", "6",
+         "--json", str(tmp_path / "load.json"), "--plot", str(tmp_path / "load.png")],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((tmp_path / "load.json").read_text())
+    assert report["url"].startswith("http://127.0.0.1:") and report["clients"] == 2
+    assert sum(report["status_counts"].values()) == report["requests"] == 6
+    assert report["status_counts"].get("200", 0) >= 1 and report["throughput_ok_per_s"] > 0
+    assert report["server"]["preset"] == "tiny"
+    assert report["latency_ms"]["all"]["p50"] > 0 and report["rss_mb"]["end"] > 0
+    picture = cv2.imread(str(tmp_path / "load.png"))
+    assert picture is not None and picture.shape[0] > 100
+
+
+def test_load_test_without_a_service_at_url_answers_one_line(tmp_path):
+    with socket.socket() as sock:  # a loopback port nothing listens on
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    result = subprocess.run(
+        [sys.executable, str(LOAD), "--url", f"http://127.0.0.1:{port}", "--requests", "2"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"--url http://127.0.0.1:{port}: cannot reach the service" in result.stderr
