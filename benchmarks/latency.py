@@ -45,7 +45,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.peak import measure_peak
-from pipeline.beams import emulate_beams
+from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
@@ -505,7 +505,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=int, default=20, help="timed frames (default 20)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up frames (default 3)")
     parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
-    parser.add_argument("--beams", type=int, default=16, help="thin scans to N lines before timing (0: keep)")
+    parser.add_argument("--beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help="thin scans to N lines before timing (16, the default; 32, 8, 4; 0: keep)")
     parser.add_argument("--compare-torch", action="store_true", help="also time the PyTorch eager pipeline, in blocks alternating with ONNX Runtime")
     parser.add_argument("--checkpoints", type=Path, help="checkpoints for --compare-torch with trained --models")
     parser.add_argument("--baseline", type=Path,

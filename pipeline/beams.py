@@ -28,6 +28,7 @@ log = logging.getLogger(__name__)
 HDL64_ELEVATION_RANGE_DEG = (-24.9, 2.0)
 VLP16_ELEVATIONS_DEG = np.arange(-15.0, 15.1, 2.0)
 # A ring-ordered scan has one wrap per ring; far more segments means the order is lost.
+BEAM_COUNTS = (32, 16, 8, 4)  # what a 64-line scan thins to by keeping every k-th ring
 _MAX_PLAUSIBLE_SEGMENTS = 200
 _MIN_POINTS_PER_SEGMENT = 200
 
@@ -123,7 +124,7 @@ def select_rings(rings: RingAssignment, beams: int, mode: str = "stride") -> np.
     """
     if mode == "stride":
         if beams <= 0 or 64 % beams != 0:
-            raise InputError(f"--beams: {beams} must divide 64 (32, 16, 8 or 4)")
+            raise InputError(f"--beams: {beams} must divide 64 ({', '.join(map(str, BEAM_COUNTS))})")
         step = 64 // beams
         top = rings.n_rings - 1
         kept = np.arange(top, -1, -step)[:beams]

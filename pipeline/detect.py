@@ -18,6 +18,7 @@ from pathlib import Path
 
 import cv2
 
+from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import labels_to_boxes
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
@@ -110,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--image", type=Path, help="camera image (PNG/JPEG), with --points and --calib")
     parser.add_argument("--points", type=Path, help="velodyne .bin scan")
     parser.add_argument("--calib", type=Path, help="KITTI calib .txt")
-    parser.add_argument("--emulate-beams", type=int, metavar="N", help="thin a 64-line scan to N lines first (e.g. 16)")
+    parser.add_argument("--emulate-beams", type=int, metavar="N", choices=BEAM_COUNTS,
+                        help=f"thin a 64-line scan to N lines first ({', '.join(map(str, BEAM_COUNTS))})")
     parser.add_argument("--score-threshold", type=float, help="minimum score (default: the model's)")
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best available)")
     parser.add_argument("--no-pictures", action="store_true", help="skip the BEV PNGs")

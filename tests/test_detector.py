@@ -170,6 +170,13 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
         capture_output=True, text=True, timeout=120, check=False,
     )
     assert missing.returncode == 2 and "no manifest" in missing.stderr and "Traceback" not in missing.stderr
+    # A line count a 64-line scan cannot be thinned to is refused before any model is loaded.
+    odd = subprocess.run(
+        [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(KITTI),
+         "--emulate-beams", "7", "--out", str(tmp_path / "odd")],
+        capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert odd.returncode == 2 and "--emulate-beams: invalid choice: 7" in odd.stderr and not (tmp_path / "odd").exists()
 
 
 def test_runtime_never_imports_torch():
