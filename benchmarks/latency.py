@@ -46,6 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.cli import non_negative_int, positive_int
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
@@ -498,12 +499,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best)")
     parser.add_argument("--precision", choices=["fp32", "fp16", "int8"],
                         help="with --models: check the directory is this precision; without: convert the export")
-    parser.add_argument("--threads", type=int, default=1, help="workers for the throughput mode (default 1: off)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="workers for the throughput mode (default 1: off)")
     parser.add_argument("--workers", choices=["thread", "process"], default="thread",
                         help="what a throughput worker is: a thread of this process (default, as the paper ran "
                              "two GPUs) or a process of its own (no interpreter lock shared)")
-    parser.add_argument("--frames", type=int, default=20, help="timed frames (default 20)")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up frames (default 3)")
+    parser.add_argument("--frames", type=positive_int, default=20, help="timed frames (default 20)")
+    parser.add_argument("--warmup", type=non_negative_int, default=3, help="untimed warm-up frames (default 3)")
     parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
     parser.add_argument("--beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
                         help="thin scans to N lines before timing (16, the default; 32, 8, 4; 0: keep)")

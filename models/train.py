@@ -66,6 +66,7 @@ from models.losses import DEPTH_LOSSES, pixor_loss
 from models.soft_bev import soft_occupancy
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import boxes_to_objects, in_camera_view
+from pipeline.cli import non_negative_int, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.postprocess import boxes_from_maps
@@ -590,15 +591,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--val-pseudo-dir", type=Path, help="… of the validation frames (default: --pseudo-dir)")
     parser.add_argument("--depth-checkpoint", type=Path, help="trained depth.pt (joint)")
     parser.add_argument("--pixor-checkpoint", type=Path, help="trained pixor.pt (joint; or to continue training)")
-    parser.add_argument("--epochs", type=int, help="default: the task's recipe")
-    parser.add_argument("--batch-size", type=int, help="default: the task's recipe")
-    parser.add_argument("--lr", type=float, help="default: the task's recipe")
+    parser.add_argument("--epochs", type=positive_int, help="default: the task's recipe")
+    parser.add_argument("--batch-size", type=positive_int, help="default: the task's recipe")
+    parser.add_argument("--lr", type=positive_float, help="default: the task's recipe")
     parser.add_argument("--depth-loss", default="mse", choices=tuple(DEPTH_LOSSES),
                         help="depth and joint: per-pixel loss on the depth map (default mse, the paper's)")
-    parser.add_argument("--max-train-frames", type=int, help="use only the first N training frames")
-    parser.add_argument("--max-val-frames", type=int, help="use only the first N validation frames")
-    parser.add_argument("--workers", type=int, default=0, help="data-loading processes (default 0)")
-    parser.add_argument("--threads", type=int, help="torch intra-op threads")
+    parser.add_argument("--max-train-frames", type=positive_int, help="use only the first N training frames")
+    parser.add_argument("--max-val-frames", type=positive_int, help="use only the first N validation frames")
+    parser.add_argument("--workers", type=non_negative_int, default=0, help="data-loading processes (default 0)")
+    parser.add_argument("--threads", type=positive_int, help="torch intra-op threads")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="auto",
                         help="auto (default: the first CUDA GPU torch sees, else the CPU), cpu, cuda or cuda:N")

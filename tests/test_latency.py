@@ -58,6 +58,9 @@ def test_latency_int8_and_precision_check(tmp_path, tiny_models):
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert mismatch.returncode != 0 and "holds fp32 models" in mismatch.stderr
+    none = subprocess.run([sys.executable, str(LATENCY), "--models", str(tiny_models), "--frames", "0"],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert none.returncode == 2 and "argument --frames: must be at least 1, got 0" in none.stderr
 
 
 def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny_models):

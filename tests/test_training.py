@@ -129,6 +129,22 @@ def test_refuses_to_overwrite_a_run(small_sim, tmp_path):
         run(TrainConfig(**config))
 
 
+@pytest.mark.parametrize(("flag", "value", "says"), [
+    ("--epochs", "0", "must be at least 1, got 0"),  # 0 used to fall through to the recipe's 30 epochs
+    ("--batch-size", "0", "must be at least 1, got 0"),
+    ("--lr", "0", "must be a positive number"),
+    ("--workers=-1", None, "must be 0 or more"),
+])
+def test_command_refuses_counts_and_rates_that_are_not_positive(tmp_path, capsys, flag, value, says):
+    from models.train import main
+
+    with pytest.raises(SystemExit) as stop:
+        main(["detector", "--data", str(KITTI), "--preset", "tiny", "--out", str(tmp_path / "r"),
+              *([flag] if value is None else [flag, value])])
+    assert stop.value.code == 2 and not (tmp_path / "r").exists()
+    assert f"argument {flag.split('=')[0]}: {says}" in capsys.readouterr().err
+
+
 def test_pseudo_detector_validates_on_the_validation_depth_maps(small_sim, tmp_path, tiny_models):
     from models.cache_pseudo import run as cache_pseudo
 
