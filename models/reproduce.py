@@ -55,6 +55,7 @@ from models.cache_pseudo import run as cache_pseudo
 from models.schedule import Job, JobFailed, run_jobs
 from models.train import TrainConfig
 from models.train import run as train
+from pipeline.cli import positive_int
 from pipeline.errors import InputError
 from simulation.run import RunConfig
 from simulation.run import run as simulate
@@ -336,8 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=Path("data/sim"), help="synthetic data folder (default data/sim)")
     parser.add_argument("--weights", type=Path, default=Path("weights"), help="where model directories ship (default weights)")
     parser.add_argument("--preset", default="edge", help="preset (default edge)")
-    parser.add_argument("--sim-workers", type=int, default=2, help="simulation processes (default 2)")
-    parser.add_argument("--lanes", type=int, default=2,
+    parser.add_argument("--sim-workers", type=positive_int, default=2, help="simulation processes (default 2)")
+    parser.add_argument("--lanes", type=positive_int, default=2,
                         help="training jobs side by side, each with its share of the cores (default 2; 1: in turn)")
     parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
     args = parser.parse_args(argv)

@@ -39,3 +39,15 @@ def test_ablation_presets():
     assert preset.name == "edge-no-gam" and not preset.depth.use_gam and preset.depth.use_aspp
     assert preset.bev == get_preset("edge").bev
     assert not get_preset("paper-no-aspp").depth.use_aspp
+
+
+def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):
+    import pytest
+
+    from models.reproduce import main
+
+    for flag in ("--sim-workers", "--lanes"):
+        with pytest.raises(SystemExit) as stop:
+            main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), flag, "0"])
+        assert stop.value.code == 2 and f"argument {flag}: must be at least 1, got 0" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists() and not (tmp_path / "data").exists()
