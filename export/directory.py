@@ -1,11 +1,11 @@
 """Writing a model directory safely: never over something that is not one, never left half-written.
 
-The commands that write a model directory from another (``python -m export.lower``,
-``python -m export.precision``) replace their ``--out`` as a whole. So they refuse an
-``--out`` that holds anything but a model directory (an empty folder is fine), and they
-write into a staging copy beside it that is swapped in only when everything is written:
-a failure on the way (a calibration error, a full disk) leaves the source and any earlier
-``--out`` as they were.
+The commands that write a model directory (``python -m export``, ``export.lower``,
+``export.precision``) replace their ``--out`` as a whole. So they refuse an ``--out`` that
+holds anything but a model directory (an empty folder is fine), and they write into a
+staging folder beside it that is swapped in only when everything is written and checked:
+a failure on the way (a parity check, a calibration error, a full disk) leaves the source
+and any earlier ``--out`` as they were.
 """
 
 from __future__ import annotations
@@ -26,26 +26,32 @@ def check_destination(out: Path) -> None:
 
 
 @contextmanager
-def staged_copy(source: Path, out: Path) -> Iterator[Path]:
-    """A copy of the model directory ``source`` to write into; it becomes ``out`` when the block ends
-    without an error, and is removed when it raises (``out`` may be ``source`` itself)."""
-    source, out = Path(source), Path(out)
-    staging = out.parent / f".{out.name}.staging"
+def staged(out: Path, source: Path | None = None) -> Iterator[Path]:
+    """A folder to write the model directory ``out`` in: a copy of the model directory ``source``, or empty.
+
+    It becomes ``out`` when the block ends without an error (``out`` may be ``source`` itself) and is
+    removed when the block raises.
+    """
+    target = Path(out).resolve()
+    staging = target.parent / f".{target.name}.staging"
     if staging.exists():  # left by a run that was killed
         shutil.rmtree(staging)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copytree(source, staging)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if source is None:
+        staging.mkdir()
+    else:
+        shutil.copytree(source, staging)
     try:
         yield staging
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    if out.exists():
-        previous = out.parent / f".{out.name}.previous"
+    if target.exists():
+        previous = target.parent / f".{target.name}.previous"
         if previous.exists():
             shutil.rmtree(previous)
-        out.rename(previous)
-        staging.rename(out)
+        target.rename(previous)
+        staging.rename(target)
         shutil.rmtree(previous)
     else:
-        staging.rename(out)
+        staging.rename(target)

@@ -11,6 +11,7 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
+from export.directory import check_destination, staged
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR, kitti_inputs, random_inputs
 from export.manifest import UNTRAINED, NetworkEntry, build_manifest, verify_model_dir, write_manifest
 from export.onnx_export import EXPORTER, OPSET, NetworkIO, depth_io, export_onnx, pixor_io
@@ -18,6 +19,7 @@ from export.parity import ParityResult, cpu_session, depth_parity, pixor_parity,
 from models import build_depth_net, build_pixor
 from models.checkpoint import find_checkpoints, load_checkpoint, load_network_weights
 from models.depth_net import IMAGENET_MEAN, IMAGENET_STD
+from pipeline.model_files import MANIFEST_NAME
 from pipeline.presets import Preset, get_preset
 
 log = logging.getLogger(__name__)
@@ -100,11 +102,24 @@ def run(config: ExportConfig) -> ExportResult:
     """
     preset = get_preset(config.preset)
     out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
+    check_destination(out)
     torch.manual_seed(config.seed)
     unknown = set(config.networks) - set(FILES)
     if unknown or "pixor" not in config.networks:
         raise ValueError(f"--networks: {', '.join(config.networks)}; choose 'depth pixor' or 'pixor'")
+    # Written in a staging folder and swapped in when complete and checked (export.directory): a parity
+    # failure must not leave an earlier model directory at --out with new ONNX files and its old manifest.
+    with staged(out) as staging:
+        manifest, models, results = _export(config, preset, staging)
+    files = {name: out / FILES[name] for name in models}
+    return ExportResult(
+        directory=out, files=files, manifest_path=out / MANIFEST_NAME, manifest=manifest, parity=results,
+        networks=models,
+    )
+
+
+def _export(config: ExportConfig, preset: Preset, staging: Path) -> tuple[dict, dict, list[ParityResult]]:
+    """Export, check and describe the networks in ``staging``; returns (manifest, modules, parity results)."""
     builders = {"depth": build_depth_net, "pixor": build_pixor}
     models = {name: builders[name](preset).eval() for name in FILES if name in config.networks}
     interfaces: dict[str, NetworkIO] = {
@@ -118,7 +133,7 @@ def run(config: ExportConfig) -> ExportResult:
         graphs = {}
         for name, module in models.items():
             with _step(bar, f"exporting {FILES[name]}"):
-                graphs[name] = export_onnx(module, interfaces[name], out / FILES[name])
+                graphs[name] = export_onnx(module, interfaces[name], staging / FILES[name])
         files = {name: graph.path for name, graph in graphs.items()}
         results: list[ParityResult] = []
         if config.parity:
@@ -151,7 +166,7 @@ def run(config: ExportConfig) -> ExportResult:
             manifest = build_manifest(
                 preset,
                 entries,
-                out,
+                staging,
                 normalisation(preset),
                 export_info={"exporter": EXPORTER, "opset": OPSET, "torch_seed": config.seed,
                              "cpu_rewrites": {name: graph.rewrites for name, graph in graphs.items()}},
@@ -161,8 +176,6 @@ def run(config: ExportConfig) -> ExportResult:
                     else {"checked": False, "results": []}
                 ),
             )
-            manifest_path = write_manifest(out, manifest)
-    verify_model_dir(out)  # the directory as written must pass the runtime's own check
-    return ExportResult(
-        directory=out, files=files, manifest_path=manifest_path, manifest=manifest, parity=results, networks=models
-    )
+            write_manifest(staging, manifest)
+    verify_model_dir(staging)  # the directory as written must pass the runtime's own check
+    return manifest, models, results

@@ -25,7 +25,7 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 
-from export.directory import check_destination, staged_copy
+from export.directory import check_destination, staged
 from export.inputs import kitti_inputs, random_inputs
 from export.rewrite import lower_for_cpu
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
@@ -85,7 +85,7 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
         check_destination(out)
 
     # Everything is written into a staging copy first and swapped in at the end (export.directory).
-    with staged_copy(models, out) as staging:
+    with staged(out, source=models) as staging:
         recorded = manifest.setdefault("export", {}).setdefault("cpu_rewrites", {})
         for name, graph in lowered.items():
             path = staging / manifest["networks"][name]["file"]

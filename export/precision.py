@@ -26,7 +26,7 @@ import numpy as np
 import onnx
 from tqdm import tqdm
 
-from export.directory import check_destination, staged_copy
+from export.directory import check_destination, staged
 from export.rewrite import (
     boundary_nodes,
     merge_split_input_convs,
@@ -178,7 +178,7 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     if precision == "fp32":
         if out.resolve() != fp32_dir.resolve():
             check_destination(out)
-            with staged_copy(fp32_dir, out):
+            with staged(out, source=fp32_dir):
                 pass
         return manifest
     if out.resolve() == fp32_dir.resolve():
@@ -187,7 +187,7 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     check_destination(out)
     source_files = dict(manifest["files"])
     feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames, progress)
-    with staged_copy(fp32_dir, out) as staging:
+    with staged(out, source=fp32_dir) as staging:
         _convert(fp32_dir, staging, manifest, source_files, feeds, precision, calibration_data)
     return manifest
 

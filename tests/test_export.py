@@ -564,3 +564,26 @@ def test_commands_without_torch_say_what_to_install(module: str) -> None:
     lower = subprocess.run([sys.executable, "-c", hide_torch + "runpy.run_module('export.lower', run_name='__main__')"],
                            capture_output=True, text=True, check=False)
     assert lower.returncode == 0 and "--models" in lower.stdout
+
+
+def test_a_failed_export_leaves_the_earlier_model_directory_as_it_was(tmp_path: Path) -> None:
+    """The export writes into a staging folder: when it fails (here on a checkpoint torch cannot read),
+    the model directory already at --out keeps its files and still verifies; a folder that is not a
+    model directory is never written into."""
+    from export.manifest import verify_model_dir
+    from pipeline.model_files import ModelFileError
+
+    out = tmp_path / "models"
+    run(ExportConfig(preset="tiny", out=out, parity=False))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    broken = tmp_path / "runs"
+    broken.mkdir()
+    (broken / "pixor.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="pixor.pt: not a lowres3d checkpoint"):
+        run(ExportConfig(preset="tiny", out=out, parity=False, checkpoints=broken))
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    verify_model_dir(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["models", "runs"]  # no staging folder left
+    with pytest.raises(ModelFileError, match="is not a model directory"):
+        run(ExportConfig(preset="tiny", out=broken, parity=False))
+    assert sorted(p.name for p in broken.iterdir()) == ["pixor.pt"]
