@@ -103,18 +103,52 @@ class TorchSession:
         return [o.numpy() for o in outputs]
 
 
-def torch_twin(preset: str, networks: tuple[str, ...], checkpoints: Path | None) -> dict:
-    """PyTorch eager networks of ``preset`` (from ``checkpoints`` where given, else initialised as the exporter
-    initialises them), exported through a throwaway directory so that they are exactly what export builds."""
+def torch_twin(detector: Detector, checkpoints: Path | None) -> tuple[dict, str]:
+    """PyTorch eager networks of ``detector``'s model directory, and where their weights come from.
+
+    From ``checkpoints`` where given; otherwise an FP32 directory's own weights, read back from its ONNX
+    files (models/onnx_weights.py) and checked against ONNX Runtime on a real KITTI frame with the
+    exporter's tolerances; a reduced-precision directory's twin gets the exporter's initialised weights.
+    """
     from export.exporter import ExportConfig
     from export.exporter import run as export
 
+    names = tuple(detector.manifest["networks"])
+    if checkpoints is None and detector.manifest.get("precision", "fp32") == "fp32":
+        return onnx_twin(detector, names), "the ONNX files' own, read back (models/onnx_weights.py)"
     with tempfile.TemporaryDirectory(prefix="lowres3d-torch-") as scratch:
         try:
-            return export(ExportConfig(preset=preset, out=Path(scratch), parity=False, checkpoints=checkpoints,
-                                       networks=networks)).networks
+            networks = export(ExportConfig(preset=detector.preset.name, out=Path(scratch), parity=False,
+                                           checkpoints=checkpoints, networks=names)).networks
         except (ValueError, FileNotFoundError) as exc:  # the exporter's word on a checkpoint that does not fit
             raise InputError(f"--checkpoints: {exc}") from exc
+    return networks, str(checkpoints) if checkpoints else "initialised (as the exporter initialises them)"
+
+
+def onnx_twin(detector: Detector, names: tuple[str, ...]) -> dict:
+    """The networks with the weights of the directory's FP32 ONNX files, each checked against ONNX Runtime."""
+    from export.inputs import kitti_inputs
+    from export.parity import ParityError, cpu_session, depth_parity, pixor_parity, require_parity
+    from models import build_network
+    from models.onnx_weights import load_onnx_weights
+
+    inputs = kitti_inputs(detector.preset)
+    networks, results = {}, []
+    for name in names:
+        path = detector.model_dir / detector.manifest["networks"][name]["file"]
+        networks[name] = build_network(name, detector.preset).eval()
+        try:
+            load_onnx_weights(networks[name], path)
+        except ValueError as exc:
+            raise InputError(f"--compare-torch: {exc}") from exc
+        check = depth_parity if name == "depth" else pixor_parity
+        found = check(networks[name], cpu_session(path), inputs)
+        results.extend(found if isinstance(found, list) else [found])
+    try:
+        require_parity(results)
+    except ParityError as exc:
+        raise InputError(f"--compare-torch: the PyTorch networks do not reproduce {detector.model_dir}: {exc}") from exc
+    return networks
 
 
 def torch_detector(models_dir: Path, networks: dict) -> Detector:
@@ -335,7 +369,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     """
     cores = sorted(os.sched_getaffinity(0))
     scratch = None
-    torch_networks = None
+    torch_networks, torch_weights = None, ""
     if models is None:
         from export.exporter import ExportConfig
         from export.exporter import run as export
@@ -343,7 +377,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
         models = Path(scratch.name)
         result = export(ExportConfig(preset=preset or DEFAULT_PRESET, out=models, parity=False, checkpoints=checkpoints))
-        torch_networks = result.networks
+        torch_networks = result.networks  # the exported modules: the same weights on both sides
+        torch_weights = str(checkpoints) if checkpoints else "initialised, the same as the ONNX files'"
     if scratch is not None and precision not in (None, "fp32"):
         from export.precision import convert_precision
 
@@ -362,7 +397,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     if compare_torch and torch_networks is None:
         # The PyTorch twin of a model directory is built for that directory's preset and networks, before
         # any timing, so a mismatch is refused at once instead of after minutes of measurements.
-        torch_networks = torch_twin(preset_name, tuple(detector.manifest["networks"]), checkpoints)
+        torch_networks, torch_weights = torch_twin(detector, checkpoints)
     source = FrameSource(data, max(frames, warmup), beams)
     pool = source.load()
 
@@ -412,7 +447,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         report["speedup_vs_torch_networks"] = {
             stage: report["torch_stages_ms"][stage]["p50"] / report["paired_stages_ms"][stage]["p50"]
             for stage in ("depth_net", "pixor") if stage in report["paired_stages_ms"]}
-        report["torch_weights"] = str(checkpoints) if checkpoints else "initialised (as the exporter initialises them)"
+        report["torch_weights"] = torch_weights
     if other is not None:
         paired, base, ratios = run_paired(detector, other, pool, frames, warmup)
         report["baseline"] = {"models": str(baseline), "precision": other.manifest.get("precision", "fp32"),

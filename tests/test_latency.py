@@ -39,7 +39,7 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     assert set(nets) == {"depth_net", "pixor"}
     for stage, ratio in nets.items():
         assert ratio == report["torch_stages_ms"][stage]["p50"] / report["paired_stages_ms"][stage]["p50"]
-    assert report["torch_weights"].startswith("initialised")
+    assert report["torch_weights"] == "initialised, the same as the ONNX files'"
     assert report["machine"]["cores"] >= 1 and report["versions"]["onnxruntime"]
     picture = cv2.imread(str(tmp_path / "lat.png"))
     assert picture is not None and picture.shape[0] > 100
@@ -127,6 +127,7 @@ def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, t
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((tmp_path / "t.json").read_text())
     assert report["preset"] == "tiny" and report["torch_end_to_end_ms"]["n"] == 2 and report["speedup_vs_torch"] > 0
+    assert report["torch_weights"].startswith("the ONNX files' own")  # read back, checked against ONNX Runtime
     wrong = subprocess.run(
         [sys.executable, str(LATENCY), "--models", str(tiny_models), "--preset", "paper", "--compare-torch",
          "--frames", "1", "--warmup", "1"],

@@ -1,0 +1,135 @@
+"""The weights of an exported ONNX network, loaded back into its PyTorch twin.
+
+The shipped model directories hold ONNX files, not training checkpoints, yet
+``benchmarks/latency.py --compare-torch`` is to time PyTorch eager with the
+same weights. The exported graphs differ from the PyTorch networks only by
+exact rewrites, and each is undone here exactly:
+
+- torch.onnx folds every batch norm into the convolution before it
+  (``<conv>.weight`` scaled, plus ``<conv>.weight_bias``): the conv takes the
+  folded weight and its batch norm becomes the identity that adds the folded bias;
+- export.rewrite's lowering (:func:`export.rewrite.lower_for_cpu`): merged parallel
+  convs are cut back out of their block-diagonal weight, an input conv split in
+  two is concatenated again, narrow convs padded with zero channels are sliced
+  back, and a stride-1 transposed conv written as a conv gets its kernel
+  flipped and its channel axes swapped back.
+
+Every parameter and batch-norm statistic of the network must be accounted for,
+and :func:`load_onnx_weights` is meant to be followed by the exporter's parity
+check against ONNX Runtime, which :func:`benchmarks.latency.torch_twin` runs.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from onnx import numpy_helper
+from torch import nn
+
+
+def _batch_norm_after(name: str, modules: dict[str, nn.Module]) -> str | None:
+    """The batch norm that follows conv ``name`` (``x.0`` → ``x.1``, ``conv2`` → ``bn2``), if any."""
+    parent, _, child = name.rpartition(".")
+    prefix = f"{parent}." if parent else ""
+    if child.isdigit():
+        candidate = f"{prefix}{int(child) + 1}"
+    elif child.startswith("conv") and child[4:].isdigit():
+        candidate = f"{prefix}bn{child[4:]}"
+    else:
+        return None
+    return candidate if isinstance(modules.get(candidate), nn.BatchNorm2d) else None
+
+
+def _unlowered(graph: onnx.GraphProto, arrays: dict[str, np.ndarray], convs: dict[str, nn.Module]) -> dict:
+    """Weights (and biases) of the convs that export.rewrite renamed, keyed ``<conv>.weight`` / ``.weight_bias``."""
+    found: dict[str, np.ndarray] = {}
+    missing = [name for name in convs if f"{name}.weight" not in arrays]
+    nodes = {node.name: node for node in graph.node}
+    for node in graph.node:
+        if node.op_type != "Conv":
+            continue
+        weight, bias = node.input[1], node.input[2] if len(node.input) > 2 else ""
+        if weight.endswith("_merged_w"):  # merge_parallel_convs: block-diagonal, branches in Concat order
+            concat = nodes[weight[: -len("_w")] + "_inputs"]
+            w, b = arrays[weight], arrays[bias]
+            rows = cols = 0
+            branches = [n for n in missing if isinstance(convs[n], nn.Conv2d)][: len(concat.input)]
+            for name in branches:
+                out_ch, in_ch = convs[name].weight.shape[:2]
+                found[f"{name}.weight"] = w[rows : rows + out_ch, cols : cols + in_ch]
+                found[f"{name}.weight_bias"] = b[rows : rows + out_ch]
+                rows, cols = rows + out_ch, cols + in_ch
+            if (rows, cols) != w.shape[:2]:
+                raise ValueError(f"{weight}: {w.shape} is not the block-diagonal of {', '.join(branches)}")
+            missing = [n for n in missing if n not in branches]
+        elif weight.startswith("node_ConvTranspose_") and weight.endswith("_w"):  # a stride-1 transposed conv
+            name = next((n for n in missing if isinstance(convs[n], nn.ConvTranspose2d) and convs[n].stride == (1, 1)),
+                        None)
+            if name is None:
+                raise ValueError(f"{weight}: the network has no stride-1 transposed conv it could belong to")
+            found[f"{name}.weight"] = np.ascontiguousarray(np.flip(arrays[weight], (2, 3)).transpose(1, 0, 2, 3))
+            found[f"{name}.weight_bias"] = arrays[bias]
+            missing.remove(name)
+    for node in graph.node:  # split_input_convs: two convs on slices of one input, summed
+        if node.op_type == "Conv" and node.input[1].endswith("_wa"):
+            stem = node.input[1][: -len("_wa")]
+            whole = np.concatenate([arrays[f"{stem}_wa"], arrays[f"{stem}_wb"]], axis=1)
+            name = next((n for n in missing if tuple(convs[n].weight.shape) == whole.shape), None)
+            if name is None:
+                raise ValueError(f"{stem}: the network has no conv of shape {whole.shape} it could belong to")
+            found[f"{name}.weight"] = whole
+            missing.remove(name)
+    if missing:
+        raise ValueError(f"no weights in the graph for {', '.join(missing)}")
+    return found
+
+
+def load_onnx_weights(network: nn.Module, path: str | Path) -> None:
+    """Set every parameter and batch-norm buffer of ``network`` from the exported graph at ``path``.
+
+    Raises ValueError when the graph does not hold this network's weights (another preset, say).
+    """
+    model = onnx.load(str(path))
+    arrays = {init.name: numpy_helper.to_array(init) for init in model.graph.initializer}
+    modules = dict(network.named_modules())
+    convs = {name: m for name, m in modules.items() if isinstance(m, nn.Conv2d | nn.ConvTranspose2d)}
+    try:
+        arrays.update(_unlowered(model.graph, arrays, convs))
+    except (ValueError, KeyError) as exc:
+        raise ValueError(f"{path}: not this network's graph ({exc})") from exc
+    state: dict[str, torch.Tensor] = {}
+
+    def put(key: str, value: np.ndarray, like: torch.Tensor) -> None:
+        # Narrow convs padded with zero channels (pad_narrow_convs) are cut back to the network's shape.
+        value = value[tuple(slice(0, n) for n in like.shape)]
+        if value.shape != tuple(like.shape):
+            raise ValueError(f"{path}: {key} has shape {value.shape}, the network's is {tuple(like.shape)}")
+        state[key] = torch.from_numpy(np.array(value, dtype=np.float32)).to(like.dtype)  # a writable copy
+
+    reference = network.state_dict()
+    for name, conv in convs.items():
+        put(f"{name}.weight", arrays[f"{name}.weight"], conv.weight)
+        # A bias the graph does not have is zero: the exporter's optimizer drops all-zero biases.
+        folded = arrays.get(f"{name}.weight_bias")
+        norm = _batch_norm_after(name, modules)
+        if norm is not None and f"{norm}.running_mean" not in arrays:  # folded into the conv
+            bn = modules[norm]
+            put(f"{norm}.weight", np.ones(bn.num_features, np.float32), bn.weight)
+            put(f"{norm}.bias", np.zeros(bn.num_features, np.float32) if folded is None else folded, bn.bias)
+            put(f"{norm}.running_mean", np.zeros(bn.num_features, np.float32), bn.running_mean)
+            # 1 / sqrt(var + eps) = 1 exactly enough: var = 1 − eps rounds to within one float32 step.
+            put(f"{norm}.running_var", np.full(bn.num_features, 1.0 - bn.eps, np.float32), bn.running_var)
+            state[f"{norm}.num_batches_tracked"] = reference[f"{norm}.num_batches_tracked"]
+        elif conv.bias is not None:
+            bias = arrays.get(f"{name}.bias", folded)
+            put(f"{name}.bias", np.zeros(conv.bias.shape[0], np.float32) if bias is None else bias, conv.bias)
+    for key, value in reference.items():  # anything else (a GAM's own conv, say) by its own name
+        if key not in state and key in arrays:
+            put(key, arrays[key], value)
+    unset = [key for key in reference if key not in state]
+    if unset:
+        raise ValueError(f"{path}: no weights for {', '.join(unset[:6])}{' …' if len(unset) > 6 else ''}")
+    network.load_state_dict(state, strict=True)

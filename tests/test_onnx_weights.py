@@ -1,0 +1,72 @@
+"""ONNX weights back into the PyTorch networks (models/onnx_weights.py): the shipped files and a round trip."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from export.inputs import kitti_inputs, random_inputs
+from export.parity import cpu_session, depth_parity, pixor_parity
+from models import build_network
+from models.onnx_weights import load_onnx_weights
+from pipeline.presets import get_preset
+
+WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
+
+
+@pytest.mark.parametrize(("directory", "network"), [("edge", "depth"), ("edge", "pixor"), ("edge-lidar64", "pixor")])
+def test_shipped_onnx_weights_reproduce_onnx_runtime_in_pytorch(directory, network):
+    """Every rewrite of the shipped graphs (folded batch norms, the merged early fusion, the split and padded
+    PIXOR convs, the stride-1 transposed conv) is undone: PyTorch eager then agrees with ONNX Runtime on a
+    real KITTI frame within the exporter's own parity tolerances."""
+    preset = get_preset("edge")
+    path = WEIGHTS / directory / f"{network}.onnx"
+    net = build_network(network, preset).eval()
+    load_onnx_weights(net, path)
+    check = depth_parity if network == "depth" else pixor_parity
+    results = check(net, cpu_session(path), kitti_inputs(preset))
+    for result in results if isinstance(results, list) else [results]:
+        assert result.passed, f"{result.metric} {result.error:.3g} > {result.tolerance:.3g}"
+
+
+def test_round_trip_of_trained_looking_weights(tmp_path):
+    """Weights with non-trivial batch-norm statistics and biases, exported and read back, give the network
+    the outputs the original gives (PyTorch against PyTorch: the folding is undone, not approximated)."""
+    from export.exporter import ExportConfig, run
+    from models.checkpoint import save_checkpoint
+
+    preset = get_preset("tiny")
+    torch.manual_seed(3)
+    originals = {}
+    for name in ("depth", "pixor"):
+        net = build_network(name, preset)
+        with torch.no_grad():
+            for module in net.modules():
+                if isinstance(module, torch.nn.BatchNorm2d):
+                    module.weight.uniform_(0.5, 1.5)
+                    module.bias.uniform_(-0.2, 0.2)
+                    module.running_mean.uniform_(-0.3, 0.3)
+                    module.running_var.uniform_(0.5, 2.0)
+                elif isinstance(module, torch.nn.Conv2d | torch.nn.ConvTranspose2d) and module.bias is not None:
+                    module.bias.uniform_(-0.1, 0.1)
+        originals[name] = net.eval()
+        save_checkpoint(tmp_path / "runs" / f"{name}.pt", preset, {name: net}, {"note": "test"})
+    out = tmp_path / "models"
+    run(ExportConfig(preset="tiny", out=out, checkpoints=tmp_path / "runs", parity=False))
+    inputs = random_inputs(preset, seed=4)
+    for name, original in originals.items():
+        twin = build_network(name, preset).eval()
+        load_onnx_weights(twin, out / f"{name}.onnx")
+        feeds = [torch.from_numpy(v) for v in inputs.feeds(name).values()]
+        with torch.inference_mode():
+            expected, got = original(*feeds), twin(*feeds)
+        for a, b in zip(expected if isinstance(expected, tuple) else (expected,),
+                        got if isinstance(got, tuple) else (got,), strict=True):
+            np.testing.assert_allclose(b.numpy(), a.numpy(), rtol=1e-4, atol=1e-4)
+
+
+def test_a_graph_of_another_network_is_refused():
+    net = build_network("depth", get_preset("edge"))
+    with pytest.raises(ValueError, match="no weights|shape"):
+        load_onnx_weights(net, WEIGHTS / "edge" / "pixor.onnx")
