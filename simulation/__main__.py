@@ -33,9 +33,12 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if not result.seconds_per_frame:
+        print(f"all {len(result.ids)} frames were already in {result.out} ({result.list_file.name} rewritten)")
+        return 0
     median = statistics.median(result.seconds_per_frame)
-    print(f"wrote {len(result.ids)} frames to {result.out} ({result.list_file.name}); "
-          f"median {median:.2f} s/frame per worker")
+    print(f"wrote {len(result.seconds_per_frame)} of {len(result.ids)} frames to {result.out} "
+          f"({result.list_file.name}); median {median:.2f} s/frame per worker")
     return 0
 
 

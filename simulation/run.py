@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
@@ -57,6 +58,18 @@ def _complete(out: Path, index: int) -> bool:
         ("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt"), ("depth_2", ".png")))
 
 
+def _written_with_seed(out: Path, seed: int, index: int) -> bool:
+    """Whether the frame ``index`` already in ``out`` is the one ``seed`` generates (its calibration and
+    labels, byte for byte): a run resumed with another seed would otherwise mix two data sets."""
+    with tempfile.TemporaryDirectory(prefix="lowres3d-sim-") as scratch:
+        for sub in SUBDIRS:
+            (Path(scratch) / sub).mkdir(parents=True)
+        write_frame(Path(scratch), generate_frame(seed, index))
+        name = frame_name(index)
+        return all((Path(scratch) / sub / f"{name}.txt").read_bytes() == (out / sub / f"{name}.txt").read_bytes()
+                   for sub in ("calib", "label_2"))
+
+
 def run(config: RunConfig) -> RunResult:
     """Generate and write the frames; returns what was written."""
     if config.frames < 1:
@@ -69,6 +82,10 @@ def run(config: RunConfig) -> RunResult:
     all_indices = list(range(config.start, config.start + config.frames))
     indices = [i for i in all_indices if not _complete(out, i)]
     if len(indices) < len(all_indices):
+        present = next(i for i in all_indices if i not in set(indices))
+        if not _written_with_seed(out, config.seed, present):
+            raise ValueError(f"{out}: frame {frame_name(present)} there is not the one seed {config.seed} makes; "
+                             "resume with the seed that wrote the folder, or give another --out")
         log.info("resuming: %d of %d frames already written", len(all_indices) - len(indices), len(all_indices))
     log.info("writing %d frames (seed %d) to %s with %d worker(s)", len(indices), config.seed, out, config.workers)
     bar = tqdm(total=len(indices), unit="frame", desc="simulating", disable=not config.progress)
@@ -86,5 +103,7 @@ def run(config: RunConfig) -> RunResult:
     ids = [frame_name(i) for i in all_indices]
     list_file = out / "ImageSets" / f"{config.split}.txt"
     list_file.parent.mkdir(parents=True, exist_ok=True)
-    list_file.write_text("".join(f"{i}\n" for i in ids), encoding="ascii")
+    # A run that adds frames (--start) extends the list; it never drops the ids an earlier run listed.
+    listed = list_file.read_text(encoding="ascii").split() if list_file.exists() else []
+    list_file.write_text("".join(f"{i}\n" for i in sorted(set(listed) | set(ids))), encoding="ascii")
     return RunResult(out=out, ids=ids, list_file=list_file, seconds_per_frame=times)

@@ -177,3 +177,23 @@ def test_same_seed_same_bytes_any_workers_different_seed_differs(dataset: Path, 
     mine = read_velodyne(dataset / "velodyne" / "000001.bin").points
     assert other.points.shape != mine.shape or not np.array_equal(other.points, mine)
     assert not np.array_equal(other.image, read_image(dataset / "image_2" / "000001.png"))
+
+
+def test_resuming_needs_the_same_seed_and_extending_keeps_the_list(dataset: Path, tmp_path: Path) -> None:
+    """A folder is resumed or extended only with the seed that wrote it (frames already there are not
+    regenerated, so another seed would mix two data sets), and the split list keeps every id it had."""
+    import shutil
+    import subprocess
+    import sys
+
+    folder = tmp_path / "sim"
+    shutil.copytree(dataset, folder)
+    with pytest.raises(ValueError, match=f"frame 000000 there is not the one seed {SEED + 1} makes"):
+        run(RunConfig(out=folder, frames=FRAMES + 1, seed=SEED + 1, progress=False))
+    assert not (folder / "velodyne" / f"{FRAMES:06d}.bin").exists()  # refused before writing anything
+    run(RunConfig(out=folder, frames=1, seed=SEED, start=FRAMES, progress=False))  # one more frame
+    assert _ids(folder) == [f"{i:06d}" for i in range(FRAMES + 1)]
+    done = subprocess.run([sys.executable, "-m", "simulation", "--out", str(folder), "--frames", "2", "--seed",
+                           str(SEED), "--no-progress"], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0 and "all 2 frames were already in" in done.stdout, done.stderr
+    assert _ids(folder) == [f"{i:06d}" for i in range(FRAMES + 1)]
