@@ -92,6 +92,10 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an --out that cannot be written (a file in the way, no permission, a full disk)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: --out {args.out}: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     print(json.dumps(summary, indent=2))
     return 0
 

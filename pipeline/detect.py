@@ -127,6 +127,10 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # an --out that cannot be written (a file in the way, no permission, a full disk)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: --out {args.out}: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 2
     stages = ", ".join(f"{k} {v:.1f} ms" for k, v in result.mean_timings_ms.items())
     print(f"{len(result.frame_ids)} frame(s), {result.detections} detection(s) → {args.out}/data")
     print(f"mean per frame: {stages}")

@@ -177,6 +177,13 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
         capture_output=True, text=True, timeout=120, check=False,
     )
     assert odd.returncode == 2 and "--emulate-beams: invalid choice: 7" in odd.stderr and not (tmp_path / "odd").exists()
+    (tmp_path / "a-file").write_text("")
+    blocked = subprocess.run(
+        [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(KITTI), "--frame",
+         "000006", "--out", str(tmp_path / "a-file" / "out")],
+        capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert blocked.returncode == 2 and "Traceback" not in blocked.stderr and "Not a directory" in blocked.stderr
 
 
 def test_runtime_never_imports_torch():
