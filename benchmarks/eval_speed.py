@@ -26,6 +26,7 @@ import numpy as np
 from evaluation.frames import load_label_dirs
 from evaluation.kitti_eval import KittiEvalResult, evaluate
 from evaluation.report import format_table
+from pipeline.cli import positive_int
 from pipeline.kitti import Object3D, write_labels
 
 FOCAL_PX = 721.5  # KITTI P2 focal length: sets realistic 2D box heights from 3D sizes
@@ -124,8 +125,8 @@ def write_random_label_sets(out_dir: Path, n_frames: int, seed: int) -> tuple[Pa
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=int, default=3769, help="frames to generate (default: 3769)")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs; the median is reported")
+    parser.add_argument("--frames", type=positive_int, default=3769, help="frames to generate (default: 3769)")
+    parser.add_argument("--repeats", type=positive_int, default=3, help="timed runs; the median is reported")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep", type=Path, metavar="DIR", help="write the label sets here and keep them")
     args = parser.parse_args(argv)

@@ -26,6 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import labels_to_boxes
+from pipeline.cli import positive_int
 from pipeline.frame import load_frame
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, network_view
@@ -126,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frame", default="000006", help="bundled KITTI frame id (default 000006)")
     parser.add_argument("--preset", default="paper", help="preset whose grid and crop are used (default paper)")
-    parser.add_argument("--repeats", type=int, default=30, help="timed calls per step (default 30)")
+    parser.add_argument("--repeats", type=positive_int, default=30, help="timed calls per step (default 30)")
     parser.add_argument("--json", type=Path, help="write the figures as JSON")
     args = parser.parse_args(argv)
     report = run(args.frame, args.repeats, args.preset)

@@ -27,6 +27,7 @@ from tqdm import tqdm
 
 from export import run as export_run
 from export.inputs import kitti_inputs
+from pipeline.cli import positive_int
 from pipeline.detector import session_options
 from pipeline.errors import TORCH_MISSING
 from pipeline.presets import PRESETS, get_preset
@@ -166,8 +167,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--preset", action="append", choices=sorted(PRESETS),
                         help="preset to measure (repeatable; default: all)")
-    parser.add_argument("--repeats", type=int, default=5, help="timed runs per network and runtime (interleaved), after 1 warm-up")
-    parser.add_argument("--threads", type=int, default=None, help="PyTorch intra-op threads (default: torch's)")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per network and runtime (interleaved), after 1 warm-up")
+    parser.add_argument("--threads", type=positive_int, default=None, help="PyTorch intra-op threads (default: torch's)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")

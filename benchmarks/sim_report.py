@@ -21,6 +21,7 @@ import numpy as np
 from pipeline.beams import emulate_beams
 from pipeline.boxes import box_corners_3d, labels_to_boxes, points_in_boxes
 from pipeline.calib import Calibration
+from pipeline.cli import positive_int
 from pipeline.kitti import Object3D, read_calib, read_image, read_labels, read_velodyne
 
 DISTANCE_BINS = (0, 10, 20, 30, 40, 50, 60, 70)
@@ -167,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--kitti", type=Path, default=Path("tests/data/kitti/training"),
                         help="real KITTI folder (image_2, velodyne, calib, label_2)")
     parser.add_argument("--sim", type=Path, help="simulated folder; generated into a temp dir when omitted")
-    parser.add_argument("--frames", type=int, default=20, help="simulated frames to use (default 20)")
+    parser.add_argument("--frames", type=positive_int, default=20, help="simulated frames to use (default 20)")
     parser.add_argument("--seed", type=int, default=1, help="seed when generating (default 1)")
     parser.add_argument("--figure", type=Path, help="write the side-by-side PNG here")
     args = parser.parse_args(argv)

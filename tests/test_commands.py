@@ -1,0 +1,34 @@
+"""Every command answers --help, and a count of zero is refused by the flag, in one line, before any work."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+MODULES = ["pipeline.detect", "pipeline.beams", "pipeline.demo", "service", "simulation", "models.train",
+           "models.reproduce", "models.cache_pseudo", "export", "export.lower", "export.precision"]
+SCRIPTS = ["latency", "accuracy", "load", "frame_ops", "eval_speed", "sim_report", "network_latency"]
+
+
+def _command(name: str) -> list[str]:
+    return [sys.executable, "-m", name] if name in MODULES else [sys.executable, str(REPO / "benchmarks" / f"{name}.py")]
+
+
+@pytest.mark.parametrize("name", MODULES + SCRIPTS)
+def test_every_command_answers_help(name):
+    done = subprocess.run([*_command(name), "--help"], capture_output=True, text=True, timeout=120, check=False,
+                          cwd=REPO)
+    assert done.returncode == 0, done.stderr[-1000:]
+    assert done.stdout.startswith("usage:") and "--help" in done.stdout
+
+
+@pytest.mark.parametrize(("name", "flag"), [("frame_ops", "--repeats"), ("eval_speed", "--frames"),
+                                            ("sim_report", "--frames"), ("network_latency", "--repeats"),
+                                            ("latency", "--frames")])
+def test_benchmarks_refuse_a_count_of_zero(name, flag):
+    done = subprocess.run([*_command(name), flag, "0"], capture_output=True, text=True, timeout=120, check=False,
+                          cwd=REPO)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert f"argument {flag}: must be at least 1, got 0" in done.stderr
