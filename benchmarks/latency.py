@@ -50,7 +50,7 @@ from pipeline.cli import non_negative_int, positive_int
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
-from pipeline.model_files import ModelFileError
+from pipeline.model_files import ModelFileError, load_manifest
 
 BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 DEFAULT_PRESET = "edge"
@@ -114,8 +114,11 @@ def torch_twin(detector: Detector, checkpoints: Path | None) -> tuple[dict, str]
     from export.exporter import run as export
 
     names = tuple(detector.manifest["networks"])
-    if checkpoints is None and detector.manifest.get("precision", "fp32") == "fp32":
-        return onnx_twin(detector, names), "the ONNX files' own, read back (models/onnx_weights.py)"
+    if checkpoints is None:
+        source = detector if detector.manifest.get("precision", "fp32") == "fp32" else fp32_source(detector)
+        if source is not None:
+            origin = "" if source is detector else f" of the FP32 directory it was converted from, {source.model_dir}"
+            return onnx_twin(source, names), f"the ONNX files' own{origin}, read back (models/onnx_weights.py)"
     with tempfile.TemporaryDirectory(prefix="lowres3d-torch-") as scratch:
         try:
             networks = export(ExportConfig(preset=detector.preset.name, out=Path(scratch), parity=False,
@@ -123,6 +126,20 @@ def torch_twin(detector: Detector, checkpoints: Path | None) -> tuple[dict, str]
         except (ValueError, FileNotFoundError) as exc:  # the exporter's word on a checkpoint that does not fit
             raise InputError(f"--checkpoints: {exc}") from exc
     return networks, str(checkpoints) if checkpoints else "initialised (as the exporter initialises them)"
+
+
+def fp32_source(detector: Detector) -> Detector | None:
+    """The FP32 directory a converted (INT8, FP16) directory came from, if it is still there unchanged."""
+    source = detector.manifest.get("precision_info", {}).get("source", {})
+    recorded, wanted = Path(source.get("directory", "")), source.get("sha256")
+    for candidate in (recorded, detector.model_dir.parent / recorded.name):  # as written, or a sibling
+        try:
+            manifest = load_manifest(candidate)
+        except ModelFileError:
+            continue
+        if wanted and {name: entry["sha256"] for name, entry in manifest["files"].items()} == wanted:
+            return Detector(candidate, providers="cpu")
+    return None
 
 
 def onnx_twin(detector: Detector, names: tuple[str, ...]) -> dict:

@@ -128,6 +128,19 @@ def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, t
     report = json.loads((tmp_path / "t.json").read_text())
     assert report["preset"] == "tiny" and report["torch_end_to_end_ms"]["n"] == 2 and report["speedup_vs_torch"] > 0
     assert report["torch_weights"].startswith("the ONNX files' own")  # read back, checked against ONNX Runtime
+    # An INT8 directory's twin reads the FP32 weights it was converted from.
+    from export.precision import convert_precision
+    from tests.conftest import KITTI
+
+    convert_precision(tiny_models, tmp_path / "int8", "int8", KITTI, calibration_frames=2)
+    result = subprocess.run(
+        [sys.executable, str(LATENCY), "--models", str(tmp_path / "int8"), "--compare-torch", "--frames", "2",
+         "--warmup", "1", "--json", str(tmp_path / "q.json")],
+        capture_output=True, text=True, timeout=600, check=False,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    weights = json.loads((tmp_path / "q.json").read_text())["torch_weights"]
+    assert f"of the FP32 directory it was converted from, {tiny_models}" in weights
     wrong = subprocess.run(
         [sys.executable, str(LATENCY), "--models", str(tiny_models), "--preset", "paper", "--compare-torch",
          "--frames", "1", "--warmup", "1"],
