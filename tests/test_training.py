@@ -158,6 +158,22 @@ def test_pseudo_detector_validates_on_the_validation_depth_maps(small_sim, tmp_p
     assert result.history[0]["val_loss"] > 0
 
 
+def test_pseudo_cache_is_not_mixed_across_depth_nets_or_line_counts(small_sim, tmp_path, tiny_models):
+    """A cache folder resumes with the depth net and line count that made it; others are refused."""
+    from export.precision import convert_precision
+    from models.cache_pseudo import run as cache_pseudo
+    from pipeline.errors import InputError
+
+    cache = tmp_path / "pseudo"
+    assert cache_pseudo(small_sim, tiny_models, cache, progress=False) > 0
+    assert cache_pseudo(small_sim, tiny_models, cache, progress=False) == 0  # resumed: nothing left to do
+    with pytest.raises(InputError, match="another depth net or line count"):
+        cache_pseudo(small_sim, tiny_models, cache, beams=8, progress=False)
+    convert_precision(tiny_models, tmp_path / "int8", "int8", KITTI, calibration_frames=2)
+    with pytest.raises(InputError, match="another depth net or line count"):
+        cache_pseudo(small_sim, tmp_path / "int8", cache, progress=False)
+
+
 def test_detector_checkpoints_are_selected_by_ap_not_loss():
     from models.train import selection_criterion
 
