@@ -75,11 +75,17 @@ def run(
 
     results, images, totals = [], [], {}
     count = 0
+    warned: set[str] = set()
     for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
         frame = loader(fid)
         detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams,
                                          keep_points=True)
         count += len(detections.scores)
+        for warning in detections.warnings:  # each kind once (the trailing "(…)" holds the frame's figures)
+            kind = warning.rsplit(" (", 1)[0]
+            if not warning.startswith("emulated") and kind not in warned:
+                warned.add(kind)
+                log.warning("%s: %s", fid, warning)
         for stage, ms in detections.timings_ms.items():
             totals[stage] = totals.get(stage, 0.0) + ms
         (out / "data").mkdir(parents=True, exist_ok=True)

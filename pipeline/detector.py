@@ -42,6 +42,12 @@ PROVIDER_ALIASES = {
     "cpu": "CPUExecutionProvider",
 }
 MAX_POINTS = 2_000_000  # far beyond any real scan; protects memory from absurd inputs
+# A KITTI HDL-64E scan holds about 120,000 points (the shared frames: 104,000–123,000) and its 16-line
+# emulation a quarter of that, as a VLP-16's does: a count past these says the scan is not what the
+# model was trained on.
+SCAN_LINES_BY_INPUT = {"lidar16": 16, "pseudo": 16, "lidar64": 64}
+MOST_POINTS_OF_16_LINES = 80_000
+FEWEST_POINTS_OF_64_LINES = 50_000
 
 
 @dataclass
@@ -154,6 +160,8 @@ class Detector:
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
         self._local = threading.local()
+        trained_on = (networks["pixor"].get("training") or {}).get("input")
+        self.trained_lines: int | None = SCAN_LINES_BY_INPUT.get(trained_on)  # None: not recorded
 
     # ------------------------------------------------------------------ info
     @property
@@ -214,6 +222,10 @@ class Detector:
             timings["emulate_beams"] = (time.perf_counter() - tic) * 1e3
             warnings.append(f"emulated {emulate_to_beams} beams: kept {points.shape[0]} of {before} points")
 
+        mismatch = self._line_count_mismatch(points.shape[0])
+        if mismatch:
+            warnings.append(mismatch)
+
         if self.two_stage:
             if image is None or calib is None:
                 raise InputError("image and calib: this model needs a camera image and a calibration")
@@ -247,6 +259,15 @@ class Detector:
         if keep_points:
             cloud = points if pseudo is None else merge_points(depth_to_points(depth[0, 0], inputs.calib, *limits), points)
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, warnings=warnings, points=cloud)
+
+    def _line_count_mismatch(self, count: int) -> str | None:
+        """A warning when a scan's point count is far from that of the line count the model was trained on."""
+        if self.trained_lines == 16 and count > MOST_POINTS_OF_16_LINES:
+            return ("points: as many as a 64-line scan, but the model was trained on 16-line scans; thin it first "
+                    f"(--emulate-beams 16, or emulate_beams=16 in the API) ({count} points)")
+        if self.trained_lines == 64 and count < FEWEST_POINTS_OF_64_LINES:
+            return f"points: fewer than a 64-line scan has, but the model was trained on 64-line scans ({count} points)"
+        return None
 
     def _check_points(self, points: np.ndarray) -> np.ndarray:
         points = np.asarray(points)

@@ -61,3 +61,20 @@ def test_int8_finds_the_cars_fp32_finds_on_real_frames():
         assert (best >= 0.7).all(), f"frame {frame_id}: best INT8 IoU per FP32 box {np.round(best, 2)}"
         confident += len(a.scores)
     assert confident >= 5  # the frames do exercise the comparison
+
+
+def test_a_scan_of_another_line_count_than_the_model_was_trained_on_is_flagged():
+    """The shipped models record their training input; a 64-line KITTI scan given to a 16-line model (or a
+    16-line one to the 64-line PIXOR) comes back with a warning, the scan it was trained on without one."""
+    from pipeline.beams import emulate_beams
+
+    frame = load_frame(KITTI, "000006")
+    camera, lidar16, lidar64 = (Detector(WEIGHTS / name) for name in ("edge", "edge-lidar16", "edge-lidar64"))
+    assert (camera.trained_lines, lidar16.trained_lines, lidar64.trained_lines) == (16, 16, 64)
+    flagged = lidar16.detect(None, frame.points, None).warnings
+    assert any("trained on 16-line scans" in w and "--emulate-beams 16" in w for w in flagged)
+    assert not any("trained on" in w for w in lidar16.detect(None, frame.points, None, emulate_to_beams=16).warnings)
+    assert not any("trained on" in w for w in camera.detect(frame.image, frame.points, frame.calib,
+                                                            emulate_to_beams=16).warnings)
+    assert any("trained on 64-line scans" in w for w in lidar64.detect(None, emulate_beams(frame.points, 16), None).warnings)
+    assert not any("trained on" in w for w in lidar64.detect(None, frame.points, None).warnings)
