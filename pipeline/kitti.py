@@ -98,7 +98,17 @@ def parse_calib(text: str, source: str = "<calib>") -> Calibration:
     missing = [k for k in _CALIB_KEYS if k not in values]
     if missing:
         raise InputError(f"{source}: missing calibration key(s) {', '.join(missing)}")
-    return Calibration(P2=values["P2"], R0_rect=values["R0_rect"], Tr_velo_to_cam=values["Tr_velo_to_cam"])
+    return _invertible(Calibration(P2=values["P2"], R0_rect=values["R0_rect"],
+                                   Tr_velo_to_cam=values["Tr_velo_to_cam"]), source)
+
+
+def _invertible(calib: Calibration, source: str) -> Calibration:
+    """``calib`` if every projection in it can be inverted, as back-projection needs (else an InputError):
+    a singular matrix is a broken file, and would otherwise fail deep inside the pipeline."""
+    for key, block in (("P2", calib.P2[:, :3]), ("R0_rect", calib.R0_rect), ("Tr_velo_to_cam", calib.Tr_velo_to_cam[:, :3])):
+        if np.linalg.matrix_rank(block) < 3:
+            raise InputError(f"{source}: {key} is singular (its 3×3 block cannot be inverted): not a camera calibration")
+    return calib
 
 
 def read_calib(path: str | Path) -> Calibration:
@@ -136,10 +146,10 @@ def read_raw_calib(cam_to_cam: str | Path, velo_to_cam: str | Path) -> Calibrati
         missing = [k for k in keys if k not in table]
         if missing:
             raise InputError(f"{path}: missing calibration key(s) {', '.join(missing)}")
-    return Calibration(
+    return _invertible(Calibration(
         P2=cam["P_rect_02"].reshape(3, 4), R0_rect=cam["R_rect_00"].reshape(3, 3),
         Tr_velo_to_cam=np.hstack([velo["R"].reshape(3, 3), velo["T"].reshape(3, 1)]),
-    )
+    ), f"{cam_to_cam} and {velo_to_cam}")
 
 
 def format_calib(calib: Calibration) -> str:

@@ -95,6 +95,13 @@ def test_calib_errors_name_key_and_line():
         parse_calib(short, "calib.txt")
     with pytest.raises(InputError, match=r"line 5: R0_rect has a non-numeric value"):
         parse_calib(text.replace("R0_rect: 9.999478000000e-01", "R0_rect: abc"), "calib.txt")
+    # Parsable but singular: back-projection could not invert it (the service answered 500 here).
+    lines = text.splitlines()
+    for key, numbers in (("P2", 12), ("R0_rect", 9), ("Tr_velo_to_cam", 12)):
+        zeroed = "\n".join(f"{key}: " + " ".join(["0"] * numbers) if line.startswith(f"{key}:") else line
+                           for line in lines)
+        with pytest.raises(InputError, match=f"calib.txt: {key} is singular"):
+            parse_calib(zeroed, "calib.txt")
 
 
 def test_labels_read_and_roundtrip(tmp_path):

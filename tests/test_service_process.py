@@ -111,6 +111,8 @@ def test_contract_over_http(server: Server, frame: dict[str, bytes]) -> None:  #
         assert png.status_code == 200 and png.content.startswith(b"\x89PNG")
         assert_error(client.post("/v1/detect", json={}), 415, "unsupported_media_type")
         assert_error(client.post("/v1/detect", files=parts(frame, points=b"1234")), 422, "invalid_input", "points")
+        singular = re.sub(rb"P2:[^\n]*", b"P2: " + b" ".join([b"0"] * 12), frame["calib"])
+        assert_error(client.post("/v1/detect", files=parts(frame, calib=singular)), 422, "invalid_input", "P2")
         assert client.get("/v2/health/live").json() == {"live": True}
         info = client.get("/v1/model").json()
         assert info["providers_in_use"]["pixor"] == ["CPUExecutionProvider"]
