@@ -29,6 +29,7 @@ HDL64_ELEVATION_RANGE_DEG = (-24.9, 2.0)
 VLP16_ELEVATIONS_DEG = np.arange(-15.0, 15.1, 2.0)
 # A ring-ordered scan has one wrap per ring; far more segments means the order is lost.
 BEAM_COUNTS = (32, 16, 8, 4)  # what a 64-line scan thins to by keeping every k-th ring
+MIN_RINGS_OF_64_LINES = 56  # a KITTI HDL-64E scan splits into 64–65 azimuth-wrap segments, a thinned one into 32 or 16
 _MAX_PLAUSIBLE_SEGMENTS = 200
 _MIN_POINTS_PER_SEGMENT = 200
 
@@ -140,6 +141,10 @@ def select_rings(rings: RingAssignment, beams: int, mode: str = "stride") -> np.
 def emulate_beams(points: np.ndarray, beams: int = 16, mode: str = "stride") -> np.ndarray:
     """Thin a 64-line scan to ``beams`` lines; returns the kept points in their original order."""
     rings = recover_rings(points)
+    if rings.method == "azimuth-wrap" and rings.n_rings < MIN_RINGS_OF_64_LINES:
+        # Thinning a 16-line scan "to 16 lines" would keep 4 of its rings, silently.
+        raise InputError(f"points: the scan has {rings.n_rings} rings, not 64: it is thinned already "
+                         "(emulate beams on 64-line scans only)")
     keep_rings = select_rings(rings, beams, mode)
     return points[np.isin(rings.ring, keep_rings)]
 

@@ -37,6 +37,9 @@ def test_16_line_emulation_keeps_16_rings_and_a_quarter(frame_id):
     source_index = {row.tobytes(): i for i, row in enumerate(points)}
     positions = np.array([source_index[row.tobytes()] for row in kept[::97]])
     assert np.all(np.diff(positions) > 0)
+    # Thinning the thinned scan again would keep 4 of its 16 rings: refused, naming the ring count.
+    with pytest.raises(InputError, match="the scan has 16 rings, not 64"):
+        emulate_beams(kept, 16)
 
 
 @pytest.mark.parametrize("beams", [32, 16, 8, 4])
