@@ -23,12 +23,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis.generation import GenerationMode
 
+from pipeline.beams import emulate_beams
 from tests.test_service import assert_error, frame, parts, tiny_models  # noqa: F401 - fixtures
 
 REPO = Path(__file__).resolve().parents[1]
@@ -113,6 +115,9 @@ def test_contract_over_http(server: Server, frame: dict[str, bytes]) -> None:  #
         assert_error(client.post("/v1/detect", files=parts(frame, points=b"1234")), 422, "invalid_input", "points")
         singular = re.sub(rb"P2:[^\n]*", b"P2: " + b" ".join([b"0"] * 12), frame["calib"])
         assert_error(client.post("/v1/detect", files=parts(frame, calib=singular)), 422, "invalid_input", "P2")
+        thinned = emulate_beams(np.frombuffer(frame["points"], np.float32).reshape(-1, 4), 16).tobytes()
+        assert_error(client.post("/v1/detect", params={"emulate_beams": 16}, files=parts(frame, points=thinned)),
+                     422, "invalid_input", "16 rings, not 64")
         assert client.get("/v2/health/live").json() == {"live": True}
         info = client.get("/v1/model").json()
         assert info["providers_in_use"]["pixor"] == ["CPUExecutionProvider"]
