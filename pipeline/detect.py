@@ -85,7 +85,7 @@ def run(
             kind = warning.rsplit(" (", 1)[0]
             if not warning.startswith("emulated") and kind not in warned:
                 warned.add(kind)
-                log.warning("%s: %s", fid, warning)
+                tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
         for stage, ms in detections.timings_ms.items():
             totals[stage] = totals.get(stage, 0.0) + ms
         (out / "data").mkdir(parents=True, exist_ok=True)

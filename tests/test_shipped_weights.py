@@ -78,3 +78,18 @@ def test_a_scan_of_another_line_count_than_the_model_was_trained_on_is_flagged()
                                                             emulate_to_beams=16).warnings)
     assert any("trained on 64-line scans" in w for w in lidar64.detect(None, emulate_beams(frame.points, 16), None).warnings)
     assert not any("trained on" in w for w in lidar64.detect(None, frame.points, None).warnings)
+
+
+
+def test_detect_command_prints_the_line_count_warning_once(tmp_path):
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-m", "pipeline.detect", "--models", str(WEIGHTS / "edge-lidar16"), "--data", str(KITTI),
+         "--frame", "000006", "--frame", "000003", "--no-pictures", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=300, check=False,
+    )
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stderr.count("as many as a 64-line scan, but the model was trained on 16-line scans") == 1
+    assert "warning: 000006: points:" in done.stderr
