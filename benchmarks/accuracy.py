@@ -110,7 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help="depth metrics with --data (KITTI depth-completion layout, or an object folder with depth_2/)")
     output = parser.add_argument_group("output")
     output.add_argument("--json", type=Path, metavar="OUT", help="write every figure as JSON (AP in percent)")
-    output.add_argument("--plots", type=Path, metavar="DIR", help="write precision-recall PNGs per difficulty")
+    output.add_argument("--plots", type=Path, metavar="DIR",
+                        help="write precision-recall PNGs per difficulty (with --depth: a picture per frame)")
     output.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
 
@@ -151,13 +152,16 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     try:
         frames = read_split_file(args.frames) if args.frames else None
         if args.depth:
-            outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=not args.no_progress)
+            outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=not args.no_progress,
+                                pictures=args.plots)
             m = outcome.mean
             print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
             print(f"RMSE {m.rmse_mm:.1f} mm   MAE {m.mae_mm:.1f} mm   iRMSE {m.irmse_per_km:.2f} 1/km   "
                   f"iMAE {m.imae_per_km:.2f} 1/km   ({m.n_pixels} pixels)")
             print("median |error| by ground-truth depth: "
                   + ", ".join(f"{band} m {mm:.0f} mm" for band, mm in m.median_abs_mm_by_band.items()))
+            if args.plots:
+                print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
             if args.json:
                 args.json.parent.mkdir(parents=True, exist_ok=True)
                 args.json.write_text(json.dumps({

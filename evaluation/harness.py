@@ -24,6 +24,7 @@ from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_depth_png, read_image
 from pipeline.preprocess import view_from_depth_png
+from pipeline.render import render_depth_panel
 
 log = logging.getLogger(__name__)
 
@@ -73,18 +74,27 @@ def _to_crop_resolution(prediction: np.ndarray, crop_hw: tuple[int, int]) -> np.
 
 
 def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: int | None = 16,
-              provider: str | None = None, progress: bool = True) -> DepthRun:
+              provider: str | None = None, progress: bool = True, pictures: Path | None = None) -> DepthRun:
     """Depth completion metrics on the KITTI crop, at full resolution.
 
     Layouts: KITTI depth completion (``image_02/``, ``velodyne_raw/``,
     ``groundtruth/`` PNGs; the projected 64-line input is used as given), or a
     KITTI object folder with dense ground truth in ``depth_2/`` (the synthetic
-    scenes), whose scan is thinned to ``beams`` lines first.
+    scenes), whose scan is thinned to ``beams`` lines first. pictures: a folder
+    for one PNG per frame (``depth_<id>.png``: camera, prediction, ground truth, error).
     """
     data = Path(data)
     detector = Detector(models, providers=provider)
     preset = detector.preset
     per_frame: dict[str, DepthMetrics] = {}
+    if pictures is not None:
+        Path(pictures).mkdir(parents=True, exist_ok=True)
+
+    def picture(fid: str, image: np.ndarray, prediction: np.ndarray, ground_truth: np.ndarray) -> None:
+        if pictures is not None:
+            crop = depth_crop(image.shape[:2], *preset.crop_hw).apply(image)
+            panel = render_depth_panel(crop, prediction, ground_truth, preset.depth.max_depth)
+            cv2.imwrite(str(Path(pictures) / f"depth_{fid}.png"), panel)
     if (data / "groundtruth").is_dir() and (data / "velodyne_raw").is_dir():
         layout, used = "depth-completion", "velodyne_raw as given (projected 64-line scan)"
         ids = frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png"))
@@ -96,6 +106,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             crop_gt = _crop_ground_truth(gt, preset)
             prediction = _to_crop_resolution(detector.run_depth_net(rgb, sparse_view), crop_gt.shape)
             per_frame[fid] = depth_metrics(prediction, crop_gt)
+            picture(fid, image, prediction, crop_gt)
     elif (data / "depth_2").is_dir():
         layout = "object + depth_2"
         used = f"{beams}-line emulated scan" if beams else "scan as stored"
@@ -105,7 +116,9 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             points = emulate_beams(frame.points, beams) if beams else frame.points
             view_depth, _ = detector.dense_depth(frame.image, points, frame.calib)
             crop_gt = _crop_ground_truth(read_depth_png(data / "depth_2" / f"{fid}.png"), preset)
-            per_frame[fid] = depth_metrics(_to_crop_resolution(view_depth, crop_gt.shape), crop_gt)
+            prediction = _to_crop_resolution(view_depth, crop_gt.shape)
+            per_frame[fid] = depth_metrics(prediction, crop_gt)
+            picture(fid, frame.image, prediction, crop_gt)
     else:
         raise InputError(
             f"--data: {data} has neither groundtruth/ + velodyne_raw/ (KITTI depth completion) "

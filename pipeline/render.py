@@ -62,3 +62,24 @@ def render_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
     colour = cv2.applyColorMap((255 * (1 - scaled)).astype(np.uint8), cv2.COLORMAP_TURBO)
     colour[depth <= 0] = 0
     return colour
+
+
+def render_depth_panel(image: np.ndarray, prediction: np.ndarray, ground_truth: np.ndarray,
+                       max_depth: float = 80.0, max_error: float = 5.0) -> np.ndarray:
+    """BGR uint8 picture of one depth-completion frame, stacked top to bottom: the camera crop (RGB),
+    the predicted depth, the ground truth (black: none) and the absolute error where there is ground
+    truth (0 m dark to ``max_error`` bright), all at the ground truth's resolution, each labelled."""
+    height, width = ground_truth.shape
+    camera = cv2.cvtColor(cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2BGR)
+    known = ground_truth > 0
+    error = np.where(known, np.abs(prediction - ground_truth), 0.0)
+    error_map = cv2.applyColorMap((255 * np.clip(error / max_error, 0, 1)).astype(np.uint8), cv2.COLORMAP_INFERNO)
+    error_map[~known] = 0
+    rows = [(camera, "camera"), (render_depth(prediction, max_depth), f"predicted depth (0-{max_depth:.0f} m)"),
+            (render_depth(ground_truth, max_depth), "ground truth"),
+            (error_map, f"absolute error where ground truth exists (0-{max_error:.0f} m)")]
+    for row, label in rows:  # white on a black box: readable on any colour
+        (text_w, text_h), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+        cv2.rectangle(row, (0, 0), (text_w + 16, text_h + 14), (0, 0, 0), thickness=-1)
+        cv2.putText(row, label, (8, text_h + 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    return np.vstack([row for row, _ in rows])

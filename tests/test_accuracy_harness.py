@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -46,9 +47,15 @@ def test_detection_run_refuses_mismatched_models(tiny_models, tmp_path):
         run_detection(KITTI, tiny_models, "radar", tmp_path)
 
 
-def test_depth_metrics_on_real_depth_completion_frame(tiny_models, depth_completion_dir):
-    outcome = run_depth(depth_completion_dir, tiny_models, progress=False)
+def test_depth_metrics_on_real_depth_completion_frame(tiny_models, depth_completion_dir, tmp_path):
+    outcome = run_depth(depth_completion_dir, tiny_models, progress=False, pictures=tmp_path / "pictures")
     gt = read_depth_png(depth_completion_dir / "groundtruth" / "0000000005.png")
+    # One picture per frame: camera, prediction, ground truth and error, each at the ground truth's crop.
+    picture = cv2.imread(str(tmp_path / "pictures" / "depth_0000000005.png"))
+    crop = depth_crop(gt.shape).apply(gt)
+    assert picture.shape == (4 * crop.shape[0], crop.shape[1], 3)
+    error_panel = picture[3 * crop.shape[0]:]
+    assert (error_panel[40:][crop[40:] == 0] == 0).all()  # black where there is no ground truth
     assert outcome.mean.n_pixels == np.count_nonzero(depth_crop(gt.shape).apply(gt))
     assert outcome.layout == "depth-completion"
     m = outcome.mean
