@@ -377,6 +377,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.clients < 1 or (args.requests is not None and args.requests < 1):
         parser.error("--clients and --requests must be at least 1")
+    if (args.duration is not None and not args.duration > 0) or not args.backoff_s >= 0:
+        parser.error("--duration must be a positive number of seconds and --backoff-s 0 or more")
     server_args: list[str] = []
     for flag in ("workers", "queue_size", "sessions", "intra_op_threads"):
         value = getattr(args, flag)

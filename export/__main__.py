@@ -10,6 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
+from pipeline.cli import positive_int
 from pipeline.errors import TORCH_MISSING
 from pipeline.model_files import ModelFileError
 from pipeline.presets import PRESETS, get_preset
@@ -43,7 +44,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
                         help="fp32 (default); fp16 for GPUs; int8 static QDQ quantization for CPUs")
     parser.add_argument("--calibration-data", type=Path, default=DEFAULT_KITTI_DIR,
                         help="KITTI-layout folder whose frames calibrate int8 (default: the bundled KITTI frames)")
-    parser.add_argument("--calibration-frames", type=int, default=300, help="frames used for calibration (default 300)")
+    parser.add_argument("--calibration-frames", type=positive_int, default=300, help="frames used for calibration (default 300)")
     parser.add_argument("--networks", nargs="+", default=["depth", "pixor"], choices=["depth", "pixor"],
                         help="networks to export (default both; 'pixor' alone for a LiDAR-only detector)")
     args = parser.parse_args(argv)

@@ -233,6 +233,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
 
+    from pipeline.cli import positive_int
     from pipeline.errors import InputError
     from pipeline.model_files import ModelFileError
 
@@ -242,7 +243,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", choices=["fp16", "int8"], required=True)
     parser.add_argument("--out", type=Path, required=True, help="output model directory")
     parser.add_argument("--calibration-data", type=Path, required=True, help="KITTI-layout folder for calibration")
-    parser.add_argument("--calibration-frames", type=int, default=300, help="frames used (default 300)")
+    parser.add_argument("--calibration-frames", type=positive_int, default=300, help="frames used (default 300)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:

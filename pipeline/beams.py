@@ -197,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("src_dir", type=Path, metavar="SRC_DIR", help="folder of KITTI velodyne .bin scans")
     parser.add_argument("dst_dir", type=Path, metavar="DST_DIR", help="output folder (created if needed)")
-    parser.add_argument("--beams", type=int, default=16, help="lines to keep: 32, 16, 8 or 4 (default 16)")
+    parser.add_argument("--beams", type=int, default=16, choices=BEAM_COUNTS, metavar="N",
+                        help="lines to keep: 32, 16, 8 or 4 (default 16)")
     parser.add_argument("--mode", choices=["stride", "vlp16"], default="stride",
                         help="stride: every k-th ring by elevation; vlp16: rings nearest the VLP-16 angles")
     args = parser.parse_args(argv)

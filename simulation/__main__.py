@@ -8,6 +8,7 @@ import statistics
 import sys
 from pathlib import Path
 
+from pipeline.cli import non_negative_int, positive_int
 from simulation.run import RunConfig, run
 
 
@@ -19,10 +20,10 @@ def main(argv: list[str] | None = None) -> int:
         "metres × 256), plus ImageSets/<split>.txt. Frame i depends only on (seed, i).",
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder (KITTI 'training/' equivalent)")
-    parser.add_argument("--frames", type=int, required=True, help="number of frames to write")
+    parser.add_argument("--frames", type=positive_int, required=True, help="number of frames to write")
     parser.add_argument("--seed", type=int, required=True, help="run seed; use disjoint seeds for train and val")
-    parser.add_argument("--start", type=int, default=0, help="first frame index / file id (default 0)")
-    parser.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--start", type=non_negative_int, default=0, help="first frame index / file id (default 0)")
+    parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument("--split", default="train", help="name of the ImageSets list file (default train)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = parser.parse_args(argv)

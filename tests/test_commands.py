@@ -26,8 +26,10 @@ def test_every_command_answers_help(name):
 
 @pytest.mark.parametrize(("name", "flag"), [("frame_ops", "--repeats"), ("eval_speed", "--frames"),
                                             ("sim_report", "--frames"), ("network_latency", "--repeats"),
-                                            ("latency", "--frames")])
-def test_benchmarks_refuse_a_count_of_zero(name, flag):
+                                            ("latency", "--frames"), ("simulation", "--frames"),
+                                            ("export.precision", "--calibration-frames"),
+                                            ("export", "--calibration-frames")])
+def test_counts_of_zero_are_refused_by_the_flag(name, flag):
     done = subprocess.run([*_command(name), flag, "0"], capture_output=True, text=True, timeout=120, check=False,
                           cwd=REPO)
     assert done.returncode == 2 and "Traceback" not in done.stderr
