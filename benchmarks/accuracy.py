@@ -29,6 +29,7 @@ from pathlib import Path
 from evaluation.frames import load_label_dirs, read_split_file
 from evaluation.kitti_eval import DEFAULT_IOU_THRESHOLDS, KittiEvalResult, evaluate
 from evaluation.report import format_table, plot_pr_curves, to_json
+from pipeline.cli import probability
 from pipeline.errors import InputError
 
 log = logging.getLogger("accuracy")
@@ -102,7 +103,7 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--input", choices=["lidar64", "lidar16", "lidar16+camera"], help="the paper's table row")
     detect.add_argument("--frames", type=Path, metavar="LIST", help="frame ids to run, one per line (default all)")
     detect.add_argument("--out", type=Path, metavar="DIR", help="where the result files go (default outputs/accuracy/INPUT)")
-    detect.add_argument("--score-threshold", type=float, default=0.05,
+    detect.add_argument("--score-threshold", type=probability, default=0.05,
                         help="keep detections above this score (default 0.05: AP needs the whole curve)")
     detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")
     depth = parser.add_argument_group("depth completion")

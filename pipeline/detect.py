@@ -20,6 +20,7 @@ import cv2
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import labels_to_boxes
+from pipeline.cli import probability
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.kitti import read_calib, read_image, read_velodyne, write_labels
@@ -119,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calib", type=Path, help="KITTI calib .txt")
     parser.add_argument("--emulate-beams", type=int, metavar="N", choices=BEAM_COUNTS,
                         help=f"thin a 64-line scan to N lines first ({', '.join(map(str, BEAM_COUNTS))})")
-    parser.add_argument("--score-threshold", type=float, help="minimum score (default: the model's)")
+    parser.add_argument("--score-threshold", type=probability, help="minimum score (default: the model's)")
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best available)")
     parser.add_argument("--no-pictures", action="store_true", help="skip the BEV PNGs")
     parser.add_argument("--out", type=Path, required=True, help="output folder")

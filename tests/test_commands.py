@@ -34,3 +34,10 @@ def test_counts_of_zero_are_refused_by_the_flag(name, flag):
                           cwd=REPO)
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert f"argument {flag}: must be at least 1, got 0" in done.stderr
+
+
+@pytest.mark.parametrize("name", ["pipeline.detect", "accuracy"])
+def test_a_score_threshold_outside_0_1_is_refused(name):
+    done = subprocess.run([*_command(name), "--score-threshold", "2"], capture_output=True, text=True, timeout=120,
+                          check=False, cwd=REPO)
+    assert done.returncode == 2 and "argument --score-threshold: must be between 0 and 1, got 2" in done.stderr
