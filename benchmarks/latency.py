@@ -106,9 +106,10 @@ class TorchSession:
 def torch_twin(detector: Detector, checkpoints: Path | None) -> tuple[dict, str]:
     """PyTorch eager networks of ``detector``'s model directory, and where their weights come from.
 
-    From ``checkpoints`` where given; otherwise an FP32 directory's own weights, read back from its ONNX
-    files (models/onnx_weights.py) and checked against ONNX Runtime on a real KITTI frame with the
-    exporter's tolerances; a reduced-precision directory's twin gets the exporter's initialised weights.
+    From ``checkpoints`` where given; otherwise an FP32 directory's own weights (for an INT8 or FP16
+    directory, those of the FP32 directory it was converted from), read back from the ONNX files
+    (models/onnx_weights.py) and checked against ONNX Runtime on a real KITTI frame with the exporter's
+    tolerances; the exporter's initialised weights when neither is there.
     """
     from export.exporter import ExportConfig
     from export.exporter import run as export
@@ -460,7 +461,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         report["speedup_vs_torch"] = report["torch_end_to_end_ms"]["mean"] / report["paired_end_to_end_ms"]["mean"]
         report["speedup_vs_torch_blocks"] = block_spread(ratios)
         # The networks alone do not depend on the weights' values; the stages between them do (candidates to
-        # decode, pseudo points to bin), so with initialised PyTorch weights only these ratios compare like with like.
+        # decode, pseudo points to bin), so where the twin has initialised weights only these compare like with like.
         report["speedup_vs_torch_networks"] = {
             stage: report["torch_stages_ms"][stage]["p50"] / report["paired_stages_ms"][stage]["p50"]
             for stage in ("depth_net", "pixor") if stage in report["paired_stages_ms"]}

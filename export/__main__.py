@@ -66,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ValueError, FileNotFoundError, ModelFileError) as exc:  # checkpoints, calibration data, --out
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except ParityError as exc:  # the ONNX files are written; the numbers say why they are not to be used
+    except ParityError as exc:  # nothing is written to --out; the numbers say why
         print(f"error: {exc}", file=sys.stderr)
         return 1
 

@@ -98,7 +98,7 @@ def run(config: ExportConfig) -> ExportResult:
     """Build (and load) the networks, export both to ONNX, check them, write the manifest.
 
     Raises ParityError when ONNX Runtime disagrees with PyTorch past tolerance, and
-    ValueError/FileNotFoundError for bad presets or checkpoints, before writing a manifest.
+    ValueError/FileNotFoundError for bad presets or checkpoints; ``--out`` is then left as it was.
     """
     preset = get_preset(config.preset)
     out = Path(config.out)

@@ -235,7 +235,6 @@ def main(argv: list[str] | None = None) -> int:
 
     from pipeline.cli import positive_int
     from pipeline.errors import InputError
-    from pipeline.model_files import ModelFileError
 
     parser = argparse.ArgumentParser(prog="python -m export.precision",
                                      description="Convert an FP32 model directory to FP16 or INT8 (QDQ).")

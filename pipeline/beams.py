@@ -27,9 +27,9 @@ log = logging.getLogger(__name__)
 # HDL-64E: about +2° … −24.9°; VLP-16: −15° … +15° in 2° steps.
 HDL64_ELEVATION_RANGE_DEG = (-24.9, 2.0)
 VLP16_ELEVATIONS_DEG = np.arange(-15.0, 15.1, 2.0)
-# A ring-ordered scan has one wrap per ring; far more segments means the order is lost.
 BEAM_COUNTS = (32, 16, 8, 4)  # what a 64-line scan thins to by keeping every k-th ring
 MIN_RINGS_OF_64_LINES = 56  # a KITTI HDL-64E scan splits into 64–65 azimuth-wrap segments, a thinned one into 32 or 16
+# A ring-ordered scan has one wrap per ring; far more segments means the order is lost.
 _MAX_PLAUSIBLE_SEGMENTS = 200
 _MIN_POINTS_PER_SEGMENT = 200
 

@@ -38,3 +38,9 @@ def probability(text: str) -> float:
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"must be between 0 and 1, got {text}")
     return value
+
+
+def unwritable(out: object, exc: OSError) -> str:
+    """The one-line error for an output folder the system refused (a file in the way, no permission, full)."""
+    where = f"{exc.filename}: " if exc.filename else ""
+    return f"error: --out {out}: {where}{exc.strerror or exc}"

@@ -24,6 +24,7 @@ import numpy as np
 from pipeline.beams import emulate_beams, recover_rings
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
+from pipeline.cli import unwritable
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.model_files import ModelFileError
@@ -93,8 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # an --out that cannot be written (a file in the way, no permission, a full disk)
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"error: --out {args.out}: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(unwritable(args.out, exc), file=sys.stderr)
         return 2
     print(json.dumps(summary, indent=2))
     return 0

@@ -20,7 +20,7 @@ import cv2
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import probability
+from pipeline.cli import probability, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.kitti import read_calib, read_image, read_velodyne, write_labels
@@ -135,8 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # an --out that cannot be written (a file in the way, no permission, a full disk)
-        where = f"{exc.filename}: " if exc.filename else ""
-        print(f"error: --out {args.out}: {where}{exc.strerror or exc}", file=sys.stderr)
+        print(unwritable(args.out, exc), file=sys.stderr)
         return 2
     stages = ", ".join(f"{k} {v:.1f} ms" for k, v in result.mean_timings_ms.items())
     print(f"{len(result.frame_ids)} frame(s), {result.detections} detection(s) → {args.out}/data")

@@ -82,7 +82,8 @@ def run(config: RunConfig) -> RunResult:
     all_indices = list(range(config.start, config.start + config.frames))
     indices = [i for i in all_indices if not _complete(out, i)]
     if len(indices) < len(all_indices):
-        present = next(i for i in all_indices if i not in set(indices))
+        todo = set(indices)
+        present = next(i for i in all_indices if i not in todo)
         if not _written_with_seed(out, config.seed, present):
             raise ValueError(f"{out}: frame {frame_name(present)} there is not the one seed {config.seed} makes; "
                              "resume with the seed that wrote the folder, or give another --out")
