@@ -322,7 +322,8 @@ def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], inp
         losses.append(float(pixor_loss(logits, regression, torch.from_numpy(targets.score)[None, None],
                                        torch.from_numpy(targets.regression)[None]).total))
         score = torch.sigmoid(logits)[0, 0].numpy()
-        boxes, scores = boxes_from_maps(score, regression[0].numpy(), bev, preset, score_threshold=0.05)
+        boxes, scores = boxes_from_maps(score, regression[0].numpy(), bev, preset, score_threshold=0.05,
+                                        with_pseudo=input_mode == "pseudo" or depth_net is not None)
         seen = in_camera_view(boxes, frame.calib, frame.image_hw)
         objects = boxes_to_objects(boxes[seen], frame.calib, frame.image_hw, scores[seen])
         gts.append(LabelArrays.from_objects(frame.labels or []))

@@ -23,7 +23,7 @@ import numpy as np
 
 from pipeline.calib import Calibration
 from pipeline.presets import BevGrid
-from pipeline.pseudo import bin_rays
+from pipeline.pseudo import bin_rays, depth_jumps
 
 
 def bev_indices(points: np.ndarray, grid: BevGrid) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -68,10 +68,15 @@ def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid, 
 
 @dataclass(frozen=True)
 class PseudoBins:
-    """Pseudo points as BEV bins: flat occupancy index ``iz·ny·nx + iy·nx + ix`` and cell ``iy·nx + ix``."""
+    """Pseudo points as BEV bins: flat occupancy index ``iz·ny·nx + iy·nx + ix`` and cell ``iy·nx + ix``.
+
+    sharp: per point, False where its pixel sits on a depth jump
+    (:func:`pipeline.pseudo.depth_jumps`); None when not asked for.
+    """
 
     occupancy: np.ndarray  # int64 (N,)
     cell: np.ndarray  # int64 (N,)
+    sharp: np.ndarray | None = None  # bool (N,)
 
 
 def bins_of_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid) -> PseudoBins:
@@ -89,8 +94,13 @@ def pseudo_bins(
     max_depth: float = 80.0,
     stride: int = 1,
     max_height: float | None = None,
+    max_jump: float | None = None,
 ) -> PseudoBins:
     """BEV bins of the pseudo points of an (H, W) depth map, straight from the map.
+
+    max_jump: also mark which points are off depth jumps of more than that
+    fraction (``PseudoBins.sharp``; box heights use only those), judged on the
+    full map before striding.
 
     The same points as :func:`pipeline.pseudo.pseudo_xyz` with the same
     arguments, binned like :func:`bins_of_xyz` — but never built: a pixel's
@@ -122,13 +132,20 @@ def pseudo_bins(
     kept = np.flatnonzero(keep)
     iz, iy, ix = (b[kept].astype(np.int64) for b in bins)
     cell = iy * grid.nx + ix
-    return PseudoBins(iz * (grid.ny * grid.nx) + cell, cell)
+    sharp = None
+    if max_jump is not None:
+        sharp = ~depth_jumps(depth, max_jump)[::stride, ::stride].reshape(-1)[kept]
+    return PseudoBins(iz * (grid.ny * grid.nx) + cell, cell, sharp)
 
 
 class BevVoxelizer:
     """Voxelizes frames into one reused output buffer (not thread-safe: one per worker).
 
     The returned array is overwritten by the next call; copy it to keep it.
+    After each call, ``height_occupancy`` is the occupancy box heights read
+    (:func:`pipeline.postprocess.estimate_heights`): the BEV tensor itself,
+    or, when some pseudo points are marked as not sharp, a uint8
+    (nz, ny, nx) grid of the real points and the sharp pseudo points only.
     """
 
     def __init__(self, grid: BevGrid) -> None:
@@ -136,6 +153,9 @@ class BevVoxelizer:
         self._out = np.zeros(grid.shape, dtype=np.float32)
         self._flat = self._out.reshape(-1)
         self._touched = np.zeros(0, dtype=np.int64)
+        self._heights: np.ndarray | None = None  # made on the first frame that needs it
+        self._heights_touched = np.zeros(0, dtype=np.int64)
+        self.height_occupancy: np.ndarray = self._out
 
     def __call__(self, points: np.ndarray,
                  pseudo: PseudoBins | tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
@@ -151,15 +171,18 @@ class BevVoxelizer:
         self._flat[self._touched] = 0.0  # clear only what the last frame set
         iz, iy, ix, kept = bev_indices(points, grid)
         cell = iy * grid.nx + ix
-        occupancy = iz * plane + cell
+        occupancy = real_occupancy = iz * plane + cell
         self._flat[occupancy] = 1.0
         counted = cell
+        self.height_occupancy = self._out
         if pseudo is not None:
             if not isinstance(pseudo, PseudoBins):
                 pseudo = bins_of_xyz(*pseudo, grid)
             self._flat[pseudo.occupancy] = 1.0
             occupancy = np.concatenate([occupancy, pseudo.occupancy])
             counted = np.concatenate([cell, pseudo.cell])
+            if pseudo.sharp is not None and not pseudo.sharp.all():
+                self.height_occupancy = self._sharp_occupancy(real_occupancy, pseudo.occupancy[pseudo.sharp])
         # Mean reflectance of each cell with real returns (pseudo points add 0 to the sum but
         # count), written only there: each point writes its cell's mean (duplicates write the
         # same value), which avoids scanning the whole plane for the occupied cells.
@@ -169,6 +192,17 @@ class BevVoxelizer:
         self._flat[reflectance_index] = sums[cell] / counts[cell]
         self._touched = np.concatenate([occupancy, reflectance_index])
         return self._out
+
+    def _sharp_occupancy(self, real: np.ndarray, sharp_pseudo: np.ndarray) -> np.ndarray:
+        """The uint8 (nz, ny, nx) occupancy of the real points and the sharp pseudo points (a reused buffer)."""
+        if self._heights is None:
+            self._heights = np.zeros((self.grid.nz, self.grid.ny, self.grid.nx), dtype=np.uint8)
+        flat = self._heights.reshape(-1)
+        flat[self._heights_touched] = 0
+        flat[real] = 1
+        flat[sharp_pseudo] = 1
+        self._heights_touched = np.concatenate([real, sharp_pseudo])
+        return self._heights
 
 
 def voxelize_bev(points: np.ndarray, grid: BevGrid) -> np.ndarray:

@@ -3,7 +3,8 @@
 Stages (each timed): ``prepare`` (depth-net view and sparse depth) →
 ``depth_net`` (depth.onnx) → ``pseudo_points`` (back-projection, straight to
 BEV bins) → ``voxelize`` (BEV tensor of pseudo + real points) → ``pixor`` (pixor.onnx) →
-``decode`` (candidates, rotated NMS, z and h). A model directory without
+``decode`` (candidates, rotated NMS, z and h; heights skip the pseudo points
+smeared across depth edges). A model directory without
 ``depth.onnx`` is a LiDAR-only PIXOR: it skips the first three stages.
 
 One Detector may be called from several threads at once: ONNX Runtime
@@ -240,19 +241,21 @@ class Detector:
             tic = time.perf_counter()
             d = self.preset.decode
             limits = (self.preset.depth.min_depth, self.preset.depth.max_depth, d.pseudo_stride, d.pseudo_max_height)
-            pseudo = pseudo_bins(depth[0, 0], inputs.calib, self.preset.bev, *limits)
+            pseudo = pseudo_bins(depth[0, 0], inputs.calib, self.preset.bev, *limits, max_jump=d.height_max_jump)
             timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3
         else:
             pseudo = None
 
         tic = time.perf_counter()
-        bev = self._voxelizer()(points, pseudo)
+        voxelizer = self._voxelizer()
+        bev = voxelizer(points, pseudo)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         score, regression = self._sessions["pixor"].run(["score", "regression"], {"bev": bev[None]})
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
-        boxes, scores = boxes_from_maps(score[0, 0], regression[0], bev, self.preset, score_threshold)
+        boxes, scores = boxes_from_maps(score[0, 0], regression[0], voxelizer.height_occupancy, self.preset,
+                                        score_threshold, with_pseudo=pseudo is not None)
         timings["decode"] = (time.perf_counter() - tic) * 1e3
         timings["total"] = (time.perf_counter() - start) * 1e3
         cloud = None

@@ -1,10 +1,16 @@
 """From PIXOR's maps to 3D boxes: decode, rotated NMS, then z and h from the BEV occupancy.
 
 PIXOR regresses only the BEV box. Each box's vertical extent is read from the
-BEV tensor the network saw: the occupied height slices of the grid cells
-under the box, between robust low and high quantiles, clipped to plausible car
-heights. No pass over the points is needed. Boxes with too little occupancy
-sit on the road at the preset's ground level with the mean KITTI car height.
+BEV occupancy: the occupied height slices of the grid cells under the box,
+between robust low and high quantiles. The box's bottom is in the low slice
+(its lower edge, or its centre with pseudo points); its height is the measured
+extent averaged with the mean car height, weighted by how much occupied volume
+was seen (a car seen by a few returns keeps about the mean height). No pass
+over the points is needed. Boxes with too little occupancy sit on the road at
+the preset's ground level with the mean KITTI car height. The camera pipeline
+reads a grid without the pseudo points smeared across depth edges
+(:class:`pipeline.bev.BevVoxelizer`, ``height_occupancy``). docs/models.md
+("Box heights") gives the measurements.
 """
 
 from __future__ import annotations
@@ -19,8 +25,12 @@ _HEIGHT_RANGE = (1.2, 2.4)  # metres: cars and vans, not tree tops or kerbs
 _LOW_Q, _HIGH_Q = 0.05, 0.95
 
 
-def estimate_heights(bev_boxes: np.ndarray, bev: np.ndarray, preset: Preset) -> tuple[np.ndarray, np.ndarray]:
-    """Centre z and height h of each BEV box ``[x, y, l, w, yaw]`` from the (C, ny, nx) BEV tensor."""
+def estimate_heights(bev_boxes: np.ndarray, bev: np.ndarray, preset: Preset,
+                     with_pseudo: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Centre z and height h of each BEV box ``[x, y, l, w, yaw]`` from the (≥nz, ny, nx) BEV occupancy.
+
+    with_pseudo: the occupancy holds pseudo points (the camera pipeline), which places bottoms differently.
+    """
     decode, grid = preset.decode, preset.bev
     stride = preset.pixor.output_stride
     n = bev_boxes.shape[0]
@@ -45,10 +55,16 @@ def estimate_heights(bev_boxes: np.ndarray, bev: np.ndarray, preset: Preset) -> 
     cumulative = np.cumsum(histogram, axis=1)
     low = np.argmax(cumulative >= _LOW_Q * total[:, None], axis=1)
     high = np.argmax(cumulative >= _HIGH_Q * total[:, None], axis=1)
-    bottom = grid.z_min + low * grid.z_cell
+    # The high quantile already trims the roof: the top is the high slice's upper edge.
+    in_slice = decode.bottom_in_slice_with_pseudo if with_pseudo else decode.bottom_in_slice
+    bottom = grid.z_min + (low + in_slice) * grid.z_cell
     top = grid.z_min + (high + 1) * grid.z_cell
     enough = total >= decode.min_occupied_for_height
     measured = np.clip(top - bottom, *_HEIGHT_RANGE)
+    # Car heights spread little (KITTI: 1.53 ± 0.14 m) while a sparse view measures them badly:
+    # weigh the measurement by the occupied volume seen against height_prior_volume.
+    seen = total * (grid.cell * grid.cell * grid.z_cell)
+    measured = (seen * measured + decode.height_prior_volume * decode.car_height) / (seen + decode.height_prior_volume)
     h = np.where(enough, measured, h)
     z = np.where(enough, bottom + h / 2, z)
     return z, h
@@ -56,14 +72,18 @@ def estimate_heights(bev_boxes: np.ndarray, bev: np.ndarray, preset: Preset) -> 
 
 def boxes_from_maps(
     score: np.ndarray, regression: np.ndarray, bev: np.ndarray, preset: Preset,
-    score_threshold: float | None = None,
+    score_threshold: float | None = None, with_pseudo: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """PIXOR maps (ny/4, nx/4) and (6, ny/4, nx/4) plus the BEV input → (K, 7) LiDAR boxes and (K,) scores."""
+    """PIXOR maps (ny/4, nx/4) and (6, ny/4, nx/4) plus the BEV occupancy → (K, 7) LiDAR boxes and (K,) scores.
+
+    bev: the BEV input, or any (≥nz, ny, nx) occupancy of the same grid (the heights read only that).
+    with_pseudo: it holds pseudo points (:func:`estimate_heights`).
+    """
     candidates, scores = decode_maps(
         score, regression, preset.bev, preset.pixor.output_stride, preset.decode, score_threshold
     )
     keep = rotated_nms(candidates, scores, preset.decode.nms_iou, preset.decode.max_detections)
     bev_boxes, scores = candidates[keep], scores[keep]
-    z, h = estimate_heights(bev_boxes, bev, preset)
+    z, h = estimate_heights(bev_boxes, bev, preset, with_pseudo)
     boxes = np.column_stack([bev_boxes[:, 0], bev_boxes[:, 1], z, bev_boxes[:, 2], bev_boxes[:, 3], h, bev_boxes[:, 4]])
     return boxes.reshape(-1, 7), scores

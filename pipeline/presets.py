@@ -111,6 +111,17 @@ class DecodeConfig:
     car_height: float = 1.53  # metres, when too few points lie inside a box
     ground_z: float = -1.73  # metres, road level in the LiDAR frame (KITTI's sensor height)
     min_occupied_for_height: int = 4  # occupied BEV voxels inside a box needed to measure its height
+    # A measured height is averaged with car_height, weighted by the occupied volume under the box
+    # against this volume (m³): a sparsely seen car keeps about the mean height (docs/models.md, "Box heights").
+    height_prior_volume: float = 0.48
+    # Pseudo points whose depth jumps by more than this fraction to a 4-neighbour pixel (the smear
+    # between a car and what is behind it) do not count for heights; PIXOR still sees them.
+    height_max_jump: float = 0.1
+    # Where in the lowest occupied height slice a box's bottom sits (0 its lower edge, 0.5 its centre).
+    # Real returns start on the car's body, above the road; the camera pipeline's pseudo points take in
+    # the road beside the car with some noise, which put its boxes about 0.1 m low (tuning frames).
+    bottom_in_slice: float = 0.0
+    bottom_in_slice_with_pseudo: float = 0.5
     pseudo_stride: int = 1  # keep every k-th pseudo point (rows and columns)
     pseudo_max_height: float = 1.0  # metres above the LiDAR, drop pseudo points above (sky, trees)
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from pipeline.calib import Calibration
@@ -120,6 +121,26 @@ def pseudo_xyz(
     index = np.flatnonzero(valid)
     d = d[index]
     return tuple(d * table.rays[axis][index] + table.origin[axis] for axis in range(3))
+
+
+_CROSS = cv2.getStructuringElement(cv2.MORPH_CROSS, (3, 3))
+
+
+def depth_jumps(depth: np.ndarray, max_jump: float) -> np.ndarray:
+    """Pixels of an (H, W) depth map whose depth differs from a 4-neighbour's by more than max_jump × their own.
+
+    These are the pixels on either side of a depth edge, and the pixels a
+    completion network smears across it: back-projected, they float between a
+    car and what is behind it. The largest difference to a neighbour is the
+    larger of (3×3 cross maximum − d) and (d − cross minimum); borders compare
+    only with neighbours inside the map.
+    """
+    d = np.asarray(depth, np.float32)
+    above = cv2.dilate(d, _CROSS)
+    above -= d
+    below = d - cv2.erode(d, _CROSS)
+    np.maximum(above, below, out=above)
+    return above > np.float32(max_jump) * d
 
 
 def depth_to_points(

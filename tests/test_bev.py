@@ -155,3 +155,63 @@ def test_pseudo_bins_drop_what_is_outside_without_warnings():
     # Another grid on the same calibration gets its own bin rays.
     other = pseudo_bins(depth, view_calib, PRESETS["paper"].bev, 0.9, 80.0, 1, None)
     assert other.occupancy.max() >= grid.nz * grid.ny * grid.nx  # the paper grid is larger
+
+
+def test_depth_jumps_mark_both_sides_of_an_edge_and_the_smear_between():
+    """A car at 10 m in front of a wall at 30 m, with two smeared pixels between them: the edge pixels and
+    the smear are marked; the flat car, the flat wall and a road whose depth grows smoothly are not."""
+    from pipeline.pseudo import depth_jumps
+
+    depth = np.full((6, 12), 30.0, np.float32)
+    depth[:, :5] = 10.0
+    depth[:, 5:7] = [15.0, 25.0]  # the completion network's blur across the edge
+    marked = depth_jumps(depth, 0.1)
+    np.testing.assert_array_equal(marked.any(axis=0), [0, 0, 0, 0, 1, 1, 1, 1, 0, 0, 0, 0])
+    assert marked[:, 4:8].all()
+    road = np.repeat(np.geomspace(80, 5, 40, dtype=np.float32)[:, None], 30, axis=1)  # 7 % per row
+    assert not depth_jumps(road, 0.1).any()
+    assert depth_jumps(road, 0.05)[1:-1].all()
+    # The same as comparing each pixel with its four neighbours one by one.
+    rng = np.random.default_rng(3)
+    noisy = rng.uniform(5, 50, (20, 30)).astype(np.float32)
+    expected = np.zeros(noisy.shape, bool)
+    for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        shifted = np.full((22, 32), np.nan, np.float32)
+        shifted[1 + dy:21 + dy, 1 + dx:31 + dx] = noisy
+        with np.errstate(invalid="ignore"):
+            expected |= np.abs(shifted[1:21, 1:31] - noisy) > np.float32(0.2) * noisy
+    np.testing.assert_array_equal(depth_jumps(noisy, 0.2), expected)
+
+
+def test_heights_read_the_real_and_sharp_pseudo_points_only():
+    """PIXOR's BEV keeps every pseudo point; the occupancy for box heights leaves out those on depth jumps,
+    and is exactly the voxelization of the real points plus the pseudo points off the jumps."""
+    from pipeline.bev import pseudo_bins
+    from pipeline.pseudo import depth_jumps
+
+    frame, preset, view_calib = _kitti_view()
+    grid = preset.bev
+    h, w = preset.depth.input_hw
+    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
+    depth[h // 2:, w // 3:w // 2] = 8.0  # a near object: its outline jumps against the road
+    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    plain = pseudo_bins(depth, view_calib, grid, *limits)
+    marked = pseudo_bins(depth, view_calib, grid, *limits, max_jump=0.1)
+    np.testing.assert_array_equal(marked.occupancy, plain.occupancy)
+    assert plain.sharp is None and 0 < np.count_nonzero(~marked.sharp) < marked.sharp.size
+
+    voxelizer = BevVoxelizer(grid)
+    bev = voxelizer(frame.points, marked).copy()
+    np.testing.assert_array_equal(bev, BevVoxelizer(grid)(frame.points, plain))
+    cleaned = depth.copy()
+    cleaned[depth_jumps(depth, 0.1)] = 0.0  # below min_depth: dropped
+    expected = BevVoxelizer(grid)(frame.points, pseudo_bins(cleaned, view_calib, grid, *limits))[:grid.nz]
+    np.testing.assert_array_equal(voxelizer.height_occupancy, expected.astype(np.uint8))
+    assert voxelizer.height_occupancy.sum() < bev[:grid.nz].sum()
+
+    # The next frame clears what this one set; without marked points the heights read the BEV itself.
+    voxelizer(frame.points[:1000], pseudo_bins(depth[::-1].copy(), view_calib, grid, *limits, max_jump=0.1))
+    again = voxelizer(frame.points, marked)
+    np.testing.assert_array_equal(voxelizer.height_occupancy, expected.astype(np.uint8))
+    voxelizer(frame.points)
+    assert voxelizer.height_occupancy is again

@@ -174,6 +174,31 @@ def test_heights_from_bev_occupancy():
     assert h0[0] == p.decode.car_height and z0[0] == pytest.approx(p.decode.ground_z + p.decode.car_height / 2)
 
 
+def test_heights_weigh_what_was_seen_against_the_mean_car_height():
+    """A van seen whole keeps its measured 2.0 m; the same van seen by a handful of voxels gets about the
+    mean car height. The bottom is the lowest slice's lower edge, or its centre with pseudo points."""
+    from pipeline.postprocess import estimate_heights
+
+    p = PRESETS["edge"]
+    grid, decode = p.bev, p.decode
+    box = np.array([[30.0, 0.0, 4.0, 2.0, 0.0]])  # x, y, l, w, yaw
+    ground_slice = 4  # z from -1.7 m
+    rows = slice(int((-0.8 - grid.y_min) / grid.cell), int((0.8 - grid.y_min) / grid.cell))
+    cols = slice(int((28.4 - grid.x_min) / grid.cell), int((31.6 - grid.x_min) / grid.cell))
+    whole = np.zeros(grid.shape, np.float32)
+    whole[ground_slice:ground_slice + 10, rows, cols] = 1.0  # ten 0.2 m slices: 2.0 m
+    z, h = estimate_heights(box, whole, p)
+    bottom = grid.z_min + ground_slice * grid.z_cell
+    assert 1.95 < h[0] < 2.0 and z[0] == pytest.approx(bottom + h[0] / 2)
+    z_pseudo, h_pseudo = estimate_heights(box, whole, p, with_pseudo=True)
+    assert z_pseudo[0] - h_pseudo[0] / 2 == pytest.approx(bottom + grid.z_cell / 2)
+
+    glimpse = np.zeros(grid.shape, np.float32)
+    glimpse[[ground_slice, ground_slice + 3, ground_slice + 6, ground_slice + 9], rows.start + 3, cols.start + 5] = 1.0
+    _, h_glimpse = estimate_heights(box, glimpse, p)
+    assert abs(h_glimpse[0] - decode.car_height) < 0.05
+
+
 def test_camera_view_filter():
     from pipeline.boxes import in_camera_view
 
