@@ -51,6 +51,7 @@ class LabelEvalConfig:
     class_name: str = "Car"
     iou_thresholds: tuple[float, ...] = DEFAULT_IOU_THRESHOLDS
     progress: bool = True
+    ignore_small_detections: bool = True  # the devkit's rule (evaluation.kitti_eval.evaluate)
 
 
 @dataclass(frozen=True)
@@ -71,15 +72,20 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
     result = evaluate(
         labels.ground_truth, labels.detections, class_name=config.class_name,
         iou_thresholds=config.iou_thresholds, progress=config.progress,
+        ignore_small_detections=config.ignore_small_detections,
     )
     if config.json_path:
         document = to_json(result)
         document["missing_predictions"] = list(labels.missing_predictions)
+        document["small_detections"] = "ignored (devkit)" if config.ignore_small_detections else "counted (diagnostic)"
         config.json_path.parent.mkdir(parents=True, exist_ok=True)
         config.json_path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
     plot_paths = tuple(plot_pr_curves(result, config.plots_dir)) if config.plots_dir else ()
+    table = format_table(result)
+    if not config.ignore_small_detections:
+        table = "not the devkit protocol: detections with 2D boxes under the minimum height are counted\n" + table
     return LabelEvalRun(
-        result=result, table=format_table(result), missing_predictions=labels.missing_predictions,
+        result=result, table=table, missing_predictions=labels.missing_predictions,
         json_path=config.json_path, plot_paths=plot_paths,
     )
 
@@ -109,6 +115,12 @@ def build_parser() -> argparse.ArgumentParser:
     depth = parser.add_argument_group("depth completion")
     depth.add_argument("--depth", action="store_true",
                        help="depth metrics with --data (KITTI depth-completion layout, or an object folder with depth_2/)")
+    labels.add_argument(
+        "--count-small-detections", action="store_true",
+        help="diagnostic, not the devkit: count detections whose 2D box is under a difficulty's minimum "
+        "height (25 or 40 px), which the devkit ignores; for a BEV detector whose 2D boxes come from "
+        "estimated heights, BEV AP then measures the BEV boxes alone",
+    )
     output = parser.add_argument_group("output")
     output.add_argument("--json", type=Path, metavar="OUT", help="write every figure as JSON (AP in percent)")
     output.add_argument("--plots", type=Path, metavar="DIR",
@@ -129,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     config = LabelEvalConfig(
         gt_labels=args.gt_labels, pred_labels=args.pred_labels, split_file=args.split_file,
         json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
+        ignore_small_detections=not args.count_small_detections,
     )
     try:
         outcome = run(config)
@@ -180,6 +193,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
         outcome = run(LabelEvalConfig(
             gt_labels=args.data / "label_2", pred_labels=predictions, split_file=args.frames,
             json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
+            ignore_small_detections=not args.count_small_detections,
         ))
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -209,7 +209,8 @@ class _Frame:
     dontcare: np.ndarray
 
 
-def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: Sequence[str]) -> _Frame:
+def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: Sequence[str],
+                   ignore_small_detections: bool = True) -> _Frame:
     """Clean one frame (``cleanData``) and compute its overlap matrices once."""
     name = class_name.lower()
     neighbour = NEIGHBOUR_CLASSES.get(name)
@@ -228,6 +229,8 @@ def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: 
     # integer minimum; for integer minima that is the same as comparing the real height.
     det_height = np.abs(det.bbox[:, 3] - det.bbox[:, 1])
     too_small = det_height[None, :] < MIN_HEIGHT[:, None]
+    if not ignore_small_detections:
+        too_small[:] = False
     ignored_det = np.where(too_small, 1, np.where(det.types == name, 0, -1)[None, :]).astype(np.int8)
     takes_part = (ignored_det != -1).any(axis=0)
     det_kept = det.select(takes_part)
@@ -334,6 +337,7 @@ def evaluate(
     iou_thresholds: Sequence[float] = DEFAULT_IOU_THRESHOLDS,
     metrics: Sequence[str] | None = None,
     progress: bool = False,
+    ignore_small_detections: bool = True,
 ) -> KittiEvalResult:
     """Evaluate per-frame detections against per-frame ground truth, KITTI style.
 
@@ -341,6 +345,10 @@ def evaluate(
     ``LabelArrays`` for a frame without detections). Detection scores must be set.
     metrics: subset of ``METRICS``; default: those the detections support
     (``available_metrics``). Returns every (metric, overlap threshold, difficulty) curve.
+    ignore_small_detections: the devkit's rule that a detection whose 2D box is
+    lower than a difficulty's minimum height takes no part in it. False counts
+    every detection (not the devkit): for a BEV detector whose 2D boxes come from
+    estimated heights, its BEV AP then depends on the BEV boxes alone.
     """
     if len(ground_truth) != len(detections):
         raise ValueError(f"{len(ground_truth)} ground-truth frames but {len(detections)} detection frames")
@@ -363,7 +371,7 @@ def evaluate(
     cfg_bbox = np.array([metrics[c[0]] == "bbox" for c in configs], dtype=bool)
 
     frames = [
-        _prepare_frame(gt, det, class_name, metrics)
+        _prepare_frame(gt, det, class_name, metrics, ignore_small_detections)
         for gt, det in tqdm(
             zip(ground_truth, detections), total=len(ground_truth), desc="overlaps", disable=not progress
         )

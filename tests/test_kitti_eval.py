@@ -193,6 +193,29 @@ def test_small_detection_of_any_class_absorbs_a_car():
     assert outcome(100.0) == [1, 0, 1]  # another class at full size plays no part: the car is missed
 
 
+def test_counting_small_detections_is_a_diagnostic_outside_the_devkit(tmp_path: Path):
+    """With small detections counted, a correct BEV box with a too-small 2D box is a true positive and a
+    small detection of nothing a false positive; the command says the protocol is not the devkit's."""
+    gt = [obj(), obj(x=8.0, left=400.0)]
+    det = [obj(score=0.9), obj(x=8.0, left=400.0, height_px=20.0, score=0.95),
+           obj(x=-12.0, left=700.0, height_px=20.0, score=0.99)]
+    devkit = run_eval([gt], [det], metrics=("bev",)).curve("bev", 0.7, "moderate")
+    counted = run_eval([gt], [det], metrics=("bev",), ignore_small_detections=False).curve("bev", 0.7, "moderate")
+    assert (devkit.tp.tolist(), devkit.fp.tolist(), devkit.fn.tolist()) == ([1], [0], [0])
+    # At the lowest score threshold: both cars found, and the tiny detection of nothing is a false positive.
+    assert (counted.tp[-1], counted.fp[-1], counted.fn[-1]) == (2, 1, 0)
+
+    for folder in ("gt", "pred"):
+        (tmp_path / folder).mkdir()
+    write_labels(tmp_path / "gt" / "000000.txt", gt)
+    write_labels(tmp_path / "pred" / "000000.txt", det)
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "pred", "--count-small-detections",
+               "--json", tmp_path / "ap.json")
+    assert out.returncode == 0, out.stderr
+    assert "not the devkit protocol" in out.stdout
+    assert json.loads((tmp_path / "ap.json").read_text())["small_detections"] == "counted (diagnostic)"
+
+
 @pytest.mark.parametrize(
     ("truncated", "occluded", "counted"),
     [(0.0, 0, [1, 1, 1]), (0.2, 0, [0, 1, 1]), (0.4, 0, [0, 0, 1]), (0.6, 0, [0, 0, 0]),
