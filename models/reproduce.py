@@ -13,7 +13,7 @@ Stages (each resumes where it stopped: rerun the same command after an interrupt
 5. fine-tune the depth net and PIXOR together (joint, soft BEV occupancy);
 6. train the depth net without GAMs, same budget (the paper's ablation);
 7. export every model directory, evaluate each on the validation set
-   (KITTI BEV AP, depth RMSE/MAE), write ``OUT/table.json`` and ``OUT/table.md``.
+   (KITTI BEV and 3D AP, depth RMSE/MAE), write ``OUT/table.json`` and ``OUT/table.md``.
 
 The training stages (2–6) run as jobs on two lanes side by side, one core
 each, a job starting when the stages it needs are done (models/schedule.py:
@@ -136,11 +136,11 @@ def _export(config: ReproduceConfig, checkpoints: Path, target: Path, networks: 
 
 
 def _detection_ap(config: ReproduceConfig, models: Path, input_mode: str, name: str) -> dict:
-    """KITTI BEV AP (R40 and R11) of one model directory on the validation set."""
+    """KITTI BEV and 3D AP (R40 and R11) of one model directory on the validation set: {"bev": …, "3d": …}."""
     val = config.data / "val"
     predictions = run_detection(val, models, input_mode, config.out / "eval" / name, progress=config.progress)
     labels = load_label_dirs(val / "label_2", predictions)
-    return evaluate(labels.ground_truth, labels.detections, metrics=("bev",)).ap_table()["bev"]
+    return evaluate(labels.ground_truth, labels.detections, metrics=("bev", "3d")).ap_table()
 
 
 STAGE_REPORTS = ("depth", "pixor_lidar16", "pixor_pseudo", "pixor_lidar64", "joint", "depth_no_gam")
@@ -287,10 +287,11 @@ def run(config: ReproduceConfig) -> dict:
     }
     stage("export")
 
-    table = {}
+    table, table_3d = {}, {}
     for row, models in directories.items():
         mode = "lidar16+camera" if row.startswith("lidar16+camera") else row
-        table[row] = _detection_ap(config, models, mode, row.replace("+", "_").replace(" ", "_").strip("()"))
+        ap = _detection_ap(config, models, mode, row.replace("+", "_").replace(" ", "_").strip("()"))
+        table[row], table_3d[row] = ap["bev"], ap["3d"]
     depth_table = {}
     for name, models in (("with GAMs", depth_models), ("without GAMs", no_gam_models)):
         m = run_depth(config.data / "val", models, progress=config.progress).mean
@@ -305,7 +306,7 @@ def run(config: ReproduceConfig) -> dict:
     if product.exists():
         shutil.rmtree(product)
     shutil.copytree(shipped_from, product)
-    report.update({"bev_ap": table, "depth": depth_table, "shipped": str(product),
+    report.update({"bev_ap": table, "ap_3d": table_3d, "depth": depth_table, "shipped": str(product),
                    "shipped_from": "joint fine-tuning" if joint_better else "before joint fine-tuning"})
     report["total_seconds"] = round(time.perf_counter() - started, 1)
     (out / "table.json").write_text(json.dumps(report, indent=1))
@@ -314,11 +315,17 @@ def run(config: ReproduceConfig) -> dict:
 
 
 def format_table(report: dict) -> str:
-    """The paper's table as markdown (BEV AP %, R40; easy / moderate / hard) plus depth errors."""
-    lines = ["| input | IoU 0.5 easy | mod. | hard | IoU 0.7 easy | mod. | hard |", "|---|---|---|---|---|---|---|"]
-    for row, ap in report["bev_ap"].items():
-        cells = [f"{v:.1f}" for iou in ("0.5", "0.7") for v in ap[iou]["R40"]]
-        lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    """The paper's table as markdown (BEV AP %, R40; easy / moderate / hard), 3D AP, and depth errors."""
+    lines = []
+    for title, key in (("BEV AP", "bev_ap"), ("3D AP", "ap_3d")):
+        if key not in report:
+            continue
+        if lines:
+            lines.append("")
+        lines += [f"| {title} | IoU 0.5 easy | mod. | hard | IoU 0.7 easy | mod. | hard |", "|---|---|---|---|---|---|---|"]
+        for row, ap in report[key].items():
+            cells = [f"{v:.1f}" for iou in ("0.5", "0.7") for v in ap[iou]["R40"]]
+            lines.append(f"| {row} | " + " | ".join(cells) + " |")
     bands = list(next(iter(report["depth"].values())).get("median_abs_mm_by_band", {}))
     lines += ["", "| depth net | RMSE (mm) | MAE (mm) | iRMSE (1/km) | iMAE (1/km) | "
               + "".join(f"median error {b} m (mm) | " for b in bands),

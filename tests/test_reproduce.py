@@ -21,10 +21,12 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
         stage = report["stages"][name]
         assert stage["last_loss"] < stage["first_loss"], (name, stage)
     assert set(report["bev_ap"]) == {"lidar64", "lidar16", "lidar16+camera", "lidar16+camera (joint)"}
-    for row in report["bev_ap"].values():
+    assert set(report["ap_3d"]) == set(report["bev_ap"])
+    for row in (*report["bev_ap"].values(), *report["ap_3d"].values()):
         assert all(0 <= v <= 100 for iou in ("0.5", "0.7") for v in row[iou]["R40"])
     assert set(report["depth"]) == {"with GAMs", "without GAMs"}
-    assert "| lidar16+camera |" in (out / "table.md").read_text()
+    table_md = (out / "table.md").read_text()
+    assert "| lidar16+camera |" in table_md and "| BEV AP |" in table_md and "| 3D AP |" in table_md
     # The shipped-style directories load in the runtime, each of the right kind.
     weights = out / "weights"
     assert Detector(weights / "tiny").two_stage
