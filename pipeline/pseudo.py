@@ -136,11 +136,12 @@ def depth_jumps(depth: np.ndarray, max_jump: float) -> np.ndarray:
     only with neighbours inside the map.
     """
     d = np.asarray(depth, np.float32)
-    above = cv2.dilate(d, _CROSS)
-    above -= d
-    below = d - cv2.erode(d, _CROSS)
-    np.maximum(above, below, out=above)
-    return above > np.float32(max_jump) * d
+    with np.errstate(invalid="ignore", over="ignore"):  # inf − inf and NaN are not jumps (and not depths)
+        above = cv2.dilate(d, _CROSS)
+        above -= d
+        below = d - cv2.erode(d, _CROSS)
+        np.maximum(above, below, out=above)
+        return above > np.float32(max_jump) * d
 
 
 def depth_to_points(

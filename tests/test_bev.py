@@ -147,6 +147,9 @@ def test_pseudo_bins_drop_what_is_outside_without_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         bins = pseudo_bins(depth, view_calib, preset.bev, 0.9, 80.0, 1, None)
+        marked = pseudo_bins(depth, view_calib, preset.bev, 0.9, 80.0, 1, None, max_jump=0.1)
+    np.testing.assert_array_equal(marked.occupancy, bins.occupancy)
+    assert marked.sharp.dtype == bool and marked.sharp.size == bins.cell.size
     grid = preset.bev
     assert bins.cell.size > 0 and bins.cell.min() >= 0 and bins.occupancy.max() < grid.nz * grid.ny * grid.nx
     # Every kept point sits 20 m ahead (the 20 m depth plane), whatever row its bin came from.
