@@ -29,7 +29,7 @@ from torch.utils.data import Dataset
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
-from pipeline.calib import depth_crop, sparse_depth_map
+from pipeline.calib import Calibration, depth_crop, sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
 from pipeline.kitti import read_depth_png
@@ -140,14 +140,19 @@ def detector_points(data_dir: Path, frame: Frame, preset: Preset, input_mode: st
         return lidar16
     if input_mode != "pseudo":
         raise InputError(f"--input: {input_mode!r} is not one of {', '.join(DETECTOR_INPUTS)}")
-    if pseudo_dir is None:
-        raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir)")
-    depth = read_depth_png(Path(pseudo_dir) / f"{frame.frame_id}.png")
-    view_calib = view_calibration(frame.image_hw, frame.calib, preset)
+    depth, view_calib = cached_pseudo_depth(pseudo_dir, frame, preset)
     d = preset.decode
     pseudo = depth_to_points(depth, view_calib, preset.depth.min_depth, preset.depth.max_depth,
                              d.pseudo_stride, d.pseudo_max_height)
     return merge_points(pseudo, lidar16)
+
+
+def cached_pseudo_depth(pseudo_dir: Path | None, frame: Frame, preset: Preset) -> tuple[np.ndarray, Calibration]:
+    """A frame's cached dense depth (``models.cache_pseudo``) and the calibration of the view it is in."""
+    if pseudo_dir is None:
+        raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir)")
+    depth = read_depth_png(Path(pseudo_dir) / f"{frame.frame_id}.png")
+    return depth, view_calibration(frame.image_hw, frame.calib, preset)
 
 
 @dataclass

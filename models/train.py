@@ -58,14 +58,16 @@ from models.data import (
     DETECTOR_INPUTS,
     DepthDataset,
     DetectorDataset,
+    cached_pseudo_depth,
     car_boxes,
     detector_points,
     frame_points,
 )
 from models.losses import DEPTH_LOSSES, pixor_loss
 from models.soft_bev import soft_occupancy
-from pipeline.bev import voxelize_bev
+from pipeline.bev import BevVoxelizer, pseudo_bins, voxelize_bev
 from pipeline.boxes import boxes_to_objects, in_camera_view
+from pipeline.calib import Calibration
 from pipeline.cli import non_negative_int, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
@@ -305,25 +307,37 @@ def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU, loss:
 @torch.no_grad()
 def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], input_mode: str,
                       pseudo_dir: Path | None, depth_net=None, device: torch.device = CPU) -> dict:
-    """Validation loss and KITTI BEV AP (moderate, R40) of PIXOR on the validation frames."""
+    """Validation loss and KITTI BEV AP (moderate, R40) of PIXOR on the validation frames.
+
+    The camera rows go through the Detector's own path (pseudo bins, then the voxelizer, whose height
+    occupancy leaves out the pseudo points on depth edges), so the AP that picks a run's best epoch is
+    the one ``benchmarks/accuracy.py`` measures, up to where the dense depth comes from (the PyTorch
+    net in joint runs, the cached ONNX Runtime maps otherwise).
+    """
     pixor.eval()
     if depth_net is not None:
         depth_net.eval()
+    voxelizer = BevVoxelizer(preset.bev)
+    d = preset.decode
+    limits = (preset.depth.min_depth, preset.depth.max_depth, d.pseudo_stride, d.pseudo_max_height)
     gts, dets, losses = [], [], []
     for fid in ids:
         frame = load_frame(data_dir, fid, with_image=depth_net is not None)  # only joint runs the camera net
-        if depth_net is not None:
-            points = joint_points(depth_net, frame, preset, device)
+        if depth_net is not None or input_mode == "pseudo":
+            depth, view_calib = (joint_depth(depth_net, frame, preset, device) if depth_net is not None
+                                 else cached_pseudo_depth(pseudo_dir, frame, preset))
+            pseudo = pseudo_bins(depth, view_calib, preset.bev, *limits, max_jump=d.height_max_jump)
+            bev = voxelizer(frame_points(frame, 16), pseudo)
         else:
-            points = detector_points(data_dir, frame, preset, input_mode, pseudo_dir)
-        bev = voxelize_bev(points, preset.bev)
+            pseudo = None
+            bev = voxelizer(detector_points(data_dir, frame, preset, input_mode, pseudo_dir))
         targets = encode_targets(car_boxes(frame), preset.bev, preset.pixor.output_stride, preset.decode)
         logits, regression = (t.cpu() for t in pixor.forward_logits(torch.from_numpy(bev)[None].to(device)))
         losses.append(float(pixor_loss(logits, regression, torch.from_numpy(targets.score)[None, None],
                                        torch.from_numpy(targets.regression)[None]).total))
         score = torch.sigmoid(logits)[0, 0].numpy()
-        boxes, scores = boxes_from_maps(score, regression[0].numpy(), bev, preset, score_threshold=0.05,
-                                        with_pseudo=input_mode == "pseudo" or depth_net is not None)
+        boxes, scores = boxes_from_maps(score, regression[0].numpy(), voxelizer.height_occupancy, preset,
+                                        score_threshold=0.05, with_pseudo=pseudo is not None)
         seen = in_camera_view(boxes, frame.calib, frame.image_hw)
         objects = boxes_to_objects(boxes[seen], frame.calib, frame.image_hw, scores[seen])
         gts.append(LabelArrays.from_objects(frame.labels or []))
@@ -336,18 +350,11 @@ def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], inp
 
 
 # ----------------------------------------------------------------------------- joint
-def joint_points(depth_net, frame, preset: Preset, device: torch.device = CPU) -> np.ndarray:
-    """Pseudo + 16-line cloud from the (torch) depth net, for validation of the joint model."""
-    from pipeline.pseudo import depth_to_points, merge_points
-
-    lidar16 = frame_points(frame, 16)
-    inputs = depth_inputs(frame.image, lidar16, frame.calib, preset)
+def joint_depth(depth_net, frame, preset: Preset, device: torch.device = CPU) -> tuple[np.ndarray, Calibration]:
+    """The (torch) depth net's dense depth of a frame's 16-line scan, and its view's calibration (validation)."""
+    inputs = depth_inputs(frame.image, frame_points(frame, 16), frame.calib, preset)
     depth = depth_net(torch.from_numpy(inputs.rgb).to(device), torch.from_numpy(inputs.sparse_depth).to(device))
-    depth = depth[0, 0].cpu().numpy()
-    d = preset.decode
-    pseudo = depth_to_points(depth, inputs.calib, preset.depth.min_depth, preset.depth.max_depth,
-                             d.pseudo_stride, d.pseudo_max_height)
-    return merge_points(pseudo, lidar16)
+    return depth[0, 0].cpu().numpy(), inputs.calib
 
 
 def joint_bev(depth: torch.Tensor, rays: torch.Tensor, origin: torch.Tensor, lidar16: np.ndarray,
