@@ -175,27 +175,42 @@ def test_heights_from_bev_occupancy():
 
 
 def test_heights_weigh_what_was_seen_against_the_mean_car_height():
-    """A van seen whole keeps its measured 2.0 m; the same van seen by a handful of voxels gets about the
-    mean car height. The bottom is the lowest slice's lower edge, or its centre with pseudo points."""
+    """A 2.0 m van: its measured height is averaged with the mean car height, weighted by the occupied volume
+    seen under the box against height_prior_volume, so seen whole it keeps nearly 2.0 m and seen by four
+    voxels nearly the mean. The bottom is the lowest slice's lower edge, or its centre with pseudo points."""
     from pipeline.postprocess import estimate_heights
+    from pipeline.targets import OutputGrid, box_cells
 
     p = PRESETS["edge"]
-    grid, decode = p.bev, p.decode
+    grid, decode, stride = p.bev, p.decode, p.pixor.output_stride
     box = np.array([[30.0, 0.0, 4.0, 2.0, 0.0]])  # x, y, l, w, yaw
     ground_slice = 4  # z from -1.7 m
-    rows = slice(int((-0.8 - grid.y_min) / grid.cell), int((0.8 - grid.y_min) / grid.cell))
-    cols = slice(int((28.4 - grid.x_min) / grid.cell), int((31.6 - grid.x_min) / grid.cell))
-    whole = np.zeros(grid.shape, np.float32)
-    whole[ground_slice:ground_slice + 10, rows, cols] = 1.0  # ten 0.2 m slices: 2.0 m
-    z, h = estimate_heights(box, whole, p)
     bottom = grid.z_min + ground_slice * grid.z_cell
-    assert 1.95 < h[0] < 2.0 and z[0] == pytest.approx(bottom + h[0] / 2)
+    voxel = grid.cell * grid.cell * grid.z_cell
+
+    def expected_height(seen_m3: float) -> float:  # the measured extent is exactly 2.0 m in both cases
+        return (seen_m3 * 2.0 + decode.height_prior_volume * decode.car_height) / (seen_m3 + decode.height_prior_volume)
+
+    # Seen whole: ten 0.2 m slices occupied over an area larger than the box, so every BEV cell under
+    # the box's output cells counts.
+    whole = np.zeros(grid.shape, np.float32)
+    rows = slice(int((-3.0 - grid.y_min) / grid.cell), int((3.0 - grid.y_min) / grid.cell))
+    cols = slice(int((26.0 - grid.x_min) / grid.cell), int((34.0 - grid.x_min) / grid.cell))
+    whole[ground_slice:ground_slice + 10, rows, cols] = 1.0
+    boxes7 = np.array([[30.0, 0.0, 0.0, 4.0, 2.0, 1.0, 0.0]])
+    cells = box_cells(boxes7, OutputGrid.from_bev(grid, stride))[0].size
+    z, h = estimate_heights(box, whole, p)
+    assert h[0] == pytest.approx(expected_height(cells * stride * stride * 10 * voxel))
+    assert h[0] > 1.95 and z[0] == pytest.approx(bottom + h[0] / 2)
     z_pseudo, h_pseudo = estimate_heights(box, whole, p, with_pseudo=True)
     assert z_pseudo[0] - h_pseudo[0] / 2 == pytest.approx(bottom + grid.z_cell / 2)
 
+    # Seen by four voxels of one cell under the box, spanning the same 2.0 m.
     glimpse = np.zeros(grid.shape, np.float32)
-    glimpse[[ground_slice, ground_slice + 3, ground_slice + 6, ground_slice + 9], rows.start + 3, cols.start + 5] = 1.0
+    row, col = int((0.1 - grid.y_min) / grid.cell), int((30.1 - grid.x_min) / grid.cell)
+    glimpse[[ground_slice, ground_slice + 3, ground_slice + 6, ground_slice + 9], row, col] = 1.0
     _, h_glimpse = estimate_heights(box, glimpse, p)
+    assert h_glimpse[0] == pytest.approx(expected_height(4 * voxel))
     assert abs(h_glimpse[0] - decode.car_height) < 0.05
 
 
