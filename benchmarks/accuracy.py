@@ -103,6 +103,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="KITTI result files <id>.txt (label lines + score); a missing file means no detections",
     )
     labels.add_argument("--split-file", type=Path, metavar="F", help="frame ids to evaluate, one per line")
+    labels.add_argument(
+        "--count-small-detections", action="store_true",
+        help="diagnostic, not the devkit: count detections whose 2D box is under a difficulty's minimum "
+        "height (25 or 40 px), which the devkit ignores; for a BEV detector whose 2D boxes come from "
+        "estimated heights, BEV AP then measures the BEV boxes alone",
+    )
     detect = parser.add_argument_group("run the detector over a dataset, then evaluate")
     detect.add_argument("--data", type=Path, metavar="DIR", help="KITTI object folder (image_2, velodyne, calib, label_2)")
     detect.add_argument("--models", type=Path, metavar="DIR", help="model directory trained for --input")
@@ -115,12 +121,6 @@ def build_parser() -> argparse.ArgumentParser:
     depth = parser.add_argument_group("depth completion")
     depth.add_argument("--depth", action="store_true",
                        help="depth metrics with --data (KITTI depth-completion layout, or an object folder with depth_2/)")
-    labels.add_argument(
-        "--count-small-detections", action="store_true",
-        help="diagnostic, not the devkit: count detections whose 2D box is under a difficulty's minimum "
-        "height (25 or 40 px), which the devkit ignores; for a BEV detector whose 2D boxes come from "
-        "estimated heights, BEV AP then measures the BEV boxes alone",
-    )
     output = parser.add_argument_group("output")
     output.add_argument("--json", type=Path, metavar="OUT", help="write every figure as JSON (AP in percent)")
     output.add_argument("--plots", type=Path, metavar="DIR",

@@ -93,8 +93,7 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper")
     score = np.clip(0.9 * targets.score + rng.uniform(0, 0.45, targets.score.shape), 0, 1).astype(np.float32)
     bev_pseudo = voxelize(cloud).copy()
     # The Detector's limits: depth range, stride, and no pseudo points above pseudo_max_height (sky, trees).
-    limits = (preset.depth.min_depth, preset.depth.max_depth, preset.decode.pseudo_stride,
-              preset.decode.pseudo_max_height)
+    limits = preset.pseudo_limits
     bins = pseudo_bins(dense, view_calib, preset.bev, *limits)
 
     steps = {

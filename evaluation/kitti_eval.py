@@ -228,9 +228,7 @@ def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: 
     # The devkit truncates the detection height to an integer before comparing with an
     # integer minimum; for integer minima that is the same as comparing the real height.
     det_height = np.abs(det.bbox[:, 3] - det.bbox[:, 1])
-    too_small = det_height[None, :] < MIN_HEIGHT[:, None]
-    if not ignore_small_detections:
-        too_small[:] = False
+    too_small = (det_height[None, :] < MIN_HEIGHT[:, None]) & ignore_small_detections
     ignored_det = np.where(too_small, 1, np.where(det.types == name, 0, -1)[None, :]).astype(np.int8)
     takes_part = (ignored_det != -1).any(axis=0)
     det_kept = det.select(takes_part)

@@ -141,10 +141,7 @@ def detector_points(data_dir: Path, frame: Frame, preset: Preset, input_mode: st
     if input_mode != "pseudo":
         raise InputError(f"--input: {input_mode!r} is not one of {', '.join(DETECTOR_INPUTS)}")
     depth, view_calib = cached_pseudo_depth(pseudo_dir, frame, preset)
-    d = preset.decode
-    pseudo = depth_to_points(depth, view_calib, preset.depth.min_depth, preset.depth.max_depth,
-                             d.pseudo_stride, d.pseudo_max_height)
-    return merge_points(pseudo, lidar16)
+    return merge_points(depth_to_points(depth, view_calib, *preset.pseudo_limits), lidar16)
 
 
 def cached_pseudo_depth(pseudo_dir: Path | None, frame: Frame, preset: Preset) -> tuple[np.ndarray, Calibration]:

@@ -318,15 +318,14 @@ def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], inp
     if depth_net is not None:
         depth_net.eval()
     voxelizer = BevVoxelizer(preset.bev)
-    d = preset.decode
-    limits = (preset.depth.min_depth, preset.depth.max_depth, d.pseudo_stride, d.pseudo_max_height)
     gts, dets, losses = [], [], []
     for fid in ids:
         frame = load_frame(data_dir, fid, with_image=depth_net is not None)  # only joint runs the camera net
         if depth_net is not None or input_mode == "pseudo":
             depth, view_calib = (joint_depth(depth_net, frame, preset, device) if depth_net is not None
                                  else cached_pseudo_depth(pseudo_dir, frame, preset))
-            pseudo = pseudo_bins(depth, view_calib, preset.bev, *limits, max_jump=d.height_max_jump)
+            pseudo = pseudo_bins(depth, view_calib, preset.bev, *preset.pseudo_limits,
+                                 max_jump=preset.decode.height_max_jump)
             bev = voxelizer(frame_points(frame, 16), pseudo)
         else:
             pseudo = None

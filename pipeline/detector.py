@@ -239,9 +239,9 @@ class Detector:
             )
             timings["depth_net"] = (time.perf_counter() - tic) * 1e3
             tic = time.perf_counter()
-            d = self.preset.decode
-            limits = (self.preset.depth.min_depth, self.preset.depth.max_depth, d.pseudo_stride, d.pseudo_max_height)
-            pseudo = pseudo_bins(depth[0, 0], inputs.calib, self.preset.bev, *limits, max_jump=d.height_max_jump)
+            limits = self.preset.pseudo_limits
+            pseudo = pseudo_bins(depth[0, 0], inputs.calib, self.preset.bev, *limits,
+                                 max_jump=self.preset.decode.height_max_jump)
             timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3
         else:
             pseudo = None

@@ -137,6 +137,12 @@ class Preset:
     decode: DecodeConfig = field(default_factory=DecodeConfig)
     crop_hw: tuple[int, int] = (352, 1216)  # the KITTI depth-completion crop
 
+    @property
+    def pseudo_limits(self) -> tuple[float, float, int, float]:
+        """Which pseudo points exist: (min_depth, max_depth, stride, max_height), the arguments of
+        :func:`pipeline.pseudo.depth_to_points` and :func:`pipeline.bev.pseudo_bins` after the grid."""
+        return (self.depth.min_depth, self.depth.max_depth, self.decode.pseudo_stride, self.decode.pseudo_max_height)
+
     def to_dict(self) -> dict:
         """Plain JSON-able form, as written into the ONNX manifest."""
         return asdict(self)
