@@ -1,9 +1,9 @@
 """KITTI accuracy: evaluate KITTI result files against KITTI labels with the official protocol.
 
     python benchmarks/accuracy.py --gt-labels DIR --pred-labels DIR [--split-file F]
-                                  [--json OUT] [--plots DIR]
+                                  [--by-distance EDGES] [--json OUT] [--plots DIR]
     python benchmarks/accuracy.py --data DIR --models DIR --input lidar64|lidar16|lidar16+camera
-                                  [--frames LIST] [--out DIR] [--json OUT] [--plots DIR]
+                                  [--frames LIST] [--out DIR] [--depth-dir DIR] [--json OUT] [--plots DIR]
     python benchmarks/accuracy.py --depth --data DIR --models DIR [--frames LIST] [--json OUT]
 
 prints the paper's table (Car BEV AP at IoU 0.7 and 0.5, easy / moderate / hard,
@@ -15,6 +15,9 @@ evaluate existing result files; ``--data`` / ``--models`` / ``--input`` run the
 detector over a KITTI-layout dataset first (results in ``--out``, default a
 folder beside the JSON or ``outputs/accuracy``) and evaluate them against its
 ``label_2``; ``--depth`` measures depth completion (RMSE, MAE, iRMSE, iMAE).
+``--by-distance`` adds AP per distance band, and ``--depth-dir`` feeds the
+camera pipeline depth maps from files instead of its depth network (with the
+synthetic scenes' ``depth_2``: the upper bound of perfect depth).
 """
 
 from __future__ import annotations
@@ -24,11 +27,19 @@ import json
 import logging
 import sys
 from dataclasses import dataclass
+from itertools import pairwise
 from pathlib import Path
 
 from evaluation.frames import load_label_dirs, read_split_file
 from evaluation.kitti_eval import DEFAULT_IOU_THRESHOLDS, KittiEvalResult, evaluate
-from evaluation.report import format_table, plot_pr_curves, to_json
+from evaluation.report import (
+    distance_json,
+    format_distance_table,
+    format_table,
+    plot_by_distance,
+    plot_pr_curves,
+    to_json,
+)
 from pipeline.cli import probability
 from pipeline.errors import InputError
 
@@ -52,6 +63,8 @@ class LabelEvalConfig:
     iou_thresholds: tuple[float, ...] = DEFAULT_IOU_THRESHOLDS
     progress: bool = True
     ignore_small_detections: bool = True  # the devkit's rule (evaluation.kitti_eval.evaluate)
+    distance_edges: tuple[float, ...] = ()  # also AP per band [edge_i, edge_i+1) of camera depth z
+    depth_dir: Path | None = None  # the camera row's depth came from these PNGs, not the network (JSON note)
 
 
 @dataclass(frozen=True)
@@ -60,6 +73,7 @@ class LabelEvalRun:
 
     result: KittiEvalResult
     table: str
+    by_distance: dict[tuple[float, float], KittiEvalResult]
     missing_predictions: tuple[str, ...]
     json_path: Path | None
     plot_paths: tuple[Path, ...]
@@ -74,20 +88,48 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         iou_thresholds=config.iou_thresholds, progress=config.progress,
         ignore_small_detections=config.ignore_small_detections,
     )
+    edges = config.distance_edges
+    by_distance = {
+        (low, high): evaluate(
+            labels.ground_truth, labels.detections, class_name=config.class_name,
+            iou_thresholds=config.iou_thresholds, ignore_small_detections=config.ignore_small_detections,
+            distance_range=(low, high),
+        )
+        for low, high in pairwise(edges)
+    }
     if config.json_path:
         document = to_json(result)
+        if by_distance:
+            document["by_distance"] = distance_json(by_distance)
+        if config.depth_dir is not None:
+            document["depth_source"] = f"{config.depth_dir} (not the depth network)"
         document["missing_predictions"] = list(labels.missing_predictions)
         document["small_detections"] = "ignored (devkit)" if config.ignore_small_detections else "counted (diagnostic)"
         config.json_path.parent.mkdir(parents=True, exist_ok=True)
         config.json_path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
     plot_paths = tuple(plot_pr_curves(result, config.plots_dir)) if config.plots_dir else ()
+    if config.plots_dir and by_distance:
+        plot_paths += (plot_by_distance(by_distance, config.plots_dir / "ap_by_distance.png"),)
     table = format_table(result)
+    if by_distance:
+        table += "\n" + format_distance_table(by_distance)
     if not config.ignore_small_detections:
         table = "not the devkit protocol: detections with 2D boxes under the minimum height are counted\n" + table
     return LabelEvalRun(
-        result=result, table=table, missing_predictions=labels.missing_predictions,
+        result=result, table=table, by_distance=by_distance, missing_predictions=labels.missing_predictions,
         json_path=config.json_path, plot_paths=plot_paths,
     )
+
+
+def distance_edges(text: str) -> tuple[float, ...]:
+    """Band edges in metres, comma-separated and increasing, such as ``0,20,35,50,80`` (argparse type)."""
+    try:
+        edges = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated metres such as 0,20,35,50,80; got {text!r}") from None
+    if len(edges) < 2 or any(b <= a for a, b in pairwise(edges)) or edges[0] < 0:
+        raise argparse.ArgumentTypeError(f"expected at least two increasing distances from 0 up; got {text!r}")
+    return edges
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -109,6 +151,12 @@ def build_parser() -> argparse.ArgumentParser:
         "height (25 or 40 px), which the devkit ignores; for a BEV detector whose 2D boxes come from "
         "estimated heights, BEV AP then measures the BEV boxes alone",
     )
+    labels.add_argument(
+        "--by-distance", type=distance_edges, default=(), metavar="EDGES",
+        help="also AP per distance band, e.g. 0,20,35,50,80 (metres of camera depth z of the box centre; cars "
+        "and detections outside a band are ignored in it, not missed or false); a table, the JSON's "
+        "by_distance, and ap_by_distance.png with --plots",
+    )
     detect = parser.add_argument_group("run the detector over a dataset, then evaluate")
     detect.add_argument("--data", type=Path, metavar="DIR", help="KITTI object folder (image_2, velodyne, calib, label_2)")
     detect.add_argument("--models", type=Path, metavar="DIR", help="model directory trained for --input")
@@ -118,6 +166,12 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--score-threshold", type=probability, default=0.05,
                         help="keep detections above this score (default 0.05: AP needs the whole curve)")
     detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")
+    detect.add_argument(
+        "--depth-dir", type=Path, metavar="DIR",
+        help="with --input lidar16+camera: dense depth PNGs of the full camera image (KITTI depth format, "
+        "<id>.png) used instead of the depth network, e.g. DATA/depth_2 of the synthetic scenes for the "
+        "upper bound that perfect depth gives",
+    )
     depth = parser.add_argument_group("depth completion")
     depth.add_argument("--depth", action="store_true",
                        help="depth metrics with --data (KITTI depth-completion layout, or an object folder with depth_2/)")
@@ -141,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
     config = LabelEvalConfig(
         gt_labels=args.gt_labels, pred_labels=args.pred_labels, split_file=args.split_file,
         json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
-        ignore_small_detections=not args.count_small_detections,
+        ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
     )
     try:
         outcome = run(config)
@@ -189,16 +243,19 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             parser.error("--input lidar64|lidar16|lidar16+camera is required with --data and --models")
         out = args.out or Path("outputs") / "accuracy" / args.input.replace("+", "_")
         predictions = run_detection(args.data, args.models, args.input, out, frames, args.provider,
-                                    progress=not args.no_progress, score_threshold=args.score_threshold)
+                                    progress=not args.no_progress, score_threshold=args.score_threshold,
+                                    depth_dir=args.depth_dir)
         outcome = run(LabelEvalConfig(
             gt_labels=args.data / "label_2", pred_labels=predictions, split_file=args.frames,
             json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
-            ignore_small_detections=not args.count_small_detections,
+            ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
+            depth_dir=args.depth_dir,
         ))
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames), results in {predictions}")
+    source = f", depth from {args.depth_dir} instead of the depth network" if args.depth_dir else ""
+    print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames{source}), results in {predictions}")
     print(outcome.table)
     return 0
 

@@ -36,8 +36,11 @@ DEFAULT_SCORE_THRESHOLD = 0.05  # low: AP integrates over the whole precision–
 
 def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: list[str] | None = None,
                   provider: str | None = None, progress: bool = True,
-                  score_threshold: float = DEFAULT_SCORE_THRESHOLD) -> Path:
-    """Detect on every frame and write KITTI result files; returns the result directory."""
+                  score_threshold: float = DEFAULT_SCORE_THRESHOLD, depth_dir: Path | None = None) -> Path:
+    """Detect on every frame and write KITTI result files; returns the result directory.
+
+    depth_dir: dense depth PNGs used instead of the depth network (``pipeline.detect --depth-dir``).
+    """
     from pipeline.detect import run as detect
 
     if input_mode not in INPUTS:
@@ -47,8 +50,10 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
     if detector.two_stage != wants_camera:
         kind = "two-stage (depth.onnx + pixor.onnx)" if detector.two_stage else "LiDAR-only (pixor.onnx)"
         raise InputError(f"--models: {models} is a {kind} model directory, which does not fit --input {input_mode}")
+    if depth_dir is not None and not wants_camera:
+        raise InputError(f"--depth-dir: only the camera pipeline uses depth (--input lidar16+camera, not {input_mode})")
     result = detect(models, out, data=data, frames=frames, emulate_beams=INPUTS[input_mode], provider=provider,
-                    pictures=False, progress=progress, score_threshold=score_threshold)
+                    pictures=False, progress=progress, score_threshold=score_threshold, depth_dir=depth_dir)
     return out / "data" if result.result_files else out
 
 

@@ -210,7 +210,8 @@ class _Frame:
 
 
 def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: Sequence[str],
-                   ignore_small_detections: bool = True) -> _Frame:
+                   ignore_small_detections: bool = True,
+                   distance_range: tuple[float, float] | None = None) -> _Frame:
     """Clean one frame (``cleanData``) and compute its overlap matrices once."""
     name = class_name.lower()
     neighbour = NEIGHBOUR_CLASSES.get(name)
@@ -223,12 +224,16 @@ def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: 
         | (gt_kept.truncated[None, :] > MAX_TRUNCATION[:, None])
         | (gt_kept.box_height[None, :] <= MIN_HEIGHT[:, None])
     )
+    if distance_range is not None:  # outside the band: ignored, like a too-hard box
+        too_hard |= ~_within(gt_kept.location[:, 2], distance_range)[None, :]
     ignored_gt = np.where(mine[None, :] & ~too_hard, 0, 1).astype(np.int8)
 
     # The devkit truncates the detection height to an integer before comparing with an
     # integer minimum; for integer minima that is the same as comparing the real height.
     det_height = np.abs(det.bbox[:, 3] - det.bbox[:, 1])
     too_small = (det_height[None, :] < MIN_HEIGHT[:, None]) & ignore_small_detections
+    if distance_range is not None:
+        too_small |= ~_within(det.location[:, 2], distance_range)[None, :]
     ignored_det = np.where(too_small, 1, np.where(det.types == name, 0, -1)[None, :]).astype(np.int8)
     takes_part = (ignored_det != -1).any(axis=0)
     det_kept = det.select(takes_part)
@@ -251,6 +256,12 @@ def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: 
         scores=det_kept.score, ignored_det=ignored_det, ignored_gt=ignored_gt,
         n_counted_gt=(ignored_gt == 0).sum(axis=1), overlaps=overlaps, dontcare=dontcare,
     )
+
+
+def _within(depth: np.ndarray, distance_range: tuple[float, float]) -> np.ndarray:
+    """(N,) whether each box centre's camera depth z lies in [low, high)."""
+    low, high = distance_range
+    return (depth >= low) & (depth < high)
 
 
 @dataclass(frozen=True)
@@ -336,6 +347,7 @@ def evaluate(
     metrics: Sequence[str] | None = None,
     progress: bool = False,
     ignore_small_detections: bool = True,
+    distance_range: tuple[float, float] | None = None,
 ) -> KittiEvalResult:
     """Evaluate per-frame detections against per-frame ground truth, KITTI style.
 
@@ -347,6 +359,12 @@ def evaluate(
     lower than a difficulty's minimum height takes no part in it. False counts
     every detection (not the devkit): for a BEV detector whose 2D boxes come from
     estimated heights, its BEV AP then depends on the BEV boxes alone.
+    distance_range: (low, high) metres, AP of one distance band (not the devkit,
+    which has none): ground truth and detections whose box centre's depth z in
+    the camera frame is outside [low, high) are ignored the way the devkit
+    ignores a too-hard box and a too-small detection: a car and its detection
+    on either side of the band's edge count as neither a hit, a miss nor a
+    false positive.
     """
     if len(ground_truth) != len(detections):
         raise ValueError(f"{len(ground_truth)} ground-truth frames but {len(detections)} detection frames")
@@ -369,7 +387,7 @@ def evaluate(
     cfg_bbox = np.array([metrics[c[0]] == "bbox" for c in configs], dtype=bool)
 
     frames = [
-        _prepare_frame(gt, det, class_name, metrics, ignore_small_detections)
+        _prepare_frame(gt, det, class_name, metrics, ignore_small_detections, distance_range)
         for gt, det in tqdm(
             zip(ground_truth, detections), total=len(ground_truth), desc="overlaps", disable=not progress
         )

@@ -54,19 +54,25 @@ def to_json(result: KittiEvalResult) -> dict[str, Any]:
     }
 
 
+def _pyplot():
+    """matplotlib's pyplot, drawing to files only; a clear error in the runtime install, which has no plotting."""
+    try:
+        import matplotlib
+    except ImportError as exc:  # a dev-only dependency
+        raise RuntimeError("plots need matplotlib: pip install -e '.[dev]'") from exc
+    matplotlib.use("Agg")  # files only; never needs a display
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
 def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
     """One PNG per difficulty: interpolated precision against the 41 sampled recall points.
 
     Every (metric, overlap threshold) is a line, like the devkit's plots and the
     paper's PR figure. Returns the written paths.
     """
-    try:
-        import matplotlib
-    except ImportError as exc:  # a dev-only dependency: the runtime install has no plotting
-        raise RuntimeError("precision-recall plots need matplotlib: pip install -e '.[dev]'") from exc
-    matplotlib.use("Agg")  # files only; never needs a display
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     recall = np.arange(N_SAMPLE_PTS) / (N_SAMPLE_PTS - 1)
@@ -91,3 +97,50 @@ def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+def format_distance_table(bands: dict[tuple[float, float], KittiEvalResult]) -> str:
+    """AP per distance band at moderate difficulty (R40): one row per band, counted cars beside it."""
+    first = next(iter(bands.values()))
+    columns = [(m, iou) for m in ("bev", "3d") if m in first.metrics for iou in sorted(first.iou_thresholds)]
+    header = "".join(f" | {METRIC_TITLES[m]} {iou}" for m, iou in columns)
+    lines = [f"{first.class_name} AP (%) by distance (box centre's camera depth z), moderate, R40",
+             f"  band (m)    cars{header}"]
+    for (low, high), result in bands.items():
+        cars = result.curve(columns[0][0], columns[0][1], "moderate").n_ground_truth if columns else 0
+        cells = "".join(f" | {result.ap(m, iou, 'moderate'):{len(METRIC_TITLES[m]) + 4}.1f}" for m, iou in columns)
+        lines.append(f"  {low:>4g}–{high:<4g}  {cars:>6}{cells}")
+    return "\n".join(lines)
+
+
+def distance_json(bands: dict[tuple[float, float], KittiEvalResult]) -> list[dict[str, Any]]:
+    """``[{"range_m": [low, high], "num_ground_truth": {difficulty: n}, class: AP table}, …]``."""
+    out = []
+    for (low, high), result in bands.items():
+        metric, iou = result.metrics[0], result.iou_thresholds[0]
+        counts = {d: result.curve(metric, iou, d).n_ground_truth for d in DIFFICULTIES}
+        out.append({"range_m": [low, high], "num_ground_truth": counts, result.class_name: result.ap_table()})
+    return out
+
+
+def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: str | Path) -> Path:
+    """One PNG: moderate AP (R40) against distance band, a line per (metric, overlap threshold)."""
+    plt = _pyplot()
+    first = next(iter(bands.values()))
+    cars = [r.curve(first.metrics[0], first.iou_thresholds[0], "moderate").n_ground_truth for r in bands.values()]
+    labels = [f"{low:g}–{high:g}\n{n} cars" for (low, high), n in zip(bands, cars)]
+    fig, ax = plt.subplots(figsize=(5.0, 3.6))
+    for metric in [m for m in ("bev", "3d") if m in first.metrics]:
+        for iou in sorted(first.iou_thresholds):
+            ax.plot(labels, [r.ap(metric, iou, "moderate") for r in bands.values()], marker="o",
+                    label=f"{METRIC_TITLES[metric]} @{iou}")
+    ax.set(ylim=(0, 102), xlabel="distance band (m, camera depth of the box centre)", ylabel="AP$_{40}$ (%), moderate",
+           title=f"{first.class_name} AP by distance")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

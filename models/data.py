@@ -21,7 +21,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
-import cv2
 import numpy as np
 import torch
 from torch.utils.data import Dataset
@@ -29,11 +28,11 @@ from torch.utils.data import Dataset
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
-from pipeline.calib import Calibration, depth_crop, sparse_depth_map
+from pipeline.calib import Calibration, sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
 from pipeline.kitti import read_depth_png
-from pipeline.preprocess import depth_inputs, view_calibration
+from pipeline.preprocess import depth_inputs, depth_view, view_calibration
 from pipeline.presets import Preset
 from pipeline.pseudo import depth_to_points, merge_points
 from pipeline.targets import encode_targets
@@ -76,16 +75,10 @@ def frame_points(frame: Frame, beams: int | None) -> np.ndarray:
 def depth_target(data_dir: Path, frame: Frame, preset: Preset) -> np.ndarray:
     """(H, W) target depth in the network's view (metres, 0 = none)."""
     dense_path = Path(data_dir) / "depth_2" / f"{frame.frame_id}.png"
-    height, width = preset.depth.input_hw
     if dense_path.exists():
-        dense = read_depth_png(dense_path)
-        view = depth_crop(dense.shape, *preset.crop_hw).apply(dense)
-        if view.shape != (height, width):
-            # Nearest keeps depths real (no blending of foreground and background across edges).
-            view = cv2.resize(view, (width, height), interpolation=cv2.INTER_NEAREST)
-        return view.astype(np.float32)
+        return depth_view(read_depth_png(dense_path), preset)
     view_calib = view_calibration(frame.image_hw, frame.calib, preset)
-    return sparse_depth_map(frame.points, view_calib, (height, width))
+    return sparse_depth_map(frame.points, view_calib, preset.depth.input_hw)
 
 
 @dataclass
@@ -220,10 +213,5 @@ class DepthCompletionDataset(Dataset):
         if self.beams:
             sparse = emulate_beams_on_depth_map(sparse, self.calib, self.beams)
         rgb, sparse_view = view_from_depth_png(image, sparse, self.preset)
-        gt = read_depth_png(self.root / "groundtruth" / f"{fid}.png")
-        target = depth_crop(gt.shape, *self.preset.crop_hw).apply(gt)
-        height, width = self.preset.depth.input_hw
-        if target.shape != (height, width):
-            target = cv2.resize(target, (width, height), interpolation=cv2.INTER_NEAREST)
-        return (torch.from_numpy(rgb[0]), torch.from_numpy(sparse_view[0]),
-                torch.from_numpy(np.ascontiguousarray(target[None], np.float32)))
+        target = depth_view(read_depth_png(self.root / "groundtruth" / f"{fid}.png"), self.preset)
+        return (torch.from_numpy(rgb[0]), torch.from_numpy(sparse_view[0]), torch.from_numpy(target[None]))

@@ -23,7 +23,7 @@ from pipeline.boxes import labels_to_boxes
 from pipeline.cli import probability, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
-from pipeline.kitti import read_calib, read_image, read_velodyne, write_labels
+from pipeline.kitti import read_calib, read_depth_png, read_image, read_velodyne, write_labels
 from pipeline.model_files import ModelFileError
 from pipeline.render import render_bev
 
@@ -55,13 +55,20 @@ def run(
     provider: str | None = None,
     pictures: bool = True,
     progress: bool = True,
+    depth_dir: Path | None = None,
 ) -> DetectResult:
-    """Detect on a folder (``data`` + optional ``frames``) or on one set of files; write the outputs."""
+    """Detect on a folder (``data`` + optional ``frames``) or on one set of files; write the outputs.
+
+    depth_dir: ``<id>.png`` dense depth maps of the camera image (KITTI depth PNGs) used instead of the
+    depth network, named by frame id (by the scan's file name for one set of files).
+    """
     from tqdm import tqdm
 
     from pipeline.detector import Detector
 
     detector = Detector(models, providers=provider)
+    if depth_dir is not None and not detector.two_stage:
+        raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
     out = Path(out)
     if data is not None:
         ids = frames or frame_ids(data)
@@ -79,8 +86,15 @@ def run(
     warned: set[str] = set()
     for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
         frame = loader(fid)
+        depth = None
+        if depth_dir is not None:
+            depth_path = Path(depth_dir) / f"{fid}.png"
+            depth = read_depth_png(depth_path)
+            if depth.shape != frame.image.shape[:2]:
+                raise InputError(f"{depth_path}: a {depth.shape[1]}×{depth.shape[0]} depth map for a "
+                                 f"{frame.image.shape[1]}×{frame.image.shape[0]} image; it must cover the whole image")
         detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams,
-                                         keep_points=True)
+                                     keep_points=True, depth=depth)
         count += len(detections.scores)
         for warning in detections.warnings:  # each kind once (the trailing "(…)" holds the frame's figures)
             kind = warning.rsplit(" (", 1)[0]
@@ -122,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"thin a 64-line scan to N lines first ({', '.join(map(str, BEAM_COUNTS))})")
     parser.add_argument("--score-threshold", type=probability, help="minimum score (default: the model's)")
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best available)")
+    parser.add_argument("--depth-dir", type=Path, metavar="DIR",
+                        help="dense depth PNGs of the camera image (KITTI depth format, <id>.png) used instead of "
+                        "the depth network: another depth source, or depth_2/ ground truth for an upper bound")
     parser.add_argument("--no-pictures", action="store_true", help="skip the BEV PNGs")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     args = parser.parse_args(argv)
@@ -130,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         result = run(
             args.models, args.out, args.data, args.frames, args.image, args.points, args.calib,
             args.emulate_beams, args.score_threshold, args.provider, not args.no_pictures,
+            depth_dir=args.depth_dir,
         )
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -30,7 +30,7 @@ from pipeline.errors import InputError
 from pipeline.kitti import Object3D
 from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
 from pipeline.postprocess import boxes_from_maps
-from pipeline.preprocess import depth_inputs
+from pipeline.preprocess import depth_inputs, depth_view, view_calibration
 from pipeline.presets import Preset, preset_from_dict
 from pipeline.pseudo import depth_to_points, merge_points
 
@@ -201,6 +201,7 @@ class Detector:
         score_threshold: float | None = None,
         emulate_to_beams: int | None = None,
         keep_points: bool = False,
+        depth: np.ndarray | None = None,
     ) -> Detections:
         """Detect cars in one frame.
 
@@ -209,7 +210,10 @@ class Detector:
         two-stage model. emulate_to_beams: thin a 64-line scan first.
         keep_points: also return the point cloud PIXOR saw (pseudo + real),
         for pictures; otherwise the pseudo points go from the depth map
-        straight to their BEV bins and are never built.
+        straight to their BEV bins and are never built. depth: a dense depth
+        map of the whole image (H, W, metres, 0 = none) from another source
+        (stereo, or ground truth for an upper bound), used instead of the
+        depth network; a two-stage model only.
         """
         timings: dict[str, float] = {}
         warnings: list[str] = []
@@ -231,19 +235,27 @@ class Detector:
             if image is None or calib is None:
                 raise InputError("image and calib: this model needs a camera image and a calibration")
             tic = time.perf_counter()
-            inputs = depth_inputs(image, points, calib, self.preset)
-            timings["prepare"] = (time.perf_counter() - tic) * 1e3
-            tic = time.perf_counter()
-            (depth,) = self._sessions["depth"].run(
-                ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
-            )
-            timings["depth_net"] = (time.perf_counter() - tic) * 1e3
+            if depth is None:
+                inputs = depth_inputs(image, points, calib, self.preset)
+                timings["prepare"] = (time.perf_counter() - tic) * 1e3
+                tic = time.perf_counter()
+                (dense,) = self._sessions["depth"].run(
+                    ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
+                )
+                dense = dense[0, 0]
+                timings["depth_net"] = (time.perf_counter() - tic) * 1e3
+                view_calib = inputs.calib
+            else:
+                dense, view_calib = self._given_depth(depth, image, calib)
+                timings["prepare"] = (time.perf_counter() - tic) * 1e3
             tic = time.perf_counter()
             limits = self.preset.pseudo_limits
-            pseudo = pseudo_bins(depth[0, 0], inputs.calib, self.preset.bev, *limits,
+            pseudo = pseudo_bins(dense, view_calib, self.preset.bev, *limits,
                                  max_jump=self.preset.decode.height_max_jump)
             timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3
         else:
+            if depth is not None:
+                raise InputError("depth: this model has no depth network to replace (a LiDAR-only model directory)")
             pseudo = None
 
         tic = time.perf_counter()
@@ -260,8 +272,17 @@ class Detector:
         timings["total"] = (time.perf_counter() - start) * 1e3
         cloud = None
         if keep_points:
-            cloud = points if pseudo is None else merge_points(depth_to_points(depth[0, 0], inputs.calib, *limits), points)
+            cloud = points if pseudo is None else merge_points(depth_to_points(dense, view_calib, *limits), points)
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, warnings=warnings, points=cloud)
+
+    def _given_depth(self, depth: np.ndarray, image: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
+        """A caller's dense depth map of the whole image, checked, in the depth net's view, and that view's calibration."""
+        depth = np.asarray(depth)
+        if depth.shape != image.shape[:2]:
+            raise InputError(f"depth: a {depth.shape} map for a {image.shape[:2]} image; it must cover the whole image")
+        if not np.issubdtype(depth.dtype, np.number) or not np.isfinite(depth).all() or (depth < 0).any():
+            raise InputError("depth: expected finite depths in metres, 0 where there is none")
+        return depth_view(depth, self.preset), view_calibration(image.shape[:2], calib, self.preset)
 
     def _line_count_mismatch(self, count: int) -> str | None:
         """A warning when a scan's point count is far from that of the line count the model was trained on."""

@@ -64,6 +64,19 @@ def depth_inputs(image: np.ndarray, points: np.ndarray, calib: Calibration, pres
     return DepthInputs(rgb=rgb, sparse_depth=sparse[None, None], calib=view_calib)
 
 
+def depth_view(depth: np.ndarray, preset: Preset) -> np.ndarray:
+    """A dense depth map of the whole camera image (H, W, metres, 0 = none) in the depth net's view.
+
+    Same crop as :func:`network_view`; resized by nearest neighbour, which keeps every depth a
+    real one (no blend of a car and what is behind it across its outline).
+    """
+    view = depth_crop(depth.shape[:2], *preset.crop_hw).apply(depth)
+    height, width = preset.depth.input_hw
+    if view.shape != (height, width):
+        view = cv2.resize(view, (width, height), interpolation=cv2.INTER_NEAREST)
+    return np.ascontiguousarray(view, dtype=np.float32)
+
+
 def downscale_sparse_depth(sparse: np.ndarray, factor: int) -> np.ndarray:
     """Shrink a sparse depth map by an integer factor, nearest return per block (0 = none).
 

@@ -40,6 +40,37 @@ def test_detection_run_then_evaluation_end_to_end(tiny_models, tmp_path):
     assert "Car AP" in result.stdout
 
 
+def test_detection_run_with_depth_from_files_and_distance_bands(tiny_models, tmp_path):
+    """--depth-dir feeds PIXOR another depth source (here each frame's 64-line scan projected into the image),
+    and the JSON says where the depth came from; --by-distance adds the bands."""
+    depth_dir = tmp_path / "depth"
+    depth_dir.mkdir()
+    for frame_id in FRAMES:
+        frame = load_frame(KITTI, frame_id)
+        write_depth_png(depth_dir / f"{frame_id}.png", sparse_depth_map(frame.points, frame.calib, frame.image_hw))
+    result = subprocess.run(
+        [sys.executable, str(ACCURACY), "--data", str(KITTI), "--models", str(tiny_models),
+         "--input", "lidar16+camera", "--depth-dir", str(depth_dir), "--by-distance", "0,30,80",
+         "--score-threshold", "0.0", "--out", str(tmp_path / "run"), "--json", str(tmp_path / "ap.json"),
+         "--no-progress"],
+        capture_output=True, text=True, timeout=600, check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert f"depth from {depth_dir} instead of the depth network" in result.stdout
+    document = json.loads((tmp_path / "ap.json").read_text())
+    assert document["depth_source"].startswith(str(depth_dir))
+    assert [band["range_m"] for band in document["by_distance"]] == [[0, 30], [30, 80]]
+    lidar_only = tmp_path / "lidar"  # a LiDAR-only model directory has no depth to replace
+    lidar_only.mkdir()
+    shutil.copy(tiny_models / "pixor.onnx", lidar_only)
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    del manifest["networks"]["depth"]
+    manifest["files"] = {"pixor.onnx": manifest["files"]["pixor.onnx"]}
+    (lidar_only / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(InputError, match="--depth-dir: only the camera pipeline"):
+        run_detection(KITTI, lidar_only, "lidar16", tmp_path / "x", depth_dir=depth_dir)
+
+
 def test_detection_run_refuses_mismatched_models(tiny_models, tmp_path):
     with pytest.raises(InputError, match="does not fit --input lidar16"):
         run_detection(KITTI, tiny_models, "lidar16", tmp_path)

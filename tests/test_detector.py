@@ -88,6 +88,42 @@ def test_bad_inputs_are_input_errors(detector, frame):
         detector.detect(None, frame.points, frame.calib)
 
 
+def test_a_given_depth_map_replaces_the_depth_network(detector, frame, tiny_models, tmp_path):
+    """A constant 12 m depth map of the whole image puts every pseudo point 12 m in front of the camera."""
+    lidar16 = emulate_beams(frame.points, 16)
+    depth = np.full(frame.image.shape[:2], 12.0, np.float32)
+    result = detector.detect(frame.image, lidar16, frame.calib, 0.0, keep_points=True, depth=depth)
+    assert "depth_net" not in result.timings_ms and "prepare" in result.timings_ms
+    pseudo = result.points[: len(result.points) - len(lidar16)]  # pseudo points first, then the real ones
+    assert len(pseudo) > 1000
+    # Depth is camera 2's; the rectified frame is camera 0's, a few millimetres behind along z (P2[2, 3]).
+    np.testing.assert_allclose(frame.calib.velo_to_rect(pseudo[:, :3])[:, 2], 12.0, atol=0.005)
+    network = detector.detect(frame.image, lidar16, frame.calib, 0.0, keep_points=True)
+    assert not np.allclose(frame.calib.velo_to_rect(network.points[:1000, :3])[:, 2], 12.0)
+
+    with pytest.raises(InputError, match="whole image"):
+        detector.detect(frame.image, lidar16, frame.calib, depth=depth[:-1])
+    with pytest.raises(InputError, match="finite depths"):
+        detector.detect(frame.image, lidar16, frame.calib, depth=-depth)
+
+    # The command reads <id>.png from --depth-dir, and names a missing one.
+    from pipeline.kitti import write_depth_png
+
+    depth_dir = tmp_path / "depth"
+    depth_dir.mkdir()
+    write_depth_png(depth_dir / "000006.png", depth)
+    command = [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(KITTI),
+               "--emulate-beams", "16", "--depth-dir", str(depth_dir), "--no-pictures"]
+    done = subprocess.run([*command, "--frame", "000006", "--out", str(tmp_path / "a")],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "a" / "data" / "000006.txt").exists()
+    missing = subprocess.run([*command, "--frame", "000003", "--out", str(tmp_path / "b")],
+                             capture_output=True, text=True, timeout=300, check=False)
+    assert missing.returncode == 2 and str(depth_dir / "000003.png") in missing.stderr
+    assert "Traceback" not in missing.stderr
+
+
 def test_manifest_preset_is_the_code_preset(tiny_models, detector):
     manifest = json.loads((tiny_models / "manifest.json").read_text())
     assert preset_from_dict(manifest["preset_config"]) == PRESETS["tiny"]
@@ -123,6 +159,8 @@ def test_lidar_only_model_directory(tiny_models, tmp_path, frame):
     result = detector.detect(None, frame.points, None, 0.0, keep_points=True)
     assert set(result.timings_ms) == {"voxelize", "pixor", "decode", "total"}
     assert result.points.shape == frame.points.shape
+    with pytest.raises(InputError, match="no depth network"):
+        detector.detect(frame.image, frame.points, frame.calib, depth=np.ones(frame.image.shape[:2], np.float32))
 
 
 def test_provider_resolution():

@@ -216,6 +216,41 @@ def test_counting_small_detections_is_a_diagnostic_outside_the_devkit(tmp_path: 
     assert json.loads((tmp_path / "ap.json").read_text())["small_detections"] == "counted (diagnostic)"
 
 
+def test_a_distance_band_ignores_cars_and_detections_outside_it(tmp_path: Path):
+    """In band [20, 40): the near car is neither found nor missed, a far detection of nothing is no false
+    positive, and a car at 39 m detected at 40.2 m (across the edge) is neither a hit nor a miss."""
+    along_z = math.pi / 2  # length along the camera's z axis
+    gt = [obj(z=10.0), obj(x=8.0, z=30.0, left=400.0), obj(x=-8.0, z=39.0, ry=along_z, left=700.0)]
+    det = [obj(z=10.0, score=0.9), obj(x=8.0, z=30.0, left=400.0, score=0.8),
+           obj(x=20.0, z=50.0, left=900.0, score=0.95),  # far from everything: counted only without the band
+           obj(x=-8.0, z=40.2, ry=along_z, left=700.0, score=0.85)]  # BEV IoU 0.54 with the 39 m car
+    whole = run_eval([gt], [det], metrics=("bev",)).curve("bev", 0.5, "moderate")
+    band = run_eval([gt], [det], metrics=("bev",), distance_range=(20.0, 40.0)).curve("bev", 0.5, "moderate")
+    assert (whole.n_ground_truth, whole.tp[-1], whole.fp[-1], whole.fn[-1]) == (3, 3, 1, 0)
+    assert (band.n_ground_truth, band.tp[-1], band.fp[-1], band.fn[-1]) == (2, 1, 0, 0)
+    # Bands that tile the range count every car exactly once.
+    counts = [run_eval([gt], [det], metrics=("bev",), distance_range=r).curve("bev", 0.5, "moderate").n_ground_truth
+              for r in ((0.0, 20.0), (20.0, 35.0), (35.0, 80.0))]
+    assert counts == [1, 1, 1]
+
+    for folder in ("gt", "pred"):
+        (tmp_path / folder).mkdir()
+    write_labels(tmp_path / "gt" / "000000.txt", gt)
+    write_labels(tmp_path / "pred" / "000000.txt", det)
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "pred", "--by-distance", "0,20,35,80",
+               "--json", tmp_path / "ap.json", "--plots", tmp_path / "plots")
+    assert out.returncode == 0, out.stderr
+    assert "by distance" in out.stdout and "20–35" in out.stdout
+    bands = json.loads((tmp_path / "ap.json").read_text())["by_distance"]
+    assert [b["range_m"] for b in bands] == [[0, 20], [20, 35], [35, 80]]
+    assert [b["num_ground_truth"]["moderate"] for b in bands] == [1, 1, 1]
+    assert (tmp_path / "plots" / "ap_by_distance.png").stat().st_size > 0
+
+    for bad in ("20,10", "0", "0,a,5", "-5,10"):
+        out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "pred", "--by-distance", bad)
+        assert out.returncode == 2 and "--by-distance" in out.stderr and "Traceback" not in out.stderr
+
+
 @pytest.mark.parametrize(
     ("truncated", "occluded", "counted"),
     [(0.0, 0, [1, 1, 1]), (0.2, 0, [0, 1, 1]), (0.4, 0, [0, 0, 1]), (0.6, 0, [0, 0, 0]),
