@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.kitti_eval import DIFFICULTIES, N_SAMPLE_PTS, KittiEvalResult
+from evaluation.kitti_eval import DIFFICULTIES, N_SAMPLE_PTS, BootstrapResult, KittiEvalResult
 
 METRIC_TITLES = {"bev": "BEV", "3d": "3D", "bbox": "2D bbox"}
 
@@ -144,3 +144,56 @@ def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: st
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def format_spread(result: KittiEvalResult, spread: BootstrapResult, other: KittiEvalResult | None = None,
+                  other_name: str = "other", level: float = 0.95) -> str:
+    """R40 AP with its bootstrap interval, and with ``other``: the paired difference this − other."""
+    n = spread.ap.shape[1]
+    title = (f"{result.class_name} AP (%, R40) with its {level:.0%} interval over {n} bootstrap draws of the "
+             f"{result.n_frames} frames (seed {spread.seed})")
+    lines = [title]
+
+    def row(value, interval, sign: str = "") -> str:
+        return "  ".join(f"{d} {value(d):{sign}6.1f} [{interval(d)[0]:5.1f}, {interval(d)[1]:5.1f}]"
+                         for d in DIFFICULTIES)
+
+    for metric in spread.metrics:
+        for iou in sorted(spread.iou_thresholds):
+            lines.append(f"  {METRIC_TITLES[metric]:<7} @{iou:<4} " + row(
+                lambda d, m=metric, t=iou: result.ap(m, t, d),
+                lambda d, m=metric, t=iou: spread.interval(m, t, d, 0, level)))
+    if other is not None and spread.ap.shape[0] > 1:
+        lines.append(f"this − {other_name} (paired: the same draws for both)")
+        for metric in spread.metrics:
+            for iou in sorted(spread.iou_thresholds):
+                lines.append(f"  {METRIC_TITLES[metric]:<7} @{iou:<4} " + row(
+                    lambda d, m=metric, t=iou: result.ap(m, t, d) - other.ap(m, t, d),
+                    lambda d, m=metric, t=iou: spread.difference_interval(m, t, d, 0, 1, level), sign="+"))
+    return "\n".join(lines)
+
+
+def format_difference(result: KittiEvalResult, other: KittiEvalResult, other_name: str = "other") -> str:
+    """AP (R40) of this evaluation minus ``other``'s, per metric both have, overlap threshold and difficulty."""
+    lines = [f"{result.class_name} AP (%, R40): this − {other_name}"]
+    for metric in [m for m in result.metrics if m in other.metrics]:
+        for iou in sorted(result.iou_thresholds):
+            cells = "  ".join(f"{d} {result.ap(metric, iou, d) - other.ap(metric, iou, d):+6.1f}" for d in DIFFICULTIES)
+            lines.append(f"  {METRIC_TITLES[metric]:<7} @{iou:<4} {cells}")
+    return "\n".join(lines)
+
+
+def spread_json(result: KittiEvalResult, spread: BootstrapResult, other: KittiEvalResult | None = None,
+                level: float = 0.95) -> dict[str, Any]:
+    """``{"draws", "seed", "level", "interval": {metric: {iou: [[low, high] × 3]}}, "difference": …}``."""
+    def table(interval) -> dict[str, dict[str, list[list[float]]]]:
+        return {m: {f"{t}": [list(interval(m, t, d)) for d in DIFFICULTIES] for t in spread.iou_thresholds}
+                for m in spread.metrics}
+
+    out: dict[str, Any] = {"draws": int(spread.ap.shape[1]), "seed": spread.seed, "level": level,
+                           "interval": table(lambda m, t, d: spread.interval(m, t, d, 0, level))}
+    if other is not None and spread.ap.shape[0] > 1:
+        out["difference"] = {m: {f"{t}": [result.ap(m, t, d) - other.ap(m, t, d) for d in DIFFICULTIES]
+                                 for t in spread.iou_thresholds} for m in spread.metrics}
+        out["difference_interval"] = table(lambda m, t, d: spread.difference_interval(m, t, d, 0, 1, level))
+    return out

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.kitti_eval import DIFFICULTIES, available_metrics, evaluate, recall_thresholds
+from evaluation.kitti_eval import DIFFICULTIES, available_metrics, bootstrap, evaluate, recall_thresholds
 from evaluation.labels import LabelArrays
 from evaluation.overlaps import bev_overlap, box3d_overlap, image_overlap
 from evaluation.report import to_json
@@ -249,6 +249,45 @@ def test_a_distance_band_ignores_cars_and_detections_outside_it(tmp_path: Path):
     for bad in ("20,10", "0", "0,a,5", "-5,10"):
         out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "pred", "--by-distance", bad)
         assert out.returncode == 2 and "--by-distance" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_frame_bootstrap_intervals_and_paired_differences(tmp_path: Path):
+    """41 frames of one car each: the perfect detector scores 100 on every draw; one that misses every other
+    car is below it on every draw, so the paired difference's interval excludes 0; a set against itself
+    differs by exactly 0; the same seed draws the same frames."""
+    gt = [[obj()] for _ in range(41)]
+    perfect = [[obj(score=0.9)] for _ in range(41)]
+    half = [[obj(score=0.9)] if i % 2 else [] for i in range(41)]
+    result = bootstrap(frames(*gt), [frames(*perfect), frames(*half), frames(*perfect)], resamples=30, seed=3,
+                       metrics=("bev",))
+    assert result.ap.shape == (3, 30, 1, 2, 3)
+    assert result.interval("bev", 0.7, "moderate") == (100.0, 100.0)
+    low, high = result.difference_interval("bev", 0.7, "moderate", 0, 1)
+    assert 0 < low <= high < 100
+    assert result.difference_interval("bev", 0.5, "hard", 0, 2) == (0.0, 0.0)
+    again = bootstrap(frames(*gt), [frames(*half)], resamples=30, seed=3, metrics=("bev",))
+    np.testing.assert_array_equal(again.ap[0], result.ap[1])
+    other_seed = bootstrap(frames(*gt), [frames(*half)], resamples=30, seed=4, metrics=("bev",))
+    assert not np.array_equal(other_seed.ap[0], result.ap[1])
+
+    for folder, dets in (("gt", gt), ("a", perfect), ("b", half)):
+        (tmp_path / folder).mkdir()
+        for i, objects in enumerate(dets):
+            write_labels(tmp_path / folder / f"{i:06d}.txt", objects)
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels",
+               tmp_path / "b", "--bootstrap", "10", "--json", tmp_path / "ap.json")
+    assert out.returncode == 0, out.stderr
+    assert "interval over 10 bootstrap draws" in out.stdout and "paired" in out.stdout
+    document = json.loads((tmp_path / "ap.json").read_text())
+    assert document["bootstrap"]["draws"] == 10
+    assert document["bootstrap"]["interval"]["bev"]["0.7"][1] == [100.0, 100.0]
+    low, high = document["bootstrap"]["difference_interval"]["bev"]["0.7"][1]
+    assert 0 < low <= high
+    assert document["compared_with"]["bev"]["0.7"]["R40"][1] < 100
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels", tmp_path / "b")
+    assert out.returncode == 0 and "this − " in out.stdout and "bootstrap draws" not in out.stdout
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--bootstrap", "0")
+    assert out.returncode == 2 and "--bootstrap" in out.stderr
 
 
 @pytest.mark.parametrize(
