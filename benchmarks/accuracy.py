@@ -148,7 +148,10 @@ def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None,
     """The other model's evaluation (``compare_pred_labels``) and the bootstrap of both, when asked."""
     other = other_labels = None
     if config.compare_pred_labels is not None:
-        other_labels = load_label_dirs(config.gt_labels, config.compare_pred_labels, frame_ids, progress=False)
+        try:
+            other_labels = load_label_dirs(config.gt_labels, config.compare_pred_labels, frame_ids, progress=False)
+        except InputError as exc:
+            raise InputError(f"--compare-pred-labels: {exc}") from exc
         other = evaluate(other_labels.ground_truth, other_labels.detections, class_name=config.class_name,
                          iou_thresholds=config.iou_thresholds,
                          ignore_small_detections=config.ignore_small_detections)
@@ -195,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     labels.add_argument(
         "--by-distance", type=distance_edges, default=(), metavar="EDGES",
-        help="also AP per distance band, e.g. 0,20,35,50,80 (metres of camera depth z of the box centre; cars "
+        help="also AP per distance band, e.g. 0,20,35,80 (metres of camera depth z of the box centre; cars "
         "and detections outside a band are ignored in it, not missed or false); a table, the JSON's "
         "by_distance, and ap_by_distance.png with --plots",
     )

@@ -286,6 +286,8 @@ def test_frame_bootstrap_intervals_and_paired_differences(tmp_path: Path):
     assert document["compared_with"]["bev"]["0.7"]["R40"][1] < 100
     out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels", tmp_path / "b")
     assert out.returncode == 0 and "this − " in out.stdout and "bootstrap draws" not in out.stdout
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels", tmp_path / "nowhere")
+    assert out.returncode == 2 and f"--compare-pred-labels: {tmp_path / 'nowhere'}" in out.stderr
     out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--bootstrap", "0")
     assert out.returncode == 2 and "--bootstrap" in out.stderr
 
