@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from itertools import pairwise
 from pathlib import Path
 
-from evaluation.frames import load_label_dirs, read_split_file
+from evaluation.frames import LabelSet, load_label_dirs, read_split_file
 from evaluation.kitti_eval import (
     DEFAULT_IOU_THRESHOLDS,
     BootstrapResult,
@@ -101,20 +101,15 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         iou_thresholds=config.iou_thresholds, progress=config.progress,
         ignore_small_detections=config.ignore_small_detections,
     )
-    other, spread = _compare_and_bootstrap(config, frame_ids, labels, result)
-    edges = config.distance_edges
-    by_distance = {
-        (low, high): evaluate(
-            labels.ground_truth, labels.detections, class_name=config.class_name,
-            iou_thresholds=config.iou_thresholds, ignore_small_detections=config.ignore_small_detections,
-            distance_range=(low, high),
-        )
-        for low, high in pairwise(edges)
-    }
+    other, other_labels, spread = _compare_and_bootstrap(config, frame_ids, labels, result)
+    by_distance = _by_distance(config, labels)
+    other_by_distance = _by_distance(config, other_labels) if other_labels is not None else {}
     if config.json_path:
         document = to_json(result)
         if by_distance:
             document["by_distance"] = distance_json(by_distance)
+        if other_by_distance:
+            document["compared_by_distance"] = distance_json(other_by_distance)
         if spread is not None:
             document["bootstrap"] = spread_json(result, spread, other)
         if other is not None:
@@ -127,10 +122,14 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         config.json_path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
     plot_paths = tuple(plot_pr_curves(result, config.plots_dir)) if config.plots_dir else ()
     if config.plots_dir and by_distance:
-        plot_paths += (plot_by_distance(by_distance, config.plots_dir / "ap_by_distance.png"),)
+        names = (_short_name(config.pred_labels), _short_name(config.compare_pred_labels))
+        plot_paths += (plot_by_distance(by_distance, config.plots_dir / "ap_by_distance.png", other_by_distance,
+                                        names),)
     table = format_table(result)
     if by_distance:
         table += "\n" + format_distance_table(by_distance)
+    if other_by_distance:
+        table += "\n" + format_distance_table(other_by_distance, str(config.compare_pred_labels))
     if spread is not None:
         table += "\n" + format_spread(result, spread, other, str(config.compare_pred_labels))
     elif other is not None:
@@ -143,9 +142,27 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
     )
 
 
-def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None, labels,
-                           result: KittiEvalResult) -> tuple[KittiEvalResult | None, BootstrapResult | None]:
-    """The other model's evaluation (``compare_pred_labels``) and the bootstrap of both, when asked."""
+def _short_name(folder: Path | None) -> str:
+    """A result folder's name for a legend: ``runs/x/acc_edge/data`` → ``acc_edge``."""
+    folder = Path(folder or "")
+    return folder.parent.name if folder.name == "data" else folder.name
+
+
+def _by_distance(config: LabelEvalConfig, labels: LabelSet) -> dict[tuple[float, float], KittiEvalResult]:
+    """One evaluation per distance band of ``config.distance_edges`` (empty without bands)."""
+    return {
+        (low, high): evaluate(
+            labels.ground_truth, labels.detections, class_name=config.class_name,
+            iou_thresholds=config.iou_thresholds, ignore_small_detections=config.ignore_small_detections,
+            distance_range=(low, high),
+        )
+        for low, high in pairwise(config.distance_edges)
+    }
+
+
+def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None, labels: LabelSet, result: KittiEvalResult
+                           ) -> tuple[KittiEvalResult | None, LabelSet | None, BootstrapResult | None]:
+    """The other model's evaluation and labels (``compare_pred_labels``), and the bootstrap of both, when asked."""
     other = other_labels = None
     if config.compare_pred_labels is not None:
         try:
@@ -156,14 +173,14 @@ def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None,
                          iou_thresholds=config.iou_thresholds,
                          ignore_small_detections=config.ignore_small_detections)
     if not config.bootstrap:
-        return other, None
+        return other, other_labels, None
     sets = [labels.detections] + ([other_labels.detections] if other_labels is not None else [])
     # BEV and 3D only: the paper's table and its 3D counterpart; each metric costs a matching pass per draw.
     metrics = tuple(m for m in ("bev", "3d") if m in result.metrics and (other is None or m in other.metrics))
     spread = bootstrap(labels.ground_truth, sets, config.bootstrap, config.seed, class_name=config.class_name,
                        iou_thresholds=config.iou_thresholds, metrics=metrics,
                        ignore_small_detections=config.ignore_small_detections, progress=config.progress)
-    return other, spread
+    return other, other_labels, spread
 
 
 def distance_edges(text: str) -> tuple[float, ...]:

@@ -99,12 +99,13 @@ def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
     return paths
 
 
-def format_distance_table(bands: dict[tuple[float, float], KittiEvalResult]) -> str:
+def format_distance_table(bands: dict[tuple[float, float], KittiEvalResult], name: str | None = None) -> str:
     """AP per distance band at moderate difficulty (R40): one row per band, counted cars beside it."""
     first = next(iter(bands.values()))
     columns = [(m, iou) for m in ("bev", "3d") if m in first.metrics for iou in sorted(first.iou_thresholds)]
     header = "".join(f" | {METRIC_TITLES[m]} {iou}" for m, iou in columns)
-    lines = [f"{first.class_name} AP (%) by distance (box centre's camera depth z), moderate, R40",
+    whose = f" of {name}" if name else ""
+    lines = [f"{first.class_name} AP (%){whose} by distance (box centre's camera depth z), moderate, R40",
              f"  band (m)    cars{header}"]
     for (low, high), result in bands.items():
         cars = result.curve(columns[0][0], columns[0][1], "moderate").n_ground_truth if columns else 0
@@ -123,21 +124,31 @@ def distance_json(bands: dict[tuple[float, float], KittiEvalResult]) -> list[dic
     return out
 
 
-def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: str | Path) -> Path:
-    """One PNG: moderate AP (R40) against distance band, a line per (metric, overlap threshold)."""
+def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: str | Path,
+                     other: dict[tuple[float, float], KittiEvalResult] | None = None,
+                     names: tuple[str, str] = ("this", "other")) -> Path:
+    """One PNG: moderate AP (R40) against distance band, a line per (metric, overlap threshold);
+    ``other`` (another model on the same bands) in dashed lines of the same colours."""
     plt = _pyplot()
     first = next(iter(bands.values()))
     cars = [r.curve(first.metrics[0], first.iou_thresholds[0], "moderate").n_ground_truth for r in bands.values()]
     labels = [f"{low:g}–{high:g}\n{n} cars" for (low, high), n in zip(bands, cars)]
-    fig, ax = plt.subplots(figsize=(5.0, 3.6))
+    fig, ax = plt.subplots(figsize=(7.6 if other else 5.0, 3.6))
     for metric in [m for m in ("bev", "3d") if m in first.metrics]:
         for iou in sorted(first.iou_thresholds):
-            ax.plot(labels, [r.ap(metric, iou, "moderate") for r in bands.values()], marker="o",
-                    label=f"{METRIC_TITLES[metric]} @{iou}")
+            suffix = f" ({names[0]})" if other else ""
+            (line,) = ax.plot(labels, [r.ap(metric, iou, "moderate") for r in bands.values()], marker="o",
+                              label=f"{METRIC_TITLES[metric]} @{iou}{suffix}")
+            if other and metric in next(iter(other.values())).metrics:
+                ax.plot(labels, [r.ap(metric, iou, "moderate") for r in other.values()], marker="s", linestyle="--",
+                        color=line.get_color(), label=f"{METRIC_TITLES[metric]} @{iou} ({names[1]})")
     ax.set(ylim=(0, 102), xlabel="distance band (m, camera depth of the box centre)", ylabel="AP$_{40}$ (%), moderate",
            title=f"{first.class_name} AP by distance")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left")
+    if other:  # eight lines: the legend goes beside the axes, not over them
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    else:
+        ax.legend(fontsize=7, loc="lower left")
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -284,8 +284,13 @@ def test_frame_bootstrap_intervals_and_paired_differences(tmp_path: Path):
     low, high = document["bootstrap"]["difference_interval"]["bev"]["0.7"][1]
     assert 0 < low <= high
     assert document["compared_with"]["bev"]["0.7"]["R40"][1] < 100
-    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels", tmp_path / "b")
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels", tmp_path / "b",
+               "--by-distance", "0,30,80", "--json", tmp_path / "cmp.json", "--plots", tmp_path / "plots")
     assert out.returncode == 0 and "this − " in out.stdout and "bootstrap draws" not in out.stdout
+    assert "by distance" in out.stdout and f"of {tmp_path / 'b'} by distance" in out.stdout
+    compared = json.loads((tmp_path / "cmp.json").read_text())["compared_by_distance"]
+    assert compared[0]["range_m"] == [0, 30] and compared[0]["Car"]["bev"]["0.7"]["R40"][1] < 100
+    assert (tmp_path / "plots" / "ap_by_distance.png").stat().st_size > 0
     out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels", tmp_path / "nowhere")
     assert out.returncode == 2 and f"--compare-pred-labels: {tmp_path / 'nowhere'}" in out.stderr
     out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--bootstrap", "0")
