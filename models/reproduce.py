@@ -13,7 +13,9 @@ Stages (each resumes where it stopped: rerun the same command after an interrupt
 5. fine-tune the depth net and PIXOR together (joint, soft BEV occupancy);
 6. train the depth net without GAMs, same budget (the paper's ablation);
 7. export every model directory, evaluate each on the validation set
-   (KITTI BEV and 3D AP, depth RMSE/MAE), write ``OUT/table.json`` and ``OUT/table.md``.
+   (KITTI BEV and 3D AP, BEV AP by distance band, the 95 % frame-bootstrap intervals of
+   camera − 16-line and 64-line − camera, depth RMSE/MAE), write ``OUT/table.json`` and
+   ``OUT/table.md``.
 
 The training stages (2–6) run as jobs on two lanes side by side, one core
 each, a job starting when the stages it needs are done (models/schedule.py:
@@ -44,11 +46,12 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from functools import partial
+from itertools import pairwise
 from pathlib import Path
 
-from evaluation.frames import load_label_dirs
+from evaluation.frames import LabelSet, load_label_dirs
 from evaluation.harness import run_depth, run_detection
-from evaluation.kitti_eval import evaluate
+from evaluation.kitti_eval import DIFFICULTIES, bootstrap, evaluate
 from export.exporter import ExportConfig
 from export.exporter import run as export
 from models.cache_pseudo import run as cache_pseudo
@@ -84,11 +87,13 @@ class Budget:
     joint_frames: int = 2000
     joint_epochs: int = 1
     val_frames_during_training: int = 60
+    distance_edges: tuple[float, ...] = (0.0, 20.0, 35.0, 80.0)  # BEV AP per band (benchmarks/accuracy.py)
+    bootstrap_draws: int = 200  # frame-bootstrap draws for the intervals of the rows' differences (about 2 min)
 
 
 QUICK = Budget(train_frames=6, val_frames=3, depth_frames=6, depth_epochs=2, depth_lr=1e-4, detector_frames=6,
                detector_epochs=3, pseudo_branch_epochs=1,
-               joint_frames=3, joint_epochs=1, val_frames_during_training=2)
+               joint_frames=3, joint_epochs=1, val_frames_during_training=2, bootstrap_draws=5)
 
 
 @dataclass
@@ -135,12 +140,34 @@ def _export(config: ReproduceConfig, checkpoints: Path, target: Path, networks: 
     return target
 
 
-def _detection_ap(config: ReproduceConfig, models: Path, input_mode: str, name: str) -> dict:
-    """KITTI BEV and 3D AP (R40 and R11) of one model directory on the validation set: {"bev": …, "3d": …}."""
+def _detection_labels(config: ReproduceConfig, models: Path, input_mode: str, name: str) -> LabelSet:
+    """Run one model directory on the validation set; its result files and the ground truth, loaded."""
     val = config.data / "val"
     predictions = run_detection(val, models, input_mode, config.out / "eval" / name, progress=config.progress)
-    labels = load_label_dirs(val / "label_2", predictions)
-    return evaluate(labels.ground_truth, labels.detections, metrics=("bev", "3d")).ap_table()
+    return load_label_dirs(val / "label_2", predictions, progress=False)
+
+
+def _how_sure(config: ReproduceConfig, labels: dict[str, LabelSet]) -> dict:
+    """BEV AP (IoU 0.7, moderate) per distance band of each row, and the paired frame-bootstrap intervals of
+    camera − 16-line and 64-line − camera (docs/evaluation.md): whether the table can order its rows."""
+    camera = "lidar16+camera (joint)"
+    by_distance = {
+        row: [{"range_m": [low, high],
+               "bev_ap_0.7_moderate": evaluate(rows.ground_truth, rows.detections, metrics=("bev",),
+                                               distance_range=(low, high)).ap("bev", 0.7, "moderate")}
+              for low, high in pairwise(config.budget.distance_edges)]
+        for row, rows in labels.items()
+    }
+    sets = [labels[camera].detections, labels["lidar16"].detections, labels["lidar64"].detections]
+    spread = bootstrap(labels[camera].ground_truth, sets, config.budget.bootstrap_draws, seed=0, metrics=("bev",))
+    differences = {}
+    for name, first, second in (("camera - lidar16", 0, 1), ("lidar64 - camera", 2, 0)):
+        differences[name] = {
+            f"{iou}": [list(spread.difference_interval("bev", iou, d, first, second)) for d in DIFFICULTIES]
+            for iou in spread.iou_thresholds
+        }
+    return {"bev_by_distance": by_distance, "bootstrap_draws": config.budget.bootstrap_draws,
+            "bev_difference_interval_95": differences}
 
 
 STAGE_REPORTS = ("depth", "pixor_lidar16", "pixor_pseudo", "pixor_lidar64", "joint", "depth_no_gam")
@@ -287,11 +314,13 @@ def run(config: ReproduceConfig) -> dict:
     }
     stage("export")
 
-    table, table_3d = {}, {}
+    table, table_3d, labels = {}, {}, {}
     for row, models in directories.items():
         mode = "lidar16+camera" if row.startswith("lidar16+camera") else row
-        ap = _detection_ap(config, models, mode, row.replace("+", "_").replace(" ", "_").strip("()"))
+        labels[row] = _detection_labels(config, models, mode, row.replace("+", "_").replace(" ", "_").strip("()"))
+        ap = evaluate(labels[row].ground_truth, labels[row].detections, metrics=("bev", "3d")).ap_table()
         table[row], table_3d[row] = ap["bev"], ap["3d"]
+    how_sure = _how_sure(config, labels)
     depth_table = {}
     for name, models in (("with GAMs", depth_models), ("without GAMs", no_gam_models)):
         m = run_depth(config.data / "val", models, progress=config.progress).mean
@@ -306,7 +335,7 @@ def run(config: ReproduceConfig) -> dict:
     if product.exists():
         shutil.rmtree(product)
     shutil.copytree(shipped_from, product)
-    report.update({"bev_ap": table, "ap_3d": table_3d, "depth": depth_table, "shipped": str(product),
+    report.update({"bev_ap": table, "ap_3d": table_3d, **how_sure, "depth": depth_table, "shipped": str(product),
                    "shipped_from": "joint fine-tuning" if joint_better else "before joint fine-tuning"})
     report["total_seconds"] = round(time.perf_counter() - started, 1)
     (out / "table.json").write_text(json.dumps(report, indent=1))
@@ -326,6 +355,18 @@ def format_table(report: dict) -> str:
         for row, ap in report[key].items():
             cells = [f"{v:.1f}" for iou in ("0.5", "0.7") for v in ap[iou]["R40"]]
             lines.append(f"| {row} | " + " | ".join(cells) + " |")
+    if "bev_by_distance" in report:
+        ranges = [band["range_m"] for band in next(iter(report["bev_by_distance"].values()))]
+        lines += ["", "| BEV AP, IoU 0.7 moderate, by distance | " + " | ".join(f"{a:g}–{b:g} m" for a, b in ranges) + " |",
+                  "|---|" + "---|" * len(ranges)]
+        for row, bands in report["bev_by_distance"].items():
+            lines.append(f"| {row} | " + " | ".join(f"{band['bev_ap_0.7_moderate']:.1f}" for band in bands) + " |")
+        draws = report["bootstrap_draws"]
+        header = f"| BEV AP difference, 95 % interval over {draws} frame draws | IoU 0.5 easy | mod. | hard | "
+        lines += ["", header + "IoU 0.7 easy | mod. | hard |", "|---|---|---|---|---|---|---|"]
+        for name, intervals in report["bev_difference_interval_95"].items():
+            cells = [f"[{low:+.1f}, {high:+.1f}]" for iou in ("0.5", "0.7") for low, high in intervals[iou]]
+            lines.append(f"| {name} | " + " | ".join(cells) + " |")
     bands = list(next(iter(report["depth"].values())).get("median_abs_mm_by_band", {}))
     lines += ["", "| depth net | RMSE (mm) | MAE (mm) | iRMSE (1/km) | iMAE (1/km) | "
               + "".join(f"median error {b} m (mm) | " for b in bands),

@@ -25,8 +25,13 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     for row in (*report["bev_ap"].values(), *report["ap_3d"].values()):
         assert all(0 <= v <= 100 for iou in ("0.5", "0.7") for v in row[iou]["R40"])
     assert set(report["depth"]) == {"with GAMs", "without GAMs"}
+    assert set(report["bev_by_distance"]) == set(report["bev_ap"])
+    assert [band["range_m"] for band in report["bev_by_distance"]["lidar16"]] == [[0, 20], [20, 35], [35, 80]]
+    for intervals in report["bev_difference_interval_95"].values():  # camera − lidar16, lidar64 − camera
+        assert all(-100 <= low <= high <= 100 for iou in ("0.5", "0.7") for low, high in intervals[iou])
     table_md = (out / "table.md").read_text()
     assert "| lidar16+camera |" in table_md and "| BEV AP |" in table_md and "| 3D AP |" in table_md
+    assert "by distance" in table_md and "| camera - lidar16 |" in table_md
     # The shipped-style directories load in the runtime, each of the right kind.
     weights = out / "weights"
     assert Detector(weights / "tiny").two_stage
