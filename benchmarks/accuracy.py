@@ -37,6 +37,7 @@ from evaluation.kitti_eval import (
     KittiEvalResult,
     bootstrap,
     evaluate,
+    evaluate_by_distance,
 )
 from evaluation.report import (
     distance_json,
@@ -150,14 +151,9 @@ def _short_name(folder: Path | None) -> str:
 
 def _by_distance(config: LabelEvalConfig, labels: LabelSet) -> dict[tuple[float, float], KittiEvalResult]:
     """One evaluation per distance band of ``config.distance_edges`` (empty without bands)."""
-    return {
-        (low, high): evaluate(
-            labels.ground_truth, labels.detections, class_name=config.class_name,
-            iou_thresholds=config.iou_thresholds, ignore_small_detections=config.ignore_small_detections,
-            distance_range=(low, high),
-        )
-        for low, high in pairwise(config.distance_edges)
-    }
+    return evaluate_by_distance(labels.ground_truth, labels.detections, config.distance_edges,
+                                class_name=config.class_name, iou_thresholds=config.iou_thresholds,
+                                ignore_small_detections=config.ignore_small_detections)
 
 
 def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None, labels: LabelSet, result: KittiEvalResult

@@ -36,6 +36,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass
+from itertools import pairwise
 from typing import Literal
 
 import numpy as np
@@ -390,6 +391,13 @@ def evaluate(
         class_name=class_name, n_frames=len(ground_truth), metrics=metrics,
         iou_thresholds=iou_thresholds, curves=tuple(curves),
     )
+
+
+def evaluate_by_distance(ground_truth: Sequence[LabelArrays], detections: Sequence[LabelArrays],
+                         edges: Sequence[float], **options) -> dict[tuple[float, float], KittiEvalResult]:
+    """:func:`evaluate` once per distance band [edges[i], edges[i + 1]); ``options`` go to each call."""
+    return {(low, high): evaluate(ground_truth, detections, distance_range=(low, high), **options)
+            for low, high in pairwise(edges)}
 
 
 def _curves(frames: Sequence[_Frame], metrics: tuple[str, ...], iou_thresholds: tuple[float, ...],

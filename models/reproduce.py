@@ -46,12 +46,11 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from functools import partial
-from itertools import pairwise
 from pathlib import Path
 
 from evaluation.frames import LabelSet, load_label_dirs
 from evaluation.harness import run_depth, run_detection
-from evaluation.kitti_eval import DIFFICULTIES, bootstrap, evaluate
+from evaluation.kitti_eval import DIFFICULTIES, bootstrap, evaluate, evaluate_by_distance
 from export.exporter import ExportConfig
 from export.exporter import run as export
 from models.cache_pseudo import run as cache_pseudo
@@ -151,13 +150,11 @@ def _how_sure(config: ReproduceConfig, labels: dict[str, LabelSet]) -> dict:
     """BEV AP (IoU 0.7, moderate) per distance band of each row, and the paired frame-bootstrap intervals of
     camera − 16-line and 64-line − camera (docs/evaluation.md): whether the table can order its rows."""
     camera = "lidar16+camera (joint)"
-    by_distance = {
-        row: [{"range_m": [low, high],
-               "bev_ap_0.7_moderate": evaluate(rows.ground_truth, rows.detections, metrics=("bev",),
-                                               distance_range=(low, high)).ap("bev", 0.7, "moderate")}
-              for low, high in pairwise(config.budget.distance_edges)]
-        for row, rows in labels.items()
-    }
+    by_distance = {}
+    for row, rows in labels.items():
+        bands = evaluate_by_distance(rows.ground_truth, rows.detections, config.budget.distance_edges, metrics=("bev",))
+        by_distance[row] = [{"range_m": [low, high], "bev_ap_0.7_moderate": result.ap("bev", 0.7, "moderate")}
+                            for (low, high), result in bands.items()]
     sets = [labels[camera].detections, labels["lidar16"].detections, labels["lidar64"].detections]
     spread = bootstrap(labels[camera].ground_truth, sets, config.budget.bootstrap_draws, seed=0, metrics=("bev",))
     differences = {}
