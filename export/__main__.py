@@ -10,6 +10,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
+from export.precision import REDUCE_RANGE_HELP
 from pipeline.cli import positive_int
 from pipeline.errors import TORCH_MISSING
 from pipeline.model_files import ModelFileError
@@ -45,9 +46,12 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
     parser.add_argument("--calibration-data", type=Path, default=DEFAULT_KITTI_DIR,
                         help="KITTI-layout folder whose frames calibrate int8 (default: the bundled KITTI frames)")
     parser.add_argument("--calibration-frames", type=positive_int, default=300, help="frames used for calibration (default 300)")
+    parser.add_argument("--reduce-range", action="store_true", help=REDUCE_RANGE_HELP)
     parser.add_argument("--networks", nargs="+", default=["depth", "pixor"], choices=["depth", "pixor"],
                         help="networks to export (default both; 'pixor' alone for a LiDAR-only detector)")
     args = parser.parse_args(argv)
+    if args.reduce_range and args.precision != "int8":
+        parser.error(f"--reduce-range: applies to --precision int8 only, not {args.precision}")
     try:
         get_preset(args.preset)
     except ValueError as exc:
@@ -82,7 +86,7 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
         with tempfile.TemporaryDirectory(prefix="lowres3d-fp32-") as fp32_dir:
             result = run(replace(config, out=Path(fp32_dir)))
             manifest = convert_precision(Path(fp32_dir), config.out, args.precision, args.calibration_data,
-                                         args.calibration_frames, progress=True)
+                                         args.calibration_frames, progress=True, reduce_range=args.reduce_range)
         result = replace(result, directory=config.out, manifest=manifest)
         print(f"{args.precision}: deviation from fp32 {manifest['precision_info']['deviation_from_fp32']}")
     print(f"wrote {result.directory} (preset {manifest['preset']}, weights: {manifest['weights']})")

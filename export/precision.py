@@ -43,6 +43,8 @@ from pipeline.preprocess import depth_inputs
 
 log = logging.getLogger(__name__)
 PRECISIONS = ("fp32", "fp16", "int8")
+REDUCE_RANGE_HELP = ("int8: weights in 7 bits, exact on x86 CPUs without VNNI, where full 8-bit weights can "
+                     "saturate ONNX Runtime's 16-bit sums of product pairs (pipeline/cpu.py)")
 
 
 def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool = False) -> dict[str, list[dict]]:
@@ -95,8 +97,11 @@ def to_fp16(source: Path, target: Path) -> None:
 
 
 def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = True, output_convs: int = 1,
-            moving_average: bool = False) -> dict:
+            moving_average: bool = False, reduce_range: bool = False) -> dict:
     """Static QDQ quantization: uint8 activations, int8 per-channel weights, min–max calibration.
+
+    reduce_range: weights in 7 bits (−64…63), for x86 CPUs without VNNI, where ONNX Runtime adds pairs
+    of uint8 × int8 products in 16 bits and full-range weights saturate them (pipeline/cpu.py).
 
     moving_average: each tensor's range is a moving average of the per-frame extremes (ONNX Runtime's
     ``CalibMovingAverage``, constant 0.01, as PyTorch's ``MovingAverageMinMaxObserver``) instead of the
@@ -128,7 +133,7 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
         kept_fp32 = boundary_nodes(prepared_model, inputs=inputs_fp32, output_convs=output_convs) + pads
         quantize_static(
             str(prepared), str(target), _Reader(feeds), quant_format=QuantFormat.QDQ,
-            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True,
+            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8, per_channel=True, reduce_range=reduce_range,
             calibrate_method=CalibrationMethod.MinMax, nodes_to_exclude=kept_fp32,
             # ONNX Runtime wants the stride to divide the frame count: the largest divisor up to 10.
             extra_options={"CalibStridedMinMax": max(d for d in range(1, 11) if len(feeds) % d == 0),
@@ -163,10 +168,15 @@ def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -
 
 
 def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_data: Path,
-                      calibration_frames: int = 300, progress: bool = False) -> dict:
-    """Write ``out`` as a copy of the FP32 directory ``fp32_dir`` at ``precision``; returns the manifest."""
+                      calibration_frames: int = 300, progress: bool = False, reduce_range: bool = False) -> dict:
+    """Write ``out`` as a copy of the FP32 directory ``fp32_dir`` at ``precision``; returns the manifest.
+
+    reduce_range: INT8 weights in 7 bits, exact on every CPU (:func:`to_int8`).
+    """
     if precision not in PRECISIONS:
         raise ValueError(f"--precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
+    if reduce_range and precision != "int8":
+        raise ValueError(f"--reduce-range: applies to --precision int8 only, not {precision}")
     fp32_dir, out = Path(fp32_dir), Path(out)
     manifest = load_manifest(fp32_dir)  # ModelFileError naming the file when it is missing or broken
     verify_sha256(fp32_dir, manifest)
@@ -188,12 +198,12 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     source_files = dict(manifest["files"])
     feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames, progress)
     with staged(out, source=fp32_dir) as staging:
-        _convert(fp32_dir, staging, manifest, source_files, feeds, precision, calibration_data)
+        _convert(fp32_dir, staging, manifest, source_files, feeds, precision, calibration_data, reduce_range)
     return manifest
 
 
 def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feeds: dict, precision: str,
-             calibration_data: Path) -> None:
+             calibration_data: Path, reduce_range: bool = False) -> None:
     """Convert the networks of the copy ``out`` in place and write its manifest (see :func:`convert_precision`)."""
     int8_info: dict[str, dict] = {}
     for name, frames in feeds.items():
@@ -211,14 +221,16 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
             # it lost 0.3 and 0.6. The depth net keeps the extremes: averaged, its median error at 0–10 m
             # grew from 122 to 140 mm (fp32: 80).
             int8_info[name] = to_int8(fp32_dir / path.name, path, frames, inputs_fp32=name == "depth",
-                                      output_convs=2 if name == "depth" else 1, moving_average=name == "pixor")
+                                      output_convs=2 if name == "depth" else 1, moving_average=name == "pixor",
+                                      reduce_range=reduce_range)
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
     manifest["precision"] = precision
     manifest["precision_info"] = {
         # Which FP32 files this directory was converted from (their manifest's sha256s).
         "source": {"directory": str(fp32_dir), "sha256": {name: entry["sha256"] for name, entry in source_files.items()}},
         "calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
-        **({"activations": "uint8", "weights": "int8 per channel", "format": "QDQ",
+        **({"activations": "uint8", "weights": "int8 per channel" + (", 7-bit range" if reduce_range else ""),
+            "reduce_range": reduce_range, "format": "QDQ",
             "calibration": {name: info["calibration"] for name, info in int8_info.items()},
             "graph": int8_info} if precision == "int8"
            else {"io": "float32 (keep_io_types)"}),
@@ -243,11 +255,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="output model directory")
     parser.add_argument("--calibration-data", type=Path, required=True, help="KITTI-layout folder for calibration")
     parser.add_argument("--calibration-frames", type=positive_int, default=300, help="frames used (default 300)")
+    parser.add_argument("--reduce-range", action="store_true", help=REDUCE_RANGE_HELP)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         manifest = convert_precision(args.models, args.out, args.precision, args.calibration_data,
-                                     args.calibration_frames, progress=True)
+                                     args.calibration_frames, progress=True, reduce_range=args.reduce_range)
     except (InputError, ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

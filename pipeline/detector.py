@@ -26,6 +26,7 @@ from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import Calibration
+from pipeline.cpu import int8_pairs_saturate
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D
 from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
@@ -161,8 +162,22 @@ class Detector:
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
         self._local = threading.local()
+        self.load_warnings: list[str] = []  # about the model on this machine, logged once at load
+        saturating = self._saturating_int8()
+        if saturating:
+            self.load_warnings.append(saturating)
+            log.warning(saturating)
         trained_on = (networks["pixor"].get("training") or {}).get("input")
         self.trained_lines: int | None = SCAN_LINES_BY_INPUT.get(trained_on)  # None: not recorded
+
+    def _saturating_int8(self) -> str | None:
+        """A warning when full-range INT8 weights run on a CPU whose int8 kernels saturate (pipeline/cpu.py)."""
+        info = self.manifest.get("precision_info") or {}
+        if self.manifest.get("precision") != "int8" or info.get("reduce_range") or not int8_pairs_saturate():
+            return None
+        return (f"{self.model_dir}: INT8 weights in the full 8-bit range on an x86 CPU without VNNI, where ONNX "
+                "Runtime's uint8 × int8 sums can saturate and change the outputs; convert with "
+                "`python -m export.precision --reduce-range` for this CPU")
 
     # ------------------------------------------------------------------ info
     @property

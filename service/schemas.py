@@ -139,4 +139,7 @@ class ModelInfo(BaseModel):
         min_length=2, max_length=2, description="smallest image [height, width] the model accepts"
     )
     default_calib: bool = Field(description="a default calibration is configured (calib is optional)")
+    warnings: list[str] = Field(
+        default_factory=list, description="about the model on this machine (an INT8 model this CPU may run inexactly)"
+    )
     manifest: dict = Field(description="manifest.json of the model directory")

@@ -7,6 +7,7 @@ import onnx
 import pytest
 
 from export.precision import convert_precision
+from pipeline.cpu import int8_pairs_saturate
 from pipeline.detector import Detector
 from pipeline.frame import load_frame
 from pipeline.model_files import verify_sha256
@@ -191,13 +192,10 @@ def test_moving_average_calibration_is_not_stretched_by_one_outlying_frame(tmp_p
     assert scales[True] == pytest.approx(5.9 / 255, rel=0.1)
 
 
-def test_int8_input_conv_reads_the_whole_input_padded_in_uint8(tmp_path):
-    """A 19-channel input conv, split for the fp32 kernels, is quantized whole: the input is quantized once,
-    padded to 20 channels in uint8 with its zero point, and the INT8 output stays close to fp32."""
-    import onnxruntime as ort
+def _input_conv_model(tmp_path):
+    """A 19-channel input conv (split for the fp32 kernels, as PIXOR's BEV stem) and a head conv; binary inputs."""
     from onnx import TensorProto, helper, numpy_helper
 
-    from export.precision import to_int8
     from export.rewrite import split_input_convs
 
     rng = np.random.default_rng(3)
@@ -211,9 +209,26 @@ def test_int8_input_conv_reads_the_whole_input_padded_in_uint8(tmp_path):
         "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 19, 16, 16])],
         [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 4, 16, 16])], inits)
     lowered, _ = split_input_convs(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]))
-    source, target = tmp_path / "fp32.onnx", tmp_path / "int8.onnx"
+    source = tmp_path / "fp32.onnx"
     onnx.save(lowered, str(source))
     feeds = [{"x": (rng.random((1, 19, 16, 16)) > 0.8).astype(np.float32)} for _ in range(10)]
+    return source, feeds
+
+
+def _relative_deviation(source, target, feed) -> float:
+    import onnxruntime as ort
+
+    a, b = (ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, feed)[0] for p in (source, target))
+    return float(np.abs(a - b).max() / np.abs(a).max())
+
+
+def test_int8_input_conv_reads_the_whole_input_padded_in_uint8(tmp_path):
+    """A 19-channel input conv, split for the fp32 kernels, is quantized whole: the input is quantized once
+    and padded to 20 channels in uint8 with its zero point."""
+    from export.precision import to_int8
+
+    source, feeds = _input_conv_model(tmp_path)
+    target = tmp_path / "int8.onnx"
     info = to_int8(source, target, feeds, inputs_fp32=False, output_convs=1)
     assert (info["input_convs_merged"], info["input_convs_padded"], info["pads_after_quantize"]) == (1, 1, 1)
     model = onnx.load(str(target))
@@ -224,9 +239,30 @@ def test_int8_input_conv_reads_the_whole_input_padded_in_uint8(tmp_path):
     (dequantize,) = [n for n in model.graph.node if pad.output[0] in n.input]
     assert (quantize.op_type, pad.op_type, dequantize.op_type) == ("QuantizeLinear", "Pad", "DequantizeLinear")
     assert pad.input[2] == quantize.input[2]  # padded with the zero point
-    x = feeds[0]
-    a, b = (ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, x)[0] for p in (source, target))
-    assert np.abs(a - b).max() < 0.05 * np.abs(a).max()
+
+
+def test_reduced_range_int8_stays_close_to_fp32_on_any_cpu(tmp_path):
+    """7-bit weights: every pair of uint8 × int8 products fits 16 bits, so the INT8 graph is what it says on any CPU."""
+    from export.precision import to_int8
+
+    source, feeds = _input_conv_model(tmp_path)
+    target = tmp_path / "int8_7bit.onnx"
+    to_int8(source, target, feeds, inputs_fp32=False, output_convs=1, reduce_range=True)
+    weights = [onnx.numpy_helper.to_array(i) for i in onnx.load(str(target)).graph.initializer
+               if i.data_type == onnx.TensorProto.INT8]
+    assert weights and max(int(np.abs(w.astype(np.int32)).max()) for w in weights) <= 64
+    assert max(_relative_deviation(source, target, feed) for feed in feeds[:3]) < 0.05
+
+
+@pytest.mark.skipif(int8_pairs_saturate(), reason="x86 without VNNI: full-range int8 weights saturate ONNX "
+                    "Runtime's 16-bit pair sums (pipeline/cpu.py); the 7-bit test covers this CPU")
+def test_full_range_int8_stays_close_to_fp32_with_vnni(tmp_path):
+    from export.precision import to_int8
+
+    source, feeds = _input_conv_model(tmp_path)
+    target = tmp_path / "int8.onnx"
+    to_int8(source, target, feeds, inputs_fp32=False, output_convs=1)
+    assert max(_relative_deviation(source, target, feed) for feed in feeds[:3]) < 0.05
 
 
 def test_quantize_before_pad_is_exact():
@@ -256,3 +292,41 @@ def test_quantize_before_pad_is_exact():
     # A Pad read by more than its QuantizeLinear stays where it is.
     graph.output.append(helper.make_tensor_value_info("xp", TensorProto.FLOAT, [1, 4, 5, 7]))
     assert quantize_before_pad(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]))[1] == 0
+
+
+def test_reduce_range_is_recorded_and_quiets_the_saturation_warning(tiny_models, tmp_path, frame, monkeypatch):
+    """--reduce-range gives 7-bit weights and says so in the manifest; a full-range INT8 directory loaded on an
+    x86 CPU without VNNI gets a warning (in the log and in Detector.load_warnings), a 7-bit one does not."""
+    import shutil
+
+    import pipeline.detector
+
+    out = tmp_path / "int8-7bit"
+    manifest = convert_precision(tiny_models, out, "int8", KITTI, calibration_frames=3, reduce_range=True)
+    info = manifest["precision_info"]
+    assert info["reduce_range"] is True and info["weights"] == "int8 per channel, 7-bit range"
+    for name in ("depth.onnx", "pixor.onnx"):
+        weights = [onnx.numpy_helper.to_array(i).astype(np.int32) for i in onnx.load(str(out / name)).graph.initializer
+                   if i.data_type == onnx.TensorProto.INT8]
+        assert weights and max(int(np.abs(w).max()) for w in weights) <= 64
+
+    full = tmp_path / "int8-full"
+    shutil.copytree(out, full)
+    edited = json.loads((full / "manifest.json").read_text())
+    edited["precision_info"]["reduce_range"] = False
+    (full / "manifest.json").write_text(json.dumps(edited))
+
+    monkeypatch.setattr(pipeline.detector, "int8_pairs_saturate", lambda: True)  # as on an AVX2-only CPU
+    assert Detector(out).load_warnings == []
+    warned = Detector(full)
+    assert len(warned.load_warnings) == 1 and "--reduce-range" in warned.load_warnings[0]
+    assert warned.detect(frame.image, frame.points, frame.calib, 0.0).boxes.shape[1] == 7  # it still runs
+    monkeypatch.setattr(pipeline.detector, "int8_pairs_saturate", lambda: False)  # as with VNNI
+    assert Detector(full).load_warnings == []
+    assert Detector(tiny_models).load_warnings == []  # fp32: nothing to say
+
+
+def test_reduce_range_needs_int8(tiny_models, tmp_path):
+    with pytest.raises(ValueError, match="--reduce-range"):
+        convert_precision(tiny_models, tmp_path / "x", "fp16", KITTI, reduce_range=True)
+    assert not (tmp_path / "x").exists()

@@ -499,6 +499,7 @@ def test_model_info(client: AppClient, tiny_models: Path) -> None:
     assert (info["workers"], info["sessions"], info["queue_size"]) == (2, "shared", 4)
     assert info["intra_op_threads"] == max(1, len(os.sched_getaffinity(0)) // 2)
     assert info["crop_hw"] == [352, 1216]
+    assert info["warnings"] == []  # an fp32 model: nothing this CPU could run inexactly
 
 
 def test_metrics_exposition(client: AppClient, frame: dict[str, bytes]) -> None:

@@ -1,0 +1,48 @@
+"""What this CPU offers ONNX Runtime's INT8 kernels (read from /proc/cpuinfo on Linux).
+
+On x86, ONNX Runtime multiplies uint8 activations by int8 weights with VNNI
+where the CPU has it (one instruction, 32-bit sums). Without VNNI (AVX2,
+AVX-512 before Cascade Lake, AMD before Zen 4) it uses VPMADDUBSW, which adds
+each pair of products in 16 bits and saturates when both are near 255 × 127:
+a network quantized with full 8-bit weights then computes something else on
+those CPUs. Weights quantized to 7 bits (``reduce_range``, ``python -m
+export.precision --reduce-range``) keep every pair below 2¹⁵ on every CPU.
+"""
+
+from __future__ import annotations
+
+import platform
+from functools import cache
+from pathlib import Path
+
+# Any of these gives the 32-bit uint8 × int8 dot products (AMX-INT8 CPUs have AVX-512 VNNI too).
+VNNI_FLAGS = frozenset({"avx512_vnni", "avx_vnni", "amx_int8"})
+
+
+@cache
+def cpu_flags() -> frozenset[str]:
+    """The CPU's feature flags; empty where /proc/cpuinfo lists none (not Linux)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return frozenset(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return frozenset()
+
+
+def is_x86() -> bool:
+    return platform.machine().lower() in {"x86_64", "amd64", "i386", "i686"}
+
+
+def has_vnni(flags: frozenset[str] | None = None) -> bool:
+    """Whether the CPU has VNNI (32-bit uint8 × int8 dot products)."""
+    return bool((cpu_flags() if flags is None else flags) & VNNI_FLAGS)
+
+
+def int8_pairs_saturate(flags: frozenset[str] | None = None) -> bool:
+    """True where ONNX Runtime's uint8 × int8 kernels add pairs of products in 16 bits: x86 without VNNI.
+
+    An x86 machine whose flags cannot be read counts as saturating (the safe answer).
+    """
+    return is_x86() and not has_vnni(flags)

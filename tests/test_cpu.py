@@ -1,0 +1,24 @@
+"""CPU features that decide whether full-range INT8 weights run exactly (pipeline/cpu.py)."""
+
+from pathlib import Path
+
+from pipeline.cpu import cpu_flags, has_vnni, int8_pairs_saturate, is_x86
+
+
+def test_vnni_in_any_of_its_flags():
+    assert has_vnni(frozenset({"avx2", "avx512f", "avx512_vnni"}))
+    assert has_vnni(frozenset({"avx2", "avx_vnni"}))  # Alder Lake and later: VEX-encoded VNNI
+    assert not has_vnni(frozenset({"avx2", "fma", "avx512f", "avx512bw"}))  # Skylake-SP, AMD Zen 3
+    assert not has_vnni(frozenset())
+
+
+def test_saturation_is_an_x86_without_vnni_matter():
+    assert not int8_pairs_saturate(frozenset({"avx2", "avx512_vnni"}))
+    assert int8_pairs_saturate(frozenset({"avx2", "fma"})) == is_x86()  # Arm's dot products never do
+
+
+def test_flags_read_from_proc_cpuinfo():
+    flags = cpu_flags()
+    if Path("/proc/cpuinfo").exists() and is_x86():
+        assert "sse2" in flags  # every x86-64 CPU
+    assert isinstance(flags, frozenset)
