@@ -56,7 +56,8 @@ WORKDIR /app
 COPY pipeline/ /app/pipeline/
 COPY service/ /app/service/
 COPY weights/edge/ /app/weights/edge/
-# INT8 for CPUs with VNNI: LOWRES3D_MODELS=/app/weights/edge-int8 (docs/deploy.md).
+# INT8 (7-bit weights: the same outputs on every x86 CPU, fastest with VNNI): LOWRES3D_MODELS=/app/weights/edge-int8
+# (docs/deploy.md).
 COPY weights/edge-int8/ /app/weights/edge-int8/
 RUN useradd --system --uid 10001 --home-dir /app --shell /usr/sbin/nologin lowres3d \
     && mkdir -p /var/cache/lowres3d/tensorrt \

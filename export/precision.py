@@ -1,7 +1,12 @@
-"""Reduced-precision model directories: FP16 for GPUs, INT8 (static, QDQ) for CPUs with VNNI.
+"""Reduced-precision model directories: FP16 for GPUs, INT8 (static, QDQ) for CPUs, fastest with VNNI.
 
     python -m export --preset P [--checkpoints DIR] --out DIR --precision fp16|int8
-                     [--calibration-data DIR] [--calibration-frames N]
+                     [--calibration-data DIR] [--calibration-frames N] [--reduce-range]
+
+``--reduce-range`` quantizes the weights to 7 bits: on x86 CPUs without VNNI
+ONNX Runtime sums pairs of uint8 × int8 products in 16 bits, which full 8-bit
+weights can saturate (pipeline/cpu.py); with 7 bits the INT8 networks compute
+the same on every CPU. The shipped ``weights/edge-int8`` is converted so.
 
 FP16 converts weights and activations and keeps float32 inputs and outputs,
 so the runtime feeds the same tensors. INT8 quantizes statically in QDQ
