@@ -47,6 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.cli import non_negative_int, positive_int
+from pipeline.cpu import int8_pairs_saturate, speed_flags
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
@@ -370,8 +371,10 @@ def machine() -> dict:
                 break
     except OSError:
         pass
+    # INT8 speed (and exactness) hangs on VNNI, fp32 on AVX-512 and FMA: say which this box has.
     return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "system": platform.platform(),
-            "python": platform.python_version()}
+            "python": platform.python_version(), "cpu_flags": speed_flags(),
+            "int8_pair_sums_saturate": int8_pairs_saturate()}
 
 
 # ----------------------------------------------------------------------------- main job
@@ -507,7 +510,8 @@ def plot(report: dict, path: Path) -> None:
 def print_report(report: dict) -> None:
     e = report["end_to_end_ms"]
     print(f"preset {report['preset']}, {report['frames']} frames after {report['warmup']} warm-up, "
-          f"{report['machine']['cpu']} ({report['machine']['cores']} cores), {report['provider']}")
+          f"{report['machine']['cpu']} ({report['machine']['cores']} cores; {' '.join(report['machine']['cpu_flags'])}), "
+          f"{report['provider']}")
     print(f"end to end: mean {e['mean']:.1f} ms, p50 {e['p50']:.1f}, p90 {e['p90']:.1f}, p99 {e['p99']:.1f} → "
           f"{report['fps']:.2f} fps")
     for stage, s in report["stages_ms"].items():

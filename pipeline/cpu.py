@@ -31,6 +31,16 @@ def cpu_flags() -> frozenset[str]:
     return frozenset()
 
 
+# The flags that decide how fast (and, for INT8, how exactly) ONNX Runtime's CPU kernels run.
+SPEED_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_bf16", "amx_int8")
+
+
+def speed_flags(flags: frozenset[str] | None = None) -> list[str]:
+    """Which of :data:`SPEED_FLAGS` the CPU has, in that order (for benchmark reports)."""
+    flags = cpu_flags() if flags is None else flags
+    return [flag for flag in SPEED_FLAGS if flag in flags]
+
+
 def is_x86() -> bool:
     return platform.machine().lower() in {"x86_64", "amd64", "i386", "i686"}
 

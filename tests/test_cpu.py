@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from pipeline.cpu import cpu_flags, has_vnni, int8_pairs_saturate, is_x86
+from pipeline.cpu import SPEED_FLAGS, cpu_flags, has_vnni, int8_pairs_saturate, is_x86, speed_flags
 
 
 def test_vnni_in_any_of_its_flags():
@@ -22,3 +22,8 @@ def test_flags_read_from_proc_cpuinfo():
     if Path("/proc/cpuinfo").exists() and is_x86():
         assert "sse2" in flags  # every x86-64 CPU
     assert isinstance(flags, frozenset)
+
+
+def test_speed_flags_keep_their_order_and_only_the_known_ones():
+    assert speed_flags(frozenset({"sse2", "avx512_vnni", "avx2", "fma"})) == ["avx2", "fma", "avx512_vnni"]
+    assert set(speed_flags()) <= set(SPEED_FLAGS)

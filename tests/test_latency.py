@@ -7,6 +7,8 @@ from pathlib import Path
 
 import cv2
 
+from pipeline.cpu import int8_pairs_saturate, speed_flags
+
 LATENCY = Path(__file__).resolve().parents[1] / "benchmarks" / "latency.py"
 
 
@@ -41,6 +43,8 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
         assert ratio == report["torch_stages_ms"][stage]["p50"] / report["paired_stages_ms"][stage]["p50"]
     assert report["torch_weights"] == "initialised, the same as the ONNX files'"
     assert report["machine"]["cores"] >= 1 and report["versions"]["onnxruntime"]
+    assert report["machine"]["int8_pair_sums_saturate"] == int8_pairs_saturate()
+    assert report["machine"]["cpu_flags"] == speed_flags()
     picture = cv2.imread(str(tmp_path / "lat.png"))
     assert picture is not None and picture.shape[0] > 100
 
