@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.cli import non_negative_int, positive_int
-from pipeline.cpu import int8_pairs_saturate, speed_flags
+from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
@@ -363,18 +363,9 @@ def versions() -> dict:
 
 
 def machine() -> dict:
-    cpu = platform.processor()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     # INT8 speed (and exactness) hangs on VNNI, fp32 on AVX-512 and FMA: say which this box has.
-    return {"cpu": cpu, "cores": len(os.sched_getaffinity(0)), "system": platform.platform(),
-            "python": platform.python_version(), "cpu_flags": speed_flags(),
-            "int8_pair_sums_saturate": int8_pairs_saturate()}
+    return {**describe_cpu(), "cores": len(os.sched_getaffinity(0)), "system": platform.platform(),
+            "python": platform.python_version()}
 
 
 # ----------------------------------------------------------------------------- main job

@@ -41,6 +41,7 @@ from export.rewrite import (
 )
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
+from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.frame import frame_ids, load_frame
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
@@ -240,6 +241,8 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
             "graph": int8_info} if precision == "int8"
            else {"io": "float32 (keep_io_types)"}),
         "deviation_from_fp32": deviation(fp32_dir, out, feeds),
+        # Full-range INT8 computes differently on CPUs whose pair sums saturate: where was it measured?
+        "deviation_measured_on": describe_cpu(),
     }
     (out / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
     verify_sha256(out, manifest)

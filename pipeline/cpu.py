@@ -41,6 +41,23 @@ def speed_flags(flags: frozenset[str] | None = None) -> list[str]:
     return [flag for flag in SPEED_FLAGS if flag in flags]
 
 
+@cache
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo's ``model name``, else what the platform module says)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def describe() -> dict:
+    """The CPU in a report: model, the flags that set ONNX Runtime's speed, and whether INT8 pair sums saturate."""
+    return {"cpu": cpu_model(), "cpu_flags": speed_flags(), "int8_pair_sums_saturate": int8_pairs_saturate()}
+
+
 def is_x86() -> bool:
     return platform.machine().lower() in {"x86_64", "amd64", "i386", "i686"}
 

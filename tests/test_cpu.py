@@ -2,7 +2,7 @@
 
 from pathlib import Path
 
-from pipeline.cpu import SPEED_FLAGS, cpu_flags, has_vnni, int8_pairs_saturate, is_x86, speed_flags
+from pipeline.cpu import SPEED_FLAGS, cpu_flags, describe, has_vnni, int8_pairs_saturate, is_x86, speed_flags
 
 
 def test_vnni_in_any_of_its_flags():
@@ -27,3 +27,9 @@ def test_flags_read_from_proc_cpuinfo():
 def test_speed_flags_keep_their_order_and_only_the_known_ones():
     assert speed_flags(frozenset({"sse2", "avx512_vnni", "avx2", "fma"})) == ["avx2", "fma", "avx512_vnni"]
     assert set(speed_flags()) <= set(SPEED_FLAGS)
+
+
+def test_a_report_names_the_cpu_and_what_its_int8_does():
+    report = describe()
+    assert report["cpu"] and report["cpu_flags"] == speed_flags()
+    assert report["int8_pair_sums_saturate"] == int8_pairs_saturate()

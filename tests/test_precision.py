@@ -305,6 +305,7 @@ def test_reduce_range_is_recorded_and_quiets_the_saturation_warning(tiny_models,
     manifest = convert_precision(tiny_models, out, "int8", KITTI, calibration_frames=3, reduce_range=True)
     info = manifest["precision_info"]
     assert info["reduce_range"] is True and info["weights"] == "int8 per channel, 7-bit range"
+    assert info["deviation_measured_on"]["int8_pair_sums_saturate"] == int8_pairs_saturate()  # this CPU
     for name in ("depth.onnx", "pixor.onnx"):
         weights = [onnx.numpy_helper.to_array(i).astype(np.int32) for i in onnx.load(str(out / name)).graph.initializer
                    if i.data_type == onnx.TensorProto.INT8]
