@@ -106,7 +106,7 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
             moving_average: bool = False, reduce_range: bool = False) -> dict:
     """Static QDQ quantization: uint8 activations, int8 per-channel weights, min–max calibration.
 
-    reduce_range: weights in 7 bits (−64…63), for x86 CPUs without VNNI, where ONNX Runtime adds pairs
+    reduce_range: weights in −64…64 (255 · 64 · 2 < 2¹⁵), for x86 CPUs without VNNI, where ONNX Runtime adds pairs
     of uint8 × int8 products in 16 bits and full-range weights saturate them (pipeline/cpu.py).
 
     moving_average: each tensor's range is a moving average of the per-frame extremes (ONNX Runtime's
