@@ -162,11 +162,10 @@ class Detector:
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
         self._local = threading.local()
-        self.load_warnings: list[str] = []  # about the model on this machine, logged once at load
-        saturating = self._saturating_int8()
-        if saturating:
-            self.load_warnings.append(saturating)
-            log.warning(saturating)
+        # About the precision on this machine, logged once at load (and shown by the service's /v1/model).
+        self.load_warnings: list[str] = [w for w in (self._saturating_int8(), self._fp16_on_cpu()) if w]
+        for warning in self.load_warnings:
+            log.warning(warning)
         trained_on = (networks["pixor"].get("training") or {}).get("input")
         self.trained_lines: int | None = SCAN_LINES_BY_INPUT.get(trained_on)  # None: not recorded
 
@@ -178,6 +177,17 @@ class Detector:
         return (f"{self.model_dir}: INT8 weights in the full 8-bit range on an x86 CPU without VNNI, where ONNX "
                 "Runtime's uint8 × int8 sums can saturate and change the outputs; convert with "
                 "`python -m export.precision --reduce-range` for this CPU")
+
+    def _fp16_on_cpu(self) -> str | None:
+        """A warning when an FP16 directory ended up on the CPU provider (a GPU precision: slower than fp32 there)."""
+        if self.manifest.get("precision") != "fp16":
+            return None
+        on_cpu = sorted(name for name, providers in self.providers_in_use.items() if providers[0] == "CPUExecutionProvider")
+        if not on_cpu:
+            return None
+        # Measured on an AMD EPYC Zen 3 (session 14): the edge FP16 pair ran 1.32× slower than fp32.
+        return (f"{self.model_dir}: FP16 networks ({', '.join(on_cpu)}) run on the CPU provider, where ONNX Runtime "
+                "is slower in FP16 than in FP32; FP16 is for GPUs (use the FP32 or INT8 directory on a CPU)")
 
     # ------------------------------------------------------------------ info
     @property

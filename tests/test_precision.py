@@ -331,3 +331,13 @@ def test_reduce_range_needs_int8(tiny_models, tmp_path):
     with pytest.raises(ValueError, match="--reduce-range"):
         convert_precision(tiny_models, tmp_path / "x", "fp16", KITTI, reduce_range=True)
     assert not (tmp_path / "x").exists()
+
+
+def test_fp16_on_the_cpu_provider_is_flagged(tiny_models, tmp_path, frame):
+    """FP16 is a GPU precision: a directory of it that ends up on the CPU provider says so at load, and runs."""
+    out = tmp_path / "fp16"
+    convert_precision(tiny_models, out, "fp16", KITTI, calibration_frames=2)
+    detector = Detector(out, providers="cpu")
+    (warning,) = detector.load_warnings
+    assert "FP16 networks (depth, pixor) run on the CPU provider" in warning
+    assert detector.detect(frame.image, frame.points, frame.calib, 0.0).boxes.shape[1] == 7
