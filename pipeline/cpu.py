@@ -20,15 +20,20 @@ VNNI_FLAGS = frozenset({"avx512_vnni", "avx_vnni", "amx_int8"})
 
 
 @cache
-def cpu_flags() -> frozenset[str]:
-    """The CPU's feature flags; empty where /proc/cpuinfo lists none (not Linux)."""
+def _cpuinfo(field: str) -> str | None:
+    """The first ``field : value`` of /proc/cpuinfo (None where there is none: not Linux, or no such field)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
-                return frozenset(line.split(":", 1)[1].split())
+            if line.startswith(field):
+                return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return frozenset()
+    return None
+
+
+def cpu_flags() -> frozenset[str]:
+    """The CPU's feature flags; empty where /proc/cpuinfo lists none (not Linux)."""
+    return frozenset((_cpuinfo("flags") or "").split())
 
 
 # The flags that decide how fast (and, for INT8, how exactly) ONNX Runtime's CPU kernels run.
@@ -41,16 +46,9 @@ def speed_flags(flags: frozenset[str] | None = None) -> list[str]:
     return [flag for flag in SPEED_FLAGS if flag in flags]
 
 
-@cache
 def cpu_model() -> str:
     """The CPU's model name (/proc/cpuinfo's ``model name``, else what the platform module says)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    return _cpuinfo("model name") or platform.processor() or platform.machine()
 
 
 def describe() -> dict:

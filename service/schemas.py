@@ -140,6 +140,6 @@ class ModelInfo(BaseModel):
     )
     default_calib: bool = Field(description="a default calibration is configured (calib is optional)")
     warnings: list[str] = Field(
-        default_factory=list, description="about the model on this machine (an INT8 model this CPU may run inexactly)"
+        default_factory=list, description="about the model's precision on this machine (INT8 this CPU may run inexactly, FP16 on the CPU)"
     )
     manifest: dict = Field(description="manifest.json of the model directory")

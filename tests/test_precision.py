@@ -215,6 +215,14 @@ def _input_conv_model(tmp_path):
     return source, feeds
 
 
+def _largest_int8_weight(path) -> int:
+    """The largest |value| among a quantized graph's int8 initializers (the weights)."""
+    weights = [onnx.numpy_helper.to_array(i).astype(np.int32) for i in onnx.load(str(path)).graph.initializer
+               if i.data_type == onnx.TensorProto.INT8]
+    assert weights
+    return max(int(np.abs(w).max()) for w in weights)
+
+
 def _relative_deviation(source, target, feed) -> float:
     import onnxruntime as ort
 
@@ -248,9 +256,7 @@ def test_reduced_range_int8_stays_close_to_fp32_on_any_cpu(tmp_path):
     source, feeds = _input_conv_model(tmp_path)
     target = tmp_path / "int8_7bit.onnx"
     to_int8(source, target, feeds, inputs_fp32=False, output_convs=1, reduce_range=True)
-    weights = [onnx.numpy_helper.to_array(i) for i in onnx.load(str(target)).graph.initializer
-               if i.data_type == onnx.TensorProto.INT8]
-    assert weights and max(int(np.abs(w.astype(np.int32)).max()) for w in weights) <= 64
+    assert _largest_int8_weight(target) <= 64
     assert max(_relative_deviation(source, target, feed) for feed in feeds[:3]) < 0.05
 
 
@@ -307,9 +313,7 @@ def test_reduce_range_is_recorded_and_quiets_the_saturation_warning(tiny_models,
     assert info["reduce_range"] is True and info["weights"] == "int8 per channel, 7-bit range"
     assert info["deviation_measured_on"]["int8_pair_sums_saturate"] == int8_pairs_saturate()  # this CPU
     for name in ("depth.onnx", "pixor.onnx"):
-        weights = [onnx.numpy_helper.to_array(i).astype(np.int32) for i in onnx.load(str(out / name)).graph.initializer
-                   if i.data_type == onnx.TensorProto.INT8]
-        assert weights and max(int(np.abs(w).max()) for w in weights) <= 64
+        assert _largest_int8_weight(out / name) <= 64
 
     full = tmp_path / "int8-full"
     shutil.copytree(out, full)
