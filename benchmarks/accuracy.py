@@ -282,6 +282,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
     """The dataset modes: run the networks, then evaluate."""
+    from evaluation.depth_metrics import car_errors_by_band
     from evaluation.harness import run_depth, run_detection
     from pipeline.model_files import ModelFileError
 
@@ -298,6 +299,10 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                   f"iMAE {m.imae_per_km:.2f} 1/km   ({m.n_pixels} pixels)")
             print("median |error| by ground-truth depth: "
                   + ", ".join(f"{band} m {mm:.0f} mm" for band, mm in m.median_abs_mm_by_band.items()))
+            cars = car_errors_by_band(outcome.car_errors) if outcome.car_errors else {}
+            if cars:
+                print("median |error| on the pixels of moderate cars, by the car's depth: "
+                      + ", ".join(f"{band} m {c['median_mm']:.0f} mm ({c['cars']} cars)" for band, c in cars.items()))
             if args.plots:
                 print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
             if args.json:
@@ -306,7 +311,8 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
                     "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
                     "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
                               "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
-                              "median_abs_mm_by_band": m.median_abs_mm_by_band},
+                              "median_abs_mm_by_band": m.median_abs_mm_by_band,
+                              "car_median_abs_mm_by_band": cars},
                 }, indent=1) + "\n", encoding="utf-8")
             return 0
         if args.input is None:

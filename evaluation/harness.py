@@ -9,14 +9,14 @@ thinned to 16 lines; ``lidar16+camera`` — the two-stage pipeline on the
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from evaluation.depth_metrics import DepthMetrics, depth_metrics, mean_over_frames
+from evaluation.depth_metrics import DepthMetrics, car_depth_errors, depth_metrics, mean_over_frames
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
 from pipeline.detector import Detector
@@ -65,6 +65,8 @@ class DepthRun:
     per_frame: dict[str, DepthMetrics]
     layout: str
     input: str
+    # Object folders with labels: (car depth z, median |error| mm on its pixels) of every moderate car.
+    car_errors: list[tuple[float, float]] = field(default_factory=list)
 
 
 def _crop_ground_truth(gt: np.ndarray, preset) -> np.ndarray:
@@ -92,6 +94,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
     detector = Detector(models, providers=provider)
     preset = detector.preset
     per_frame: dict[str, DepthMetrics] = {}
+    car_errors: list[tuple[float, float]] = []
     if pictures is not None:
         Path(pictures).mkdir(parents=True, exist_ok=True)
 
@@ -116,13 +119,16 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
         layout = "object + depth_2"
         used = f"{beams}-line emulated scan" if beams else "scan as stored"
         ids = frames or frame_ids(data)
+        labelled = (data / "label_2").is_dir()
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
-            frame = load_frame(data, fid, with_labels=False)
+            frame = load_frame(data, fid, with_labels=labelled)
             points = emulate_beams(frame.points, beams) if beams else frame.points
             view_depth, _ = detector.dense_depth(frame.image, points, frame.calib)
             crop_gt = _crop_ground_truth(read_depth_png(data / "depth_2" / f"{fid}.png"), preset)
             prediction = _to_crop_resolution(view_depth, crop_gt.shape)
             per_frame[fid] = depth_metrics(prediction, crop_gt)
+            if labelled:
+                car_errors.extend(car_depth_errors(prediction, crop_gt, _moderate_cars_in_crop(frame, preset)))
             picture(fid, frame.image, prediction, crop_gt)
     else:
         raise InputError(
@@ -131,4 +137,17 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
         )
     if not per_frame:
         raise InputError(f"--data: {data} has no frames to evaluate")
-    return DepthRun(mean=mean_over_frames(list(per_frame.values())), per_frame=per_frame, layout=layout, input=used)
+    return DepthRun(mean=mean_over_frames(list(per_frame.values())), per_frame=per_frame, layout=layout, input=used,
+                    car_errors=car_errors)
+
+
+def _moderate_cars_in_crop(frame, preset) -> list[tuple[tuple[float, float, float, float], float]]:
+    """The KITTI-moderate cars of a labelled frame (2D box ≥ 25 px high, occlusion ≤ 1, truncation ≤ 0.3):
+    their 2D boxes in the depth crop's pixels and their centres' depth z."""
+    crop = depth_crop(frame.image_hw, *preset.crop_hw)
+    cars = []
+    for label in frame.labels or []:
+        left, top, right, bottom = label.bbox
+        if (label.type == "Car" and bottom - top >= 25 and label.occluded <= 1 and label.truncated <= 0.3):
+            cars.append(((left - crop.left, top - crop.top, right - crop.left, bottom - crop.top), label.location[2]))
+    return cars

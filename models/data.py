@@ -28,7 +28,7 @@ from torch.utils.data import Dataset
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
-from pipeline.calib import Calibration, sparse_depth_map
+from pipeline.calib import Calibration, depth_crop, sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
 from pipeline.kitti import read_depth_png
@@ -93,29 +93,61 @@ class DepthDataset(Dataset):
     augment: bool = False
     seed: int = 0
     epoch: int = 0  # set by the training loop: augmentation differs per epoch, reproducibly
+    # > 1: a 4th field, the per-pixel loss weight: this on the labelled cars' own pixels, 1 elsewhere.
+    car_weight: float = 1.0
     cache: SampleCache = field(default_factory=SampleCache, repr=False)
 
     def __len__(self) -> int:
         return len(self.frame_ids)
 
-    def _load(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """uint8 rgb (3, H, W) (the view's pixels, exact), float32 sparse and target (1, H, W)."""
-        frame = load_frame(self.data_dir, self.frame_ids[index], with_labels=False)
+    def _load(self, index: int) -> tuple[np.ndarray, ...]:
+        """uint8 rgb (3, H, W) (the view's pixels, exact), float32 sparse and target (1, H, W)
+        [, uint8 car mask (1, H, W) with car_weight]."""
+        frame = load_frame(self.data_dir, self.frame_ids[index], with_labels=self.car_weight != 1.0)
         inputs = depth_inputs(frame.image, frame_points(frame, self.beams), frame.calib, self.preset)
         target = depth_target(self.data_dir, frame, self.preset)[None]
-        return inputs.rgb[0].astype(np.uint8), inputs.sparse_depth[0], target
+        sample = (inputs.rgb[0].astype(np.uint8), inputs.sparse_depth[0], target)
+        if self.car_weight != 1.0:
+            sample += (car_pixels(frame, target[0], self.preset)[None].astype(np.uint8),)
+        return sample
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        rgb, sparse, target = self.cache.get(index, self._load)
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, ...]:
+        rgb, sparse, target, *mask = self.cache.get(index, self._load)
         rgb = rgb.astype(np.float32)
         if self.augment:
             rng = np.random.default_rng((self.seed, self.epoch, index))
             if rng.random() < 0.5:  # mirror image, input and target together
                 rgb, sparse, target = rgb[..., ::-1], sparse[..., ::-1], target[..., ::-1]
+                mask = [m[..., ::-1] for m in mask]
             rgb = np.clip(rgb * rng.uniform(0.8, 1.2) + rng.uniform(-10, 10), 0, 255)
-        return (torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
-                torch.from_numpy(np.array(sparse, np.float32)),  # copies: the cache keeps its arrays
-                torch.from_numpy(np.array(target, np.float32)))
+        sample = (torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
+                  torch.from_numpy(np.array(sparse, np.float32)),  # copies: the cache keeps its arrays
+                  torch.from_numpy(np.array(target, np.float32)))
+        if mask:
+            sample += (torch.from_numpy(np.where(mask[0] > 0, self.car_weight, 1.0).astype(np.float32)),)
+        return sample
+
+
+CAR_SURFACE_M = 3.0  # as evaluation.depth_metrics: a box pixel is the car's when its true depth is this close
+
+
+def car_pixels(frame: Frame, target: np.ndarray, preset: Preset) -> np.ndarray:
+    """(H, W) bool in the network's view: inside a labelled car's 2D box, with a true depth within
+    :data:`CAR_SURFACE_M` of the car's (its own surface, not what is around or behind it)."""
+    crop = depth_crop(frame.image_hw, *preset.crop_hw)
+    scale = preset.depth.input_scale
+    height, width = target.shape
+    mask = np.zeros((height, width), bool)
+    for label in frame.labels or []:  # a handful of cars per frame; the pixels are array slices
+        if label.type != "Car":
+            continue
+        left, top, right, bottom = ((v - offset) * scale for v, offset in
+                                    zip(label.bbox, (crop.left, crop.top, crop.left, crop.top), strict=True))
+        rows = slice(max(int(np.floor(top)), 0), min(int(np.ceil(bottom)) + 1, height))
+        cols = slice(max(int(np.floor(left)), 0), min(int(np.ceil(right)) + 1, width))
+        truth = target[rows, cols]
+        mask[rows, cols] |= (truth > 0) & (np.abs(truth - label.location[2]) <= CAR_SURFACE_M)
+    return mask
 
 
 def car_boxes(frame: Frame) -> np.ndarray:

@@ -62,19 +62,28 @@ def pixor_loss(
     )
 
 
-def masked_mse(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+def _masked_mean(errors: torch.Tensor, valid: torch.Tensor, weight: torch.Tensor | None) -> torch.Tensor:
+    """Mean of ``errors`` over the valid pixels, each weighted by ``weight`` (a weighted mean) when given."""
+    if weight is None:
+        return errors[valid].mean()
+    w = weight[valid]
+    return (errors[valid] * w).sum() / w.sum()
+
+
+def masked_mse(prediction: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
     """Mean squared error over the pixels with ground truth (target > 0), as in Ma et al.
 
-    prediction, target: (N, 1, H, W) metres. Returns 0 (differentiable) when no pixel has ground truth.
+    prediction, target: (N, 1, H, W) metres; weight: optional (N, 1, H, W) per-pixel weights (a weighted
+    mean). Returns 0 (differentiable) when no pixel has ground truth.
     """
     valid = target > 0
     if not valid.any():
         return prediction.sum() * 0.0
-    return ((prediction[valid] - target[valid]) ** 2).mean()
+    return _masked_mean((prediction - target) ** 2, valid, weight)
 
 
-def masked_l1(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Mean absolute error over the pixels with ground truth (target > 0).
+def masked_l1(prediction: torch.Tensor, target: torch.Tensor, weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Mean absolute error over the pixels with ground truth (target > 0); weight as in :func:`masked_mse`.
 
     Where foreground and background are both plausible (an object's outline) the L1 optimum
     is one of the two depths, the L2 optimum their mean: a point floating between them.
@@ -82,7 +91,7 @@ def masked_l1(prediction: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     valid = target > 0
     if not valid.any():
         return prediction.sum() * 0.0
-    return (prediction[valid] - target[valid]).abs().mean()
+    return _masked_mean((prediction - target).abs(), valid, weight)
 
 
 DEPTH_LOSSES = {"mse": masked_mse, "l1": masked_l1}  # --depth-loss; mse is the paper's

@@ -87,14 +87,28 @@ def _unlowered(graph: onnx.GraphProto, arrays: dict[str, np.ndarray], convs: dic
     return found
 
 
-def load_onnx_weights(network: nn.Module, path: str | Path) -> None:
+def _under(name: str, prefixes: tuple[str, ...]) -> bool:
+    return any(name == p or name.startswith(f"{p}.") for p in prefixes)
+
+
+def _absent(graph: onnx.GraphProto, prefixes: tuple[str, ...]) -> tuple[str, ...]:
+    """The submodules among ``prefixes`` of which the graph has no node and no weight."""
+    names = [init.name for init in graph.initializer] + [node.name.lstrip("/").replace("/", ".") for node in graph.node]
+    return tuple(p for p in prefixes if not any(_under(n, (p,)) or n.startswith(f"{p}.") for n in names))
+
+
+def load_onnx_weights(network: nn.Module, path: str | Path, optional: tuple[str, ...] = ()) -> tuple[str, ...]:
     """Set every parameter and batch-norm buffer of ``network`` from the exported graph at ``path``.
 
+    optional: submodules (``refine``, say) the graph may lack: if it has none of their nodes and
+    weights they keep the network's own values, so a network with a head added since the export
+    can start from the exported weights. Returns those left as they were.
     Raises ValueError when the graph does not hold this network's weights (another preset, say).
     """
     model = onnx.load(str(path))
     arrays = {init.name: numpy_helper.to_array(init) for init in model.graph.initializer}
-    modules = dict(network.named_modules())
+    leave = _absent(model.graph, optional)
+    modules = {name: m for name, m in network.named_modules() if not _under(name, leave)}
     convs = {name: m for name, m in modules.items() if isinstance(m, nn.Conv2d | nn.ConvTranspose2d)}
     try:
         arrays.update(_unlowered(model.graph, arrays, convs))
@@ -127,9 +141,61 @@ def load_onnx_weights(network: nn.Module, path: str | Path) -> None:
             bias = arrays.get(f"{name}.bias", folded)
             put(f"{name}.bias", np.zeros(conv.bias.shape[0], np.float32) if bias is None else bias, conv.bias)
     for key, value in reference.items():  # anything else (a GAM's own conv, say) by its own name
-        if key not in state and key in arrays:
+        if _under(key.rpartition(".")[0], leave):
+            state[key] = value
+        elif key not in state and key in arrays:
             put(key, arrays[key], value)
     unset = [key for key in reference if key not in state]
     if unset:
         raise ValueError(f"{path}: no weights for {', '.join(unset[:6])}{' …' if len(unset) > 6 else ''}")
     network.load_state_dict(state, strict=True)
+    return leave
+
+
+def checkpoints_from_model_dir(models: str | Path, out: str | Path) -> dict[str, Path]:
+    """Write ``depth.pt`` / ``pixor.pt`` checkpoints (models/checkpoint.py) of a model directory's ONNX files.
+
+    Each checkpoint carries the manifest's preset and the network's training record, so
+    ``python -m export --checkpoints OUT`` re-exports it and training can start from it. The batch norms
+    come folded (identity statistics): fine-tune such weights with ``--train-only`` or batch norms in eval mode.
+    """
+    from models import build_network
+    from models.checkpoint import CHECKPOINT_FILES, save_checkpoint
+    from pipeline.model_files import load_manifest
+    from pipeline.presets import preset_from_dict
+
+    models, out = Path(models), Path(out)
+    manifest = load_manifest(models)
+    preset = preset_from_dict(manifest["preset_config"])
+    written = {}
+    for name, entry in manifest["networks"].items():
+        net = build_network(name, preset).eval()
+        load_onnx_weights(net, models / entry["file"])
+        metadata = {**(entry.get("training") or {}), "from_onnx": str(models / entry["file"])}
+        written[name] = save_checkpoint(out / CHECKPOINT_FILES[name], preset, {name: net}, metadata)
+    return written
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import sys
+
+    parser = argparse.ArgumentParser(
+        prog="python -m models.onnx_weights",
+        description="Turn a model directory's ONNX files back into training checkpoints (depth.pt, pixor.pt).")
+    parser.add_argument("--models", type=Path, required=True, help="model directory (manifest.json and ONNX files)")
+    parser.add_argument("--out", type=Path, required=True, help="checkpoint directory to write")
+    args = parser.parse_args(argv)
+    from pipeline.model_files import ModelFileError
+
+    try:
+        written = checkpoints_from_model_dir(args.models, args.out)
+    except (OSError, ValueError, KeyError, ModelFileError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print("wrote " + ", ".join(str(path) for path in written.values()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -8,6 +8,14 @@
 * joint — both networks fine-tuned together through a differentiable BEV
   occupancy (models/soft_bev.py); starts from the two trained checkpoints.
 
+``--depth-checkpoint`` / ``--pixor-checkpoint`` also start a depth or detector
+run from trained weights: a checkpoint, or the ``depth.onnx`` / ``pixor.onnx``
+of an exported model directory (its batch norms come folded into the
+convolutions, so train such weights with ``--train-only``). ``--train-only
+refine`` trains only that submodule (here the depth net's full-resolution head,
+which an older export lacks and which then starts from its initialisation);
+every other weight and batch-norm statistic stays as loaded.
+
 Each epoch: a progress bar, validation metrics (depth RMSE/MAE; detector loss
 and KITTI BEV AP), one JSON line in ``RUN_DIR/log.jsonl``, the full training
 state in ``RUN_DIR/state.pt`` (exact resume with ``--resume``: weights,
@@ -98,13 +106,15 @@ class TrainConfig:
     input_mode: str = "lidar16"  # detector: lidar64 | lidar16 | pseudo
     pseudo_dir: Path | None = None  # detector --input pseudo: cached dense depth PNGs of the training frames
     val_pseudo_dir: Path | None = None  # … of the validation frames (default: pseudo_dir, one folder for both)
-    depth_checkpoint: Path | None = None  # joint (and pseudo caching): trained depth.pt
-    pixor_checkpoint: Path | None = None  # joint: trained pixor.pt
+    depth_checkpoint: Path | None = None  # joint (and pseudo caching): trained depth.pt; depth: weights to start from
+    pixor_checkpoint: Path | None = None  # joint: trained pixor.pt; detector: weights to start from
+    train_only: tuple[str, ...] = ()  # submodules to train (say "refine"); the rest frozen, batch norms included
     epochs: int | None = None
     batch_size: int | None = None
     lr: float | None = None
     lr_step: int = 5  # depth: halve every lr_step epochs
     depth_loss: str = "mse"  # depth and joint: mse (the paper) | l1 (models/reproduce.py says why)
+    car_weight: float = 1.0  # depth: the loss weight of the labelled cars' own pixels (models.data.car_pixels)
     lr_gamma: float = 0.5
     max_train_frames: int | None = None
     max_val_frames: int | None = None
@@ -402,13 +412,14 @@ def run(config: TrainConfig) -> TrainResult:
         networks["pixor"] = build_pixor(preset)
     for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
         if name in networks and path is not None:
-            load_network_weights(networks[name], load_checkpoint(path), name, preset)
+            load_start_weights(networks[name], name, Path(path), preset, config.train_only)
+    trained = freeze_except(networks, config.train_only)
     if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
     layout = run_layout(networks)
     for net in networks.values():
         net.to(device=device, memory_format=layout)
-    parameters = [p for net in networks.values() for p in net.parameters()]
+    parameters = [p for net in networks.values() for p in net.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(parameters, lr=config.lr)
     if config.task == "detector":
         scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=1)
@@ -429,7 +440,8 @@ def run(config: TrainConfig) -> TrainResult:
         log.info("resuming %s at epoch %d", out, start_epoch + 1)
 
     if config.task == "depth":
-        train_set = DepthDataset(train_dir, train_ids, preset, augment=not config.quick, seed=config.seed)
+        train_set = DepthDataset(train_dir, train_ids, preset, augment=not config.quick, seed=config.seed,
+                                 car_weight=config.car_weight)
         val_set = DepthDataset(val_dir, val_ids, preset)
     elif config.task == "detector":
         train_set = DetectorDataset(train_dir, train_ids, preset, config.input_mode, config.pseudo_dir,
@@ -455,11 +467,23 @@ def run(config: TrainConfig) -> TrainResult:
                      "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
                                 "optimizer": "Adam", "seed": config.seed, "precision": config.precision,
                                 "compiled": compiled}}
+    if config.train_only:
+        metadata_base["recipe"]["train_only"] = list(config.train_only)
+    if config.car_weight != 1.0:
+        metadata_base["recipe"]["car_weight"] = config.car_weight
+    for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
+        if name in networks and path is not None and config.task != "joint":
+            metadata_base["recipe"][f"{name}_start"] = str(path)
+            earlier = start_training_metadata(Path(path), name)
+            if earlier:
+                metadata_base["recipe"][f"{name}_start_training"] = earlier
     log_path = out / "log.jsonl"
     for epoch in range(start_epoch, config.epochs):
         tic = time.perf_counter()
         for net in networks.values():
-            net.train()
+            net.train(not trained)
+        for module in trained:  # with --train-only, only these leave eval mode (frozen batch norms stay put)
+            module.train()
         epoch_losses = []
         if config.task == "joint":
             order = np.random.default_rng((config.seed, epoch)).permutation(len(train_ids))
@@ -485,11 +509,11 @@ def run(config: TrainConfig) -> TrainResult:
                 optimizer.zero_grad()
                 batch = [t.to(device, non_blocking=True) for t in batch]
                 if config.task == "depth":
-                    rgb, sparse, target = batch
+                    rgb, sparse, target, *weight = batch  # weight: with --car-weight
                     with autocast(config.precision, device):
                         prediction = forward["depth"](rgb.contiguous(memory_format=layout),
                                                       sparse.contiguous(memory_format=layout))
-                    loss = DEPTH_LOSSES[config.depth_loss](prediction.float(), target)
+                    loss = DEPTH_LOSSES[config.depth_loss](prediction.float(), target, *weight)
                 else:
                     bev, score_t, reg_t = batch
                     with autocast(config.precision, device):
@@ -537,6 +561,64 @@ def run(config: TrainConfig) -> TrainResult:
         state_path.with_suffix(".tmp").replace(state_path)
     checkpoints = {name: out / f"{name}.pt" for name in networks if (out / f"{name}.pt").exists()}
     return TrainResult(out, checkpoints, history, first_loss, last_loss)
+
+
+def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Preset,
+                       train_only: tuple[str, ...] = ()) -> None:
+    """Weights to start from: a checkpoint, or an exported ``.onnx`` of the same network.
+
+    From ONNX, the ``train_only`` submodules the graph lacks (a head added since the export) keep their
+    initialisation; a checkpoint must match the preset exactly (models/checkpoint.py).
+    """
+    if not path.exists():
+        raise InputError(f"--{name}-checkpoint: {path} does not exist")
+    if path.suffix == ".onnx":
+        from models.onnx_weights import load_onnx_weights
+
+        left = load_onnx_weights(net, path, optional=train_only)
+        if left:
+            log.info("%s: %s not in %s, starting from initialisation", name, ", ".join(left), path)
+    else:
+        load_network_weights(net, load_checkpoint(path), name, preset)
+
+
+def start_training_metadata(path: Path, name: str) -> dict | None:
+    """How the starting weights were trained: a checkpoint's metadata, or the manifest beside an ONNX file."""
+    try:
+        if path.suffix == ".onnx":
+            manifest = json.loads((path.parent / "manifest.json").read_text(encoding="utf-8"))
+            return manifest["networks"][name].get("training")
+        return load_checkpoint(path).metadata
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def freeze_except(networks: dict[str, torch.nn.Module], train_only: tuple[str, ...]) -> list[torch.nn.Module]:
+    """With ``train_only`` submodule names: freeze every other parameter; the submodules to put in train mode.
+
+    Without: every network trains (an empty list; the caller puts whole networks in train mode).
+    """
+    if not train_only:
+        return []
+    trained = []
+    for prefix in train_only:
+        found = [net.get_submodule(prefix) for net in networks.values() if _has_submodule(net, prefix)]
+        if not found:
+            raise InputError(f"--train-only: no submodule {prefix!r} in the {', '.join(networks)} network(s)")
+        trained.extend(found)
+    keep = {id(p) for module in trained for p in module.parameters()}
+    for net in networks.values():
+        for parameter in net.parameters():
+            parameter.requires_grad_(id(parameter) in keep)
+    return trained
+
+
+def _has_submodule(net: torch.nn.Module, name: str) -> bool:
+    try:
+        net.get_submodule(name)
+    except AttributeError:
+        return False
+    return True
 
 
 def selection_criterion(task: str, metrics: dict) -> float:
@@ -596,13 +678,20 @@ def main(argv: list[str] | None = None) -> int:
                         help="detector input (default lidar16)")
     parser.add_argument("--pseudo-dir", type=Path, help="cached dense depth PNGs for --input pseudo (training frames)")
     parser.add_argument("--val-pseudo-dir", type=Path, help="… of the validation frames (default: --pseudo-dir)")
-    parser.add_argument("--depth-checkpoint", type=Path, help="trained depth.pt (joint)")
-    parser.add_argument("--pixor-checkpoint", type=Path, help="trained pixor.pt (joint; or to continue training)")
+    parser.add_argument("--depth-checkpoint", type=Path,
+                        help="trained depth.pt (joint); depth: weights to start from (depth.pt or depth.onnx)")
+    parser.add_argument("--pixor-checkpoint", type=Path,
+                        help="trained pixor.pt (joint); detector: weights to start from (pixor.pt or pixor.onnx)")
+    parser.add_argument("--train-only", type=lambda text: tuple(n for n in text.split(",") if n), default=(),
+                        metavar="MODULES", help="train only these submodules (comma-separated, say refine); "
+                                                "the rest stays frozen as loaded")
     parser.add_argument("--epochs", type=positive_int, help="default: the task's recipe")
     parser.add_argument("--batch-size", type=positive_int, help="default: the task's recipe")
     parser.add_argument("--lr", type=positive_float, help="default: the task's recipe")
     parser.add_argument("--depth-loss", default="mse", choices=tuple(DEPTH_LOSSES),
                         help="depth and joint: per-pixel loss on the depth map (default mse, the paper's)")
+    parser.add_argument("--car-weight", type=positive_float, default=1.0,
+                        help="depth: loss weight of the labelled cars' own pixels (default 1: every pixel alike)")
     parser.add_argument("--max-train-frames", type=positive_int, help="use only the first N training frames")
     parser.add_argument("--max-val-frames", type=positive_int, help="use only the first N validation frames")
     parser.add_argument("--workers", type=non_negative_int, default=0, help="data-loading processes (default 0)")

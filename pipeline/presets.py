@@ -78,6 +78,9 @@ class DepthNetConfig:
     # sparse map, and the network predicts a correction to it (models/depth_net.py says why).
     prefill_passes: int = 0
     prefill_kernel: tuple[int, int] = (5, 3)  # rows × columns per pass: beams are rows apart
+    # A second correction at the input resolution (stem stride 2 with the prefill; 0 = off): this many
+    # channels in its head (models/depth_net.py, FullResolutionRefine, says why).
+    refine_channels: int = 0
     min_depth: float = 0.9  # metres, output floor at inference (Ma et al.)
     max_depth: float = 85.0  # metres, clip for the pseudo cloud and the loss
 
@@ -184,14 +187,17 @@ PRESETS: dict[str, Preset] = {
 }
 
 
-ABLATIONS = {"-no-gam": {"use_gam": False}, "-no-aspp": {"use_aspp": False}}
+# Suffixes that change a preset's depth net: the paper's two ablations, and the full-resolution
+# correction head (an experiment, docs/models.md: it did not lift the camera row; no shipped model has it).
+ABLATIONS = {"-no-gam": {"use_gam": False}, "-no-aspp": {"use_aspp": False}, "-refine": {"refine_channels": 8}}
 
 
 def get_preset(name: str) -> Preset:
     """Look up a preset by name, with an error that lists the valid ones.
 
     A suffix ``-no-gam`` or ``-no-aspp`` (e.g. ``edge-no-gam``) gives the paper's
-    ablation: the same preset with that part of the depth net switched off.
+    ablation: the same preset with that part of the depth net switched off;
+    ``-refine`` (edge and tiny) adds the depth net's full-resolution correction head.
     """
     for suffix, change in ABLATIONS.items():
         if name.endswith(suffix) and name[: -len(suffix)] in PRESETS:

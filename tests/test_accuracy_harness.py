@@ -96,7 +96,7 @@ def test_depth_metrics_on_real_depth_completion_frame(tiny_models, depth_complet
 
 def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp_path):
     data = tmp_path / "data"
-    for sub in ("image_2", "velodyne", "calib"):
+    for sub in ("image_2", "velodyne", "calib", "label_2"):
         shutil.copytree(KITTI / sub, data / sub)
     (data / "depth_2").mkdir()
     for frame_id in FRAMES:
@@ -105,6 +105,8 @@ def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp
     outcome = run_depth(data, tiny_models, frames=["000006", "000003"], progress=False)
     assert set(outcome.per_frame) == {"000006", "000003"} and outcome.input == "16-line emulated scan"
     assert outcome.mean.rmse_mm > 0
+    # With labels, the errors on the moderate cars' own pixels (the 64-line returns on them, here).
+    assert outcome.car_errors and all(z > 0 and mm >= 0 for z, mm in outcome.car_errors)
 
 
 def test_depth_mode_names_the_missing_layout(tiny_models, tmp_path):

@@ -8,7 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from evaluation.depth_metrics import DepthMetrics, depth_metrics, mean_over_frames
+from evaluation.depth_metrics import (
+    DepthMetrics,
+    car_depth_errors,
+    car_errors_by_band,
+    depth_metrics,
+    mean_over_frames,
+)
 from pipeline.errors import InputError
 from pipeline.kitti import read_depth_png
 
@@ -91,3 +97,21 @@ def test_errors_name_the_problem():
         depth_metrics(np.zeros((2, 2)), gt)
     with pytest.raises(InputError, match="no frames"):
         mean_over_frames([])
+
+
+def test_car_pixels_are_the_box_pixels_on_the_car_surface():
+    """Inside a car's box only the pixels whose true depth is within 3 m of the car's count: the road
+    and the wall behind it, also inside the box, do not."""
+    gt = np.full((20, 30), 60.0)  # a wall far behind
+    gt[10:20, :] = 8.0  # road in front
+    gt[5:15, 10:20] = 25.0  # the car's surface, 25 m away
+    gt[0, 0] = 0.0  # a pixel without ground truth
+    pred = gt.copy()
+    pred[5:15, 10:20] += 0.5  # 500 mm too far on the car
+    pred[:5] += 9.0  # and far off on the wall (inside the box too)
+    cars = [((8.0, 2.0, 21.0, 17.0), 26.0), ((25.0, 0.0, 29.0, 3.0), 45.0)]  # the second box holds no surface
+    assert car_depth_errors(pred, gt, cars) == [(26.0, pytest.approx(500.0))]
+    errors = [(10.0, 100.0), (12.0, 300.0), (40.0, 900.0)]
+    bands = car_errors_by_band(errors)
+    assert bands["0-20"] == {"median_mm": 200.0, "cars": 2} and bands["35-50"] == {"median_mm": 900.0, "cars": 1}
+    assert bands["20-35"]["cars"] == 0 and math.isnan(bands["20-35"]["median_mm"])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -230,6 +231,39 @@ def test_prefill_net_starts_from_the_filled_map() -> None:
     assert torch.allclose(depth[covered], prior[covered].clamp(min=TINY.depth.min_depth))
 
 
+def test_refine_head_starts_as_the_network_without_it_and_corrects_at_full_resolution() -> None:
+    """The full-resolution head's zero-initialised output leaves the network's function as it was; with
+    weights, it changes single pixels, which the half-resolution correction (upsampled ×2) cannot."""
+    refined = get_preset("tiny-refine")
+    assert TINY.depth.refine_channels == 0 and refined.depth.refine_channels > 0
+    torch.manual_seed(0)
+    plain = build_depth_net(TINY).eval()
+    torch.manual_seed(1)
+    model = build_depth_net(refined).eval()
+    result = model.load_state_dict(plain.state_dict(), strict=False)
+    assert result.unexpected_keys == [] and all(k.startswith("refine.") for k in result.missing_keys)
+    height, width = TINY.depth.input_hw
+    rgb = torch.rand(1, 3, height, width) * 255
+    sparse = torch.zeros(1, 1, height, width)
+    sparse[..., ::6, :] = torch.linspace(5.0, 60.0, width)
+    with torch.no_grad():
+        assert torch.equal(model(rgb, sparse), plain(rgb, sparse))
+        model.refine.out.weight.normal_(std=0.05)
+        refined = model(rgb, sparse)
+    change = (refined - plain(rgb, sparse))[0, 0]
+    assert change.abs().max() > 0.1
+    # Neighbouring pixels of one half-resolution cell get different corrections from the head.
+    assert (change[:, 0::2] - change[:, 1::2]).abs().max() > 0.01
+
+
+def test_refine_head_needs_a_strided_stem_and_the_prefill() -> None:
+    refined = get_preset("tiny-refine")
+    with pytest.raises(ValueError, match="refine_channels needs stem_stride 2"):
+        build_depth_net(replace(refined, depth=replace(refined.depth, prefill_passes=0)))
+    with pytest.raises(ValueError, match="refine_channels needs stem_stride 2"):
+        build_depth_net(get_preset("paper-refine"))
+
+
 def test_depth_net_rejects_wrong_input_size() -> None:
     model = build_depth_net(TINY).eval()
     with pytest.raises(ValueError, match="built for 88×304"):
@@ -352,6 +386,15 @@ def test_pixor_loss_without_positives_is_finite_and_differentiable() -> None:
     loss = pixor_loss(torch.zeros(1, 1, 3, 3), regression, torch.zeros(1, 1, 3, 3), torch.ones(1, 6, 3, 3))
     loss.total.backward()
     assert loss.regression.item() == 0.0 and math.isfinite(loss.total.item())
+
+
+def test_depth_losses_take_a_weighted_mean_over_pixels_with_ground_truth() -> None:
+    target = torch.tensor([[[[10.0, 20.0, 0.0, 30.0]]]])
+    prediction = torch.tensor([[[[11.0, 20.0, 5.0, 33.0]]]])
+    weight = torch.tensor([[[[1.0, 1.0, 100.0, 10.0]]]])  # the pixel without ground truth stays out
+    assert masked_l1(prediction, target, weight).item() == pytest.approx((1.0 + 0.0 + 30.0) / 12.0)
+    assert masked_mse(prediction, target, weight).item() == pytest.approx((1.0 + 0.0 + 90.0) / 12.0)
+    assert masked_l1(prediction, target, torch.ones_like(target)).item() == pytest.approx(masked_l1(prediction, target).item())
 
 
 def test_masked_mse_ignores_pixels_without_ground_truth() -> None:

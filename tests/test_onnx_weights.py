@@ -1,5 +1,6 @@
 """ONNX weights back into the PyTorch networks (models/onnx_weights.py): the shipped files and a round trip."""
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -7,10 +8,11 @@ import pytest
 import torch
 
 from export.inputs import kitti_inputs, random_inputs
+from export.onnx_export import depth_io, export_onnx
 from export.parity import cpu_session, depth_parity, pixor_parity
 from models import build_network
 from models.onnx_weights import load_onnx_weights
-from pipeline.presets import get_preset
+from pipeline.presets import get_preset, preset_from_dict
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
 
@@ -20,8 +22,9 @@ def test_shipped_onnx_weights_reproduce_onnx_runtime_in_pytorch(directory, netwo
     """Every rewrite of the shipped graphs (folded batch norms, the merged early fusion, the split and padded
     PIXOR convs, the stride-1 transposed conv) is undone: PyTorch eager then agrees with ONNX Runtime on a
     real KITTI frame within the exporter's own parity tolerances."""
-    preset = get_preset("edge")
     path = WEIGHTS / directory / f"{network}.onnx"
+    manifest = json.loads((path.parent / "manifest.json").read_text())
+    preset = preset_from_dict(manifest["preset_config"])  # the preset these files were exported with
     net = build_network(network, preset).eval()
     load_onnx_weights(net, path)
     check = depth_parity if network == "depth" else pixor_parity
@@ -36,7 +39,7 @@ def test_round_trip_of_trained_looking_weights(tmp_path):
     from export.exporter import ExportConfig, run
     from models.checkpoint import save_checkpoint
 
-    preset = get_preset("tiny")
+    preset = get_preset("tiny-refine")  # with the full-resolution head, so its convs round-trip too
     torch.manual_seed(3)
     originals = {}
     for name in ("depth", "pixor"):
@@ -50,10 +53,12 @@ def test_round_trip_of_trained_looking_weights(tmp_path):
                     module.running_var.uniform_(0.5, 2.0)
                 elif isinstance(module, torch.nn.Conv2d | torch.nn.ConvTranspose2d) and module.bias is not None:
                     module.bias.uniform_(-0.1, 0.1)
+            if name == "depth":  # the full-resolution head starts at zero: give it a say
+                net.refine.out.weight.normal_(std=0.05)
         originals[name] = net.eval()
         save_checkpoint(tmp_path / "runs" / f"{name}.pt", preset, {name: net}, {"note": "test"})
     out = tmp_path / "models"
-    run(ExportConfig(preset="tiny", out=out, checkpoints=tmp_path / "runs", parity=False))
+    run(ExportConfig(preset="tiny-refine", out=out, checkpoints=tmp_path / "runs", parity=False))
     inputs = random_inputs(preset, seed=4)
     for name, original in originals.items():
         twin = build_network(name, preset).eval()
@@ -70,3 +75,29 @@ def test_a_graph_of_another_network_is_refused():
     net = build_network("depth", get_preset("edge"))
     with pytest.raises(ValueError, match="no weights|shape"):
         load_onnx_weights(net, WEIGHTS / "edge" / "pixor.onnx")
+
+
+def test_an_export_without_the_refine_head_starts_a_network_with_it(tmp_path):
+    """A depth net exported before the full-resolution head existed, loaded with the head optional: the
+    head keeps its zero-initialised output, so the network computes what the ONNX file does; asked for
+    everything, the loader names what the graph lacks."""
+    preset = get_preset("tiny-refine")
+    torch.manual_seed(5)
+    older = build_network("depth", get_preset("tiny")).eval()
+    path = tmp_path / "depth.onnx"
+    inputs = random_inputs(preset, seed=6)
+    export_onnx(older, depth_io(preset.depth.input_hw), path)
+    net = build_network("depth", preset).eval()
+    with pytest.raises(ValueError, match="refine"):
+        load_onnx_weights(net, path)
+    assert load_onnx_weights(net, path, optional=("refine",)) == ("refine",)
+    assert torch.count_nonzero(net.refine.out.weight) == 0
+    result = depth_parity(net, cpu_session(path), inputs)
+    assert result.passed, f"{result.metric} {result.error:.3g} > {result.tolerance:.3g}"
+    # A graph that has the head: the head is loaded, optional or not.
+    with torch.no_grad():
+        net.refine.out.weight.normal_(std=0.05)
+    export_onnx(net, depth_io(preset.depth.input_hw), path)
+    twin = build_network("depth", preset).eval()
+    assert load_onnx_weights(twin, path, optional=("refine",)) == ()
+    assert torch.equal(twin.refine.out.weight, net.refine.out.weight)

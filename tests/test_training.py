@@ -12,6 +12,7 @@ from models.soft_bev import soft_occupancy
 from models.train import TrainConfig, run
 from pipeline.beams import emulate_beams_on_depth_map
 from pipeline.bev import voxelize_bev
+from pipeline.frame import load_frame
 from pipeline.kitti import read_calib, read_depth_png, read_velodyne
 from pipeline.presets import PRESETS
 from tests.conftest import KITTI
@@ -25,6 +26,33 @@ def test_depth_dataset_on_real_object_frames():
     # Without depth_2 the target is the full 64-line scan: about four times the 16-line input.
     ratio = int((target > 0).sum()) / int((sparse > 0).sum())
     assert 2.5 < ratio < 5.0
+
+
+def test_depth_dataset_weights_the_labelled_cars_own_pixels(small_sim):
+    """With car_weight, a 4th field weighs the car pixels (inside a labelled car's box, on its surface):
+    they exist, lie on the cars' depths, and the mirrored sample mirrors them with the target."""
+    from models.data import CAR_SURFACE_M
+
+    preset = PRESETS["tiny"]
+    ids = [p.stem for p in sorted((small_sim / "velodyne").glob("*.bin"))]
+    plain = DepthDataset(small_sim, ids, preset)
+    weighted = DepthDataset(small_sim, ids, preset, car_weight=10.0, augment=True)
+    assert len(plain[0]) == 3
+    found = 0
+    for index in range(len(ids)):
+        _, _, target, weight = weighted[index]
+        assert set(torch.unique(weight).tolist()) <= {1.0, 10.0}
+        cars = weight > 1
+        found += int(cars.sum())
+        assert (target[cars] > 0).all()
+        unflipped = plain[index][2]
+        mirrored = not torch.equal(target, unflipped)
+        assert torch.equal(target, unflipped.flip(-1) if mirrored else unflipped)
+        labels = load_frame(small_sim, ids[index]).labels
+        depths = torch.tensor([o.location[2] for o in labels if o.type == "Car"])
+        if cars.any():  # each weighted pixel is within the surface margin of some labelled car's depth
+            assert ((target[cars][:, None] - depths[None]).abs() <= CAR_SURFACE_M + 1e-4).any(dim=1).all()
+    assert found > 0
 
 
 def test_detector_dataset_targets_and_mirror():
@@ -46,7 +74,6 @@ def test_detector_dataset_targets_and_mirror():
 def test_detector_samples_without_pixels_equal_those_with(tmp_path):
     """Detector samples read only the image's size; pseudo points still land where the full frame puts them."""
     from models.data import detector_points
-    from pipeline.frame import load_frame
     from pipeline.kitti import write_depth_png
 
     preset = PRESETS["edge"]
@@ -117,6 +144,39 @@ def test_resume_is_exact(small_sim, tmp_path):
         assert torch.equal(a[key], b[key]), key
     for key in ("train_loss", "val_loss", "lr"):
         assert [h[key] for h in straight.history] == [h[key] for h in resumed.history], key
+
+
+def test_train_only_trains_the_refine_head_from_exported_weights_and_keeps_the_rest(small_sim, tmp_path,
+                                                                                    tiny_models):
+    """--preset tiny-refine --depth-checkpoint depth.onnx --train-only refine, from a tiny export that has no
+    head: the head's weights and its own batch-norm statistics move; every other weight and statistic is
+    still the exported one."""
+    from models import build_depth_net
+    from models.checkpoint import load_checkpoint
+    from models.onnx_weights import load_onnx_weights
+    from pipeline.presets import get_preset
+
+    start = tiny_models / "depth.onnx"
+    result = run(TrainConfig(task="depth", data=small_sim, preset="tiny-refine", out=tmp_path / "r", quick=True,
+                             epochs=2, lr=1e-2, depth_loss="l1", depth_checkpoint=start, train_only=("refine",),
+                             progress=False))
+    exported = build_depth_net(get_preset("tiny-refine"))
+    assert load_onnx_weights(exported, start, optional=("refine",)) == ("refine",)
+    trained = torch.load(tmp_path / "r" / "state.pt", weights_only=False)["networks"]["depth"]
+    moved = [k for k, v in exported.state_dict().items() if not torch.equal(v, trained[k])]
+    # Only the head moved (its out conv starts at zero and its batch norms at 0 / 1 in both builds).
+    assert moved and all(k.startswith("refine.") for k in moved), moved
+    assert any(k.startswith("refine.out.") for k in moved) and any(k.endswith("running_mean") for k in moved)
+    recipe = load_checkpoint(result.checkpoints["depth"]).metadata["recipe"]
+    assert recipe["train_only"] == ["refine"] and recipe["depth_start"] == str(start)
+
+
+def test_train_only_refuses_a_submodule_the_network_lacks(small_sim, tmp_path):
+    from pipeline.errors import InputError
+
+    with pytest.raises(InputError, match="no submodule 'decoder'"):
+        run(TrainConfig(task="depth", data=small_sim, preset="tiny", out=tmp_path / "r", quick=True, epochs=1,
+                        train_only=("decoder",), progress=False))
 
 
 def test_refuses_to_overwrite_a_run(small_sim, tmp_path):

@@ -1,0 +1,97 @@
+"""How good the camera pipeline could be at a given resolution of the depth net's correction.
+
+    python benchmarks/depth_bound.py --data data/sim/val --models weights/edge --factor 2 --out DIR
+    python benchmarks/accuracy.py --data data/sim/val --models weights/edge --input lidar16+camera \
+        --depth-dir DIR/depth_2 --out RESULTS
+
+The edge depth net fills the 16-line scan inside its graph and predicts a
+correction to that filled map (docs/models.md). For each frame this writes the
+filled map plus the exact correction to the simulator's true depth, averaged
+over blocks of ``factor`` × ``factor`` pixels of the network's view and
+upsampled back bilinearly, as the network upsamples its own output: factor 1
+is the best a correction at the network's input resolution can give, factor 2
+the best one at half of it. The maps are full-image KITTI depth PNGs (metres ×
+256, 0 = none) for ``benchmarks/accuracy.py --depth-dir``; pixels the fill does
+not reach stay empty, as they do with the network.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from models.depth_net import SparsePrefill
+from pipeline.beams import emulate_beams
+from pipeline.calib import depth_crop
+from pipeline.cli import positive_int
+from pipeline.frame import frame_ids, load_frame
+from pipeline.kitti import read_depth_png, write_depth_png
+from pipeline.model_files import load_manifest
+from pipeline.preprocess import depth_inputs, depth_view
+from pipeline.presets import Preset, preset_from_dict
+
+
+def bounded_depth(filled: np.ndarray, truth: np.ndarray, factor: int, min_depth: float) -> np.ndarray:
+    """filled + the true correction at 1/factor resolution (view pixels; 0 where the fill or the truth has none)."""
+    correction = np.where((filled > 0) & (truth > 0), truth - filled, 0.0).astype(np.float32)
+    if factor > 1:
+        h, w = correction.shape
+        if h % factor or w % factor:
+            raise ValueError(f"--factor {factor} does not divide the network's view {w}×{h}")
+        coarse = correction.reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
+        correction = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)  # half-pixel centres, like the net
+    return np.where(filled > 0, np.maximum(filled + correction, min_depth), 0.0).astype(np.float32)
+
+
+def to_full_image(view: np.ndarray, image_hw: tuple[int, int], preset: Preset) -> np.ndarray:
+    """A map of the network's view as a full-image map that :func:`pipeline.preprocess.depth_view` reads back exactly."""
+    crop = depth_crop(image_hw, *preset.crop_hw)
+    scale = round(1 / preset.depth.input_scale)
+    full = np.zeros(image_hw, np.float32)
+    full[crop.top : crop.top + crop.height, crop.left : crop.left + crop.width] = np.repeat(
+        np.repeat(view, scale, axis=0), scale, axis=1)
+    return full
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--data", type=Path, required=True, help="KITTI-layout folder with depth_2 (synthetic scenes)")
+    parser.add_argument("--models", type=Path, required=True, help="model directory (its preset: view, fill)")
+    parser.add_argument("--factor", type=positive_int, default=1, help="correction at 1/factor of the view (default 1)")
+    parser.add_argument("--frames", type=positive_int, help="only the first N frames")
+    parser.add_argument("--out", type=Path, required=True, help="writes OUT/depth_2/<id>.png")
+    args = parser.parse_args(argv)
+    preset = preset_from_dict(load_manifest(args.models)["preset_config"])
+    if not preset.depth.prefill_passes:
+        print(f"error: {args.models}: the depth net has no fill to correct (prefill_passes 0)", file=sys.stderr)
+        return 2
+    fill = SparsePrefill(preset.depth.prefill_passes, preset.depth.prefill_kernel)
+    ids = frame_ids(args.data)[: args.frames]
+    (args.out / "depth_2").mkdir(parents=True, exist_ok=True)
+    for fid in tqdm(ids, desc="bounded depth"):
+        frame = load_frame(args.data, fid)
+        truth_path = args.data / "depth_2" / f"{fid}.png"
+        if not truth_path.exists():
+            print(f"error: {truth_path}: no true depth (only the synthetic scenes have it)", file=sys.stderr)
+            return 2
+        inputs = depth_inputs(frame.image, emulate_beams(frame.points, 16), frame.calib, preset)
+        with torch.no_grad():
+            filled = fill(torch.from_numpy(inputs.sparse_depth))[0, 0].numpy()
+        truth = depth_view(read_depth_png(truth_path), preset)
+        view = bounded_depth(filled, truth, args.factor, preset.depth.min_depth)
+        write_depth_png(args.out / "depth_2" / f"{fid}.png", to_full_image(view, frame.image_hw, preset))
+    print(f"wrote {len(ids)} maps to {args.out / 'depth_2'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
