@@ -32,10 +32,13 @@ map alone is off by 0.13 and 0.36 m on the pixels it covers); starting from the 
 map, it only has to learn where the image says the fill is wrong. The fill is
 part of the graph, so the runtime and ONNX inputs are unchanged.
 
-With ``refine_channels`` > 0 and stem stride 2 (the edge preset) a small head
+With ``refine_channels`` > 0 (the ``-refine`` variants of the edge and tiny
+presets; stem stride 2 and the prefill) a small head
 (:class:`FullResolutionRefine`) adds a second correction at the input
 resolution, where every other feature map is at half of it: the coarse
-correction, upsampled, smears a distant car into what is behind it.
+correction, upsampled, smears a distant car into what is behind it. No shipped
+model has it: trained on the frozen shipped net it lowered the depth error
+overall but not on the cars (docs/models.md).
 
 Module names follow Ma et al. and torchvision (``layer1.0.conv1.weight`` …), so a
 torchvision-format ResNet-18 checkpoint loads into ``layer1``–``layer4``.
@@ -196,7 +199,7 @@ class FullResolutionRefine(nn.Module):
     Why: upsampled ×2, the half-resolution correction blurs depth edges over two input pixels, and a car
     40 m away is 15 pixels wide in the edge view. With the correct depth smoothed to half resolution and
     then added like that, the camera pipeline's BEV AP at IoU 0.7 moderate on the 300 synthetic validation
-    frames was 81.0 (33.7 beyond 35 m); at the input resolution, 85.4 (54.0) (docs/models.md).
+    frames was 80.9 (34.3 beyond 35 m); at the input resolution, 85.4 (54.0) (docs/models.md).
 
     The head sees the input at full resolution (normalised image, sparse and filled depth, the current
     estimate) through one 3×3 conv, and the decoder's last features reduced by a 1×1 conv and upsampled;
