@@ -94,7 +94,7 @@ def _under(name: str, prefixes: tuple[str, ...]) -> bool:
 def _absent(graph: onnx.GraphProto, prefixes: tuple[str, ...]) -> tuple[str, ...]:
     """The submodules among ``prefixes`` of which the graph has no node and no weight."""
     names = [init.name for init in graph.initializer] + [node.name.lstrip("/").replace("/", ".") for node in graph.node]
-    return tuple(p for p in prefixes if not any(_under(n, (p,)) or n.startswith(f"{p}.") for n in names))
+    return tuple(p for p in prefixes if not any(_under(n, (p,)) for n in names))
 
 
 def load_onnx_weights(network: nn.Module, path: str | Path, optional: tuple[str, ...] = ()) -> tuple[str, ...]:

@@ -44,7 +44,7 @@ import logging
 import shutil
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -57,7 +57,7 @@ from models.cache_pseudo import run as cache_pseudo
 from models.schedule import Job, JobFailed, run_jobs
 from models.train import TrainConfig
 from models.train import run as train
-from pipeline.cli import positive_int
+from pipeline.cli import positive_float, positive_int
 from pipeline.errors import InputError
 from simulation.run import RunConfig
 from simulation.run import run as simulate
@@ -80,6 +80,7 @@ class Budget:
     depth_epochs: int = 10
     depth_lr: float = 1e-3
     depth_loss: str = "l1"
+    depth_car_weight: float = 1.0  # the depth nets' loss weight on the labelled cars' own pixels (--car-weight)
     detector_frames: int = 2000
     detector_epochs: int = 12
     pseudo_branch_epochs: int = 6  # the camera PIXOR starts from the 16-line PIXOR of this epoch
@@ -211,7 +212,8 @@ def run_stage(config: ReproduceConfig, name: str, threads: int | None = None) ->
 
     def depth(run_name: str, preset: str) -> dict:
         return _train(config, run_name, "depth", preset=preset, threads=threads, epochs=b.depth_epochs,
-                      max_train_frames=b.depth_frames, lr=b.depth_lr, depth_loss=b.depth_loss)
+                      max_train_frames=b.depth_frames, lr=b.depth_lr, depth_loss=b.depth_loss,
+                      car_weight=b.depth_car_weight)
 
     if name == "depth":
         return depth("depth", config.preset)
@@ -385,12 +387,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sim-workers", type=positive_int, default=2, help="simulation processes (default 2)")
     parser.add_argument("--lanes", type=positive_int, default=2,
                         help="training jobs side by side, each with its share of the cores (default 2; 1: in turn)")
+    parser.add_argument("--car-weight", type=positive_float, default=1.0,
+                        help="depth nets: loss weight of the labelled cars' own pixels (default 1)")
     parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     config = ReproduceConfig(out=args.out, data=args.data, weights=args.weights, preset=args.preset,
                              quick=args.quick, sim_workers=args.sim_workers,
                              lanes=args.lanes)
+    config.budget = replace(config.budget, depth_car_weight=args.car_weight)
     try:
         report = run(config)
     except (InputError, FileNotFoundError, ValueError) as exc:

@@ -198,16 +198,20 @@ def get_preset(name: str) -> Preset:
     A suffix ``-no-gam`` or ``-no-aspp`` (e.g. ``edge-no-gam``) gives the paper's
     ablation: the same preset with that part of the depth net switched off;
     ``-refine`` (edge and tiny) adds the depth net's full-resolution correction head.
+    Suffixes stack (``edge-refine-no-gam``).
     """
-    for suffix, change in ABLATIONS.items():
-        if name.endswith(suffix) and name[: -len(suffix)] in PRESETS:
-            base = PRESETS[name[: -len(suffix)]]
-            return replace(base, name=name, depth=replace(base.depth, **change))
-    try:
-        return PRESETS[name]
-    except KeyError:
-        choices = ", ".join(list(PRESETS) + [f"{p}{s}" for p in PRESETS for s in ABLATIONS][:2] + ["…"])
-        raise ValueError(f"unknown preset {name!r}; choose one of {choices}") from None
+    base, changes = name, {}
+    while base not in PRESETS:
+        suffix = next((s for s in ABLATIONS if base.endswith(s)), None)
+        if suffix is None:
+            choices = ", ".join(list(PRESETS) + [f"{p}{s}" for p in PRESETS for s in ABLATIONS][:2] + ["…"])
+            raise ValueError(f"unknown preset {name!r}; choose one of {choices}") from None
+        changes = {**ABLATIONS[suffix], **changes}
+        base = base[: -len(suffix)]
+    if not changes:
+        return PRESETS[base]
+    preset = PRESETS[base]
+    return replace(preset, name=name, depth=replace(preset.depth, **changes))
 
 
 def _tuples(value):

@@ -101,3 +101,23 @@ def test_an_export_without_the_refine_head_starts_a_network_with_it(tmp_path):
     twin = build_network("depth", preset).eval()
     assert load_onnx_weights(twin, path, optional=("refine",)) == ()
     assert torch.equal(twin.refine.out.weight, net.refine.out.weight)
+
+
+def test_a_model_directory_back_to_checkpoints(tiny_models, tmp_path):
+    """python -m models.onnx_weights: checkpoints of a model directory that carry its preset and
+    training record and compute what its ONNX files do."""
+    from models.checkpoint import load_checkpoint, load_network_weights
+    from models.onnx_weights import main
+
+    assert main(["--models", str(tiny_models), "--out", str(tmp_path / "ckpt")]) == 0
+    preset = get_preset("tiny")
+    inputs = random_inputs(preset, seed=7)
+    for name, check in (("depth", depth_parity), ("pixor", pixor_parity)):
+        checkpoint = load_checkpoint(tmp_path / "ckpt" / f"{name}.pt")
+        assert checkpoint.metadata["from_onnx"].endswith(f"{name}.onnx")
+        net = build_network(name, preset)
+        load_network_weights(net, checkpoint, name, preset)
+        results = check(net.eval(), cpu_session(tiny_models / f"{name}.onnx"), inputs)
+        for result in results if isinstance(results, list) else [results]:
+            assert result.passed, f"{result.metric} {result.error:.3g} > {result.tolerance:.3g}"
+    assert main(["--models", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2

@@ -46,6 +46,14 @@ def test_ablation_presets():
     assert preset.name == "edge-no-gam" and not preset.depth.use_gam and preset.depth.use_aspp
     assert preset.bev == get_preset("edge").bev
     assert not get_preset("paper-no-aspp").depth.use_aspp
+    # Suffixes stack, so the recipe's no-GAM ablation exists for a preset with the refine head too.
+    stacked = get_preset("edge-refine-no-gam")
+    assert stacked.name == "edge-refine-no-gam" and stacked.depth.refine_channels == 8 and not stacked.depth.use_gam
+    assert get_preset("edge").depth.refine_channels == 0 and get_preset("edge") is get_preset("edge")
+    import pytest
+
+    with pytest.raises(ValueError, match="unknown preset 'edge-nogam'"):
+        get_preset("edge-nogam")
 
 
 def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):
@@ -53,8 +61,9 @@ def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):
 
     from models.reproduce import main
 
-    for flag in ("--sim-workers", "--lanes"):
+    for flag, says in (("--sim-workers", "must be at least 1, got 0"), ("--lanes", "must be at least 1, got 0"),
+                       ("--car-weight", "must be a positive number")):
         with pytest.raises(SystemExit) as stop:
             main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), flag, "0"])
-        assert stop.value.code == 2 and f"argument {flag}: must be at least 1, got 0" in capsys.readouterr().err
+        assert stop.value.code == 2 and f"argument {flag}: {says}" in capsys.readouterr().err
     assert not (tmp_path / "run").exists() and not (tmp_path / "data").exists()
