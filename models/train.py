@@ -11,7 +11,7 @@
 ``--depth-checkpoint`` / ``--pixor-checkpoint`` also start a depth or detector
 run from trained weights: a checkpoint, or the ``depth.onnx`` / ``pixor.onnx``
 of an exported model directory (its batch norms come folded into the
-convolutions, so train such weights with ``--train-only``). ``--train-only
+convolutions, so train such weights with ``--train-only`` or ``--freeze-bn``). ``--train-only
 refine`` trains only that submodule (here the depth net's full-resolution head,
 which an older export lacks and which then starts from its initialisation);
 every other weight and batch-norm statistic stays as loaded.
@@ -109,6 +109,7 @@ class TrainConfig:
     depth_checkpoint: Path | None = None  # joint (and pseudo caching): trained depth.pt; depth: weights to start from
     pixor_checkpoint: Path | None = None  # joint: trained pixor.pt; detector: weights to start from
     train_only: tuple[str, ...] = ()  # submodules to train (say "refine"); the rest frozen, batch norms included
+    freeze_bn: bool = False  # batch-norm statistics stay as loaded (their scale and shift still train)
     epochs: int | None = None
     batch_size: int | None = None
     lr: float | None = None
@@ -471,6 +472,8 @@ def run(config: TrainConfig) -> TrainResult:
         metadata_base["recipe"]["train_only"] = list(config.train_only)
     if config.car_weight != 1.0:
         metadata_base["recipe"]["car_weight"] = config.car_weight
+    if config.freeze_bn:
+        metadata_base["recipe"]["freeze_bn"] = True
     for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
         if name in networks and path is not None and config.task != "joint":
             metadata_base["recipe"][f"{name}_start"] = str(path)
@@ -484,6 +487,8 @@ def run(config: TrainConfig) -> TrainResult:
             net.train(not trained)
         for module in trained:  # with --train-only, only these leave eval mode (frozen batch norms stay put)
             module.train()
+        if config.freeze_bn:
+            freeze_batch_norms(networks)
         epoch_losses = []
         if config.task == "joint":
             order = np.random.default_rng((config.seed, epoch)).permutation(len(train_ids))
@@ -613,6 +618,16 @@ def freeze_except(networks: dict[str, torch.nn.Module], train_only: tuple[str, .
     return trained
 
 
+def freeze_batch_norms(networks: dict[str, torch.nn.Module]) -> None:
+    """Batch norms normalise with their running statistics and stop updating them (scale and shift still
+    train). For weights read back from ONNX, whose batch norms come folded into the convolutions (identity
+    statistics), and for batches too small to estimate statistics from."""
+    for net in networks.values():
+        for module in net.modules():
+            if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+                module.eval()
+
+
 def _has_submodule(net: torch.nn.Module, name: str) -> bool:
     try:
         net.get_submodule(name)
@@ -685,6 +700,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-only", type=lambda text: tuple(n for n in text.split(",") if n), default=(),
                         metavar="MODULES", help="train only these submodules (comma-separated, say refine); "
                                                 "the rest stays frozen as loaded")
+    parser.add_argument("--freeze-bn", action="store_true",
+                        help="batch-norm statistics stay as loaded (use with weights from an exported .onnx)")
     parser.add_argument("--epochs", type=positive_int, help="default: the task's recipe")
     parser.add_argument("--batch-size", type=positive_int, help="default: the task's recipe")
     parser.add_argument("--lr", type=positive_float, help="default: the task's recipe")

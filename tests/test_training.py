@@ -171,6 +171,26 @@ def test_train_only_trains_the_refine_head_from_exported_weights_and_keeps_the_r
     assert recipe["train_only"] == ["refine"] and recipe["depth_start"] == str(start)
 
 
+def test_freeze_bn_fine_tunes_exported_weights_and_keeps_their_statistics(small_sim, tmp_path, tiny_models):
+    """--pixor-checkpoint pixor.onnx --freeze-bn: every weight may move, the (folded, identity) batch-norm
+    statistics do not, and a run without the flag does move them."""
+    from models import build_pixor
+    from models.onnx_weights import load_onnx_weights
+
+    exported = build_pixor(PRESETS["tiny"])
+    load_onnx_weights(exported, tiny_models / "pixor.onnx")
+    before = exported.state_dict()
+    common = {"task": "detector", "data": small_sim, "preset": "tiny", "quick": True, "epochs": 1, "lr": 1e-3,
+              "pixor_checkpoint": tiny_models / "pixor.onnx", "progress": False}
+    for frozen in (True, False):
+        run(TrainConfig(out=tmp_path / str(frozen), freeze_bn=frozen, **common))
+        after = torch.load(tmp_path / str(frozen) / "state.pt", weights_only=False)["networks"]["pixor"]
+        statistics = [k for k in before if k.endswith(("running_mean", "running_var"))]
+        moved = [k for k in statistics if not torch.equal(before[k], after[k])]
+        assert (moved == []) == frozen, moved
+        assert any(not torch.equal(before[k], after[k]) for k in before if k.endswith(".weight"))
+
+
 def test_train_only_refuses_a_submodule_the_network_lacks(small_sim, tmp_path):
     from pipeline.errors import InputError
 
