@@ -197,9 +197,10 @@ class FullResolutionRefine(nn.Module):
     """A correction at the input resolution for a stem-stride-2 network (whose features are all at half of it).
 
     Why: upsampled ×2, the half-resolution correction blurs depth edges over two input pixels, and a car
-    40 m away is 15 pixels wide in the edge view. With the correct depth smoothed to half resolution and
-    then added like that, the camera pipeline's BEV AP at IoU 0.7 moderate on the 300 synthetic validation
-    frames was 80.9 (34.3 beyond 35 m); at the input resolution, 85.4 (54.0) (docs/models.md).
+    40 m away is 15 pixels wide in the edge view. With the exact correction to the true depth averaged to
+    half resolution and upsampled like that (benchmarks/depth_bound.py), the camera pipeline's BEV AP at
+    IoU 0.7 moderate on the 300 synthetic validation frames was 80.9 (34.3 beyond 35 m); at the input
+    resolution, 85.4 (54.0) (docs/models.md).
 
     The head sees the input at full resolution (normalised image, sparse and filled depth, the current
     estimate) through one 3×3 conv, and the decoder's last features reduced by a 1×1 conv and upsampled;
