@@ -32,9 +32,10 @@ from models.depth_net import SparsePrefill
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
 from pipeline.cli import positive_int
+from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_depth_png, write_depth_png
-from pipeline.model_files import load_manifest
+from pipeline.model_files import ModelFileError, load_manifest
 from pipeline.preprocess import depth_inputs, depth_view
 from pipeline.presets import Preset, preset_from_dict
 
@@ -70,27 +71,35 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=positive_int, help="only the first N frames")
     parser.add_argument("--out", type=Path, required=True, help="writes OUT/depth_2/<id>.png")
     args = parser.parse_args(argv)
-    preset = preset_from_dict(load_manifest(args.models)["preset_config"])
-    if not preset.depth.prefill_passes:
-        print(f"error: {args.models}: the depth net has no fill to correct (prefill_passes 0)", file=sys.stderr)
+    try:
+        count = write_bounds(args.data, args.models, args.factor, args.out, args.frames)
+    except (InputError, ModelFileError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2
+    print(f"wrote {count} maps to {args.out / 'depth_2'}")
+    return 0
+
+
+def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int | None = None) -> int:
+    """Write OUT/depth_2/<id>.png for the first ``frames`` frames of ``data`` (all by default); returns how many."""
+    preset = preset_from_dict(load_manifest(models)["preset_config"])
+    if not preset.depth.prefill_passes:
+        raise InputError(f"{models}: the depth net has no fill to correct (prefill_passes 0)")
     fill = SparsePrefill(preset.depth.prefill_passes, preset.depth.prefill_kernel)
-    ids = frame_ids(args.data)[: args.frames]
-    (args.out / "depth_2").mkdir(parents=True, exist_ok=True)
+    ids = frame_ids(data)[:frames]
+    (out / "depth_2").mkdir(parents=True, exist_ok=True)
     for fid in tqdm(ids, desc="bounded depth"):
-        frame = load_frame(args.data, fid)
-        truth_path = args.data / "depth_2" / f"{fid}.png"
+        frame = load_frame(data, fid)
+        truth_path = data / "depth_2" / f"{fid}.png"
         if not truth_path.exists():
-            print(f"error: {truth_path}: no true depth (only the synthetic scenes have it)", file=sys.stderr)
-            return 2
+            raise InputError(f"{truth_path}: no true depth (only the synthetic scenes have it)")
         inputs = depth_inputs(frame.image, emulate_beams(frame.points, 16), frame.calib, preset)
         with torch.no_grad():
             filled = fill(torch.from_numpy(inputs.sparse_depth))[0, 0].numpy()
         truth = depth_view(read_depth_png(truth_path), preset)
-        view = bounded_depth(filled, truth, args.factor, preset.depth.min_depth)
-        write_depth_png(args.out / "depth_2" / f"{fid}.png", to_full_image(view, frame.image_hw, preset))
-    print(f"wrote {len(ids)} maps to {args.out / 'depth_2'}")
-    return 0
+        view = bounded_depth(filled, truth, factor, preset.depth.min_depth)
+        write_depth_png(out / "depth_2" / f"{fid}.png", to_full_image(view, frame.image_hw, preset))
+    return len(ids)
 
 
 if __name__ == "__main__":
