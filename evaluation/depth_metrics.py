@@ -125,16 +125,25 @@ def car_depth_errors(prediction_m: np.ndarray, ground_truth_m: np.ndarray,
     """
     pred = np.asarray(prediction_m, np.float64)
     gt = np.asarray(ground_truth_m, np.float64)
-    height, width = gt.shape
     found = []
-    for (left, top, right, bottom), z in cars:  # a handful of cars per frame; the pixels are array slices
-        rows = slice(max(int(np.floor(top)), 0), min(int(np.ceil(bottom)) + 1, height))
-        cols = slice(max(int(np.floor(left)), 0), min(int(np.ceil(right)) + 1, width))
-        truth, guess = gt[rows, cols], pred[rows, cols]
-        on_car = (truth > 0) & (np.abs(truth - z) <= CAR_SURFACE_M)
+    for box, z in cars:  # a handful of cars per frame; the pixels are array slices
+        window, on_car = car_surface(gt, box, z)
         if on_car.any():
-            found.append((float(z), float(np.median(np.abs(guess[on_car] - truth[on_car])) * 1000.0)))
+            error = np.abs(pred[window][on_car] - gt[window][on_car])
+            found.append((float(z), float(np.median(error)) * 1000.0))
     return found
+
+
+def car_surface(ground_truth_m: np.ndarray, box: tuple[float, float, float, float], z: float
+                ) -> tuple[tuple[slice, slice], np.ndarray]:
+    """A car's pixels: the window of its 2D box (left, top, right, bottom, clipped to the map) and, in it,
+    the pixels whose true depth lies within :data:`CAR_SURFACE_M` of the car's depth z."""
+    height, width = ground_truth_m.shape
+    left, top, right, bottom = box
+    window = (slice(max(int(np.floor(top)), 0), min(int(np.ceil(bottom)) + 1, height)),
+              slice(max(int(np.floor(left)), 0), min(int(np.ceil(right)) + 1, width)))
+    truth = ground_truth_m[window]
+    return window, (truth > 0) & (np.abs(truth - z) <= CAR_SURFACE_M)
 
 
 def car_errors_by_band(errors: Sequence[tuple[float, float]]) -> dict[str, dict[str, float]]:

@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.depth_metrics import DepthMetrics, car_depth_errors, depth_metrics, mean_over_frames
+from evaluation.kitti_eval import DIFFICULTIES, MAX_OCCLUSION, MAX_TRUNCATION, MIN_HEIGHT
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
 from pipeline.detector import Detector
@@ -145,9 +146,11 @@ def _moderate_cars_in_crop(frame, preset) -> list[tuple[tuple[float, float, floa
     """The KITTI-moderate cars of a labelled frame (2D box ≥ 25 px high, occlusion ≤ 1, truncation ≤ 0.3):
     their 2D boxes in the depth crop's pixels and their centres' depth z."""
     crop = depth_crop(frame.image_hw, *preset.crop_hw)
+    moderate = DIFFICULTIES.index("moderate")
     cars = []
     for label in frame.labels or []:
         left, top, right, bottom = label.bbox
-        if (label.type == "Car" and bottom - top >= 25 and label.occluded <= 1 and label.truncated <= 0.3):
+        if (label.type == "Car" and bottom - top >= MIN_HEIGHT[moderate] and label.occluded <= MAX_OCCLUSION[moderate]
+                and label.truncated <= MAX_TRUNCATION[moderate]):
             cars.append(((left - crop.left, top - crop.top, right - crop.left, bottom - crop.top), label.location[2]))
     return cars

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from evaluation.depth_metrics import car_surface
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
@@ -128,25 +129,19 @@ class DepthDataset(Dataset):
         return sample
 
 
-CAR_SURFACE_M = 3.0  # as evaluation.depth_metrics: a box pixel is the car's when its true depth is this close
-
-
 def car_pixels(frame: Frame, target: np.ndarray, preset: Preset) -> np.ndarray:
-    """(H, W) bool in the network's view: inside a labelled car's 2D box, with a true depth within
-    :data:`CAR_SURFACE_M` of the car's (its own surface, not what is around or behind it)."""
+    """(H, W) bool in the network's view: the labelled cars' own pixels, as the depth evaluation counts
+    them (:func:`evaluation.depth_metrics.car_surface`: inside the 2D box, on the car's surface)."""
     crop = depth_crop(frame.image_hw, *preset.crop_hw)
     scale = preset.depth.input_scale
-    height, width = target.shape
-    mask = np.zeros((height, width), bool)
+    mask = np.zeros(target.shape, bool)
     for label in frame.labels or []:  # a handful of cars per frame; the pixels are array slices
         if label.type != "Car":
             continue
-        left, top, right, bottom = ((v - offset) * scale for v, offset in
-                                    zip(label.bbox, (crop.left, crop.top, crop.left, crop.top), strict=True))
-        rows = slice(max(int(np.floor(top)), 0), min(int(np.ceil(bottom)) + 1, height))
-        cols = slice(max(int(np.floor(left)), 0), min(int(np.ceil(right)) + 1, width))
-        truth = target[rows, cols]
-        mask[rows, cols] |= (truth > 0) & (np.abs(truth - label.location[2]) <= CAR_SURFACE_M)
+        box = tuple((v - offset) * scale for v, offset in
+                    zip(label.bbox, (crop.left, crop.top, crop.left, crop.top), strict=True))
+        window, on_car = car_surface(target, box, label.location[2])
+        mask[window] |= on_car
     return mask
 
 

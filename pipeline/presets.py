@@ -205,13 +205,11 @@ def get_preset(name: str) -> Preset:
         suffix = next((s for s in ABLATIONS if base.endswith(s)), None)
         if suffix is None:
             choices = ", ".join(list(PRESETS) + [f"{p}{s}" for p in PRESETS for s in ABLATIONS][:2] + ["…"])
-            raise ValueError(f"unknown preset {name!r}; choose one of {choices}") from None
+            raise ValueError(f"unknown preset {name!r}; choose one of {choices}")
         changes = {**ABLATIONS[suffix], **changes}
         base = base[: -len(suffix)]
-    if not changes:
-        return PRESETS[base]
     preset = PRESETS[base]
-    return replace(preset, name=name, depth=replace(preset.depth, **changes))
+    return replace(preset, name=name, depth=replace(preset.depth, **changes)) if changes else preset
 
 
 def _tuples(value):

@@ -31,7 +31,7 @@ def test_depth_dataset_on_real_object_frames():
 def test_depth_dataset_weights_the_labelled_cars_own_pixels(small_sim):
     """With car_weight, a 4th field weighs the car pixels (inside a labelled car's box, on its surface):
     they exist, lie on the cars' depths, and the mirrored sample mirrors them with the target."""
-    from models.data import CAR_SURFACE_M
+    from evaluation.depth_metrics import CAR_SURFACE_M
 
     preset = PRESETS["tiny"]
     ids = [p.stem for p in sorted((small_sim / "velodyne").glob("*.bin"))]
