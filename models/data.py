@@ -152,16 +152,23 @@ def car_boxes(frame: Frame) -> np.ndarray:
 
 def detector_points(data_dir: Path, frame: Frame, preset: Preset, input_mode: str,
                     pseudo_dir: Path | None) -> np.ndarray:
-    """The point cloud PIXOR sees for ``input_mode``."""
+    """The point cloud PIXOR sees for ``input_mode``: pseudo points first (``pseudo``), then the scan."""
+    pseudo, real = detector_clouds(data_dir, frame, preset, input_mode, pseudo_dir)
+    return real if pseudo is None else merge_points(pseudo, real)
+
+
+def detector_clouds(data_dir: Path, frame: Frame, preset: Preset, input_mode: str,
+                    pseudo_dir: Path | None) -> tuple[np.ndarray | None, np.ndarray]:
+    """The (M, 4) pseudo points (``pseudo`` only, else None) and the (N, 4) scan PIXOR sees for ``input_mode``."""
     if input_mode == "lidar64":
-        return frame.points
+        return None, frame.points
     lidar16 = emulate_beams(frame.points, 16)
     if input_mode == "lidar16":
-        return lidar16
+        return None, lidar16
     if input_mode != "pseudo":
         raise InputError(f"--input: {input_mode!r} is not one of {', '.join(DETECTOR_INPUTS)}")
     depth, view_calib = cached_pseudo_depth(pseudo_dir, frame, preset)
-    return merge_points(depth_to_points(depth, view_calib, *preset.pseudo_limits), lidar16)
+    return depth_to_points(depth, view_calib, *preset.pseudo_limits), lidar16
 
 
 def cached_pseudo_depth(pseudo_dir: Path | None, frame: Frame, preset: Preset) -> tuple[np.ndarray, Calibration]:
@@ -190,22 +197,26 @@ class DetectorDataset(Dataset):
     def __len__(self) -> int:
         return len(self.frame_ids)
 
-    def _load(self, index: int) -> tuple[np.ndarray, np.ndarray]:
-        """The (N, 4) points PIXOR sees and the (K, 7) car boxes."""
+    def _load(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The (M, 4) pseudo points (M = 0 without), the (N, 4) scan PIXOR sees, and the (K, 7) car boxes."""
         frame = load_frame(self.data_dir, self.frame_ids[index], with_image=False)  # PIXOR sees no pixels
-        return detector_points(self.data_dir, frame, self.preset, self.input_mode, self.pseudo_dir), car_boxes(frame)
+        pseudo, real = detector_clouds(self.data_dir, frame, self.preset, self.input_mode, self.pseudo_dir)
+        return (np.zeros((0, 4), np.float32) if pseudo is None else pseudo), real, car_boxes(frame)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        points, boxes = self.cache.get(index, self._load)  # mirrored below as copies, never in place
+        pseudo, points, boxes = self.cache.get(index, self._load)  # mirrored below as copies, never in place
         if self.augment:
             rng = np.random.default_rng((self.seed, self.epoch, index))
             if rng.random() < 0.5:  # mirror left ↔ right: y → −y, yaw → −yaw
-                points = points.copy()
+                points, pseudo = points.copy(), pseudo.copy()
                 points[:, 1] *= -1
+                pseudo[:, 1] *= -1
                 boxes = boxes.copy()
                 boxes[:, 1] *= -1
                 boxes[:, 6] *= -1
-        bev = voxelize_bev(points, self.preset.bev)
+        # Pseudo points apart from the scan: the same BEV as their merged cloud, or their own channels
+        # on a split grid (BevGrid.split_pseudo).
+        bev = voxelize_bev(points, self.preset.bev, pseudo=tuple(pseudo[:, :3].T) if len(pseudo) else None)
         targets = encode_targets(boxes, self.preset.bev, self.preset.pixor.output_stride, self.preset.decode)
         return (torch.from_numpy(bev), torch.from_numpy(targets.score[None]),
                 torch.from_numpy(targets.regression))

@@ -81,7 +81,7 @@ from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs
-from pipeline.presets import Preset, get_preset
+from pipeline.presets import Preset, get_preset, lidar_only, preset_from_dict
 from pipeline.pseudo import pixel_rays
 from pipeline.targets import encode_targets
 
@@ -376,6 +376,9 @@ def joint_bev(depth: torch.Tensor, rays: torch.Tensor, origin: torch.Tensor, lid
     points = sub[None] * rays + origin[:, None, None]  # (3, h, w)
     valid = (sub >= preset.depth.min_depth) & (sub <= preset.depth.max_depth) & (points[2] <= d.pseudo_max_height)
     pseudo = points.permute(1, 2, 0)[valid]
+    if preset.bev.split_pseudo:  # the scan's own channels are hard; only the pseudo channels have a gradient
+        lidar = voxelize_bev(lidar16.astype(np.float32, copy=False), preset.bev)[: preset.bev.lidar_channels]
+        return torch.cat([torch.from_numpy(lidar).to(depth.device), soft_occupancy(pseudo, preset.bev)])
     real = torch.from_numpy(lidar16[:, :3]).to(depth.device)
     occupancy = soft_occupancy(torch.cat([pseudo, real]), preset.bev)
     merged = np.concatenate([np.column_stack([pseudo.detach().cpu().numpy(), np.zeros(len(pseudo), np.float32)]),
@@ -577,6 +580,15 @@ def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Pres
     """
     if not path.exists():
         raise InputError(f"--{name}-checkpoint: {path} does not exist")
+    if name == "pixor" and preset.bev.split_pseudo and _bev_channels(path) == preset.bev.lidar_channels:
+        # A LiDAR-only PIXOR of the same grid: the split net starts as exactly it, its pseudo channels'
+        # weights at zero, so the camera pipeline starts from the scan's detector and learns what the
+        # pseudo points add.
+        lidar_net = build_pixor(lidar_only(preset))
+        load_start_weights(lidar_net, name, path, lidar_only(preset), train_only)
+        widen_input_channels(lidar_net, net)
+        log.info("pixor: %s is LiDAR-only; its pseudo channels start at zero", path)
+        return
     if path.suffix == ".onnx":
         from models.onnx_weights import load_onnx_weights
 
@@ -585,6 +597,30 @@ def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Pres
             log.info("%s: %s not in %s, starting from initialisation", name, ", ".join(left), path)
     else:
         load_network_weights(net, load_checkpoint(path), name, preset)
+
+
+def _bev_channels(path: Path) -> int | None:
+    """The BEV channels a PIXOR checkpoint or ``pixor.onnx`` reads (None if it says not)."""
+    try:
+        if path.suffix == ".onnx":
+            import onnx
+
+            graph = onnx.load(str(path), load_external_data=False).graph
+            return graph.input[0].type.tensor_type.shape.dim[1].dim_value
+        return preset_from_dict(load_checkpoint(path).preset_config).bev.channels
+    except (OSError, ValueError, KeyError, IndexError, AttributeError):
+        return None
+
+
+def widen_input_channels(source: torch.nn.Module, target: torch.nn.Module) -> None:
+    """Copy ``source``'s weights into ``target``, whose first conv reads more input channels: those start at zero."""
+    state = source.state_dict()
+    for key, value in target.state_dict().items():
+        if state[key].shape != value.shape:  # the first conv: (out, in, k, k) → (out, in + extra, k, k)
+            widened = torch.zeros_like(value)
+            widened[:, : state[key].shape[1]] = state[key]
+            state[key] = widened
+    target.load_state_dict(state, strict=True)
 
 
 def start_training_metadata(path: Path, name: str) -> dict | None:

@@ -17,8 +17,13 @@ class BevGrid:
 
     Layout of the voxelized tensor: float32 (channels, ny, nx); axis 1 = y bins
     from ``y_min`` upward, axis 2 = x bins from ``x_min``; channel k < nz is the
-    occupancy of height slice [z_min + k·z_cell, z_min + (k+1)·z_cell); the last
-    channel is the mean reflectance of the cell's points.
+    occupancy of height slice [z_min + k·z_cell, z_min + (k+1)·z_cell); channel nz
+    is the mean reflectance of the cell's points.
+
+    split_pseudo: pseudo points get their own nz occupancy channels after the
+    reflectance (channels nz + 1 … 2·nz), so the first nz + 1 channels are exactly
+    a LiDAR-only PIXOR's input and the network can tell a return from a guess.
+    Without it (the paper's way) pseudo and real points share the occupancy.
     """
 
     x_min: float = 0.0
@@ -29,6 +34,7 @@ class BevGrid:
     z_max: float = 1.0
     cell: float = 0.1
     z_cell: float = 0.1
+    split_pseudo: bool = False
 
     @property
     def nx(self) -> int:
@@ -44,6 +50,11 @@ class BevGrid:
 
     @property
     def channels(self) -> int:
+        return 2 * self.nz + 1 if self.split_pseudo else self.nz + 1
+
+    @property
+    def lidar_channels(self) -> int:
+        """Channels a LiDAR-only PIXOR reads: the real points' occupancy and the reflectance."""
         return self.nz + 1
 
     @property
@@ -187,9 +198,15 @@ PRESETS: dict[str, Preset] = {
 }
 
 
-# Suffixes that change a preset's depth net: the paper's two ablations, and the full-resolution
-# correction head (an experiment, docs/models.md: it did not lift the camera row; no shipped model has it).
-ABLATIONS = {"-no-gam": {"use_gam": False}, "-no-aspp": {"use_aspp": False}, "-refine": {"refine_channels": 8}}
+# Suffixes that change a part of a preset: the paper's two ablations of the depth net, the depth net's
+# full-resolution correction head (an experiment, docs/models.md: it did not lift the camera row), and
+# the BEV with the pseudo points in channels of their own (BevGrid.split_pseudo).
+ABLATIONS = {
+    "-no-gam": ("depth", {"use_gam": False}),
+    "-no-aspp": ("depth", {"use_aspp": False}),
+    "-refine": ("depth", {"refine_channels": 8}),
+    "-split": ("bev", {"split_pseudo": True}),
+}
 
 
 def get_preset(name: str) -> Preset:
@@ -197,19 +214,31 @@ def get_preset(name: str) -> Preset:
 
     A suffix ``-no-gam`` or ``-no-aspp`` (e.g. ``edge-no-gam``) gives the paper's
     ablation: the same preset with that part of the depth net switched off;
-    ``-refine`` (edge and tiny) adds the depth net's full-resolution correction head.
-    Suffixes stack (``edge-refine-no-gam``).
+    ``-refine`` (edge and tiny) adds the depth net's full-resolution correction head;
+    ``-split`` gives the pseudo points their own BEV channels (:class:`BevGrid`).
+    Suffixes stack (``edge-refine-no-gam``, ``edge-split``).
     """
-    base, changes = name, {}
+    base, changes = name, {"depth": {}, "bev": {}}
     while base not in PRESETS:
         suffix = next((s for s in ABLATIONS if base.endswith(s)), None)
         if suffix is None:
             choices = ", ".join(list(PRESETS) + [f"{p}{s}" for p in PRESETS for s in ABLATIONS][:2] + ["…"])
             raise ValueError(f"unknown preset {name!r}; choose one of {choices}")
-        changes = {**ABLATIONS[suffix], **changes}
+        part, change = ABLATIONS[suffix]
+        changes[part] = {**change, **changes[part]}
         base = base[: -len(suffix)]
     preset = PRESETS[base]
-    return replace(preset, name=name, depth=replace(preset.depth, **changes)) if changes else preset
+    if base == name:
+        return preset
+    return replace(preset, name=name, depth=replace(preset.depth, **changes["depth"]),
+                   bev=replace(preset.bev, **changes["bev"]))
+
+
+def lidar_only(preset: Preset) -> Preset:
+    """The preset a LiDAR-only PIXOR of the same grid has: ``preset`` without split pseudo channels."""
+    if not preset.bev.split_pseudo:
+        return preset
+    return replace(preset, name=preset.name.replace("-split", ""), bev=replace(preset.bev, split_pseudo=False))
 
 
 def _tuples(value):

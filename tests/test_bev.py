@@ -218,3 +218,37 @@ def test_heights_read_the_real_and_sharp_pseudo_points_only():
     np.testing.assert_array_equal(voxelizer.height_occupancy, expected.astype(np.uint8))
     voxelizer(frame.points)
     assert voxelizer.height_occupancy is again
+
+
+def test_split_grid_keeps_the_pseudo_points_in_channels_of_their_own():
+    """On a ``split_pseudo`` grid the first nz + 1 channels are the scan's own BEV (the reflectance of its
+    returns alone) and the last nz the pseudo points' occupancy: together what the shared grid holds, and
+    box heights read the same occupancy as there."""
+    from dataclasses import replace
+
+    from pipeline.bev import pseudo_bins
+
+    frame, preset, view_calib = _kitti_view()
+    shared = preset.bev
+    split = replace(shared, split_pseudo=True)
+    nz = shared.nz
+    h, w = preset.depth.input_hw
+    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
+    depth[h // 2:, w // 3:w // 2] = 8.0
+    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    bins = pseudo_bins(depth, view_calib, split, *limits, max_jump=0.1)
+
+    voxelizer = BevVoxelizer(split)
+    voxelizer(frame.points[::7], pseudo_bins(depth[::-1].copy(), view_calib, split, *limits))  # a previous frame
+    out = voxelizer(frame.points, bins).copy()
+    assert out.shape == (2 * nz + 1, shared.ny, shared.nx) == split.shape
+    np.testing.assert_array_equal(out[:nz + 1], reference_voxelize(frame.points, shared))
+    merged = BevVoxelizer(shared)
+    together = merged(frame.points, bins)
+    np.testing.assert_array_equal(np.maximum(out[:nz], out[nz + 1:]), together[:nz])
+    assert np.count_nonzero(out[nz + 1:]) > np.count_nonzero(out[:nz]) > 0
+    np.testing.assert_array_equal(voxelizer.height_occupancy, merged.height_occupancy)
+    # Without pseudo points the pseudo channels are empty and the rest is the scan's BEV.
+    alone = voxelizer(frame.points)
+    assert not alone[nz + 1:].any()
+    np.testing.assert_array_equal(alone[:nz + 1], reference_voxelize(frame.points, shared))

@@ -131,6 +131,33 @@ def test_manifest_preset_is_the_code_preset(tiny_models, detector):
     assert list(manifest["bev_grid"]["shape"]) == list(PRESETS["tiny"].bev.shape)
 
 
+def test_split_model_directory_runs_with_its_own_grid(tmp_path, frame):
+    """A ``-split`` export (pseudo points in BEV channels of their own): the manifest carries the grid, the
+    Detector builds that BEV and returns well-formed boxes."""
+    from dataclasses import replace
+
+    from export.exporter import ExportConfig, run
+    from pipeline.bev import voxelize_bev
+    from pipeline.presets import get_preset
+
+    run(ExportConfig(preset="tiny-split", out=tmp_path / "split", parity=True))
+    manifest = json.loads((tmp_path / "split" / "manifest.json").read_text())
+    preset = get_preset("tiny-split")
+    assert preset_from_dict(manifest["preset_config"]) == preset
+    assert list(manifest["bev_grid"]["shape"]) == [2 * preset.bev.nz + 1, preset.bev.ny, preset.bev.nx]
+    detector = Detector(tmp_path / "split")
+    assert detector.preset.bev.split_pseudo
+    lidar16 = emulate_beams(frame.points, 16)
+    result = detector.detect(frame.image, lidar16, frame.calib, score_threshold=0.0)
+    assert set(result.timings_ms) == STAGES and len(result.boxes) > 0
+    assert np.isfinite(result.boxes).all() and ((result.scores >= 0) & (result.scores <= 1)).all()
+    # The BEV PIXOR read (the calling thread's reused buffer): the scan's own channels, then pseudo points.
+    bev = detector._voxelizer()._out
+    nz = preset.bev.nz
+    np.testing.assert_array_equal(bev[:nz + 1], voxelize_bev(lidar16, replace(preset.bev, split_pseudo=False)))
+    assert np.count_nonzero(bev[nz + 1:]) > 0 and np.count_nonzero(bev[:nz]) > 0
+
+
 def test_corrupted_model_file_is_refused(tiny_models, tmp_path):
     broken = tmp_path / "models"
     shutil.copytree(tiny_models, broken)

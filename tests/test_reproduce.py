@@ -50,6 +50,12 @@ def test_ablation_presets():
     stacked = get_preset("edge-refine-no-gam")
     assert stacked.name == "edge-refine-no-gam" and stacked.depth.refine_channels == 8 and not stacked.depth.use_gam
     assert get_preset("edge").depth.refine_channels == 0 and get_preset("edge") is get_preset("edge")
+    # -split changes the BEV, not the depth net; lidar_only gives back the grid a LiDAR-only PIXOR reads.
+    from pipeline.presets import lidar_only
+
+    split = get_preset("edge-split-no-gam")
+    assert split.bev.split_pseudo and split.bev.channels == 2 * split.bev.nz + 1 == 37 and not split.depth.use_gam
+    assert lidar_only(get_preset("edge-split")) == get_preset("edge") and lidar_only(split).bev.channels == 19
     import pytest
 
     with pytest.raises(ValueError, match="unknown preset 'edge-nogam'"):

@@ -85,6 +85,67 @@ def test_detector_samples_without_pixels_equal_those_with(tmp_path):
                                       detector_points(KITTI, full, preset, mode, tmp_path))
 
 
+def test_split_detector_samples_keep_the_pseudo_points_apart(tmp_path):
+    """--preset …-split --input pseudo: the sample's first channels are the 16-line scan's own BEV, the
+    rest the pseudo points' occupancy, mirrored with the scan; the shared grid's sample is their union."""
+    from dataclasses import replace
+
+    from models.data import detector_clouds
+    from pipeline.beams import emulate_beams
+    from pipeline.kitti import write_depth_png
+
+    preset = PRESETS["edge"]
+    split = replace(preset, name="edge-split", bev=replace(preset.bev, split_pseudo=True))
+    nz = preset.bev.nz
+    write_depth_png(tmp_path / "000006.png", np.full(preset.depth.input_hw, 12.5, np.float32))
+    lidar16 = voxelize_bev(emulate_beams(load_frame(KITTI, "000006").points, 16), preset.bev)
+    shared = DetectorDataset(KITTI, ["000006"], preset, "pseudo", pseudo_dir=tmp_path)[0][0].numpy()
+    bev = DetectorDataset(KITTI, ["000006"], split, "pseudo", pseudo_dir=tmp_path)[0][0].numpy()
+    assert bev.shape == split.bev.shape
+    np.testing.assert_array_equal(bev[:nz + 1], lidar16)
+    np.testing.assert_array_equal(np.maximum(bev[:nz], bev[nz + 1:]), shared[:nz])
+    assert bev[nz + 1:].sum() > 0 and lidar16[:nz].sum() > 0
+    # The mirror flips the pseudo points with the scan.
+    pseudo, real = detector_clouds(KITTI, load_frame(KITTI, "000006", with_image=False), split, "pseudo", tmp_path)
+    mirror = np.array([1, -1, 1, 1], np.float32)
+    mirrored = DetectorDataset(KITTI, ["000006"], split, "pseudo", pseudo_dir=tmp_path, augment=True)
+    samples = []
+    for epoch in range(6):
+        mirrored.epoch = epoch
+        samples.append(mirrored[0][0].numpy())
+    flipped = [b for b in samples if not np.array_equal(b, bev)]
+    assert flipped and len(flipped) < len(samples)
+    np.testing.assert_array_equal(flipped[0][:nz + 1], voxelize_bev(real * mirror, preset.bev))
+    np.testing.assert_array_equal(flipped[0][nz + 1:], voxelize_bev(pseudo * mirror, preset.bev)[:nz])
+
+
+def test_split_pixor_starts_as_the_lidar_only_pixor_it_is_loaded_from(tmp_path):
+    """A split PIXOR loaded from a LiDAR-only checkpoint of the same grid gives that checkpoint's outputs
+    whatever its pseudo channels hold: their weights start at zero."""
+    from models import build_pixor
+    from models.checkpoint import save_checkpoint
+    from models.train import load_start_weights
+    from pipeline.presets import get_preset
+
+    lidar = build_pixor(PRESETS["tiny"]).eval()
+    torch.manual_seed(0)
+    for module in lidar.modules():  # statistics that are not the identity, so a mistake would show
+        if isinstance(module, torch.nn.BatchNorm2d):
+            module.running_mean.uniform_(-0.2, 0.2)
+            module.running_var.uniform_(0.5, 2.0)
+    path = save_checkpoint(tmp_path / "pixor.pt", PRESETS["tiny"], {"pixor": lidar}, {})
+    split_preset = get_preset("tiny-split")
+    split = build_pixor(split_preset).eval()
+    load_start_weights(split, "pixor", path, split_preset)
+    grid = split_preset.bev
+    bev = torch.rand((1, *grid.shape)) < 0.05
+    bev = bev.float()
+    with torch.no_grad():
+        for a, b in zip(split(bev), lidar(bev[:, :grid.lidar_channels]), strict=True):
+            torch.testing.assert_close(a, b, rtol=0, atol=0)
+    assert not split.stem[0][0].weight[:, grid.lidar_channels:].any()
+
+
 def test_depth_completion_layout_emulates_16_lines(depth_completion_dir):
     calib = read_calib(KITTI / "calib" / "000003.txt")  # same recording day's calibration as the drive
     raw = read_depth_png(depth_completion_dir / "velodyne_raw" / "0000000005.png")
