@@ -59,6 +59,7 @@ from models.train import TrainConfig
 from models.train import run as train
 from pipeline.cli import positive_float, positive_int
 from pipeline.errors import InputError
+from pipeline.presets import PRESETS, get_preset, lidar_only
 from simulation.run import RunConfig
 from simulation.run import run as simulate
 
@@ -111,9 +112,15 @@ class ReproduceConfig:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        if self.quick:
-            self.budget, self.preset = QUICK, "tiny"
+        if self.quick:  # the tiny preset with the same suffixes (-split, say)
+            base = max((name for name in PRESETS if self.preset.startswith(name)), key=len, default=self.preset)
+            self.budget, self.preset = QUICK, "tiny" + self.preset[len(base):]
             self.weights = self.out / "weights"  # a smoke test never overwrites the shipped weights
+
+    @property
+    def lidar_preset(self) -> str:
+        """The preset of the LiDAR-only PIXORs: ``preset`` without split pseudo channels (the same grid)."""
+        return lidar_only(get_preset(self.preset)).name
 
 
 def _train(config: ReproduceConfig, name: str, task: str, preset: str | None = None, **kwargs) -> dict:
@@ -204,11 +211,13 @@ def run_stage(config: ReproduceConfig, name: str, threads: int | None = None) ->
 
     # Every PIXOR trains detector_epochs in all: the camera pipeline's branches off the 16-line one
     # after pseudo_branch_epochs and spends the rest on pseudo + 16-line points.
+    # On a -split preset the camera PIXOR starts as the 16-line one, its pseudo channels at zero.
     def detector(input_mode: str, epochs: int, start: Path | None = None) -> dict:
         pseudo = {"pseudo_dir": out / "pseudo" / "train", "val_pseudo_dir": out / "pseudo" / "val"}
-        return _train(config, f"pixor_{input_mode}", "detector", threads=threads, input_mode=input_mode,
-                      epochs=epochs, max_train_frames=b.detector_frames, pixor_checkpoint=start,
-                      **(pseudo if input_mode == "pseudo" else {}))
+        preset = config.preset if input_mode == "pseudo" else config.lidar_preset
+        return _train(config, f"pixor_{input_mode}", "detector", preset=preset, threads=threads,
+                      input_mode=input_mode, epochs=epochs, max_train_frames=b.detector_frames,
+                      pixor_checkpoint=start, **(pseudo if input_mode == "pseudo" else {}))
 
     def depth(run_name: str, preset: str) -> dict:
         return _train(config, run_name, "depth", preset=preset, threads=threads, epochs=b.depth_epochs,
@@ -306,8 +315,10 @@ def run(config: ReproduceConfig) -> dict:
         (out / "checkpoints_before_joint").mkdir(exist_ok=True)
         shutil.copy(source, out / "checkpoints_before_joint" / f"{name}.pt")
     directories = {
-        "lidar64": _export(config, out / "pixor_lidar64", config.weights / f"{config.preset}-lidar64", ("pixor",)),
-        "lidar16": _export(config, out / "pixor_lidar16", config.weights / f"{config.preset}-lidar16", ("pixor",)),
+        "lidar64": _export(config, out / "pixor_lidar64", config.weights / f"{config.lidar_preset}-lidar64",
+                           ("pixor",), config.lidar_preset),
+        "lidar16": _export(config, out / "pixor_lidar16", config.weights / f"{config.lidar_preset}-lidar16",
+                           ("pixor",), config.lidar_preset),
         "lidar16+camera": _export(config, out / "checkpoints_before_joint", before, ("depth", "pixor")),
         "lidar16+camera (joint)": _export(config, out / "joint", out / "models" / "camera_joint", ("depth", "pixor")),
     }

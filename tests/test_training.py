@@ -181,6 +181,38 @@ def small_sim(tmp_path_factory):
     return out
 
 
+def test_joint_bev_on_a_split_grid_is_the_hard_grid_with_gradient_in_the_pseudo_channels_only():
+    """Joint fine-tuning on a -split preset: the forward BEV is the voxelizer's (scan channels, then the
+    pseudo points' own), and only the pseudo channels pass a gradient back to the depth map."""
+    from models.train import joint_bev
+    from pipeline.beams import emulate_beams
+    from pipeline.preprocess import network_view
+    from pipeline.presets import get_preset
+    from pipeline.pseudo import pixel_rays, pseudo_xyz
+
+    preset = get_preset("tiny-split")
+    frame = load_frame(KITTI, "000006")
+    lidar16 = emulate_beams(frame.points, 16)
+    _, view_calib = network_view(frame.image, frame.calib, preset)
+    h, w = preset.depth.input_hw
+    depth_map = np.repeat(np.linspace(40, 4, h, dtype=np.float32)[:, None], w, axis=1)
+    rays, origin = pixel_rays(view_calib, h, w, preset.decode.pseudo_stride)
+    depth = torch.from_numpy(depth_map)[None].requires_grad_(True)
+    bev = joint_bev(depth, torch.from_numpy(rays), torch.from_numpy(origin.astype(np.float32)), lidar16, preset)
+    limits = (preset.depth.min_depth, preset.depth.max_depth, preset.decode.pseudo_stride,
+              preset.decode.pseudo_max_height)
+    expected = voxelize_bev(lidar16, preset.bev, pseudo=pseudo_xyz(depth_map, view_calib, *limits))
+    nz = preset.bev.nz
+    assert bev.shape == preset.bev.shape
+    np.testing.assert_array_equal(bev[:nz + 1].detach().numpy(), expected[:nz + 1])
+    # Pseudo bins: float32 back-projection here, float64 rays in pseudo_xyz; a point on a bin edge may differ.
+    assert np.mean(bev[nz + 1:].detach().numpy() != expected[nz + 1:]) < 1e-4
+    bev[:nz + 1].sum().backward(retain_graph=True)
+    assert depth.grad is None or not depth.grad.any()
+    bev[nz + 1:].sum().backward()
+    assert depth.grad is not None and depth.grad.abs().sum() > 0
+
+
 def test_quick_depth_and_detector_runs_reduce_the_loss(small_sim, tmp_path):
     depth = run(TrainConfig(task="depth", data=small_sim, preset="tiny", out=tmp_path / "depth", quick=True,
                             epochs=3, lr=1e-3, progress=False))
