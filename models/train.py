@@ -553,7 +553,8 @@ def run(config: TrainConfig) -> TrainResult:
         history.append(record)
         with open(log_path, "a", encoding="utf-8") as handle:
             handle.write(json.dumps(record) + "\n")
-        log.info("epoch %d: %s", epoch + 1, {k: round(v, 4) if isinstance(v, float) else v for k, v in record.items()})
+        log.info("epoch %d: %s", epoch + 1,  # 4 significant digits: a learning rate of 5e-5 stays 5e-05
+                 {k: float(f"{v:.4g}") if isinstance(v, float) else v for k, v in record.items()})
         criterion = selection_criterion(config.task, metrics)
         improved = criterion < best
         if improved:

@@ -1,9 +1,10 @@
 """BEV voxelization: points → float32 (channels, ny, nx) occupancy + reflectance tensor.
 
 Layout (DESIGN.md): axis 1 = y bins from y_min, axis 2 = x bins from x_min;
-channel k < nz = occupancy of height slice k; last channel = mean reflectance
-of the cell's points. A point on a bin edge belongs to the bin above it
-(``floor``); points outside the grid are dropped.
+channel k < nz = occupancy of height slice k; channel nz = mean reflectance
+of the cell's points; on a ``split_pseudo`` grid, channels nz + 1 … 2·nz hold
+the pseudo points' occupancy apart from the real returns'. A point on a bin
+edge belongs to the bin above it (``floor``); points outside the grid are dropped.
 
 The output is large (80 MB for the paper grid) while a frame touches well under
 1 % of it, so :class:`BevVoxelizer` keeps one output buffer and, on the next
