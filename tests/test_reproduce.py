@@ -62,6 +62,18 @@ def test_ablation_presets():
         get_preset("edge-nogam")
 
 
+def test_split_recipe_trains_lidar_pixors_on_the_plain_grid():
+    """--preset edge-split: the camera PIXOR reads the split grid, the LiDAR-only PIXORs the same grid without
+    the pseudo channels (and their directories are named after it); --quick keeps the suffix on tiny."""
+    from models.reproduce import ReproduceConfig
+
+    config = ReproduceConfig(preset="edge-split")
+    assert config.lidar_preset == "edge" and get_preset(config.preset).bev.split_pseudo
+    quick = ReproduceConfig(preset="edge-split", quick=True)
+    assert (quick.preset, quick.lidar_preset) == ("tiny-split", "tiny")
+    assert ReproduceConfig(quick=True).preset == "tiny" and ReproduceConfig(preset="paper").lidar_preset == "paper"
+
+
 def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):
     import pytest
 
