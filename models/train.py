@@ -377,7 +377,7 @@ def joint_bev(depth: torch.Tensor, rays: torch.Tensor, origin: torch.Tensor, lid
     valid = (sub >= preset.depth.min_depth) & (sub <= preset.depth.max_depth) & (points[2] <= d.pseudo_max_height)
     pseudo = points.permute(1, 2, 0)[valid]
     if preset.bev.split_pseudo:  # the scan's own channels are hard; only the pseudo channels have a gradient
-        lidar = voxelize_bev(lidar16.astype(np.float32, copy=False), preset.bev)[: preset.bev.lidar_channels]
+        lidar = voxelize_bev(lidar16.astype(np.float32, copy=False), lidar_only(preset).bev)
         return torch.cat([torch.from_numpy(lidar).to(depth.device), soft_occupancy(pseudo, preset.bev)])
     real = torch.from_numpy(lidar16[:, :3]).to(depth.device)
     occupancy = soft_occupancy(torch.cat([pseudo, real]), preset.bev)

@@ -135,11 +135,9 @@ def test_split_model_directory_runs_with_its_own_grid(tmp_path, frame):
     """A ``-split`` export (pseudo points in BEV channels of their own): the manifest carries the grid, the
     Detector builds that BEV and returns well-formed boxes. Without the parity check (10 s of CI): the
     edge-split exports by hand passed it (4e-6)."""
-    from dataclasses import replace
-
     from export.exporter import ExportConfig, run
     from pipeline.bev import voxelize_bev
-    from pipeline.presets import get_preset
+    from pipeline.presets import get_preset, lidar_only
 
     run(ExportConfig(preset="tiny-split", out=tmp_path / "split", parity=False))
     manifest = json.loads((tmp_path / "split" / "manifest.json").read_text())
@@ -155,7 +153,7 @@ def test_split_model_directory_runs_with_its_own_grid(tmp_path, frame):
     # The BEV PIXOR read (the calling thread's reused buffer): the scan's own channels, then pseudo points.
     bev = detector._voxelizer()._out
     nz = preset.bev.nz
-    np.testing.assert_array_equal(bev[:nz + 1], voxelize_bev(lidar16, replace(preset.bev, split_pseudo=False)))
+    np.testing.assert_array_equal(bev[:nz + 1], voxelize_bev(lidar16, lidar_only(preset).bev))
     assert np.count_nonzero(bev[nz + 1:]) > 0 and np.count_nonzero(bev[:nz]) > 0
 
 

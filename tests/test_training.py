@@ -88,14 +88,13 @@ def test_detector_samples_without_pixels_equal_those_with(tmp_path):
 def test_split_detector_samples_keep_the_pseudo_points_apart(tmp_path):
     """--preset …-split --input pseudo: the sample's first channels are the 16-line scan's own BEV, the
     rest the pseudo points' occupancy, mirrored with the scan; the shared grid's sample is their union."""
-    from dataclasses import replace
-
     from models.data import detector_clouds
     from pipeline.beams import emulate_beams
     from pipeline.kitti import write_depth_png
+    from pipeline.presets import get_preset
 
     preset = PRESETS["edge"]
-    split = replace(preset, name="edge-split", bev=replace(preset.bev, split_pseudo=True))
+    split = get_preset("edge-split")
     nz = preset.bev.nz
     write_depth_png(tmp_path / "000006.png", np.full(preset.depth.input_hw, 12.5, np.float32))
     lidar16 = voxelize_bev(emulate_beams(load_frame(KITTI, "000006").points, 16), preset.bev)
