@@ -402,6 +402,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="depth nets: loss weight of the labelled cars' own pixels (default 1)")
     parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
     args = parser.parse_args(argv)
+    try:  # before anything is simulated or trained: a typo would otherwise surface an hour in
+        get_preset(args.preset)
+    except ValueError as exc:
+        parser.error(f"argument --preset: {exc}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     config = ReproduceConfig(out=args.out, data=args.data, weights=args.weights, preset=args.preset,
                              quick=args.quick, sim_workers=args.sim_workers,

@@ -84,4 +84,9 @@ def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):
         with pytest.raises(SystemExit) as stop:
             main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), flag, "0"])
         assert stop.value.code == 2 and f"argument {flag}: {says}" in capsys.readouterr().err
+    # A misspelt preset is refused before any simulation, with or without --quick.
+    for quick in ([], ["--quick"]):
+        with pytest.raises(SystemExit) as stop:
+            main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), "--preset", "edge-splitt", *quick])
+        assert stop.value.code == 2 and "argument --preset: unknown preset 'edge-splitt'" in capsys.readouterr().err
     assert not (tmp_path / "run").exists() and not (tmp_path / "data").exists()
