@@ -23,16 +23,23 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import torch
 from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from models.depth_net import SparsePrefill
+from pipeline.errors import TORCH_MISSING, InputError
+
+try:  # the filled scan comes from the depth net's own prefill module, in PyTorch
+    import torch
+
+    from models.depth_net import SparsePrefill
+except ModuleNotFoundError as exc:
+    if exc.name != "torch":
+        raise
+    raise SystemExit(TORCH_MISSING) from exc
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
 from pipeline.cli import positive_int
-from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_depth_png, write_depth_png
 from pipeline.model_files import ModelFileError, load_manifest

@@ -93,6 +93,8 @@ def recover_rings(points: np.ndarray, expected_rings: int = 64, method: str = "a
     method: "auto" (azimuth wraps when the order looks like a scan, else elevation
     clusters) or "elevation" (always cluster, for points whose order means nothing).
     """
+    if method not in ("auto", "elevation"):
+        raise ValueError(f"method: {method!r} is not 'auto' or 'elevation'")
     points = np.asarray(points)
     if points.shape[0] == 0:
         return RingAssignment(np.zeros(0, np.int32), 0, np.zeros(0), "azimuth-wrap")
@@ -101,19 +103,19 @@ def recover_rings(points: np.ndarray, expected_rings: int = 64, method: str = "a
     wraps = np.abs(np.diff(azimuth)) > np.pi
     segment = np.concatenate([[0], np.cumsum(wraps)]).astype(np.int64)
     n_segments = int(segment[-1]) + 1
-    method = "azimuth-wrap"
     ordered = (
         method != "elevation"
         and n_segments <= _MAX_PLAUSIBLE_SEGMENTS
         and points.shape[0] / n_segments >= _MIN_POINTS_PER_SEGMENT
         and n_segments >= expected_rings // 4
     )
+    used = "azimuth-wrap"
     if not ordered:
         segment = _cluster_elevations(elevation, expected_rings)
         n_segments = int(segment.max()) + 1
-        method = "elevation-clusters"
+        used = "elevation-clusters"
     ring, medians = _rank_by_elevation(segment, elevation, n_segments)
-    return RingAssignment(ring=ring, n_rings=n_segments, elevation_deg=medians, method=method)
+    return RingAssignment(ring=ring, n_rings=n_segments, elevation_deg=medians, method=used)
 
 
 def select_rings(rings: RingAssignment, beams: int, mode: str = "stride") -> np.ndarray:
@@ -182,10 +184,16 @@ def convert_folder(src: Path, dst: Path, beams: int, mode: str = "stride", progr
     files = sorted(src.glob("*.bin"))
     if not files:
         raise InputError(f"{src}: no velodyne .bin files")
+    if dst.exists() and not dst.is_dir():
+        raise InputError(f"{dst}: exists and is not a directory")
     dst.mkdir(parents=True, exist_ok=True)
     for path in tqdm(files, desc=f"{beams}-line", unit="scan", disable=not progress):
         scan = read_velodyne(path)
-        write_velodyne(dst / path.name, emulate_beams(scan.points, beams, mode))
+        try:
+            thinned = emulate_beams(scan.points, beams, mode)
+        except InputError as exc:  # name the scan: a folder may hold one that is already thin
+            raise InputError(f"{path}: {exc}") from exc
+        write_velodyne(dst / path.name, thinned)
     return len(files)
 
 
@@ -207,6 +215,10 @@ def main(argv: list[str] | None = None) -> int:
         n = convert_folder(args.src_dir, args.dst_dir, args.beams, args.mode)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # DST_DIR cannot be written (no permission, a full disk)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: DST_DIR {args.dst_dir}: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     print(f"wrote {n} scans to {args.dst_dir}")
     return 0

@@ -23,7 +23,7 @@ from pipeline.boxes import labels_to_boxes
 from pipeline.cli import probability, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
-from pipeline.kitti import read_calib, read_depth_png, read_image, read_velodyne, write_labels
+from pipeline.kitti import read_calib, read_depth_png, read_image, read_labels, read_velodyne, write_labels
 from pipeline.model_files import ModelFileError
 from pipeline.render import render_bev
 
@@ -40,6 +40,19 @@ class DetectResult:
     pictures: list[Path]
     mean_timings_ms: dict[str, float]
     detections: int
+
+
+def _labels_for_picture(data: Path, fid: str) -> list | None:
+    """The frame's ground truth for its picture, or None: labels are optional, so a broken label file
+    costs the picture its red boxes (with a warning), not the detections."""
+    path = Path(data) / "label_2" / f"{fid}.txt"
+    if not path.exists():
+        return None
+    try:
+        return read_labels(path)
+    except InputError as exc:
+        log.warning("warning: %s (the picture has no ground truth)", exc)
+        return None
 
 
 def run(
@@ -72,12 +85,16 @@ def run(
     out = Path(out)
     if data is not None:
         ids = frames or frame_ids(data)
-        loader = (lambda fid: load_frame(data, fid))
+        if not ids:
+            raise InputError(f"{data}: no frames (no .bin scans in {Path(data) / 'velodyne'})")
+        loader = (lambda fid: load_frame(data, fid, with_labels=False))  # labels: read apart, for pictures
+        source = (lambda fid: f"{data}, frame {fid}")
     elif image is not None and points is not None and calib is not None:
         ids = [Path(points).stem]
         scan = read_velodyne(points)
         single = Frame(ids[0], read_image(image), scan.points, read_calib(calib), None, scan.dropped_nonfinite)
         loader = (lambda fid: single)
+        source = (lambda fid: f"{points}")
     else:
         raise InputError("give --data DIR (and optionally --frame), or all of --image, --points and --calib")
 
@@ -93,9 +110,16 @@ def run(
             if depth.shape != frame.image.shape[:2]:
                 raise InputError(f"{depth_path}: a {depth.shape[1]}×{depth.shape[0]} depth map for a "
                                  f"{frame.image.shape[1]}×{frame.image.shape[0]} image; it must cover the whole image")
-        detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams,
-                                     keep_points=True, depth=depth)
+        if frame.points.shape[0] == 0 and frame.dropped_nonfinite:
+            raise InputError(f"{source(fid)}: points: none of the scan's {frame.dropped_nonfinite} rows is finite")
+        try:
+            detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams,
+                                         keep_points=True, depth=depth)
+        except InputError as exc:  # the Detector names the field; say which frame it was
+            raise InputError(f"{source(fid)}: {exc}") from exc
         count += len(detections.scores)
+        if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
+            detections.warnings.append(f"points: dropped rows with NaN or infinite values ({frame.dropped_nonfinite} rows)")
         for warning in detections.warnings:  # each kind once (the trailing "(…)" holds the frame's figures)
             kind = warning.rsplit(" (", 1)[0]
             if not warning.startswith("emulated") and kind not in warned:
@@ -109,8 +133,9 @@ def run(
         results.append(result)
         if pictures:
             gt = None
-            if frame.labels:
-                gt = labels_to_boxes([o for o in frame.labels if o.type == "Car"], frame.calib)
+            labels = _labels_for_picture(data, fid) if data is not None else None
+            if labels:
+                gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
             picture = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt)
             (out / "bev").mkdir(parents=True, exist_ok=True)
             path = out / "bev" / f"{frame.frame_id}.png"

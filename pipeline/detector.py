@@ -50,6 +50,7 @@ MAX_POINTS = 2_000_000  # far beyond any real scan; protects memory from absurd 
 SCAN_LINES_BY_INPUT = {"lidar16": 16, "pseudo": 16, "lidar64": 64}
 MOST_POINTS_OF_16_LINES = 80_000
 FEWEST_POINTS_OF_64_LINES = 50_000
+REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 written by another tool
 
 
 @dataclass
@@ -137,7 +138,7 @@ class Detector:
             verify_sha256(self.model_dir, self.manifest)
         try:
             self.preset: Preset = preset_from_dict(self.manifest["preset_config"])
-        except (KeyError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError) as exc:
             raise ModelFileError(f"{self.model_dir / 'manifest.json'}: {exc}") from exc
         self.providers = resolve_providers(providers)
         session_providers: list = list(self.providers)
@@ -161,6 +162,7 @@ class Detector:
                 self._sessions[name] = ort.InferenceSession(str(path), options, providers=session_providers)
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
+        self._check_shapes()
         self._local = threading.local()
         # About the precision on this machine, logged once at load (and shown by the service's /v1/model).
         self.load_warnings: list[str] = [w for w in (self._saturating_int8(), self._fp16_on_cpu()) if w]
@@ -168,6 +170,29 @@ class Detector:
             log.warning(warning)
         trained_on = (networks["pixor"].get("training") or {}).get("input")
         self.trained_lines: int | None = SCAN_LINES_BY_INPUT.get(trained_on)  # None: not recorded
+
+    def _check_shapes(self) -> None:
+        """The manifest's preset gives the input shapes the graphs were exported with (a hand-edited preset
+        would otherwise fail at the first frame, inside ONNX Runtime)."""
+        manifest = self.model_dir / "manifest.json"
+        try:
+            bev = (1, *self.preset.bev.shape)
+            height, width = self.preset.depth.input_hw
+            crop_h, crop_w = self.preset.crop_hw
+        except (ArithmeticError, TypeError, ValueError) as exc:
+            raise ModelFileError(f"{manifest}: preset_config: not a usable grid or input size ({exc})") from exc
+        if min(bev) <= 0 or min(height, width, crop_h, crop_w) <= 0:
+            raise ModelFileError(f"{manifest}: preset_config: empty BEV grid {bev[1:]} or input "
+                                 f"{height}×{width} / crop {crop_h}×{crop_w}")
+        files = {name: entry["file"] for name, entry in self.manifest["networks"].items()}
+        expected = {"pixor": {"bev": bev}, "depth": {"rgb": (1, 3, height, width), "sparse_depth": (1, 1, height, width)}}
+        for name, session in self._sessions.items():
+            for graph_input in session.get_inputs():
+                want = expected[name].get(graph_input.name)
+                if want is not None and tuple(graph_input.shape) != want:
+                    raise ModelFileError(f"{manifest}: preset_config gives {name} input '{graph_input.name}' the "
+                                         f"shape {list(want)}, but {self.model_dir / files[name]} expects "
+                                         f"{list(graph_input.shape)}")
 
     def _saturating_int8(self) -> str | None:
         """A warning when full-range INT8 weights run on a CPU whose int8 kernels saturate (pipeline/cpu.py)."""
@@ -328,6 +353,12 @@ class Detector:
             raise InputError(f"points: {points.shape[0]} points is more than the limit of {MAX_POINTS}")
         if not np.isfinite(points).all():
             raise InputError("points: NaN or infinite values (drop them first: pipeline.kitti.parse_velodyne does)")
+        # The BEV averages reflectance into a channel PIXOR learned on KITTI's [0, 1] scale: a driver's
+        # 0–255 intensities would read as a wall of bright returns (about 100 made-up cars at score 1).
+        low, high = float(points[:, 3].min()), float(points[:, 3].max())
+        if low < 0.0 or high > 1.0 + REFLECTANCE_SLACK:
+            raise InputError(f"points: reflectance (the 4th column) must lie in [0, 1], KITTI's scale; this scan's "
+                             f"lies in [{low:.4g}, {high:.4g}] (divide 0–255 intensities by 255)")
         return points.astype(np.float32, copy=False)
 
     def warm_up(self, runs: int = 1) -> None:

@@ -39,7 +39,26 @@ def load_manifest(directory: str | Path) -> dict:
         raise ModelFileError(f"{path}: unreadable manifest ({exc})") from exc
     if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict) or not manifest["files"]:
         raise ModelFileError(f"{path}: manifest has no 'files' table with sha256 checksums")
+    _check_tables(manifest, path)
     return manifest
+
+
+def _check_tables(manifest: dict, path: Path) -> None:
+    """The manifest's tables that the runtime reads have the types it reads them as (a hand-edited or
+    truncated manifest gets one line naming the field, not a traceback later)."""
+    for name, entry in manifest["files"].items():
+        if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
+            raise ModelFileError(f"{path}: files.{name}: expected {{\"sha256\": \"<hex>\"}}, got {entry!r:.60}")
+    networks = manifest.get("networks", {})
+    if not isinstance(networks, dict):
+        raise ModelFileError(f"{path}: networks: expected a table of networks, got {networks!r:.60}")
+    for name, entry in networks.items():
+        if not isinstance(entry, dict) or not isinstance(entry.get("file"), str):
+            raise ModelFileError(f"{path}: networks.{name}: expected a table with its \"file\", got {entry!r:.60}")
+        if not isinstance(entry.get("training") or {}, dict):
+            raise ModelFileError(f"{path}: networks.{name}.training: expected a table, got {entry['training']!r:.60}")
+    if not isinstance(manifest.get("preset_config"), dict):
+        raise ModelFileError(f"{path}: preset_config: missing or not a table")
 
 
 def verify_sha256(directory: str | Path, manifest: dict) -> None:

@@ -44,7 +44,12 @@ def render_bev(
     for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
         if drawn is None or len(drawn) == 0:
             continue
-        corners = np.rint(_to_pixels(bev_corners(drawn), grid, metres_per_pixel)).astype(np.int32)
+        corners = _to_pixels(bev_corners(drawn), grid, metres_per_pixel)
+        # A box far off the picture (a broken scan can give one) has no pixel position OpenCV accepts.
+        drawable = np.isfinite(corners).all(axis=(1, 2)) & (np.abs(corners) < 1e5).all(axis=(1, 2))
+        drawn, corners = drawn[drawable], np.rint(corners[drawable]).astype(np.int32)
+        if with_score and scores is not None:
+            scores = scores[drawable]
         cv2.polylines(canvas, list(corners), True, colour, 2, cv2.LINE_AA)
         front = np.rint(corners[:, [0, 3]].mean(axis=1)).astype(np.int32)  # mid front edge: heading
         centre = np.rint(corners.mean(axis=1)).astype(np.int32)

@@ -104,6 +104,32 @@ def test_folder_command_never_touches_source(tmp_path):
     assert "Traceback" not in refused.stderr
 
 
+def test_elevation_method_clusters_even_an_ordered_scan():
+    points = scan("000006")
+    assert recover_rings(points).method == "azimuth-wrap"
+    asked = recover_rings(points, method="elevation")
+    assert asked.method == "elevation-clusters" and asked.n_rings == 64
+    with pytest.raises(ValueError, match="method"):
+        recover_rings(points, method="elevations")
+
+
+def test_folder_command_names_the_problem_file(tmp_path):
+    """A destination that is a file, and a scan already thinned, each get one line naming the path."""
+    src = tmp_path / "velodyne"
+    src.mkdir()
+    (src / "000006.bin").write_bytes((KITTI / "velodyne" / "000006.bin").read_bytes())
+    (tmp_path / "a-file").write_text("")
+    blocked = subprocess.run([sys.executable, "-m", "pipeline.beams", str(src), str(tmp_path / "a-file")],
+                             capture_output=True, text=True, timeout=120, check=False)
+    assert blocked.returncode == 2 and "a-file: exists and is not a directory" in blocked.stderr
+    assert "Traceback" not in blocked.stderr
+    thin = tmp_path / "thin"
+    convert_folder(src, thin, 16, progress=False)
+    again = subprocess.run([sys.executable, "-m", "pipeline.beams", str(thin), str(tmp_path / "thinner")],
+                           capture_output=True, text=True, timeout=120, check=False)
+    assert again.returncode == 2 and f"{thin / '000006.bin'}: " in again.stderr and "Traceback" not in again.stderr
+
+
 def test_convert_folder_rejects_missing_source(tmp_path):
     with pytest.raises(InputError, match="not a directory"):
         convert_folder(tmp_path / "missing", tmp_path / "out", 16, progress=False)

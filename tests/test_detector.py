@@ -5,6 +5,7 @@ import shutil
 import subprocess
 import sys
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -86,6 +87,48 @@ def test_bad_inputs_are_input_errors(detector, frame):
         detector.detect(frame.image[:200], frame.points, frame.calib)
     with pytest.raises(InputError, match="image and calib"):
         detector.detect(None, frame.points, frame.calib)
+
+
+def test_reflectance_off_kittis_scale_is_refused(detector, frame):
+    """0–255 intensities (a VLP-16 driver's) would read as bright returns everywhere: refused, naming the column."""
+    intensities = frame.points.copy()
+    intensities[:, 3] = np.round(intensities[:, 3] * 255)
+    with pytest.raises(InputError, match=r"points: reflectance \(the 4th column\) must lie in \[0, 1\].*255"):
+        detector.detect(frame.image, intensities, frame.calib)
+    negative = frame.points.copy()
+    negative[0, 3] = -0.5
+    with pytest.raises(InputError, match="reflectance"):
+        detector.detect(frame.image, negative, frame.calib)
+    edge = frame.points.copy()
+    edge[:, 3] = np.where(edge[:, 3] > 0.5, 1.0, 0.0)  # the ends of the scale are fine
+    assert detector.detect(frame.image, edge, frame.calib).boxes.shape[1] == 7
+
+
+def _edited_manifest(tiny_models, tmp_path, edit) -> Path:
+    """A copy of the tiny model directory whose manifest went through ``edit`` (its ONNX files untouched)."""
+    copy = tmp_path / "edited"
+    shutil.copytree(tiny_models, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    edit(manifest)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    return copy
+
+
+@pytest.mark.parametrize(("edit", "message"), [
+    (lambda m: m["networks"]["pixor"].pop("file"), r"networks\.pixor: expected a table with its \"file\""),
+    (lambda m: m.update(networks="pixor.onnx"), "networks: expected a table of networks"),
+    (lambda m: m["files"]["depth.onnx"].update(sha256=12), r"files\.depth\.onnx: expected"),
+    (lambda m: m["networks"]["pixor"].update(training="yes"), r"networks\.pixor\.training: expected a table"),
+    (lambda m: m["preset_config"]["bev"].update(cell=0.2), r"preset_config gives pixor input 'bev' the shape"),
+    (lambda m: m["preset_config"]["depth"].update(input_hw=[100, 100]), r"depth input 'rgb' the shape \[1, 3, 100, 100\]"),
+    (lambda m: m["preset_config"]["bev"].update(cell=0), "preset_config: not a usable grid"),
+    (lambda m: m["preset_config"].update(crop_hw=[352]), "preset_config: not a usable grid"),
+])
+def test_a_broken_manifest_is_refused_at_load_naming_the_field(tiny_models, tmp_path, edit, message):
+    broken = _edited_manifest(tiny_models, tmp_path, edit)
+    with pytest.raises(ModelFileError, match=message) as caught:
+        Detector(broken)
+    assert str(broken / "manifest.json") in str(caught.value)
 
 
 def test_a_given_depth_map_replaces_the_depth_network(detector, frame, tiny_models, tmp_path):
@@ -248,6 +291,48 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
         capture_output=True, text=True, timeout=120, check=False,
     )
     assert blocked.returncode == 2 and "Traceback" not in blocked.stderr and "Not a directory" in blocked.stderr
+
+
+def test_detect_command_on_awkward_folders(tiny_models, tmp_path):
+    """An empty folder is an error, not a success; a broken label file costs the picture its ground truth
+    (with a warning), not the detections; rows with NaN are dropped with a warning, as the service does."""
+    empty = tmp_path / "empty"
+    (empty / "velodyne").mkdir(parents=True)
+    done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(empty),
+                           "--out", str(tmp_path / "o1")], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2 and "no frames" in done.stderr and "Traceback" not in done.stderr
+    data = tmp_path / "kitti"
+    for part, name in (("image_2", "000006.png"), ("calib", "000006.txt"), ("label_2", "000006.txt")):
+        (data / part).mkdir(parents=True)
+        (data / part / name).write_bytes((KITTI / part / name).read_bytes())
+    (data / "label_2" / "000006.txt").write_text("Car 1 2 3\n")
+    (data / "velodyne").mkdir()
+    points = emulate_beams(load_frame(KITTI, "000006").points, 16)
+    points[:7, 0] = np.nan
+    points.tofile(data / "velodyne" / "000006.bin")
+    done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(data),
+                           "--score-threshold", "0.0", "--out", str(tmp_path / "o2")],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    assert "label_2/000006.txt, line 1" in done.stderr and "no ground truth" in done.stderr
+    assert "dropped rows with NaN or infinite values (7 rows)" in done.stderr
+    assert (tmp_path / "o2" / "data" / "000006.txt").exists() and (tmp_path / "o2" / "bev" / "000006.png").exists()
+    # A scan the Detector refuses is named by its frame.
+    (data / "velodyne" / "000006.bin").write_bytes(np.zeros((0, 4), np.float32).tobytes())
+    done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(data),
+                           "--out", str(tmp_path / "o3")], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2 and f"{data}, frame 000006: points: the scan has no points" in done.stderr
+
+
+def test_pictures_survive_boxes_far_off_the_grid():
+    """A box no pixel can hold (a broken scan can make one) is left out of the picture, not an OpenCV error."""
+    from pipeline.render import render_bev
+
+    grid = PRESETS["tiny"].bev
+    boxes = np.array([[1e25, 3, 0, 4, 1.7, 1.5, 0.3], [10, 0, -1, 4, 1.7, 1.5, 0.3], [np.nan, 0, 0, 4, 1.7, 1.5, 0]])
+    picture = render_bev(np.zeros((3, 4), np.float32), grid, boxes, np.array([1.0, 0.9, 0.5]), boxes)
+    green = (picture == [60, 220, 60]).all(axis=2)
+    assert green.any() and picture.shape[:2] == (round((grid.x_max - grid.x_min) / 0.1), round((grid.y_max - grid.y_min) / 0.1))
 
 
 def test_runtime_never_imports_torch():

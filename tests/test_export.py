@@ -561,6 +561,9 @@ def test_commands_without_torch_say_what_to_install(module: str) -> None:
                             capture_output=True, text=True, check=False)
     assert result.returncode != 0
     assert "make setup-dev" in result.stderr and "Traceback" not in result.stderr
+    bound = subprocess.run([sys.executable, "-c", hide_torch + "runpy.run_path('benchmarks/depth_bound.py', run_name='__main__')"],
+                           capture_output=True, text=True, check=False, cwd=Path(__file__).resolve().parents[1])
+    assert bound.returncode != 0 and "make setup-dev" in bound.stderr and "Traceback" not in bound.stderr
     lower = subprocess.run([sys.executable, "-c", hide_torch + "runpy.run_module('export.lower', run_name='__main__')"],
                            capture_output=True, text=True, check=False)
     assert lower.returncode == 0 and "--models" in lower.stdout
