@@ -115,7 +115,8 @@ def read_calib(path: str | Path) -> Calibration:
     """Read a KITTI object calibration file."""
     path = Path(path)
     try:
-        text = path.read_text(encoding="ascii")
+        # 'utf-8-sig' drops the byte-order mark a Windows editor writes (it would stick to the first key).
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read calibration ({exc})") from exc
     return parse_calib(text, str(path))

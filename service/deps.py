@@ -1,14 +1,18 @@
-"""FastAPI dependencies: settings, runtime and metrics of the app, bearer-token auth, multipart check.
+"""FastAPI dependencies: settings, runtime and metrics of the app, bearer-token auth, multipart check,
+unknown query parameters.
 
 Use them as ``Annotated`` types in route signatures (``settings: SettingsDep``).
 """
 
 from __future__ import annotations
 
+import difflib
 import hmac
 from typing import Annotated
 
 from fastapi import Depends, Request
+from fastapi.dependencies.models import Dependant
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from service.errors import ServiceError, request_id_of
@@ -89,3 +93,38 @@ def require_multipart(request: Request) -> None:
             415, "unsupported_media_type",
             f"Content-Type: expected multipart/form-data with parts image, points (and calib), got {shown}",
         )
+
+
+def declared_query_params(dependant: Dependant) -> list[str]:
+    """The query parameter names (aliases) a route declares, its own and then its dependencies' (the
+    order of the OpenAPI schema)."""
+    names = [field.alias for field in dependant.query_params]
+    for sub in dependant.dependencies:
+        names += [name for name in declared_query_params(sub) if name not in names]
+    return names
+
+
+def unknown_query_message(unknown: list[str], accepted: list[str]) -> str:
+    """One clause per unknown parameter (with the closest accepted name when there is one), then the accepted ones."""
+    clauses = []
+    for name in unknown:
+        close = difflib.get_close_matches(name, accepted, n=1, cutoff=0.6)
+        hint = f" (did you mean {close[0]}?)" if close else ""
+        clauses.append(f"{name or repr(name)}: unknown query parameter{hint}")  # '' for "?=1", not a bare colon
+    return "; ".join(clauses) + f"; accepted query parameters: {', '.join(accepted) or 'none'}"
+
+
+def reject_unknown_query(request: Request) -> None:
+    """422 naming any query parameter the route does not declare.
+
+    FastAPI ignores undeclared parameters, so a typo (``emulate_beam=16``) would
+    silently run with the default (the full 64-line scan); the accepted names
+    come from the route's own declarations, so they cannot drift from the schema.
+    """
+    route = request.scope.get("route")
+    if not isinstance(route, APIRoute):
+        return
+    accepted = declared_query_params(route.dependant)
+    unknown = list(dict.fromkeys(name for name in request.query_params if name not in accepted))
+    if unknown:
+        raise ServiceError(422, "invalid_input", unknown_query_message(unknown, accepted))

@@ -124,9 +124,14 @@ def check_upload(
 
 
 def decode_calib(data: bytes) -> Calibration:
-    """KITTI calib text → Calibration; InputError naming ``calib`` for anything else."""
+    """Uploaded KITTI calib text → Calibration; InputError naming ``calib`` for anything else.
+
+    'utf-8-sig' drops a leading byte-order mark (Windows editors write one), as
+    pipeline.kitti.read_calib does for files: it would stick to the first key, so
+    a file with P2 first would read as missing P2.
+    """
     try:
-        text = data.decode("utf-8")
+        text = data.decode("utf-8-sig")
     except UnicodeDecodeError:
         raise InputError("calib: not text (expected a KITTI calib.txt)") from None
     return parse_calib(text, "calib")

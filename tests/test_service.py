@@ -229,6 +229,33 @@ def test_default_calibration(tiny_models: Path, frame: dict[str, bytes]) -> None
         assert app_client.get("/v1/model").json()["default_calib"] is True
 
 
+BOM = b"\xef\xbb\xbf"  # the UTF-8 byte-order mark some editors (Notepad) put in front of a text file
+
+
+def _bom_calib(calib: bytes) -> bytes:
+    """The calibration cut to the keys the detector needs, P2 first, behind a UTF-8 byte-order mark: the
+    layout where a BOM left in the text hides the first key (\\ufeffP2), which plain 'utf-8' misread as no P2."""
+    needed = [line for line in calib.splitlines() if line.split(b":")[0] in (b"P2", b"R0_rect", b"Tr_velo_to_cam")]
+    assert needed[0].startswith(b"P2:")
+    return BOM + b"\n".join(needed) + b"\n"
+
+
+def test_calib_with_byte_order_mark_accepted(client: AppClient, frame: dict[str, bytes]) -> None:
+    params = {"score_threshold": 0.0}
+    plain = client.post("/v1/detect", params=params, files=parts(frame)).json()
+    response = client.post("/v1/detect", params=params, files=parts(frame, calib=_bom_calib(frame["calib"])))
+    assert response.status_code == 200, response.text
+    assert response.json()["detections"] == plain["detections"]  # the same calibration was read
+
+
+def test_default_calibration_with_byte_order_mark(tiny_models: Path, frame: dict[str, bytes], tmp_path: Path) -> None:
+    path = tmp_path / "calib_bom.txt"
+    path.write_bytes(_bom_calib(frame["calib"]))
+    with service(tiny_models, default_calib=path) as app_client:
+        response = app_client.post("/v1/detect", files=parts(frame, calib=None))
+        assert response.status_code == 200, response.text
+
+
 # --------------------------------------------------------------------------- bad inputs
 def _png_header(width: int, height: int) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + struct.pack(">II", width, height) + b"\x08\x02\x00\x00\x00"
@@ -282,6 +309,35 @@ def test_too_many_points(tiny_models: Path, frame: dict[str, bytes]) -> None:
 )
 def test_bad_query_names_the_field(client: AppClient, frame: dict[str, bytes], params: dict, field: str) -> None:
     assert_error(client.post("/v1/detect", params=params, files=parts(frame)), 422, "invalid_input", field)
+
+
+@pytest.mark.parametrize("value", ["nan", "NaN", "inf", "-inf"])
+def test_non_finite_score_threshold_names_the_field(client: AppClient, frame: dict[str, bytes], value: str) -> None:
+    response = client.post("/v1/detect", params={"score_threshold": value}, files=parts(frame))
+    error = assert_error(response, 422, "invalid_input", "score_threshold", "finite number")
+    assert "less than" not in error["message"]  # not the range check's misleading answer
+
+
+@pytest.mark.parametrize(
+    ("route", "params", "words", "accepted"),
+    [("/v1/detect", {"emulate_beam": 16, "foo": "bar"},
+      ("emulate_beam: unknown query parameter (did you mean emulate_beams?)", "foo: unknown query parameter;"),
+      "format, score_threshold, emulate_beams, nonfinite"),
+     ("/v1/detect/bev.png", {"format": "kitti"}, ("format: unknown query parameter",),
+      "score_threshold, emulate_beams, nonfinite")],
+    ids=["detect typo", "bev.png has no format"],
+)
+def test_unknown_query_parameter_is_422_naming_it(
+    client: AppClient, frame: dict[str, bytes], route: str, params: dict, words: tuple[str, ...], accepted: str
+) -> None:
+    error = assert_error(client.post(route, params=params, files=parts(frame)), 422, "invalid_input", *words)
+    assert error["message"].endswith(f"accepted query parameters: {accepted}")
+
+
+def test_query_check_leaves_open_routes_alone(client: AppClient) -> None:
+    """Routes that take no query options keep ignoring a query (cache-busting probes, scrapers)."""
+    for route in ("/healthz", "/readyz", "/v2/health/live", "/v2/health/ready", "/metrics", "/docs", "/openapi.json"):
+        assert client.get(route, params={"foo": "bar", "_": "1"}).status_code == 200, route
 
 
 @pytest.mark.parametrize(

@@ -118,6 +118,8 @@ def test_contract_over_http(server: Server, frame: dict[str, bytes]) -> None:  #
         thinned = emulate_beams(np.frombuffer(frame["points"], np.float32).reshape(-1, 4), 16).tobytes()
         assert_error(client.post("/v1/detect", params={"emulate_beams": 16}, files=parts(frame, points=thinned)),
                      422, "invalid_input", "16 rings, not 64")
+        typo = client.post("/v1/detect?emulate_beam=16&foo=bar", files=parts(frame))
+        assert_error(typo, 422, "invalid_input", "emulate_beam", "did you mean emulate_beams?", "foo")
         assert client.get("/v2/health/live").json() == {"live": True}
         info = client.get("/v1/model").json()
         assert info["providers_in_use"]["pixor"] == ["CPUExecutionProvider"]

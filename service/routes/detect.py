@@ -21,7 +21,14 @@ from pipeline.calib import Calibration
 from pipeline.detector import Detections, Detector
 from pipeline.kitti import format_label
 from pipeline.render import render_bev
-from service.deps import MetricsDep, ReadyRuntimeDep, RequestIdDep, SettingsDep, require_multipart
+from service.deps import (
+    MetricsDep,
+    ReadyRuntimeDep,
+    RequestIdDep,
+    SettingsDep,
+    reject_unknown_query,
+    require_multipart,
+)
 from service.errors import ServiceError
 from service.inputs import DecodedFrame, FrameUpload, check_upload, decode_frame
 from service.metrics import Metrics
@@ -31,7 +38,8 @@ from service.runtime import Runtime
 from service.schemas import BeamCount, Box, Detection, DetectResponse, ModelRef, NonFinitePolicy, OutputFormat
 from service.settings import Settings
 
-router = APIRouter(prefix="/v1", tags=["detect"])
+# Every route here takes query options: a misspelt one is a 422, not a silently ignored default.
+router = APIRouter(prefix="/v1", tags=["detect"], dependencies=[Depends(reject_unknown_query)])
 
 _KITTI_EXAMPLE = "Car 0.00 0 -1.59 582.33 178.06 629.75 207.93 1.52 1.63 3.88 -0.95 1.68 25.30 -1.61 0.9137\n"
 
@@ -48,7 +56,10 @@ class FrameOptions:
 def frame_options(
     score_threshold: Annotated[
         float | None,
-        Query(ge=0.0, le=1.0, description="minimum score (default: the model's)", examples=[0.5]),
+        # allow_inf_nan=False: NaN would otherwise fail the range check with a misleading "≤ 1".
+        Query(
+            ge=0.0, le=1.0, allow_inf_nan=False, description="minimum score (default: the model's)", examples=[0.5]
+        ),
     ] = None,
     emulate_beams: Annotated[
         BeamCount | None,
