@@ -31,7 +31,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
         description="Export a preset's depth-completion net and PIXOR to ONNX, check ONNX Runtime against "
         "PyTorch on a real KITTI frame and random inputs, and write manifest.json.",
     )
-    parser.add_argument("--preset", required=True, help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with -no-gam, -no-aspp or -refine")
+    parser.add_argument("--preset", required=True, help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with -no-gam, -no-aspp, -refine or -split")
     parser.add_argument("--out", required=True, type=Path, help="output model directory")
     parser.add_argument(
         "--checkpoints", type=Path, default=None,

@@ -24,8 +24,9 @@ one core per job the float sums run in another order than with two, so
 ``--lanes 1`` and ``--lanes 2`` train slightly different weights; each is
 deterministic. The camera pipeline's PIXOR
 starts from the 16-line PIXOR: trained from scratch on pseudo + 16-line points
-it reached 15.8 BEV AP (IoU 0.7, moderate) after 2 epochs where 16-line PIXOR
-reaches about 55 — the smeared pseudo points hide the real returns' sharp
+(in an early run, before the depth net's in-graph prefill) it reached 15.8 BEV
+AP (IoU 0.7, moderate) after 2 epochs, far below the 16-line PIXOR after as
+many — the smeared pseudo points hide the real returns' sharp
 outlines, and learning to see through them from scratch needs more epochs than
 this budget. It branches off half-way, so every PIXOR of the table has
 trained the same number of epochs.
