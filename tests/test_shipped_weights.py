@@ -31,6 +31,19 @@ def test_shipped_directory_is_intact_and_loads(name):
     assert Detector(WEIGHTS / name).two_stage == two_stage
 
 
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_shipped_manifest_states_every_setting(name):
+    """The runtime rebuilds the preset from the manifest and fills a missing field from today's code: every
+    field written down keeps a shipped model's decoding (box heights included) from moving with the code."""
+    from dataclasses import fields
+
+    from pipeline.presets import BevGrid, DecodeConfig, DepthNetConfig, PixorConfig
+
+    config = _manifest(name)["preset_config"]
+    for part, kind in (("depth", DepthNetConfig), ("pixor", PixorConfig), ("bev", BevGrid), ("decode", DecodeConfig)):
+        assert {f.name for f in fields(kind)} <= set(config[part]), (part, kind)
+
+
 def test_shipped_files_stay_under_30_mb():
     assert {p.name for p in WEIGHTS.iterdir() if p.is_dir()} == set(SHIPPED)
     assert sum(p.stat().st_size for p in WEIGHTS.rglob("*") if p.is_file()) < 30e6
