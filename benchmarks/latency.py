@@ -46,12 +46,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
-from pipeline.cli import non_negative_int, positive_int
+from pipeline.cli import non_negative_int, positive_int, writable_file_flag, write_text_file
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.model_files import ModelFileError, load_manifest
+from pipeline.presets import get_preset
 
 BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 DEFAULT_PRESET = "edge"
@@ -62,6 +63,8 @@ PAPER = {"RTX 2080Ti": {"ms": 25.4, "fps": 39.8}, "DRIVE PX2": {"ms": 581.7, "fp
 def load_frames(data: Path, count: int, beams: int | None) -> list[Frame]:
     """Up to ``count`` frames of a KITTI-layout folder (cycled when there are fewer), scans thinned to ``beams``."""
     ids = frame_ids(data)
+    if not ids:
+        raise InputError(f"--data {data}: no frames (no .bin scans in {Path(data) / 'velodyne'})")
     frames = []
     for frame_id in ids[: max(1, min(count, len(ids)))]:
         frame = load_frame(data, frame_id, with_labels=False)
@@ -402,7 +405,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     other = None if baseline is None else Detector(baseline, providers=provider, intra_op_threads=len(cores))
     actual = detector.manifest.get("precision", "fp32")
     if precision and actual != precision:
-        raise SystemExit(f"error: --precision {precision}, but {models} holds {actual} models")
+        raise InputError(f"--precision {precision}, but {models} holds {actual} models")
     preset_name = detector.preset.name
     if preset and preset != preset_name:
         raise InputError(f"--preset {preset}: {models} holds {preset_name} models (leave --preset out with --models)")
@@ -494,6 +497,7 @@ def plot(report: dict, path: Path) -> None:
     ax.set_title(f"lowres3d {report['preset']} latency per stage, {report['frames']} frames, "
                  f"{report['machine']['cores']} cores")
     fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
 
@@ -564,17 +568,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--plot", type=Path, help="write the latency distribution per stage as PNG")
     args = parser.parse_args(argv)
     try:
+        # Checked first: a report that cannot be written is lost after minutes of timing.
+        writable_file_flag("--json", args.json)
+        writable_file_flag("--plot", args.plot)
+        if args.models is None and args.preset is not None:
+            get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
                      args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision,
                      baseline=args.baseline, workers=args.workers)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except ValueError as exc:  # get_preset's list of the valid names
+        print(f"error: --preset: {exc}", file=sys.stderr)
+        return 2
     print_report(report)
     if args.plot:
         plot(report, args.plot)
     if args.json:
-        args.json.write_text(json.dumps({k: v for k, v in report.items() if k != "_samples"}, indent=2))
+        write_text_file(args.json, json.dumps({k: v for k, v in report.items() if k != "_samples"}, indent=2))
     return 0
 
 

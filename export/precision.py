@@ -253,6 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
 
+    from export.inputs import DEFAULT_KITTI_DIR
     from pipeline.cli import positive_int
     from pipeline.errors import InputError
 
@@ -261,7 +262,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", type=Path, required=True, help="FP32 model directory (manifest.json + ONNX files)")
     parser.add_argument("--precision", choices=["fp16", "int8"], required=True)
     parser.add_argument("--out", type=Path, required=True, help="output model directory")
-    parser.add_argument("--calibration-data", type=Path, required=True, help="KITTI-layout folder for calibration")
+    parser.add_argument("--calibration-data", type=Path, default=DEFAULT_KITTI_DIR,
+                        help="KITTI-layout folder: INT8 calibrates on its frames, and both precisions measure their "
+                        "deviation from fp32 there (default: the bundled real KITTI frames, as python -m export; "
+                        "give a few hundred frames of your data for INT8)")
     parser.add_argument("--calibration-frames", type=positive_int, default=300, help="frames used (default 300)")
     parser.add_argument("--reduce-range", action="store_true", help=REDUCE_RANGE_HELP)
     args = parser.parse_args(argv)

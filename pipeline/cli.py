@@ -1,4 +1,5 @@
-"""Argument types shared by the commands: numbers that must be positive are refused by argparse itself.
+"""Argument types and output checks shared by the commands: numbers that must be positive are refused by
+argparse itself, output files that cannot be written before any work.
 
 A count of 0 is not "the default": ``--epochs 0`` used to fall through to the recipe's 30 epochs.
 """
@@ -6,6 +7,10 @@ A count of 0 is not "the default": ``--epochs 0`` used to fall through to the re
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
+
+from pipeline.errors import InputError
 
 
 def positive_int(text: str) -> int:
@@ -44,3 +49,29 @@ def unwritable(out: object, exc: OSError) -> str:
     """The one-line error for an output folder the system refused (a file in the way, no permission, full)."""
     where = f"{exc.filename}: " if exc.filename else ""
     return f"error: --out {out}: {where}{exc.strerror or exc}"
+
+
+def writable_file_flag(flag: str, path: Path | None) -> None:
+    """Refuse an output file (``--json``, ``--plot``) that could not be written, before any work is done.
+
+    The file's folder may not exist yet (it is made when the file is written): then its nearest
+    existing ancestor must be a writable directory.
+    """
+    if path is None:
+        return
+    path = Path(path)
+    if path.is_dir():
+        raise InputError(f"{flag} {path}: is a directory; give a file name")
+    ancestor = path.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise InputError(f"{flag} {path}: {ancestor} is a file, not a directory")
+    if not os.access(ancestor, os.W_OK):
+        raise InputError(f"{flag} {path}: {ancestor} is not writable")
+
+
+def write_text_file(path: Path, text: str) -> None:
+    """Write an output file checked by :func:`writable_file_flag`, making its folder first."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text, encoding="utf-8")

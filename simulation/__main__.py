@@ -21,7 +21,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder (KITTI 'training/' equivalent)")
     parser.add_argument("--frames", type=positive_int, required=True, help="number of frames to write")
-    parser.add_argument("--seed", type=int, required=True, help="run seed; use disjoint seeds for train and val")
+    parser.add_argument("--seed", type=non_negative_int, required=True, help="run seed; use disjoint seeds for train and val")
     parser.add_argument("--start", type=non_negative_int, default=0, help="first frame index / file id (default 0)")
     parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument("--split", default="train", help="name of the ImageSets list file (default train)")
@@ -31,8 +31,12 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = run(RunConfig(out=args.out, frames=args.frames, seed=args.seed, start=args.start,
                                workers=args.workers, split=args.split, progress=not args.no_progress))
-    except (ValueError, OSError) as exc:
+    except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # --out cannot be written (no permission, a full disk)
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"error: --out {args.out}: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     if not result.seconds_per_frame:
         print(f"all {len(result.ids)} frames were already in {result.out} ({result.list_file.name} rewritten)")

@@ -76,7 +76,13 @@ def run(config: RunConfig) -> RunResult:
         raise ValueError(f"--frames: need at least 1 frame, got {config.frames}")
     if config.workers < 1:
         raise ValueError(f"--workers: need at least 1 worker, got {config.workers}")
+    if config.seed < 0:  # numpy's SeedSequence refuses it, after the folders are made
+        raise ValueError(f"--seed: must be 0 or more, got {config.seed}")
+    if not config.split or Path(config.split).name != config.split or config.split in (".", ".."):
+        raise ValueError(f"--split: {config.split!r} names a list file in ImageSets/, not a path")
     out = Path(config.out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out}: exists and is not a directory")
     for sub in SUBDIRS:
         (out / sub).mkdir(parents=True, exist_ok=True)
     all_indices = list(range(config.start, config.start + config.frames))

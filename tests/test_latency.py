@@ -61,7 +61,7 @@ def test_latency_int8_and_precision_check(tmp_path, tiny_models):
         [sys.executable, str(LATENCY), "--models", str(tiny_models), "--precision", "int8", "--frames", "1"],
         capture_output=True, text=True, timeout=300, check=False,
     )
-    assert mismatch.returncode != 0 and "holds fp32 models" in mismatch.stderr
+    assert mismatch.returncode == 2 and "error: --precision int8, but" in mismatch.stderr
     none = subprocess.run([sys.executable, str(LATENCY), "--models", str(tiny_models), "--frames", "0"],
                           capture_output=True, text=True, timeout=120, check=False)
     assert none.returncode == 2 and "argument --frames: must be at least 1, got 0" in none.stderr
@@ -152,3 +152,20 @@ def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, t
     )
     assert wrong.returncode == 2 and "Traceback" not in wrong.stderr
     assert "--preset paper" in wrong.stderr and "holds tiny models" in wrong.stderr
+
+
+def test_what_latency_could_not_use_or_write_is_refused_before_timing(tmp_path, tiny_models):
+    """A misspelt preset, a folder without scans, and a --json or --plot that cannot be written: one line
+    naming the flag, exit 2, before minutes of timing whose report would be lost."""
+    (tmp_path / "empty" / "velodyne").mkdir(parents=True)
+    (tmp_path / "a-file").write_text("")
+    cases = {
+        "--preset: unknown preset 'nonsense'": ["--preset", "nonsense"],
+        "--data": ["--models", str(tiny_models), "--data", str(tmp_path / "empty")],
+        "--json": ["--models", str(tiny_models), "--json", str(tmp_path)],
+        "--plot": ["--models", str(tiny_models), "--plot", str(tmp_path / "a-file" / "p.png")],
+    }
+    for flag, args in cases.items():
+        done = subprocess.run([sys.executable, str(LATENCY), *args, "--frames", "1", "--warmup", "0"],
+                              capture_output=True, text=True, timeout=120, check=False)
+        assert done.returncode == 2 and f"error: {flag}" in done.stderr and "Traceback" not in done.stderr, done.stderr

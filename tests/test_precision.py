@@ -101,8 +101,8 @@ def test_conversions_that_would_lose_or_break_something_are_refused(tiny_models,
     notes.mkdir()
     (notes / "keep.txt").write_text("mine")
     result = subprocess.run(
-        [sys.executable, "-m", "export.precision", "--models", str(tiny_models), "--precision", "int8",
-         "--calibration-data", str(KITTI), "--calibration-frames", "2", "--out", str(notes)],
+        [sys.executable, "-m", "export.precision", "--models", str(tiny_models), "--precision", "fp16",
+         "--calibration-frames", "2", "--out", str(notes)],  # --calibration-data: the bundled frames by default
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert result.returncode == 2 and "Traceback" not in result.stderr

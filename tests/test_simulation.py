@@ -197,3 +197,15 @@ def test_resuming_needs_the_same_seed_and_extending_keeps_the_list(dataset: Path
                            str(SEED), "--no-progress"], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and "all 2 frames were already in" in done.stdout, done.stderr
     assert _ids(folder) == [f"{i:06d}" for i in range(FRAMES + 1)]
+
+
+def test_bad_run_options_are_refused_before_any_folder_is_made(tmp_path: Path) -> None:
+    """A negative seed, a split name that is a path, and an --out that is a file: one line each, nothing written."""
+    with pytest.raises(ValueError, match="--seed: must be 0 or more"):
+        run(RunConfig(out=tmp_path / "a", frames=1, seed=-1, progress=False))
+    with pytest.raises(ValueError, match="--split: '../evil' names a list file"):
+        run(RunConfig(out=tmp_path / "b", frames=1, seed=1, split="../evil", progress=False))
+    (tmp_path / "c").write_text("")
+    with pytest.raises(ValueError, match="exists and is not a directory"):
+        run(RunConfig(out=tmp_path / "c", frames=1, seed=1, progress=False))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["c"]
