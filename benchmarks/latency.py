@@ -558,8 +558,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=positive_int, default=20, help="timed frames (default 20)")
     parser.add_argument("--warmup", type=non_negative_int, default=3, help="untimed warm-up frames (default 3)")
     parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
-    parser.add_argument("--beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
-                        help="thin scans to N lines before timing (16, the default; 32, 8, 4; 0: keep)")
+    parser.add_argument("--beams", "--emulate-beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help="thin scans to N lines before timing (16, the default; 32, 8, 4; 0: keep); "
+                        "--emulate-beams as in pipeline.detect")
     parser.add_argument("--compare-torch", action="store_true", help="also time the PyTorch eager pipeline, in blocks alternating with ONNX Runtime")
     parser.add_argument("--checkpoints", type=Path, help="checkpoints for --compare-torch with trained --models")
     parser.add_argument("--baseline", type=Path,
