@@ -18,6 +18,11 @@ folder beside the JSON or ``outputs/accuracy``) and evaluate them against its
 ``--by-distance`` adds AP per distance band, and ``--depth-dir`` feeds the
 camera pipeline depth maps from files instead of its depth network (with the
 synthetic scenes' ``depth_2``: the upper bound of perfect depth).
+
+``--split-file`` and ``--frames`` are one flag under two names: the frames to
+run and evaluate, in every mode. A flag of another mode is refused, not ignored
+(``--gt-labels`` with ``--data``: the ground truth is ``DATA/label_2``). Inputs
+and output paths are checked before any model runs.
 """
 
 from __future__ import annotations
@@ -25,12 +30,15 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from itertools import pairwise
 from pathlib import Path
 
-from evaluation.frames import LabelSet, load_label_dirs, read_split_file
+from evaluation.frames import LabelSet, ground_truth_frames, load_label_dirs, read_split_file
 from evaluation.kitti_eval import (
     DEFAULT_IOU_THRESHOLDS,
     BootstrapResult,
@@ -96,12 +104,19 @@ class LabelEvalRun:
 def run(config: LabelEvalConfig) -> LabelEvalRun:
     """Load both label directories, evaluate, write the JSON and plots if asked."""
     frame_ids = read_split_file(config.split_file) if config.split_file else None
+    if config.compare_pred_labels is not None and not Path(config.compare_pred_labels).is_dir():
+        raise InputError(f"--compare-pred-labels: {config.compare_pred_labels}: prediction label directory not found")
     labels = load_label_dirs(config.gt_labels, config.pred_labels, frame_ids, progress=config.progress)
+    if not any((d.types == config.class_name.lower()).any() for d in labels.detections):
+        log.warning("no %s detection in %s: every AP is 0", config.class_name, config.pred_labels)
     result = evaluate(
         labels.ground_truth, labels.detections, class_name=config.class_name,
         iou_thresholds=config.iou_thresholds, progress=config.progress,
         ignore_small_detections=config.ignore_small_detections,
     )
+    if not result.metrics:  # detections of the class, but none a metric can use: an empty table otherwise
+        raise InputError(f"{config.pred_labels}: no {config.class_name} detection carries a 2D box (left >= 0) or "
+                         "a ground-plane box (x, z != -1000, w, l > 0): nothing to evaluate")
     other, other_labels, spread = _compare_and_bootstrap(config, frame_ids, labels, result)
     by_distance = _by_distance(config, labels)
     other_by_distance = _by_distance(config, other_labels) if other_labels is not None else {}
@@ -119,13 +134,17 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
             document["depth_source"] = f"{config.depth_dir} (not the depth network)"
         document["missing_predictions"] = list(labels.missing_predictions)
         document["small_detections"] = "ignored (devkit)" if config.ignore_small_detections else "counted (diagnostic)"
-        config.json_path.parent.mkdir(parents=True, exist_ok=True)
-        config.json_path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
-    plot_paths = tuple(plot_pr_curves(result, config.plots_dir)) if config.plots_dir else ()
-    if config.plots_dir and by_distance:
-        names = (_short_name(config.pred_labels), _short_name(config.compare_pred_labels))
-        plot_paths += (plot_by_distance(by_distance, config.plots_dir / "ap_by_distance.png", other_by_distance,
-                                        names),)
+        with _writing(config.json_path, "--json"):
+            config.json_path.parent.mkdir(parents=True, exist_ok=True)
+            config.json_path.write_text(json.dumps(document, indent=1) + "\n", encoding="utf-8")
+    plot_paths: tuple[Path, ...] = ()
+    if config.plots_dir:
+        with _writing(config.plots_dir, "--plots"):
+            plot_paths = tuple(plot_pr_curves(result, config.plots_dir))
+            if by_distance:
+                names = (_short_name(config.pred_labels), _short_name(config.compare_pred_labels))
+                plot_paths += (plot_by_distance(by_distance, config.plots_dir / "ap_by_distance.png",
+                                                other_by_distance, names),)
     table = format_table(result)
     if by_distance:
         table += "\n" + format_distance_table(by_distance)
@@ -141,6 +160,36 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         result=result, table=table, by_distance=by_distance, spread=spread, missing_predictions=labels.missing_predictions,
         json_path=config.json_path, plot_paths=plot_paths,
     )
+
+
+@contextmanager
+def _writing(path: Path, flag: str) -> Iterator[None]:
+    """An OSError while writing ``path`` as an InputError naming the flag (paths are checked up front;
+    this is for what changes in between, such as a full disk)."""
+    try:
+        yield
+    except OSError as exc:
+        raise InputError(f"{flag} {path}: cannot write ({exc.strerror or exc})") from exc
+
+
+def check_output(path: Path, flag: str, directory: bool) -> None:
+    """Refuse, before any work, an output path that cannot be written: ``path`` is, or will be
+    created as, a directory (``directory``) or a file in one; its parents are created as needed."""
+    if path.exists():
+        if directory and not path.is_dir():
+            raise InputError(f"{flag} {path}: exists and is not a directory")
+        if not directory and path.is_dir():
+            raise InputError(f"{flag} {path}: is a directory; give a file name")
+        if not os.access(path, os.W_OK):
+            raise InputError(f"{flag} {path}: not writable")
+        return
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{flag} {path}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{flag} {path}: cannot create it in {parent} (not writable)")
 
 
 def _short_name(folder: Path | None) -> str:
@@ -195,14 +244,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         description="KITTI object evaluation (official devkit protocol): Car BEV / 3D / 2D-box AP, "
         "R40 and R11, easy / moderate / hard.",
+        epilog="Modes: --gt-labels/--pred-labels (result files), --data/--models/--input (run the detector, "
+        "then evaluate against DATA/label_2), --depth --data/--models (depth completion). --split-file and "
+        "--frames are the same flag and choose the frames in every mode. A flag of another mode is refused, "
+        "not ignored (e.g. --gt-labels with --data). Inputs and output paths are checked before any work.",
     )
     labels = parser.add_argument_group("evaluate result files")
     labels.add_argument("--gt-labels", type=Path, metavar="DIR", help="KITTI label_2 directory (ground truth)")
     labels.add_argument(
         "--pred-labels", type=Path, metavar="DIR",
-        help="KITTI result files <id>.txt (label lines + score); a missing file means no detections",
+        help="KITTI result files <id>.txt (label lines + score); a missing file means no detections "
+        "(no file for any frame is an error)",
     )
-    labels.add_argument("--split-file", type=Path, metavar="F", help="frame ids to evaluate, one per line")
+    labels.add_argument("--split-file", type=Path, metavar="F",
+                        help="frame ids to evaluate, one per line (default: every ground-truth file); in every "
+                        "mode, and the same as --frames (with --data: the frames the detector runs on)")
     labels.add_argument(
         "--count-small-detections", action="store_true",
         help="diagnostic, not the devkit: count detections whose 2D box is under a difficulty's minimum "
@@ -230,7 +286,8 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--data", type=Path, metavar="DIR", help="KITTI object folder (image_2, velodyne, calib, label_2)")
     detect.add_argument("--models", type=Path, metavar="DIR", help="model directory trained for --input")
     detect.add_argument("--input", choices=["lidar64", "lidar16", "lidar16+camera"], help="the paper's table row")
-    detect.add_argument("--frames", type=Path, metavar="LIST", help="frame ids to run, one per line (default all)")
+    detect.add_argument("--frames", type=Path, metavar="LIST",
+                        help="frame ids to run and evaluate, one per line (default all); the same as --split-file")
     detect.add_argument("--out", type=Path, metavar="DIR", help="where the result files go (default outputs/accuracy/INPUT)")
     detect.add_argument("--score-threshold", type=probability, default=0.05,
                         help="keep detections above this score (default 0.05: AP needs the whole curve)")
@@ -252,22 +309,64 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Flags (by dest) that only some modes read; main refuses them in the others.
+_RESULT_FILES = ("gt_labels", "pred_labels")
+_RUN = ("data", "models", "provider")
+_DETECTION = ("input", "out", "score_threshold", "depth_dir")
+_AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "compare_pred_labels")
+
+
+def _flag(dest: str) -> str:
+    return "--" + dest.replace("_", "-")
+
+
+def _refuse_flags_of_other_modes(parser: argparse.ArgumentParser, args: argparse.Namespace,
+                                 argv: list[str] | None) -> None:
+    """parser.error (exit 2) for a flag the chosen mode would ignore, naming it and the mode's flag."""
+    unset = object()  # parsed again into a namespace that already holds every flag: defaults are not filled in
+    again = vars(parser.parse_args(argv, argparse.Namespace(**dict.fromkeys(vars(args), unset))))
+    given = {dest for dest, value in again.items() if value is not unset}
+
+    def refuse(dests: tuple[str, ...], mode_flag: str, why: str) -> None:
+        for dest in dests:
+            if dest in given:
+                parser.error(f"argument {_flag(dest)}: not allowed with argument {mode_flag} ({why})")
+
+    if "split_file" in given and "frames" in given:
+        parser.error("argument --frames: not allowed with argument --split-file (the same flag: give one)")
+    if args.depth:
+        refuse(_RESULT_FILES + _DETECTION + _AP, "--depth", "depth completion evaluates depth maps, not boxes")
+    elif args.data is not None:
+        refuse(_RESULT_FILES, "--data", "the detector writes the results and DATA/label_2 is the ground truth")
+    else:
+        mode = next((dest for dest in _RESULT_FILES if dest in given), None)
+        for dest in _RUN + _DETECTION:
+            if dest in given and mode is not None:
+                parser.error(f"argument {_flag(dest)}: not allowed with argument {_flag(mode)} "
+                             "(result files are evaluated as they are; no model runs)")
+            if dest in given:
+                parser.error(f"argument {_flag(dest)}: only with --data DIR (the detector runs over a dataset)")
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse flags, run, print the table; input errors are printed without a traceback (exit code 2)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    _refuse_flags_of_other_modes(parser, args, argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    split_file = args.split_file or args.frames
     if args.depth or args.data is not None:
-        return _main_run(parser, args)
+        return _main_run(parser, args, split_file)
     if args.gt_labels is None or args.pred_labels is None:
         parser.error("give --gt-labels DIR and --pred-labels DIR, or --data DIR --models DIR --input …, or --depth")
     config = LabelEvalConfig(
-        gt_labels=args.gt_labels, pred_labels=args.pred_labels, split_file=args.split_file,
+        gt_labels=args.gt_labels, pred_labels=args.pred_labels, split_file=split_file,
         json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
         ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
         bootstrap=args.bootstrap, seed=args.seed, compare_pred_labels=args.compare_pred_labels,
     )
     try:
+        _check_outputs(args)
         outcome = run(config)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -280,7 +379,35 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
+def _check_outputs(args: argparse.Namespace, out: Path | None = None) -> None:
+    """--json, --plots and (detect mode) --out, before any work."""
+    if args.json is not None:
+        check_output(args.json, "--json", directory=False)
+    if args.plots is not None:
+        check_output(args.plots, "--plots", directory=True)
+    if out is not None:
+        check_output(out, "--out", directory=True)
+        check_output(out / "data", "--out", directory=True)  # where the result files go
+
+
+def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, out: Path) -> None:
+    """What the evaluation after the detector reads, before the detector runs."""
+    if not args.data.is_dir():
+        raise InputError(f"--data {args.data}: directory not found")
+    if not (args.data / "label_2").is_dir():
+        raise InputError(f"--data {args.data}: no label_2/ (the ground truth to evaluate the detections against)")
+    ground_truth_frames(args.data / "label_2", frames)
+    if args.depth_dir is not None and not args.depth_dir.is_dir():
+        raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
+    if args.compare_pred_labels is not None:
+        if not args.compare_pred_labels.is_dir():
+            raise InputError(f"--compare-pred-labels: {args.compare_pred_labels}: prediction label directory not found")
+        if (out / "data").resolve() == args.compare_pred_labels.resolve():
+            raise InputError(f"--out {out}: the detector would overwrite the results of --compare-pred-labels "
+                             f"{args.compare_pred_labels}, which it is compared with")
+
+
+def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_file: Path | None) -> int:
     """The dataset modes: run the networks, then evaluate."""
     from evaluation.depth_metrics import car_errors_by_band
     from evaluation.harness import run_depth, run_detection
@@ -288,8 +415,12 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
 
     if args.data is None or args.models is None:
         parser.error("--data DIR and --models DIR are both required to run the models")
+    if not args.depth and args.input is None:
+        parser.error("--input lidar64|lidar16|lidar16+camera is required with --data and --models")
+    out = None if args.depth else args.out or Path("outputs") / "accuracy" / args.input.replace("+", "_")
     try:
-        frames = read_split_file(args.frames) if args.frames else None
+        _check_outputs(args, out)
+        frames = read_split_file(split_file) if split_file else None
         if args.depth:
             outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=not args.no_progress,
                                 pictures=args.plots)
@@ -306,23 +437,22 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace) -> int:
             if args.plots:
                 print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
             if args.json:
-                args.json.parent.mkdir(parents=True, exist_ok=True)
-                args.json.write_text(json.dumps({
-                    "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
-                    "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
-                              "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
-                              "median_abs_mm_by_band": m.median_abs_mm_by_band,
-                              "car_median_abs_mm_by_band": cars},
-                }, indent=1) + "\n", encoding="utf-8")
+                with _writing(args.json, "--json"):
+                    args.json.parent.mkdir(parents=True, exist_ok=True)
+                    args.json.write_text(json.dumps({
+                        "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
+                        "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
+                                  "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
+                                  "median_abs_mm_by_band": m.median_abs_mm_by_band,
+                                  "car_median_abs_mm_by_band": cars},
+                    }, indent=1) + "\n", encoding="utf-8")
             return 0
-        if args.input is None:
-            parser.error("--input lidar64|lidar16|lidar16+camera is required with --data and --models")
-        out = args.out or Path("outputs") / "accuracy" / args.input.replace("+", "_")
+        _check_detection_inputs(args, frames, out)
         predictions = run_detection(args.data, args.models, args.input, out, frames, args.provider,
                                     progress=not args.no_progress, score_threshold=args.score_threshold,
                                     depth_dir=args.depth_dir)
         outcome = run(LabelEvalConfig(
-            gt_labels=args.data / "label_2", pred_labels=predictions, split_file=args.frames,
+            gt_labels=args.data / "label_2", pred_labels=predictions, split_file=split_file,
             json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
             ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
             depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed,

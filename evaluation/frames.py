@@ -36,6 +36,31 @@ def _require_dir(path: Path, what: str) -> None:
         raise InputError(f"{path}: {what} directory not found")
 
 
+def _some(ids: Sequence[str], shown: int = 5) -> str:
+    """``a, b, c`` or, for a long list, ``a, b, c, … 7481 frames``."""
+    if len(ids) <= shown:
+        return ", ".join(ids)
+    return ", ".join(ids[: shown - 2]) + f", … {len(ids)} frames"
+
+
+def ground_truth_frames(gt_dir: str | Path, frame_ids: Sequence[str] | None = None) -> list[str]:
+    """The frames to evaluate, checked before any work: ``frame_ids`` or every ``*.txt`` in ``gt_dir``.
+
+    A missing directory, an empty one and a listed frame without a ground-truth file are errors.
+    """
+    gt_dir = Path(gt_dir)
+    _require_dir(gt_dir, "ground-truth label")
+    if frame_ids is None:
+        frame_ids = sorted(p.stem for p in gt_dir.glob("*.txt"))
+        if not frame_ids:
+            raise InputError(f"{gt_dir}: no ground-truth label files (*.txt)")
+    for frame_id in frame_ids:
+        gt_path = gt_dir / f"{frame_id}.txt"
+        if not gt_path.is_file():
+            raise InputError(f"{gt_path}: ground-truth label file not found for frame {frame_id}")
+    return list(frame_ids)
+
+
 def load_label_dirs(
     gt_dir: str | Path,
     pred_dir: str | Path,
@@ -46,22 +71,22 @@ def load_label_dirs(
 
     frame_ids: frames to evaluate; default every ``*.txt`` in ``gt_dir``. A listed
     frame without a ground-truth file is an error; a frame without a result file
-    has no detections. Every result line needs a score (16 fields).
+    has no detections, but no result file for any frame is an error (the wrong
+    folder or file names, not a detector that found nothing: that one writes
+    empty files). Every result line needs a score (16 fields).
     """
     gt_dir, pred_dir = Path(gt_dir), Path(pred_dir)
-    _require_dir(gt_dir, "ground-truth label")
+    frame_ids = ground_truth_frames(gt_dir, frame_ids)
     _require_dir(pred_dir, "prediction label")
-    if frame_ids is None:
-        frame_ids = sorted(p.stem for p in gt_dir.glob("*.txt"))
-        if not frame_ids:
-            raise InputError(f"{gt_dir}: no ground-truth label files (*.txt)")
+    if not any((pred_dir / f"{frame_id}.txt").is_file() for frame_id in frame_ids):
+        results = sorted(p.name for p in pred_dir.glob("*.txt"))
+        held = f"it holds {len(results)} *.txt file(s), e.g. {results[0]}" if results else "it holds no *.txt file"
+        raise InputError(f"{pred_dir}: no result file matches a frame of {gt_dir} ({_some(frame_ids)}); {held}")
     ground_truth: list[LabelArrays] = []
     detections: list[LabelArrays] = []
     missing: list[str] = []
     for frame_id in tqdm(frame_ids, desc="labels", disable=not progress):
         gt_path = gt_dir / f"{frame_id}.txt"
-        if not gt_path.is_file():
-            raise InputError(f"{gt_path}: ground-truth label file not found for frame {frame_id}")
         ground_truth.append(LabelArrays.from_objects(read_labels(gt_path)))
         pred_path = pred_dir / f"{frame_id}.txt"
         if not pred_path.is_file():

@@ -92,7 +92,18 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
     for one PNG per frame (``depth_<id>.png``: camera, prediction, ground truth, error).
     """
     data = Path(data)
+    if (data / "groundtruth").is_dir() and (data / "velodyne_raw").is_dir():
+        layout = "depth-completion"
+    elif (data / "depth_2").is_dir():
+        layout = "object + depth_2"
+    else:
+        raise InputError(
+            f"--data: {data} has neither groundtruth/ + velodyne_raw/ (KITTI depth completion) "
+            "nor depth_2/ (dense ground truth of an object folder)"
+        )
     detector = Detector(models, providers=provider)
+    if not detector.two_stage:
+        raise InputError(f"--models {models}: a LiDAR-only model directory has no depth network")
     preset = detector.preset
     per_frame: dict[str, DepthMetrics] = {}
     car_errors: list[tuple[float, float]] = []
@@ -104,8 +115,8 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             crop = depth_crop(image.shape[:2], *preset.crop_hw).apply(image)
             panel = render_depth_panel(crop, prediction, ground_truth, preset.depth.max_depth)
             cv2.imwrite(str(Path(pictures) / f"depth_{fid}.png"), panel)
-    if (data / "groundtruth").is_dir() and (data / "velodyne_raw").is_dir():
-        layout, used = "depth-completion", "velodyne_raw as given (projected 64-line scan)"
+    if layout == "depth-completion":
+        used = "velodyne_raw as given (projected 64-line scan)"
         ids = frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png"))
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             image = read_image(data / "image_02" / f"{fid}.png")
@@ -116,8 +127,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             prediction = _to_crop_resolution(detector.run_depth_net(rgb, sparse_view), crop_gt.shape)
             per_frame[fid] = depth_metrics(prediction, crop_gt)
             picture(fid, image, prediction, crop_gt)
-    elif (data / "depth_2").is_dir():
-        layout = "object + depth_2"
+    else:
         used = f"{beams}-line emulated scan" if beams else "scan as stored"
         ids = frames or frame_ids(data)
         labelled = (data / "label_2").is_dir()
@@ -131,11 +141,6 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             if labelled:
                 car_errors.extend(car_depth_errors(prediction, crop_gt, _moderate_cars_in_crop(frame, preset)))
             picture(fid, frame.image, prediction, crop_gt)
-    else:
-        raise InputError(
-            f"--data: {data} has neither groundtruth/ + velodyne_raw/ (KITTI depth completion) "
-            "nor depth_2/ (dense ground truth of an object folder)"
-        )
     if not per_frame:
         raise InputError(f"--data: {data} has no frames to evaluate")
     return DepthRun(mean=mean_over_frames(list(per_frame.values())), per_frame=per_frame, layout=layout, input=used,

@@ -191,6 +191,18 @@ def available_metrics(detections: Sequence[LabelArrays], class_name: str = "Car"
     return tuple(m for m in METRICS if found[m])
 
 
+def _default_metrics(detections: Sequence[LabelArrays], class_name: str) -> tuple[str, ...]:
+    """:func:`available_metrics`, or every metric when no detection is of the class at all.
+
+    The devkit reads which metrics to evaluate off the detections; a detector that found
+    nothing leaves it nothing to read, yet it scores 0 in each (every counted box is missed).
+    """
+    found = available_metrics(detections, class_name)
+    if not found and not any((det.types == class_name.lower()).any() for det in detections):
+        return METRICS
+    return found
+
+
 @dataclass(frozen=True)
 class _Frame:
     """One frame reduced to what matching needs.
@@ -355,7 +367,8 @@ def evaluate(
     ground_truth, detections: one entry per frame, same order (an empty
     ``LabelArrays`` for a frame without detections). Detection scores must be set.
     metrics: subset of ``METRICS``; default: those the detections support
-    (``available_metrics``). Returns every (metric, overlap threshold, difficulty) curve.
+    (``available_metrics``), or all of them when no detection is of the class (each
+    AP is then 0). Returns every (metric, overlap threshold, difficulty) curve.
     ignore_small_detections: the devkit's rule that a detection whose 2D box is
     lower than a difficulty's minimum height takes no part in it. False counts
     every detection (not the devkit): for a BEV detector whose 2D boxes come from
@@ -372,7 +385,7 @@ def evaluate(
     for i, det in enumerate(detections):
         if np.isnan(det.score).any():
             raise ValueError(f"frame {i}: detections need a score (16th label field)")
-    metrics = tuple(available_metrics(detections, class_name) if metrics is None else metrics)
+    metrics = tuple(_default_metrics(detections, class_name) if metrics is None else metrics)
     unknown = set(metrics) - set(METRICS)
     if unknown:
         raise ValueError(f"unknown metric(s) {sorted(unknown)}; choose from {METRICS}")
@@ -523,7 +536,7 @@ def bootstrap(
         if len(detections) != len(ground_truth):
             raise ValueError(f"detection set {i}: {len(detections)} frames, ground truth {len(ground_truth)}")
     if metrics is None:
-        found = [set(available_metrics(d, class_name)) for d in detection_sets]
+        found = [set(_default_metrics(d, class_name)) for d in detection_sets]
         metrics = tuple(m for m in METRICS if all(m in f for f in found))
     metrics = tuple(metrics)
     iou_thresholds = tuple(float(t) for t in iou_thresholds)

@@ -20,6 +20,28 @@ from tests.conftest import FRAMES, KITTI
 ACCURACY = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
 
 
+def _accuracy(*args: str | Path, timeout: int = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, str(ACCURACY), *map(str, args), "--no-progress"],
+                          capture_output=True, text=True, timeout=timeout, check=False)
+
+
+def _lidar_only(tiny_models: Path, folder: Path) -> Path:
+    """A LiDAR-only model directory: the tiny pixor.onnx with its manifest entry alone."""
+    folder.mkdir()
+    shutil.copy(tiny_models / "pixor.onnx", folder)
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    del manifest["networks"]["depth"]
+    manifest["files"] = {"pixor.onnx": manifest["files"]["pixor.onnx"]}
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return folder
+
+
+def _frames_file(folder: Path, *frame_ids: str) -> Path:
+    path = folder / "frames.txt"
+    path.write_text("".join(f"{frame_id}\n" for frame_id in frame_ids))
+    return path
+
+
 def test_detection_run_then_evaluation_end_to_end(tiny_models, tmp_path):
     result = subprocess.run(
         [sys.executable, str(ACCURACY), "--data", str(KITTI), "--models", str(tiny_models),
@@ -60,13 +82,7 @@ def test_detection_run_with_depth_from_files_and_distance_bands(tiny_models, tmp
     document = json.loads((tmp_path / "ap.json").read_text())
     assert document["depth_source"].startswith(str(depth_dir))
     assert [band["range_m"] for band in document["by_distance"]] == [[0, 30], [30, 80]]
-    lidar_only = tmp_path / "lidar"  # a LiDAR-only model directory has no depth to replace
-    lidar_only.mkdir()
-    shutil.copy(tiny_models / "pixor.onnx", lidar_only)
-    manifest = json.loads((tiny_models / "manifest.json").read_text())
-    del manifest["networks"]["depth"]
-    manifest["files"] = {"pixor.onnx": manifest["files"]["pixor.onnx"]}
-    (lidar_only / "manifest.json").write_text(json.dumps(manifest))
+    lidar_only = _lidar_only(tiny_models, tmp_path / "lidar")  # a LiDAR-only model directory has no depth to replace
     with pytest.raises(InputError, match="--depth-dir: only the camera pipeline"):
         run_detection(KITTI, lidar_only, "lidar16", tmp_path / "x", depth_dir=depth_dir)
 
@@ -115,3 +131,69 @@ def test_depth_mode_names_the_missing_layout(tiny_models, tmp_path):
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert result.returncode == 2 and "depth_2/" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_split_file_chooses_the_frames_of_a_detection_run(tiny_models, tmp_path):
+    """--split-file (the same flag as --frames) restricts the detector's frames, not only the evaluation's."""
+    split = _frames_file(tmp_path, "000003")
+    result = _accuracy("--data", KITTI, "--models", tiny_models, "--input", "lidar16+camera", "--split-file", split,
+                       "--score-threshold", "0.0", "--out", tmp_path / "run", "--json", tmp_path / "ap.json")
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in (tmp_path / "run" / "data").iterdir()) == ["000003.txt"]
+    assert json.loads((tmp_path / "ap.json").read_text())["frames"] == 1 and "(1 frames" in result.stdout
+
+
+def test_flags_of_another_mode_are_refused(tiny_models, tmp_path):
+    """A flag the chosen mode would ignore is an argparse error naming it and the mode's flag (exit 2)."""
+    for args, message in [
+        (("--data", KITTI, "--models", tiny_models, "--input", "lidar16", "--gt-labels", KITTI / "label_2"),
+         "argument --gt-labels: not allowed with argument --data"),
+        (("--depth", "--data", KITTI, "--models", tiny_models, "--by-distance", "0,30,80"),
+         "argument --by-distance: not allowed with argument --depth"),
+        (("--gt-labels", KITTI / "label_2", "--pred-labels", tmp_path, "--input", "lidar16"),
+         "argument --input: not allowed with argument --gt-labels"),
+    ]:
+        result = _accuracy(*args, "--out", tmp_path / "run") if "--input" in args else _accuracy(*args)
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        assert f"error: {message}" in result.stderr and result.stdout == ""
+    assert not (tmp_path / "run").exists()
+
+
+def test_dataset_modes_check_output_paths_before_any_work(tiny_models, tmp_path):
+    a_file = tmp_path / "a_file"
+    a_file.write_text("kept\n")
+    frames = _frames_file(tmp_path, "000000")
+    result = _accuracy("--data", KITTI, "--models", tiny_models, "--input", "lidar16+camera", "--frames", frames,
+                       "--out", a_file)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert f"error: --out {a_file}: exists and is not a directory" in result.stderr
+    result = _accuracy("--data", KITTI, "--models", tiny_models, "--input", "lidar16+camera", "--frames", frames,
+                       "--out", tmp_path / "run", "--json", a_file / "ap.json")
+    assert result.returncode == 2 and f"error: --json {a_file / 'ap.json'}: {a_file} is a file" in result.stderr
+    assert not (tmp_path / "run").exists()  # refused before the detector wrote a result file
+    data = tmp_path / "data"
+    (data / "depth_2").mkdir(parents=True)
+    result = _accuracy("--depth", "--data", data, "--models", tiny_models, "--json", a_file / "d.json")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert f"error: --json {a_file / 'd.json'}: {a_file} is a file" in result.stderr
+    assert result.stdout == "" and a_file.read_text() == "kept\n"  # no metrics computed, nothing overwritten
+
+
+def test_depth_mode_refuses_a_lidar_only_model_directory(tiny_models, tmp_path):
+    lidar_only = _lidar_only(tiny_models, tmp_path / "lidar")
+    data = tmp_path / "data"
+    (data / "depth_2").mkdir(parents=True)
+    result = _accuracy("--depth", "--data", data, "--models", lidar_only)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert f"error: --models {lidar_only}: a LiDAR-only model directory has no depth network" in result.stderr
+
+
+def test_detection_run_checks_label_2_before_detecting(tiny_models, tmp_path):
+    data = tmp_path / "data"
+    for sub in ("image_2", "velodyne", "calib"):
+        shutil.copytree(KITTI / sub, data / sub)
+    result = _accuracy("--data", data, "--models", tiny_models, "--input", "lidar16+camera",
+                       "--frames", _frames_file(tmp_path, "000000"), "--out", tmp_path / "run")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert f"error: --data {data}: no label_2/" in result.stderr
+    assert not (tmp_path / "run").exists()  # no frame was detected

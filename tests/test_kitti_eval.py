@@ -464,6 +464,80 @@ def test_cli_reports_bad_input_without_traceback(tmp_path: Path):
     assert out.returncode == 2 and str(gt_dir / "000007.txt") in out.stderr
 
 
+def test_cli_refuses_result_files_matching_no_frame(tmp_path: Path):
+    """Result files named for other frames (here 999999.txt) are the wrong folder or naming, not a detector
+    that found nothing: an error naming both folders, not a header without rows."""
+    pred_dir = tmp_path / "pred"
+    pred_dir.mkdir()
+    write_labels(pred_dir / "999999.txt", [obj(score=0.9)])
+    out = _cli("--gt-labels", LABEL_DIR, "--pred-labels", pred_dir, "--json", tmp_path / "ap.json")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert f"{pred_dir}: no result file matches a frame of {LABEL_DIR} (000000, 000001, 000003, 000004, 000006)" \
+        in out.stderr and "999999.txt" in out.stderr
+    assert out.stdout == "" and not (tmp_path / "ap.json").exists()
+
+
+def test_no_detections_score_zero_in_every_column(tmp_path: Path):
+    """Empty result files (a detector that found nothing): every metric is evaluated and every AP is 0,
+    in the same JSON structure as a run with detections."""
+    pred_dir = tmp_path / "pred"
+    pred_dir.mkdir()
+    for gt_file in LABEL_DIR.glob("*.txt"):
+        (pred_dir / gt_file.name).write_text("")
+    out = _cli("--gt-labels", LABEL_DIR, "--pred-labels", pred_dir, "--json", tmp_path / "ap.json")
+    assert out.returncode == 0, out.stderr
+    assert "every AP is 0" in out.stderr
+    rows = [line for line in out.stdout.splitlines() if line.lstrip().startswith(("R40", "R11"))]
+    assert len(rows) == 6 and all(cell == "0.00" for row in rows for cell in row.split() if "." in cell)
+    document = json.loads((tmp_path / "ap.json").read_text())
+    assert document["metrics"] == ["bbox", "bev", "3d"] and document["missing_predictions"] == []
+    for metric in ("bbox", "bev", "3d"):
+        assert set(document["Car"][metric]) == {"0.7", "0.5"}
+        for iou in ("0.7", "0.5"):
+            assert document["Car"][metric][iou] == {"R40": [0.0] * 3, "R11": [0.0] * 3}
+            moderate = document["details"]["Car"][metric][iou]["moderate"]
+            # Counted cars of the five frames: 5 moderate, all missed; no score threshold, precision 0.
+            assert moderate["num_ground_truth"] == 5 and moderate["score_thresholds"] == []
+            assert moderate["precision_41"] == [0.0] * 41
+
+
+def test_cli_frames_and_split_file_are_one_flag(tmp_path: Path):
+    pred_dir = tmp_path / "pred"
+    pred_dir.mkdir()
+    for gt_file in LABEL_DIR.glob("*.txt"):
+        write_labels(pred_dir / gt_file.name, [obj(score=0.9)])
+    split = tmp_path / "split.txt"
+    split.write_text("000000\n000003\n")
+    out = _cli("--gt-labels", LABEL_DIR, "--pred-labels", pred_dir, "--frames", split, "--json", tmp_path / "f.json")
+    assert out.returncode == 0, out.stderr
+    assert json.loads((tmp_path / "f.json").read_text())["frames"] == 2 and "2 frames" in out.stdout
+    out = _cli("--gt-labels", LABEL_DIR, "--pred-labels", pred_dir, "--frames", split, "--split-file", split)
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "argument --frames: not allowed with argument --split-file" in out.stderr
+
+
+def test_cli_checks_output_paths_before_any_work(tmp_path: Path):
+    pred_dir = tmp_path / "pred"
+    pred_dir.mkdir()
+    write_labels(pred_dir / "000000.txt", [obj(score=0.9)])
+    a_file = tmp_path / "a_file"
+    a_file.write_text("kept\n")
+    json_path = tmp_path / "ap.json"
+    for flag, path, problem in [
+        ("--plots", a_file, "exists and is not a directory"),
+        ("--json", a_file / "x.json", f"{a_file} is a file, not a directory"),
+        ("--json", tmp_path, "is a directory"),
+    ]:
+        args = ("--json", json_path, "--plots", path) if flag == "--plots" else (flag, path)
+        out = _cli("--gt-labels", LABEL_DIR, "--pred-labels", pred_dir, *args)
+        assert out.returncode == 2 and "Traceback" not in out.stderr, out.stderr
+        assert f"error: {flag} {path}: {problem}" in out.stderr
+        assert out.stdout == "" and not json_path.exists()  # refused before the evaluation wrote anything
+    assert a_file.read_text() == "kept\n"
+
+
 def test_cli_help():
     out = _cli("--help")
     assert out.returncode == 0 and "--gt-labels" in out.stdout and "--split-file" in out.stdout
+    text = " ".join(out.stdout.split())
+    assert "the same as --frames" in text and "A flag of another mode is refused, not ignored" in text
