@@ -121,7 +121,8 @@ class TrainConfig:
     max_val_frames: int | None = None
     workers: int = 0
     seed: int = 0
-    resume: bool = False
+    resume: bool = False  # continue the run in ``out`` if it has one (a library caller's rerun: else start it)
+    strict_resume: bool = False  # with resume: no run to continue in ``out`` is an error (the command's --resume)
     quick: bool = False
     progress: bool = True
     threads: int | None = None
@@ -139,6 +140,13 @@ class TrainResult:
     history: list[dict] = field(default_factory=list)
     first_loss: float = float("nan")  # mean training loss of the first epoch of this invocation
     last_loss: float = float("nan")  # … and of the last
+    epochs_before: int = 0  # epochs the run had trained when this invocation started (resumed)
+    epochs: int = 0  # epochs the run is to have in all (the recipe's or --epochs)
+
+    @property
+    def nothing_to_do(self) -> bool:
+        """A resumed run that had already trained its epochs: this invocation trained none."""
+        return self.epochs_before >= self.epochs > 0
 
 
 RECIPES = {  # the paper's settings per task: (epochs, batch size, learning rate)
@@ -246,12 +254,25 @@ def seed_everything(seed: int) -> None:
 
 # ----------------------------------------------------------------------------- data
 def split_ids(config: TrainConfig) -> tuple[Path, list[str], Path, list[str]]:
-    """(train dir, train ids, val dir, val ids) from folders and optional split files."""
+    """(train dir, train ids, val dir, val ids) from folders and optional split files.
+
+    Every frame listed (before ``--max-train-frames`` / ``--max-val-frames`` take the first N) is checked
+    to be there (:func:`check_frames`), so a bad split fails now, not an epoch in.
+    """
+    for flag, folder, split in (("--data", config.data, config.train_split),
+                                ("--val-data", config.val_data, config.val_split)):
+        if folder is None:
+            continue
+        if not Path(folder).is_dir():
+            raise InputError(f"{flag} {folder}: no such folder")
+        if split is None and not (Path(folder) / "velodyne").is_dir():
+            raise InputError(f"{flag} {folder}: not a KITTI object folder (no velodyne/ inside)")
     train_ids = frame_ids(config.data, config.train_split)
     val_dir = config.val_data or config.data
     if config.val_data is None and config.val_split is None:
         log.warning("no --val-data or --val-split: validating on the training frames")
     val_ids = frame_ids(val_dir, config.val_split)
+    check_frames(config, Path(config.data), train_ids, Path(val_dir), val_ids)
     if config.max_train_frames:
         train_ids = train_ids[: config.max_train_frames]
     if config.max_val_frames:
@@ -400,14 +421,31 @@ def run(config: TrainConfig) -> TrainResult:
         torch.set_num_threads(config.threads)
     device = resolve_device(config.device)
     config.precision = resolve_precision(config.precision, device)
-    preset = get_preset(config.preset)
+    try:
+        preset = get_preset(config.preset)
+    except ValueError as exc:
+        raise InputError(f"--preset: {exc}") from None
+    # Every input is checked before anything is trained or written: --out is made only after the checks.
     out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
-    state_path = out / "state.pt"
-    if state_path.exists() and not config.resume:
-        raise InputError(f"--out: {out} already holds a run (state.pt); pass --resume to continue it")
-    seed_everything(config.seed)
+    check_out(out)
+    state_path = out / STATE_FILE
+    state = None
+    if config.resume and (state_path.exists() or config.strict_resume):
+        if not state_path.is_file():
+            raise InputError(f"{out}: nothing to resume (no {STATE_FILE}); leave out --resume to start a new run")
+        state = load_state(state_path)
+        check_resumable(config, state, out)
+    elif state_path.exists():
+        raise InputError(f"--out: {out} already holds a run ({STATE_FILE}); pass --resume to continue it")
+    if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
+        raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
     train_dir, train_ids, val_dir, val_ids = split_ids(config)
+    check_pseudo_maps(config, train_ids, val_ids)
+    if state is not None and state["epoch"] >= config.epochs:  # nothing to train: the run stays as it is
+        checkpoints = {name: out / f"{name}.pt" for name in state["networks"] if (out / f"{name}.pt").exists()}
+        return TrainResult(out, checkpoints, list(state["history"]), epochs_before=state["epoch"],
+                           epochs=config.epochs)
+    seed_everything(config.seed)
 
     networks: dict[str, torch.nn.Module] = {}
     if config.task in ("depth", "joint"):
@@ -418,8 +456,6 @@ def run(config: TrainConfig) -> TrainResult:
         if name in networks and path is not None:
             load_start_weights(networks[name], name, Path(path), preset, config.train_only)
     trained = freeze_except(networks, config.train_only)
-    if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
-        raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
     layout = run_layout(networks)
     for net in networks.values():
         net.to(device=device, memory_format=layout)
@@ -431,17 +467,14 @@ def run(config: TrainConfig) -> TrainResult:
         scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=config.lr_step, gamma=config.lr_gamma)
 
     start_epoch, best, history = 0, float("inf"), []
-    if config.resume and state_path.exists():
-        state = torch.load(state_path, map_location="cpu", weights_only=False)
-        for name, net in networks.items():
-            net.load_state_dict(state["networks"][name])
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        start_epoch, best, history = state["epoch"], state["best"], state["history"]
-        torch.set_rng_state(state["torch_rng"])
-        np.random.set_state(state["numpy_rng"])
-        random.setstate(state["python_rng"])
+    if state is not None:
+        restore_state(state, state_path, networks, optimizer, scheduler, config.preset)
+        start_epoch, best, history = state["epoch"], state["best"], list(state["history"])
         log.info("resuming %s at epoch %d", out, start_epoch + 1)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--out: cannot create {out} ({exc.strerror or exc})") from None
 
     if config.task == "depth":
         train_set = DepthDataset(train_dir, train_ids, preset, augment=not config.quick, seed=config.seed,
@@ -569,7 +602,156 @@ def run(config: TrainConfig) -> TrainResult:
                     "python_rng": random.getstate()}, state_path.with_suffix(".tmp"))
         state_path.with_suffix(".tmp").replace(state_path)
     checkpoints = {name: out / f"{name}.pt" for name in networks if (out / f"{name}.pt").exists()}
-    return TrainResult(out, checkpoints, history, first_loss, last_loss)
+    return TrainResult(out, checkpoints, history, first_loss, last_loss, epochs_before=start_epoch,
+                       epochs=config.epochs)
+
+
+# ----------------------------------------------------------------------------- checks before a run
+STATE_FILE = "state.pt"
+STATE_KEYS = ("networks", "optimizer", "scheduler", "epoch", "best", "history", "torch_rng", "numpy_rng",
+              "python_rng")
+FRAME_FILES = ("velodyne/{}.bin", "image_2/{}.png", "calib/{}.txt")  # what load_frame reads of every frame
+
+
+def check_out(out: Path) -> None:
+    """``--out`` is a folder, or a path where one can be made (no file in its place or above it)."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out: {out} is a file, not a run folder")
+    existing = next((parent for parent in out.parents if parent.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise InputError(f"--out: cannot create {out}: {existing} is a file")
+
+
+def load_state(state_path: Path) -> dict:
+    """The training state a run folder holds (written at the end of each epoch); InputError if it is not one."""
+    try:
+        state = torch.load(state_path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # torch raises pickle, zip, value and runtime errors for files that are not its own
+        raise InputError(f"{state_path}: not a training checkpoint (torch.load cannot read it: "
+                         f"{type(exc).__name__})") from exc
+    if not isinstance(state, dict):
+        raise InputError(f"{state_path}: not a training checkpoint (a {type(state).__name__}, not a dict)")
+    missing = [key for key in STATE_KEYS if key not in state]
+    if missing:
+        raise InputError(f"{state_path}: not a training checkpoint (no {', '.join(missing)})")
+    if not isinstance(state["epoch"], int) or not isinstance(state["networks"], dict):
+        raise InputError(f"{state_path}: not a training checkpoint (epoch {state['epoch']!r})")
+    return state
+
+
+def _flag_text(flag: str, value) -> str:
+    if isinstance(value, (list, tuple)):
+        value = ",".join(value)
+    return f"{flag} {value}" if value else f"no {flag}"
+
+
+def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
+    """The resumed run is the one started in ``out``: same task, preset, detector input and --train-only.
+
+    The state records the configuration it was started with; a state without one (an older run) is
+    compared by the networks it holds.
+    """
+    recorded = state.get("config") if isinstance(state.get("config"), dict) else {}
+    held = {("depth",): "depth", ("pixor",): "detector", ("depth", "pixor"): "joint"}
+    task = recorded.get("task") or held.get(tuple(sorted(state["networks"])), config.task)
+    if task != config.task:
+        raise InputError(f"task {config.task}: {out} was started as a {task} run "
+                         f"(resume it with python -m models.train {task} … --resume)")
+    compared = [("--preset", "preset"), ("--train-only", "train_only")]
+    if config.task == "detector":
+        compared.insert(1, ("--input", "input_mode"))
+    for flag, key in compared:
+        if key not in recorded:
+            continue
+        wanted, started = getattr(config, key), recorded[key]
+        if isinstance(wanted, (list, tuple)) or isinstance(started, (list, tuple)):
+            wanted, started = tuple(wanted or ()), tuple(started or ())
+        if wanted != started:
+            raise InputError(f"{_flag_text(flag, wanted)}, but {out} was started with {_flag_text(flag, started)}")
+
+
+def restore_state(state: dict, state_path: Path, networks: dict[str, torch.nn.Module], optimizer, scheduler,
+                  preset_name: str) -> None:
+    """Weights, optimizer, schedule and random generators from a run's state (exact resume)."""
+    for name, net in networks.items():
+        if name not in state["networks"]:
+            raise InputError(f"{state_path}: holds no {name} network (it has {', '.join(state['networks']) or 'none'})")
+        try:
+            net.load_state_dict(state["networks"][name])
+        except RuntimeError as exc:
+            lines = [line.strip() for line in str(exc).splitlines() if line.strip()]  # the first mismatch
+            raise InputError(f"{state_path}: its {name} weights do not fit --preset {preset_name} "
+                             f"({lines[min(1, len(lines) - 1)] if lines else type(exc).__name__})") from None
+    try:
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["torch_rng"])
+        np.random.set_state(state["numpy_rng"])
+        random.setstate(state["python_rng"])
+    except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+        raise InputError(f"{state_path}: not a training checkpoint of this run "
+                         f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+
+
+def already_trained(result: TrainResult) -> str:
+    """The command's answer to a resumed run that has nothing left to train."""
+    done, epochs = result.epochs_before, result.epochs
+    trained = f"{done} of {done} epochs" if done == epochs else f"{done} epochs, --epochs asks for {epochs}"
+    return f"{result.run_dir}: already trained {trained}; nothing to do (raise --epochs to train more)"
+
+
+def _missing(folder: Path, pattern: str, ids: list[str]) -> tuple[str, Path, str] | None:
+    """The first of ``ids`` whose ``folder/pattern`` file is missing, that file, and how many more are
+    missing ("" if none); None if none is."""
+    missing = [fid for fid in ids if not (folder / pattern.format(fid)).is_file()]
+    if not missing:
+        return None
+    return missing[0], folder / pattern.format(missing[0]), f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+
+
+def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path,
+                 val_ids: list[str]) -> None:
+    """Every frame file the run reads is there, before it trains: each frame's scan, image and calibration;
+    its labels (``label_2/``) for the detector and joint tasks, whose targets and AP come from them. Depth
+    runs need no labels (the target is ``depth_2/ID.png`` when present, else the frame's own 64-line scan)
+    unless ``--car-weight`` weighs the labelled cars' pixels."""
+    labels = config.task in ("detector", "joint") or config.car_weight != 1.0
+    needs = f"a {config.task} run" + (" with --car-weight" if config.task == "depth" else "")
+    val_flag = "--val-data" if config.val_data is not None else "--data"
+    for folder, ids, flag, split in ((train_dir, train_ids, "--data", ("--train-split", config.train_split)),
+                                     (val_dir, val_ids, val_flag, ("--val-split", config.val_split))):
+        for pattern in FRAME_FILES:
+            missing = _missing(folder, pattern, ids)
+            if missing is None:
+                continue
+            frame, path, more = missing
+            if split[1] is not None:  # the ids come from a split file: name it
+                raise InputError(f"{split[0]} {split[1]}: frame {frame}{more} is not in {folder} (no {path})")
+            raise InputError(f"{flag} {folder}: frame {frame}{more} has no {path}")
+        if labels:
+            if not (folder / "label_2").is_dir():
+                raise InputError(f"{flag} {folder}: no label_2/ folder; {needs} needs the ground-truth boxes "
+                                 f"(label_2/ID.txt of every frame)")
+            missing = _missing(folder, "label_2/{}.txt", ids)
+            if missing is not None:
+                frame, path, more = missing
+                raise InputError(f"{flag} {folder}: frame {frame}{more} has no ground truth ({path}); {needs} "
+                                 f"needs the labels of every frame")
+
+
+def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str]) -> None:
+    """``--input pseudo``: the cached dense depth map of every frame the run trains and validates on."""
+    if config.task == "detector" and config.input_mode == "pseudo":
+        if config.pseudo_dir is None:
+            raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir; "
+                             "python -m models.cache_pseudo makes them)")
+        val_pseudo = ("--val-pseudo-dir", config.val_pseudo_dir) if config.val_pseudo_dir else ("--pseudo-dir",
+                                                                                                config.pseudo_dir)
+        for (flag, folder), ids in ((("--pseudo-dir", config.pseudo_dir), train_ids), (val_pseudo, val_ids)):
+            missing = _missing(Path(folder), "{}.png", ids)
+            if missing is not None:
+                frame, path, more = missing
+                raise InputError(f"{flag} {folder}: no cached depth map of frame {frame}{more} ({path})")
 
 
 def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Preset,
@@ -758,16 +940,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compile", default="auto", choices=("auto", "on", "off"),
                         help=f"torch.compile the training forward pass (auto, default: depth and detector runs of "
                              f"at least {COMPILE_MIN_STEPS} steps, where a C++ compiler is found)")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last epoch")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last epoch (its state.pt; same task, --preset, --input)")
     parser.add_argument("--quick", action="store_true", help="a few frames and epochs: a smoke test")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    config = TrainConfig(**{k: v for k, v in vars(args).items()})
+    config = TrainConfig(**{k: v for k, v in vars(args).items()}, strict_resume=args.resume)
     try:
         result = run(config)
     except (InputError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if result.nothing_to_do:
+        print(already_trained(result))
+        return 0
     print(f"run {result.run_dir}: loss {result.first_loss:.4f} → {result.last_loss:.4f}; "
           f"checkpoints {', '.join(str(p) for p in result.checkpoints.values())}")
     return 0

@@ -1,0 +1,192 @@
+"""``python -m models.train``: bad input and bad resumes are refused in one line naming the file or flag
+(exit 2) before anything is trained or written; a finished run resumed has nothing to do.
+
+Every run here is the tiny preset on one real KITTI frame for one epoch.
+"""
+
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from models.train import TrainConfig, main, run
+from tests.conftest import KITTI
+
+FRAME = "000006"  # four labelled cars
+
+
+@pytest.fixture(scope="module")
+def one_frame(tmp_path_factory) -> Path:
+    """A split file listing one frame of the KITTI samples."""
+    path = tmp_path_factory.mktemp("split") / "one.txt"
+    path.write_text(f"{FRAME}\n")
+    return path
+
+
+def args(task: str, out: Path, split: Path, *extra: str) -> list[str]:
+    return [task, "--data", str(KITTI), "--train-split", str(split), "--val-split", str(split), "--preset", "tiny",
+            "--out", str(out), "--epochs", "1", "--batch-size", "1", "--compile", "off", *extra]
+
+
+def files(folder: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def refused(argv: list[str], capsys) -> str:
+    """The one-line error of a run the command refuses with exit status 2."""
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and err[-1].startswith("error: "), err
+    return err[-1]
+
+
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory, one_frame) -> Path:
+    """A tiny lidar16 detector run that trained its 1 epoch (tests copy it before touching it)."""
+    out = tmp_path_factory.mktemp("runs") / "run"
+    assert main(args("detector", out, one_frame, "--input", "lidar16")) == 0
+    assert (out / "state.pt").is_file() and (out / "pixor.pt").is_file()
+    return out
+
+
+@pytest.fixture(scope="module")
+def unlabelled(tmp_path_factory) -> Path:
+    """A KITTI-layout folder of one frame without label_2/."""
+    data = tmp_path_factory.mktemp("unlabelled")
+    for folder, suffix in (("velodyne", ".bin"), ("image_2", ".png"), ("calib", ".txt")):
+        (data / folder).mkdir()
+        shutil.copy(KITTI / folder / f"{FRAME}{suffix}", data / folder)
+    return data
+
+
+@pytest.mark.parametrize(("task", "extra"), [
+    ("detector", []),
+    ("joint", ["--depth-checkpoint", "depth.pt", "--pixor-checkpoint", "pixor.pt"]),
+    ("depth", ["--car-weight", "5"]),  # the car pixels come from the labels too
+])
+def test_runs_that_need_labels_refuse_a_folder_without_label_2(unlabelled, tmp_path, capsys, task, extra):
+    out = tmp_path / "run"
+    says = refused([task, "--data", str(unlabelled), "--preset", "tiny", "--out", str(out), "--epochs", "1", *extra],
+                   capsys)
+    assert f"--data {unlabelled}: no label_2/ folder" in says and f"a {task} run" in says
+    assert not out.exists()
+
+
+def test_depth_run_needs_no_labels_but_every_frame_file(unlabelled, tmp_path, capsys):
+    """Depth targets come from the scan: no label_2/ is fine; a frame without its calibration is not."""
+    broken = tmp_path / "data"
+    shutil.copytree(unlabelled, broken)
+    (broken / "calib" / f"{FRAME}.txt").unlink()
+    says = refused(["depth", "--data", str(broken), "--preset", "tiny", "--out", str(tmp_path / "run")], capsys)
+    assert says == f"error: --data {broken}: frame {FRAME} has no {broken / 'calib' / f'{FRAME}.txt'}"
+    assert not (tmp_path / "run").exists()
+
+
+def test_resume_without_a_run_to_continue_is_refused(tmp_path, capsys, one_frame):
+    """--resume where --out is missing or holds no state.pt; the library's resume=True (models.reproduce
+    reruns its stages with it) still starts a run that is not there yet."""
+    missing = tmp_path / "missing"
+    says = refused(args("detector", missing, one_frame, "--resume"), capsys)
+    assert says == f"error: {missing}: nothing to resume (no state.pt); leave out --resume to start a new run"
+    assert not missing.exists()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert "nothing to resume (no state.pt)" in refused(args("detector", empty, one_frame, "--resume"), capsys)
+    assert files(empty) == {}
+    started = run(TrainConfig(task="detector", data=KITTI, train_split=one_frame, val_split=one_frame, preset="tiny",
+                              out=empty, epochs=1, batch_size=1, compile="off", resume=True, progress=False))
+    assert [h["epoch"] for h in started.history] == [1] and (empty / "state.pt").is_file()
+
+
+@pytest.mark.parametrize(("change", "says"), [
+    (["--input", "lidar64"], "--input lidar64, but {run} was started with --input lidar16"),
+    (["--preset", "edge"], "--preset edge, but {run} was started with --preset tiny"),
+    (["--train-only", "score"], "--train-only score, but {run} was started with no --train-only"),
+    (["task=depth"], "task depth: {run} was started as a detector run"),
+])
+def test_resume_refuses_another_task_input_or_preset(finished_run, tmp_path, capsys, one_frame, change, says):
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run, run_dir)
+    before = files(run_dir)
+    task = change[0].split("=")[1] if change[0].startswith("task=") else "detector"
+    argv = args(task, run_dir, one_frame, "--resume", "--epochs", "2", *[c for c in change if "=" not in c])
+    assert says.format(run=run_dir) in refused(argv, capsys)
+    assert files(run_dir) == before
+
+
+def test_resume_of_a_finished_run_has_nothing_to_do(finished_run, tmp_path, capsys, one_frame):
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run, run_dir)
+    before = files(run_dir)
+    assert main(args("detector", run_dir, one_frame, "--resume")) == 0
+    out = capsys.readouterr().out
+    assert f"{run_dir}: already trained 1 of 1 epochs; nothing to do (raise --epochs to train more)" in out
+    assert "nan" not in out
+    assert files(run_dir) == before
+
+
+def test_resume_trains_the_remaining_epochs_and_reports_their_loss(finished_run, tmp_path, capsys, one_frame):
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run, run_dir)
+    assert main(args("detector", run_dir, one_frame, "--resume", "--epochs", "2")) == 0
+    summary = [line for line in capsys.readouterr().out.splitlines() if line.startswith(f"run {run_dir}: loss ")]
+    first, last = (float(v) for v in summary[0].split(": loss ")[1].split(";")[0].split(" → "))
+    assert math.isfinite(first) and math.isfinite(last) and first > 0
+    log = (run_dir / "log.jsonl").read_text().splitlines()
+    assert len(log) == 2 and '"epoch": 2' in log[1]
+
+
+def test_out_that_is_a_file_is_refused(tmp_path, capsys, one_frame):
+    path = tmp_path / "notes.txt"
+    path.write_text("kept\n")
+    assert refused(args("detector", path, one_frame), capsys) == f"error: --out: {path} is a file, not a run folder"
+    under = path / "run"
+    assert refused(args("detector", under, one_frame), capsys) == f"error: --out: cannot create {under}: {path} is a file"
+    assert path.read_text() == "kept\n"
+
+
+def test_corrupt_state_is_named_without_a_traceback(finished_run, tmp_path, one_frame):
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run, run_dir)
+    (run_dir / "state.pt").write_text("garbage\n")
+    done = subprocess.run([sys.executable, "-m", "models.train", *args("detector", run_dir, one_frame, "--resume")],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert done.stderr.strip().splitlines()[-1].startswith(f"error: {run_dir / 'state.pt'}: not a training checkpoint (")
+    assert (run_dir / "state.pt").read_text() == "garbage\n"
+
+
+def test_unknown_preset_names_the_flag(tmp_path, capsys, one_frame):
+    argv = args("detector", tmp_path / "run", one_frame)
+    argv[argv.index("tiny")] = "nonsense"
+    assert refused(argv, capsys).startswith("error: --preset: unknown preset 'nonsense'; choose one of ")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("flag", ["--train-split", "--val-split"])
+def test_split_listing_a_missing_frame_is_refused_before_training(tmp_path, capsys, one_frame, flag):
+    """Every listed id is checked, also those past --max-*-frames."""
+    split = tmp_path / "split.txt"
+    split.write_text(f"{FRAME}\n999999\n999998\n")
+    argv = args("detector", tmp_path / "run", one_frame, "--max-train-frames", "1", "--max-val-frames", "1")
+    argv[argv.index(flag) + 1] = str(split)
+    says = refused(argv, capsys)
+    assert says == (f"error: {flag} {split}: frame 999999 (and 1 more) is not in {KITTI} "
+                    f"(no {KITTI / 'velodyne' / '999999.bin'})")
+    assert not (tmp_path / "run").exists()
+
+
+def test_failed_runs_leave_no_out_folder_and_keep_an_existing_one(tmp_path, capsys, one_frame):
+    """--out is made after every check, the start weights' included; a folder already there is left as it was."""
+    out = tmp_path / "deep" / "run"
+    says = refused(args("detector", out, one_frame, "--pixor-checkpoint", str(tmp_path / "none.pt")), capsys)
+    assert "--pixor-checkpoint" in says
+    assert not (tmp_path / "deep").exists()
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("mine\n")
+    assert "--preset" in refused(args("detector", kept, one_frame, "--preset", "nonsense"), capsys)
+    assert files(kept) == {"notes.txt": b"mine\n"}
