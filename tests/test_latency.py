@@ -10,11 +10,12 @@ import cv2
 from pipeline.cpu import int8_pairs_saturate, speed_flags
 
 LATENCY = Path(__file__).resolve().parents[1] / "benchmarks" / "latency.py"
+QUICK_PEAK = ["--peak-size", "512"]  # the 4096² MatMul of the real peak takes 12 s a run; the keys are the same
 
 
 def test_latency_report_with_two_workers_and_torch(tmp_path):
     result = subprocess.run(
-        [sys.executable, str(LATENCY), "--preset", "tiny", "--frames", "4", "--warmup", "1", "--threads", "2",
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--preset", "tiny", "--frames", "4", "--warmup", "1", "--threads", "2",
          "--compare-torch", "--json", str(tmp_path / "lat.json"), "--plot", str(tmp_path / "lat.png")],
         capture_output=True, text=True, timeout=600, check=False,
     )
@@ -31,7 +32,8 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     for name in ("depth", "pixor"):
         n = report["networks"][name]
         assert n["gflops"] > 0 and n["ms"] > 0 and 0 < n["peak_fraction"] <= n["matmul_peak_fraction"]
-    assert report["peak_gflops"] > 1
+    assert report["peak_gflops"] > 1 and report["peak_detail"]["matmul_size"] == 512
+    assert report["peak_gflops"] == max(report["peak_detail"]["matmul_512_gflops"], report["peak_detail"]["conv3x3_256_gflops"])
     assert report["torch_end_to_end_ms"]["mean"] > 0 and report["speedup_vs_torch"] > 0
     assert report["torch_end_to_end_ms"]["n"] == report["paired_end_to_end_ms"]["n"] == report["frames"]
     assert set(report["paired_stages_ms"]) == set(report["torch_stages_ms"]) == set(report["stages_ms"])
@@ -51,25 +53,25 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
 
 def test_latency_int8_and_precision_check(tmp_path, tiny_models):
     ok = subprocess.run(
-        [sys.executable, str(LATENCY), "--preset", "tiny", "--precision", "int8", "--frames", "2", "--warmup", "1",
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--preset", "tiny", "--precision", "int8", "--frames", "2", "--warmup", "1",
          "--json", str(tmp_path / "q.json")],
         capture_output=True, text=True, timeout=600, check=False,
     )
     assert ok.returncode == 0, ok.stderr[-2000:]
     assert json.loads((tmp_path / "q.json").read_text())["precision"] == "int8"
     mismatch = subprocess.run(
-        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--precision", "int8", "--frames", "1"],
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--precision", "int8", "--frames", "1"],
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert mismatch.returncode == 2 and "error: --precision int8, but" in mismatch.stderr
-    none = subprocess.run([sys.executable, str(LATENCY), "--models", str(tiny_models), "--frames", "0"],
+    none = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--frames", "0"],
                           capture_output=True, text=True, timeout=120, check=False)
     assert none.returncode == 2 and "argument --frames: must be at least 1, got 0" in none.stderr
 
 
 def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny_models):
     result = subprocess.run(
-        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--baseline", str(tiny_models), "--frames", "8",
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--baseline", str(tiny_models), "--frames", "8",
          "--warmup", "1", "--json", str(tmp_path / "b.json")],
         capture_output=True, text=True, timeout=600, check=False,
     )
@@ -82,7 +84,7 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
     assert b["blocks"] == 2 and b["min"] <= b["p50"] <= b["max"] and report["speedup_vs_baseline"] > 0
     assert "in alternating blocks" in result.stdout
     missing = subprocess.run(
-        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--baseline", str(tmp_path / "nowhere"),
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--baseline", str(tmp_path / "nowhere"),
          "--frames", "1", "--warmup", "1"],
         capture_output=True, text=True, timeout=300, check=False,
     )
@@ -91,7 +93,7 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
 
 def test_latency_throughput_with_worker_processes(tmp_path, tiny_models):
     result = subprocess.run(
-        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--threads", "2", "--workers", "process",
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--threads", "2", "--workers", "process",
          "--frames", "4", "--warmup", "1", "--json", str(tmp_path / "p.json")],
         capture_output=True, text=True, timeout=600, check=False,
     )
@@ -124,7 +126,7 @@ def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, t
     """--compare-torch with --models times PyTorch networks of the directory's preset (tiny here), not the
     default one's; a --preset that contradicts the directory is refused at once, in one line."""
     result = subprocess.run(
-        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--compare-torch", "--frames", "2",
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--compare-torch", "--frames", "2",
          "--warmup", "1", "--json", str(tmp_path / "t.json")],
         capture_output=True, text=True, timeout=600, check=False,
     )
@@ -138,7 +140,7 @@ def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, t
 
     convert_precision(tiny_models, tmp_path / "int8", "int8", KITTI, calibration_frames=2)
     result = subprocess.run(
-        [sys.executable, str(LATENCY), "--models", str(tmp_path / "int8"), "--compare-torch", "--frames", "2",
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tmp_path / "int8"), "--compare-torch", "--frames", "2",
          "--warmup", "1", "--json", str(tmp_path / "q.json")],
         capture_output=True, text=True, timeout=600, check=False,
     )
@@ -146,7 +148,7 @@ def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, t
     weights = json.loads((tmp_path / "q.json").read_text())["torch_weights"]
     assert f"of the FP32 directory it was converted from, {tiny_models}" in weights
     wrong = subprocess.run(
-        [sys.executable, str(LATENCY), "--models", str(tiny_models), "--preset", "paper", "--compare-torch",
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--preset", "paper", "--compare-torch",
          "--frames", "1", "--warmup", "1"],
         capture_output=True, text=True, timeout=300, check=False,
     )
@@ -166,6 +168,6 @@ def test_what_latency_could_not_use_or_write_is_refused_before_timing(tmp_path, 
         "--plot": ["--models", str(tiny_models), "--plot", str(tmp_path / "a-file" / "p.png")],
     }
     for flag, args in cases.items():
-        done = subprocess.run([sys.executable, str(LATENCY), *args, "--frames", "1", "--warmup", "0"],
+        done = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, *args, "--frames", "1", "--warmup", "0"],
                               capture_output=True, text=True, timeout=120, check=False)
         assert done.returncode == 2 and f"error: {flag}" in done.stderr and "Traceback" not in done.stderr, done.stderr
