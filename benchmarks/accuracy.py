@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -58,7 +57,7 @@ from evaluation.report import (
     spread_json,
     to_json,
 )
-from pipeline.cli import positive_int, probability
+from pipeline.cli import check_output, positive_int, probability
 from pipeline.errors import InputError
 
 log = logging.getLogger("accuracy")
@@ -170,26 +169,6 @@ def _writing(path: Path, flag: str) -> Iterator[None]:
         yield
     except OSError as exc:
         raise InputError(f"{flag} {path}: cannot write ({exc.strerror or exc})") from exc
-
-
-def check_output(path: Path, flag: str, directory: bool) -> None:
-    """Refuse, before any work, an output path that cannot be written: ``path`` is, or will be
-    created as, a directory (``directory``) or a file in one; its parents are created as needed."""
-    if path.exists():
-        if directory and not path.is_dir():
-            raise InputError(f"{flag} {path}: exists and is not a directory")
-        if not directory and path.is_dir():
-            raise InputError(f"{flag} {path}: is a directory; give a file name")
-        if not os.access(path, os.W_OK):
-            raise InputError(f"{flag} {path}: not writable")
-        return
-    parent = path.parent
-    while not parent.exists() and parent != parent.parent:
-        parent = parent.parent
-    if not parent.is_dir():
-        raise InputError(f"{flag} {path}: {parent} is a file, not a directory")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise InputError(f"{flag} {path}: cannot create it in {parent} (not writable)")
 
 
 def _short_name(folder: Path | None) -> str:

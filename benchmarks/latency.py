@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
-from pipeline.cli import non_negative_int, positive_int, writable_file_flag, write_text_file
+from pipeline.cli import check_output, non_negative_int, positive_int, write_text_file
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.errors import InputError
@@ -577,8 +577,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         # Checked first: a report that cannot be written is lost after minutes of timing.
-        writable_file_flag("--json", args.json)
-        writable_file_flag("--plot", args.plot)
+        for flag, path in (("--json", args.json), ("--plot", args.plot)):
+            if path is not None:
+                check_output(path, flag)
         if args.models is None and args.preset is not None:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,

@@ -51,27 +51,29 @@ def unwritable(out: object, exc: OSError) -> str:
     return f"error: --out {out}: {where}{exc.strerror or exc}"
 
 
-def writable_file_flag(flag: str, path: Path | None) -> None:
-    """Refuse an output file (``--json``, ``--plot``) that could not be written, before any work is done.
-
-    The file's folder may not exist yet (it is made when the file is written): then its nearest
-    existing ancestor must be a writable directory.
-    """
-    if path is None:
-        return
+def check_output(path: Path, flag: str, directory: bool = False) -> None:
+    """Refuse, before any work, an output path that cannot be written: ``path`` is, or will be created
+    as, a directory (``directory``) or a file in one; missing folders above it are made when it is
+    written, so its nearest existing ancestor must be a writable directory."""
     path = Path(path)
-    if path.is_dir():
-        raise InputError(f"{flag} {path}: is a directory; give a file name")
-    ancestor = path.parent
-    while not ancestor.exists() and ancestor != ancestor.parent:
-        ancestor = ancestor.parent
-    if not ancestor.is_dir():
-        raise InputError(f"{flag} {path}: {ancestor} is a file, not a directory")
-    if not os.access(ancestor, os.W_OK):
-        raise InputError(f"{flag} {path}: {ancestor} is not writable")
+    if path.exists():
+        if directory and not path.is_dir():
+            raise InputError(f"{flag} {path}: exists and is not a directory")
+        if not directory and path.is_dir():
+            raise InputError(f"{flag} {path}: is a directory; give a file name")
+        if not os.access(path, os.W_OK):
+            raise InputError(f"{flag} {path}: not writable")
+        return
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"{flag} {path}: {parent} is a file, not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"{flag} {path}: cannot create it in {parent} (not writable)")
 
 
 def write_text_file(path: Path, text: str) -> None:
-    """Write an output file checked by :func:`writable_file_flag`, making its folder first."""
+    """Write an output file checked by :func:`check_output`, making its folder first."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text, encoding="utf-8")
