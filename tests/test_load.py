@@ -12,16 +12,22 @@ LOAD = Path(__file__).resolve().parents[1] / "benchmarks" / "load.py"
 
 
 def test_load_test_drives_a_started_service_and_reports(tmp_path, tiny_models):
+    # 12 requests over the folder's five frames, every second one broken (each kind at least once).
     result = subprocess.run(
-        [sys.executable, str(LOAD), "--models", str(tiny_models), "--clients", "2", "--requests", "6",
-         "--json", str(tmp_path / "load.json"), "--plot", str(tmp_path / "load.png")],
+        [sys.executable, str(LOAD), "--models", str(tiny_models), "--clients", "2", "--requests", "12",
+         "--bad-every", "2", "--json", str(tmp_path / "load.json"), "--plot", str(tmp_path / "load.png")],
         cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False,
     )
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((tmp_path / "load.json").read_text())
     assert report["url"].startswith("http://127.0.0.1:") and report["clients"] == 2
-    assert sum(report["status_counts"].values()) == report["requests"] == 6
+    assert report["requests"] == 12 and sum(report["status_counts"].values()) == 6
     assert report["status_counts"].get("200", 0) >= 1 and report["throughput_ok_per_s"] > 0
+    assert report["frames_sent"] == 5  # the good requests went through every frame of tests/data/kitti/training
+    broken = report["broken"]
+    assert broken["sent"] == broken["answered_4xx"] == 6 and report["server_errors"] == 0
+    assert set(broken["statuses"]) == {"points-truncated", "image-cut-off", "calib-without-P2", "query-misspelt"}
+    assert len(report["windows"]) == 10 and report["trend"]["p50_ms_last_tenth"] > 0
     assert report["server"]["preset"] == "tiny"
     assert report["latency_ms"]["all"]["p50"] > 0 and report["rss_mb"]["end"] > 0
     picture = cv2.imread(str(tmp_path / "load.png"))
@@ -38,3 +44,13 @@ def test_load_test_without_a_service_at_url_answers_one_line(tmp_path):
     )
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"--url http://127.0.0.1:{port}: cannot reach the service" in result.stderr
+
+
+def test_load_test_refuses_a_frame_missing_from_data_before_starting_anything(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(LOAD), "--frame", "000002", "--requests", "2"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False,
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "frame 000002 has no image_2/000002.png" in result.stderr
+    assert not (tmp_path / "outputs").exists()  # no service was started
