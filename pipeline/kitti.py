@@ -18,6 +18,7 @@ from pipeline.calib import Calibration
 from pipeline.errors import InputError
 
 POINT_BYTES = 16  # float32 x, y, z, reflectance
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"  # the first 8 bytes of every PNG file
 
 
 # --------------------------------------------------------------------------- velodyne
@@ -288,6 +289,10 @@ def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
     """Decode a PNG or JPEG into uint8 RGB (H, W, 3)."""
     if not data:
         raise InputError(f"{source}: empty image")
+    # A PNG ends with its IEND chunk. Checking for it names the usual fault (an upload or copy that
+    # stopped early) and keeps libpng's own complaint about it out of a service's log.
+    if data.startswith(PNG_SIGNATURE) and b"IEND" not in data[-12:]:
+        raise InputError(f"{source}: PNG cut off before its end ({len(data)} bytes, no IEND chunk)")
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if bgr is None:
         raise InputError(f"{source}: not a readable PNG or JPEG image")
@@ -313,7 +318,7 @@ def read_image_size(path: str | Path) -> tuple[int, int]:
             header = handle.read(24)
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror})") from exc
-    if header[:8] == b"\x89PNG\r\n\x1a\n" and header[12:16] == b"IHDR":
+    if header[:8] == PNG_SIGNATURE and header[12:16] == b"IHDR":
         width, height = int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
         return height, width
     return read_image(path).shape[:2]

@@ -152,3 +152,15 @@ def test_parse_velodyne_copies_buffer():
     scan = parse_velodyne(data)
     scan.points[0, 0] = 5  # writable, not a view of immutable bytes
     assert scan.points.shape == (3, 4)
+
+
+def test_a_png_cut_off_is_named_so_and_libpng_stays_quiet(capfd):
+    from pipeline.kitti import decode_image
+
+    data = (KITTI / "image_2" / "000006.png").read_bytes()
+    assert decode_image(data, "image").shape == (374, 1238, 3)
+    with pytest.raises(InputError, match=r"image: PNG cut off before its end \(\d+ bytes, no IEND chunk\)"):
+        decode_image(data[: len(data) // 2], "image")
+    assert "libpng" not in capfd.readouterr().err  # refused before OpenCV's decoder complains on stderr
+    with pytest.raises(InputError, match="not a readable PNG or JPEG"):  # whole length, but garbled inside
+        decode_image(data[:100] + bytes(len(data) - 112) + data[-12:], "image")

@@ -263,7 +263,7 @@ def _png_header(width: int, height: int) -> bytes:
 
 BAD_PARTS = {
     "empty image": ({"image": b""}, 422, "invalid_input", ("image", "empty")),
-    "corrupt png": ({"image": _png_header(1242, 375) + b"\x00" * 500}, 422, "invalid_input", ("image", "not a readable")),
+    "corrupt png": ({"image": _png_header(1242, 375) + b"\x00" * 500}, 422, "invalid_input", ("image", "PNG cut off")),
     "no IHDR": ({"image": b"\x89PNG\r\n\x1a\n" + b"\x00" * 40}, 422, "invalid_input", ("image", "IHDR")),
     "gif image": ({"image": b"GIF89a" + b"\x00" * 100}, 415, "unsupported_media_type", ("image", "PNG or JPEG")),
     "text image": ({"image": b"hello"}, 415, "unsupported_media_type", ("image",)),
