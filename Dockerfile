@@ -22,15 +22,22 @@ RUN python -m venv /opt/venv \
 
 # --------------------------------------------------------------------------- NVIDIA GPU (x86-64)
 FROM ${GPU_BASE} AS runtime-gpu
-# TensorRT runtime libraries from the CUDA apt repository the base image already trusts.
-ARG TENSORRT_PACKAGES="libnvinfer10 libnvinfer-plugin10 libnvonnxparsers10"
+# Three versions that must agree (docs/deploy.md): the base image's CUDA 12, the TensorRT the ONNX Runtime
+# wheel was built with, and that wheel. Unpinned, each drifts to a CUDA 13 build: apt picks the
+# "+cuda13.x" TensorRT packages of the same CUDA repository, and pip an onnxruntime-gpu >= 1.27 (CUDA 13,
+# cuDNN for CUDA 13); on this CUDA 12 base both fail to load and every network silently runs on the CPU.
+# onnxruntime-gpu 1.22 is built with TensorRT 10.9 for CUDA 12.0-12.8.
+ARG ORT_GPU_VERSION=1.22.0
+ARG TENSORRT_VERSION=10.9.0.34-1+cuda12.8
 # hadolint ignore=DL3008
 RUN apt-get update \
-    && apt-get install -y --no-install-recommends python3 python3-venv ${TENSORRT_PACKAGES} \
+    && apt-get install -y --no-install-recommends python3 python3-venv \
+       "libnvinfer10=${TENSORRT_VERSION}" "libnvinfer-plugin10=${TENSORRT_VERSION}" \
+       "libnvonnxparsers10=${TENSORRT_VERSION}" \
     && rm -rf /var/lib/apt/lists/*
 COPY requirements/service-gpu.txt /tmp/requirements.txt
 RUN python3 -m venv /opt/venv \
-    && /opt/venv/bin/pip install --no-cache-dir -r /tmp/requirements.txt \
+    && /opt/venv/bin/pip install --no-cache-dir "onnxruntime-gpu==${ORT_GPU_VERSION}" -r /tmp/requirements.txt \
     && rm /tmp/requirements.txt
 
 # --------------------------------------------------------------------------- NVIDIA Jetson (JetPack 6)
@@ -59,7 +66,9 @@ COPY weights/edge/ /app/weights/edge/
 # INT8 (7-bit weights: the same outputs on every x86 CPU, fastest with VNNI): LOWRES3D_MODELS=/app/weights/edge-int8
 # (docs/deploy.md).
 COPY weights/edge-int8/ /app/weights/edge-int8/
-RUN useradd --system --uid 10001 --home-dir /app --shell /usr/sbin/nologin lowres3d \
+# The video group (gid 44 in every base image, as on the host): on a Jetson the GPU device nodes belong to it,
+# and a user outside it sees no CUDA device (ONNX Runtime would silently fall back to the CPU).
+RUN useradd --system --uid 10001 --groups video --home-dir /app --shell /usr/sbin/nologin lowres3d \
     && mkdir -p /var/cache/lowres3d/tensorrt \
     && chown lowres3d /var/cache/lowres3d/tensorrt
 ENV PATH=/opt/venv/bin:$PATH \

@@ -39,7 +39,7 @@ except ModuleNotFoundError as exc:
     raise SystemExit(TORCH_MISSING) from exc
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
-from pipeline.cli import positive_int
+from pipeline.cli import check_output, positive_int, unwritable
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_depth_png, write_depth_png
 from pipeline.model_files import ModelFileError, load_manifest
@@ -72,30 +72,62 @@ def to_full_image(view: np.ndarray, image_hw: tuple[int, int], preset: Preset) -
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True, help="KITTI-layout folder with depth_2 (synthetic scenes)")
-    parser.add_argument("--models", type=Path, required=True, help="model directory (its preset: view, fill)")
-    parser.add_argument("--factor", type=positive_int, default=1, help="correction at 1/factor of the view (default 1)")
-    parser.add_argument("--frames", type=positive_int, help="only the first N frames")
+    parser.add_argument("--data", type=Path, required=True,
+                        help="KITTI-layout folder with the true depth in depth_2/ (the synthetic scenes)")
+    parser.add_argument("--models", type=Path, required=True,
+                        help="two-stage model directory (its preset gives the view and the fill)")
+    parser.add_argument("--factor", type=positive_int, default=1,
+                        help="correction at 1/factor of the view; must divide its height and width (default 1)")
+    parser.add_argument("--frames", type=positive_int, help="only the first N frames (default: all)")
     parser.add_argument("--out", type=Path, required=True, help="writes OUT/depth_2/<id>.png")
     args = parser.parse_args(argv)
     try:
+        check_output(args.out, "--out", directory=True)
         count = write_bounds(args.data, args.models, args.factor, args.out, args.frames)
     except (InputError, ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # the output folder refused a write after the check (full disk, permissions)
+        print(unwritable(args.out, exc), file=sys.stderr)
         return 2
     print(f"wrote {count} maps to {args.out / 'depth_2'}")
     return 0
 
 
-def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int | None = None) -> int:
-    """Write OUT/depth_2/<id>.png for the first ``frames`` frames of ``data`` (all by default); returns how many."""
-    preset = preset_from_dict(load_manifest(models)["preset_config"])
+def check_inputs(data: Path, models: Path, factor: int) -> Preset:
+    """Everything a run needs, checked before any work; the model directory's preset."""
+    manifest = load_manifest(models)
+    if "depth" not in manifest.get("networks", {}):
+        raise InputError(f"--models {models}: a LiDAR-only model directory (no depth network); give a two-stage "
+                         "one such as weights/edge")
+    try:
+        preset = preset_from_dict(manifest["preset_config"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelFileError(f"{models / 'manifest.json'}: preset_config: {exc}") from exc
     if not preset.depth.prefill_passes:
         raise InputError(f"{models}: the depth net has no fill to correct (prefill_passes 0)")
+    height, width = preset.depth.input_hw
+    if height % factor or width % factor:
+        fits = [f for f in range(2, min(height, width) + 1) if height % f == 0 and width % f == 0][:6]
+        raise InputError(f"--factor {factor}: does not divide the network's view {width}×{height}; "
+                         f"use 1 or one of {', '.join(map(str, fits))}")
+    if not (data / "velodyne").is_dir():
+        raise InputError(f"--data {data}: not a KITTI object folder (no velodyne/ inside)")
+    if not (data / "depth_2").is_dir():
+        raise InputError(f"--data {data}: no depth_2/ folder with the true depth (only the synthetic scenes "
+                         "have it: python -m simulation)")
+    return preset
+
+
+def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int | None = None) -> int:
+    """Write OUT/depth_2/<id>.png for the first ``frames`` frames of ``data`` (all by default); returns how many."""
+    preset = check_inputs(data, models, factor)
     fill = SparsePrefill(preset.depth.prefill_passes, preset.depth.prefill_kernel)
     ids = frame_ids(data)[:frames]
+    if not ids:
+        raise InputError(f"--data {data}: no frames (velodyne/ has no .bin file)")
     (out / "depth_2").mkdir(parents=True, exist_ok=True)
-    for fid in tqdm(ids, desc="bounded depth"):
+    for fid in tqdm(ids, desc="bounded depth", unit="frame"):
         frame = load_frame(data, fid)
         truth_path = data / "depth_2" / f"{fid}.png"
         if not truth_path.exists():

@@ -1,15 +1,17 @@
 """Compare simulated frames with real KITTI frames: points per frame, points on cars vs distance
 (64 and 16 lines), car sizes, and a side-by-side picture (image | LiDAR projection | BEV).
 
-    python benchmarks/sim_report.py --sim DIR --kitti tests/data/kitti/training \
-        --figure docs/img/sim_vs_kitti.jpg
+    python benchmarks/sim_report.py --sim DIR --frames 100 --figure docs/img/sim_vs_kitti.jpg
 
-Prints markdown tables (paste into docs/simulation.md).
+Prints markdown tables (paste into docs/simulation.md). Without --sim it first generates --frames
+frames (seed --seed) into a temporary folder, about 2 s a frame, and deletes them afterwards.
+The figure needs matplotlib (the dev extras: make setup-dev).
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import itertools
 import sys
 import tempfile
@@ -18,12 +20,18 @@ from pathlib import Path
 
 import numpy as np
 
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
 from pipeline.beams import emulate_beams
 from pipeline.boxes import box_corners_3d, labels_to_boxes, points_in_boxes
 from pipeline.calib import Calibration
-from pipeline.cli import positive_int
+from pipeline.cli import check_output, positive_int
+from pipeline.errors import InputError
 from pipeline.kitti import Object3D, read_calib, read_image, read_labels, read_velodyne
 
+FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")
+KITTI_SUBDIRS = ("velodyne", "image_2", "calib", "label_2")
 DISTANCE_BINS = (0, 10, 20, 30, 40, 50, 60, 70)
 KITTI_CAR_SIZE = {"h": (1.53, 0.14), "w": (1.63, 0.10), "l": (3.88, 0.43)}
 
@@ -142,35 +150,68 @@ def figure(rows: list[tuple[str, FrameFiles]], path: Path) -> None:
     plt.close(fig)
 
 
+def check_folder(folder: Path, flag: str) -> None:
+    """A KITTI-layout folder with at least one frame, or an InputError naming the flag and what is missing."""
+    if not folder.is_dir():
+        raise InputError(f"{flag} {folder}: not a folder")
+    missing = [sub for sub in KITTI_SUBDIRS if not (folder / sub).is_dir()]
+    if missing:
+        raise InputError(f"{flag} {folder}: not a KITTI-layout folder (no {', '.join(s + '/' for s in missing)} inside)")
+    if not any((folder / "velodyne").glob("*.bin")):
+        raise InputError(f"{flag} {folder}: no frames (velodyne/ has no .bin file)")
+
+
+def check_config(config: ReportConfig) -> None:
+    """Everything the report needs, checked before any frame is generated or read."""
+    check_folder(config.kitti, "--kitti")
+    if config.sim is not None:
+        check_folder(config.sim, "--sim")
+    if config.figure is not None:
+        if config.figure.suffix.lower() not in FIGURE_SUFFIXES:
+            raise InputError(f"--figure {config.figure}: give a file name ending in {', '.join(FIGURE_SUFFIXES)}")
+        check_output(config.figure, "--figure")
+        try:
+            config.figure.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"--figure {config.figure}: cannot create its folder ({exc.strerror})") from exc
+        if importlib.util.find_spec("matplotlib") is None:
+            raise InputError("--figure: drawing needs matplotlib, which the runtime install leaves out; install "
+                             "the dev extras (make setup-dev)")
+
+
 def run(config: ReportConfig) -> str:
     """Build the tables (and the figure when asked); returns the markdown."""
+    check_config(config)
     real = load(config.kitti)
     if config.sim is None:
         from simulation import RunConfig
         from simulation import run as simulate
 
-        tmp = Path(tempfile.mkdtemp(prefix="sim_report_"))
-        simulate(RunConfig(out=tmp, frames=config.frames, seed=config.seed))
-        sim_dir = tmp
+        with tempfile.TemporaryDirectory(prefix="sim_report_") as tmp:
+            simulate(RunConfig(out=Path(tmp), frames=config.frames, seed=config.seed))
+            sim = load(Path(tmp), config.frames)
     else:
-        sim_dir = config.sim
-    sim = load(sim_dir, config.frames)
-    if not sim:
-        raise ValueError(f"--sim: no frames in {sim_dir}")
+        sim = load(config.sim, config.frames)
     if config.figure is not None:
         real_frame = max(real, key=lambda f: sum(o.type == "Car" for o in f.objects))
-        figure([("simulated " + sim[0].name, sim[0]), ("KITTI " + real_frame.name, real_frame)], config.figure)
+        try:
+            figure([("simulated " + sim[0].name, sim[0]), ("KITTI " + real_frame.name, real_frame)], config.figure)
+        except OSError as exc:
+            raise InputError(f"--figure {config.figure}: cannot write it ({exc.strerror or exc})") from exc
     return tables(sim, real)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--kitti", type=Path, default=Path("tests/data/kitti/training"),
-                        help="real KITTI folder (image_2, velodyne, calib, label_2)")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--kitti", type=Path, default=ROOT / "tests" / "data" / "kitti" / "training",
+                        help="real KITTI folder (image_2, velodyne, calib, label_2; default: the bundled samples)")
     parser.add_argument("--sim", type=Path, help="simulated folder; generated into a temp dir when omitted")
-    parser.add_argument("--frames", type=positive_int, default=20, help="simulated frames to use (default 20)")
+    parser.add_argument("--frames", type=positive_int, default=20,
+                        help="simulated frames to use, or to generate without --sim (default 20)")
     parser.add_argument("--seed", type=int, default=1, help="seed when generating (default 1)")
-    parser.add_argument("--figure", type=Path, help="write the side-by-side PNG here")
+    parser.add_argument("--figure", type=Path,
+                        help="write the side-by-side picture here (.png, .jpg, .pdf or .svg; needs matplotlib)")
     args = parser.parse_args(argv)
     try:
         print(run(ReportConfig(kitti=args.kitti, sim=args.sim, frames=args.frames, seed=args.seed,

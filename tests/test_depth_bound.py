@@ -1,8 +1,12 @@
 """benchmarks/depth_bound.py: the filled scan plus the exact correction, at a chosen resolution."""
 
+import shutil
+from pathlib import Path
+
 import numpy as np
 
 from benchmarks.depth_bound import bounded_depth, main, to_full_image
+from pipeline.kitti import read_depth_png, read_image, write_depth_png
 from pipeline.preprocess import depth_view
 from pipeline.presets import get_preset
 
@@ -30,3 +34,58 @@ def test_maps_go_to_the_full_image_so_that_the_runtime_reads_them_back_exactly()
 def test_command_refuses_what_it_cannot_use(tmp_path, capsys):
     assert main(["--data", str(tmp_path), "--models", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     assert "manifest" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ the command: one-line errors before any work
+REPO = Path(__file__).resolve().parents[1]
+KITTI = REPO / "tests" / "data" / "kitti" / "training"
+
+
+def _dataset(root: Path, with_depth: bool = True) -> Path:
+    """One real KITTI frame in the layout the command reads, with an (empty) true-depth map when asked."""
+    fid = "000006"
+    for sub, ext in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt")):
+        (root / sub).mkdir(parents=True)
+        shutil.copy(KITTI / sub / f"{fid}{ext}", root / sub / f"{fid}{ext}")
+    if with_depth:
+        (root / "depth_2").mkdir()
+        truth = np.zeros(read_image(root / "image_2" / f"{fid}.png").shape[:2], np.float32)
+        truth[200:, :] = 12.0
+        write_depth_png(root / "depth_2" / f"{fid}.png", truth)
+    return root
+
+
+def _run(capsys, *args: str) -> tuple[int, str]:
+    code = main(list(args))
+    return code, capsys.readouterr().err
+
+
+def test_command_refuses_bad_inputs_naming_the_flag_before_writing(tmp_path, capsys):
+    data = _dataset(tmp_path / "data")
+    out = tmp_path / "out"
+    edge = str(REPO / "weights" / "edge")
+    code, err = _run(capsys, "--data", str(data), "--models", str(REPO / "weights" / "edge-lidar16"), "--out", str(out))
+    assert code == 2 and "--models" in err and "LiDAR-only" in err  # used to write maps for a model with no depth net
+    code, err = _run(capsys, "--data", str(data), "--models", edge, "--factor", "7", "--out", str(out))
+    assert code == 2 and "--factor 7: does not divide" in err and "2, 4, 8, 16" in err
+    no_truth = _dataset(tmp_path / "kitti", with_depth=False)
+    code, err = _run(capsys, "--data", str(no_truth), "--models", edge, "--out", str(out))
+    assert code == 2 and "--data" in err and "depth_2/" in err
+    (tmp_path / "empty" / "velodyne").mkdir(parents=True)
+    (tmp_path / "empty" / "depth_2").mkdir()
+    code, err = _run(capsys, "--data", str(tmp_path / "empty"), "--models", edge, "--out", str(out))
+    assert code == 2 and "no frames" in err
+    assert not out.exists()  # every refusal came before the output folder was made
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    code, err = _run(capsys, "--data", str(data), "--models", edge, "--out", str(blocker / "out"))
+    assert code == 2 and err.startswith("error: --out") and "Traceback" not in err  # was a FileExistsError trace
+
+
+def test_command_writes_a_map_per_frame(tmp_path, capsys):
+    data = _dataset(tmp_path / "data")
+    code = main(["--data", str(data), "--models", str(REPO / "weights" / "edge"), "--factor", "2",
+                 "--out", str(tmp_path / "out")])
+    assert code == 0, capsys.readouterr().err
+    written = read_depth_png(tmp_path / "out" / "depth_2" / "000006.png")
+    assert written.shape == read_image(data / "image_2" / "000006.png").shape[:2] and (written > 0).any()
