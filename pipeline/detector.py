@@ -75,13 +75,15 @@ class Detections:
         return boxes_to_objects(self.boxes[seen], calib, image_hw, self.scores[seen], self.label)
 
 
-def resolve_providers(requested: str | list[str] | None = None) -> list[str]:
-    """Execution providers to use: the requested ones, or TensorRT → CUDA → CPU, first available.
+def resolve_providers(requested: str | list[str] | None = None, available: list[str] | None = None) -> list[str]:
+    """Execution providers to use, best first: TensorRT → CUDA → CPU, those this ONNX Runtime build offers.
 
-    ``requested`` may be short names (cpu, cuda, tensorrt) or ONNX Runtime names;
-    CPU is always appended as the fallback.
+    ``requested`` may be short names (cpu, cuda, tensorrt) or ONNX Runtime names. One name of the chain
+    starts the chain there (``tensorrt``: TensorRT, then CUDA for the operators TensorRT does not take, then
+    CPU); a list is used as given. CPU is always appended as the last fallback. ``available``: the build's
+    providers (default: this one's).
     """
-    available = ort.get_available_providers()
+    available = ort.get_available_providers() if available is None else available
     if requested:
         names = [requested] if isinstance(requested, str) else list(requested)
         chosen = []
@@ -93,11 +95,22 @@ def resolve_providers(requested: str | list[str] | None = None) -> list[str]:
                     f"(available: {', '.join(available)})"
                 )
             chosen.append(full)
+        if len(chosen) == 1 and chosen[0] in PROVIDER_PREFERENCE:
+            below = PROVIDER_PREFERENCE[PROVIDER_PREFERENCE.index(chosen[0]) + 1:]
+            chosen += [p for p in below if p in available]
     else:
-        chosen = [p for p in PROVIDER_PREFERENCE if p in available][:1]
+        chosen = [p for p in PROVIDER_PREFERENCE if p in available]
     if "CPUExecutionProvider" not in chosen:
         chosen.append("CPUExecutionProvider")
     return chosen
+
+
+def provider_fallbacks(wanted: str, in_use: dict[str, list[str]]) -> dict[str, str]:
+    """The networks whose session does not run on ``wanted`` first, with the provider it does run on.
+
+    ONNX Runtime drops a provider whose libraries fail to load (CUDA or TensorRT missing, no GPU visible
+    in a container) with a log line only, and runs the session on what is left."""
+    return {name: providers[0] for name, providers in in_use.items() if providers and providers[0] != wanted}
 
 
 def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
@@ -145,7 +158,11 @@ class Detector:
         if "TensorrtExecutionProvider" in self.providers:
             # Building TensorRT engines takes minutes: cache them (a volume in the container).
             cache = Path(trt_cache_dir or self.model_dir / "trt_cache")
-            cache.mkdir(parents=True, exist_ok=True)
+            try:
+                cache.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise InputError(f"--trt-cache-dir {cache}: cannot create the TensorRT engine cache "
+                                 f"({exc.strerror or exc})") from exc
             trt_options = {"trt_engine_cache_enable": True, "trt_engine_cache_path": str(cache),
                            "trt_timing_cache_enable": True, "trt_timing_cache_path": str(cache)}
             session_providers = [("TensorrtExecutionProvider", trt_options) if p == "TensorrtExecutionProvider" else p
@@ -164,8 +181,9 @@ class Detector:
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
         self._check_shapes()
         self._local = threading.local()
+        fallback = self._check_provider_loaded(explicit=bool(providers))
         # About the precision on this machine, logged once at load (and shown by the service's /v1/model).
-        self.load_warnings: list[str] = [w for w in (self._saturating_int8(), self._fp16_on_cpu()) if w]
+        self.load_warnings: list[str] = [w for w in (fallback, self._saturating_int8(), self._fp16_on_cpu()) if w]
         for warning in self.load_warnings:
             log.warning(warning)
         trained_on = (networks["pixor"].get("training") or {}).get("input")
@@ -193,6 +211,20 @@ class Detector:
                     raise ModelFileError(f"{manifest}: preset_config gives {name} input '{graph_input.name}' the "
                                          f"shape {list(want)}, but {self.model_dir / files[name]} expects "
                                          f"{list(graph_input.shape)}")
+
+    def _check_provider_loaded(self, explicit: bool) -> str | None:
+        """A provider asked for by name must really run the networks: otherwise an InputError naming
+        ``--provider``. When it was only the best one offered, a warning (the networks run on the next)."""
+        wanted = self.providers[0]
+        fallen = provider_fallbacks(wanted, self.providers_in_use)
+        if not fallen:
+            return None
+        where = ", ".join(f"{name} on {provider}" for name, provider in fallen.items())
+        message = (f"{wanted} is offered by this ONNX Runtime build but did not load ({where}): its libraries "
+                   "or the GPU are missing (in a container: --gpus all or --runtime nvidia; docs/deploy.md)")
+        if explicit:
+            raise InputError(f"--provider: {message}")
+        return message
 
     def _saturating_int8(self) -> str | None:
         """A warning when full-range INT8 weights run on a CPU whose int8 kernels saturate (pipeline/cpu.py)."""

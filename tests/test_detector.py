@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.beams import emulate_beams
-from pipeline.detector import Detector, resolve_providers, session_options
+from pipeline.detector import Detector, provider_fallbacks, resolve_providers, session_options
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.kitti import read_labels
@@ -239,6 +239,32 @@ def test_provider_resolution():
         resolve_providers("tensorrt")
 
 
+def test_provider_chain_of_a_gpu_build_keeps_cuda_behind_tensorrt():
+    """onnxruntime-gpu's list: TensorRT hands the operators it cannot take to CUDA, not to the CPU."""
+    gpu = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
+    assert resolve_providers(None, gpu) == gpu
+    assert resolve_providers("tensorrt", gpu) == gpu
+    assert resolve_providers("cuda", gpu) == gpu[1:]
+    assert resolve_providers("cpu", gpu) == gpu[2:]
+    assert resolve_providers(["tensorrt", "cpu"], gpu) == [gpu[0], gpu[2]]  # a list is taken as given
+    assert resolve_providers(None, ["CUDAExecutionProvider", "CPUExecutionProvider"]) == gpu[1:]
+
+
+def test_a_provider_that_did_not_load_is_found():
+    """ONNX Runtime drops a provider whose libraries fail to load and runs on the rest: the Detector compares
+    each session's providers with the one it asked for (an error when named, a warning otherwise)."""
+    assert provider_fallbacks("CUDAExecutionProvider", {"depth": ["CPUExecutionProvider"],
+                                                        "pixor": ["CUDAExecutionProvider", "CPUExecutionProvider"]}) \
+        == {"depth": "CPUExecutionProvider"}
+    assert provider_fallbacks("CPUExecutionProvider", {"pixor": ["CPUExecutionProvider"]}) == {}
+
+
+def test_detector_on_the_cpu_provider_has_no_fallback_warning(tiny_models):
+    detector = Detector(tiny_models, providers="cpu")
+    assert set(detector.providers_in_use) == {"depth", "pixor"}
+    assert not any("did not load" in w for w in detector.load_warnings)
+
+
 def test_session_threads_stop_spinning_after_each_run():
     """Spinning pool threads after a run took the cores from the NumPy stages (69 ms instead of 43 ms an
     edge frame): sessions may spin within a run only."""
@@ -335,11 +361,15 @@ def test_pictures_survive_boxes_far_off_the_grid():
     assert green.any() and picture.shape[:2] == (round((grid.x_max - grid.x_min) / 0.1), round((grid.y_max - grid.y_min) / 0.1))
 
 
-def test_runtime_never_imports_torch():
+def test_runtime_never_imports_torch_or_onnx():
+    """The service container carries neither: torch is for training, the onnx package for export and the
+    benchmarks' peak micro-benchmark (requirements/service-*.txt leave it out)."""
     code = (
-        "import sys; sys.modules['torch'] = None\n"
+        "import sys; sys.modules['torch'] = None; sys.modules['onnx'] = None\n"
         "import pipeline.detector, pipeline.detect, pipeline.demo, pipeline.beams, pipeline.bev\n"
-        "assert 'torch' not in [m for m in sys.modules if sys.modules[m] is not None]\n"
+        "import service.app, service.__main__\n"
+        "loaded = [m for m in sys.modules if sys.modules[m] is not None]\n"
+        "assert not [m for m in loaded if m.split('.')[0] in ('torch', 'onnx')], loaded\n"
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr
