@@ -234,3 +234,17 @@ def test_bad_start_configuration_exits_with_a_message(
     code, output = _start_fails(models, *args)
     assert code == 2, output
     assert message in output and "Traceback" not in output
+
+
+def test_without_models_outside_a_checkout_the_start_says_where_the_weights_are(tmp_path: Path) -> None:
+    """After `pip install .` (not -e) the packages sit in site-packages and the default weights/edge beside
+    them does not exist: the start names the way out instead of only "not found"."""
+    site = tmp_path / "site-packages"
+    for package in ("pipeline", "service"):
+        shutil.copytree(REPO / package, site / package, ignore=shutil.ignore_patterns("__pycache__"))
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")} | {"PYTHONPATH": str(site)}
+    result = subprocess.run([sys.executable, "-m", "service", "--port", str(free_port())], check=False,
+                            cwd=tmp_path, capture_output=True, text=True, timeout=START_TIMEOUT_S, env=env)
+    assert result.returncode == 2, result.stderr
+    assert f"{site / 'weights' / 'edge'}" in result.stderr and "exists only in a source checkout" in result.stderr
+    assert "--models" in result.stderr and "Traceback" not in result.stderr
