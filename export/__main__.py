@@ -9,10 +9,12 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
+from export.directory import check_destination
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
 from export.precision import REDUCE_RANGE_HELP
-from pipeline.cli import positive_int
-from pipeline.errors import TORCH_MISSING
+from pipeline.cli import positive_int, unwritable
+from pipeline.errors import TORCH_MISSING, InputError
+from pipeline.frame import frame_ids
 from pipeline.model_files import ModelFileError
 from pipeline.presets import PRESETS, get_preset
 
@@ -32,34 +34,59 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
         "PyTorch on a real KITTI frame and random inputs, and write manifest.json.",
     )
     parser.add_argument("--preset", required=True, help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with -no-gam, -no-aspp, -refine or -split")
-    parser.add_argument("--out", required=True, type=Path, help="output model directory")
+    parser.add_argument("--out", required=True, type=Path,
+                        help="output model directory: new, empty, or a model directory to replace (only once the new "
+                        "one is written and checked)")
     parser.add_argument(
         "--checkpoints", type=Path, default=None,
         help="directory with depth.pt and/or pixor.pt (models/checkpoint.py); default: initialised, untrained weights",
     )
-    parser.add_argument("--kitti-dir", type=Path, default=DEFAULT_KITTI_DIR, help="KITTI training dir for the parity frame")
-    parser.add_argument("--frame", default=DEFAULT_FRAME, help="KITTI frame id for the parity check")
-    parser.add_argument("--seed", type=int, default=0, help="seed for initial weights and random parity inputs")
+    # Defaults of None: a flag given with --no-parity (or a calibration flag with fp32) is refused, not ignored.
+    parser.add_argument("--kitti-dir", type=Path, default=None,
+                        help="KITTI training folder of the parity frame (default: the bundled tests/data/kitti/training)")
+    parser.add_argument("--frame", default=None, help=f"KITTI frame id for the parity check (default {DEFAULT_FRAME})")
+    parser.add_argument("--seed", type=int, default=0, help="seed for initial weights and random parity inputs (default 0)")
     parser.add_argument("--no-parity", action="store_true", help="skip the ONNX Runtime vs PyTorch check")
     parser.add_argument("--precision", choices=["fp32", "fp16", "int8"], default="fp32",
                         help="fp32 (default); fp16 for GPUs; int8 static QDQ quantization for CPUs")
-    parser.add_argument("--calibration-data", type=Path, default=DEFAULT_KITTI_DIR,
-                        help="KITTI-layout folder whose frames calibrate int8 (default: the bundled KITTI frames)")
-    parser.add_argument("--calibration-frames", type=positive_int, default=300, help="frames used for calibration (default 300)")
+    parser.add_argument("--calibration-data", type=Path, default=None,
+                        help="fp16/int8: KITTI-layout folder whose frames calibrate int8 and measure the deviation "
+                        "from fp32 (default: the bundled KITTI frames)")
+    parser.add_argument("--calibration-frames", type=positive_int, default=None,
+                        help="fp16/int8: frames of --calibration-data used (default 300)")
     parser.add_argument("--reduce-range", action="store_true", help=REDUCE_RANGE_HELP)
     parser.add_argument("--networks", nargs="+", default=["depth", "pixor"], choices=["depth", "pixor"],
                         help="networks to export (default both; 'pixor' alone for a LiDAR-only detector)")
     args = parser.parse_args(argv)
-    if args.reduce_range and args.precision != "int8":
-        parser.error(f"--reduce-range: applies to --precision int8 only, not {args.precision}")
+    _refuse_contradictions(parser, args)
     try:
         get_preset(args.preset)
     except ValueError as exc:
         parser.error(f"--preset: {exc}")
     return ExportConfig(
-        preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir,
-        frame=args.frame, seed=args.seed, parity=not args.no_parity, progress=True, networks=tuple(args.networks),
+        preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir or DEFAULT_KITTI_DIR,
+        frame=args.frame or DEFAULT_FRAME, seed=args.seed, parity=not args.no_parity, progress=True,
+        networks=tuple(dict.fromkeys(args.networks)),
     ), args
+
+
+def _refuse_contradictions(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Flags that would be silently ignored are refused (argparse's exit 2), and the defaults filled in."""
+    if args.reduce_range and args.precision != "int8":
+        parser.error(f"--reduce-range: applies to --precision int8 only, not {args.precision}")
+    if args.no_parity:
+        given = [flag for flag, value in (("--kitti-dir", args.kitti_dir), ("--frame", args.frame)) if value is not None]
+        if given:
+            parser.error(f"{' and '.join(given)}: only used by the parity check, which --no-parity skips")
+    if args.precision == "fp32":
+        given = [flag for flag, value in (("--calibration-data", args.calibration_data),
+                                          ("--calibration-frames", args.calibration_frames)) if value is not None]
+        if given:
+            parser.error(f"{' and '.join(given)}: only used by --precision fp16 or int8, not fp32")
+    if "pixor" not in args.networks:
+        parser.error("--networks: every model directory has pixor; choose 'depth pixor' or 'pixor'")
+    args.calibration_data = args.calibration_data or DEFAULT_KITTI_DIR
+    args.calibration_frames = args.calibration_frames or 300
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -73,6 +100,36 @@ def main(argv: list[str] | None = None) -> int:
     except ParityError as exc:  # nothing is written to --out; the numbers say why
         print(f"error: {exc}", file=sys.stderr)
         return 1
+    except OSError as exc:  # a full disk or a vanished folder while writing: --out is as it was
+        print(unwritable(config.out, exc), file=sys.stderr)
+        return 2
+    except BaseException as exc:
+        if not _interrupted(exc):
+            raise
+        print(f"error: interrupted; --out {config.out} is as it was (nothing written)", file=sys.stderr)
+        return 130
+
+
+def _interrupted(exc: BaseException | None) -> bool:
+    """Whether ``exc`` is Ctrl-C, or an error raised while handling it: torch.onnx.export turns a
+    KeyboardInterrupt during tracing into a TorchExportError that asks for a bug report."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def _check_calibration_data(data: Path) -> None:
+    """Refuse a --calibration-data folder without frames (InputError naming the flag)."""
+    try:
+        ids = frame_ids(data)
+    except InputError as exc:
+        raise InputError(f"--calibration-data {exc}") from None
+    if not ids:
+        raise InputError(f"--calibration-data {data}: no frames (velodyne/*.bin) to calibrate on")
 
 
 def export(config: ExportConfig, args: argparse.Namespace) -> int:
@@ -83,6 +140,9 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
     else:
         from export.precision import convert_precision
 
+        # Checked before the fp32 export, which takes minutes, rather than by the conversion after it.
+        check_destination(config.out)
+        _check_calibration_data(args.calibration_data)
         with tempfile.TemporaryDirectory(prefix="lowres3d-fp32-") as fp32_dir:
             result = run(replace(config, out=Path(fp32_dir)))
             manifest = convert_precision(Path(fp32_dir), config.out, args.precision, args.calibration_data,

@@ -15,14 +15,17 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from pipeline.cli import check_output
 from pipeline.model_files import MANIFEST_NAME, ModelFileError
 
 
 def check_destination(out: Path) -> None:
-    """Refuse an ``--out`` that exists and is neither a model directory nor an empty folder."""
+    """Refuse an ``--out`` that exists and is neither a model directory nor an empty folder, or that cannot
+    be made (a file above it, no permission): before any work, not when the staging folder is made."""
     out = Path(out)
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / MANIFEST_NAME).exists())):
         raise ModelFileError(f"--out {out}: exists and is not a model directory; give a new or empty folder")
+    check_output(out, "--out", directory=True)
 
 
 @contextmanager
@@ -36,12 +39,15 @@ def staged(out: Path, source: Path | None = None) -> Iterator[Path]:
     staging = target.parent / f".{target.name}.staging"
     if staging.exists():  # left by a run that was killed
         shutil.rmtree(staging)
-    target.parent.mkdir(parents=True, exist_ok=True)
-    if source is None:
-        staging.mkdir()
-    else:
-        shutil.copytree(source, staging)
     try:
+        target.parent.mkdir(parents=True, exist_ok=True)
+        staging.mkdir()
+    except OSError as exc:  # what check_destination cannot foresee (a read-only mount): one line, no traceback
+        raise ModelFileError(f"--out {out}: cannot write there ({exc.strerror or exc})") from exc
+    try:
+        if source is not None:
+            staging.rmdir()
+            shutil.copytree(source, staging)
         yield staging
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -12,14 +13,22 @@ import torch
 from tqdm import tqdm
 
 from export.directory import check_destination, staged
-from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR, kitti_inputs, random_inputs
+from export.inputs import (
+    DEFAULT_FRAME,
+    DEFAULT_KITTI_DIR,
+    NetworkInputs,
+    check_frame,
+    kitti_inputs,
+    random_inputs,
+)
 from export.manifest import UNTRAINED, NetworkEntry, build_manifest, verify_model_dir, write_manifest
 from export.onnx_export import EXPORTER, OPSET, NetworkIO, depth_io, export_onnx, pixor_io
 from export.parity import ParityResult, cpu_session, depth_parity, pixor_parity, require_parity
 from models import build_depth_net, build_pixor
 from models.checkpoint import find_checkpoints, load_checkpoint, load_network_weights
 from models.depth_net import IMAGENET_MEAN, IMAGENET_STD
-from pipeline.model_files import MANIFEST_NAME
+from pipeline.errors import InputError
+from pipeline.model_files import MANIFEST_NAME, ModelFileError
 from pipeline.presets import Preset, get_preset
 
 log = logging.getLogger(__name__)
@@ -70,20 +79,51 @@ def normalisation(preset: Preset) -> dict:
     }
 
 
-def _load_weights(config: ExportConfig, preset: Preset, models: dict[str, torch.nn.Module]) -> dict[str, dict | None]:
+def _checkpoint_files(config: ExportConfig) -> dict[str, Path]:
+    """The checkpoints to load (network → path) among ``config.networks``; {} for initialised weights.
+
+    Checked before any work: a --checkpoints folder holding none of the networks asked for would
+    otherwise export initialised weights where the user meant trained ones.
+    """
+    if config.checkpoints is None:
+        return {}
+    folder = Path(config.checkpoints)
+    if folder.is_file():
+        raise InputError(f"--checkpoints {folder}: is a file; give the folder that holds depth.pt and/or pixor.pt")
+    try:
+        found = find_checkpoints(folder)
+    except FileNotFoundError as exc:
+        raise FileNotFoundError(f"--checkpoints {exc}") from None
+    wanted = {name: path for name, path in found.items() if name in config.networks}
+    if not wanted:
+        raise FileNotFoundError(f"--checkpoints {folder}: holds {', '.join(p.name for p in found.values())} but no "
+                                f"checkpoint of --networks {' '.join(config.networks)}")
+    return wanted
+
+
+def _check_keeps_trained(out: Path, checkpoints: dict[str, Path], networks: tuple[str, ...]) -> None:
+    """Refuse to replace a trained network at ``out`` by initialised weights (a forgotten --checkpoints)."""
+    try:
+        held = json.loads((out / MANIFEST_NAME).read_text(encoding="utf-8"))["networks"]
+        trained = [name for name in networks if name not in checkpoints and held[name]["weights"] == "trained"]
+    except (OSError, ValueError, KeyError, TypeError):  # no or broken model directory there: nothing trained to keep
+        return
+    if trained:
+        raise ModelFileError(f"--out {out}: holds trained {' and '.join(trained)} weights, which this export would "
+                             "replace by initialised ones; give --checkpoints with them, or another --out")
+
+
+def _load_weights(checkpoints: dict[str, Path], preset: Preset, models: dict[str, torch.nn.Module]) -> dict[str, dict | None]:
     """Load trained weights where checkpoints exist; returns network → training metadata (None = untrained)."""
     training: dict[str, dict | None] = {name: None for name in models}
-    if config.checkpoints is None:
-        return training
-    for name, path in find_checkpoints(config.checkpoints).items():
-        if name not in models:
-            continue
+    for name, path in checkpoints.items():
         checkpoint = load_checkpoint(path)
         load_network_weights(models[name], checkpoint, name, preset)
         training[name] = {"checkpoint": path.name, **checkpoint.metadata}
     untrained = [name for name, meta in training.items() if meta is None]
-    if untrained:
-        log.warning("no checkpoint for %s in %s: exporting initialised weights", ", ".join(untrained), config.checkpoints)
+    if checkpoints and untrained:
+        folder = next(iter(checkpoints.values())).parent
+        log.warning("no checkpoint for %s in %s: exporting initialised weights", ", ".join(untrained), folder)
     return training
 
 
@@ -102,15 +142,22 @@ def run(config: ExportConfig) -> ExportResult:
     """
     preset = get_preset(config.preset)
     out = Path(config.out)
-    check_destination(out)
-    torch.manual_seed(config.seed)
     unknown = set(config.networks) - set(FILES)
     if unknown or "pixor" not in config.networks:
         raise ValueError(f"--networks: {', '.join(config.networks)}; choose 'depth pixor' or 'pixor'")
+    # Every input is checked before the minutes of export: a misspelt flag fails at once.
+    check_destination(out)
+    checkpoints = _checkpoint_files(config)
+    _check_keeps_trained(out, checkpoints, config.networks)
+    sources: list[NetworkInputs] = []
+    if config.parity:
+        check_frame(config.kitti_dir, config.frame)
+        sources = [kitti_inputs(preset, config.kitti_dir, config.frame), random_inputs(preset, config.seed)]
+    torch.manual_seed(config.seed)
     # Written in a staging folder and swapped in when complete and checked (export.directory): a parity
     # failure must not leave an earlier model directory at --out with new ONNX files and its old manifest.
     with staged(out) as staging:
-        manifest, models, results = _export(config, preset, staging)
+        manifest, models, results = _export(config, preset, staging, checkpoints, sources)
     files = {name: out / FILES[name] for name in models}
     return ExportResult(
         directory=out, files=files, manifest_path=out / MANIFEST_NAME, manifest=manifest, parity=results,
@@ -118,8 +165,10 @@ def run(config: ExportConfig) -> ExportResult:
     )
 
 
-def _export(config: ExportConfig, preset: Preset, staging: Path) -> tuple[dict, dict, list[ParityResult]]:
-    """Export, check and describe the networks in ``staging``; returns (manifest, modules, parity results)."""
+def _export(config: ExportConfig, preset: Preset, staging: Path, checkpoints: dict[str, Path],
+            sources: list[NetworkInputs]) -> tuple[dict, dict, list[ParityResult]]:
+    """Export, check (on ``sources``) and describe the networks in ``staging``; returns (manifest, modules,
+    parity results)."""
     builders = {"depth": build_depth_net, "pixor": build_pixor}
     models = {name: builders[name](preset).eval() for name in FILES if name in config.networks}
     interfaces: dict[str, NetworkIO] = {
@@ -129,7 +178,7 @@ def _export(config: ExportConfig, preset: Preset, staging: Path) -> tuple[dict, 
     steps = 1 + len(models) + (2 * len(models) if config.parity else 0) + 1  # weights, exports, parity, manifest
     with tqdm(total=steps, disable=not config.progress, unit="step") as bar:
         with _step(bar, "loading weights"):
-            training = _load_weights(config, preset, models)
+            training = _load_weights(checkpoints, preset, models)
         graphs = {}
         for name, module in models.items():
             with _step(bar, f"exporting {FILES[name]}"):
@@ -138,7 +187,6 @@ def _export(config: ExportConfig, preset: Preset, staging: Path) -> tuple[dict, 
         results: list[ParityResult] = []
         if config.parity:
             sessions = {name: cpu_session(path) for name, path in files.items()}
-            sources = [kitti_inputs(preset, config.kitti_dir, config.frame), random_inputs(preset, config.seed)]
             for inputs in sources:
                 if "depth" in models:
                     with _step(bar, f"depth parity ({inputs.source.split()[0]})"):

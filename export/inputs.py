@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.bev import voxelize_bev
+from pipeline.errors import InputError
 from pipeline.kitti import read_calib, read_image, read_velodyne
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import Preset
@@ -39,6 +40,18 @@ class NetworkInputs:
     def feeds(self, network: str) -> dict[str, np.ndarray]:
         """The ONNX feeds of ``network`` ("depth" or "pixor")."""
         return {"rgb": self.rgb, "sparse_depth": self.sparse_depth} if network == "depth" else {"bev": self.bev}
+
+
+def check_frame(kitti_dir: str | Path, frame: str) -> None:
+    """Refuse a parity frame that is not in ``kitti_dir`` before any export work (InputError naming the flags)."""
+    kitti_dir = Path(kitti_dir)
+    if not kitti_dir.is_dir():
+        raise InputError(f"--kitti-dir {kitti_dir}: not a folder (a KITTI object training folder with image_2/, "
+                         "velodyne/, calib/)")
+    needed = (f"image_2/{frame}.png", f"velodyne/{frame}.bin", f"calib/{frame}.txt")
+    missing = [name for name in needed if not (kitti_dir / name).is_file()]
+    if missing:
+        raise InputError(f"--frame {frame}: not in --kitti-dir {kitti_dir} (no {', '.join(missing)})")
 
 
 def kitti_inputs(preset: Preset, kitti_dir: str | Path = DEFAULT_KITTI_DIR, frame: str = DEFAULT_FRAME) -> NetworkInputs:

@@ -20,37 +20,68 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.cli import check_output, unwritable
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import write_depth_png
 from pipeline.model_files import ModelFileError
 
+FRAME_FILES = (("velodyne", ".bin"), ("image_2", ".png"), ("calib", ".txt"))  # what a frame's map is made from
+
 
 def run(data: Path, models: Path, out: Path, split_file: Path | None = None, beams: int = 16,
         progress: bool = True, threads: int | None = None) -> int:
     """Write one depth PNG per frame into ``out``; returns how many were computed (not skipped).
 
-    threads: ONNX Runtime's intra-op threads (None: one per core).
+    Every input is checked before ``out`` is made or any map computed. threads: ONNX Runtime's
+    intra-op threads (None: one per core).
     """
+    out = Path(out)
+    check_output(out, "--out", directory=True)
+    ids = _frames(Path(data), split_file)
     detector = Detector(models, intra_op_threads=threads)
     if not detector.two_stage:
         raise InputError(f"--models: {models} has no depth network")
-    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     depth_file = detector.manifest["networks"]["depth"]["file"]  # the maps depend on the depth net alone
     _check_record(out, {"depth_sha256": detector.sha256[depth_file], "preset": detector.preset.name, "beams": beams})
     computed = 0
-    for fid in tqdm(frame_ids(data, split_file), desc="pseudo depth", unit="frame", disable=not progress):
+    for fid in tqdm(ids, desc="pseudo depth", unit="frame", disable=not progress):
         target = out / f"{fid}.png"
         if target.exists():
             continue
         frame = load_frame(data, fid, with_labels=False)
         depth, _ = detector.dense_depth(frame.image, emulate_beams(frame.points, beams), frame.calib)
-        write_depth_png(target.with_suffix(".tmp.png"), depth)
-        target.with_suffix(".tmp.png").replace(target)
+        partial = target.with_suffix(".tmp.png")
+        try:  # written whole, then renamed: an interrupted run leaves no truncated map to skip next time
+            write_depth_png(partial, depth)
+            partial.replace(target)
+        finally:
+            partial.unlink(missing_ok=True)
         computed += 1
     return computed
+
+
+def _frames(data: Path, split_file: Path | None) -> list[str]:
+    """The frame ids to cache, each with its scan, image and calibration in ``data`` (InputError naming the
+    flag otherwise): a misspelt id fails before the first map, not after the ones before it."""
+    if not (data / "velodyne").is_dir():
+        raise InputError(f"--data {data}: not a KITTI object folder (no velodyne/ inside)")
+    ids = frame_ids(data, split_file)
+    if not ids:
+        raise InputError(f"--data {data}: no frames (velodyne/*.bin)")
+    held = {folder: {p.name for p in (data / folder).iterdir()} if (data / folder).is_dir() else set()
+            for folder, _ in FRAME_FILES}
+    lacking = {fid: [f"{folder}/{fid}{ext}" for folder, ext in FRAME_FILES if f"{fid}{ext}" not in held[folder]]
+               for fid in ids}
+    lacking = {fid: files for fid, files in lacking.items() if files}
+    if lacking:
+        fid, files = next(iter(lacking.items()))
+        listed = f" (listed in --split-file {split_file})" if split_file is not None else ""
+        more = f"; {len(lacking) - 1} more frame(s) are incomplete too" if len(lacking) > 1 else ""
+        raise InputError(f"--data {data}: frame {fid}{listed} has no {', '.join(files)}{more}")
+    return ids
 
 
 def _check_record(out: Path, wanted: dict) -> None:
@@ -85,6 +116,13 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a full disk or a folder removed while writing
+        print(unwritable(args.out, exc), file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"error: interrupted; the maps already in {args.out} stay: rerun the same command to resume",
+              file=sys.stderr)
+        return 130
     print(f"cached {n} depth map(s) in {args.out}")
     return 0
 

@@ -52,14 +52,16 @@ from pathlib import Path
 from evaluation.frames import LabelSet, load_label_dirs
 from evaluation.harness import run_depth, run_detection
 from evaluation.kitti_eval import DIFFICULTIES, bootstrap, evaluate, evaluate_by_distance
+from export.directory import check_destination, staged
 from export.exporter import ExportConfig
 from export.exporter import run as export
 from models.cache_pseudo import run as cache_pseudo
 from models.schedule import Job, JobFailed, run_jobs
 from models.train import TrainConfig
 from models.train import run as train
-from pipeline.cli import positive_float, positive_int
+from pipeline.cli import check_output, positive_float, positive_int
 from pipeline.errors import InputError
+from pipeline.model_files import ModelFileError
 from pipeline.presets import PRESETS, get_preset, lidar_only
 from simulation.run import RunConfig
 from simulation.run import run as simulate
@@ -142,10 +144,40 @@ def _train(config: ReproduceConfig, name: str, task: str, preset: str | None = N
 
 def _export(config: ReproduceConfig, checkpoints: Path, target: Path, networks: tuple[str, ...],
             preset: str | None = None) -> Path:
-    if target.exists():
-        shutil.rmtree(target)
+    # Not removed first: the export swaps the new directory in only once it is written and checked.
     export(ExportConfig(preset=preset or config.preset, out=target, checkpoints=checkpoints, networks=networks))
     return target
+
+
+def shipped_directories(config: ReproduceConfig) -> dict[str, Path]:
+    """Where the recipe ships its model directories: row of the table (or "product") → folder under WEIGHTS."""
+    lidar = config.lidar_preset
+    return {"product": config.weights / config.preset, "lidar64": config.weights / f"{lidar}-lidar64",
+            "lidar16": config.weights / f"{lidar}-lidar16"}
+
+
+def check_paths(config: ReproduceConfig) -> None:
+    """Refuse, before hours of work, an --out, --data or --weights that cannot be written, and a shipped
+    model directory's place that holds something else (InputError or ModelFileError naming the flag)."""
+    for path, flag in ((config.out, "--out"), (config.data, "--data"), (config.weights, "--weights")):
+        check_output(path, flag, directory=True)
+    for target in shipped_directories(config).values():
+        try:
+            check_destination(target)
+        except (ModelFileError, InputError) as exc:  # they name --out, which is the run folder here
+            raise ModelFileError(f"--weights {config.weights}: {str(exc).removeprefix('--out ')}") from None
+
+
+def _ship(config: ReproduceConfig, sources: dict[str, Path]) -> dict[str, str]:
+    """Copy the finished model directories to WEIGHTS, each swapped in whole (export.directory.staged):
+    until the last stage the shipped ones stay as they were, and an interrupted copy leaves them so."""
+    shipped = {}
+    for name, target in shipped_directories(config).items():
+        check_destination(target)
+        with staged(target, source=sources[name]):
+            pass
+        shipped[name] = str(target)
+    return shipped
 
 
 def _detection_labels(config: ReproduceConfig, models: Path, input_mode: str, name: str) -> LabelSet:
@@ -279,6 +311,7 @@ def _bars(config: ReproduceConfig) -> bool:
 def run(config: ReproduceConfig) -> dict:
     """All stages; returns the report (also written to OUT/table.json and OUT/table.md)."""
     b, out = config.budget, config.out
+    check_paths(config)
     out.mkdir(parents=True, exist_ok=True)
     report: dict = {"preset": config.preset, "budget": asdict(b), "stages": {}, "seconds": {}}
     started = time.perf_counter()
@@ -315,11 +348,11 @@ def run(config: ReproduceConfig) -> dict:
         source = out / ("depth" if name == "depth" else "pixor_pseudo") / f"{name}.pt"
         (out / "checkpoints_before_joint").mkdir(exist_ok=True)
         shutil.copy(source, out / "checkpoints_before_joint" / f"{name}.pt")
+    # Exported inside OUT and shipped to WEIGHTS at the end, together: a run that fails or is stopped
+    # before then leaves the shipped directories as they were, not some of them new.
     directories = {
-        "lidar64": _export(config, out / "pixor_lidar64", config.weights / f"{config.lidar_preset}-lidar64",
-                           ("pixor",), config.lidar_preset),
-        "lidar16": _export(config, out / "pixor_lidar16", config.weights / f"{config.lidar_preset}-lidar16",
-                           ("pixor",), config.lidar_preset),
+        "lidar64": _export(config, out / "pixor_lidar64", out / "models" / "lidar64", ("pixor",), config.lidar_preset),
+        "lidar16": _export(config, out / "pixor_lidar16", out / "models" / "lidar16", ("pixor",), config.lidar_preset),
         "lidar16+camera": _export(config, out / "checkpoints_before_joint", before, ("depth", "pixor")),
         "lidar16+camera (joint)": _export(config, out / "joint", out / "models" / "camera_joint", ("depth", "pixor")),
     }
@@ -342,11 +375,9 @@ def run(config: ReproduceConfig) -> dict:
     # Ship the better two-stage directory (by BEV AP at IoU 0.7, moderate) as the product.
     joint_better = table["lidar16+camera (joint)"]["0.7"]["R40"][1] >= table["lidar16+camera"]["0.7"]["R40"][1]
     shipped_from = directories["lidar16+camera (joint)" if joint_better else "lidar16+camera"]
-    product = config.weights / config.preset
-    if product.exists():
-        shutil.rmtree(product)
-    shutil.copytree(shipped_from, product)
-    report.update({"bev_ap": table, "ap_3d": table_3d, **how_sure, "depth": depth_table, "shipped": str(product),
+    shipped = _ship(config, {"product": shipped_from, "lidar64": directories["lidar64"],
+                             "lidar16": directories["lidar16"]})
+    report.update({"bev_ap": table, "ap_3d": table_3d, **how_sure, "depth": depth_table, "shipped": shipped["product"],
                    "shipped_from": "joint fine-tuning" if joint_better else "before joint fine-tuning"})
     report["total_seconds"] = round(time.perf_counter() - started, 1)
     (out / "table.json").write_text(json.dumps(report, indent=1))
@@ -394,7 +425,9 @@ def main(argv: list[str] | None = None) -> int:
                                      epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("runs/edge"), help="run folder (default runs/edge)")
     parser.add_argument("--data", type=Path, default=Path("data/sim"), help="synthetic data folder (default data/sim)")
-    parser.add_argument("--weights", type=Path, default=Path("weights"), help="where model directories ship (default weights)")
+    parser.add_argument("--weights", type=Path, default=None,
+                        help="where the model directories ship, at the end of the run (default weights; "
+                        "--quick: OUT/weights)")
     parser.add_argument("--preset", default="edge", help="preset (default edge)")
     parser.add_argument("--sim-workers", type=positive_int, default=2, help="simulation processes (default 2)")
     parser.add_argument("--lanes", type=positive_int, default=2,
@@ -407,19 +440,25 @@ def main(argv: list[str] | None = None) -> int:
         get_preset(args.preset)
     except ValueError as exc:
         parser.error(f"argument --preset: {exc}")
+    if args.quick and args.weights is not None:  # it would be ignored: a smoke test never ships
+        parser.error("argument --weights: --quick writes its model directories to OUT/weights only")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    config = ReproduceConfig(out=args.out, data=args.data, weights=args.weights, preset=args.preset,
+    config = ReproduceConfig(out=args.out, data=args.data, weights=args.weights or Path("weights"), preset=args.preset,
                              quick=args.quick, sim_workers=args.sim_workers,
                              lanes=args.lanes)
     config.budget = replace(config.budget, depth_car_weight=args.car_weight)
     try:
         report = run(config)
-    except (InputError, FileNotFoundError, ValueError) as exc:
+    except (InputError, FileNotFoundError, ValueError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except JobFailed as exc:  # a crash's traceback is above, from its own process
         print(f"error: {exc}; rerun the same command to resume", file=sys.stderr)
         return 2 if exc.user_error else 1
+    except KeyboardInterrupt:
+        print(f"error: interrupted; {config.weights} is as it was; rerun the same command to resume",
+              file=sys.stderr)
+        return 130
     print(format_table(report))
     print(f"shipped {report['shipped']} ({report['shipped_from']}); {report['total_seconds'] / 60:.1f} min in all")
     return 0

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import json
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -518,6 +520,14 @@ def test_export_with_checkpoints_records_training(tmp_path: Path) -> None:
     with torch.no_grad():
         expected = pixor.eval()(torch.from_numpy(bev))[0].numpy()
     np.testing.assert_allclose(score, expected, atol=1e-5)
+    # Exported again without the pixor checkpoint (a forgotten or misspelt --checkpoints): the trained
+    # directory is not replaced by initialised weights.
+    before = {p.name: p.read_bytes() for p in result.directory.iterdir()}
+    (tmp_path / "ckpt" / "pixor.pt").unlink()
+    for checkpoints in (None, tmp_path / "ckpt"):
+        with pytest.raises(ModelFileError, match="holds trained .*pixor weights, which this export would replace"):
+            run(ExportConfig(preset="tiny", out=result.directory, checkpoints=checkpoints, parity=False))
+    assert {p.name: p.read_bytes() for p in result.directory.iterdir()} == before
 
 
 def test_export_refuses_empty_checkpoint_dir(tmp_path: Path) -> None:
@@ -590,3 +600,74 @@ def test_a_failed_export_leaves_the_earlier_model_directory_as_it_was(tmp_path: 
     with pytest.raises(ModelFileError, match="is not a model directory"):
         run(ExportConfig(preset="tiny", out=broken, parity=False))
     assert sorted(p.name for p in broken.iterdir()) == ["pixor.pt"]
+
+
+# --------------------------------------------------------------------------- the command's inputs, checked first
+def _export_main(args: list[str], capsys: pytest.CaptureFixture) -> tuple[int, str, float]:
+    """``python -m export`` in this process: (exit status, stderr, seconds)."""
+    from export.__main__ import main
+
+    tic = time.perf_counter()
+    try:
+        code = main(args)
+    except SystemExit as stop:  # argparse
+        code = stop.code
+    return code, capsys.readouterr().err, time.perf_counter() - tic
+
+
+def test_cli_refuses_bad_inputs_in_one_line_before_exporting(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """Each mistake gets exit 2 and one line naming the flag, at once rather than after the export's
+    minutes (a tiny export takes over 10 s here), and nothing is written."""
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine")
+    only_depth = tmp_path / "only_depth"
+    preset = get_preset("tiny")
+    save_checkpoint(only_depth / "depth.pt", preset, {"depth": build_depth_net(preset)}, {})
+    out = str(tmp_path / "out")
+    cases = [
+        (["--out", f"{a_file}/models"], f"--out {a_file}/models: {a_file} is a file, not a directory"),
+        (["--out", out, "--frame", "999999"], "--frame 999999: not in --kitti-dir"),
+        (["--out", out, "--kitti-dir", str(tmp_path / "kitt")], f"--kitti-dir {tmp_path / 'kitt'}: not a folder"),
+        (["--out", out, "--checkpoints", str(only_depth / "depth.pt")], "depth.pt: is a file; give the folder"),
+        (["--out", out, "--checkpoints", str(only_depth), "--networks", "pixor"],
+         "holds depth.pt but no checkpoint of --networks pixor"),
+        (["--out", out, "--precision", "int8", "--calibration-data", str(tmp_path / "cal")],
+         f"--calibration-data {tmp_path / 'cal'}: not a KITTI object folder"),
+        (["--out", str(a_file), "--precision", "fp16"], f"--out {a_file}: exists and is not a model directory"),
+    ]
+    for args, says in cases:
+        code, err, seconds = _export_main(["--preset", "tiny", *args], capsys)
+        assert code == 2 and says in err and len(err.strip().splitlines()) == 1, (args, err)
+        assert seconds < 5, (args, seconds)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "only_depth"]
+
+
+@pytest.mark.parametrize(("extra", "says"), [
+    (["--no-parity", "--frame", "000001"], "--frame: only used by the parity check, which --no-parity skips"),
+    (["--no-parity", "--kitti-dir", "x"], "--kitti-dir: only used by the parity check"),
+    (["--calibration-frames", "10"], "--calibration-frames: only used by --precision fp16 or int8, not fp32"),
+    (["--networks", "depth"], "--networks: every model directory has pixor"),
+])
+def test_cli_refuses_flags_it_would_ignore(tmp_path: Path, capsys: pytest.CaptureFixture, extra: list[str],
+                                          says: str) -> None:
+    code, err, _ = _export_main(["--preset", "tiny", "--out", str(tmp_path / "out"), *extra], capsys)
+    assert code == 2 and says in err and not (tmp_path / "out").exists()
+
+
+def test_ctrl_c_during_export_leaves_out_as_it_was(tiny_export: ExportResult, tmp_path: Path) -> None:
+    """Ctrl-C while torch traces the network (which turns it into a TorchExportError asking for a bug
+    report) ends with one line and exit 130; the model directory at --out keeps its files."""
+    out = tmp_path / "models"
+    shutil.copytree(tiny_export.directory, out)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    process = subprocess.Popen([sys.executable, "-m", "export", "--preset", "tiny", "--out", str(out), "--seed", "3"],
+                               stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    seen = ""
+    while "exporting depth.onnx" not in seen and process.poll() is None:
+        seen += process.stderr.read(1)
+    process.send_signal(signal.SIGINT)
+    err = process.stderr.read()
+    assert process.wait(timeout=120) == 130, err[-2000:]
+    assert "interrupted" in err and "Traceback" not in err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["models"]  # no staging folder left

@@ -90,3 +90,57 @@ def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):
             main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), "--preset", "edge-splitt", *quick])
         assert stop.value.code == 2 and "argument --preset: unknown preset 'edge-splitt'" in capsys.readouterr().err
     assert not (tmp_path / "run").exists() and not (tmp_path / "data").exists()
+
+
+def test_paths_are_checked_before_any_work(tmp_path, capsys):
+    """An --out, --data or --weights that cannot be written, a shipped directory's place holding something
+    else, or --weights with --quick (which never ships): exit 2 and one line, before anything is simulated."""
+    import pytest
+
+    from models.reproduce import main
+
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine")
+    (tmp_path / "weights" / "edge-lidar16").mkdir(parents=True)
+    (tmp_path / "weights" / "edge-lidar16" / "keep.txt").write_text("mine")
+    data, out = str(tmp_path / "data"), str(tmp_path / "run")
+    cases = [
+        (["--out", str(a_file), "--data", data, "--quick"], f"--out {a_file}: exists and is not a directory"),
+        (["--out", out, "--data", f"{a_file}/sim", "--quick"], f"--data {a_file}/sim: {a_file} is a file"),
+        (["--out", out, "--data", data, "--weights", str(a_file)], f"--weights {a_file}: exists and is not a directory"),
+        (["--out", out, "--data", data, "--weights", str(tmp_path / "weights")],
+         "edge-lidar16: exists and is not a model directory"),
+    ]
+    for args, says in cases:
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert says in err and len(err.strip().splitlines()) == 1, (args, err)
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", out, "--data", data, "--quick", "--weights", str(tmp_path / "weights")])
+    assert stop.value.code == 2 and "argument --weights: --quick writes" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "weights"]
+    assert (tmp_path / "weights" / "edge-lidar16" / "keep.txt").read_text() == "mine"
+
+
+def test_a_failed_export_or_ship_keeps_the_model_directory_there(tiny_models, tmp_path):
+    """The recipe's exports replace a directory only once the new one is complete, and shipping swaps
+    each directory in whole: a bad checkpoint leaves the earlier directory as it was."""
+    import shutil
+
+    import pytest
+
+    from export.manifest import verify_model_dir
+    from models.reproduce import ReproduceConfig, _export, _ship, shipped_directories
+
+    config = ReproduceConfig(out=tmp_path / "run", quick=True)
+    target = tmp_path / "run" / "models" / "lidar64"
+    shutil.copytree(tiny_models, target)
+    broken = tmp_path / "checkpoints"
+    broken.mkdir()
+    (broken / "pixor.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="not a lowres3d checkpoint"):
+        _export(config, broken, target, ("pixor",), "tiny")
+    assert verify_model_dir(target)["preset"] == "tiny"
+    shipped = _ship(config, dict.fromkeys(("product", "lidar64", "lidar16"), target))
+    assert shipped == {name: str(path) for name, path in shipped_directories(config).items()}
+    assert all(verify_model_dir(path)["preset"] == "tiny" for path in shipped.values())

@@ -1,0 +1,83 @@
+"""``python -m models.cache_pseudo``: the depth maps it caches, and how it answers a user's mistakes."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from models.cache_pseudo import main, run
+from pipeline.kitti import read_depth_png
+
+
+def _kitti_copy(kitti_dir: Path, target: Path, frames: int) -> Path:
+    """A KITTI folder of ``frames`` frames, each a symlink to the real frame 000006 (no copies of the data)."""
+    for folder, ext in (("velodyne", ".bin"), ("image_2", ".png"), ("calib", ".txt")):
+        (target / folder).mkdir(parents=True)
+        for i in range(frames):
+            (target / folder / f"{i:06d}{ext}").symlink_to(kitti_dir / folder / f"000006{ext}")
+    return target
+
+
+def _main(args: list[str], capsys: pytest.CaptureFixture) -> tuple[int, str]:
+    try:
+        code = main(args)
+    except SystemExit as stop:  # argparse
+        code = stop.code
+    return code, capsys.readouterr().err
+
+
+def test_caches_every_frame_and_resumes(tiny_models: Path, kitti_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "pseudo"
+    assert run(kitti_dir, tiny_models, out, progress=False) == 5
+    assert read_depth_png(out / "000006.png").max() > 0
+    assert run(kitti_dir, tiny_models, out, progress=False) == 0  # all cached: nothing recomputed
+
+
+def test_bad_inputs_get_one_line_before_anything_is_written(tiny_models: Path, kitti_dir: Path, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture) -> None:
+    """An --out that is (or sits under) a file, a --data without frames, a split file naming a frame
+    --data lacks: exit 2 and one line naming the flag, before any map is computed or --out is made."""
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("mine")
+    (tmp_path / "empty" / "velodyne").mkdir(parents=True)
+    split = tmp_path / "split.txt"
+    split.write_text("000006\n999999\n")
+    out = tmp_path / "out"
+    cases = [
+        (["--data", str(kitti_dir), "--out", str(a_file)], f"--out {a_file}: exists and is not a directory"),
+        (["--data", str(kitti_dir), "--out", f"{a_file}/pseudo"], f"{a_file} is a file, not a directory"),
+        (["--data", str(tmp_path / "kitt"), "--out", str(out)], f"--data {tmp_path / 'kitt'}: not a KITTI object"),
+        (["--data", str(tmp_path / "empty"), "--out", str(out)], "no frames (velodyne/*.bin)"),
+        (["--data", str(kitti_dir), "--out", str(out), "--split-file", str(split)],
+         f"frame 999999 (listed in --split-file {split}) has no velodyne/999999.bin"),
+    ]
+    for args, says in cases:
+        code, err = _main(["--models", str(tiny_models), *args], capsys)
+        assert code == 2 and says in err and len(err.strip().splitlines()) == 1, (args, err)
+        assert "Traceback" not in err
+    assert not out.exists() and a_file.read_text() == "mine"
+
+
+def test_ctrl_c_keeps_the_finished_maps_and_the_rerun_resumes(tiny_models: Path, kitti_dir: Path,
+                                                            tmp_path: Path) -> None:
+    data = _kitti_copy(kitti_dir, tmp_path / "data", 40)
+    out = tmp_path / "pseudo"
+    command = [sys.executable, "-m", "models.cache_pseudo", "--data", str(data), "--models", str(tiny_models),
+               "--out", str(out)]
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    seen = ""
+    while "2/40" not in seen and process.poll() is None:
+        seen += process.stderr.read(1)
+    process.send_signal(signal.SIGINT)
+    err = process.stderr.read()
+    assert process.wait(timeout=120) == 130, err[-2000:]
+    assert "interrupted" in err and "rerun the same command to resume" in err and "Traceback" not in err
+    maps = sorted(p.name for p in out.glob("*.png"))
+    assert 2 <= len(maps) < 40 and all(name.count(".") == 1 for name in maps)  # no half-written .tmp.png
+    for name in maps:
+        assert read_depth_png(out / name).max() > 0
+    assert run(data, tiny_models, out, progress=False) == 40 - len(maps)
