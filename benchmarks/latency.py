@@ -130,7 +130,8 @@ def torch_twin(detector: Detector, checkpoints: Path | None) -> tuple[dict, str]
             networks = export(ExportConfig(preset=detector.preset.name, out=Path(scratch), parity=False,
                                            checkpoints=checkpoints, networks=names)).networks
         except (ValueError, FileNotFoundError) as exc:  # the exporter's word on a checkpoint that does not fit
-            raise InputError(f"--checkpoints: {exc}") from exc
+            message = str(exc)  # the exporter's own messages name the flag already
+            raise InputError(message if message.startswith("--checkpoints") else f"--checkpoints: {message}") from exc
     return networks, str(checkpoints) if checkpoints else "initialised (as the exporter initialises them)"
 
 

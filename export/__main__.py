@@ -42,7 +42,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
         help="directory with depth.pt and/or pixor.pt (models/checkpoint.py); default: initialised, untrained weights",
     )
     # Defaults of None: a flag given with --no-parity (or a calibration flag with fp32) is refused, not ignored.
-    parser.add_argument("--kitti-dir", type=Path, default=None,
+    parser.add_argument("--kitti-dir", "--data", dest="kitti_dir", type=Path, default=None,
                         help="KITTI training folder of the parity frame (default: the bundled tests/data/kitti/training)")
     parser.add_argument("--frame", default=None, help=f"KITTI frame id for the parity check (default {DEFAULT_FRAME})")
     parser.add_argument("--seed", type=int, default=0, help="seed for initial weights and random parity inputs (default 0)")

@@ -108,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", type=Path, required=True, help="model directory with depth.onnx")
     parser.add_argument("--out", type=Path, required=True, help="folder for the depth PNGs")
     parser.add_argument("--split-file", type=Path, help="frame ids, one per line (default: all)")
-    parser.add_argument("--beams", type=int, default=16, choices=BEAM_COUNTS, metavar="N",
+    parser.add_argument("--beams", "--emulate-beams", dest="beams", type=int, default=16, choices=BEAM_COUNTS,
+                        metavar="N",
                         help="lines the 64-line scan is thinned to (default 16; 32, 8, 4)")
     args = parser.parse_args(argv)
     try:

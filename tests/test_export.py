@@ -628,6 +628,7 @@ def test_cli_refuses_bad_inputs_in_one_line_before_exporting(tmp_path: Path, cap
         (["--out", f"{a_file}/models"], f"--out {a_file}/models: {a_file} is a file, not a directory"),
         (["--out", out, "--frame", "999999"], "--frame 999999: not in --kitti-dir"),
         (["--out", out, "--kitti-dir", str(tmp_path / "kitt")], f"--kitti-dir {tmp_path / 'kitt'}: not a folder"),
+        (["--out", out, "--data", str(tmp_path / "kitt")], f"--kitti-dir {tmp_path / 'kitt'}: not a folder"),  # alias
         (["--out", out, "--checkpoints", str(only_depth / "depth.pt")], "depth.pt: is a file; give the folder"),
         (["--out", out, "--checkpoints", str(only_depth), "--networks", "pixor"],
          "holds depth.pt but no checkpoint of --networks pixor"),
