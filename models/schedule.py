@@ -90,6 +90,10 @@ def _child(job: Job, threads: int, results: mp.Queue) -> None:
     logging.basicConfig(level=logging.INFO, format=f"%(asctime)s [{job.name}] %(message)s")
     try:
         results.put((job.name, None, job.run(threads)))
+    except KeyboardInterrupt:
+        # Ctrl-C reaches every process of the terminal's group: the parent says it once, without a traceback
+        # per lane. Exit status 130 tells it, should the signal have reached this lane alone.
+        raise SystemExit(130) from None
     except BaseException as exc:  # noqa: BLE001 - reported to the parent, which stops the other lanes
         user_error = isinstance(exc, _USER_ERRORS)
         if not user_error:

@@ -26,6 +26,8 @@ def _fail(kind: str, threads: int | None) -> dict:
         raise InputError("--data: /nowhere has no velodyne/ folder")
     if kind == "exit":
         os._exit(3)
+    if kind == "interrupt":  # what Ctrl-C raises in a lane
+        raise KeyboardInterrupt
     raise ZeroDivisionError("a bug")
 
 
@@ -59,12 +61,15 @@ def test_one_lane_runs_in_order_in_this_process_with_all_threads(tmp_path):
     ("input", True, "x: --data: /nowhere has no velodyne/ folder"),
     ("bug", False, "x: ZeroDivisionError: a bug"),
     ("exit", False, "x: its process died (exit code 3)"),
+    ("interrupt", False, "x: its process died (exit code 130)"),
 ])
-def test_a_failing_job_names_itself_and_stops_the_other_lane(tmp_path, kind, user_error, text):
+def test_a_failing_job_names_itself_and_stops_the_other_lane(tmp_path, kind, user_error, text, capfd):
     jobs = [Job("slow", partial(_record, tmp_path, "slow", 60.0)), Job("x", partial(_fail, kind))]
     with pytest.raises(JobFailed) as failure:
         run_jobs(jobs, lanes=2, progress=False)
     assert str(failure.value) == text and failure.value.user_error is user_error
+    if kind in ("input", "interrupt"):  # no traceback from the lane: the parent's one line says it all
+        assert "Traceback" not in capfd.readouterr().err
     assert not (tmp_path / "slow.json").exists()  # terminated, not waited for
 
 
