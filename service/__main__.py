@@ -82,6 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     import uvicorn
 
     from service.app import create_app
+    from service.memory import limit_malloc_arenas
     from service.metrics import Metrics
     from service.runtime import load_runtime
 
@@ -91,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m service: invalid settings:\n{exc}", file=sys.stderr)
         return 2
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    limit_malloc_arenas()  # before the worker threads exist (service/memory.py: the memory of a long run)
     metrics = Metrics()
     try:
         runtime = load_runtime(settings, metrics)
