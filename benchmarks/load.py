@@ -370,7 +370,7 @@ def summarise(samples: list[Sample], wall_s: float, url: str, clients: int, rss:
                          for kind in BROKEN_KINDS if any(s.upload == kind for s in broken)},
             "answered_4xx": sum(s.status.startswith("4") for s in broken),
         },
-        server_errors=sum(s.status.startswith("5") and s.status != "503" or s.status.startswith("error")
+        server_errors=sum((s.status.startswith("5") and s.status != "503") or s.status.startswith("error")
                           for s in samples),
         trend={
             "rss_mb_per_hour": memory_trend(rss_series, wall_s),
