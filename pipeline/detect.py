@@ -24,11 +24,10 @@ from pipeline.cli import probability, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.kitti import read_calib, read_depth_png, read_image, read_labels, read_velodyne, write_labels
-from pipeline.model_files import ModelFileError
+from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
 from pipeline.render import render_bev
 
 log = logging.getLogger(__name__)
-DEFAULT_MODELS = Path(__file__).resolve().parents[1] / "weights" / "edge"
 
 
 @dataclass
@@ -176,6 +175,8 @@ def main(argv: list[str] | None = None) -> int:
         )
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        if hint := default_models_hint(args.models):
+            print(f"error: {hint}", file=sys.stderr)
         return 2
     except OSError as exc:  # an --out that cannot be written (a file in the way, no permission, a full disk)
         print(unwritable(args.out, exc), file=sys.stderr)

@@ -12,6 +12,16 @@ import json
 from pathlib import Path
 
 MANIFEST_NAME = "manifest.json"
+# The shipped detector, in the source tree: `pip install .` (not -e) leaves weights/ behind.
+DEFAULT_MODELS = Path(__file__).resolve().parents[1] / "weights" / "edge"
+
+
+def default_models_hint(models: Path) -> str | None:
+    """What to do when the default model directory is missing (an install outside the source tree)."""
+    if Path(models) != DEFAULT_MODELS or DEFAULT_MODELS.is_dir():
+        return None
+    return (f"the default --models {DEFAULT_MODELS} exists only in a source checkout (make setup, or pip install "
+            "-e .); give the model directory with --models")
 _CHUNK = 1 << 20
 
 

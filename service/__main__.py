@@ -20,8 +20,8 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from pipeline.errors import InputError
-from pipeline.model_files import ModelFileError
-from service.settings import DEFAULT_MODELS, ENV_PREFIX, Settings
+from pipeline.model_files import ModelFileError, default_models_hint
+from service.settings import ENV_PREFIX, Settings
 
 log = logging.getLogger("service")
 
@@ -98,10 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         runtime = load_runtime(settings, metrics)
     except (ModelFileError, InputError) as exc:
         log.error("cannot start: %s", exc)
-        if settings.models == DEFAULT_MODELS and not DEFAULT_MODELS.is_dir():
-            # pip install without -e leaves weights/ in the source tree, not beside the installed package
-            log.error("the default --models %s exists only in a source checkout (make setup, or pip install -e .); "
-                      "give the model directory with --models or LOWRES3D_MODELS", DEFAULT_MODELS)
+        if hint := default_models_hint(settings.models):
+            log.error("%s (or LOWRES3D_MODELS)", hint)
         return 2
     app = create_app(settings, runtime=runtime, metrics=metrics)
     config = uvicorn.Config(

@@ -17,9 +17,7 @@ from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from pipeline.detector import MAX_POINTS
-
-REPO_ROOT = Path(__file__).resolve().parents[1]
-DEFAULT_MODELS = REPO_ROOT / "weights" / "edge"
+from pipeline.model_files import DEFAULT_MODELS
 
 ENV_PREFIX = "LOWRES3D_"
 

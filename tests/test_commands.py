@@ -1,5 +1,7 @@
 """Every command answers --help, and a count of zero is refused by the flag, in one line, before any work."""
 
+import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -7,6 +9,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+KITTI = REPO / "tests" / "data" / "kitti" / "training"
 MODULES = ["pipeline.detect", "pipeline.beams", "pipeline.demo", "service", "simulation", "models.train",
            "models.reproduce", "models.cache_pseudo", "export", "export.lower", "export.precision"]
 SCRIPTS = ["latency", "accuracy", "load", "frame_ops", "eval_speed", "sim_report", "network_latency"]
@@ -41,3 +44,16 @@ def test_a_score_threshold_outside_0_1_is_refused(name):
     done = subprocess.run([*_command(name), "--score-threshold", "2"], capture_output=True, text=True, timeout=120,
                           check=False, cwd=REPO)
     assert done.returncode == 2 and "argument --score-threshold: must be between 0 and 1, got 2" in done.stderr
+
+
+def test_detect_outside_a_checkout_says_where_the_default_weights_are(tmp_path):
+    """After `pip install .` (not -e) weights/edge is not beside the installed package: the error says so."""
+    site = tmp_path / "site-packages"
+    shutil.copytree(REPO / "pipeline", site / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    result = subprocess.run(
+        [sys.executable, "-m", "pipeline.detect", "--data", str(KITTI), "--frame", "000006", "--out", str(tmp_path / "o")],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False,
+        env={**os.environ, "PYTHONPATH": str(site)},
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"the default --models {site / 'weights' / 'edge'} exists only in a source checkout" in result.stderr

@@ -560,6 +560,7 @@ def test_model_info(client: AppClient, tiny_models: Path) -> None:
 
 def test_metrics_exposition(client: AppClient, frame: dict[str, bytes]) -> None:
     assert client.post("/v1/detect", files=parts(frame)).status_code == 200
+    assert client.get("/no-such-route-7f3a").status_code == 404
     response = client.get("/metrics")
     assert response.status_code == 200 and response.headers["content-type"].startswith("text/plain")
     text = response.text
@@ -569,7 +570,9 @@ def test_metrics_exposition(client: AppClient, frame: dict[str, bytes]) -> None:
     for family in ("lowres3d_inference_queue_depth", "lowres3d_inference_in_flight", "lowres3d_http_requests_in_flight",
                    "process_resident_memory_bytes", 'lowres3d_model_info{'):
         assert family in text
-    assert 'route="unmatched"' not in text or "404" in text
+    # A path no route matches is counted under one label, never its own: clients cannot grow the series.
+    assert 'lowres3d_http_requests_total{method="GET",route="unmatched",status="404"}' in text
+    assert "no-such-route-7f3a" not in text
 
 
 # --------------------------------------------------------------------------- OpenAPI and settings

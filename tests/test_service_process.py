@@ -247,4 +247,4 @@ def test_without_models_outside_a_checkout_the_start_says_where_the_weights_are(
                             cwd=tmp_path, capture_output=True, text=True, timeout=START_TIMEOUT_S, env=env)
     assert result.returncode == 2, result.stderr
     assert f"{site / 'weights' / 'edge'}" in result.stderr and "exists only in a source checkout" in result.stderr
-    assert "--models" in result.stderr and "Traceback" not in result.stderr
+    assert "--models" in result.stderr and "LOWRES3D_MODELS" in result.stderr and "Traceback" not in result.stderr
