@@ -5,6 +5,7 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -64,20 +65,25 @@ def test_bad_inputs_get_one_line_before_anything_is_written(tiny_models: Path, k
 
 def test_ctrl_c_keeps_the_finished_maps_and_the_rerun_resumes(tiny_models: Path, kitti_dir: Path,
                                                             tmp_path: Path) -> None:
-    data = _kitti_copy(kitti_dir, tmp_path / "data", 40)
+    frames = 120  # symlinks; the tiny net maps about 20 a second here, so seconds remain to interrupt
+    data = _kitti_copy(kitti_dir, tmp_path / "data", frames)
     out = tmp_path / "pseudo"
     command = [sys.executable, "-m", "models.cache_pseudo", "--data", str(data), "--models", str(tiny_models),
                "--out", str(out)]
-    process = subprocess.Popen(command, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-    seen = ""
-    while "2/40" not in seen and process.poll() is None:
-        seen += process.stderr.read(1)
+    log = tmp_path / "stderr.txt"  # a file, not a pipe: a pipe lets the command run ahead of the reader
+    with open(log, "w") as stderr:
+        process = subprocess.Popen(command, stderr=stderr, stdout=subprocess.DEVNULL, text=True)
+    deadline = time.monotonic() + 120
+    while f"2/{frames}" not in log.read_text() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert process.poll() is None, "the command ended before it could be interrupted"
     process.send_signal(signal.SIGINT)
-    err = process.stderr.read()
-    assert process.wait(timeout=120) == 130, err[-2000:]
+    code = process.wait(timeout=120)
+    err = log.read_text()
+    assert code == 130, err[-2000:]
     assert "interrupted" in err and "rerun the same command to resume" in err and "Traceback" not in err
     maps = sorted(p.name for p in out.glob("*.png"))
-    assert 2 <= len(maps) < 40 and all(name.count(".") == 1 for name in maps)  # no half-written .tmp.png
+    assert 2 <= len(maps) < frames and all(name.count(".") == 1 for name in maps)  # no half-written .tmp.png
     for name in maps:
         assert read_depth_png(out / name).max() > 0
-    assert run(data, tiny_models, out, progress=False) == 40 - len(maps)
+    assert run(data, tiny_models, out, progress=False) == frames - len(maps)

@@ -661,14 +661,18 @@ def test_ctrl_c_during_export_leaves_out_as_it_was(tiny_export: ExportResult, tm
     out = tmp_path / "models"
     shutil.copytree(tiny_export.directory, out)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    process = subprocess.Popen([sys.executable, "-m", "export", "--preset", "tiny", "--out", str(out), "--seed", "3"],
-                               stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-    seen = ""
-    while "exporting depth.onnx" not in seen and process.poll() is None:
-        seen += process.stderr.read(1)
+    log = tmp_path.parent / f"{tmp_path.name}.stderr"  # a file, not a pipe: a pipe lets the export run ahead
+    with open(log, "w") as stderr:
+        process = subprocess.Popen([sys.executable, "-m", "export", "--preset", "tiny", "--out", str(out), "--seed",
+                                    "3"], stderr=stderr, stdout=subprocess.DEVNULL, text=True)
+    deadline = time.monotonic() + 120
+    while "exporting depth.onnx" not in log.read_text() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert process.poll() is None, "the export ended before it could be interrupted"
     process.send_signal(signal.SIGINT)
-    err = process.stderr.read()
-    assert process.wait(timeout=120) == 130, err[-2000:]
+    code = process.wait(timeout=120)
+    err = log.read_text()
+    assert code == 130, err[-2000:]
     assert "interrupted" in err and "Traceback" not in err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["models"]  # no staging folder left
