@@ -5,8 +5,17 @@
 For each preset: export both networks with :func:`export.run` (no parity pass),
 then time forward passes of each network, batch 1, fp32, on CPU, alternating
 PyTorch eager (``torch.no_grad``, eval mode) and ONNX Runtime (CPU provider,
-full graph optimisation) run by run, after one warm-up run each. Reports
-parameters, GFLOP (counted from the ONNX graph), p50 and max latency.
+full graph optimisation) in blocks of ``--block`` runs, after one warm-up run
+each. Reports parameters, GFLOP (counted from the ONNX graph), p50 and max
+latency.
+
+Why blocks, not run by run: after a run, each runtime's worker threads spin
+for a while waiting for more work (PyTorch's OpenMP pool for up to a few
+hundred milliseconds), and the other runtime's run right after finds its
+cores taken. Run by run, that cost fell on whichever ran second, and on a
+small network it was most of the time measured (the tiny preset's ONNX
+Runtime runs took longer than PyTorch's). Each block starts with one untimed
+run, so every timed run follows one of its own runtime.
 """
 
 from __future__ import annotations
@@ -61,27 +70,28 @@ class LatencyRow:
         return self.torch_p50_ms / self.ort_p50_ms
 
 
-def _time_interleaved(
-    first: Callable[[], object], second: Callable[[], object], repeats: int, bar: tqdm
+def _time_alternating(
+    first: Callable[[], object], second: Callable[[], object], repeats: int, block: int, bar: tqdm
 ) -> tuple[list[float], list[float]]:
-    """One warm-up call each, then ``repeats`` rounds of (first, second), timed in ms.
+    """``repeats`` timed calls of each function, in alternating blocks of up to ``block``, in ms.
 
-    Interleaving matters on a shared machine: a burst of load from another process
-    then slows both runtimes alike instead of skewing one of them.
+    Alternating matters on a shared machine: a burst of load from another process then slows
+    both runtimes alike instead of skewing one of them. Each block starts with an untimed call
+    (the first one also warms the function up), so no timed call follows the other runtime's.
     """
-    first()
-    second()
     times: tuple[list[float], list[float]] = ([], [])
-    for _ in range(repeats):
+    while len(times[1]) < repeats:
         for fn, out in ((first, times[0]), (second, times[1])):
-            start = time.perf_counter()
             fn()
-            out.append((time.perf_counter() - start) * 1e3)
-            bar.update(1)
+            for _ in range(min(block, repeats - len(out))):
+                start = time.perf_counter()
+                fn()
+                out.append((time.perf_counter() - start) * 1e3)
+                bar.update(1)
     return times
 
 
-def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> list[LatencyRow]:
+def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, bar: tqdm) -> list[LatencyRow]:
     """Export ``preset_name`` into ``workdir`` and time both networks."""
     result = export_run(ExportConfig(preset=preset_name, out=workdir / preset_name, parity=False))
     inputs = kitti_inputs(get_preset(preset_name))
@@ -91,7 +101,7 @@ def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> 
         feeds = inputs.feeds(network)
         tensors = [torch.from_numpy(v) for v in feeds.values()]
         # The Detector's options: ORT's pool spins within a run and stops when it ends, so it does not
-        # steal the cores from the PyTorch run interleaved right after it.
+        # steal the cores from the PyTorch block after it.
         session = ort.InferenceSession(str(result.files[network]), session_options(),
                                        providers=["CPUExecutionProvider"])
 
@@ -100,8 +110,8 @@ def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> 
                 return module(*tensors)
 
         bar.set_description(f"{preset_name} {network}")
-        torch_ms, ort_ms = _time_interleaved(
-            eager, lambda session=session, feeds=feeds: session.run(None, feeds), repeats, bar
+        torch_ms, ort_ms = _time_alternating(
+            eager, lambda session=session, feeds=feeds: session.run(None, feeds), repeats, block, bar
         )
         entry = result.manifest["networks"][network]
         rows.append(
@@ -120,7 +130,8 @@ def measure_preset(preset_name: str, repeats: int, workdir: Path, bar: tqdm) -> 
     return rows
 
 
-def run(presets: list[str], repeats: int = 5, threads: int | None = None, progress: bool = True) -> list[LatencyRow]:
+def run(presets: list[str], repeats: int = 5, threads: int | None = None, progress: bool = True,
+        block: int = 5) -> list[LatencyRow]:
     """Measure every preset in ``presets``; returns one row per (preset, network)."""
     if threads is not None:
         torch.set_num_threads(threads)
@@ -129,7 +140,7 @@ def run(presets: list[str], repeats: int = 5, threads: int | None = None, progre
         total=len(presets) * 2 * 2 * repeats, disable=not progress, unit="run"
     ) as bar:
         for name in presets:
-            rows.extend(measure_preset(name, repeats, Path(tmp), bar))
+            rows.extend(measure_preset(name, repeats, block, Path(tmp), bar))
     return rows
 
 
@@ -167,17 +178,20 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--preset", action="append", choices=sorted(PRESETS),
                         help="preset to measure (repeatable; default: all)")
-    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per network and runtime (interleaved), after 1 warm-up")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per network and runtime, after 1 warm-up")
+    parser.add_argument("--block", type=positive_int, default=5,
+                        help="runs of one runtime before switching to the other (default 5); each block starts "
+                             "with one untimed run")
     parser.add_argument("--threads", type=positive_int, default=None, help="PyTorch intra-op threads (default: torch's)")
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
     presets = args.preset or list(PRESETS)
-    rows = run(presets, args.repeats, args.threads)
+    rows = run(presets, args.repeats, args.threads, block=args.block)
     print(
         f"{hardware()}; fp32, batch 1, CPUExecutionProvider (onnxruntime {ort.__version__}), "
-        f"torch {torch.__version__} with {torch.get_num_threads()} threads; {args.repeats} runs after 1 warm-up; "
-        "input: KITTI 000006"
+        f"torch {torch.__version__} with {torch.get_num_threads()} threads; {args.repeats} runs after 1 warm-up, "
+        f"alternating in blocks of {args.block}; input: KITTI 000006"
     )
     print(format_table(rows))
     return 0

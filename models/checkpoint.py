@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from pipeline.presets import Preset
+from pipeline.presets import Preset, preset_from_dict
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +99,12 @@ def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str,
     Only the sections that give this network's weights their meaning are compared (see
     ``NETWORK_SECTIONS``): a PIXOR stays valid when the preset's depth net changes.
     """
-    saved, wanted = _as_lists(checkpoint.preset_config), _as_lists(preset.to_dict())
+    saved_config = checkpoint.preset_config
+    try:  # a checkpoint from before a preset field existed holds that field's default
+        saved_config = preset_from_dict(saved_config).to_dict()
+    except ValueError:  # not a whole preset: compare what there is
+        pass
+    saved, wanted = _as_lists(saved_config), _as_lists(preset.to_dict())
     differing = [key for key in NETWORK_SECTIONS.get(network, tuple(wanted)) if saved.get(key) != wanted.get(key)]
     if differing:
         raise ValueError(

@@ -92,6 +92,9 @@ class DepthNetConfig:
     # A second correction at the input resolution (stem stride 2 with the prefill; 0 = off): this many
     # channels in its head (models/depth_net.py, FullResolutionRefine, says why).
     refine_channels: int = 0
+    # How that head corrects: "add" a second correction, or "convex": upsample the half-resolution
+    # correction as a learned convex combination of its 3×3 neighbours (ConvexUpsample says why).
+    refine_mode: str = "add"
     min_depth: float = 0.9  # metres, output floor at inference (Ma et al.)
     max_depth: float = 85.0  # metres, clip for the pseudo cloud and the loss
 
@@ -199,12 +202,13 @@ PRESETS: dict[str, Preset] = {
 
 
 # Suffixes that change a part of a preset: the paper's two ablations of the depth net, the depth net's
-# full-resolution correction head (an experiment, docs/models.md: it did not lift the camera row), and
+# full-resolution head in its two modes (experiments, docs/models.md: neither lifted the camera row), and
 # the BEV with the pseudo points in channels of their own (BevGrid.split_pseudo).
 ABLATIONS = {
     "-no-gam": ("depth", {"use_gam": False}),
     "-no-aspp": ("depth", {"use_aspp": False}),
     "-refine": ("depth", {"refine_channels": 8}),
+    "-convex": ("depth", {"refine_channels": 8, "refine_mode": "convex"}),
     "-split": ("bev", {"split_pseudo": True}),
 }
 
@@ -214,7 +218,8 @@ def get_preset(name: str) -> Preset:
 
     A suffix ``-no-gam`` or ``-no-aspp`` (e.g. ``edge-no-gam``) gives the paper's
     ablation: the same preset with that part of the depth net switched off;
-    ``-refine`` (edge and tiny) adds the depth net's full-resolution correction head;
+    ``-refine`` (edge and tiny) adds the depth net's full-resolution correction head, ``-convex``
+    the same head upsampling the half-resolution correction instead (``refine_mode``);
     ``-split`` gives the pseudo points their own BEV channels (:class:`BevGrid`).
     Suffixes stack (``edge-refine-no-gam``, ``edge-split``).
     """

@@ -171,3 +171,18 @@ def test_what_latency_could_not_use_or_write_is_refused_before_timing(tmp_path, 
         done = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, *args, "--frames", "1", "--warmup", "0"],
                               capture_output=True, text=True, timeout=120, check=False)
         assert done.returncode == 2 and f"error: {flag}" in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_network_latency_alternates_in_blocks_each_after_an_untimed_run():
+    """benchmarks.network_latency times each runtime in blocks, each block after one untimed run, so no
+    timed run follows the other runtime's (whose threads may still be spinning)."""
+    from tqdm import tqdm
+
+    from benchmarks.network_latency import _time_alternating
+
+    calls: list[str] = []
+    with tqdm(disable=True) as bar:
+        first, second = _time_alternating(lambda: calls.append("a"), lambda: calls.append("b"), 3, 2, bar)
+    assert len(first) == len(second) == 3 and all(t >= 0 for t in first + second)
+    # untimed + 2 timed of each, then untimed + the 1 left of each
+    assert "".join(calls) == "aaabbbaabb"

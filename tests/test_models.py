@@ -256,6 +256,53 @@ def test_refine_head_starts_as_the_network_without_it_and_corrects_at_full_resol
     assert (change[:, 0::2] - change[:, 1::2]).abs().max() > 0.01
 
 
+def test_convex_upsampling_starts_bilinear_and_can_give_a_pixel_one_neighbours_correction() -> None:
+    """-convex starts as the network without it (bilinear ×2, borders included); its weights are a
+    convex combination, so a pixel whose logits pick one neighbour takes exactly that correction."""
+    convex = get_preset("tiny-convex")
+    assert convex.depth.refine_mode == "convex"
+    torch.manual_seed(0)
+    plain = build_depth_net(TINY).eval()
+    model = build_depth_net(convex).eval()
+    result = model.load_state_dict(plain.state_dict(), strict=False)
+    assert result.unexpected_keys == [] and all(k.startswith("refine.") for k in result.missing_keys)
+    height, width = TINY.depth.input_hw
+    rgb = torch.rand(1, 3, height, width) * 255
+    sparse = torch.zeros(1, 1, height, width)
+    sparse[..., ::6, :] = torch.linspace(5.0, 60.0, width)
+    with torch.no_grad():
+        assert torch.allclose(model(rgb, sparse), plain(rgb, sparse), atol=1e-5)
+        coarse = torch.randn(1, 1, 5, 7)
+        image, depth = torch.zeros(1, 3, 10, 14), torch.zeros(1, 2, 10, 14)
+        estimate, features = torch.zeros(1, 1, 10, 14), torch.zeros(1, model.refine.head.context.in_channels, 5, 7)
+        bilinear = torch.nn.functional.interpolate(coarse, scale_factor=2.0, mode="bilinear", align_corners=False)
+        assert torch.allclose(model.refine(coarse, image, depth, estimate, features), bilinear, atol=1e-6)
+        # Logits that favour the neighbour above-left by far: every pixel takes that cell's correction.
+        model.refine.head.out.bias.copy_(torch.tensor([100.0] + [0.0] * 8))
+        upper_left = torch.nn.functional.pad(coarse, (1, 0, 1, 0), mode="replicate")[..., :5, :7]
+        expected = torch.nn.functional.interpolate(upper_left, scale_factor=2.0, mode="nearest")
+        assert torch.allclose(model.refine(coarse, image, depth, estimate, features), expected, atol=1e-6)
+
+
+def test_refine_mode_must_be_known() -> None:
+    refined = get_preset("tiny-refine")
+    with pytest.raises(ValueError, match="refine_mode 'sharp'"):
+        build_depth_net(replace(refined, depth=replace(refined.depth, refine_mode="sharp")))
+
+
+def test_a_checkpoint_from_before_a_preset_field_existed_still_loads(tmp_path: Path) -> None:
+    """Fields added to a preset later (refine_mode, say) take their defaults in an older checkpoint."""
+    torch.manual_seed(0)
+    model = build_depth_net(TINY)
+    path = save_checkpoint(tmp_path / "depth.pt", TINY, {"depth": model}, {})
+    payload = torch.load(path, weights_only=True)
+    del payload["preset_config"]["depth"]["refine_mode"]
+    torch.save(payload, path)
+    fresh = build_depth_net(TINY)
+    load_network_weights(fresh, load_checkpoint(path), "depth", TINY)
+    assert all(torch.equal(a, b) for a, b in zip(fresh.state_dict().values(), model.state_dict().values()))
+
+
 def test_refine_head_needs_a_strided_stem_and_the_prefill() -> None:
     refined = get_preset("tiny-refine")
     with pytest.raises(ValueError, match="refine_channels needs stem_stride 2"):

@@ -33,13 +33,16 @@ def test_shipped_onnx_weights_reproduce_onnx_runtime_in_pytorch(directory, netwo
         assert result.passed, f"{result.metric} {result.error:.3g} > {result.tolerance:.3g}"
 
 
-def test_round_trip_of_trained_looking_weights(tmp_path):
+@pytest.mark.parametrize("preset_name", ["tiny-refine", "tiny-convex"])
+def test_round_trip_of_trained_looking_weights(tmp_path, preset_name):
     """Weights with non-trivial batch-norm statistics and biases, exported and read back, give the network
-    the outputs the original gives (PyTorch against PyTorch: the folding is undone, not approximated)."""
+    the outputs the original gives (PyTorch against PyTorch: the folding is undone, not approximated).
+    With the full-resolution head (either mode), so its convs round-trip too; the convex one is also
+    exported with the exporter's ONNX Runtime parity checks on."""
     from export.exporter import ExportConfig, run
     from models.checkpoint import save_checkpoint
 
-    preset = get_preset("tiny-refine")  # with the full-resolution head, so its convs round-trip too
+    preset = get_preset(preset_name)
     torch.manual_seed(3)
     originals = {}
     for name in ("depth", "pixor"):
@@ -54,11 +57,12 @@ def test_round_trip_of_trained_looking_weights(tmp_path):
                 elif isinstance(module, torch.nn.Conv2d | torch.nn.ConvTranspose2d) and module.bias is not None:
                     module.bias.uniform_(-0.1, 0.1)
             if name == "depth":  # the full-resolution head starts at zero: give it a say
-                net.refine.out.weight.normal_(std=0.05)
+                head = net.refine.head if preset.depth.refine_mode == "convex" else net.refine
+                head.out.weight.normal_(std=0.05 if head is net.refine else 1.0)
         originals[name] = net.eval()
         save_checkpoint(tmp_path / "runs" / f"{name}.pt", preset, {name: net}, {"note": "test"})
     out = tmp_path / "models"
-    run(ExportConfig(preset="tiny-refine", out=out, checkpoints=tmp_path / "runs", parity=False))
+    run(ExportConfig(preset=preset_name, out=out, checkpoints=tmp_path / "runs", parity=preset_name == "tiny-convex"))
     inputs = random_inputs(preset, seed=4)
     for name, original in originals.items():
         twin = build_network(name, preset).eval()
