@@ -4,15 +4,25 @@
     python benchmarks/accuracy.py --data data/sim/val --models weights/edge --input lidar16+camera \
         --depth-dir DIR/depth_2 --out RESULTS
 
+With PIXOR adapted to the bound (session 21): ``--cache`` writes the maps in the
+network's view, the layout ``python -m models.cache_pseudo`` writes, for the
+training and the validation frames, and ``python -m models.train detector
+--input pseudo --pseudo-dir TRAIN_CACHE --val-pseudo-dir VAL_CACHE
+--pixor-checkpoint weights/edge/pixor.onnx --freeze-bn --epochs 1 --lr 2e-5``
+fine-tunes the camera PIXOR on them (docs/measurements.md, session 21).
+
 The edge depth net fills the 16-line scan inside its graph and predicts a
 correction to that filled map (docs/models.md). For each frame this writes the
 filled map plus the exact correction to the simulator's true depth, averaged
 over blocks of ``factor`` × ``factor`` pixels of the network's view and
 upsampled back bilinearly, as the network upsamples its own output: factor 1
 is the best a correction at the network's input resolution can give, factor 2
-the best one at half of it. The maps are full-image KITTI depth PNGs (metres ×
-256, 0 = none) for ``benchmarks/accuracy.py --depth-dir``; pixels the fill does
-not reach stay empty, as they do with the network.
+the best one at half of it. ``--upsample closest`` replaces the bilinear
+upsampling by an oracle of an edge-aware one: each pixel takes whichever of the
+3×3 block corrections around it lands closest to the true depth (block means
+over the pixels that have a correction). The maps are full-image KITTI depth
+PNGs (metres × 256, 0 = none) for ``benchmarks/accuracy.py --depth-dir``;
+pixels the fill does not reach stay empty, as they do with the network.
 """
 
 from __future__ import annotations
@@ -59,6 +69,28 @@ def bounded_depth(filled: np.ndarray, truth: np.ndarray, factor: int, min_depth:
     return np.where(filled > 0, np.maximum(filled + correction, min_depth), 0.0).astype(np.float32)
 
 
+def closest_neighbour_depth(filled: np.ndarray, truth: np.ndarray, factor: int, min_depth: float) -> np.ndarray:
+    """filled + per pixel the one of the 3×3 block-mean exact corrections around its block closest to its own.
+
+    An oracle (it reads the truth to choose): the best an upsampling that gives each pixel one neighbouring
+    coarse correction whole, rather than a bilinear mix of them, could do at 1/factor resolution.
+    """
+    has = (filled > 0) & (truth > 0)
+    correction = np.where(has, truth - filled, 0.0).astype(np.float32)
+    h, w = correction.shape
+    if h % factor or w % factor:
+        raise ValueError(f"--factor {factor} does not divide the network's view {w}×{h}")
+    sums = correction.reshape(h // factor, factor, w // factor, factor).sum(axis=(1, 3))
+    counts = has.reshape(h // factor, factor, w // factor, factor).sum(axis=(1, 3))
+    coarse = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0).astype(np.float32)
+    padded = np.pad(coarse, 1, mode="edge")
+    hc, wc = coarse.shape
+    neighbours = np.stack([padded[dy : dy + hc, dx : dx + wc] for dy in range(3) for dx in range(3)])
+    neighbours = neighbours.repeat(factor, axis=1).repeat(factor, axis=2)  # (9, h, w): each pixel's 3×3
+    chosen = np.take_along_axis(neighbours, np.abs(neighbours - correction).argmin(axis=0)[None], axis=0)[0]
+    return np.where(filled > 0, np.maximum(filled + np.where(has, chosen, 0.0), min_depth), 0.0).astype(np.float32)
+
+
 def to_full_image(view: np.ndarray, image_hw: tuple[int, int], preset: Preset) -> np.ndarray:
     """A map of the network's view as a full-image map that :func:`pipeline.preprocess.depth_view` reads back exactly."""
     crop = depth_crop(image_hw, *preset.crop_hw)
@@ -78,19 +110,25 @@ def main(argv: list[str] | None = None) -> int:
                         help="two-stage model directory (its preset gives the view and the fill)")
     parser.add_argument("--factor", type=positive_int, default=1,
                         help="correction at 1/factor of the view; must divide its height and width (default 1)")
+    parser.add_argument("--upsample", choices=("bilinear", "closest"), default="bilinear",
+                        help="bilinear (default, as the network), or closest: each pixel takes the one of the 3×3 "
+                             "block corrections around it closest to the truth (an oracle)")
     parser.add_argument("--frames", type=positive_int, help="only the first N frames (default: all)")
-    parser.add_argument("--out", type=Path, required=True, help="writes OUT/depth_2/<id>.png")
+    parser.add_argument("--cache", action="store_true",
+                        help="write OUT/<id>.png in the network's view (models.train --pseudo-dir) instead of "
+                             "full-image maps")
+    parser.add_argument("--out", type=Path, required=True, help="writes OUT/depth_2/<id>.png (OUT/<id>.png with --cache)")
     args = parser.parse_args(argv)
     try:
         check_output(args.out, "--out", directory=True)
-        count = write_bounds(args.data, args.models, args.factor, args.out, args.frames)
+        count = write_bounds(args.data, args.models, args.factor, args.out, args.frames, args.upsample, args.cache)
     except (InputError, ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # the output folder refused a write after the check (full disk, permissions)
         print(unwritable(args.out, exc), file=sys.stderr)
         return 2
-    print(f"wrote {count} maps to {args.out / 'depth_2'}")
+    print(f"wrote {count} maps to {args.out if args.cache else args.out / 'depth_2'}")
     return 0
 
 
@@ -119,14 +157,18 @@ def check_inputs(data: Path, models: Path, factor: int) -> Preset:
     return preset
 
 
-def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int | None = None) -> int:
-    """Write OUT/depth_2/<id>.png for the first ``frames`` frames of ``data`` (all by default); returns how many."""
+def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int | None = None,
+                 upsample: str = "bilinear", cache: bool = False) -> int:
+    """Write OUT/depth_2/<id>.png (OUT/<id>.png in the network's view with ``cache``) for the first
+    ``frames`` frames of ``data`` (all by default); returns how many."""
     preset = check_inputs(data, models, factor)
     fill = SparsePrefill(preset.depth.prefill_passes, preset.depth.prefill_kernel)
+    bound = closest_neighbour_depth if upsample == "closest" else bounded_depth
     ids = frame_ids(data)[:frames]
     if not ids:
         raise InputError(f"--data {data}: no frames (velodyne/ has no .bin file)")
-    (out / "depth_2").mkdir(parents=True, exist_ok=True)
+    target = out if cache else out / "depth_2"
+    target.mkdir(parents=True, exist_ok=True)
     for fid in tqdm(ids, desc="bounded depth", unit="frame"):
         frame = load_frame(data, fid)
         truth_path = data / "depth_2" / f"{fid}.png"
@@ -136,8 +178,8 @@ def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int |
         with torch.no_grad():
             filled = fill(torch.from_numpy(inputs.sparse_depth))[0, 0].numpy()
         truth = depth_view(read_depth_png(truth_path), preset)
-        view = bounded_depth(filled, truth, factor, preset.depth.min_depth)
-        write_depth_png(out / "depth_2" / f"{fid}.png", to_full_image(view, frame.image_hw, preset))
+        view = bound(filled, truth, factor, preset.depth.min_depth)
+        write_depth_png(target / f"{fid}.png", view if cache else to_full_image(view, frame.image_hw, preset))
     return len(ids)
 
 

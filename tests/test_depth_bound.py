@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.depth_bound import bounded_depth, main, to_full_image
+from benchmarks.depth_bound import bounded_depth, closest_neighbour_depth, main, to_full_image
 from pipeline.kitti import read_depth_png, read_image, write_depth_png
 from pipeline.preprocess import depth_view
 from pipeline.presets import get_preset
@@ -22,6 +22,20 @@ def test_full_resolution_gives_the_truth_and_half_resolution_blurs_an_edge():
     # Columns 2 and 3 share a block whose mean correction is halfway: the edge smears into both.
     assert 10.0 < blurred[1, 2] < 40.0 and 10.0 < blurred[1, 3] < 40.0
     assert blurred[1, 6] == 10.0  # far from the edge the block mean is exact
+
+
+def test_the_closest_neighbour_keeps_an_edge_inside_a_block_that_bilinear_blurs():
+    """Columns 2 and 3 share a block across the edge; each takes the block beside it whole instead."""
+    truth = np.full((4, 8), 40.0, np.float32)
+    truth[:, 3:] = 10.0
+    filled = np.full_like(truth, 20.0)
+    filled[0, 0] = 0.0
+    sharp = closest_neighbour_depth(filled, truth, 2, 0.9)
+    assert sharp[0, 0] == 0.0 and np.array_equal(sharp[filled > 0], truth[filled > 0])
+    assert np.array_equal(closest_neighbour_depth(filled, truth, 1, 0.9), bounded_depth(filled, truth, 1, 0.9))
+    # Where the truth has no depth the pixel keeps the fill (no correction to choose).
+    truth[2, 5] = 0.0
+    assert closest_neighbour_depth(filled, truth, 2, 0.9)[2, 5] == 20.0
 
 
 def test_maps_go_to_the_full_image_so_that_the_runtime_reads_them_back_exactly():
@@ -89,3 +103,18 @@ def test_command_writes_a_map_per_frame(tmp_path, capsys):
     assert code == 0, capsys.readouterr().err
     written = read_depth_png(tmp_path / "out" / "depth_2" / "000006.png")
     assert written.shape == read_image(data / "image_2" / "000006.png").shape[:2] and (written > 0).any()
+
+
+def test_command_writes_training_caches_in_the_network_view(tmp_path, capsys):
+    """--cache writes what models.cache_pseudo writes (the network's view, named by frame id), so the
+    camera PIXOR can be fine-tuned on a bound; the full-image map of the same bound reads back to it."""
+    data = _dataset(tmp_path / "data")
+    edge = str(REPO / "weights" / "edge")
+    for extra in ([], ["--cache"]):
+        code = main(["--data", str(data), "--models", edge, "--factor", "2", "--upsample", "closest", *extra,
+                     "--out", str(tmp_path / ("cache" if extra else "full"))])
+        assert code == 0, capsys.readouterr().err
+    view = read_depth_png(tmp_path / "cache" / "000006.png")
+    assert view.shape == get_preset("edge").depth.input_hw and (view > 0).any()
+    full = read_depth_png(tmp_path / "full" / "depth_2" / "000006.png")
+    assert np.array_equal(depth_view(full, get_preset("edge")), view)
