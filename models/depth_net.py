@@ -245,7 +245,9 @@ class ConvexUpsample(nn.Module):
     weights from a softmax over logits that :class:`FullResolutionRefine`'s head predicts at the input
     resolution: a pixel on a car's outline can take the car's correction alone. The logits start as
     the log of the bilinear weights (the head's last conv at zero), so a network with this head
-    starts as the same function as without it.
+    starts as the same function as without it. The five neighbours outside bilinear's 2×2 start at
+    e^-30, where an L1 loss gives them no gradient: trained so, the head chooses within the 2×2.
+    Measured: it did not lift the camera row (docs/models.md).
     """
 
     # Bilinear ×2 (half-pixel centres): input pixel 2i + a samples the half-resolution grid at

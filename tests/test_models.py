@@ -231,21 +231,26 @@ def test_prefill_net_starts_from_the_filled_map() -> None:
     assert torch.allclose(depth[covered], prior[covered].clamp(min=TINY.depth.min_depth))
 
 
-def test_refine_head_starts_as_the_network_without_it_and_corrects_at_full_resolution() -> None:
-    """The full-resolution head's zero-initialised output leaves the network's function as it was; with
-    weights, it changes single pixels, which the half-resolution correction (upsampled ×2) cannot."""
-    refined = get_preset("tiny-refine")
-    assert TINY.depth.refine_channels == 0 and refined.depth.refine_channels > 0
+def _with_head_and_without(preset_name: str) -> tuple[nn.Module, nn.Module, torch.Tensor, torch.Tensor]:
+    """The tiny depth net, the same net with a full-resolution head (its other weights copied), and an input."""
     torch.manual_seed(0)
     plain = build_depth_net(TINY).eval()
     torch.manual_seed(1)
-    model = build_depth_net(refined).eval()
+    model = build_depth_net(get_preset(preset_name)).eval()
     result = model.load_state_dict(plain.state_dict(), strict=False)
     assert result.unexpected_keys == [] and all(k.startswith("refine.") for k in result.missing_keys)
     height, width = TINY.depth.input_hw
     rgb = torch.rand(1, 3, height, width) * 255
     sparse = torch.zeros(1, 1, height, width)
     sparse[..., ::6, :] = torch.linspace(5.0, 60.0, width)
+    return plain, model, rgb, sparse
+
+
+def test_refine_head_starts_as_the_network_without_it_and_corrects_at_full_resolution() -> None:
+    """The full-resolution head's zero-initialised output leaves the network's function as it was; with
+    weights, it changes single pixels, which the half-resolution correction (upsampled ×2) cannot."""
+    assert TINY.depth.refine_channels == 0 and get_preset("tiny-refine").depth.refine_channels > 0
+    plain, model, rgb, sparse = _with_head_and_without("tiny-refine")
     with torch.no_grad():
         assert torch.equal(model(rgb, sparse), plain(rgb, sparse))
         model.refine.out.weight.normal_(std=0.05)
@@ -259,17 +264,8 @@ def test_refine_head_starts_as_the_network_without_it_and_corrects_at_full_resol
 def test_convex_upsampling_starts_bilinear_and_can_give_a_pixel_one_neighbours_correction() -> None:
     """-convex starts as the network without it (bilinear ×2, borders included); its weights are a
     convex combination, so a pixel whose logits pick one neighbour takes exactly that correction."""
-    convex = get_preset("tiny-convex")
-    assert convex.depth.refine_mode == "convex"
-    torch.manual_seed(0)
-    plain = build_depth_net(TINY).eval()
-    model = build_depth_net(convex).eval()
-    result = model.load_state_dict(plain.state_dict(), strict=False)
-    assert result.unexpected_keys == [] and all(k.startswith("refine.") for k in result.missing_keys)
-    height, width = TINY.depth.input_hw
-    rgb = torch.rand(1, 3, height, width) * 255
-    sparse = torch.zeros(1, 1, height, width)
-    sparse[..., ::6, :] = torch.linspace(5.0, 60.0, width)
+    assert get_preset("tiny-convex").depth.refine_mode == "convex"
+    plain, model, rgb, sparse = _with_head_and_without("tiny-convex")
     with torch.no_grad():
         assert torch.allclose(model(rgb, sparse), plain(rgb, sparse), atol=1e-5)
         coarse = torch.randn(1, 1, 5, 7)
