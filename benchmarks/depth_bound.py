@@ -57,14 +57,20 @@ from pipeline.preprocess import depth_inputs, depth_view
 from pipeline.presets import Preset, preset_from_dict
 
 
+def _blocks(values: np.ndarray, factor: int) -> np.ndarray:
+    """(h, w) → (h/factor, factor, w/factor, factor): the blocks of the view; ValueError if factor does not divide it."""
+    h, w = values.shape
+    if h % factor or w % factor:
+        raise ValueError(f"--factor {factor} does not divide the network's view {w}×{h}")
+    return values.reshape(h // factor, factor, w // factor, factor)
+
+
 def bounded_depth(filled: np.ndarray, truth: np.ndarray, factor: int, min_depth: float) -> np.ndarray:
     """filled + the true correction at 1/factor resolution (view pixels; 0 where the fill or the truth has none)."""
     correction = np.where((filled > 0) & (truth > 0), truth - filled, 0.0).astype(np.float32)
     if factor > 1:
         h, w = correction.shape
-        if h % factor or w % factor:
-            raise ValueError(f"--factor {factor} does not divide the network's view {w}×{h}")
-        coarse = correction.reshape(h // factor, factor, w // factor, factor).mean(axis=(1, 3))
+        coarse = _blocks(correction, factor).mean(axis=(1, 3))
         correction = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)  # half-pixel centres, like the net
     return np.where(filled > 0, np.maximum(filled + correction, min_depth), 0.0).astype(np.float32)
 
@@ -77,11 +83,8 @@ def closest_neighbour_depth(filled: np.ndarray, truth: np.ndarray, factor: int, 
     """
     has = (filled > 0) & (truth > 0)
     correction = np.where(has, truth - filled, 0.0).astype(np.float32)
-    h, w = correction.shape
-    if h % factor or w % factor:
-        raise ValueError(f"--factor {factor} does not divide the network's view {w}×{h}")
-    sums = correction.reshape(h // factor, factor, w // factor, factor).sum(axis=(1, 3))
-    counts = has.reshape(h // factor, factor, w // factor, factor).sum(axis=(1, 3))
+    sums = _blocks(correction, factor).sum(axis=(1, 3))
+    counts = _blocks(has, factor).sum(axis=(1, 3))
     coarse = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0).astype(np.float32)
     padded = np.pad(coarse, 1, mode="edge")
     hc, wc = coarse.shape
