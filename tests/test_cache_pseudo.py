@@ -74,7 +74,8 @@ def test_ctrl_c_keeps_the_finished_maps_and_the_rerun_resumes(tiny_models: Path,
     with open(log, "w") as stderr:
         process = subprocess.Popen(command, stderr=stderr, stdout=subprocess.DEVNULL, text=True)
     deadline = time.monotonic() + 120
-    while f"2/{frames}" not in log.read_text() and process.poll() is None and time.monotonic() < deadline:
+    # Wait on the maps themselves: tqdm redraws at most every 0.1 s, so a count like "2/120" may never be printed.
+    while len([p for p in out.glob("*.png") if p.name.count(".") == 1]) < 2 and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
     assert process.poll() is None, "the command ended before it could be interrupted"
     process.send_signal(signal.SIGINT)
