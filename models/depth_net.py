@@ -41,7 +41,8 @@ correction, upsampled, smears a distant car into what is behind it. With
 upsamples the half-resolution correction, each input pixel taking a learned
 convex combination of its 3×3 neighbours (:class:`ConvexUpsample`). No shipped
 model has either: trained on the frozen shipped net, neither lifted the camera
-pipeline's BEV AP (docs/models.md).
+pipeline's BEV AP, nor did the ``-refine`` head trained with the net from
+scratch (docs/models.md).
 
 Module names follow Ma et al. and torchvision (``layer1.0.conv1.weight`` …), so a
 torchvision-format ResNet-18 checkpoint loads into ``layer1``–``layer4``.
