@@ -73,9 +73,13 @@ def test_ctrl_c_keeps_the_finished_maps_and_the_rerun_resumes(tiny_models: Path,
     log = tmp_path / "stderr.txt"  # a file, not a pipe: a pipe lets the command run ahead of the reader
     with open(log, "w") as stderr:
         process = subprocess.Popen(command, stderr=stderr, stdout=subprocess.DEVNULL, text=True)
-    deadline = time.monotonic() + 120
+
+    def finished_maps() -> int:  # not the .tmp.png being written
+        return sum(1 for p in out.glob("*.png") if p.name.count(".") == 1)
+
     # Wait on the maps themselves: tqdm redraws at most every 0.1 s, so a count like "2/120" may never be printed.
-    while len([p for p in out.glob("*.png") if p.name.count(".") == 1]) < 2 and process.poll() is None and time.monotonic() < deadline:
+    deadline = time.monotonic() + 120
+    while finished_maps() < 2 and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.01)
     assert process.poll() is None, "the command ended before it could be interrupted"
     process.send_signal(signal.SIGINT)
