@@ -65,14 +65,25 @@ def _blocks(values: np.ndarray, factor: int) -> np.ndarray:
     return values.reshape(h // factor, factor, w // factor, factor)
 
 
+def _exact_correction(filled: np.ndarray, truth: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where both the fill and the truth have depth, and the correction truth − filled there (0 elsewhere)."""
+    has = (filled > 0) & (truth > 0)
+    return has, np.where(has, truth - filled, 0.0).astype(np.float32)
+
+
+def _corrected(filled: np.ndarray, correction: np.ndarray, min_depth: float) -> np.ndarray:
+    """filled + correction, floored at min_depth, on the pixels the fill reaches (0 elsewhere, as the net)."""
+    return np.where(filled > 0, np.maximum(filled + correction, min_depth), 0.0).astype(np.float32)
+
+
 def bounded_depth(filled: np.ndarray, truth: np.ndarray, factor: int, min_depth: float) -> np.ndarray:
     """filled + the true correction at 1/factor resolution (view pixels; 0 where the fill or the truth has none)."""
-    correction = np.where((filled > 0) & (truth > 0), truth - filled, 0.0).astype(np.float32)
+    _, correction = _exact_correction(filled, truth)
     if factor > 1:
         h, w = correction.shape
         coarse = _blocks(correction, factor).mean(axis=(1, 3))
         correction = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)  # half-pixel centres, like the net
-    return np.where(filled > 0, np.maximum(filled + correction, min_depth), 0.0).astype(np.float32)
+    return _corrected(filled, correction, min_depth)
 
 
 def closest_neighbour_depth(filled: np.ndarray, truth: np.ndarray, factor: int, min_depth: float) -> np.ndarray:
@@ -81,8 +92,7 @@ def closest_neighbour_depth(filled: np.ndarray, truth: np.ndarray, factor: int, 
     An oracle (it reads the truth to choose): the best an upsampling that gives each pixel one neighbouring
     coarse correction whole, rather than a bilinear mix of them, could do at 1/factor resolution.
     """
-    has = (filled > 0) & (truth > 0)
-    correction = np.where(has, truth - filled, 0.0).astype(np.float32)
+    has, correction = _exact_correction(filled, truth)
     sums = _blocks(correction, factor).sum(axis=(1, 3))
     counts = _blocks(has, factor).sum(axis=(1, 3))
     coarse = np.where(counts > 0, sums / np.maximum(counts, 1), 0.0).astype(np.float32)
@@ -91,7 +101,7 @@ def closest_neighbour_depth(filled: np.ndarray, truth: np.ndarray, factor: int, 
     neighbours = np.stack([padded[dy : dy + hc, dx : dx + wc] for dy in range(3) for dx in range(3)])
     neighbours = neighbours.repeat(factor, axis=1).repeat(factor, axis=2)  # (9, h, w): each pixel's 3×3
     chosen = np.take_along_axis(neighbours, np.abs(neighbours - correction).argmin(axis=0)[None], axis=0)[0]
-    return np.where(filled > 0, np.maximum(filled + np.where(has, chosen, 0.0), min_depth), 0.0).astype(np.float32)
+    return _corrected(filled, np.where(has, chosen, 0.0), min_depth)
 
 
 def to_full_image(view: np.ndarray, image_hw: tuple[int, int], preset: Preset) -> np.ndarray:
