@@ -4,7 +4,7 @@
                                   [--by-distance EDGES] [--json OUT] [--plots DIR]
     python benchmarks/accuracy.py --data DIR --models DIR --input lidar64|lidar16|lidar16+camera
                                   [--frames LIST] [--out DIR] [--depth-dir DIR] [--json OUT] [--plots DIR]
-    python benchmarks/accuracy.py --depth --data DIR --models DIR [--frames LIST] [--json OUT]
+    python benchmarks/accuracy.py --depth --data DIR --models DIR [--depth-dir DIR] [--frames LIST] [--json OUT]
 
 prints the paper's table (Car BEV AP at IoU 0.7 and 0.5, easy / moderate / hard,
 40- and 11-point; 3D and 2D-box AP when the results carry them), writes every
@@ -17,7 +17,8 @@ folder beside the JSON or ``outputs/accuracy``) and evaluate them against its
 ``label_2``; ``--depth`` measures depth completion (RMSE, MAE, iRMSE, iMAE).
 ``--by-distance`` adds AP per distance band, and ``--depth-dir`` feeds the
 camera pipeline depth maps from files instead of its depth network (with the
-synthetic scenes' ``depth_2``: the upper bound of perfect depth).
+synthetic scenes' ``depth_2``: the upper bound of perfect depth); with
+``--depth`` it evaluates those maps instead of the network's.
 
 ``--split-file`` and ``--frames`` are one flag under two names: the frames to
 run and evaluate, in every mode. A flag of another mode is refused, not ignored
@@ -273,9 +274,10 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")
     detect.add_argument(
         "--depth-dir", type=Path, metavar="DIR",
-        help="with --input lidar16+camera: dense depth PNGs of the full camera image (KITTI depth format, "
-        "<id>.png) used instead of the depth network, e.g. DATA/depth_2 of the synthetic scenes for the "
-        "upper bound that perfect depth gives",
+        help="with --input lidar16+camera or --depth: dense depth PNGs of the full camera image (KITTI depth "
+        "format, <id>.png) used instead of the depth network, e.g. DATA/depth_2 of the synthetic scenes for the "
+        "upper bound that perfect depth gives, or benchmarks/depth_bound.py's maps (with --depth: the maps "
+        "evaluated; --models gives the crop and the view)",
     )
     depth = parser.add_argument_group("depth completion")
     depth.add_argument("--depth", action="store_true",
@@ -291,7 +293,8 @@ def build_parser() -> argparse.ArgumentParser:
 # Flags (by dest) that only some modes read; main refuses them in the others.
 _RESULT_FILES = ("gt_labels", "pred_labels")
 _RUN = ("data", "models", "provider")
-_DETECTION = ("input", "out", "score_threshold", "depth_dir")
+_DETECTION = ("input", "out", "score_threshold")
+_DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
 _AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "compare_pred_labels")
 
 
@@ -319,7 +322,7 @@ def _refuse_flags_of_other_modes(parser: argparse.ArgumentParser, args: argparse
         refuse(_RESULT_FILES, "--data", "the detector writes the results and DATA/label_2 is the ground truth")
     else:
         mode = next((dest for dest in _RESULT_FILES if dest in given), None)
-        for dest in _RUN + _DETECTION:
+        for dest in _RUN + _DETECTION + _DEPTH_SOURCE:
             if dest in given and mode is not None:
                 parser.error(f"argument {_flag(dest)}: not allowed with argument {_flag(mode)} "
                              "(result files are evaluated as they are; no model runs)")
@@ -388,7 +391,7 @@ def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, 
 
 def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_file: Path | None) -> int:
     """The dataset modes: run the networks, then evaluate."""
-    from evaluation.depth_metrics import car_errors_by_band
+    from evaluation.depth_metrics import CAR_BOX_MARGIN_M, car_errors_by_band, car_shares_by_band
     from evaluation.harness import run_depth, run_detection
     from pipeline.model_files import ModelFileError
 
@@ -401,8 +404,10 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
         _check_outputs(args, out)
         frames = read_split_file(split_file) if split_file else None
         if args.depth:
+            if args.depth_dir is not None and not args.depth_dir.is_dir():
+                raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
             outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=not args.no_progress,
-                                pictures=args.plots)
+                                pictures=args.plots, depth_dir=args.depth_dir)
             m = outcome.mean
             print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
             print(f"RMSE {m.rmse_mm:.1f} mm   MAE {m.mae_mm:.1f} mm   iRMSE {m.irmse_per_km:.2f} 1/km   "
@@ -413,6 +418,11 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             if cars:
                 print("median |error| on the pixels of moderate cars, by the car's depth: "
                       + ", ".join(f"{band} m {c['median_mm']:.0f} mm ({c['cars']} cars)" for band, c in cars.items()))
+            in_box = car_shares_by_band(outcome.car_in_box) if outcome.car_in_box else {}
+            if in_box:
+                print(f"share of those pixels whose point lands in the car's BEV box (grown by {CAR_BOX_MARGIN_M} m), "
+                      "mean over cars: "
+                      + ", ".join(f"{band} m {c['mean_share']:.2f}" for band, c in in_box.items()))
             if args.plots:
                 print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
             if args.json:
@@ -423,7 +433,8 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                         "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
                                   "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
                                   "median_abs_mm_by_band": m.median_abs_mm_by_band,
-                                  "car_median_abs_mm_by_band": cars},
+                                  "car_median_abs_mm_by_band": cars,
+                                  "car_points_in_box_by_band": in_box},
                     }, indent=1) + "\n", encoding="utf-8")
             return 0
         _check_detection_inputs(args, frames, out)

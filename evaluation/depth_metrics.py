@@ -14,7 +14,12 @@ On object folders with labels (the synthetic scenes) :func:`car_depth_errors`
 also measures each car's own pixels: inside its 2D box, with a true depth
 within 3 m of the car's. That is the depth the camera pipeline's PIXOR sees
 the car by, and the median over cars by the car's distance says where the
-depth net loses cars.
+depth net loses cars. :func:`car_points_in_box` says what PIXOR gets from
+those pixels: the share whose back-projected point lands in the car's BEV
+box. A small median error does not ensure it: a far car is a few pixels
+wide, most of them on its outline, and a correction blurred across the
+outline moves them off the car while its median error stays small
+(docs/measurements.md, session 23).
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from pipeline.calib import Calibration
 from pipeline.errors import InputError
 
 
@@ -144,6 +150,62 @@ def car_surface(ground_truth_m: np.ndarray, box: tuple[float, float, float, floa
               slice(max(int(np.floor(left)), 0), min(int(np.ceil(right)) + 1, width)))
     truth = ground_truth_m[window]
     return window, (truth > 0) & (np.abs(truth - z) <= CAR_SURFACE_M)
+
+
+CAR_BOX_MARGIN_M = 0.2  # a car pixel's point is on the car when it lies in the BEV box grown by this
+
+
+@dataclass(frozen=True)
+class CarInView:
+    """A labelled car as the depth metrics see it, in the depth maps' pixels and the camera frame."""
+
+    box: tuple[float, float, float, float]  # 2D box (left, top, right, bottom) in the maps' pixels
+    z: float  # depth of the box centre (camera z, metres)
+    footprint: tuple[float, float, float, float, float]  # BEV box: centre x, z, length, width, rotation_y
+
+
+def car_points_in_box(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars: Sequence[CarInView],
+                      calib: Calibration) -> list[tuple[float, float]]:
+    """(car depth z, share of the car's pixels whose predicted point lies in its BEV box) per car that has any.
+
+    The car's pixels are :func:`car_surface`'s; each is back-projected with its predicted depth through
+    ``calib`` (the calibration of exactly these maps) and tested against the labelled footprint grown by
+    :data:`CAR_BOX_MARGIN_M` on every side. With the true depth nearly all land in it.
+    """
+    pred = np.asarray(prediction_m, np.float64)
+    gt = np.asarray(ground_truth_m, np.float64)
+    # X_rect = d·K⁻¹[u, v, 1]ᵀ − K⁻¹t with P2 = [K | t]: only x and z matter in BEV.
+    k_inv = np.linalg.inv(calib.P2[:, :3])
+    offset = k_inv @ calib.P2[:, 3]
+    found = []
+    for car in cars:  # a handful of cars per frame; each car's pixels are one vectorized pass
+        window, on_car = car_surface(gt, car.box, car.z)
+        if not on_car.any():
+            continue
+        rows, cols = np.nonzero(on_car)
+        v = rows + window[0].start
+        u = cols + window[1].start
+        d = pred[window][on_car]
+        x = d * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2]) - offset[0]
+        z = d * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2]) - offset[2]
+        centre_x, centre_z, length, width, rotation_y = car.footprint
+        dx, dz = x - centre_x, z - centre_z
+        # KITTI's rotation_y turns the box's length axis from the camera's x towards −z.
+        along = np.cos(rotation_y) * dx - np.sin(rotation_y) * dz
+        across = np.sin(rotation_y) * dx + np.cos(rotation_y) * dz
+        inside = (np.abs(along) <= length / 2 + CAR_BOX_MARGIN_M) & (np.abs(across) <= width / 2 + CAR_BOX_MARGIN_M)
+        found.append((float(car.z), float(inside.mean())))
+    return found
+
+
+def car_shares_by_band(shares: Sequence[tuple[float, float]]) -> dict[str, dict[str, float]]:
+    """Mean over cars of :func:`car_points_in_box`'s share, and the number of cars, per :data:`CAR_BANDS_M` band."""
+    out = {}
+    for low, high in CAR_BANDS_M:
+        values = [share for z, share in shares if low <= z < high]
+        out[_band_name(low, high)] = {"mean_share": float(np.mean(values)) if values else float("nan"),
+                                      "cars": len(values)}
+    return out
 
 
 def car_errors_by_band(errors: Sequence[tuple[float, float]]) -> dict[str, dict[str, float]]:

@@ -16,15 +16,22 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
-from evaluation.depth_metrics import DepthMetrics, car_depth_errors, depth_metrics, mean_over_frames
+from evaluation.depth_metrics import (
+    CarInView,
+    DepthMetrics,
+    car_depth_errors,
+    car_points_in_box,
+    depth_metrics,
+    mean_over_frames,
+)
 from evaluation.kitti_eval import DIFFICULTIES, MAX_OCCLUSION, MAX_TRUNCATION, MIN_HEIGHT
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
-from pipeline.kitti import read_depth_png, read_image
-from pipeline.preprocess import view_from_depth_png
+from pipeline.kitti import read_depth_png, read_image, read_image_depth_png
+from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
 from pipeline.render import render_depth_panel
 
 log = logging.getLogger(__name__)
@@ -68,6 +75,8 @@ class DepthRun:
     input: str
     # Object folders with labels: (car depth z, median |error| mm on its pixels) of every moderate car.
     car_errors: list[tuple[float, float]] = field(default_factory=list)
+    # And (car depth z, share of its pixels whose point lands in its BEV box), in the network's view.
+    car_in_box: list[tuple[float, float]] = field(default_factory=list)
 
 
 def _crop_ground_truth(gt: np.ndarray, preset) -> np.ndarray:
@@ -82,7 +91,8 @@ def _to_crop_resolution(prediction: np.ndarray, crop_hw: tuple[int, int]) -> np.
 
 
 def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: int | None = 16,
-              provider: str | None = None, progress: bool = True, pictures: Path | None = None) -> DepthRun:
+              provider: str | None = None, progress: bool = True, pictures: Path | None = None,
+              depth_dir: Path | None = None) -> DepthRun:
     """Depth completion metrics on the KITTI crop, at full resolution.
 
     Layouts: KITTI depth completion (``image_02/``, ``velodyne_raw/``,
@@ -107,6 +117,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
     preset = detector.preset
     per_frame: dict[str, DepthMetrics] = {}
     car_errors: list[tuple[float, float]] = []
+    car_in_box: list[tuple[float, float]] = []
     if pictures is not None:
         Path(pictures).mkdir(parents=True, exist_ok=True)
 
@@ -122,10 +133,13 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             image = read_image(data / "image_02" / f"{fid}.png")
             sparse = read_depth_png(data / "velodyne_raw" / f"{fid}.png")
             gt = read_depth_png(data / "groundtruth" / f"{fid}.png")
-            rgb, sparse_view = view_from_depth_png(image, sparse, preset)
             crop_gt = _crop_ground_truth(gt, preset)
-            prediction = _to_crop_resolution(detector.run_depth_net(rgb, sparse_view), crop_gt.shape)
-            per_frame[fid] = depth_metrics(prediction, crop_gt)
+            if depth_dir is None:
+                rgb, sparse_view = view_from_depth_png(image, sparse, preset)
+                prediction = _to_crop_resolution(detector.run_depth_net(rgb, sparse_view), crop_gt.shape)
+            else:
+                prediction = _crop_ground_truth(read_image_depth_png(depth_dir / f"{fid}.png", image.shape[:2]), preset)
+            per_frame[fid] = depth_metrics(prediction, crop_gt, _given_pixels(prediction, depth_dir))
             picture(fid, image, prediction, crop_gt)
     else:
         used = f"{beams}-line emulated scan" if beams else "scan as stored"
@@ -134,28 +148,52 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             frame = load_frame(data, fid, with_labels=labelled)
             points = emulate_beams(frame.points, beams) if beams else frame.points
-            view_depth, _ = detector.dense_depth(frame.image, points, frame.calib)
-            crop_gt = _crop_ground_truth(read_depth_png(data / "depth_2" / f"{fid}.png"), preset)
-            prediction = _to_crop_resolution(view_depth, crop_gt.shape)
-            per_frame[fid] = depth_metrics(prediction, crop_gt)
+            gt = read_depth_png(data / "depth_2" / f"{fid}.png")
+            crop_gt = _crop_ground_truth(gt, preset)
+            if depth_dir is None:
+                view_depth, view_calib = detector.dense_depth(frame.image, points, frame.calib)
+                prediction = _to_crop_resolution(view_depth, crop_gt.shape)
+            else:  # the pipeline's view of a given map, as `detect --depth-dir` makes it
+                given = read_image_depth_png(depth_dir / f"{fid}.png", frame.image_hw)
+                view_depth = depth_view(given, preset)
+                view_calib = view_calibration(frame.image_hw, frame.calib, preset)
+                prediction = _crop_ground_truth(given, preset)
+            per_frame[fid] = depth_metrics(prediction, crop_gt, _given_pixels(prediction, depth_dir))
             if labelled:
-                car_errors.extend(car_depth_errors(prediction, crop_gt, _moderate_cars_in_crop(frame, preset)))
+                cars = _moderate_cars_in_crop(frame, preset)
+                car_errors.extend(car_depth_errors(prediction, crop_gt, [(car.box, car.z) for car in cars]))
+                # Where the pipeline's points come from: the view's own map, the truth resized as the
+                # pipeline resizes a given depth map (nearest: no blend across outlines).
+                in_view = _moderate_cars_in_crop(frame, preset, preset.depth.input_scale)
+                car_in_box.extend(car_points_in_box(view_depth, depth_view(gt, preset), in_view, view_calib))
             picture(fid, frame.image, prediction, crop_gt)
     if not per_frame:
         raise InputError(f"--data: {data} has no frames to evaluate")
+    if depth_dir is not None:
+        used = f"depth maps from {depth_dir}, not the depth network; their pixels without depth left out"
     return DepthRun(mean=mean_over_frames(list(per_frame.values())), per_frame=per_frame, layout=layout, input=used,
-                    car_errors=car_errors)
+                    car_errors=car_errors, car_in_box=car_in_box)
 
 
-def _moderate_cars_in_crop(frame, preset) -> list[tuple[tuple[float, float, float, float], float]]:
+def _given_pixels(prediction: np.ndarray, depth_dir: Path | None) -> np.ndarray | None:
+    """The pixels a given map has a depth for (None for the network's maps, which cover every pixel)."""
+    return None if depth_dir is None else prediction > 0
+
+
+def _moderate_cars_in_crop(frame, preset, scale: float = 1.0) -> list[CarInView]:
     """The KITTI-moderate cars of a labelled frame (2D box ≥ 25 px high, occlusion ≤ 1, truncation ≤ 0.3):
-    their 2D boxes in the depth crop's pixels and their centres' depth z."""
+    their 2D boxes in the pixels of the depth crop resized by ``scale``, depths z and BEV footprints."""
     crop = depth_crop(frame.image_hw, *preset.crop_hw)
+    offset = (scale - 1.0) / 2.0  # pixel centres at integers (pipeline.preprocess.scale_calibration)
     moderate = DIFFICULTIES.index("moderate")
     cars = []
     for label in frame.labels or []:
         left, top, right, bottom = label.bbox
         if (label.type == "Car" and bottom - top >= MIN_HEIGHT[moderate] and label.occluded <= MAX_OCCLUSION[moderate]
                 and label.truncated <= MAX_TRUNCATION[moderate]):
-            cars.append(((left - crop.left, top - crop.top, right - crop.left, bottom - crop.top), label.location[2]))
+            box = tuple(scale * (edge - shift) + offset for edge, shift in
+                        zip((left, top, right, bottom), (crop.left, crop.top, crop.left, crop.top), strict=True))
+            x, _, z = label.location
+            length, width = label.dimensions[2], label.dimensions[1]
+            cars.append(CarInView(box=box, z=z, footprint=(x, z, length, width, label.rotation_y)))
     return cars

@@ -23,7 +23,14 @@ from pipeline.boxes import labels_to_boxes
 from pipeline.cli import probability, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
-from pipeline.kitti import read_calib, read_depth_png, read_image, read_labels, read_velodyne, write_labels
+from pipeline.kitti import (
+    read_calib,
+    read_image,
+    read_image_depth_png,
+    read_labels,
+    read_velodyne,
+    write_labels,
+)
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
 from pipeline.render import render_bev
 
@@ -104,11 +111,7 @@ def run(
         frame = loader(fid)
         depth = None
         if depth_dir is not None:
-            depth_path = Path(depth_dir) / f"{fid}.png"
-            depth = read_depth_png(depth_path)
-            if depth.shape != frame.image.shape[:2]:
-                raise InputError(f"{depth_path}: a {depth.shape[1]}×{depth.shape[0]} depth map for a "
-                                 f"{frame.image.shape[1]}×{frame.image.shape[0]} image; it must cover the whole image")
+            depth = read_image_depth_png(Path(depth_dir) / f"{fid}.png", frame.image.shape[:2])
         if frame.points.shape[0] == 0 and frame.dropped_nonfinite:
             raise InputError(f"{source(fid)}: points: none of the scan's {frame.dropped_nonfinite} rows is finite")
         try:

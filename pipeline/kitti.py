@@ -277,6 +277,15 @@ def read_depth_png(path: str | Path) -> np.ndarray:
     return decode_depth_png(data, str(path))
 
 
+def read_image_depth_png(path: str | Path, image_hw: tuple[int, int]) -> np.ndarray:
+    """A dense depth PNG of a whole camera image (float32 metres), refused when its size is not the image's."""
+    depth = read_depth_png(path)
+    if depth.shape != tuple(image_hw):
+        raise InputError(f"{path}: a {depth.shape[1]}×{depth.shape[0]} depth map for a "
+                         f"{image_hw[1]}×{image_hw[0]} image; it must cover the whole image")
+    return depth
+
+
 def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
     """Write float metres as a KITTI depth PNG (rounded to 1/256 m, clipped to the uint16 range)."""
     depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)

@@ -123,6 +123,25 @@ def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp
     assert outcome.mean.rmse_mm > 0
     # With labels, the errors on the moderate cars' own pixels (the 64-line returns on them, here).
     assert outcome.car_errors and all(z > 0 and mm >= 0 for z, mm in outcome.car_errors)
+    # And where their points land, in the network's view: one share per car with pixels there.
+    assert outcome.car_in_box and all(0.0 <= share <= 1.0 for _, share in outcome.car_in_box)
+    assert {z for z, _ in outcome.car_in_box} <= {z for z, _ in outcome.car_errors}
+    # Another source's maps in place of the network: the ground truth itself scores no error.
+    given = run_depth(data, tiny_models, frames=["000006"], progress=False, depth_dir=data / "depth_2")
+    assert given.input.startswith(f"depth maps from {data / 'depth_2'}, not the depth network")
+    assert given.mean.rmse_mm == 0.0 and all(mm == 0.0 for _, mm in given.car_errors)
+    # Most of the 64-line returns on a car land in its box (a few dozen returns per car in the half-size
+    # view: the ground beside a car inside its 2D box counts against it).
+    assert given.car_in_box and np.mean([share for _, share in given.car_in_box]) > 0.6
+    # The command prints both per distance band and writes them to its JSON.
+    result = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames",
+                       _frames_file(tmp_path, "000006"), "--json", tmp_path / "depth.json")
+    assert result.returncode == 0, result.stderr
+    assert "share of those pixels whose point lands in the car's BEV box" in result.stdout
+    document = json.loads((tmp_path / "depth.json").read_text())["depth"]
+    assert set(document["car_points_in_box_by_band"]) == set(document["car_median_abs_mm_by_band"]) == {
+        "0-20", "20-35", "35-50"}
+    assert sum(band["cars"] for band in document["car_points_in_box_by_band"].values()) >= 1
 
 
 def test_depth_mode_names_the_missing_layout(tiny_models, tmp_path):
@@ -197,3 +216,24 @@ def test_detection_run_checks_label_2_before_detecting(tiny_models, tmp_path):
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
     assert f"error: --data {data}: no label_2/" in result.stderr
     assert not (tmp_path / "run").exists()  # no frame was detected
+
+
+def test_depth_mode_with_depth_dir_names_a_missing_folder_or_a_map_of_another_size(tiny_models, tmp_path):
+    data = tmp_path / "data"
+    for sub in ("image_2", "velodyne", "calib", "label_2"):
+        shutil.copytree(KITTI / sub, data / sub)
+    (data / "depth_2").mkdir()
+    image_hw = load_frame(KITTI, "000006").image_hw
+    write_depth_png(data / "depth_2" / "000006.png", np.full(image_hw, 20.0))
+    frames = _frames_file(tmp_path, "000006")
+    result = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames", frames,
+                       "--depth-dir", tmp_path / "nowhere")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"error: --depth-dir {tmp_path / 'nowhere'}: directory not found" in result.stderr
+    (tmp_path / "small").mkdir()
+    write_depth_png(tmp_path / "small" / "000006.png", np.full((10, 20), 20.0))
+    result = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames", frames,
+                       "--depth-dir", tmp_path / "small")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert (f"{tmp_path / 'small' / '000006.png'}: a 20×10 depth map for a {image_hw[1]}×{image_hw[0]} image; "
+            "it must cover the whole image") in result.stderr

@@ -9,14 +9,20 @@ import numpy as np
 import pytest
 
 from evaluation.depth_metrics import (
+    CarInView,
     DepthMetrics,
     car_depth_errors,
     car_errors_by_band,
+    car_points_in_box,
+    car_shares_by_band,
     depth_metrics,
     mean_over_frames,
 )
+from pipeline.calib import sparse_depth_map
 from pipeline.errors import InputError
+from pipeline.frame import load_frame
 from pipeline.kitti import read_depth_png
+from tests.conftest import KITTI
 
 FRAME = Path(__file__).resolve().parent / "data" / "depth_completion"
 
@@ -115,3 +121,33 @@ def test_car_pixels_are_the_box_pixels_on_the_car_surface():
     bands = car_errors_by_band(errors)
     assert bands["0-20"] == {"median_mm": 200.0, "cars": 2} and bands["35-50"] == {"median_mm": 900.0, "cars": 1}
     assert bands["20-35"]["cars"] == 0 and math.isnan(bands["20-35"]["median_mm"])
+
+
+def _cars_in_full_image(frame) -> list[CarInView]:
+    return [CarInView(box=label.bbox, z=label.location[2],
+                      footprint=(label.location[0], label.location[2], label.dimensions[2], label.dimensions[1],
+                                 label.rotation_y))
+            for label in frame.labels if label.type == "Car"]
+
+
+@pytest.mark.parametrize("frame_id", ["000004", "000006"])
+def test_car_points_land_in_their_boxes_with_the_true_depth_and_leave_them_when_nearer(frame_id):
+    """On the shared real frames (cars at 20–51 m, seen from behind and from the side), the 64-line
+    returns on each labelled car land in its BEV box; moved towards the camera they leave it (the
+    visible faces are the box's near faces), and 5 m farther they are past it."""
+    frame = load_frame(KITTI, frame_id)
+    truth = sparse_depth_map(frame.points, frame.calib, frame.image_hw)
+    cars = _cars_in_full_image(frame)
+    on_truth = car_points_in_box(truth, truth, cars, frame.calib)
+    assert [z for z, _ in on_truth] == [car.z for car in cars]
+    assert all(share >= 0.75 for _, share in on_truth) and np.mean([s for _, s in on_truth]) >= 0.85
+    nearer = car_points_in_box(np.where(truth > 0, truth - 1.5, 0), truth, cars, frame.calib)
+    assert np.mean([s for _, s in nearer]) <= 0.25
+    farther = car_points_in_box(np.where(truth > 0, truth + 5.0, 0), truth, cars, frame.calib)
+    assert all(share == 0.0 for _, share in farther)
+
+
+def test_car_shares_by_band_average_the_cars_of_each_band():
+    bands = car_shares_by_band([(10.0, 0.5), (15.0, 1.0), (40.0, 0.25)])
+    assert bands["0-20"] == {"mean_share": 0.75, "cars": 2} and bands["35-50"] == {"mean_share": 0.25, "cars": 1}
+    assert bands["20-35"]["cars"] == 0 and math.isnan(bands["20-35"]["mean_share"])
