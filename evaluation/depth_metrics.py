@@ -29,8 +29,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.calib import Calibration
+from evaluation.kitti_eval import DIFFICULTIES, MAX_OCCLUSION, MAX_TRUNCATION, MIN_HEIGHT
+from pipeline.calib import Calibration, depth_crop
 from pipeline.errors import InputError
+from pipeline.frame import Frame
 
 
 @dataclass(frozen=True)
@@ -162,6 +164,25 @@ class CarInView:
     box: tuple[float, float, float, float]  # 2D box (left, top, right, bottom) in the maps' pixels
     z: float  # depth of the box centre (camera z, metres)
     footprint: tuple[float, float, float, float, float]  # BEV box: centre x, z, length, width, rotation_y
+
+
+def moderate_cars_in_view(frame: Frame, crop_hw: tuple[int, int], scale: float = 1.0) -> list[CarInView]:
+    """The KITTI-moderate cars of a labelled frame (2D box ≥ 25 px high, occlusion ≤ 1, truncation ≤ 0.3),
+    their 2D boxes in the pixels of the depth crop (``crop_hw``) resized by ``scale`` (the network's view)."""
+    crop = depth_crop(frame.image_hw, *crop_hw)
+    offset = (scale - 1.0) / 2.0  # pixel centres at integers (pipeline.preprocess.scale_calibration)
+    moderate = DIFFICULTIES.index("moderate")
+    cars = []
+    for label in frame.labels or []:
+        left, top, right, bottom = label.bbox
+        if (label.type == "Car" and bottom - top >= MIN_HEIGHT[moderate] and label.occluded <= MAX_OCCLUSION[moderate]
+                and label.truncated <= MAX_TRUNCATION[moderate]):
+            box = tuple(scale * (edge - shift) + offset for edge, shift in
+                        zip((left, top, right, bottom), (crop.left, crop.top, crop.left, crop.top), strict=True))
+            x, _, z = label.location
+            length, width = label.dimensions[2], label.dimensions[1]
+            cars.append(CarInView(box=box, z=z, footprint=(x, z, length, width, label.rotation_y)))
+    return cars
 
 
 def car_points_in_box(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars: Sequence[CarInView],

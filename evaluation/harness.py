@@ -17,14 +17,13 @@ import numpy as np
 from tqdm import tqdm
 
 from evaluation.depth_metrics import (
-    CarInView,
     DepthMetrics,
     car_depth_errors,
     car_points_in_box,
     depth_metrics,
     mean_over_frames,
+    moderate_cars_in_view,
 )
-from evaluation.kitti_eval import DIFFICULTIES, MAX_OCCLUSION, MAX_TRUNCATION, MIN_HEIGHT
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
 from pipeline.detector import Detector
@@ -160,11 +159,11 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
                 prediction = _crop_ground_truth(given, preset)
             per_frame[fid] = depth_metrics(prediction, crop_gt, _given_pixels(prediction, depth_dir))
             if labelled:
-                cars = _moderate_cars_in_crop(frame, preset)
+                cars = moderate_cars_in_view(frame, preset.crop_hw)
                 car_errors.extend(car_depth_errors(prediction, crop_gt, [(car.box, car.z) for car in cars]))
                 # Where the pipeline's points come from: the view's own map, the truth resized as the
                 # pipeline resizes a given depth map (nearest: no blend across outlines).
-                in_view = _moderate_cars_in_crop(frame, preset, preset.depth.input_scale)
+                in_view = moderate_cars_in_view(frame, preset.crop_hw, preset.depth.input_scale)
                 car_in_box.extend(car_points_in_box(view_depth, depth_view(gt, preset), in_view, view_calib))
             picture(fid, frame.image, prediction, crop_gt)
     if not per_frame:
@@ -178,22 +177,3 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
 def _given_pixels(prediction: np.ndarray, depth_dir: Path | None) -> np.ndarray | None:
     """The pixels a given map has a depth for (None for the network's maps, which cover every pixel)."""
     return None if depth_dir is None else prediction > 0
-
-
-def _moderate_cars_in_crop(frame, preset, scale: float = 1.0) -> list[CarInView]:
-    """The KITTI-moderate cars of a labelled frame (2D box ≥ 25 px high, occlusion ≤ 1, truncation ≤ 0.3):
-    their 2D boxes in the pixels of the depth crop resized by ``scale``, depths z and BEV footprints."""
-    crop = depth_crop(frame.image_hw, *preset.crop_hw)
-    offset = (scale - 1.0) / 2.0  # pixel centres at integers (pipeline.preprocess.scale_calibration)
-    moderate = DIFFICULTIES.index("moderate")
-    cars = []
-    for label in frame.labels or []:
-        left, top, right, bottom = label.bbox
-        if (label.type == "Car" and bottom - top >= MIN_HEIGHT[moderate] and label.occluded <= MAX_OCCLUSION[moderate]
-                and label.truncated <= MAX_TRUNCATION[moderate]):
-            box = tuple(scale * (edge - shift) + offset for edge, shift in
-                        zip((left, top, right, bottom), (crop.left, crop.top, crop.left, crop.top), strict=True))
-            x, _, z = label.location
-            length, width = label.dimensions[2], label.dimensions[1]
-            cars.append(CarInView(box=box, z=z, footprint=(x, z, length, width, label.rotation_y)))
-    return cars

@@ -49,6 +49,7 @@ from dataclasses import asdict, dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
+from evaluation.depth_metrics import car_errors_by_band, car_shares_by_band
 from evaluation.frames import LabelSet, load_label_dirs
 from evaluation.harness import run_depth, run_detection
 from evaluation.kitti_eval import DIFFICULTIES, bootstrap, evaluate, evaluate_by_distance
@@ -367,9 +368,12 @@ def run(config: ReproduceConfig) -> dict:
     how_sure = _how_sure(config, labels)
     depth_table = {}
     for name, models in (("with GAMs", depth_models), ("without GAMs", no_gam_models)):
-        m = run_depth(config.data / "val", models, progress=config.progress).mean
+        outcome = run_depth(config.data / "val", models, progress=config.progress)
+        m = outcome.mean
         depth_table[name] = {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
-                             "imae_per_km": m.imae_per_km, "median_abs_mm_by_band": m.median_abs_mm_by_band}
+                             "imae_per_km": m.imae_per_km, "median_abs_mm_by_band": m.median_abs_mm_by_band,
+                             "car_median_abs_mm_by_band": car_errors_by_band(outcome.car_errors),
+                             "car_points_in_box_by_band": car_shares_by_band(outcome.car_in_box)}
     stage("evaluate")
 
     # Ship the better two-stage directory (by BEV AP at IoU 0.7, moderate) as the product.
@@ -417,6 +421,15 @@ def format_table(report: dict) -> str:
         medians = "".join(f" {m['median_abs_mm_by_band'][b]:.0f} |" for b in bands)
         lines.append(f"| {name} | {m['rmse_mm']:.0f} | {m['mae_mm']:.0f} | {m['irmse_per_km']:.2f} | "
                      f"{m['imae_per_km']:.2f} |{medians}")
+    car_bands = list(next(iter(report["depth"].values())).get("car_points_in_box_by_band", {}))
+    if car_bands:  # reports written before session 23 have no per-car figures
+        lines += ["", "| depth net, moderate cars' own pixels | "
+                  + "".join(f"{b} m: median error (mm) / share on the car | " for b in car_bands),
+                  "|---|" + "---|" * len(car_bands)]
+        for name, m in report["depth"].items():
+            cells = "".join(f" {m['car_median_abs_mm_by_band'][b]['median_mm']:.0f} / "
+                            f"{m['car_points_in_box_by_band'][b]['mean_share']:.2f} |" for b in car_bands)
+            lines.append(f"| {name} |{cells}")
     return "\n".join(lines) + "\n"
 
 

@@ -57,6 +57,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
+from evaluation.depth_metrics import car_points_in_box, car_shares_by_band, moderate_cars_in_view
 from evaluation.kitti_eval import evaluate
 from evaluation.labels import LabelArrays
 from models import build_depth_net, build_pixor
@@ -80,7 +81,7 @@ from pipeline.cli import non_negative_int, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.postprocess import boxes_from_maps
-from pipeline.preprocess import depth_inputs
+from pipeline.preprocess import depth_inputs, view_calibration
 from pipeline.presets import Preset, get_preset, lidar_only, preset_from_dict
 from pipeline.pseudo import pixel_rays
 from pipeline.targets import encode_targets
@@ -316,11 +317,19 @@ def loader(dataset, batch_size: int, shuffle: bool, seed: int, workers: int, inp
 # ----------------------------------------------------------------------------- validation
 @torch.no_grad()
 def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU, loss: str = "mse") -> dict:
-    """RMSE and MAE (mm) of the validation frames; val_loss is the training loss (MSE in m², or L1 in m)."""
+    """RMSE and MAE (mm) of the validation frames; val_loss is the training loss (MSE in m², or L1 in m).
+
+    On labelled object frames also ``car_in_box_<band>``: per distance band, the mean over the moderate
+    cars of the share of their pixels whose point lands in their BEV box (benchmarks/accuracy.py --depth's
+    figure, the one that follows the camera row's AP; docs/measurements.md, session 23).
+    """
     net.eval()
     sq, ab, n = 0.0, 0.0, 0
     per_frame_rmse = []
-    for rgb, sparse, target in DataLoader(dataset, batch_size=2):
+    shares: list[tuple[float, float]] = []
+    labelled = isinstance(dataset, DepthDataset) and (Path(dataset.data_dir) / "label_2").is_dir()
+    index = 0
+    for rgb, sparse, target, *_ in DataLoader(dataset, batch_size=2):
         prediction = net(rgb.to(device), sparse.to(device)).cpu()
         valid = target > 0
         err = (prediction - target)[valid] * 1000.0
@@ -331,9 +340,25 @@ def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU, loss:
             v = valid[i]
             if v.any():
                 per_frame_rmse.append(float(torch.sqrt((((prediction[i] - target[i])[v] * 1000) ** 2).mean())))
+            if labelled:
+                shares += _car_shares(dataset, index, prediction[i, 0].numpy(), target[i, 0].numpy())
+            index += 1
     val_loss = sq / max(n, 1) / 1e6 if loss == "mse" else ab / max(n, 1) / 1e3
-    return {"val_loss": val_loss, "rmse_mm": float(np.mean(per_frame_rmse)) if per_frame_rmse else float("nan"),
-            "mae_mm": ab / max(n, 1), "pixels": n}
+    metrics = {"val_loss": val_loss, "rmse_mm": float(np.mean(per_frame_rmse)) if per_frame_rmse else float("nan"),
+               "mae_mm": ab / max(n, 1), "pixels": n}
+    if shares:
+        metrics.update({f"car_in_box_{band}": c["mean_share"] for band, c in car_shares_by_band(shares).items()
+                        if c["cars"]})  # no NaN in log.jsonl
+    return metrics
+
+
+def _car_shares(dataset: DepthDataset, index: int, prediction: np.ndarray, target: np.ndarray
+                ) -> list[tuple[float, float]]:
+    """(car depth, share of its pixels landing in its BEV box) of one validation frame's moderate cars."""
+    frame = load_frame(dataset.data_dir, dataset.frame_ids[index], with_image=False)
+    preset = dataset.preset
+    cars = moderate_cars_in_view(frame, preset.crop_hw, preset.depth.input_scale)
+    return car_points_in_box(prediction, target, cars, view_calibration(frame.image_hw, frame.calib, preset))
 
 
 @torch.no_grad()

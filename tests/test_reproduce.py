@@ -32,6 +32,12 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     table_md = (out / "table.md").read_text()
     assert "| lidar16+camera |" in table_md and "| BEV AP |" in table_md and "| 3D AP |" in table_md
     assert "by distance" in table_md and "| camera - lidar16 |" in table_md
+    # The depth nets' moderate cars: median error and share of their pixels on the car, per band.
+    for depth in report["depth"].values():
+        shares = depth["car_points_in_box_by_band"]
+        assert set(shares) == set(depth["car_median_abs_mm_by_band"]) == {"0-20", "20-35", "35-50"}
+        assert sum(band["cars"] for band in shares.values()) > 0
+    assert "| depth net, moderate cars' own pixels |" in table_md
     # The shipped-style directories load in the runtime, each of the right kind.
     weights = out / "weights"
     assert Detector(weights / "tiny").two_stage

@@ -218,6 +218,10 @@ def test_quick_depth_and_detector_runs_reduce_the_loss(small_sim, tmp_path):
     assert depth.last_loss < depth.first_loss
     assert (tmp_path / "depth" / "depth.pt").exists() and (tmp_path / "depth" / "log.jsonl").exists()
     assert {"rmse_mm", "mae_mm", "val_loss"} <= set(depth.history[-1])
+    # The labelled validation frames also say where the cars' pixels land (only bands that have cars).
+    shares = {k: v for k, v in depth.history[-1].items() if k.startswith("car_in_box_")}
+    assert shares and set(shares) <= {"car_in_box_0-20", "car_in_box_20-35", "car_in_box_35-50"}
+    assert all(0.0 <= v <= 1.0 for v in shares.values())
     detector = run(TrainConfig(task="detector", data=small_sim, preset="tiny", out=tmp_path / "det", quick=True,
                                epochs=3, progress=False))
     assert detector.last_loss < detector.first_loss
