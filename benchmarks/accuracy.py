@@ -54,6 +54,7 @@ from evaluation.report import (
     format_spread,
     format_table,
     plot_by_distance,
+    plot_car_depth,
     plot_pr_curves,
     spread_json,
     to_json,
@@ -425,6 +426,10 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                       + ", ".join(f"{band} m {c['mean_share']:.2f}" for band, c in in_box.items()))
             if args.plots:
                 print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
+                if outcome.car_errors:
+                    picture = plot_car_depth(outcome.car_errors, outcome.car_in_box, args.plots / "car_depth.png",
+                                             f"depth on the moderate cars, {outcome.input}")
+                    print(f"plot (each car's error and share on the car against its distance): {picture}")
             if args.json:
                 with _writing(args.json, "--json"):
                     args.json.parent.mkdir(parents=True, exist_ok=True)

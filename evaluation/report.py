@@ -157,6 +157,31 @@ def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: st
     return path
 
 
+def plot_car_depth(car_errors: list[tuple[float, float]], car_in_box: list[tuple[float, float]],
+                   path: str | Path, title: str = "depth on the moderate cars") -> Path:
+    """One PNG, a dot per car against its distance: the median |error| over its pixels (left, log scale)
+    and the share of them whose point lands in its BEV box (right)."""
+    plt = _pyplot()
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    if car_errors:
+        z, mm = np.array(car_errors).T
+        left.scatter(z, np.maximum(mm, 1.0), s=8, alpha=0.6)  # 0 mm (exact depth) drawn at 1 mm on the log axis
+    left.set(yscale="log", xlabel="car depth z (m)", ylabel="median |error| on its pixels (mm)")
+    if car_in_box:
+        z, share = np.array(car_in_box).T
+        right.scatter(z, share, s=8, alpha=0.6)
+    right.set(ylim=(-0.02, 1.02), xlabel="car depth z (m)", ylabel="share of its pixels in its BEV box")
+    for ax in (left, right):
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
 def format_spread(result: KittiEvalResult, spread: BootstrapResult, other: KittiEvalResult | None = None,
                   other_name: str = "other", level: float = 0.95) -> str:
     """R40 AP with its bootstrap interval, and with ``other``: the paired difference this − other."""

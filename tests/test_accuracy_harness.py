@@ -135,9 +135,11 @@ def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp
     assert given.car_in_box and np.mean([share for _, share in given.car_in_box]) > 0.6
     # The command prints both per distance band and writes them to its JSON.
     result = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames",
-                       _frames_file(tmp_path, "000006"), "--json", tmp_path / "depth.json")
+                       _frames_file(tmp_path, "000006"), "--json", tmp_path / "depth.json", "--plots", tmp_path / "p")
     assert result.returncode == 0, result.stderr
     assert "share of those pixels whose point lands in the car's BEV box" in result.stdout
+    picture = cv2.imread(str(tmp_path / "p" / "car_depth.png"))  # each car's error and share against distance
+    assert picture is not None and picture.shape[1] > picture.shape[0] > 200
     document = json.loads((tmp_path / "depth.json").read_text())["depth"]
     assert set(document["car_points_in_box_by_band"]) == set(document["car_median_abs_mm_by_band"]) == {
         "0-20", "20-35", "35-50"}
