@@ -221,19 +221,18 @@ def car_points_in_box(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars
 
 def car_shares_by_band(shares: Sequence[tuple[float, float]]) -> dict[str, dict[str, float]]:
     """Mean over cars of :func:`car_points_in_box`'s share, and the number of cars, per :data:`CAR_BANDS_M` band."""
-    out = {}
-    for low, high in CAR_BANDS_M:
-        values = [share for z, share in shares if low <= z < high]
-        out[_band_name(low, high)] = {"mean_share": float(np.mean(values)) if values else float("nan"),
-                                      "cars": len(values)}
-    return out
+    return _per_car_band(shares, "mean_share", np.mean)
 
 
 def car_errors_by_band(errors: Sequence[tuple[float, float]]) -> dict[str, dict[str, float]]:
     """Median over cars of their median |error| (mm), and the number of cars, per :data:`CAR_BANDS_M` band."""
+    return _per_car_band(errors, "median_mm", np.median)
+
+
+def _per_car_band(per_car: Sequence[tuple[float, float]], name: str, reduce) -> dict[str, dict[str, float]]:
+    """``{band: {name: reduce(the values of the band's cars) or NaN, "cars": n}}`` of (car depth, value) pairs."""
     out = {}
     for low, high in CAR_BANDS_M:
-        values = [mm for z, mm in errors if low <= z < high]
-        out[_band_name(low, high)] = {"median_mm": float(np.median(values)) if values else float("nan"),
-                                      "cars": len(values)}
+        values = [value for z, value in per_car if low <= z < high]
+        out[_band_name(low, high)] = {name: float(reduce(values)) if values else float("nan"), "cars": len(values)}
     return out

@@ -66,6 +66,16 @@ def _pyplot():
     return plt
 
 
+def _save(fig, path: str | Path) -> Path:
+    """Lay out, write at the reports' 120 dpi (creating the folder), and close a figure."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    _pyplot().close(fig)
+    return path
+
+
 def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
     """One PNG per difficulty: interpolated precision against the 41 sampled recall points.
 
@@ -149,12 +159,7 @@ def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: st
         ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     else:
         ax.legend(fontsize=7, loc="lower left")
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_car_depth(car_errors: list[tuple[float, float]], car_in_box: list[tuple[float, float]],
@@ -174,12 +179,7 @@ def plot_car_depth(car_errors: list[tuple[float, float]], car_in_box: list[tuple
     for ax in (left, right):
         ax.grid(alpha=0.3)
     fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def format_spread(result: KittiEvalResult, spread: BootstrapResult, other: KittiEvalResult | None = None,
