@@ -108,6 +108,14 @@ def test_depth_metrics_on_real_depth_completion_frame(tiny_models, depth_complet
     m = outcome.mean
     assert np.isfinite([m.rmse_mm, m.mae_mm, m.irmse_per_km, m.imae_per_km]).all()
     assert m.rmse_mm >= m.mae_mm > 0
+    # Another source's maps instead of the network: the raw 64-line projection, evaluated where it has a
+    # depth (the pixels where both it and the ground truth have one).
+    given = run_depth(depth_completion_dir, tiny_models, progress=False,
+                      depth_dir=depth_completion_dir / "velodyne_raw")
+    raw = depth_crop(gt.shape).apply(read_depth_png(depth_completion_dir / "velodyne_raw" / "0000000005.png"))
+    assert given.mean.n_pixels == np.count_nonzero((raw > 0) & (crop > 0)) < m.n_pixels
+    assert given.input.startswith(f"depth maps from {depth_completion_dir / 'velodyne_raw'}")
+    assert 0 < given.mean.mae_mm < m.mae_mm  # the measured returns beat an untrained net
 
 
 def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp_path):
