@@ -16,10 +16,11 @@ within 3 m of the car's. That is the depth the camera pipeline's PIXOR sees
 the car by, and the median over cars by the car's distance says where the
 depth net loses cars. :func:`car_points_in_box` says what PIXOR gets from
 those pixels: the share whose back-projected point lands in the car's BEV
-box. A small median error does not ensure it: a far car is a few pixels
-wide, most of them on its outline, and a correction blurred across the
-outline moves them off the car while its median error stays small
-(docs/measurements.md, session 23).
+box. A smaller median error does not ensure a larger share: a far car is a
+few pixels wide, most of them on its outline, and a correction blurred across
+the outline moves them off the car (at 20–35 m the exact correction blurred as
+the edge net blurs it has half the net's median error and the same share;
+docs/measurements.md, session 23).
 """
 
 from __future__ import annotations
