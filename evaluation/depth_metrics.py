@@ -33,7 +33,7 @@ import numpy as np
 from evaluation.kitti_eval import DIFFICULTIES, MAX_OCCLUSION, MAX_TRUNCATION, MIN_HEIGHT
 from pipeline.calib import Calibration, depth_crop
 from pipeline.errors import InputError
-from pipeline.frame import Frame
+from pipeline.kitti import Object3D
 
 
 @dataclass(frozen=True)
@@ -167,14 +167,16 @@ class CarInView:
     footprint: tuple[float, float, float, float, float]  # BEV box: centre x, z, length, width, rotation_y
 
 
-def moderate_cars_in_view(frame: Frame, crop_hw: tuple[int, int], scale: float = 1.0) -> list[CarInView]:
-    """The KITTI-moderate cars of a labelled frame (2D box ≥ 25 px high, occlusion ≤ 1, truncation ≤ 0.3),
-    their 2D boxes in the pixels of the depth crop (``crop_hw``) resized by ``scale`` (the network's view)."""
-    crop = depth_crop(frame.image_hw, *crop_hw)
+def moderate_cars_in_view(labels: Sequence[Object3D] | None, image_hw: tuple[int, int], crop_hw: tuple[int, int],
+                          scale: float = 1.0) -> list[CarInView]:
+    """The KITTI-moderate cars among a frame's labels (2D box ≥ 25 px high, occlusion ≤ 1, truncation ≤ 0.3),
+    their 2D boxes in the pixels of the image's depth crop (``crop_hw``) resized by ``scale`` (the network's
+    view)."""
+    crop = depth_crop(image_hw, *crop_hw)
     offset = (scale - 1.0) / 2.0  # pixel centres at integers (pipeline.preprocess.scale_calibration)
     moderate = DIFFICULTIES.index("moderate")
     cars = []
-    for label in frame.labels or []:
+    for label in labels or []:
         left, top, right, bottom = label.bbox
         if (label.type == "Car" and bottom - top >= MIN_HEIGHT[moderate] and label.occluded <= MAX_OCCLUSION[moderate]
                 and label.truncated <= MAX_TRUNCATION[moderate]):

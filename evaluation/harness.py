@@ -159,11 +159,11 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
                 prediction = _crop_ground_truth(given, preset)
             per_frame[fid] = depth_metrics(prediction, crop_gt, _given_pixels(prediction, depth_dir))
             if labelled:
-                cars = moderate_cars_in_view(frame, preset.crop_hw)
+                cars = moderate_cars_in_view(frame.labels, frame.image_hw, preset.crop_hw)
                 car_errors.extend(car_depth_errors(prediction, crop_gt, [(car.box, car.z) for car in cars]))
                 # Where the pipeline's points come from: the view's own map, the truth resized as the
                 # pipeline resizes a given depth map (nearest: no blend across outlines).
-                in_view = moderate_cars_in_view(frame, preset.crop_hw, preset.depth.input_scale)
+                in_view = moderate_cars_in_view(frame.labels, frame.image_hw, preset.crop_hw, preset.depth.input_scale)
                 car_in_box.extend(car_points_in_box(view_depth, depth_view(gt, preset), in_view, view_calib))
             picture(fid, frame.image, prediction, crop_gt)
     if not per_frame:

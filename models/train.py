@@ -80,6 +80,7 @@ from pipeline.calib import Calibration
 from pipeline.cli import non_negative_int, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
+from pipeline.kitti import read_calib, read_image_size, read_labels
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, view_calibration
 from pipeline.presets import Preset, get_preset, lidar_only, preset_from_dict
@@ -355,11 +356,17 @@ def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU, loss:
 
 def _car_shares(dataset: DepthDataset, index: int, prediction: np.ndarray, target: np.ndarray
                 ) -> list[tuple[float, float]]:
-    """(car depth, share of its pixels landing in its BEV box) of one validation frame's moderate cars."""
-    frame = load_frame(dataset.data_dir, dataset.frame_ids[index], with_image=False)
-    preset = dataset.preset
-    cars = moderate_cars_in_view(frame, preset.crop_hw, preset.depth.input_scale)
-    return car_points_in_box(prediction, target, cars, view_calibration(frame.image_hw, frame.calib, preset))
+    """(car depth, share of its pixels landing in its BEV box) of one validation frame's moderate cars.
+
+    Reads only the frame's labels, calibration and image size, not its scan: this runs every epoch."""
+    data, frame_id, preset = Path(dataset.data_dir), dataset.frame_ids[index], dataset.preset
+    label_path = data / "label_2" / f"{frame_id}.txt"
+    if not label_path.exists():
+        return []
+    image_hw = read_image_size(data / "image_2" / f"{frame_id}.png")
+    cars = moderate_cars_in_view(read_labels(label_path), image_hw, preset.crop_hw, preset.depth.input_scale)
+    calib = view_calibration(image_hw, read_calib(data / "calib" / f"{frame_id}.txt"), preset)
+    return car_points_in_box(prediction, target, cars, calib)
 
 
 @torch.no_grad()
