@@ -300,7 +300,9 @@ def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
         raise InputError(f"{source}: empty image")
     # A PNG ends with its IEND chunk. Checking for it names the usual fault (an upload or copy that
     # stopped early) and keeps libpng's own complaint about it out of a service's log.
-    if data.startswith(PNG_SIGNATURE) and b"IEND" not in data[-12:]:
+    # (Searched from the end, not only in the last 12 bytes: bytes after IEND, which some tools and
+    # transports append, are ignored by libpng and must not read as a cut-off file.)
+    if data.startswith(PNG_SIGNATURE) and data.rfind(b"IEND") == -1:
         raise InputError(f"{source}: PNG cut off before its end ({len(data)} bytes, no IEND chunk)")
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     if bgr is None:

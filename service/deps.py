@@ -85,7 +85,7 @@ def require_token(
 
 
 def require_multipart(request: Request) -> None:
-    """415 unless the body is multipart/form-data."""
+    """415 unless the body is multipart/form-data; 400 when it ended before its close delimiter."""
     content_type = request.headers.get("content-type", "")
     if content_type.split(";", 1)[0].strip().lower() != "multipart/form-data":
         shown = content_type.split(";", 1)[0].strip() or "none"
@@ -93,6 +93,35 @@ def require_multipart(request: Request) -> None:
             415, "unsupported_media_type",
             f"Content-Type: expected multipart/form-data with parts image, points (and calib), got {shown}",
         )
+    # Recorded by service.middleware.BodyLimitMiddleware as the body arrived.
+    if (request.scope.get("state") or {}).get("multipart_complete") is False:
+        raise ServiceError(
+            400, "bad_request",
+            "request body: the multipart body ended before its closing boundary (a cut-off upload?); "
+            "its last part is incomplete",
+        )
+
+
+async def check_parts(request: Request) -> None:
+    """422 for a multipart part the route does not declare, a part sent twice, or a text field where a file
+    is expected: FastAPI would ignore the first (``-F calibration=@…`` would silently run on the server's
+    default calibration), keep the last of the second, and answer the third with a Python type name."""
+    route = request.scope.get("route")
+    if not isinstance(route, APIRoute):
+        return
+    accepted = [field.alias for field in route.dependant.body_params]
+    form = await request.form()  # parsed and cached by FastAPI before the dependencies run
+    names = [name for name, _ in form.multi_items()]
+    problems = []
+    for name in dict.fromkeys(names):
+        if name not in accepted:
+            problems.append(unknown_clause(name, accepted, "part"))
+        elif names.count(name) > 1:
+            problems.append(f"{name}: sent {names.count(name)} times; send each part once")
+        elif isinstance(form[name], str):
+            problems.append(f"{name}: sent as a text field; send it as a file (curl -F {name}=@FILE)")
+    if problems:
+        raise ServiceError(422, "invalid_input", "; ".join(problems) + f"; accepted parts: {', '.join(accepted)}")
 
 
 def declared_query_params(dependant: Dependant) -> list[str]:
@@ -104,13 +133,16 @@ def declared_query_params(dependant: Dependant) -> list[str]:
     return names
 
 
+def unknown_clause(name: str, accepted: list[str], what: str) -> str:
+    """``"<name>: unknown <what> (did you mean <closest>?)"``, the hint only when an accepted name is close."""
+    close = difflib.get_close_matches(name, accepted, n=1, cutoff=0.6)
+    hint = f" (did you mean {close[0]}?)" if close else ""
+    return f"{name or repr(name)}: unknown {what}{hint}"  # '' for "?=1", not a bare colon
+
+
 def unknown_query_message(unknown: list[str], accepted: list[str]) -> str:
     """One clause per unknown parameter (with the closest accepted name when there is one), then the accepted ones."""
-    clauses = []
-    for name in unknown:
-        close = difflib.get_close_matches(name, accepted, n=1, cutoff=0.6)
-        hint = f" (did you mean {close[0]}?)" if close else ""
-        clauses.append(f"{name or repr(name)}: unknown query parameter{hint}")  # '' for "?=1", not a bare colon
+    clauses = [unknown_clause(name, accepted, "query parameter") for name in unknown]
     return "; ".join(clauses) + f"; accepted query parameters: {', '.join(accepted) or 'none'}"
 
 
@@ -128,3 +160,7 @@ def reject_unknown_query(request: Request) -> None:
     unknown = list(dict.fromkeys(name for name in request.query_params if name not in accepted))
     if unknown:
         raise ServiceError(422, "invalid_input", unknown_query_message(unknown, accepted))
+    # A repeated name would silently run with its last value (?emulate_beams=16&emulate_beams=8 → 8 beams).
+    repeated = [name for name in dict.fromkeys(request.query_params) if len(request.query_params.getlist(name)) > 1]
+    if repeated:
+        raise ServiceError(422, "invalid_input", "; ".join(f"{name}: given more than once" for name in repeated))

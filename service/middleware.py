@@ -5,7 +5,10 @@ an id (``X-Request-ID``, echoed in every answer and error), counts and times
 it, and turns any unhandled exception into a 500 that carries only the request
 id while the trace goes to the log. :class:`BodyLimitMiddleware` counts body
 bytes as they arrive, so a client that sends no Content-Length (chunked) is
-cut off as soon as it passes the limit, and answers 413 itself.
+cut off as soon as it passes the limit, and answers 413 itself. While counting it
+also notes whether a multipart body ended with its close delimiter
+(``scope["state"]["multipart_complete"]``), which the multipart parser does not
+check: :func:`service.deps.require_multipart` answers 400 for a cut-off upload.
 """
 
 from __future__ import annotations
@@ -29,6 +32,17 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 _SAFE_REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+_BOUNDARY = re.compile(r'boundary="?([^";]+)"?', re.IGNORECASE)
+_TAIL_BYTES = 4096  # room for the close delimiter plus any CRLF/epilogue a client adds after it
+
+
+def _multipart_close(scope: Scope) -> bytes | None:
+    """The close delimiter ``--BOUNDARY--`` of a multipart/form-data body, None for any other body."""
+    content_type = _header(scope, b"content-type") or ""
+    if content_type.split(";", 1)[0].strip().lower() != "multipart/form-data":
+        return None
+    match = _BOUNDARY.search(content_type)
+    return b"--" + match.group(1).encode("latin-1") + b"--" if match else None
 
 
 def _header(scope: Scope, name: bytes) -> str | None:
@@ -94,7 +108,9 @@ class RequestContextMiddleware:
 
 
 class BodyLimitMiddleware:
-    """413 for bodies over ``max_bytes``: by Content-Length up front, else by counting received bytes."""
+    """413 for bodies over ``max_bytes``: by Content-Length up front, else by counting received bytes.
+
+    Also records whether a multipart/form-data body arrived whole (its close delimiter at the end)."""
 
     def __init__(self, app: ASGIApp, max_bytes: int) -> None:
         self.app = app
@@ -108,26 +124,38 @@ class BodyLimitMiddleware:
             await self.app(scope, receive, send)
             return
         request_id = (scope.get("state") or {}).get("request_id")
-        close = [(b"connection", b"close")]
+        connection_close = [(b"connection", b"close")]
         declared = _header(scope, b"content-length")
         if declared is not None and declared.strip().isdigit() and int(declared) > self.max_bytes:
-            await send_error(send, 413, "body_too_large", self._message(), request_id, close)
+            await send_error(send, 413, "body_too_large", self._message(), request_id, connection_close)
             return
 
         received = 0
         exceeded = False
         app_started = False
+        # python-multipart (and so Starlette) silently drops a part that the body ends in the middle of
+        # (its finalize() does not check for the close delimiter): a cut-off upload would lose its last
+        # part, and with --default-calib a lost calib would silently become the server's. Keep the tail
+        # of the body and record whether the close delimiter arrived (service.deps.require_multipart).
+        close = _multipart_close(scope)
+        tail = b""
 
         async def counting_receive() -> Message:
-            nonlocal received, exceeded
+            nonlocal received, exceeded, tail
             if exceeded:
                 return {"type": "http.disconnect"}
             message = await receive()
             if message["type"] == "http.request":
-                received += len(message.get("body", b""))
+                chunk = message.get("body", b"")
+                received += len(chunk)
                 if received > self.max_bytes:
                     exceeded = True  # the app sees a client disconnect and stops reading
                     return {"type": "http.disconnect"}
+                if close is not None:
+                    tail = (tail + chunk)[-_TAIL_BYTES:]
+                    if not message.get("more_body", False):
+                        complete = tail.startswith(close) or (b"\r\n" + close) in tail
+                        scope.setdefault("state", {})["multipart_complete"] = complete
             return message
 
         async def guarded_send(message: Message) -> None:
@@ -144,4 +172,4 @@ class BodyLimitMiddleware:
             if not exceeded or app_started:
                 raise
         if exceeded and not app_started:
-            await send_error(send, 413, "body_too_large", self._message(), request_id, close)
+            await send_error(send, 413, "body_too_large", self._message(), request_id, connection_close)

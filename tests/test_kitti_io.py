@@ -159,6 +159,8 @@ def test_a_png_cut_off_is_named_so_and_libpng_stays_quiet(capfd):
 
     data = (KITTI / "image_2" / "000006.png").read_bytes()
     assert decode_image(data, "image").shape == (374, 1238, 3)
+    # Bytes after the IEND chunk (padding some tools and transports add) are ignored, as libpng does.
+    assert decode_image(data + bytes(16), "image").shape == (374, 1238, 3)
     with pytest.raises(InputError, match=r"image: PNG cut off before its end \(\d+ bytes, no IEND chunk\)"):
         decode_image(data[: len(data) // 2], "image")
     assert "libpng" not in capfd.readouterr().err  # refused before OpenCV's decoder complains on stderr

@@ -21,6 +21,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any, Self
+from unittest.mock import ANY
 
 import anyio.from_thread
 import cv2
@@ -357,6 +358,70 @@ def test_malformed_multipart_is_400_not_500(client: AppClient) -> None:
                            headers={"content-type": f"multipart/form-data; boundary={boundary}"})
     assert_error(response, 400, "bad_request", "multipart")
     assert "400" in client.get("/openapi.json").json()["paths"]["/v1/detect"]["post"]["responses"]
+
+
+def _multipart_body(frame: dict[str, bytes], calib: bytes) -> tuple[bytes, dict[str, str]]:
+    """The bytes and Content-Type of the multipart body httpx sends for the frame with this calib part."""
+    request = httpx.Request("POST", "http://service/v1/detect", files=parts(frame, calib=calib))
+    return request.read(), {"content-type": request.headers["content-type"]}
+
+
+def test_cut_off_multipart_body_is_400_not_the_default_calibration(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    """The multipart parser drops a last part the body ends inside of; with a default calibration
+    that part (calib, last) would silently become the server's own."""
+    other_calib = (KITTI / "calib" / "000001.txt").read_bytes()
+    body, headers = _multipart_body(frame, other_calib)
+    with service(tiny_models, default_calib=KITTI / "calib" / f"{FRAME}.txt") as app_client:
+        params = {"score_threshold": 0.0}
+        whole = app_client.post("/v1/detect", params=params, content=body, headers=headers)
+        assert whole.status_code == 200, whole.text
+        default = app_client.post("/v1/detect", params=params, files=parts(frame, calib=None)).json()
+        assert whole.json()["detections"] != default["detections"]  # the sent calibration was used
+        # An epilogue after the close delimiter is allowed (RFC 2046) and changes nothing.
+        padded = app_client.post("/v1/detect", params=params, content=body + b"\r\n\r\n", headers=headers)
+        assert padded.json()["detections"] == whole.json()["detections"]
+        for cut in (body[:-100], body[: len(body) // 2]):  # inside calib; inside points
+            response = app_client.post("/v1/detect", params=params, content=cut, headers=headers)
+            assert_error(response, 400, "bad_request", "ended before its closing boundary")
+        assert app_client.post("/v1/detect", params=params, content=body, headers=headers).json() == {
+            **whole.json(), "request_id": ANY, "timings_ms": ANY}
+
+
+@pytest.mark.parametrize(
+    ("send", "words"),
+    [({"files": {"calibration": ("c.txt", b"P2: 1", "text/plain")}}, ("calibration: unknown part (did you mean calib?)",
+                                                                        "accepted parts: image, points, calib")),
+     ({"files": [("image", ("a.png", b"x", "image/png"))]}, ("image: sent 2 times",)),
+     ({"data": {"calib": "P2: 1"}}, ("calib: sent as a text field", "-F calib=@FILE"))],
+    ids=["misspelt part", "repeated part", "text field"],
+)
+def test_unknown_repeated_or_text_parts_are_422_naming_them(
+    client: AppClient, frame: dict[str, bytes], send: dict, words: tuple[str, ...]
+) -> None:
+    files = parts(frame, calib=None) if "calib" in str(send) else parts(frame)
+    extra = send.get("files", {})
+    files = list(files.items()) + (list(extra.items()) if isinstance(extra, dict) else extra)
+    for route in ("/v1/detect", "/v1/detect/bev.png"):
+        response = client.post(route, files=files, data=send.get("data"))
+        assert_error(response, 422, "invalid_input", *words)
+
+
+def test_repeated_query_parameter_is_422(client: AppClient, frame: dict[str, bytes]) -> None:
+    response = client.post("/v1/detect?emulate_beams=16&emulate_beams=8", files=parts(frame))
+    assert_error(response, 422, "invalid_input", "emulate_beams: given more than once")
+
+
+def test_warnings_travel_in_a_header_where_the_body_has_no_room(client: AppClient, frame: dict[str, bytes]) -> None:
+    params = {"emulate_beams": 16, "score_threshold": 0.0}
+    warnings = client.post("/v1/detect", params=params, files=parts(frame)).json()["warnings"]
+    assert any("emulated 16 beams" in warning for warning in warnings)
+    for route, extra in (("/v1/detect", {"format": "kitti"}), ("/v1/detect/bev.png", {})):
+        response = client.post(route, params={**params, **extra}, files=parts(frame))
+        assert response.status_code == 200, response.text
+        assert json.loads(response.headers["x-warnings"]) == warnings
+    thinned = np.frombuffer(frame["points"], "<f4").reshape(-1, 4)[::8].tobytes()  # no line-count warning
+    quiet = client.post("/v1/detect", params={"format": "kitti"}, files=parts(frame, points=thinned))
+    assert quiet.status_code == 200 and "x-warnings" not in quiet.headers
 
 
 def test_oversized_body_is_413_with_and_without_content_length(tiny_models: Path, frame: dict[str, bytes]) -> None:

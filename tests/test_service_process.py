@@ -149,6 +149,24 @@ def test_body_limit_over_http(server: Server, frame: dict[str, bytes]) -> None: 
     assert httpx.get(f"{server.url}/readyz", timeout=5).status_code == 200
 
 
+def test_cut_off_upload_over_http(server: Server, frame: dict[str, bytes]) -> None:  # noqa: F811
+    """A chunked upload whose close delimiter arrives split over chunks is whole; one that stops inside its
+    last part (the calib) is a 400, not a silent loss of that part."""
+    request = httpx.Request("POST", f"{server.url}/v1/detect", files=parts(frame))
+    body, headers = request.read(), {"content-type": request.headers["content-type"]}
+
+    def chunks(data: bytes) -> Iterator[bytes]:  # no Content-Length: Transfer-Encoding: chunked
+        head = data[:-20]
+        yield from (head[start : start + 65536] for start in range(0, len(head), 65536))
+        yield from (data[-20:-9], data[-9:])  # the close delimiter (--boundary--\r\n) split over two chunks
+
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        whole = client.post("/v1/detect", content=chunks(body), headers=headers)
+        assert whole.status_code == 200, whole.text
+        cut = client.post("/v1/detect", content=chunks(body[:-60]), headers=headers)
+        assert_error(cut, 400, "bad_request", "ended before its closing boundary")
+
+
 # --------------------------------------------------------------------------- schemathesis
 FUZZ_EXAMPLES = 12  # per operation and generation mode: 8 operations × 2 modes × 12 ≈ 200 requests
 

@@ -7,6 +7,7 @@ rendering run on the inference pool.
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ from service.deps import (
     ReadyRuntimeDep,
     RequestIdDep,
     SettingsDep,
+    check_parts,
     reject_unknown_query,
     require_multipart,
 )
@@ -174,6 +176,18 @@ def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> Dete
     )
 
 
+def _warning_headers(result: FrameResult) -> dict[str, str]:
+    """The warnings of a frame as a header, for the answers whose body has no room for them (KITTI
+    lines, the PNG): JSON-encoded ASCII, absent when there are none."""
+    warnings = result.frame.warnings + result.detections.warnings
+    return {"X-Warnings": json.dumps(warnings)} if warnings else {}
+
+
+_WARNINGS_HEADER = {"X-Warnings": {
+    "description": "with `format=kitti` and on `bev.png`: the frame's warnings as a JSON list (absent when none)",
+    "schema": {"type": "string"},
+}}
+
 # Both detection routes answer the same errors (documented for clients and the OpenAPI fuzz test).
 DETECT_ERRORS = error_responses(400, 401, 413, 415, 422, 500, 503, 504)
 
@@ -182,11 +196,12 @@ DETECT_ERRORS = error_responses(400, 401, 413, 415, 422, 500, 503, 504)
     "/detect",
     summary="Detect cars in one frame",
     response_model=DetectResponse,
-    dependencies=[Depends(require_multipart)],
+    dependencies=[Depends(require_multipart), Depends(check_parts)],
     responses={
         200: {
             "description": "detections (JSON), or KITTI result lines with `format=kitti`",
             "content": {"text/plain": {"schema": {"type": "string"}, "example": _KITTI_EXAMPLE}},
+            "headers": _WARNINGS_HEADER,
         },
         **DETECT_ERRORS,
     },
@@ -217,17 +232,18 @@ async def detect(
     result = await _run_frame(runtime, settings, metrics, upload, options, picture=False)
     if output_format is OutputFormat.kitti:
         objects = result.detections.to_objects(result.frame.calib, result.frame.image_hw)
-        return PlainTextResponse("".join(format_label(o) + "\n" for o in objects))
+        return PlainTextResponse("".join(format_label(o) + "\n" for o in objects), headers=_warning_headers(result))
     return _to_response(result, runtime, request_id)
 
 
 @router.post(
     "/detect/bev.png",
     summary="Detect cars and answer the bird's-eye-view picture",
-    dependencies=[Depends(require_multipart)],
+    dependencies=[Depends(require_multipart), Depends(check_parts)],
     response_class=Response,
     responses={
-        200: {"description": "BEV picture: points, detected boxes and scores", "content": {"image/png": {}}},
+        200: {"description": "BEV picture: points, detected boxes and scores", "content": {"image/png": {}},
+              "headers": _WARNINGS_HEADER},
         **DETECT_ERRORS,
     },
 )
@@ -244,4 +260,4 @@ async def detect_bev_png(
     upload = await _read_upload(image, points, calib)
     result = await _run_frame(runtime, settings, metrics, upload, options, picture=True)
     assert result.png is not None
-    return Response(result.png, media_type="image/png")
+    return Response(result.png, media_type="image/png", headers=_warning_headers(result))
