@@ -26,7 +26,8 @@ import numpy as np
 from evaluation.frames import load_label_dirs
 from evaluation.kitti_eval import KittiEvalResult, evaluate
 from evaluation.report import format_table
-from pipeline.cli import positive_int
+from pipeline.cli import check_output, positive_int
+from pipeline.errors import InputError
 from pipeline.kitti import Object3D, write_labels
 
 FOCAL_PX = 721.5  # KITTI P2 focal length: sets realistic 2D box heights from 3D sizes
@@ -130,6 +131,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--keep", type=Path, metavar="DIR", help="write the label sets here and keep them")
     args = parser.parse_args(argv)
+    if args.keep is not None:
+        try:
+            check_output(args.keep, "--keep", directory=True)
+        except InputError as exc:
+            parser.error(str(exc))
     with tempfile.TemporaryDirectory() as tmp:
         root = args.keep or Path(tmp)
         gt_dir, det_dir = write_random_label_sets(root, args.frames, args.seed)

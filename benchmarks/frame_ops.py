@@ -26,7 +26,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import positive_int
+from pipeline.cli import check_output, positive_int, write_text_file
+from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, network_view
@@ -129,7 +130,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=positive_int, default=30, help="timed calls per step (default 30)")
     parser.add_argument("--json", type=Path, help="write the figures as JSON")
     args = parser.parse_args(argv)
-    report = run(args.frame, args.repeats, args.preset)
+    try:
+        get_preset(args.preset)
+        if args.json is not None:
+            check_output(args.json, "--json")
+        report = run(args.frame, args.repeats, args.preset)
+    except InputError as exc:  # a frame that is not bundled, an output that cannot be written
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:  # get_preset's list of the valid names
+        parser.error(f"argument --preset: {exc}")
     print(f"frame {report['frame']} ({report['points_64']} points), preset {report['preset']}, "
           f"pseudo cloud {report['pseudo_points']} points, {report['repeats']} repeats")
     width = max(len(name) for name in report["steps_ms"])
@@ -138,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:{width}s} {t['p50']:8.2f} {t['p90']:8.2f}")
     print(f"voxelization speed-up over the reference loop: {report['voxelize_speedup_vs_reference']:.0f}×")
     if args.json:
-        args.json.write_text(json.dumps(report, indent=2))
+        write_text_file(args.json, json.dumps(report, indent=2))
     return 0
 
 

@@ -46,7 +46,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
-from pipeline.cli import check_output, non_negative_int, positive_int, write_text_file
+from pipeline.cli import check_figure, check_output, non_negative_int, positive_int, write_text_file
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.errors import InputError
@@ -578,9 +578,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         # Checked first: a report that cannot be written is lost after minutes of timing.
-        for flag, path in (("--json", args.json), ("--plot", args.plot)):
-            if path is not None:
-                check_output(path, flag)
+        if args.json is not None:
+            check_output(args.json, "--json")
+        if args.plot is not None:
+            check_figure(args.plot, "--plot")
         if args.models is None and args.preset is not None:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
@@ -593,10 +594,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: --preset: {exc}", file=sys.stderr)
         return 2
     print_report(report)
-    if args.plot:
-        plot(report, args.plot)
-    if args.json:
-        write_text_file(args.json, json.dumps({k: v for k, v in report.items() if k != "_samples"}, indent=2))
+    try:  # the JSON first: it is the report; a picture that fails must not lose it
+        if args.json:
+            write_text_file(args.json, json.dumps({k: v for k, v in report.items() if k != "_samples"}, indent=2))
+        if args.plot:
+            plot(report, args.plot)
+    except OSError as exc:
+        print(f"error: cannot write {exc.filename or ''} ({exc.strerror or exc})", file=sys.stderr)
+        return 2
     return 0
 
 

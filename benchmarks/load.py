@@ -50,7 +50,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.cli import check_output, non_negative_int, positive_float, positive_int
+from pipeline.cli import check_figure, check_output, non_negative_int, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids
 
@@ -586,9 +586,11 @@ def main(argv: list[str] | None = None) -> int:
         if not frames:
             raise InputError(f"--data {args.data}: no frames in its velodyne/")
         check_frames(args.data, frames)
-        for flag, path in (("--json", args.json), ("--plot", args.plot)):
-            if path is not None:  # before the load, so a bad path does not lose its report
-                check_output(path, flag)
+        # Before the load, so a bad path does not lose its report.
+        if args.json is not None:
+            check_output(args.json, "--json")
+        if args.plot is not None:
+            check_figure(args.plot, "--plot")
     except InputError as exc:
         parser.error(str(exc))
     duration = args.duration if args.duration is not None else (None if args.requests else 20.0)

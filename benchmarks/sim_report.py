@@ -26,11 +26,10 @@ sys.path.insert(0, str(ROOT))
 from pipeline.beams import emulate_beams
 from pipeline.boxes import box_corners_3d, labels_to_boxes, points_in_boxes
 from pipeline.calib import Calibration
-from pipeline.cli import check_output, positive_int
+from pipeline.cli import check_figure, positive_int
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D, read_calib, read_image, read_labels, read_velodyne
 
-FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")
 KITTI_SUBDIRS = ("velodyne", "image_2", "calib", "label_2")
 DISTANCE_BINS = (0, 10, 20, 30, 40, 50, 60, 70)
 KITTI_CAR_SIZE = {"h": (1.53, 0.14), "w": (1.63, 0.10), "l": (3.88, 0.43)}
@@ -167,9 +166,7 @@ def check_config(config: ReportConfig) -> None:
     if config.sim is not None:
         check_folder(config.sim, "--sim")
     if config.figure is not None:
-        if config.figure.suffix.lower() not in FIGURE_SUFFIXES:
-            raise InputError(f"--figure {config.figure}: give a file name ending in {', '.join(FIGURE_SUFFIXES)}")
-        check_output(config.figure, "--figure")
+        check_figure(config.figure, "--figure")
         try:
             config.figure.parent.mkdir(parents=True, exist_ok=True)
         except OSError as exc:

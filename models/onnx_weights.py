@@ -106,6 +106,9 @@ def load_onnx_weights(network: nn.Module, path: str | Path, optional: tuple[str,
     Raises ValueError when the graph does not hold this network's weights (another preset, say).
     """
     model = onnx.load(str(path))
+    if any(node.op_type == "DequantizeLinear" for node in model.graph.node):
+        raise ValueError(f"{path}: an INT8 (quantized) graph, whose weights cannot be read back as trained; "
+                         "give the FP32 model directory it was converted from (its manifest's precision_info.source)")
     arrays = {init.name: numpy_helper.to_array(init) for init in model.graph.initializer}
     leave = _absent(model.graph, optional)
     modules = {name: m for name, m in network.named_modules() if not _under(name, leave)}
@@ -186,11 +189,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", type=Path, required=True, help="model directory (manifest.json and ONNX files)")
     parser.add_argument("--out", type=Path, required=True, help="checkpoint directory to write")
     args = parser.parse_args(argv)
+    from pipeline.cli import check_output
+    from pipeline.errors import InputError
     from pipeline.model_files import ModelFileError
 
     try:
+        check_output(args.out, "--out", directory=True)
         written = checkpoints_from_model_dir(args.models, args.out)
-    except (OSError, ValueError, KeyError, ModelFileError) as exc:
+    except (InputError, OSError, ValueError, KeyError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print("wrote " + ", ".join(str(path) for path in written.values()))

@@ -73,6 +73,16 @@ def check_output(path: Path, flag: str, directory: bool = False) -> None:
         raise InputError(f"{flag} {path}: cannot create it in {parent} (not writable)")
 
 
+FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")  # what matplotlib writes from the file name
+
+
+def check_figure(path: Path, flag: str) -> None:
+    """:func:`check_output` for a picture, and a name matplotlib can write (else it fails after the run)."""
+    if Path(path).suffix.lower() not in FIGURE_SUFFIXES:
+        raise InputError(f"{flag} {path}: give a file name ending in {', '.join(FIGURE_SUFFIXES)}")
+    check_output(path, flag)
+
+
 def write_text_file(path: Path, text: str) -> None:
     """Write an output file checked by :func:`check_output`, making its folder first."""
     path.parent.mkdir(parents=True, exist_ok=True)

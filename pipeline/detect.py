@@ -85,6 +85,10 @@ def run(
 
     from pipeline.detector import Detector
 
+    if data is not None and (image is not None or points is not None or calib is not None):
+        raise InputError("give either --data DIR (and optionally --frame) or --image, --points and --calib, not both")
+    if frames and data is None:
+        raise InputError("--frame chooses frames of --data DIR; with --image/--points/--calib there is one frame")
     detector = Detector(models, providers=provider)
     if depth_dir is not None and not detector.two_stage:
         raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
@@ -119,7 +123,6 @@ def run(
                                          keep_points=True, depth=depth)
         except InputError as exc:  # the Detector names the field; say which frame it was
             raise InputError(f"{source(fid)}: {exc}") from exc
-        count += len(detections.scores)
         if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
             detections.warnings.append(f"points: dropped rows with NaN or infinite values ({frame.dropped_nonfinite} rows)")
         for warning in detections.warnings:  # each kind once (the trailing "(…)" holds the frame's figures)
@@ -131,7 +134,9 @@ def run(
             totals[stage] = totals.get(stage, 0.0) + ms
         (out / "data").mkdir(parents=True, exist_ok=True)
         result = out / "data" / f"{frame.frame_id}.txt"
-        write_labels(result, detections.to_objects(frame.calib, frame.image_hw))
+        objects = detections.to_objects(frame.calib, frame.image_hw)
+        write_labels(result, objects)
+        count += len(objects)  # what the result files hold: the boxes the camera sees
         results.append(result)
         if pictures:
             gt = None

@@ -57,3 +57,28 @@ def test_detect_outside_a_checkout_says_where_the_default_weights_are(tmp_path):
     )
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"the default --models {site / 'weights' / 'edge'} exists only in a source checkout" in result.stderr
+
+
+@pytest.mark.parametrize(("name", "flag"), [("latency", "--plot"), ("load", "--plot"), ("sim_report", "--figure")])
+def test_a_picture_name_matplotlib_cannot_write_is_refused_before_the_run(name, flag, tmp_path):
+    done = subprocess.run([*_command(name), flag, str(tmp_path / "latency.txt")], capture_output=True, text=True,
+                          timeout=120, check=False, cwd=REPO)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert f"{flag} {tmp_path / 'latency.txt'}: give a file name ending in .png" in done.stderr
+
+
+@pytest.mark.parametrize(("args", "words"), [(["--frame", "999999"], "999999"), (["--preset", "nope"], "unknown preset"),
+                                             (["--json", "{file}/x.json"], "--json")])
+def test_frame_ops_bad_input_is_one_line(args, words, tmp_path):
+    (tmp_path / "a-file").write_text("")
+    args = [arg.replace("{file}", str(tmp_path / "a-file")) for arg in args]
+    done = subprocess.run([*_command("frame_ops"), *args, "--repeats", "1"], capture_output=True, text=True,
+                          timeout=120, check=False, cwd=REPO)
+    assert done.returncode == 2 and "Traceback" not in done.stderr and words in done.stderr
+
+
+def test_eval_speed_refuses_a_keep_folder_it_cannot_write(tmp_path):
+    (tmp_path / "a-file").write_text("")
+    done = subprocess.run([*_command("eval_speed"), "--frames", "2", "--keep", str(tmp_path / "a-file")],
+                          capture_output=True, text=True, timeout=120, check=False, cwd=REPO)
+    assert done.returncode == 2 and "Traceback" not in done.stderr and "--keep" in done.stderr

@@ -284,6 +284,8 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert result.returncode == 0, result.stderr
+    written = sum(len(read_labels(out / "data" / f"{f}.txt")) for f in ("000006", "000003"))
+    assert f"2 frame(s), {written} detection(s)" in result.stdout  # what the files hold, not boxes out of view
     for frame_id in ("000006", "000003"):
         objects = read_labels(out / "data" / f"{frame_id}.txt")
         assert all(o.score is not None for o in objects)
@@ -317,6 +319,16 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
         capture_output=True, text=True, timeout=120, check=False,
     )
     assert blocked.returncode == 2 and "Traceback" not in blocked.stderr and "Not a directory" in blocked.stderr
+    # The two ways to name frames do not mix: neither may be silently ignored.
+    one_frame = ["--image", str(KITTI / "image_2" / "000006.png"), "--points", str(KITTI / "velodyne" / "000006.bin"),
+                 "--calib", str(KITTI / "calib" / "000006.txt")]
+    for extra, words in ((["--data", str(KITTI)], "not both"), (["--frame", "000003"], "--frame chooses frames of --data")):
+        mixed = subprocess.run(
+            [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), *one_frame, *extra,
+             "--out", str(tmp_path / "mixed")], capture_output=True, text=True, timeout=120, check=False,
+        )
+        assert mixed.returncode == 2 and words in mixed.stderr and "Traceback" not in mixed.stderr
+        assert not (tmp_path / "mixed").exists()
 
 
 def test_detect_command_on_awkward_folders(tiny_models, tmp_path):

@@ -81,6 +81,13 @@ def test_a_graph_of_another_network_is_refused():
         load_onnx_weights(net, WEIGHTS / "edge" / "pixor.onnx")
 
 
+def test_an_int8_graph_is_refused_as_such():
+    """A quantized graph holds no trained fp32 weights to read back: the error says so, not "another network"."""
+    net = build_network("depth", get_preset("edge"))
+    with pytest.raises(ValueError, match="INT8 .*give the FP32 model directory"):
+        load_onnx_weights(net, WEIGHTS / "edge-int8" / "depth.onnx")
+
+
 def test_an_export_without_the_refine_head_starts_a_network_with_it(tmp_path):
     """A depth net exported before the full-resolution head existed, loaded with the head optional: the
     head keeps its zero-initialised output, so the network computes what the ONNX file does; asked for
@@ -107,7 +114,7 @@ def test_an_export_without_the_refine_head_starts_a_network_with_it(tmp_path):
     assert torch.equal(twin.refine.out.weight, net.refine.out.weight)
 
 
-def test_a_model_directory_back_to_checkpoints(tiny_models, tmp_path):
+def test_a_model_directory_back_to_checkpoints(tiny_models, tmp_path, capsys):
     """python -m models.onnx_weights: checkpoints of a model directory that carry its preset and
     training record and compute what its ONNX files do."""
     from models.checkpoint import load_checkpoint, load_network_weights
@@ -125,3 +132,6 @@ def test_a_model_directory_back_to_checkpoints(tiny_models, tmp_path):
         for result in results if isinstance(results, list) else [results]:
             assert result.passed, f"{result.metric} {result.error:.3g} > {result.tolerance:.3g}"
     assert main(["--models", str(tmp_path / "nothing"), "--out", str(tmp_path / "x")]) == 2
+    (tmp_path / "a-file").write_text("")
+    assert main(["--models", str(tiny_models), "--out", str(tmp_path / "a-file")]) == 2
+    assert "--out" in capsys.readouterr().err
