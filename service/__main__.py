@@ -77,6 +77,17 @@ def settings_from_args(argv: list[str] | None = None) -> Settings:
     return Settings(**vars(args))
 
 
+def settings_errors(exc: ValidationError) -> list[str]:
+    """One line per invalid setting, named as the user gives it: ``--port (LOWRES3D_PORT) 99999: …``."""
+    lines = []
+    for error in exc.errors():
+        name = str(error["loc"][0]) if error["loc"] else ""
+        named = f"--{name.replace('_', '-')} ({ENV_PREFIX}{name.upper()})" if name else "settings"
+        given = f" {error['input']}" if name and not isinstance(error["input"], dict) else ""
+        lines.append(f"{named}{given}: {error['msg'][:1].lower()}{error['msg'][1:]}")
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     """Parse options, load and check the models, serve until SIGTERM/SIGINT; the exit status."""
     import uvicorn
@@ -89,7 +100,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         settings = settings_from_args(argv)
     except ValidationError as exc:
-        print(f"python -m service: invalid settings:\n{exc}", file=sys.stderr)
+        for line in settings_errors(exc):
+            print(f"python -m service: {line}", file=sys.stderr)
         return 2
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     limit_malloc_arenas()  # before the worker threads exist (service/memory.py: the memory of a long run)

@@ -242,8 +242,11 @@ def test_corrupted_model_file_stops_the_start(tiny_models: Path, tmp_path: Path)
 
 @pytest.mark.parametrize(
     ("args", "message"),
-    [((), "model directory not found"), (("--workers", "0"), "workers"), (("--provider", "tensorrt"), "tensorrt")],
-    ids=["missing models", "bad setting", "unavailable provider"],
+    [((), "model directory not found"),
+     (("--workers", "0"), "--workers (LOWRES3D_WORKERS) 0: input should be greater than or equal to 1"),
+     (("--port", "99999"), "--port (LOWRES3D_PORT) 99999: input should be less than or equal to 65535"),
+     (("--provider", "tensorrt"), "tensorrt")],
+    ids=["missing models", "bad setting", "bad port", "unavailable provider"],
 )
 def test_bad_start_configuration_exits_with_a_message(
     tiny_models: Path, tmp_path: Path, args: tuple[str, ...], message: str  # noqa: F811
