@@ -418,12 +418,14 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             cars = car_errors_by_band(outcome.car_errors) if outcome.car_errors else {}
             if cars:
                 print("median |error| on the pixels of moderate cars, by the car's depth: "
-                      + ", ".join(f"{band} m {c['median_mm']:.0f} mm ({c['cars']} cars)" for band, c in cars.items()))
+                      + ", ".join(f"{band} m {c['median_mm']:.0f} mm ({c['cars']} cars)" if c["cars"] else
+                                  f"{band} m no cars" for band, c in cars.items()))
             in_box = car_shares_by_band(outcome.car_in_box) if outcome.car_in_box else {}
             if in_box:
                 print(f"share of those pixels whose point lands in the car's BEV box (grown by {CAR_BOX_MARGIN_M} m), "
                       "mean over cars: "
-                      + ", ".join(f"{band} m {c['mean_share']:.2f}" for band, c in in_box.items()))
+                      + ", ".join(f"{band} m {c['mean_share']:.2f}" if c["cars"] else f"{band} m no cars"
+                                  for band, c in in_box.items()))
             if args.plots:
                 print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
                 if outcome.car_errors:

@@ -152,6 +152,11 @@ def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp
     assert set(document["car_points_in_box_by_band"]) == set(document["car_median_abs_mm_by_band"]) == {
         "0-20", "20-35", "35-50"}
     assert sum(band["cars"] for band in document["car_points_in_box_by_band"].values()) >= 1
+    # Frame 000003's one car is 13 m away: the farther bands say so, not "nan".
+    near = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames", _frames_file(tmp_path, "000003"))
+    assert near.returncode == 0, near.stderr
+    assert near.stdout.count("20-35 m no cars") == near.stdout.count("35-50 m no cars") == 2
+    assert "nan" not in near.stdout.split("on the pixels of moderate cars")[1]
 
 
 def test_depth_mode_names_the_missing_layout(tiny_models, tmp_path):
