@@ -45,8 +45,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Self
 
-import httpx
 import numpy as np
+
+try:
+    import httpx
+except ImportError:  # the runtime install (make setup) leaves the test tools out
+    sys.exit("error: benchmarks/load.py needs httpx, which the runtime install leaves out; install the dev extras "
+             "(make setup-dev) or .venv/bin/pip install 'httpx>=0.27'")
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 

@@ -7,6 +7,7 @@ A count of 0 is not "the default": ``--epochs 0`` used to fall through to the re
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import os
 from pathlib import Path
 
@@ -80,6 +81,9 @@ def check_figure(path: Path, flag: str) -> None:
     """:func:`check_output` for a picture, and a name matplotlib can write (else it fails after the run)."""
     if Path(path).suffix.lower() not in FIGURE_SUFFIXES:
         raise InputError(f"{flag} {path}: give a file name ending in {', '.join(FIGURE_SUFFIXES)}")
+    if importlib.util.find_spec("matplotlib") is None:
+        raise InputError(f"{flag}: drawing needs matplotlib, which the runtime install leaves out; install the dev "
+                         "extras (make setup-dev) or .venv/bin/pip install 'matplotlib>=3.10'")
     check_output(path, flag)
 
 

@@ -88,6 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder (default outputs/demo)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if not SAMPLE_DIR.is_dir():  # `pip install .` (not -e) leaves tests/data and weights/ behind
+        print(f"error: the demo's bundled KITTI frames ({SAMPLE_DIR}) exist only in a source checkout (make demo, "
+              "or pip install -e .); for your own frames use python -m pipeline.detect --models DIR", file=sys.stderr)
+        return 2
     try:
         summary = run(args.models, args.frame, args.out)
     except (InputError, ModelFileError) as exc:

@@ -59,6 +59,31 @@ def test_detect_outside_a_checkout_says_where_the_default_weights_are(tmp_path):
     assert f"the default --models {site / 'weights' / 'edge'} exists only in a source checkout" in result.stderr
 
 
+def test_the_demo_outside_a_checkout_says_it_needs_one(tmp_path):
+    """The demo's bundled frames (tests/data) are not installed by `pip install .`: one line says so."""
+    site = tmp_path / "site-packages"
+    shutil.copytree(REPO / "pipeline", site / "pipeline", ignore=shutil.ignore_patterns("__pycache__"))
+    result = subprocess.run([sys.executable, "-m", "pipeline.demo", "--out", str(tmp_path / "o")], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=120, check=False,
+                            env={**os.environ, "PYTHONPATH": str(site)})
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "exist only in a source checkout" in result.stderr and not (tmp_path / "o").exists()
+
+
+def test_a_picture_without_matplotlib_is_refused_before_the_run(tmp_path, monkeypatch):
+    """The runtime install has no matplotlib: a --plot is refused up front, not after minutes of timing."""
+    import importlib.util
+
+    from pipeline.cli import check_figure
+    from pipeline.errors import InputError
+
+    check_figure(tmp_path / "a.png", "--plot")
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "matplotlib" else real(name, *a))
+    with pytest.raises(InputError, match="--plot: drawing needs matplotlib"):
+        check_figure(tmp_path / "a.png", "--plot")
+
+
 @pytest.mark.parametrize(("name", "flag"), [("latency", "--plot"), ("load", "--plot"), ("sim_report", "--figure")])
 def test_a_picture_name_matplotlib_cannot_write_is_refused_before_the_run(name, flag, tmp_path):
     done = subprocess.run([*_command(name), flag, str(tmp_path / "latency.txt")], capture_output=True, text=True,
