@@ -426,6 +426,12 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                       "mean over cars: "
                       + ", ".join(f"{band} m {c['mean_share']:.2f}" if c["cars"] else f"{band} m no cars"
                                   for band, c in in_box.items()))
+            stray = car_shares_by_band(outcome.car_stray) if outcome.car_stray else {}
+            if stray:
+                print("share of the other pixels of each car's 2D box (road, background) whose point lands in that "
+                      "box too, mean over cars: "
+                      + ", ".join(f"{band} m {c['mean_share']:.3f}" if c["cars"] else f"{band} m no cars"
+                                  for band, c in stray.items()))
             if args.plots:
                 print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
                 if outcome.car_errors:
@@ -441,7 +447,8 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                                   "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
                                   "median_abs_mm_by_band": m.median_abs_mm_by_band,
                                   "car_median_abs_mm_by_band": cars,
-                                  "car_points_in_box_by_band": in_box},
+                                  "car_points_in_box_by_band": in_box,
+                                  "car_stray_points_in_box_by_band": stray},
                     }, indent=1) + "\n", encoding="utf-8")
             return 0
         _check_detection_inputs(args, frames, out)

@@ -20,7 +20,10 @@ box. A smaller median error does not ensure a larger share: a far car is a
 few pixels wide, most of them on its outline, and a correction blurred across
 the outline moves them off the car (at 20–35 m the exact correction blurred as
 the edge net blurs it has half the net's median error and the same share;
-docs/measurements.md, session 23).
+docs/measurements.md, session 23). A larger share does not ensure a better
+camera row either: :func:`stray_points_in_box` counts the other pixels of the
+car's 2D box that land on it, which a source smearing the car's depth over
+its surroundings also puts there (session 24).
 """
 
 from __future__ import annotations
@@ -188,6 +191,28 @@ def moderate_cars_in_view(labels: Sequence[Object3D] | None, image_hw: tuple[int
     return cars
 
 
+def _lands_in_box(prediction: np.ndarray, window: tuple[slice, slice], pixels: np.ndarray, car: CarInView,
+                  calib: Calibration) -> np.ndarray:
+    """Whether each of the ``pixels`` of ``window`` (a mask), back-projected with its predicted depth, lies in
+    the car's labelled footprint grown by :data:`CAR_BOX_MARGIN_M` on every side (a pixel without depth lands
+    at the camera, outside every car)."""
+    # X_rect = d·K⁻¹[u, v, 1]ᵀ − K⁻¹t with P2 = [K | t]: only x and z matter in BEV.
+    k_inv = np.linalg.inv(calib.P2[:, :3])
+    offset = k_inv @ calib.P2[:, 3]
+    rows, cols = np.nonzero(pixels)
+    v = rows + window[0].start
+    u = cols + window[1].start
+    d = prediction[window][pixels]
+    x = d * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2]) - offset[0]
+    z = d * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2]) - offset[2]
+    centre_x, centre_z, length, width, rotation_y = car.footprint
+    dx, dz = x - centre_x, z - centre_z
+    # KITTI's rotation_y turns the box's length axis from the camera's x towards −z.
+    along = np.cos(rotation_y) * dx - np.sin(rotation_y) * dz
+    across = np.sin(rotation_y) * dx + np.cos(rotation_y) * dz
+    return (np.abs(along) <= length / 2 + CAR_BOX_MARGIN_M) & (np.abs(across) <= width / 2 + CAR_BOX_MARGIN_M)
+
+
 def car_points_in_box(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars: Sequence[CarInView],
                       calib: Calibration) -> list[tuple[float, float]]:
     """(car depth z, share of the car's pixels whose predicted point lies in its BEV box) per car that has any.
@@ -198,27 +223,32 @@ def car_points_in_box(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars
     """
     pred = np.asarray(prediction_m, np.float64)
     gt = np.asarray(ground_truth_m, np.float64)
-    # X_rect = d·K⁻¹[u, v, 1]ᵀ − K⁻¹t with P2 = [K | t]: only x and z matter in BEV.
-    k_inv = np.linalg.inv(calib.P2[:, :3])
-    offset = k_inv @ calib.P2[:, 3]
     found = []
     for car in cars:  # a handful of cars per frame; each car's pixels are one vectorized pass
         window, on_car = car_surface(gt, car.box, car.z)
-        if not on_car.any():
-            continue
-        rows, cols = np.nonzero(on_car)
-        v = rows + window[0].start
-        u = cols + window[1].start
-        d = pred[window][on_car]
-        x = d * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2]) - offset[0]
-        z = d * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2]) - offset[2]
-        centre_x, centre_z, length, width, rotation_y = car.footprint
-        dx, dz = x - centre_x, z - centre_z
-        # KITTI's rotation_y turns the box's length axis from the camera's x towards −z.
-        along = np.cos(rotation_y) * dx - np.sin(rotation_y) * dz
-        across = np.sin(rotation_y) * dx + np.cos(rotation_y) * dz
-        inside = (np.abs(along) <= length / 2 + CAR_BOX_MARGIN_M) & (np.abs(across) <= width / 2 + CAR_BOX_MARGIN_M)
-        found.append((float(car.z), float(inside.mean())))
+        if on_car.any():
+            found.append((float(car.z), float(_lands_in_box(pred, window, on_car, car, calib).mean())))
+    return found
+
+
+def stray_points_in_box(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars: Sequence[CarInView],
+                        calib: Calibration) -> list[tuple[float, float]]:
+    """(car depth z, share of the other pixels of its 2D box whose predicted point lies in its BEV box) per car.
+
+    The complement of :func:`car_points_in_box`: the pixels of the car's 2D box that see something else
+    (a true depth off the car's surface: the road, what is behind it) should not land on the car. A depth
+    source that smears the car's depth over its surroundings (the 16-line fill, say) puts many of its car's
+    pixels on the car and many of the others there too, which widens and heightens the car PIXOR sees.
+    Cars whose box has no such pixel are left out.
+    """
+    pred = np.asarray(prediction_m, np.float64)
+    gt = np.asarray(ground_truth_m, np.float64)
+    found = []
+    for car in cars:
+        window, on_car = car_surface(gt, car.box, car.z)
+        off_car = (gt[window] > 0) & ~on_car
+        if on_car.any() and off_car.any():
+            found.append((float(car.z), float(_lands_in_box(pred, window, off_car, car, calib).mean())))
     return found
 
 

@@ -23,6 +23,7 @@ from evaluation.depth_metrics import (
     depth_metrics,
     mean_over_frames,
     moderate_cars_in_view,
+    stray_points_in_box,
 )
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
@@ -74,8 +75,10 @@ class DepthRun:
     input: str
     # Object folders with labels: (car depth z, median |error| mm on its pixels) of every moderate car.
     car_errors: list[tuple[float, float]] = field(default_factory=list)
-    # And (car depth z, share of its pixels whose point lands in its BEV box), in the network's view.
+    # And (car depth z, share of its pixels whose point lands in its BEV box), in the network's view,
+    # and (car depth z, share of the other pixels of its 2D box that land there too).
     car_in_box: list[tuple[float, float]] = field(default_factory=list)
+    car_stray: list[tuple[float, float]] = field(default_factory=list)
 
 
 def _crop_ground_truth(gt: np.ndarray, preset) -> np.ndarray:
@@ -117,6 +120,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
     per_frame: dict[str, DepthMetrics] = {}
     car_errors: list[tuple[float, float]] = []
     car_in_box: list[tuple[float, float]] = []
+    car_stray: list[tuple[float, float]] = []
     if pictures is not None:
         Path(pictures).mkdir(parents=True, exist_ok=True)
 
@@ -164,14 +168,16 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
                 # Where the pipeline's points come from: the view's own map, the truth resized as the
                 # pipeline resizes a given depth map (nearest: no blend across outlines).
                 in_view = moderate_cars_in_view(frame.labels, frame.image_hw, preset.crop_hw, preset.depth.input_scale)
-                car_in_box.extend(car_points_in_box(view_depth, depth_view(gt, preset), in_view, view_calib))
+                view_truth = depth_view(gt, preset)
+                car_in_box.extend(car_points_in_box(view_depth, view_truth, in_view, view_calib))
+                car_stray.extend(stray_points_in_box(view_depth, view_truth, in_view, view_calib))
             picture(fid, frame.image, prediction, crop_gt)
     if not per_frame:
         raise InputError(f"--data: {data} has no frames to evaluate")
     if depth_dir is not None:
         used = f"depth maps from {depth_dir}, not the depth network; their pixels without depth left out"
     return DepthRun(mean=mean_over_frames(list(per_frame.values())), per_frame=per_frame, layout=layout, input=used,
-                    car_errors=car_errors, car_in_box=car_in_box)
+                    car_errors=car_errors, car_in_box=car_in_box, car_stray=car_stray)
 
 
 def _given_pixels(prediction: np.ndarray, depth_dir: Path | None) -> np.ndarray | None:

@@ -141,6 +141,9 @@ def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp
     # Most of the 64-line returns on a car land in its box (a few dozen returns per car in the half-size
     # view: the ground beside a car inside its 2D box counts against it).
     assert given.car_in_box and np.mean([share for _, share in given.car_in_box]) > 0.6
+    # And the returns of a car's 2D box that see something else stay off it.
+    assert given.car_stray and all(share <= 0.05 for _, share in given.car_stray)
+    assert outcome.car_stray and all(0.0 <= share <= 1.0 for _, share in outcome.car_stray)
     # The command prints both per distance band and writes them to its JSON.
     result = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames",
                        _frames_file(tmp_path, "000006"), "--json", tmp_path / "depth.json", "--plots", tmp_path / "p")
@@ -149,13 +152,14 @@ def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp
     picture = cv2.imread(str(tmp_path / "p" / "car_depth.png"))  # each car's error and share against distance
     assert picture is not None and picture.shape[1] > picture.shape[0] > 200
     document = json.loads((tmp_path / "depth.json").read_text())["depth"]
-    assert set(document["car_points_in_box_by_band"]) == set(document["car_median_abs_mm_by_band"]) == {
-        "0-20", "20-35", "35-50"}
+    assert "share of the other pixels of each car's 2D box" in result.stdout
+    assert set(document["car_points_in_box_by_band"]) == set(document["car_median_abs_mm_by_band"]) == set(
+        document["car_stray_points_in_box_by_band"]) == {"0-20", "20-35", "35-50"}
     assert sum(band["cars"] for band in document["car_points_in_box_by_band"].values()) >= 1
     # Frame 000003's one car is 13 m away: the farther bands say so, not "nan".
     near = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames", _frames_file(tmp_path, "000003"))
     assert near.returncode == 0, near.stderr
-    assert near.stdout.count("20-35 m no cars") == near.stdout.count("35-50 m no cars") == 2
+    assert near.stdout.count("20-35 m no cars") == near.stdout.count("35-50 m no cars") == 3
     assert "nan" not in near.stdout.split("on the pixels of moderate cars")[1]
 
 

@@ -15,8 +15,10 @@ from evaluation.depth_metrics import (
     car_errors_by_band,
     car_points_in_box,
     car_shares_by_band,
+    car_surface,
     depth_metrics,
     mean_over_frames,
+    stray_points_in_box,
 )
 from pipeline.calib import sparse_depth_map
 from pipeline.errors import InputError
@@ -145,6 +147,27 @@ def test_car_points_land_in_their_boxes_with_the_true_depth_and_leave_them_when_
     assert np.mean([s for _, s in nearer]) <= 0.25
     farther = car_points_in_box(np.where(truth > 0, truth + 5.0, 0), truth, cars, frame.calib)
     assert all(share == 0.0 for _, share in farther)
+
+
+@pytest.mark.parametrize("frame_id", ["000004", "000006"])
+def test_the_other_pixels_of_a_cars_box_stay_off_it_with_the_true_depth_and_not_when_smeared(frame_id):
+    """The 64-line returns of each car's 2D box that are not on the car (road, what is behind it) land off
+    the car; given the car's own depth, as a fill that smears a car over its surroundings gives them,
+    many of them land on it."""
+    frame = load_frame(KITTI, frame_id)
+    truth = sparse_depth_map(frame.points, frame.calib, frame.image_hw)
+    cars = _cars_in_full_image(frame)
+    stray = stray_points_in_box(truth, truth, cars, frame.calib)
+    assert stray and all(share <= 0.02 for _, share in stray)
+    smeared = truth.copy()
+    for car in cars:  # every return of the box at the car's depth (along its own ray)
+        window, _ = car_surface(truth, car.box, car.z)
+        smeared[window] = np.where(truth[window] > 0, car.z, 0.0)
+    on_smear = stray_points_in_box(smeared, truth, cars, frame.calib)
+    assert [z for z, _ in on_smear] == [z for z, _ in stray]
+    assert np.mean([share for _, share in on_smear]) >= 0.25
+    # Nothing predicted there: no point lands anywhere near a car.
+    assert all(share == 0.0 for _, share in stray_points_in_box(np.zeros_like(truth), truth, cars, frame.calib))
 
 
 def test_car_shares_by_band_average_the_cars_of_each_band():
