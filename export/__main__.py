@@ -145,8 +145,12 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
         _check_calibration_data(args.calibration_data)
         with tempfile.TemporaryDirectory(prefix="lowres3d-fp32-") as fp32_dir:
             result = run(replace(config, out=Path(fp32_dir)))
+            # The FP32 directory is temporary: record what made it, not a folder that is gone after this.
+            made_by = (f"not kept: python -m export --preset {config.preset} --networks {' '.join(config.networks)}"
+                       + (f" --checkpoints {config.checkpoints}" if config.checkpoints else " (initialised)"))
             manifest = convert_precision(Path(fp32_dir), config.out, args.precision, args.calibration_data,
-                                         args.calibration_frames, progress=True, reduce_range=args.reduce_range)
+                                         args.calibration_frames, progress=True, reduce_range=args.reduce_range,
+                                         source=made_by)
         result = replace(result, directory=config.out, manifest=manifest)
         print(f"{args.precision}: deviation from fp32 {manifest['precision_info']['deviation_from_fp32']}")
     print(f"wrote {result.directory} (preset {manifest['preset']}, weights: {manifest['weights']})")

@@ -106,11 +106,15 @@ def _check_keeps_trained(out: Path, checkpoints: dict[str, Path], networks: tupl
     try:
         held = json.loads((out / MANIFEST_NAME).read_text(encoding="utf-8"))["networks"]
         trained = [name for name in networks if name not in checkpoints and held[name]["weights"] == "trained"]
-    except (OSError, ValueError, KeyError, TypeError):  # no or broken model directory there: nothing trained to keep
+        dropped = [name for name in held if name not in networks and held[name].get("weights") == "trained"]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):  # no or broken model directory there
         return
     if trained:
         raise ModelFileError(f"--out {out}: holds trained {' and '.join(trained)} weights, which this export would "
                              "replace by initialised ones; give --checkpoints with them, or another --out")
+    if dropped:
+        raise ModelFileError(f"--out {out}: holds a trained {' and '.join(dropped)} network, which this export "
+                             f"(--networks {' '.join(networks)}) would delete; give another --out")
 
 
 def _load_weights(checkpoints: dict[str, Path], preset: Preset, models: dict[str, torch.nn.Module]) -> dict[str, dict | None]:

@@ -174,10 +174,12 @@ def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -
 
 
 def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_data: Path,
-                      calibration_frames: int = 300, progress: bool = False, reduce_range: bool = False) -> dict:
+                      calibration_frames: int = 300, progress: bool = False, reduce_range: bool = False,
+                      source: str | None = None) -> dict:
     """Write ``out`` as a copy of the FP32 directory ``fp32_dir`` at ``precision``; returns the manifest.
 
-    reduce_range: INT8 weights in 7 bits, exact on every CPU (:func:`to_int8`).
+    reduce_range: INT8 weights in 7 bits, exact on every CPU (:func:`to_int8`). source: what the manifest
+    records as the FP32 source (default ``fp32_dir``; say what made it when that is a temporary folder).
     """
     if precision not in PRECISIONS:
         raise ValueError(f"--precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
@@ -204,12 +206,13 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
     source_files = dict(manifest["files"])
     feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames, progress)
     with staged(out, source=fp32_dir) as staging:
-        _convert(fp32_dir, staging, manifest, source_files, feeds, precision, calibration_data, reduce_range)
+        _convert(fp32_dir, staging, manifest, source_files, feeds, precision, calibration_data, reduce_range,
+                 source)
     return manifest
 
 
 def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feeds: dict, precision: str,
-             calibration_data: Path, reduce_range: bool = False) -> None:
+             calibration_data: Path, reduce_range: bool = False, source: str | None = None) -> None:
     """Convert the networks of the copy ``out`` in place and write its manifest (see :func:`convert_precision`)."""
     int8_info: dict[str, dict] = {}
     for name, frames in feeds.items():
@@ -233,7 +236,7 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
     manifest["precision"] = precision
     manifest["precision_info"] = {
         # Which FP32 files this directory was converted from (their manifest's sha256s).
-        "source": {"directory": str(fp32_dir), "sha256": {name: entry["sha256"] for name, entry in source_files.items()}},
+        "source": {"directory": source or str(fp32_dir), "sha256": {name: entry["sha256"] for name, entry in source_files.items()}},
         "calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
         **({"activations": "uint8", "weights": "int8 per channel" + (", 7-bit range" if reduce_range else ""),
             "reduce_range": reduce_range, "format": "QDQ",

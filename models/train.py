@@ -520,7 +520,8 @@ def run(config: TrainConfig) -> TrainResult:
     forward = {"depth": networks["depth"].forward} if "depth" in networks else {}
     if "pixor" in networks:
         forward["pixor"] = networks["pixor"].forward_logits
-    steps = (config.epochs - start_epoch) * (len(train_set) // config.batch_size) if config.task != "joint" else 0
+    # The whole run's steps, not the ones left: a resumed run must compile (or not) as it started.
+    steps = config.epochs * (len(train_set) // config.batch_size) if config.task != "joint" else 0
     compiled = resolve_compile(config.compile, config.task, steps, device)
     if compiled:
         if layout != torch.channels_last:
@@ -537,6 +538,8 @@ def run(config: TrainConfig) -> TrainResult:
                      "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
                                 "optimizer": "Adam", "seed": config.seed, "precision": config.precision,
                                 "compiled": compiled}}
+    if config.task in ("depth", "joint"):
+        metadata_base["recipe"]["depth_loss"] = config.depth_loss
     if config.train_only:
         metadata_base["recipe"]["train_only"] = list(config.train_only)
     if config.car_weight != 1.0:
@@ -544,12 +547,15 @@ def run(config: TrainConfig) -> TrainResult:
     if config.freeze_bn:
         metadata_base["recipe"]["freeze_bn"] = True
     for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
-        if name in networks and path is not None and config.task != "joint":
+        if name in networks and path is not None:
             metadata_base["recipe"][f"{name}_start"] = str(path)
             earlier = start_training_metadata(Path(path), name)
             if earlier:
                 metadata_base["recipe"][f"{name}_start_training"] = earlier
     log_path = out / "log.jsonl"
+    # One line per epoch the state holds: an interruption after an epoch's log line but before its state.pt
+    # (or a stale log in a folder without one) would otherwise leave that epoch twice once it is trained again.
+    log_path.write_text("".join(json.dumps(record) + "\n" for record in history), encoding="utf-8")
     for epoch in range(start_epoch, config.epochs):
         tic = time.perf_counter()
         for net in networks.values():
@@ -675,11 +681,13 @@ def load_state(state_path: Path) -> dict:
 def _flag_text(flag: str, value) -> str:
     if isinstance(value, (list, tuple)):
         value = ",".join(value)
-    return f"{flag} {value}" if value else f"no {flag}"
+    if value is True:
+        return flag
+    return f"no {flag}" if value is None or value is False or value == "" else f"{flag} {value}"
 
 
 def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
-    """The resumed run is the one started in ``out``: same task, preset, detector input and --train-only.
+    """The resumed run is the one started in ``out``: the same task and flags; only --epochs may change.
 
     The state records the configuration it was started with; a state without one (an older run) is
     compared by the networks it holds.
@@ -693,14 +701,31 @@ def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
     compared = [("--preset", "preset"), ("--train-only", "train_only")]
     if config.task == "detector":
         compared.insert(1, ("--input", "input_mode"))
+    # Everything else that decides what the remaining epochs train on and how (--epochs may grow):
+    # resumed with other values, the run would silently stop being the one its log and checkpoints describe
+    # (the optimizer's saved learning rate would even override --lr, while the metadata recorded --lr).
+    compared += [("--data", "data"), ("--val-data", "val_data"), ("--train-split", "train_split"),
+                 ("--val-split", "val_split"), ("--max-train-frames", "max_train_frames"),
+                 ("--max-val-frames", "max_val_frames"), ("--batch-size", "batch_size"), ("--lr", "lr"),
+                 ("--seed", "seed"), ("--depth-loss", "depth_loss"), ("--car-weight", "car_weight"),
+                 ("--freeze-bn", "freeze_bn"), ("--quick", "quick"), ("--pseudo-dir", "pseudo_dir"),
+                 ("--val-pseudo-dir", "val_pseudo_dir"), ("--depth-checkpoint", "depth_checkpoint"),
+                 ("--pixor-checkpoint", "pixor_checkpoint")]
     for flag, key in compared:
         if key not in recorded:
             continue
         wanted, started = getattr(config, key), recorded[key]
         if isinstance(wanted, (list, tuple)) or isinstance(started, (list, tuple)):
             wanted, started = tuple(wanted or ()), tuple(started or ())
+        elif key.endswith(("data", "split", "dir", "checkpoint")):  # the same file, however it is spelt
+            wanted, started = (None if v is None else str(Path(v).resolve()) for v in (wanted, started))
         if wanted != started:
-            raise InputError(f"{_flag_text(flag, wanted)}, but {out} was started with {_flag_text(flag, started)}")
+            raise InputError(f"{_flag_text(flag, wanted)}, but {out} was started with {_flag_text(flag, started)}"
+                             f" (resume with the same flags; only --epochs may change)")
+    for flag, key in (("--precision", "precision"), ("--device", "device")):
+        if key in recorded and recorded[key] != getattr(config, key):
+            log.warning("%s: resumed with %s %s, started with %s: the remaining epochs compute differently",
+                        out, flag, getattr(config, key), recorded[key])
 
 
 def restore_state(state: dict, state_path: Path, networks: dict[str, torch.nn.Module], optimizer, scheduler,
@@ -770,6 +795,10 @@ def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val
                 frame, path, more = missing
                 raise InputError(f"{flag} {folder}: frame {frame}{more} has no ground truth ({path}); {needs} "
                                  f"needs the labels of every frame")
+        if labels or ids is val_ids:  # depth validation reads the labels that are there (car_in_box_*)
+            for fid in ids:  # InputError naming the file and line of a malformed one
+                if (folder / "label_2" / f"{fid}.txt").is_file():
+                    read_labels(folder / "label_2" / f"{fid}.txt")
 
 
 def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str]) -> None:
@@ -973,7 +1002,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compile", default="auto", choices=("auto", "on", "off"),
                         help=f"torch.compile the training forward pass (auto, default: depth and detector runs of "
                              f"at least {COMPILE_MIN_STEPS} steps, where a C++ compiler is found)")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last epoch (its state.pt; same task, --preset, --input)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last epoch (its state.pt; the same flags, only --epochs may change)")
     parser.add_argument("--quick", action="store_true", help="a few frames and epochs: a smoke test")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -983,6 +1012,11 @@ def main(argv: list[str] | None = None) -> int:
     except (InputError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        kept = ("keeps the last finished epoch (state.pt); rerun with --resume to continue"
+                if (args.out / STATE_FILE).is_file() else "has no finished epoch yet; nothing to resume")
+        print(f"interrupted: {args.out} {kept}", file=sys.stderr)
+        return 130
     if result.nothing_to_do:
         print(already_trained(result))
         return 0

@@ -528,6 +528,12 @@ def test_export_with_checkpoints_records_training(tmp_path: Path) -> None:
         with pytest.raises(ModelFileError, match="holds trained .*pixor weights, which this export would replace"):
             run(ExportConfig(preset="tiny", out=result.directory, checkpoints=checkpoints, parity=False))
     assert {p.name: p.read_bytes() for p in result.directory.iterdir()} == before
+    # A LiDAR-only export (--networks pixor) over the camera directory would delete its trained depth net.
+    save_checkpoint(tmp_path / "ckpt" / "pixor.pt", preset, {"pixor": pixor}, {"epochs": 30})
+    with pytest.raises(ModelFileError, match="holds a trained depth network, which this export .*would delete"):
+        run(ExportConfig(preset="tiny", out=result.directory, checkpoints=tmp_path / "ckpt", networks=("pixor",),
+                         parity=False))
+    assert {p.name: p.read_bytes() for p in result.directory.iterdir()} == before
 
 
 def test_export_refuses_empty_checkpoint_dir(tmp_path: Path) -> None:
@@ -641,6 +647,17 @@ def test_cli_refuses_bad_inputs_in_one_line_before_exporting(tmp_path: Path, cap
         assert code == 2 and says in err and len(err.strip().splitlines()) == 1, (args, err)
         assert seconds < 5, (args, seconds)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "only_depth"]
+
+
+def test_a_reduced_precision_export_records_what_made_its_fp32_networks(tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture) -> None:
+    """The FP32 directory of `python -m export --precision …` is temporary: the manifest names the command,
+    not a folder that is gone (which a later conversion's refusal would send the user to)."""
+    out = tmp_path / "fp16"
+    code, err, _ = _export_main(["--preset", "tiny", "--out", str(out), "--no-parity", "--precision", "fp16"], capsys)
+    assert code == 0, err
+    source = json.loads((out / "manifest.json").read_text())["precision_info"]["source"]["directory"]
+    assert source == "not kept: python -m export --preset tiny --networks depth pixor (initialised)"
 
 
 @pytest.mark.parametrize(("extra", "says"), [

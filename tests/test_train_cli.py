@@ -106,6 +106,11 @@ def test_resume_without_a_run_to_continue_is_refused(tmp_path, capsys, one_frame
     (["--preset", "edge"], "--preset edge, but {run} was started with --preset tiny"),
     (["--train-only", "score"], "--train-only score, but {run} was started with no --train-only"),
     (["task=depth"], "task depth: {run} was started as a detector run"),
+    # The optimizer's saved state would override a new --lr while the checkpoints recorded it.
+    (["--lr", "0.01"], "--lr 0.01, but {run} was started with --lr 0.001"),
+    (["--seed", "99"], "--seed 99, but {run} was started with --seed 0"),
+    (["--batch-size", "2"], "--batch-size 2, but {run} was started with --batch-size 1"),
+    (["--freeze-bn"], "--freeze-bn, but {run} was started with no --freeze-bn"),
 ])
 def test_resume_refuses_another_task_input_or_preset(finished_run, tmp_path, capsys, one_frame, change, says):
     run_dir = tmp_path / "run"
@@ -137,6 +142,47 @@ def test_resume_trains_the_remaining_epochs_and_reports_their_loss(finished_run,
     assert math.isfinite(first) and math.isfinite(last) and first > 0
     log = (run_dir / "log.jsonl").read_text().splitlines()
     assert len(log) == 2 and '"epoch": 2' in log[1]
+
+
+def test_resume_with_the_same_data_spelt_otherwise_and_a_log_line_past_the_state(
+        finished_run, tmp_path, capsys, one_frame, monkeypatch):
+    """A relative --data naming the same folder resumes; a log line written after the last state.pt
+    (an interruption between the two) is not kept twice."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(finished_run, run_dir)
+    first = (run_dir / "log.jsonl").read_text()
+    with open(run_dir / "log.jsonl", "a") as handle:  # epoch 2 logged, then interrupted before its state.pt
+        handle.write(first.replace('"epoch": 1', '"epoch": 2'))
+    monkeypatch.chdir(KITTI.parent)
+    argv = args("detector", run_dir, one_frame, "--resume", "--epochs", "2")
+    argv[argv.index("--data") + 1] = KITTI.name
+    assert main(argv) == 0, capsys.readouterr().err
+    epochs = [line.split('"epoch": ')[1].split(",")[0] for line in (run_dir / "log.jsonl").read_text().splitlines()]
+    assert epochs == ["1", "2"]
+
+
+def test_a_malformed_label_line_is_named_before_any_epoch(tmp_path, capsys, one_frame):
+    data = tmp_path / "data"
+    for folder in ("velodyne", "image_2", "calib", "label_2"):
+        shutil.copytree(KITTI / folder, data / folder)
+    (data / "label_2" / f"{FRAME}.txt").write_text("Car 0.00 0 -1.5 587 173 614 200 1.65 1.67 3.64 -0.65 x 46.7 -1.6\n")
+    for task in ("detector", "depth"):  # the depth run validates on the labelled cars (car_in_box_*)
+        argv = args(task, tmp_path / task, one_frame, *(["--input", "lidar16"] if task == "detector" else []))
+        argv[argv.index("--data") + 1] = str(data)
+        says = refused(argv, capsys)
+        assert f"label_2/{FRAME}.txt, line 1" in says, says
+        assert not (tmp_path / task).exists()
+
+
+def test_ctrl_c_says_what_was_kept(tmp_path, capsys, one_frame, monkeypatch):
+    from models import train
+
+    def interrupted(config):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train, "run", interrupted)
+    assert main(args("detector", tmp_path / "run", one_frame)) == 130
+    assert f"interrupted: {tmp_path / 'run'} has no finished epoch yet; nothing to resume" in capsys.readouterr().err
 
 
 def test_out_that_is_a_file_is_refused(tmp_path, capsys, one_frame):
