@@ -373,7 +373,8 @@ def run(config: ReproduceConfig) -> dict:
         depth_table[name] = {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
                              "imae_per_km": m.imae_per_km, "median_abs_mm_by_band": m.median_abs_mm_by_band,
                              "car_median_abs_mm_by_band": car_errors_by_band(outcome.car_errors),
-                             "car_points_in_box_by_band": car_shares_by_band(outcome.car_in_box)}
+                             "car_points_in_box_by_band": car_shares_by_band(outcome.car_in_box),
+                             "car_stray_points_in_box_by_band": car_shares_by_band(outcome.car_stray)}
     stage("evaluate")
 
     # Ship the better two-stage directory (by BEV AP at IoU 0.7, moderate) as the product.
@@ -423,12 +424,16 @@ def format_table(report: dict) -> str:
                      f"{m['imae_per_km']:.2f} |{medians}")
     car_bands = list(next(iter(report["depth"].values())).get("car_points_in_box_by_band", {}))
     if car_bands:  # reports written before session 23 have no per-car figures
+        stray = all("car_stray_points_in_box_by_band" in m for m in report["depth"].values())  # session 24 on
         lines += ["", "| depth net, moderate cars' own pixels | "
-                  + "".join(f"{b} m: median error (mm) / share on the car | " for b in car_bands),
+                  + "".join(f"{b} m: median error (mm) / share on the car{' / rest of its box on it' * stray} | "
+                            for b in car_bands),
                   "|---|" + "---|" * len(car_bands)]
         for name, m in report["depth"].items():
             cells = "".join(f" {m['car_median_abs_mm_by_band'][b]['median_mm']:.0f} / "
-                            f"{m['car_points_in_box_by_band'][b]['mean_share']:.2f} |" for b in car_bands)
+                            f"{m['car_points_in_box_by_band'][b]['mean_share']:.2f}"
+                            + (f" / {m['car_stray_points_in_box_by_band'][b]['mean_share']:.3f}" if stray else "")
+                            + " |" for b in car_bands)
             lines.append(f"| {name} |{cells}")
     return "\n".join(lines) + "\n"
 

@@ -35,9 +35,10 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     # The depth nets' moderate cars: median error and share of their pixels on the car, per band.
     for depth in report["depth"].values():
         shares = depth["car_points_in_box_by_band"]
-        assert set(shares) == set(depth["car_median_abs_mm_by_band"]) == {"0-20", "20-35", "35-50"}
+        assert set(shares) == set(depth["car_median_abs_mm_by_band"]) == set(
+            depth["car_stray_points_in_box_by_band"]) == {"0-20", "20-35", "35-50"}
         assert sum(band["cars"] for band in shares.values()) > 0
-    assert "| depth net, moderate cars' own pixels |" in table_md
+    assert "| depth net, moderate cars' own pixels |" in table_md and "/ rest of its box on it |" in table_md
     # The shipped-style directories load in the runtime, each of the right kind.
     weights = out / "weights"
     assert Detector(weights / "tiny").two_stage

@@ -222,6 +222,9 @@ def test_quick_depth_and_detector_runs_reduce_the_loss(small_sim, tmp_path):
     shares = {k: v for k, v in depth.history[-1].items() if k.startswith("car_in_box_")}
     assert shares and set(shares) <= {"car_in_box_0-20", "car_in_box_20-35", "car_in_box_35-50"}
     assert all(0.0 <= v <= 1.0 for v in shares.values())
+    strays = {k: v for k, v in depth.history[-1].items() if k.startswith("car_stray_")}
+    assert strays and {k.replace("stray", "in_box") for k in strays} <= set(shares)
+    assert all(0.0 <= v <= 1.0 for v in strays.values())
     detector = run(TrainConfig(task="detector", data=small_sim, preset="tiny", out=tmp_path / "det", quick=True,
                                epochs=3, progress=False))
     assert detector.last_loss < detector.first_loss
