@@ -182,8 +182,10 @@ class Detector:
         self._check_shapes()
         self._local = threading.local()
         fallback = self._check_provider_loaded(explicit=bool(providers))
-        # About the precision on this machine, logged once at load (and shown by the service's /v1/model).
-        self.load_warnings: list[str] = [w for w in (fallback, self._saturating_int8(), self._fp16_on_cpu()) if w]
+        # About the weights and the precision on this machine, logged once at load (and shown by the
+        # service's /v1/model).
+        self.load_warnings: list[str] = [w for w in (self._untrained(), fallback, self._saturating_int8(),
+                                                     self._fp16_on_cpu()) if w]
         for warning in self.load_warnings:
             log.warning(warning)
         trained_on = (networks["pixor"].get("training") or {}).get("input")
@@ -225,6 +227,16 @@ class Detector:
         if explicit:
             raise InputError(f"--provider: {message}")
         return message
+
+    def _untrained(self) -> str | None:
+        """A warning when a network was exported without trained weights (``python -m export`` without its
+        checkpoint, as for latency measurements): it runs, and its boxes mean nothing."""
+        untrained = [name for name, entry in self.manifest["networks"].items() if entry.get("weights") != "trained"]
+        if not untrained:
+            return None
+        return (f"{self.model_dir}: {' and '.join(untrained)} {'has' if len(untrained) == 1 else 'have'} initialised "
+                "(untrained) weights: the detections mean nothing; export trained checkpoints "
+                "(python -m export --checkpoints DIR)")
 
     def _saturating_int8(self) -> str | None:
         """A warning when full-range INT8 weights run on a CPU whose int8 kernels saturate (pipeline/cpu.py)."""

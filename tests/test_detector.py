@@ -265,6 +265,21 @@ def test_detector_on_the_cpu_provider_has_no_fallback_warning(tiny_models):
     assert not any("did not load" in w for w in detector.load_warnings)
 
 
+def test_a_network_exported_without_trained_weights_is_named_at_load(tiny_models, tmp_path, caplog):
+    """An export given only depth.pt (say) ships an initialised PIXOR, which runs and finds nothing real."""
+    mixed = tmp_path / "mixed"
+    shutil.copytree(tiny_models, mixed)
+    manifest = json.loads((mixed / "manifest.json").read_text())
+    manifest["networks"]["depth"]["weights"] = "trained"
+    (mixed / "manifest.json").write_text(json.dumps(manifest))
+    with caplog.at_level("WARNING"):
+        (warning,) = Detector(mixed).load_warnings
+    assert warning.startswith(f"{mixed}: pixor has initialised (untrained) weights") and warning in caplog.text
+    manifest["networks"]["pixor"]["weights"] = "trained"
+    (mixed / "manifest.json").write_text(json.dumps(manifest))
+    assert Detector(mixed).load_warnings == []
+
+
 def test_session_threads_stop_spinning_after_each_run():
     """Spinning pool threads after a run took the cores from the NumPy stages (69 ms instead of 43 ms an
     edge frame): sessions may spin within a run only."""
