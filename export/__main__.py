@@ -157,7 +157,7 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
     for entry in manifest["networks"].values():
         print(f"  {entry['file']}: {entry['parameters']:,} parameters, {entry['flops'] / 1e9:.2f} GFLOP")
     for r in result.parity:
-        print(f"  parity {r.network} {r.source}: {r.metric} {r.error:.2e} (≤ {r.tolerance:.0e})")
+        print(f"  parity {r.network} {r.source}: {r.metric} {r.error:.2e} (≤ {r.tolerance:.2e})")
     return 0
 
 

@@ -393,6 +393,10 @@ def run(config: ReproduceConfig) -> dict:
 def format_table(report: dict) -> str:
     """The paper's table as markdown (BEV AP %, R40; easy / moderate / hard), 3D AP, and depth errors."""
     lines = []
+    if "preset" in report:  # which run this is, for a table read on its own
+        budget = report.get("budget") or {}
+        shown = ", ".join(f"{key} {value}" for key, value in budget.items() if not isinstance(value, dict))
+        lines += [f"Preset {report['preset']}" + (f"; budget: {shown}" if shown else "") + ".", ""]
     for title, key in (("BEV AP", "bev_ap"), ("3D AP", "ap_3d")):
         if key not in report:
             continue

@@ -30,6 +30,7 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     for intervals in report["bev_difference_interval_95"].values():  # camera − lidar16, lidar64 − camera
         assert all(-100 <= low <= high <= 100 for iou in ("0.5", "0.7") for low, high in intervals[iou])
     table_md = (out / "table.md").read_text()
+    assert table_md.startswith("Preset tiny; budget: train_frames ")  # the table says which run it is
     assert "| lidar16+camera |" in table_md and "| BEV AP |" in table_md and "| 3D AP |" in table_md
     assert "by distance" in table_md and "| camera - lidar16 |" in table_md
     # The depth nets' moderate cars: median error and share of their pixels on the car, per band.
