@@ -132,14 +132,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         get_preset(args.preset)
+    except ValueError as exc:  # get_preset's list of the valid names
+        parser.error(f"argument --preset: {exc}")
+    try:
         if args.json is not None:
             check_output(args.json, "--json")
         report = run(args.frame, args.repeats, args.preset)
     except InputError as exc:  # a frame that is not bundled, an output that cannot be written
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except ValueError as exc:  # get_preset's list of the valid names
-        parser.error(f"argument --preset: {exc}")
     print(f"frame {report['frame']} ({report['points_64']} points), preset {report['preset']}, "
           f"pseudo cloud {report['pseudo_points']} points, {report['repeats']} repeats")
     width = max(len(name) for name in report["steps_ms"])
