@@ -14,14 +14,14 @@ On object folders with labels (the synthetic scenes) :func:`car_depth_errors`
 also measures each car's own pixels: inside its 2D box, with a true depth
 within 3 m of the car's. That is the depth the camera pipeline's PIXOR sees
 the car by, and the median over cars by the car's distance says where the
-depth net loses cars. :func:`car_points_in_box` says what PIXOR gets from
+depth net loses cars. :func:`car_box_shares` says what PIXOR gets from
 those pixels: the share whose back-projected point lands in the car's BEV
 box. A smaller median error does not ensure a larger share: a far car is a
 few pixels wide, most of them on its outline, and a correction blurred across
 the outline moves them off the car (at 20–35 m the exact correction blurred as
 the edge net blurs it has half the net's median error and the same share;
 docs/measurements.md, session 23). A larger share does not ensure a better
-camera row either: :func:`stray_points_in_box` counts the other pixels of the
+camera row either: :func:`car_box_shares` also counts the other pixels of the
 car's 2D box that land on it, which a source smearing the car's depth over
 its surroundings also puts there (session 24).
 """
@@ -191,69 +191,53 @@ def moderate_cars_in_view(labels: Sequence[Object3D] | None, image_hw: tuple[int
     return cars
 
 
-def _lands_in_box(prediction: np.ndarray, window: tuple[slice, slice], pixels: np.ndarray, car: CarInView,
-                  calib: Calibration) -> np.ndarray:
-    """Whether each of the ``pixels`` of ``window`` (a mask), back-projected with its predicted depth, lies in
-    the car's labelled footprint grown by :data:`CAR_BOX_MARGIN_M` on every side (a pixel without depth lands
-    at the camera, outside every car)."""
+def car_box_shares(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars: Sequence[CarInView],
+                   calib: Calibration) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
+    """Where each car's box pixels land in BEV: two lists of (car depth z, share).
+
+    On the car: the share of the car's own pixels (:func:`car_surface`'s) whose point, back-projected with
+    its predicted depth through ``calib`` (the calibration of exactly these maps), lies in the labelled
+    footprint grown by :data:`CAR_BOX_MARGIN_M` on every side; with the true depth nearly all land in it.
+    Stray: the share of the other pixels of the car's 2D box (a true depth off the car's surface: the road,
+    what is behind it) that land there too. A depth source that smears the car's depth over its
+    surroundings (the 16-line fill, say) puts many of both on the car, which widens and heightens the car
+    PIXOR sees. A pixel without depth lands at the camera, outside every car. Cars without pixels of their
+    own are left out of both lists, cars whose box has no other pixel out of the second.
+    """
+    pred = np.asarray(prediction_m, np.float64)
+    gt = np.asarray(ground_truth_m, np.float64)
     # X_rect = d·K⁻¹[u, v, 1]ᵀ − K⁻¹t with P2 = [K | t]: only x and z matter in BEV.
     k_inv = np.linalg.inv(calib.P2[:, :3])
     offset = k_inv @ calib.P2[:, 3]
-    rows, cols = np.nonzero(pixels)
-    v = rows + window[0].start
-    u = cols + window[1].start
-    d = prediction[window][pixels]
-    x = d * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2]) - offset[0]
-    z = d * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2]) - offset[2]
-    centre_x, centre_z, length, width, rotation_y = car.footprint
-    dx, dz = x - centre_x, z - centre_z
-    # KITTI's rotation_y turns the box's length axis from the camera's x towards −z.
-    along = np.cos(rotation_y) * dx - np.sin(rotation_y) * dz
-    across = np.sin(rotation_y) * dx + np.cos(rotation_y) * dz
-    return (np.abs(along) <= length / 2 + CAR_BOX_MARGIN_M) & (np.abs(across) <= width / 2 + CAR_BOX_MARGIN_M)
 
+    def lands_in_box(window: tuple[slice, slice], pixels: np.ndarray, car: CarInView) -> np.ndarray:
+        rows, cols = np.nonzero(pixels)
+        v = rows + window[0].start
+        u = cols + window[1].start
+        d = pred[window][pixels]
+        x = d * (k_inv[0, 0] * u + k_inv[0, 1] * v + k_inv[0, 2]) - offset[0]
+        z = d * (k_inv[2, 0] * u + k_inv[2, 1] * v + k_inv[2, 2]) - offset[2]
+        centre_x, centre_z, length, width, rotation_y = car.footprint
+        dx, dz = x - centre_x, z - centre_z
+        # KITTI's rotation_y turns the box's length axis from the camera's x towards −z.
+        along = np.cos(rotation_y) * dx - np.sin(rotation_y) * dz
+        across = np.sin(rotation_y) * dx + np.cos(rotation_y) * dz
+        return (np.abs(along) <= length / 2 + CAR_BOX_MARGIN_M) & (np.abs(across) <= width / 2 + CAR_BOX_MARGIN_M)
 
-def car_points_in_box(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars: Sequence[CarInView],
-                      calib: Calibration) -> list[tuple[float, float]]:
-    """(car depth z, share of the car's pixels whose predicted point lies in its BEV box) per car that has any.
-
-    The car's pixels are :func:`car_surface`'s; each is back-projected with its predicted depth through
-    ``calib`` (the calibration of exactly these maps) and tested against the labelled footprint grown by
-    :data:`CAR_BOX_MARGIN_M` on every side. With the true depth nearly all land in it.
-    """
-    pred = np.asarray(prediction_m, np.float64)
-    gt = np.asarray(ground_truth_m, np.float64)
-    found = []
+    on_car_shares, stray_shares = [], []
     for car in cars:  # a handful of cars per frame; each car's pixels are one vectorized pass
         window, on_car = car_surface(gt, car.box, car.z)
-        if on_car.any():
-            found.append((float(car.z), float(_lands_in_box(pred, window, on_car, car, calib).mean())))
-    return found
-
-
-def stray_points_in_box(prediction_m: np.ndarray, ground_truth_m: np.ndarray, cars: Sequence[CarInView],
-                        calib: Calibration) -> list[tuple[float, float]]:
-    """(car depth z, share of the other pixels of its 2D box whose predicted point lies in its BEV box) per car.
-
-    The complement of :func:`car_points_in_box`: the pixels of the car's 2D box that see something else
-    (a true depth off the car's surface: the road, what is behind it) should not land on the car. A depth
-    source that smears the car's depth over its surroundings (the 16-line fill, say) puts many of its car's
-    pixels on the car and many of the others there too, which widens and heightens the car PIXOR sees.
-    Cars whose box has no such pixel are left out.
-    """
-    pred = np.asarray(prediction_m, np.float64)
-    gt = np.asarray(ground_truth_m, np.float64)
-    found = []
-    for car in cars:
-        window, on_car = car_surface(gt, car.box, car.z)
+        if not on_car.any():
+            continue
+        on_car_shares.append((float(car.z), float(lands_in_box(window, on_car, car).mean())))
         off_car = (gt[window] > 0) & ~on_car
-        if on_car.any() and off_car.any():
-            found.append((float(car.z), float(_lands_in_box(pred, window, off_car, car, calib).mean())))
-    return found
+        if off_car.any():
+            stray_shares.append((float(car.z), float(lands_in_box(window, off_car, car).mean())))
+    return on_car_shares, stray_shares
 
 
 def car_shares_by_band(shares: Sequence[tuple[float, float]]) -> dict[str, dict[str, float]]:
-    """Mean over cars of :func:`car_points_in_box`'s share, and the number of cars, per :data:`CAR_BANDS_M` band."""
+    """Mean over cars of a :func:`car_box_shares` share, and the number of cars, per :data:`CAR_BANDS_M` band."""
     return _per_car_band(shares, "mean_share", np.mean)
 
 

@@ -18,12 +18,11 @@ from tqdm import tqdm
 
 from evaluation.depth_metrics import (
     DepthMetrics,
+    car_box_shares,
     car_depth_errors,
-    car_points_in_box,
     depth_metrics,
     mean_over_frames,
     moderate_cars_in_view,
-    stray_points_in_box,
 )
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
@@ -169,8 +168,9 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
                 # pipeline resizes a given depth map (nearest: no blend across outlines).
                 in_view = moderate_cars_in_view(frame.labels, frame.image_hw, preset.crop_hw, preset.depth.input_scale)
                 view_truth = depth_view(gt, preset)
-                car_in_box.extend(car_points_in_box(view_depth, view_truth, in_view, view_calib))
-                car_stray.extend(stray_points_in_box(view_depth, view_truth, in_view, view_calib))
+                on_car, stray = car_box_shares(view_depth, view_truth, in_view, view_calib)
+                car_in_box.extend(on_car)
+                car_stray.extend(stray)
             picture(fid, frame.image, prediction, crop_gt)
     if not per_frame:
         raise InputError(f"--data: {data} has no frames to evaluate")

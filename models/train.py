@@ -57,12 +57,7 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from evaluation.depth_metrics import (
-    car_points_in_box,
-    car_shares_by_band,
-    moderate_cars_in_view,
-    stray_points_in_box,
-)
+from evaluation.depth_metrics import car_box_shares, car_shares_by_band, moderate_cars_in_view
 from evaluation.kitti_eval import evaluate
 from evaluation.labels import LabelArrays
 from models import build_depth_net, build_pixor
@@ -376,7 +371,7 @@ def _car_shares(dataset: DepthDataset, index: int, prediction: np.ndarray, targe
     image_hw = read_image_size(data / "image_2" / f"{frame_id}.png")
     cars = moderate_cars_in_view(read_labels(label_path), image_hw, preset.crop_hw, preset.depth.input_scale)
     calib = view_calibration(image_hw, read_calib(data / "calib" / f"{frame_id}.txt"), preset)
-    return car_points_in_box(prediction, target, cars, calib), stray_points_in_box(prediction, target, cars, calib)
+    return car_box_shares(prediction, target, cars, calib)
 
 
 @torch.no_grad()

@@ -11,14 +11,13 @@ import pytest
 from evaluation.depth_metrics import (
     CarInView,
     DepthMetrics,
+    car_box_shares,
     car_depth_errors,
     car_errors_by_band,
-    car_points_in_box,
     car_shares_by_band,
     car_surface,
     depth_metrics,
     mean_over_frames,
-    stray_points_in_box,
 )
 from pipeline.calib import sparse_depth_map
 from pipeline.errors import InputError
@@ -140,12 +139,12 @@ def test_car_points_land_in_their_boxes_with_the_true_depth_and_leave_them_when_
     frame = load_frame(KITTI, frame_id)
     truth = sparse_depth_map(frame.points, frame.calib, frame.image_hw)
     cars = _cars_in_full_image(frame)
-    on_truth = car_points_in_box(truth, truth, cars, frame.calib)
+    on_truth, _ = car_box_shares(truth, truth, cars, frame.calib)
     assert [z for z, _ in on_truth] == [car.z for car in cars]
     assert all(share >= 0.75 for _, share in on_truth) and np.mean([s for _, s in on_truth]) >= 0.85
-    nearer = car_points_in_box(np.where(truth > 0, truth - 1.5, 0), truth, cars, frame.calib)
+    nearer, _ = car_box_shares(np.where(truth > 0, truth - 1.5, 0), truth, cars, frame.calib)
     assert np.mean([s for _, s in nearer]) <= 0.25
-    farther = car_points_in_box(np.where(truth > 0, truth + 5.0, 0), truth, cars, frame.calib)
+    farther, _ = car_box_shares(np.where(truth > 0, truth + 5.0, 0), truth, cars, frame.calib)
     assert all(share == 0.0 for _, share in farther)
 
 
@@ -157,17 +156,17 @@ def test_the_other_pixels_of_a_cars_box_stay_off_it_with_the_true_depth_and_not_
     frame = load_frame(KITTI, frame_id)
     truth = sparse_depth_map(frame.points, frame.calib, frame.image_hw)
     cars = _cars_in_full_image(frame)
-    stray = stray_points_in_box(truth, truth, cars, frame.calib)
+    _, stray = car_box_shares(truth, truth, cars, frame.calib)
     assert stray and all(share <= 0.02 for _, share in stray)
     smeared = truth.copy()
     for car in cars:  # every return of the box at the car's depth (along its own ray)
         window, _ = car_surface(truth, car.box, car.z)
         smeared[window] = np.where(truth[window] > 0, car.z, 0.0)
-    on_smear = stray_points_in_box(smeared, truth, cars, frame.calib)
+    _, on_smear = car_box_shares(smeared, truth, cars, frame.calib)
     assert [z for z, _ in on_smear] == [z for z, _ in stray]
     assert np.mean([share for _, share in on_smear]) >= 0.25
     # Nothing predicted there: no point lands anywhere near a car.
-    assert all(share == 0.0 for _, share in stray_points_in_box(np.zeros_like(truth), truth, cars, frame.calib))
+    assert all(share == 0.0 for _, share in car_box_shares(np.zeros_like(truth), truth, cars, frame.calib)[1])
 
 
 def test_car_shares_by_band_average_the_cars_of_each_band():
