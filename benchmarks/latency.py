@@ -2,7 +2,7 @@
 
     python benchmarks/latency.py [--preset P | --models DIR] [--provider cpu|cuda|tensorrt]
                                  [--threads N [--workers thread|process]] [--frames K] [--warmup W] [--json OUT] [--plot OUT.png]
-                                 [--compare-torch [--checkpoints DIR]] [--baseline DIR]
+                                 [--compare-torch [--checkpoints DIR]] [--baseline DIR] [--ops]
 
 Single stream (the paper's per-frame latency, 25.4 ms on an RTX 2080Ti and
 581.7 ms on a DRIVE PX2): one Detector using every core, per-stage and
@@ -14,7 +14,10 @@ A worker is a thread of this process by default; ``--workers process`` gives
 each its own process, which shares no interpreter lock with the others (the
 NumPy stages between the networks hold it between calls).
 Each network's achieved GFLOP/s is set against the machine's peak, measured in
-the same run (benchmarks/peak.py).
+the same run (benchmarks/peak.py); ``--ops`` also times each network operator by
+operator with ONNX Runtime's profiler (benchmarks/op_profile.py), so the report
+says whether the convolutions or the layout changes and other kernels between
+them keep a network from the peak.
 ``--compare-torch`` runs the same Detector with PyTorch eager networks in blocks
 of frames alternating with ONNX Runtime, and reports the ratio and its spread
 over the blocks. ``--baseline DIR`` does the same with another model directory
@@ -44,14 +47,18 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.op_profile import describe as describe_ops
+from benchmarks.op_profile import profile_network
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.cli import check_figure, check_output, non_negative_int, positive_int, write_text_file
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.model_files import ModelFileError, load_manifest
+from pipeline.preprocess import depth_inputs
 from pipeline.presets import get_preset
 
 BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
@@ -357,6 +364,33 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
             "scaling_per_round": [m / o for m, o in zip(many, one, strict=True)]}
 
 
+def network_feeds(detector: Detector, frame: Frame) -> dict[str, dict[str, np.ndarray]]:
+    """Each network's inputs for one frame, as the Detector gives them (the BEV with the frame's pseudo points)."""
+    preset = detector.preset
+    feeds, pseudo = {}, None
+    if detector.two_stage:
+        inputs = depth_inputs(frame.image, frame.points, frame.calib, preset)
+        feeds["depth"] = {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
+        dense = detector.run_depth_net(inputs.rgb, inputs.sparse_depth)
+        pseudo = pseudo_bins(dense, inputs.calib, preset.bev, *preset.pseudo_limits)
+    feeds["pixor"] = {"bev": BevVoxelizer(preset.bev)(frame.points, pseudo)[None].copy()}
+    return feeds
+
+
+def profile_operators(detector: Detector, frame: Frame, threads: int, matmul_gflops: float) -> dict:
+    """Each network's time per operator type (benchmarks/op_profile.py), for the report's ``networks``."""
+    profiles = {}
+    for name, feeds in network_feeds(detector, frame).items():
+        entry = detector.manifest["networks"][name]
+        providers = detector.providers_in_use[name]
+        try:
+            profile = profile_network(detector.model_dir / entry["file"], providers, threads, feeds)
+        except ValueError as exc:
+            raise InputError(f"--ops: {exc}") from None
+        profiles[name] = profile.to_dict(entry["flops"] / 1e9, matmul_gflops)
+    return profiles
+
+
 def versions() -> dict:
     out = {}
     for name in ("onnxruntime", "numpy", "opencv-python-headless", "torch"):
@@ -378,13 +412,14 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
         precision: str | None = None, baseline: Path | None = None, workers: str = "thread",
-        peak_size: int = PEAK_MATMUL) -> dict:
+        peak_size: int = PEAK_MATMUL, ops: bool = False) -> dict:
     """Measure everything; returns the JSON-able report.
 
     preset: the preset to export and time when ``models`` is None (default :data:`DEFAULT_PRESET`); with
     ``models`` it may only name the directory's own preset. precision: with ``models`` it must match the
     directory's (a check); without, the exported FP32 preset is converted (calibrated on the benchmark frames).
     peak_size: the MatMul's size in the peak micro-benchmark (12 s at 4096 here; the figures quoted use 4096).
+    ops: also profile each network operator by operator (``networks[name]["ops"]``).
     """
     cores = sorted(os.sched_getaffinity(0))
     scratch = None
@@ -413,6 +448,10 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     preset_name = detector.preset.name
     if preset and preset != preset_name:
         raise InputError(f"--preset {preset}: {models} holds {preset_name} models (leave --preset out with --models)")
+    if ops and any(p[0] == "TensorrtExecutionProvider" for p in detector.providers_in_use.values()):
+        # Refused before minutes of timing: TensorRT runs each graph as one engine, with no operators to time.
+        raise InputError("--ops: TensorRT runs each graph as one engine of its own; ONNX Runtime's profiler times "
+                         "operators on the CPU and CUDA providers (profile a TensorRT engine with nsys)")
     if compare_torch and torch_networks is None:
         # The PyTorch twin of a model directory is built for that directory's preset and networks, before
         # any timing, so a mismatch is refused at once instead of after minutes of measurements.
@@ -445,6 +484,10 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
             report["networks"][name] = {"gflops": flops / 1e9, "ms": ms, "achieved_gflops_per_s": achieved,
                                         "peak_fraction": achieved / peak.peak_gflops,
                                         "matmul_peak_fraction": achieved / peak.matmul_gflops}
+    if ops:
+        for name, profile in profile_operators(detector, pool[0], len(cores), peak.matmul_gflops).items():
+            if name in report["networks"]:
+                report["networks"][name]["ops"] = profile
 
     if threads > 1:
         report["throughput"] = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
@@ -522,6 +565,9 @@ def print_report(report: dict) -> None:
     for name, n in report["networks"].items():
         print(f"  {name:6s} {n['gflops']:.2f} GFLOP in {n['ms']:.1f} ms = {n['achieved_gflops_per_s']:.0f} GFLOP/s, "
               f"{100 * n['peak_fraction']:.0f} % of peak ({100 * n['matmul_peak_fraction']:.0f} % of the MatMul's)")
+    for name, n in report["networks"].items():
+        if "ops" in n:
+            print(describe_ops(name, n["ops"]))
     if "throughput" in report:
         t = report["throughput"]
         per_round = ", ".join(f"{r:.2f}" for r in t["scaling_per_round"])
@@ -573,6 +619,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--peak-size", type=positive_int, default=PEAK_MATMUL, metavar="N",
                         help=f"size of the MatMul in the peak micro-benchmark (default {PEAK_MATMUL}, as every "
                         "figure quoted; a smaller one takes less than a second and reads lower)")
+    parser.add_argument("--ops", action="store_true",
+                        help="also time each network operator by operator with ONNX Runtime's profiler "
+                        "(20 runs on a real frame's inputs): where its time goes, and the convolutions' own GFLOP/s")
     parser.add_argument("--json", type=Path, help="write the report as JSON")
     parser.add_argument("--plot", type=Path, help="write the latency distribution per stage as PNG")
     args = parser.parse_args(argv)
@@ -586,7 +635,7 @@ def main(argv: list[str] | None = None) -> int:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
                      args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision,
-                     baseline=args.baseline, workers=args.workers, peak_size=args.peak_size)
+                     baseline=args.baseline, workers=args.workers, peak_size=args.peak_size, ops=args.ops)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

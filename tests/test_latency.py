@@ -54,11 +54,19 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
 def test_latency_int8_and_precision_check(tmp_path, tiny_models):
     ok = subprocess.run(
         [sys.executable, str(LATENCY), *QUICK_PEAK, "--preset", "tiny", "--precision", "int8", "--frames", "2", "--warmup", "1",
-         "--json", str(tmp_path / "q.json")],
+         "--ops", "--json", str(tmp_path / "q.json")],
         capture_output=True, text=True, timeout=600, check=False,
     )
     assert ok.returncode == 0, ok.stderr[-2000:]
-    assert json.loads((tmp_path / "q.json").read_text())["precision"] == "int8"
+    report = json.loads((tmp_path / "q.json").read_text())
+    assert report["precision"] == "int8"
+    for name in ("depth", "pixor"):  # --ops: the quantized graph's own kernels, timed one by one
+        ops = report["networks"][name]["ops"]
+        assert "QLinearConv" in ops["by_op"] and ops["profiled_runs"] == 20
+        assert 0 < ops["compute_ms"] < ops["kernels_ms"]
+        assert abs(sum(entry["share"] for entry in ops["by_op"].values()) - 1) < 1e-9
+        assert ops["compute_gflops_per_s"] == report["networks"][name]["gflops"] / (ops["compute_ms"] / 1e3)
+        assert ops["run_ms"] > 0 and f"{name:6s} operators (median of 20 profiled runs of" in ok.stdout
     mismatch = subprocess.run(
         [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--precision", "int8", "--frames", "1"],
         capture_output=True, text=True, timeout=300, check=False,

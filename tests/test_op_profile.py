@@ -1,0 +1,47 @@
+"""benchmarks/op_profile.py: ONNX Runtime's profiler on a real graph, summed per operator type."""
+
+import numpy as np
+import onnx
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from benchmarks.op_profile import is_compute, profile_network
+
+
+def conv_then_transpose(path):
+    """A 3×3 convolution (16 → 16 channels, 32 × 32) followed by an NCHW → NHWC Transpose."""
+    weight = numpy_helper.from_array(np.random.default_rng(0).standard_normal((16, 16, 3, 3)).astype(np.float32), "w")
+    graph = helper.make_graph(
+        [helper.make_node("Conv", ["x", "w"], ["y"], pads=[1, 1, 1, 1]),
+         helper.make_node("Transpose", ["y"], ["z"], perm=[0, 2, 3, 1])],
+        "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 16, 32, 32])],
+        [helper.make_tensor_value_info("z", TensorProto.FLOAT, [1, 32, 32, 16])], initializer=[weight])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), str(path))
+    return 2 * 16 * 16 * 9 * 32 * 32  # FLOPs of the convolution
+
+
+def test_each_kernel_is_timed_and_only_the_counted_ones_give_the_rate(tmp_path):
+    flops = conv_then_transpose(tmp_path / "g.onnx")
+    feeds = {"x": np.ones((1, 16, 32, 32), np.float32)}
+    profile = profile_network(tmp_path / "g.onnx", ["CPUExecutionProvider"], 1, feeds, runs=5, warmup=1)
+    assert profile.runs == 5
+    compute = [op for op in profile.by_op if is_compute(op)]
+    # ONNX Runtime may rewrite the Conv (a blocked-layout Conv between Reorders): one counted kernel either way.
+    assert len(compute) == 1 and profile.nodes[compute[0]] == 1
+    assert profile.compute_ms == profile.by_op[compute[0]] > 0
+    assert profile.kernels_ms > profile.compute_ms  # the layout change is timed, not counted
+    assert profile.run_ms >= profile.kernels_ms * 0.9  # a run's wall time holds its kernels (medians: not exactly)
+    entry = profile.to_dict(flops / 1e9, matmul_gflops=100.0)
+    assert entry["compute_gflops_per_s"] == pytest.approx(flops / 1e9 / (profile.compute_ms / 1e3))
+    assert entry["compute_matmul_peak_fraction"] == pytest.approx(entry["compute_gflops_per_s"] / 100.0)
+    assert list(entry["by_op"]) == sorted(entry["by_op"], key=lambda op: -entry["by_op"][op]["ms"])
+
+
+def test_operator_names_counted_as_compute():
+    assert all(is_compute(op) for op in ("Conv", "FusedConv", "QLinearConv", "ConvTranspose", "MatMul", "Gemm"))
+    assert not any(is_compute(op) for op in ("Transpose", "ReorderInput", "DepthToSpace", "QuantizeLinear"))
+
+
+def test_an_engine_provider_is_refused_before_a_session_is_made(tmp_path):
+    with pytest.raises(ValueError, match="TensorrtExecutionProvider runs the graph as its own engine"):
+        profile_network(tmp_path / "absent.onnx", ["TensorrtExecutionProvider", "CPUExecutionProvider"], 1, {})
