@@ -82,6 +82,9 @@ NETWORK_SECTIONS: dict[str, tuple[str, ...]] = {
     "depth": ("depth", "crop_hw"),
     "pixor": ("pixor", "bev", "decode"),
 }
+# Fields of those sections that only say which pseudo points the pipeline builds from the depth map (the
+# range kept), not what the depth net computes: a depth net may be exported with another range (``-near35``).
+PSEUDO_RANGE_FIELDS: dict[str, tuple[str, ...]] = {"depth": ("max_depth",)}
 
 
 def _as_lists(value: object) -> object:
@@ -105,6 +108,10 @@ def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str,
     except ValueError:  # not a whole preset: compare what there is
         pass
     saved, wanted = _as_lists(saved_config), _as_lists(preset.to_dict())
+    for config in (saved, wanted):
+        for section, fields in PSEUDO_RANGE_FIELDS.items():
+            if isinstance(config.get(section), dict):
+                config[section] = {k: v for k, v in config[section].items() if k not in fields}
     differing = [key for key in NETWORK_SECTIONS.get(network, tuple(wanted)) if saved.get(key) != wanted.get(key)]
     if differing:
         raise ValueError(

@@ -96,7 +96,7 @@ class DepthNetConfig:
     # correction as a learned convex combination of its 3×3 neighbours (ConvexUpsample says why).
     refine_mode: str = "add"
     min_depth: float = 0.9  # metres, output floor at inference (Ma et al.)
-    max_depth: float = 85.0  # metres, clip for the pseudo cloud and the loss
+    max_depth: float = 85.0  # metres: the pseudo cloud keeps depths up to this (the weights do not depend on it)
 
 
 @dataclass(frozen=True)
@@ -210,6 +210,9 @@ ABLATIONS = {
     "-refine": ("depth", {"refine_channels": 8}),
     "-convex": ("depth", {"refine_channels": 8, "refine_mode": "convex"}),
     "-split": ("bev", {"split_pseudo": True}),
+    # Pseudo points only up to 35 m: beyond, the edge depth net puts most of a car's pixels off the car and
+    # the camera PIXOR found fewer far cars than the 16-line one (docs/models.md, session 25).
+    "-near35": ("depth", {"max_depth": 35.0}),
 }
 
 
@@ -220,8 +223,9 @@ def get_preset(name: str) -> Preset:
     ablation: the same preset with that part of the depth net switched off;
     ``-refine`` (edge and tiny) adds the depth net's full-resolution correction head, ``-convex``
     the same head upsampling the half-resolution correction instead (``refine_mode``);
-    ``-split`` gives the pseudo points their own BEV channels (:class:`BevGrid`).
-    Suffixes stack (``edge-refine-no-gam``, ``edge-split``).
+    ``-split`` gives the pseudo points their own BEV channels (:class:`BevGrid`), ``-near35`` keeps
+    the pseudo points up to 35 m only (``DepthNetConfig.max_depth``; the depth net's weights do not depend on it).
+    Suffixes stack (``edge-refine-no-gam``, ``edge-split-near35``).
     """
     base, changes = name, {"depth": {}, "bev": {}}
     while base not in PRESETS:
@@ -240,10 +244,14 @@ def get_preset(name: str) -> Preset:
 
 
 def lidar_only(preset: Preset) -> Preset:
-    """The preset a LiDAR-only PIXOR of the same grid has: ``preset`` without split pseudo channels."""
-    if not preset.bev.split_pseudo:
+    """The preset a LiDAR-only PIXOR of the same grid has: ``preset`` without what only concerns the
+    pseudo points (``-split``'s channels, ``-near35``'s range), so its name is that of the LiDAR rows."""
+    near = "-near35" in preset.name
+    if not preset.bev.split_pseudo and not near:
         return preset
-    return replace(preset, name=preset.name.replace("-split", ""), bev=replace(preset.bev, split_pseudo=False))
+    depth = replace(preset.depth, max_depth=DepthNetConfig.max_depth) if near else preset.depth
+    return replace(preset, name=preset.name.replace("-split", "").replace("-near35", ""), depth=depth,
+                   bev=replace(preset.bev, split_pseudo=False))
 
 
 def _tuples(value):

@@ -252,3 +252,22 @@ def test_split_grid_keeps_the_pseudo_points_in_channels_of_their_own():
     alone = voxelizer(frame.points)
     assert not alone[nz + 1:].any()
     np.testing.assert_array_equal(alone[:nz + 1], reference_voxelize(frame.points, shared))
+
+
+def test_near35_keeps_the_pseudo_points_up_to_35_m_only():
+    """``-near35``: on the real frame's view, a road-like depth map keeps its pixels up to 35 m, whose bins
+    all lie within 35 m ahead of the camera, and drops the farther ones that ``edge`` keeps."""
+    from pipeline.bev import pseudo_bins
+    from pipeline.presets import get_preset
+
+    _, preset, view_calib = _kitti_view()
+    h, w = preset.depth.input_hw
+    depth = np.repeat(np.linspace(80, 2, h, dtype=np.float32)[:, None], w, axis=1)
+    near = get_preset(f"{preset.name}-near35")
+    kept = pseudo_bins(depth, view_calib, near.bev, *near.pseudo_limits)
+    everything = pseudo_bins(depth, view_calib, preset.bev, *preset.pseudo_limits)
+    assert 0 < kept.cell.size < everything.cell.size
+    x_metres = near.bev.x_min + (kept.cell % near.bev.nx + 1) * near.bev.cell  # the far edge of each bin
+    assert x_metres.max() <= 35.0 + 0.3 + near.bev.cell  # the camera sits 0.27 m ahead of the LiDAR
+    far = near.bev.x_min + (everything.cell % near.bev.nx) * near.bev.cell
+    assert far.max() > 45.0

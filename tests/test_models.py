@@ -486,3 +486,16 @@ def test_checkpoint_compares_only_the_sections_its_network_depends_on(tmp_path: 
     other_grid = replace(TINY, bev=replace(TINY.bev, x_max=80.0))
     with pytest.raises(ValueError, match="whose bev configuration differs"):
         load_network_weights(build_pixor(other_grid), checkpoint, "pixor", other_grid)
+
+
+def test_a_depth_net_exports_with_another_pseudo_range_but_not_another_layer(tmp_path: Path) -> None:
+    """``-near35`` only changes which pseudo points are kept: the depth net trained under ``tiny`` loads
+    into ``tiny-near35``; a change to what the net computes is still refused."""
+    save_checkpoint(tmp_path / "depth.pt", TINY, {"depth": build_depth_net(TINY)}, {})
+    checkpoint = load_checkpoint(tmp_path / "depth.pt")
+    near = get_preset("tiny-near35")
+    assert near.depth.max_depth == 35.0 and near.pseudo_limits[1] == 35.0
+    load_network_weights(build_depth_net(near), checkpoint, "depth", near)
+    other = get_preset("tiny-no-aspp-near35")
+    with pytest.raises(ValueError, match="whose depth configuration differs"):
+        load_network_weights(build_depth_net(other), checkpoint, "depth", other)

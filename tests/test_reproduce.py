@@ -64,6 +64,10 @@ def test_ablation_presets():
     split = get_preset("edge-split-no-gam")
     assert split.bev.split_pseudo and split.bev.channels == 2 * split.bev.nz + 1 == 37 and not split.depth.use_gam
     assert lidar_only(get_preset("edge-split")) == get_preset("edge") and lidar_only(split).bev.channels == 19
+    # -near35 keeps the pseudo points up to 35 m; it changes no network, and the LiDAR rows do without it.
+    near = get_preset("edge-split-near35")
+    assert near.depth.max_depth == 35.0 and near.bev.split_pseudo and near.pseudo_limits[1] == 35.0
+    assert lidar_only(near) == get_preset("edge") and lidar_only(get_preset("edge-near35")) == get_preset("edge")
     import pytest
 
     with pytest.raises(ValueError, match="unknown preset 'edge-nogam'"):
@@ -79,6 +83,9 @@ def test_split_recipe_trains_lidar_pixors_on_the_plain_grid():
     assert config.lidar_preset == "edge" and get_preset(config.preset).bev.split_pseudo
     quick = ReproduceConfig(preset="edge-split", quick=True)
     assert (quick.preset, quick.lidar_preset) == ("tiny-split", "tiny")
+    near = ReproduceConfig(preset="edge-split-near35", quick=True)
+    assert (near.preset, near.lidar_preset) == ("tiny-split-near35", "tiny")
+    assert ReproduceConfig(preset="edge-split-near35").lidar_preset == "edge"
     assert ReproduceConfig(quick=True).preset == "tiny" and ReproduceConfig(preset="paper").lidar_preset == "paper"
 
 
