@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 import tempfile
 from dataclasses import replace
@@ -162,4 +163,11 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    status = main()
+    if status == 130:
+        # Ctrl-C was handled and reported, but when it lands inside torch.onnx.export CPython can still hold
+        # it as unhandled and, at exit, kill the process with SIGINT (exit -2, 1 run in 5 here) instead of
+        # exiting 130. Nothing is left to clean up by then: leave at once with the status that was reported.
+        sys.stderr.flush()
+        os._exit(status)
+    sys.exit(status)
