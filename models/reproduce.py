@@ -31,9 +31,15 @@ outlines, and learning to see through them from scratch needs more epochs than
 this budget. It branches off half-way, so every PIXOR of the table has
 trained the same number of epochs.
 
-The product's model directory lands in ``WEIGHTS/edge`` (16-line + camera),
-with ``WEIGHTS/edge-lidar16`` and ``WEIGHTS/edge-lidar64`` (PIXOR alone) for
-the table. ``--quick`` runs every stage on a handful of frames with the
+The recipe's preset is ``edge-split-near35``: the edge networks, the camera
+PIXOR reading the pseudo points in BEV channels of their own (``-split``,
+started as the 16-line PIXOR with those channels at zero) and only the pseudo
+points up to 35 m (``-near35``); the LiDAR-only PIXORs read the plain ``edge``
+grid (docs/models.md, session 25: with the plain grid and every pseudo point
+the camera row trailed the 16-line one). The product's model directory lands in
+``WEIGHTS/edge`` (16-line + camera; the preset without the pseudo-only
+suffixes names it), with ``WEIGHTS/edge-lidar16`` and ``WEIGHTS/edge-lidar64``
+(PIXOR alone) for the table. ``--quick`` runs every stage on a handful of frames with the
 ``tiny`` preset into ``OUT`` only, in a few minutes: a smoke test.
 """
 
@@ -108,7 +114,7 @@ class ReproduceConfig:
     out: Path = Path("runs/edge")
     data: Path = Path("data/sim")
     weights: Path = Path("weights")
-    preset: str = "edge"
+    preset: str = "edge-split-near35"  # the edge networks; see the module docstring for the suffixes
     quick: bool = False
     budget: Budget = field(default_factory=Budget)
     sim_workers: int = 2
@@ -153,7 +159,7 @@ def _export(config: ReproduceConfig, checkpoints: Path, target: Path, networks: 
 def shipped_directories(config: ReproduceConfig) -> dict[str, Path]:
     """Where the recipe ships its model directories: row of the table (or "product") → folder under WEIGHTS."""
     lidar = config.lidar_preset
-    return {"product": config.weights / config.preset, "lidar64": config.weights / f"{lidar}-lidar64",
+    return {"product": config.weights / lidar, "lidar64": config.weights / f"{lidar}-lidar64",
             "lidar16": config.weights / f"{lidar}-lidar16"}
 
 
@@ -450,7 +456,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--weights", type=Path, default=None,
                         help="where the model directories ship, at the end of the run (default weights; "
                         "--quick: OUT/weights)")
-    parser.add_argument("--preset", default="edge", help="preset (default edge)")
+    parser.add_argument("--preset", default=ReproduceConfig.preset,
+                        help=f"preset (default {ReproduceConfig.preset}: the edge networks, the camera PIXOR on "
+                        "split pseudo channels with the pseudo points up to 35 m)")
     parser.add_argument("--sim-workers", type=positive_int, default=2, help="simulation processes (default 2)")
     parser.add_argument("--lanes", type=positive_int, default=2,
                         help="training jobs side by side, each with its share of the cores (default 2; 1: in turn)")

@@ -30,7 +30,7 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     for intervals in report["bev_difference_interval_95"].values():  # camera − lidar16, lidar64 − camera
         assert all(-100 <= low <= high <= 100 for iou in ("0.5", "0.7") for low, high in intervals[iou])
     table_md = (out / "table.md").read_text()
-    assert table_md.startswith("Preset tiny; budget: train_frames ")  # the table says which run it is
+    assert table_md.startswith("Preset tiny-split-near35; budget: train_frames ")  # the table says which run it is
     assert "| lidar16+camera |" in table_md and "| BEV AP |" in table_md and "| 3D AP |" in table_md
     assert "by distance" in table_md and "| camera - lidar16 |" in table_md
     # The depth nets' moderate cars: median error and share of their pixels on the car, per band.
@@ -42,7 +42,9 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     assert "| depth net, moderate cars' own pixels |" in table_md and "/ rest of its box on it |" in table_md
     # The shipped-style directories load in the runtime, each of the right kind.
     weights = out / "weights"
-    assert Detector(weights / "tiny").two_stage
+    product = Detector(weights / "tiny")  # the recipe's preset: split pseudo channels, pseudo points up to 35 m
+    assert product.two_stage and product.preset.name == "tiny-split-near35"
+    assert product.preset.bev.split_pseudo and product.preset.depth.max_depth == 35.0
     assert not Detector(weights / "tiny-lidar16").two_stage
     manifest = json.loads((weights / "tiny" / "manifest.json").read_text())
     assert manifest["weights"] == "trained"
@@ -86,7 +88,7 @@ def test_split_recipe_trains_lidar_pixors_on_the_plain_grid():
     near = ReproduceConfig(preset="edge-split-near35", quick=True)
     assert (near.preset, near.lidar_preset) == ("tiny-split-near35", "tiny")
     assert ReproduceConfig(preset="edge-split-near35").lidar_preset == "edge"
-    assert ReproduceConfig(quick=True).preset == "tiny" and ReproduceConfig(preset="paper").lidar_preset == "paper"
+    assert ReproduceConfig(quick=True).preset == "tiny-split-near35" and ReproduceConfig(quick=True).lidar_preset == "tiny" and ReproduceConfig(preset="paper").lidar_preset == "paper"
 
 
 def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):

