@@ -8,7 +8,7 @@ layout rewrites: ``QLinearConv`` in NHWC, the ``Transpose`` and ``ReorderInput``
 around them), with the Detector's session options and thread count, on the inputs a real frame
 gives the network. It then splits the time between the convolutions (and MatMuls), whose FLOPs the
 manifest counts, and everything else, so a reader sees whether the kernels or the glue between them
-fall short: on this project's machines the edge INT8 depth net spent a fifth of its time in layout
+fall short: on this project's Zen 5 machine the edge INT8 networks spent 6–30 % of their time in layout
 Transposes with two threads (docs/measurements.md, session 25).
 """
 
