@@ -129,7 +129,7 @@ class ReproduceConfig:
 
     @property
     def lidar_preset(self) -> str:
-        """The preset of the LiDAR-only PIXORs: ``preset`` without split pseudo channels (the same grid)."""
+        """The preset of the LiDAR-only PIXORs: ``preset`` without its pseudo-only suffixes (the same grid)."""
         return lidar_only(get_preset(self.preset)).name
 
 
