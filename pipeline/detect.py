@@ -6,6 +6,12 @@
 Writes ``OUT/data/ID.txt`` (KITTI label_2 lines with scores, the format of
 the official evaluation) and ``OUT/bev/ID.png`` (points, predictions in green,
 ground truth in red when labels exist).
+
+On a folder, a frame whose files cannot be used (a truncated scan, a broken
+image or calibration) is reported with its file and skipped, and the run goes
+on: one bad file in thousands costs that frame, not the rest of the run. The
+command then exits 1 and lists the skipped frames; a ``--frame`` with no scan
+is refused before any model is loaded.
 """
 
 from __future__ import annotations
@@ -13,8 +19,9 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 
@@ -34,6 +41,9 @@ from pipeline.kitti import (
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
 from pipeline.render import render_bev
 
+if TYPE_CHECKING:  # the Detector (and ONNX Runtime) load only when a run starts, not for --help
+    from pipeline.detector import Detections, Detector
+
 log = logging.getLogger(__name__)
 
 
@@ -46,6 +56,7 @@ class DetectResult:
     pictures: list[Path]
     mean_timings_ms: dict[str, float]
     detections: int
+    skipped: dict[str, str] = field(default_factory=dict)  # frame id → why (folder runs go on past a bad frame)
 
 
 def _labels_for_picture(data: Path, fid: str) -> list | None:
@@ -89,14 +100,13 @@ def run(
         raise InputError("give either --data DIR (and optionally --frame) or --image, --points and --calib, not both")
     if frames and data is None:
         raise InputError("--frame chooses frames of --data DIR; with --image/--points/--calib there is one frame")
+    if data is not None:  # the folder and the frame ids are checked before any model is loaded
+        ids = _folder_frames(Path(data), frames)
     detector = Detector(models, providers=provider)
     if depth_dir is not None and not detector.two_stage:
         raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
     out = Path(out)
     if data is not None:
-        ids = frames or frame_ids(data)
-        if not ids:
-            raise InputError(f"{data}: no frames (no .bin scans in {Path(data) / 'velodyne'})")
         loader = (lambda fid: load_frame(data, fid, with_labels=False))  # labels: read apart, for pictures
         source = (lambda fid: f"{data}, frame {fid}")
     elif image is not None and points is not None and calib is not None:
@@ -111,18 +121,17 @@ def run(
     results, images, totals = [], [], {}
     count = 0
     warned: set[str] = set()
+    skipped: dict[str, str] = {}
     for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
-        frame = loader(fid)
-        depth = None
-        if depth_dir is not None:
-            depth = read_image_depth_png(Path(depth_dir) / f"{fid}.png", frame.image.shape[:2])
-        if frame.points.shape[0] == 0 and frame.dropped_nonfinite:
-            raise InputError(f"{source(fid)}: points: none of the scan's {frame.dropped_nonfinite} rows is finite")
         try:
-            detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams,
-                                         keep_points=True, depth=depth)
-        except InputError as exc:  # the Detector names the field; say which frame it was
-            raise InputError(f"{source(fid)}: {exc}") from exc
+            frame = loader(fid)
+            detections = _detect_frame(detector, frame, source(fid), depth_dir, score_threshold, emulate_beams)
+        except InputError as exc:
+            if data is None:  # one set of files: nothing else to do
+                raise
+            skipped[fid] = str(exc)
+            tqdm.write(f"error: {exc} (frame {fid} skipped)", file=sys.stderr)
+            continue
         if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
             detections.warnings.append(f"points: dropped rows with NaN or infinite values ({frame.dropped_nonfinite} rows)")
         for warning in detections.warnings:  # each kind once (the trailing "(…)" holds the frame's figures)
@@ -148,8 +157,41 @@ def run(
             path = out / "bev" / f"{frame.frame_id}.png"
             cv2.imwrite(str(path), picture)
             images.append(path)
-    means = {stage: total / len(ids) for stage, total in totals.items()}
-    return DetectResult(list(ids), results, images, means, count)
+    done = len(ids) - len(skipped)
+    means = {stage: total / done for stage, total in totals.items()} if done else {}
+    return DetectResult(list(ids), results, images, means, count, skipped)
+
+
+def _folder_frames(data: Path, frames: list[str] | None) -> list[str]:
+    """The ids to run on: every scan of the folder, or the --frame ids, each of which must have a scan."""
+    scans = frame_ids(data)  # names a folder that is not a KITTI object folder
+    if not frames:
+        if not scans:
+            raise InputError(f"{data}: no frames (no .bin scans in {data / 'velodyne'})")
+        return scans
+    # A misspelt id is a mistake in the command, not a bad file: refuse it rather than skip it.
+    present = set(scans)
+    unknown = [fid for fid in frames if fid not in present]
+    if unknown:
+        more = f" (and {len(unknown) - 1} more --frame without one)" if len(unknown) > 1 else ""
+        raise InputError(f"--frame {unknown[0]}: no scan {data / 'velodyne' / (unknown[0] + '.bin')}{more}")
+    return frames
+
+
+def _detect_frame(detector: Detector, frame: Frame, source: str, depth_dir: Path | None,
+                  score_threshold: float | None, emulate_beams: int | None) -> Detections:
+    """Detect on one loaded frame (with its --depth-dir map); an InputError names the file, or source."""
+    depth = None
+    if depth_dir is not None:
+        depth = read_image_depth_png(Path(depth_dir) / f"{frame.frame_id}.png", frame.image.shape[:2])
+    if frame.points.shape[0] == 0 and frame.dropped_nonfinite:
+        raise InputError(f"{source}: points: none of the scan's {frame.dropped_nonfinite} rows is finite")
+    try:
+        detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams,
+                                     keep_points=True, depth=depth)
+    except InputError as exc:  # the Detector names the field; say which frame it was
+        raise InputError(f"{source}: {exc}") from exc
+    return detections
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -190,10 +232,18 @@ def main(argv: list[str] | None = None) -> int:
         print(unwritable(args.out, exc), file=sys.stderr)
         return 2
     stages = ", ".join(f"{k} {v:.1f} ms" for k, v in result.mean_timings_ms.items())
-    print(f"{len(result.frame_ids)} frame(s), {result.detections} detection(s) → {args.out}/data")
-    print(f"mean per frame: {stages}")
+    done = len(result.frame_ids) - len(result.skipped)
+    print(f"{done} frame(s), {result.detections} detection(s) → {args.out}/data")
+    if stages:
+        print(f"mean per frame: {stages}")
     if result.pictures:
         print(f"BEV pictures: {args.out}/bev/")
+    if result.skipped:
+        ids = list(result.skipped)
+        more = f" and {len(ids) - 10} more" if len(ids) > 10 else ""
+        print(f"error: {len(ids)} of {len(result.frame_ids)} frame(s) skipped (each named above with its reason): "
+              f"{', '.join(ids[:10])}{more}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -163,8 +163,8 @@ def test_a_given_depth_map_replaces_the_depth_network(detector, frame, tiny_mode
     assert (tmp_path / "a" / "data" / "000006.txt").exists()
     missing = subprocess.run([*command, "--frame", "000003", "--out", str(tmp_path / "b")],
                              capture_output=True, text=True, timeout=300, check=False)
-    assert missing.returncode == 2 and str(depth_dir / "000003.png") in missing.stderr
-    assert "Traceback" not in missing.stderr
+    assert missing.returncode == 1 and str(depth_dir / "000003.png") in missing.stderr
+    assert "1 of 1 frame(s) skipped" in missing.stderr and "Traceback" not in missing.stderr
 
 
 def test_manifest_preset_is_the_code_preset(tiny_models, detector):
@@ -374,7 +374,38 @@ def test_detect_command_on_awkward_folders(tiny_models, tmp_path):
     (data / "velodyne" / "000006.bin").write_bytes(np.zeros((0, 4), np.float32).tobytes())
     done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(data),
                            "--out", str(tmp_path / "o3")], capture_output=True, text=True, timeout=120, check=False)
-    assert done.returncode == 2 and f"{data}, frame 000006: points: the scan has no points" in done.stderr
+    assert done.returncode == 1 and f"{data}, frame 000006: points: the scan has no points" in done.stderr
+
+
+def test_detect_command_goes_on_past_a_broken_frame(tiny_models, tmp_path):
+    """One unusable file in a folder costs its frame, named with the file, not the rest of the run; a --frame
+    without a scan is a mistake in the command, refused before any model is loaded."""
+    data = tmp_path / "kitti"
+    for part in ("image_2", "velodyne", "calib"):
+        (data / part).mkdir(parents=True)
+        for fid in ("000003", "000006"):
+            suffix = {"image_2": ".png", "velodyne": ".bin", "calib": ".txt"}[part]
+            (data / part / f"{fid}{suffix}").write_bytes((KITTI / part / f"{fid}{suffix}").read_bytes())
+    (data / "image_2" / "000002.png").write_bytes(b"not an image")  # sorts first: the run must go on past it
+    (data / "calib" / "000002.txt").write_bytes((KITTI / "calib" / "000003.txt").read_bytes())
+    np.zeros((10, 4), np.float32).tofile(data / "velodyne" / "000002.bin")
+    (data / "calib" / "000006.txt").write_text("P2: 1 2 3\n")
+    done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(data),
+                           "--emulate-beams", "16", "--no-pictures", "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert f"{data / 'image_2' / '000002.png'}: not a readable PNG or JPEG image (frame 000002 skipped)" in done.stderr
+    assert f"{data / 'calib' / '000006.txt'}" in done.stderr
+    assert "2 of 3 frame(s) skipped (each named above with its reason): 000002, 000006" in done.stderr
+    assert sorted(p.name for p in (tmp_path / "out" / "data").iterdir()) == ["000003.txt"]
+    assert "1 frame(s)" in done.stdout
+    # Unknown ids: refused whatever the model directory holds (here none), and nothing is written.
+    typo = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "no-models"),
+                           "--data", str(data), "--frame", "000003", "--frame", "3", "--frame", "000007",
+                           "--out", str(tmp_path / "typo")], capture_output=True, text=True, timeout=120, check=False)
+    assert typo.returncode == 2 and "Traceback" not in typo.stderr
+    assert f"--frame 3: no scan {data / 'velodyne' / '3.bin'} (and 1 more --frame without one)" in typo.stderr
+    assert not (tmp_path / "typo").exists()
 
 
 def test_pictures_survive_boxes_far_off_the_grid():
