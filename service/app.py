@@ -75,7 +75,9 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     app.include_router(model.router, dependencies=auth)
     app.include_router(health.router)
     app.include_router(metrics_route.router)
+    routers = (detect.router, model.router, health.router, metrics_route.router)
+    route_paths = frozenset(route.path for router in routers for route in router.routes)
     # Added last = outermost: the request context wraps the body limit so 413s are counted and carry an id.
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
-    app.add_middleware(RequestContextMiddleware, metrics=metrics)
+    app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths)
     return app

@@ -52,6 +52,15 @@ def _header(scope: Scope, name: bytes) -> str | None:
     return None
 
 
+def _route_label(scope: Scope, route_paths: frozenset[str]) -> str:
+    """The route of a request for metrics, also for one answered before routing (a 413 by the body limit);
+    "unmatched" for paths no route serves, so a scan of random URLs cannot grow the label set."""
+    route = getattr(scope.get("route"), "path", None)
+    if route is None and scope.get("path") in route_paths:
+        route = scope["path"]  # every route of the service is a fixed path, so the path is its template
+    return route or "unmatched"
+
+
 async def send_error(send: Send, status: int, code: str, message: str, request_id: str | None,
                      extra_headers: list[tuple[bytes, bytes]] | None = None) -> None:
     """Answer an error from middleware (no Response object available)."""
@@ -64,9 +73,10 @@ async def send_error(send: Send, status: int, code: str, message: str, request_i
 class RequestContextMiddleware:
     """Request id, request metrics, and a JSON 500 (trace logged, never returned) for unhandled errors."""
 
-    def __init__(self, app: ASGIApp, metrics: Metrics) -> None:
+    def __init__(self, app: ASGIApp, metrics: Metrics, route_paths: frozenset[str] = frozenset()) -> None:
         self.app = app
         self.metrics = metrics
+        self.route_paths = route_paths
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -101,8 +111,7 @@ class RequestContextMiddleware:
                 )
         finally:
             self.metrics.http_in_flight.dec()
-            route = scope.get("route")
-            label = getattr(route, "path", None) or "unmatched"
+            label = _route_label(scope, self.route_paths)
             self.metrics.requests.labels(route=label, method=scope.get("method", ""), status=str(status)).inc()
             self.metrics.request_latency.labels(route=label).observe(time.perf_counter() - tic)
 

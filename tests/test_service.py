@@ -443,6 +443,9 @@ def test_oversized_body_is_413_with_and_without_content_length(tiny_models: Path
             "/v1/detect", content=chunks(), headers={"content-type": f"multipart/form-data; boundary={boundary}"}
         )
         assert_error(streamed, 413, "body_too_large")
+        # Answered before routing, yet counted under the route asked for, not "unmatched".
+        counted = app_client.get("/metrics").text
+        assert 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status="413"} 2.0' in counted
         # Under the limit, the same app still answers normally.
         small = app_client.post("/v1/detect", files=parts(frame, points=frame["points"][: 16 * 1000]))
         assert small.status_code == 200, small.text
@@ -584,6 +587,8 @@ def test_health_routes(client: AppClient) -> None:
     assert client.get("/readyz").json() == {"status": "ready", "ready": True}
     assert client.get("/v2/health/live").json() == {"live": True}
     assert client.get("/v2/health/ready").json() == {"ready": True}
+    for path in ("/healthz", "/readyz"):
+        assert client.request("HEAD", path).status_code == 200
 
 
 def test_not_ready_until_warmed_up(tiny_models: Path, frame: dict[str, bytes]) -> None:

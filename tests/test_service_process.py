@@ -145,8 +145,18 @@ def test_body_limit_over_http(server: Server, frame: dict[str, bytes]) -> None: 
             "/v1/detect", content=chunked(), headers={"content-type": f"multipart/form-data; boundary={boundary}"}
         )
         assert_error(response, 413, "body_too_large")
-    # The server is still healthy afterwards.
+    # The server is still healthy afterwards, and the 413s, answered before routing, count under their route.
     assert httpx.get(f"{server.url}/readyz", timeout=5).status_code == 200
+    metrics = httpx.get(f"{server.url}/metrics", timeout=5).text
+    assert 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status="413"} 2.0' in metrics
+
+
+def test_probes_answer_head_over_http(server: Server) -> None:
+    """Load balancers and uptime checkers often probe with HEAD: same status as GET, no body."""
+    for path in ("/healthz", "/readyz"):
+        response = httpx.head(f"{server.url}{path}", timeout=5)
+        assert response.status_code == 200 and response.content == b"", path
+    assert httpx.head(f"{server.url}/v1/detect", timeout=5).status_code == 405
 
 
 def test_cut_off_upload_over_http(server: Server, frame: dict[str, bytes]) -> None:  # noqa: F811

@@ -1,6 +1,6 @@
 """Health probes: ``/healthz`` and ``/readyz``, and the Open Inference Protocol's ``/v2/health/*``.
 
-Liveness answers 200 while the process serves HTTP; readiness answers 200
+Liveness answers 200 while the process serves HTTP (to GET and HEAD); readiness answers 200
 only once the models are loaded and warmed up (503 with ``Retry-After``
 before), so an orchestrator sends traffic only to a replica that can take it.
 """
@@ -29,13 +29,17 @@ class ReadyResponse(BaseModel):
     ready: bool
 
 
+# Probes answer HEAD as well as GET: load balancers and uptime checkers often send HEAD. The HEAD
+# routes stay out of the schema, which would otherwise list each probe twice.
 @router.get("/healthz", summary="Liveness: the process answers HTTP")
+@router.head("/healthz", include_in_schema=False)
 async def healthz() -> Health:
     """Always 200 while the server runs."""
     return Health(status="ok")
 
 
 @router.get("/readyz", summary="Readiness: models loaded and warmed up", responses=error_responses(503))
+@router.head("/readyz", include_in_schema=False)
 async def readyz(_: ReadyRuntimeDep) -> Health:
     """200 once the models are warmed up; 503 before."""
     return Health(status="ready", ready=True)
