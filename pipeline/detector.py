@@ -33,7 +33,7 @@ from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, depth_view, view_calibration
 from pipeline.presets import Preset, preset_from_dict
-from pipeline.pseudo import depth_to_points, merge_points
+from pipeline.pseudo import bin_rays, depth_to_points, merge_points
 
 log = logging.getLogger(__name__)
 
@@ -342,8 +342,13 @@ class Detector:
             else:
                 dense, view_calib = self._given_depth(depth, image, calib)
                 timings["prepare"] = (time.perf_counter() - tic) * 1e3
-            tic = time.perf_counter()
             limits = self.preset.pseudo_limits
+            # The view's rays in BEV bin units are built on a calibration's first frame and cached. Timed
+            # apart: a vehicle, with one calibration, builds them once; every synthetic frame has its own.
+            tic = time.perf_counter()
+            bin_rays(view_calib, dense.shape[0], dense.shape[1], limits[2], self.preset.bev)
+            timings["ray_table"] = (time.perf_counter() - tic) * 1e3
+            tic = time.perf_counter()
             pseudo = pseudo_bins(dense, view_calib, self.preset.bev, *limits,
                                  max_jump=self.preset.decode.height_max_jump)
             timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3

@@ -71,7 +71,7 @@ _DETECT_EXAMPLE = {
         }
     ],
     "timings_ms": {
-        "queue_wait": 0.1, "parse_inputs": 9.8, "prepare": 4.1, "depth_net": 180.2, "pseudo_points": 2.0,
+        "queue_wait": 0.1, "parse_inputs": 9.8, "prepare": 4.1, "depth_net": 180.2, "ray_table": 0.01, "pseudo_points": 2.0,
         "voxelize": 3.1, "pixor": 95.4, "decode": 0.9, "total": 296.0,
     },
     "model": {"preset": "edge", "sha256": {"depth.onnx": "3f1c…", "pixor.onnx": "9a0b…"}},

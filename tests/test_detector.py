@@ -20,7 +20,7 @@ from pipeline.model_files import ModelFileError, sha256_file
 from pipeline.presets import PRESETS, preset_from_dict
 from tests.conftest import KITTI
 
-STAGES = {"prepare", "depth_net", "pseudo_points", "voxelize", "pixor", "decode", "total"}
+STAGES = {"prepare", "depth_net", "ray_table", "pseudo_points", "voxelize", "pixor", "decode", "total"}
 
 
 @pytest.fixture(scope="module")

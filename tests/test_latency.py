@@ -23,8 +23,9 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     report = json.loads((tmp_path / "lat.json").read_text())
     assert set(report["end_to_end_ms"]) >= {"mean", "p50", "p90", "p99"}
     assert report["fps"] > 0
-    assert set(report["stages_ms"]) == {"prepare", "depth_net", "pseudo_points", "voxelize", "pixor", "decode"}
+    assert set(report["stages_ms"]) == {"prepare", "depth_net", "ray_table", "pseudo_points", "voxelize", "pixor", "decode"}
     assert all(set(s) >= {"mean", "p50", "p99"} for s in report["stages_ms"].values())
+    assert 0 < report["non_network_fraction_fixed_calibration"] <= report["non_network_fraction"] < 1
     t = report["throughput"]
     assert t["workers"] == 2 and t["mode"] == "thread" and t["fps"] > 0 and t["fps_one_worker"] > 0
     assert abs(t["scaling"] - t["fps"] / t["fps_one_worker"]) < 1e-9

@@ -39,7 +39,7 @@ from service.settings import Settings
 
 KITTI = Path(__file__).parent / "data" / "kitti" / "training"
 FRAME = "000006"
-STAGES = {"queue_wait", "parse_inputs", "prepare", "depth_net", "pseudo_points", "voxelize", "pixor", "decode", "total"}
+STAGES = {"queue_wait", "parse_inputs", "prepare", "depth_net", "ray_table", "pseudo_points", "voxelize", "pixor", "decode", "total"}
 
 
 # --------------------------------------------------------------------------- fixtures
