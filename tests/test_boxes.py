@@ -81,6 +81,27 @@ def test_rotated_iou_known_cases():
     assert rotated_iou_pairs(box, box + [0, 0, 0, 0, np.pi])[0] == pytest.approx(1.0, abs=1e-12)
 
 
+def test_rotated_iou_of_boxes_sharing_or_touching_sides():
+    """Collinear edges are where clipping double-counts or drops area; shapely itself is unreliable there."""
+    box = np.array([[0.0, 0.0, 4.0, 2.0, 0.0]])
+    cases = [
+        ([1.0, 0.0, 2.0, 2.0, 0.0], 0.5),  # inside, sharing parts of both long sides
+        ([1.0, 0.0, 2.0, 2.0, np.pi], 0.5),  # the same, its edges running the other way
+        ([0.0, 2.0, 4.0, 2.0, 0.0], 0.0),  # touching along a long side
+        ([4.0, 0.0, 4.0, 2.0, np.pi], 0.0),  # touching end to end
+        ([0.0, 0.0, 2.0, 1.0, 0.0], 0.25),  # concentric, half the size
+        ([0.0, 0.0, 4.0, 0.0, 0.0], 0.0),  # a degenerate (zero-width) box
+    ]
+    for other, expected in cases:
+        for yaw in (0.0, 0.7):  # the same layout turned as a whole
+            turn = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+            a = np.concatenate([box[0, :4], [box[0, 4] + yaw]])
+            b = np.concatenate([turn @ other[:2], other[2:4], [other[4] + yaw]])
+            got = rotated_iou_pairs(a[None], b[None])[0]
+            assert got == pytest.approx(expected, abs=1e-9), (other, yaw)
+            assert rotated_iou_pairs(b[None], a[None])[0] == pytest.approx(expected, abs=1e-9), (other, yaw)
+
+
 def test_iou_matrix_equals_pairs():
     rng = np.random.default_rng(3)
     a, b = random_boxes(rng, 30), random_boxes(rng, 20)
