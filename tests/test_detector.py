@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.beams import emulate_beams
+from pipeline.calib import Calibration
 from pipeline.detector import Detector, provider_fallbacks, resolve_providers, session_options
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
@@ -31,6 +32,24 @@ def detector(tiny_models):
 @pytest.fixture(scope="module")
 def frame():
     return load_frame(KITTI, "000006")
+
+
+def test_ray_table_is_built_once_per_calibration(detector, frame):
+    """The pseudo points' rays are built on a calibration's first frame (timed as ``ray_table``) and reused
+    after; a frame with another calibration builds its own."""
+    from pipeline import pseudo
+
+    lidar16 = emulate_beams(frame.points, 16)
+    pseudo._TABLES.clear()
+    detector.detect(frame.image, lidar16, frame.calib)
+    (built,) = pseudo._TABLES.values()
+    detector.detect(frame.image, lidar16, frame.calib)
+    (again,) = pseudo._TABLES.values()
+    assert again is built  # not built again
+    moved = Calibration(P2=frame.calib.P2 + np.array([[0, 0, 1.0, 0], [0, 0, 0, 0], [0, 0, 0, 0]]),
+                        R0_rect=frame.calib.R0_rect, Tr_velo_to_cam=frame.calib.Tr_velo_to_cam)
+    detector.detect(frame.image, lidar16, moved)
+    assert len(pseudo._TABLES) == 2
 
 
 def test_detects_on_real_frame_with_wellformed_boxes(detector, frame):
