@@ -3,8 +3,8 @@
     python benchmarks/accuracy.py --gt-labels DIR --pred-labels DIR [--split-file F]
                                   [--by-distance EDGES] [--json OUT] [--plots DIR]
     python benchmarks/accuracy.py --data DIR --models DIR --input lidar64|lidar16|lidar16+camera
-                                  [--frames LIST] [--out DIR] [--depth-dir DIR] [--json OUT] [--plots DIR]
-    python benchmarks/accuracy.py --depth --data DIR --models DIR [--depth-dir DIR] [--frames LIST] [--json OUT]
+                                  [--frames LIST|N] [--out DIR] [--depth-dir DIR] [--json OUT] [--plots DIR]
+    python benchmarks/accuracy.py --depth --data DIR --models DIR [--depth-dir DIR] [--frames LIST|N] [--json OUT]
 
 prints the paper's table (Car BEV AP at IoU 0.7 and 0.5, easy / moderate / hard,
 40- and 11-point; 3D and 2D-box AP when the results carry them), writes every
@@ -21,7 +21,8 @@ synthetic scenes' ``depth_2``: the upper bound of perfect depth); with
 ``--depth`` it evaluates those maps instead of the network's.
 
 ``--split-file`` and ``--frames`` are one flag under two names: the frames to
-run and evaluate, in every mode. A flag of another mode is refused, not ignored
+run and evaluate, in every mode; ``--frames N`` (a number) takes the first N
+frames in id order, as the other commands' ``--frames N`` counts frames. A flag of another mode is refused, not ignored
 (``--gt-labels`` with ``--data``: the ground truth is ``DATA/label_2``). Inputs
 and output paths are checked before any model runs.
 """
@@ -69,13 +70,15 @@ log = logging.getLogger("accuracy")
 class LabelEvalConfig:
     """Evaluate result files in ``pred_labels`` against ground truth in ``gt_labels``.
 
-    split_file: frame ids to evaluate (default: every ground-truth file).
+    split_file: frame ids to evaluate (default: every ground-truth file). first_frames: only the first
+    N of those (of the ground-truth files in id order without a split file).
     json_path / plots_dir: where to write the JSON document and the PR plots (optional).
     """
 
     gt_labels: Path
     pred_labels: Path
     split_file: Path | None = None
+    first_frames: int | None = None
     json_path: Path | None = None
     plots_dir: Path | None = None
     class_name: str = "Car"
@@ -105,6 +108,8 @@ class LabelEvalRun:
 def run(config: LabelEvalConfig) -> LabelEvalRun:
     """Load both label directories, evaluate, write the JSON and plots if asked."""
     frame_ids = read_split_file(config.split_file) if config.split_file else None
+    if config.first_frames is not None:
+        frame_ids = (frame_ids or ground_truth_frames(config.gt_labels))[: config.first_frames]
     if config.compare_pred_labels is not None and not Path(config.compare_pred_labels).is_dir():
         raise InputError(f"--compare-pred-labels: {config.compare_pred_labels}: prediction label directory not found")
     labels = load_label_dirs(config.gt_labels, config.pred_labels, frame_ids, progress=config.progress)
@@ -267,8 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--data", type=Path, metavar="DIR", help="KITTI object folder (image_2, velodyne, calib, label_2)")
     detect.add_argument("--models", type=Path, metavar="DIR", help="model directory trained for --input")
     detect.add_argument("--input", choices=["lidar64", "lidar16", "lidar16+camera"], help="the paper's table row")
-    detect.add_argument("--frames", type=Path, metavar="LIST",
-                        help="frame ids to run and evaluate, one per line (default all); the same as --split-file")
+    detect.add_argument("--frames", type=list_or_count, metavar="LIST|N",
+                        help="frame ids to run and evaluate, one per line, as --split-file (default all); or N: "
+                        "the first N frames in id order, as --frames N of the other commands")
     detect.add_argument("--out", type=Path, metavar="DIR", help="where the result files go (default outputs/accuracy/INPUT)")
     detect.add_argument("--score-threshold", type=probability, default=0.05,
                         help="keep detections above this score (default 0.05: AP needs the whole curve)")
@@ -297,6 +303,13 @@ _RUN = ("data", "models", "provider")
 _DETECTION = ("input", "out", "score_threshold")
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
 _AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "compare_pred_labels")
+
+
+def list_or_count(value: str) -> Path | int:
+    """--frames: a file of frame ids, or a count N (digits naming no file) for the first N frames."""
+    if value.isdigit() and not Path(value).exists():
+        return positive_int(value)
+    return Path(value)
 
 
 def _flag(dest: str) -> str:
@@ -337,13 +350,15 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     _refuse_flags_of_other_modes(parser, args, argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    split_file = args.split_file or args.frames
+    selection = args.split_file or args.frames
+    split_file = selection if isinstance(selection, Path) else None
+    first = selection if isinstance(selection, int) else None
     if args.depth or args.data is not None:
-        return _main_run(parser, args, split_file)
+        return _main_run(parser, args, split_file, first)
     if args.gt_labels is None or args.pred_labels is None:
         parser.error("give --gt-labels DIR and --pred-labels DIR, or --data DIR --models DIR --input …, or --depth")
     config = LabelEvalConfig(
-        gt_labels=args.gt_labels, pred_labels=args.pred_labels, split_file=split_file,
+        gt_labels=args.gt_labels, pred_labels=args.pred_labels, split_file=split_file, first_frames=first,
         json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
         ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
         bootstrap=args.bootstrap, seed=args.seed, compare_pred_labels=args.compare_pred_labels,
@@ -390,7 +405,8 @@ def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, 
                              f"{args.compare_pred_labels}, which it is compared with")
 
 
-def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_file: Path | None) -> int:
+def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_file: Path | None,
+              first: int | None) -> int:
     """The dataset modes: run the networks, then evaluate."""
     from evaluation.depth_metrics import CAR_BOX_MARGIN_M, car_errors_by_band, car_shares_by_band
     from evaluation.harness import run_depth, run_detection
@@ -408,7 +424,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             if args.depth_dir is not None and not args.depth_dir.is_dir():
                 raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
             outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=not args.no_progress,
-                                pictures=args.plots, depth_dir=args.depth_dir)
+                                pictures=args.plots, depth_dir=args.depth_dir, first=first)
             m = outcome.mean
             print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
             print(f"RMSE {m.rmse_mm:.1f} mm   MAE {m.mae_mm:.1f} mm   iRMSE {m.irmse_per_km:.2f} 1/km   "
@@ -452,11 +468,13 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                     }, indent=1) + "\n", encoding="utf-8")
             return 0
         _check_detection_inputs(args, frames, out)
+        if first is not None:  # the first N ground-truth frames: the ones the evaluation below takes
+            frames = ground_truth_frames(args.data / "label_2", frames)[:first]
         predictions = run_detection(args.data, args.models, args.input, out, frames, args.provider,
                                     progress=not args.no_progress, score_threshold=args.score_threshold,
                                     depth_dir=args.depth_dir)
         outcome = run(LabelEvalConfig(
-            gt_labels=args.data / "label_2", pred_labels=predictions, split_file=split_file,
+            gt_labels=args.data / "label_2", pred_labels=predictions, split_file=split_file, first_frames=first,
             json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
             ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
             depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed,

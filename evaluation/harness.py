@@ -93,7 +93,7 @@ def _to_crop_resolution(prediction: np.ndarray, crop_hw: tuple[int, int]) -> np.
 
 def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: int | None = 16,
               provider: str | None = None, progress: bool = True, pictures: Path | None = None,
-              depth_dir: Path | None = None) -> DepthRun:
+              depth_dir: Path | None = None, first: int | None = None) -> DepthRun:
     """Depth completion metrics on the KITTI crop, at full resolution.
 
     Layouts: KITTI depth completion (``image_02/``, ``velodyne_raw/``,
@@ -101,6 +101,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
     KITTI object folder with dense ground truth in ``depth_2/`` (the synthetic
     scenes), whose scan is thinned to ``beams`` lines first. pictures: a folder
     for one PNG per frame (``depth_<id>.png``: camera, prediction, ground truth, error).
+    first: only the first N of the frames.
     """
     data = Path(data)
     if (data / "groundtruth").is_dir() and (data / "velodyne_raw").is_dir():
@@ -130,7 +131,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             cv2.imwrite(str(Path(pictures) / f"depth_{fid}.png"), panel)
     if layout == "depth-completion":
         used = "velodyne_raw as given (projected 64-line scan)"
-        ids = frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png"))
+        ids = (frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png")))[:first]
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             image = read_image(data / "image_02" / f"{fid}.png")
             sparse = read_depth_png(data / "velodyne_raw" / f"{fid}.png")
@@ -145,7 +146,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             picture(fid, image, prediction, crop_gt)
     else:
         used = f"{beams}-line emulated scan" if beams else "scan as stored"
-        ids = frames or frame_ids(data)
+        ids = (frames or frame_ids(data))[:first]
         labelled = (data / "label_2").is_dir()
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             frame = load_frame(data, fid, with_labels=labelled)

@@ -181,6 +181,38 @@ def test_split_file_chooses_the_frames_of_a_detection_run(tiny_models, tmp_path)
     assert json.loads((tmp_path / "ap.json").read_text())["frames"] == 1 and "(1 frames" in result.stdout
 
 
+def test_frames_count_takes_the_first_frames_in_every_mode(tiny_models, tmp_path):
+    """--frames N (digits naming no file) is a count, as in the other commands: the first N frames by id."""
+    first_two = sorted(p.stem for p in (KITTI / "label_2").glob("*.txt"))[:2]
+    result = _accuracy("--data", KITTI, "--models", tiny_models, "--input", "lidar16+camera", "--frames", "2",
+                       "--score-threshold", "0.0", "--out", tmp_path / "run", "--json", tmp_path / "ap.json")
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.stem for p in (tmp_path / "run" / "data").iterdir()) == first_two
+    assert json.loads((tmp_path / "ap.json").read_text())["frames"] == 2
+    # The result files evaluated on their own, the first one of them.
+    result = _accuracy("--gt-labels", KITTI / "label_2", "--pred-labels", tmp_path / "run" / "data", "--frames", "1",
+                       "--json", tmp_path / "one.json")
+    assert result.returncode == 0, result.stderr
+    assert json.loads((tmp_path / "one.json").read_text())["frames"] == 1
+    # Depth completion on an object folder with dense ground truth.
+    data = tmp_path / "data"
+    for sub in ("image_2", "velodyne", "calib"):
+        shutil.copytree(KITTI / sub, data / sub)
+    (data / "depth_2").mkdir()
+    for frame_id in FRAMES:
+        frame = load_frame(KITTI, frame_id)
+        write_depth_png(data / "depth_2" / f"{frame_id}.png", sparse_depth_map(frame.points, frame.calib, frame.image_hw))
+    result = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames", "1")
+    assert result.returncode == 0, result.stderr
+    assert "depth completion on 1 frame(s)" in result.stdout
+    # 0 is no count, and a name that is not a file is still read as a list (and refused as missing).
+    zero = _accuracy("--gt-labels", KITTI / "label_2", "--pred-labels", tmp_path / "run" / "data", "--frames", "0")
+    assert zero.returncode == 2 and "--frames" in zero.stderr and "Traceback" not in zero.stderr
+    missing = _accuracy("--gt-labels", KITTI / "label_2", "--pred-labels", tmp_path / "run" / "data",
+                        "--frames", tmp_path / "no-such-list.txt")
+    assert missing.returncode == 2 and "no-such-list.txt" in missing.stderr and "Traceback" not in missing.stderr
+
+
 def test_flags_of_another_mode_are_refused(tiny_models, tmp_path):
     """A flag the chosen mode would ignore is an argparse error naming it and the mode's flag (exit 2)."""
     for args, message in [
