@@ -1,7 +1,7 @@
 """Latency and throughput of the whole pipeline, measured the way the paper measured its GPUs.
 
     python benchmarks/latency.py [--preset P | --models DIR] [--provider cpu|cuda|tensorrt]
-                                 [--threads N [--workers thread|process]] [--frames K] [--warmup W] [--json OUT] [--plot OUT.png]
+                                 [--threads N [--worker-kind thread|process]] [--frames K] [--warmup W] [--json OUT] [--plot OUT.png]
                                  [--compare-torch [--checkpoints DIR]] [--baseline DIR] [--ops]
 
 Single stream (the paper's per-frame latency, 25.4 ms on an RTX 2080Ti and
@@ -10,7 +10,7 @@ end-to-end latency over real frames after warm-up. ``--threads N`` (the paper's
 two-GPU mode, 3.4 fps on the PX2): N workers, each with its own sessions
 pinned to its own share of the cores, run frames concurrently; aggregate fps
 is compared with one worker on one share, in three alternating rounds of each.
-A worker is a thread of this process by default; ``--workers process`` gives
+A worker is a thread of this process by default; ``--worker-kind process`` gives
 each its own process, which shares no interpreter lock with the others (the
 NumPy stages between the networks hold it between calls).
 Each network's achieved GFLOP/s is set against the machine's peak, measured in
@@ -411,7 +411,7 @@ def machine() -> dict:
 def run(preset: str | None = None, models: Path | None = None, provider: str | None = None, threads: int = 1,
         frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
-        precision: str | None = None, baseline: Path | None = None, workers: str = "thread",
+        precision: str | None = None, baseline: Path | None = None, worker_kind: str = "thread",
         peak_size: int = PEAK_MATMUL, ops: bool = False) -> dict:
     """Measure everything; returns the JSON-able report.
 
@@ -495,7 +495,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
 
     if threads > 1:
         report["throughput"] = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
-                                              warmup, cores, mode=workers)
+                                              warmup, cores, mode=worker_kind)
     if compare_torch:
         import torch
 
@@ -611,7 +611,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--precision", choices=["fp32", "fp16", "int8"],
                         help="with --models: check the directory is this precision; without: convert the export")
     parser.add_argument("--threads", type=positive_int, default=1, help="workers for the throughput mode (default 1: off)")
-    parser.add_argument("--workers", choices=["thread", "process"], default="thread",
+    # Not --workers: every other command (service, load test, training, simulation) counts with that name.
+    parser.add_argument("--worker-kind", choices=["thread", "process"], default="thread",
                         help="what a throughput worker is: a thread of this process (default, as the paper ran "
                              "two GPUs) or a process of its own (no interpreter lock shared)")
     parser.add_argument("--frames", type=positive_int, default=20, help="timed frames (default 20)")
@@ -643,7 +644,7 @@ def main(argv: list[str] | None = None) -> int:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
                      args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision,
-                     baseline=args.baseline, workers=args.workers, peak_size=args.peak_size, ops=args.ops)
+                     baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -102,7 +102,7 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
 
 def test_latency_throughput_with_worker_processes(tmp_path, tiny_models):
     result = subprocess.run(
-        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--threads", "2", "--workers", "process",
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--threads", "2", "--worker-kind", "process",
          "--frames", "4", "--warmup", "1", "--json", str(tmp_path / "p.json")],
         capture_output=True, text=True, timeout=600, check=False,
     )
