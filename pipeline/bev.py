@@ -154,9 +154,11 @@ class BevVoxelizer:
         self.grid = grid
         self._out = np.zeros(grid.shape, dtype=np.float32)
         self._flat = self._out.reshape(-1)
-        self._touched = np.zeros(0, dtype=np.int64)
+        # The flat indices the last frame set, as the index arrays it wrote with (not concatenated:
+        # clearing each costs the same, joining them a pass more).
+        self._touched: list[np.ndarray] = []
         self._heights: np.ndarray | None = None  # made on the first frame that needs it
-        self._heights_touched = np.zeros(0, dtype=np.int64)
+        self._heights_touched: list[np.ndarray] = []
         self.height_occupancy: np.ndarray = self._out
 
     def __call__(self, points: np.ndarray,
@@ -167,15 +169,19 @@ class BevVoxelizer:
         (:func:`pseudo_bins`) or as (x, y, z) arrays
         (:func:`pipeline.pseudo.pseudo_xyz`); the result equals voxelizing
         ``merge_points(pseudo, points)`` without building that merged array.
-        On a ``split_pseudo`` grid they fill their own channels instead.
+        On a ``split_pseudo`` grid they fill their own channels instead. The voxelizer keeps the
+        index arrays it wrote with (``pseudo.occupancy`` among them) to clear those cells on the next
+        call: leave them unchanged until then.
         """
         grid = self.grid
         plane = grid.ny * grid.nx
-        self._flat[self._touched] = 0.0  # clear only what the last frame set
+        for touched in self._touched:  # clear only what the last frame set
+            self._flat[touched] = 0.0
         iz, iy, ix, kept = bev_indices(points, grid)
         cell = iy * grid.nx + ix
-        occupancy = real_occupancy = iz * plane + cell
-        self._flat[occupancy] = 1.0
+        real_occupancy = iz * plane + cell
+        self._flat[real_occupancy] = 1.0
+        self._touched = [real_occupancy]
         counted = cell
         self.height_occupancy = self._out
         if pseudo is not None:
@@ -192,7 +198,7 @@ class BevVoxelizer:
                 if sharp.shape[0] < pseudo.occupancy.shape[0]:
                     self.height_occupancy = self._sharp_occupancy(real_occupancy, sharp)
             self._flat[pseudo_occupancy] = 1.0
-            occupancy = np.concatenate([occupancy, pseudo_occupancy])
+            self._touched.append(pseudo_occupancy)
         # Mean reflectance of each cell with real returns (shared channels: pseudo points add 0 to
         # the sum but count), written only there: each point writes its cell's mean (duplicates write
         # the same value), which avoids scanning the whole plane for the occupied cells.
@@ -200,7 +206,7 @@ class BevVoxelizer:
         sums = np.bincount(cell, weights=points[kept, 3], minlength=plane)
         reflectance_index = grid.nz * plane + cell
         self._flat[reflectance_index] = sums[cell] / counts[cell]
-        self._touched = np.concatenate([occupancy, reflectance_index])
+        self._touched.append(reflectance_index)
         return self._out
 
     def _sharp_occupancy(self, real: np.ndarray, sharp_pseudo: np.ndarray) -> np.ndarray:
@@ -208,10 +214,11 @@ class BevVoxelizer:
         if self._heights is None:
             self._heights = np.zeros((self.grid.nz, self.grid.ny, self.grid.nx), dtype=np.uint8)
         flat = self._heights.reshape(-1)
-        flat[self._heights_touched] = 0
+        for touched in self._heights_touched:
+            flat[touched] = 0
         flat[real] = 1
         flat[sharp_pseudo] = 1
-        self._heights_touched = np.concatenate([real, sharp_pseudo])
+        self._heights_touched = [real, sharp_pseudo]
         return self._heights
 
 

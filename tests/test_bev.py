@@ -74,6 +74,27 @@ def test_reused_buffer_clears_previous_frame():
     np.testing.assert_array_equal(voxelizer(np.zeros((0, 4), np.float32)), np.zeros(grid.shape, np.float32))
 
 
+def test_reused_buffers_clear_the_pseudo_points_of_the_previous_frame():
+    """Frames with pseudo points, on the shared and the split grid, then frames with fewer or none: each
+    result equals a fresh voxelizer's, in the BEV and in the occupancy box heights read."""
+    from pipeline.bev import pseudo_bins
+    from pipeline.presets import get_preset
+
+    frame, preset, view_calib = _kitti_view()
+    h, w = preset.depth.input_hw
+    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
+    depth[h // 2:, w // 3:w // 2] = 8.0
+    for grid in (preset.bev, get_preset("edge-split-near35").bev):
+        limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+        many = pseudo_bins(depth, view_calib, grid, *limits, max_jump=0.1)
+        few = pseudo_bins(depth[::-1].copy(), view_calib, grid, *limits, max_jump=0.1)
+        voxelizer = BevVoxelizer(grid)
+        for points, pseudo in ((frame.points, many), (frame.points[:500], few), (frame.points[:100], None)):
+            fresh = BevVoxelizer(grid)
+            np.testing.assert_array_equal(voxelizer(points, pseudo), fresh(points, pseudo))
+            np.testing.assert_array_equal(voxelizer.height_occupancy, fresh.height_occupancy)
+
+
 def test_real_scan_equals_reference():
     points = read_velodyne(KITTI / "velodyne" / "000006.bin").points
     grid = BevGrid()
