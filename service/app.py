@@ -71,12 +71,13 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     # /v1/* needs the bearer token when one is configured (and only then does the schema declare it);
     # probes and metrics stay open for orchestrators and scrapers.
     auth = [Depends(require_token)] if settings.token is not None else []
-    app.include_router(detect.router, dependencies=auth)
-    app.include_router(model.router, dependencies=auth)
-    app.include_router(health.router)
-    app.include_router(metrics_route.router)
-    routers = (detect.router, model.router, health.router, metrics_route.router)
-    route_paths = frozenset(route.path for router in routers for route in router.routes)
+    protected, open_to_all = (detect.router, model.router), (health.router, metrics_route.router)
+    for router in protected:
+        app.include_router(router, dependencies=auth)
+    for router in open_to_all:
+        app.include_router(router)
+    # Every route is a fixed path: the metrics label requests answered before routing (413s) by it.
+    route_paths = frozenset(route.path for router in (*protected, *open_to_all) for route in router.routes)
     # Added last = outermost: the request context wraps the body limit so 413s are counted and carry an id.
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths)
