@@ -187,6 +187,7 @@ def torch_detector(models_dir: Path, networks: dict) -> Detector:
     detector = Detector(models_dir, providers="cpu")
     inputs = {"depth": ["rgb", "sparse_depth"], "pixor": ["bev"]}
     detector._sessions = {name: TorchSession(networks[name].eval(), inputs[name]) for name in detector._sessions}
+    detector._input_names = {name: inputs[name] for name in detector._sessions}  # whole tensors, as PyTorch takes them
     return detector
 
 

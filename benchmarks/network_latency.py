@@ -39,6 +39,7 @@ from export.inputs import kitti_inputs
 from pipeline.cli import positive_int
 from pipeline.detector import session_options
 from pipeline.errors import TORCH_MISSING
+from pipeline.graph_inputs import feeds_for
 from pipeline.presets import PRESETS, get_preset
 
 try:
@@ -109,9 +110,10 @@ def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, ba
             with torch.no_grad():
                 return module(*tensors)
 
+        session_inputs = feeds_for(session, feeds)
         bar.set_description(f"{preset_name} {network}")
         torch_ms, ort_ms = _time_alternating(
-            eager, lambda session=session, feeds=feeds: session.run(None, feeds), repeats, block, bar
+            eager, lambda session=session, feeds=session_inputs: session.run(None, feeds), repeats, block, bar
         )
         entry = result.manifest["networks"][network]
         rows.append(

@@ -24,6 +24,7 @@ import numpy as np
 import onnxruntime as ort
 
 from pipeline.detector import session_options
+from pipeline.graph_inputs import feeds_for
 
 # Operators whose multiply–accumulates export/flops.py counts, as the profiler names their kernels.
 COMPUTE_SUFFIXES = ("Conv", "ConvTranspose", "MatMul", "Gemm", "MatMulInteger")
@@ -99,6 +100,7 @@ def profile_network(model: Path, providers: list[str], threads: int, feeds: dict
         options.enable_profiling = True
         options.profile_file_prefix = str(Path(scratch) / "profile")
         session = ort.InferenceSession(str(model), options, providers=providers)
+        feeds = feeds_for(session, feeds)
         for _ in range(warmup + runs):
             session.run(None, feeds)
         events = json.loads(Path(session.end_profiling()).read_text())

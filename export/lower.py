@@ -28,6 +28,7 @@ import onnxruntime as ort
 from export.directory import check_destination, staged
 from export.inputs import kitti_inputs, random_inputs
 from export.rewrite import lower_for_cpu
+from pipeline.graph_inputs import feeds_for
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import preset_from_dict
 
@@ -71,7 +72,8 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
         worst = 0.0
         for sample in samples:
             feeds = sample.feeds(name)
-            for a, b in zip(before.run(None, feeds), after.run(None, feeds), strict=True):
+            for a, b in zip(before.run(None, feeds_for(before, feeds)), after.run(None, feeds_for(after, feeds)),
+                            strict=True):
                 if not np.allclose(b, a, rtol=TOLERANCE, atol=TOLERANCE):
                     raise ValueError(f"{models / entry['file']}: the lowered graph differs from the original by "
                                      f"{float(np.max(np.abs(a - b))):.3g} on {sample.source}")

@@ -18,6 +18,7 @@ import torch
 from export.inputs import NetworkInputs
 from models.depth_net import DepthCompletionNet
 from models.pixor import Pixor
+from pipeline.graph_inputs import feeds_for
 
 DEPTH_MAX_RELATIVE = 1e-3
 SCORE_MAX_ABSOLUTE = 1e-4
@@ -76,7 +77,7 @@ def pixor_parity(model: Pixor, session: ort.InferenceSession, inputs: NetworkInp
     model.eval()
     with torch.no_grad():
         score_ref, reg_ref = (t.numpy() for t in model(torch.from_numpy(inputs.bev)))
-    score, reg = session.run(["score", "regression"], {"bev": inputs.bev})
+    score, reg = session.run(["score", "regression"], feeds_for(session, {"bev": inputs.bev}))
     reg_scale = max(1.0, float(np.abs(reg_ref).max()))
     return [
         ParityResult(

@@ -35,6 +35,8 @@ from tqdm import tqdm
 from export.directory import check_destination, staged
 from export.rewrite import (
     boundary_nodes,
+    inputs_from_channel_pieces,
+    inputs_from_channel_slices,
     merge_split_input_convs,
     pad_input_convs,
     quantize_before_pad,
@@ -45,6 +47,7 @@ from pipeline.bev import voxelize_bev
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.frame import frame_ids, load_frame
+from pipeline.graph_inputs import feeds_for
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
 from pipeline.preprocess import depth_inputs
 
@@ -128,6 +131,8 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
         rewritten_path, prepared = Path(scratch) / "rewritten.onnx", Path(scratch) / "prepared.onnx"
         rewritten, count = rewrite_transposed_convs(onnx.load(str(source)))
         # Quantized input convs read whole, padded inputs (export/rewrite.py, 7); fp32 ones keep their split.
+        # The quantizer calibrates on whole inputs: an input read in channel pieces (8) becomes one again.
+        rewritten, _ = inputs_from_channel_pieces(rewritten)
         kept_fp32 = frozenset(boundary_nodes(rewritten, inputs=inputs_fp32, output_convs=output_convs))
         rewritten, merged = merge_split_input_convs(rewritten, skip=kept_fp32)
         rewritten, padded = pad_input_convs(rewritten, skip=kept_fp32)
@@ -147,7 +152,9 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
                            "CalibMovingAverage": moving_average},
         )
         quantized, moved = quantize_before_pad(onnx.load(str(target)))
-        if moved:
+        # An input conv kept fp32 keeps its split: its input goes back to channel pieces (8).
+        quantized, pieces = inputs_from_channel_slices(quantized)
+        if moved or pieces:
             onnx.save(quantized, str(target))
     return {"transposed_convs_rewritten": count, "input_convs_merged": merged, "input_convs_padded": padded,
             "pads_after_quantize": moved,
@@ -166,7 +173,7 @@ def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -
         errors = []
         for feed in samples[: min(len(samples), 8)]:
             feed = {k: v.astype(np.float32) for k, v in feed.items()}
-            a, b = ref.run(None, feed)[0], low.run(None, feed)[0]
+            a, b = ref.run(None, feeds_for(ref, feed))[0], low.run(None, feeds_for(low, feed))[0]
             errors.append(float(np.max(np.abs(a - b) / np.maximum(np.abs(a), 1.0))) if name == "depth"
                           else float(np.max(np.abs(a - b))))
         report[name] = {"metric": "max relative error (depth)" if name == "depth" else "max absolute score error",

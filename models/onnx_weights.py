@@ -11,8 +11,9 @@ exact rewrites, and each is undone here exactly:
 - export.rewrite's lowering (:func:`export.rewrite.lower_for_cpu`): merged parallel
   convs are cut back out of their block-diagonal weight, an input conv split in
   two is concatenated again, narrow convs padded with zero channels are sliced
-  back, and a stride-1 transposed conv written as a conv gets its kernel
-  flipped and its channel axes swapped back.
+  back, a stride-1 transposed conv written as a conv gets its kernel
+  flipped and its channel axes swapped back, and merged output heads are cut
+  apart along their output channels.
 
 Every parameter and batch-norm statistic of the network must be accounted for,
 and :func:`load_onnx_weights` is meant to be followed by the exporter's parity
@@ -65,6 +66,20 @@ def _unlowered(graph: onnx.GraphProto, arrays: dict[str, np.ndarray], convs: dic
             if (rows, cols) != w.shape[:2]:
                 raise ValueError(f"{weight}: {w.shape} is not the block-diagonal of {', '.join(branches)}")
             missing = [n for n in missing if n not in branches]
+        elif weight.endswith("_heads_w"):  # merge_output_heads: the heads' output channels side by side, in order
+            w, b = arrays[weight], arrays[bias]
+            sizes = [int(n) for n in arrays[weight[: -len("_w")] + "_sizes"]]
+            alike = [n for n in missing if isinstance(convs[n], nn.Conv2d) and convs[n].weight.shape[1:] == w.shape[1:]]
+            heads = next((alike[i : i + len(sizes)] for i in range(len(alike))
+                          if [convs[n].weight.shape[0] for n in alike[i : i + len(sizes)]] == sizes), None)
+            if heads is None:
+                raise ValueError(f"{weight}: the network has no {len(sizes)} convs of {sizes} channels it could belong to")
+            rows = 0
+            for name, size in zip(heads, sizes, strict=True):
+                found[f"{name}.weight"] = w[rows : rows + size]
+                found[f"{name}.weight_bias"] = b[rows : rows + size]
+                rows += size
+            missing = [n for n in missing if n not in heads]
         elif weight.startswith("node_ConvTranspose_") and weight.endswith("_w"):  # a stride-1 transposed conv
             name = next((n for n in missing if isinstance(convs[n], nn.ConvTranspose2d) and convs[n].stride == (1, 1)),
                         None)

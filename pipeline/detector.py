@@ -28,6 +28,7 @@ from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import Calibration
 from pipeline.cpu import int8_pairs_saturate
 from pipeline.errors import InputError
+from pipeline.graph_inputs import session_feeds, whole_shapes
 from pipeline.kitti import Object3D
 from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
 from pipeline.postprocess import boxes_from_maps
@@ -179,6 +180,8 @@ class Detector:
                 self._sessions[name] = ort.InferenceSession(str(path), options, providers=session_providers)
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
+        # Input names as each graph has them: a lowered PIXOR reads its BEV in channel pieces.
+        self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}
         self._check_shapes()
         self._local = threading.local()
         fallback = self._check_provider_loaded(explicit=bool(providers))
@@ -207,12 +210,19 @@ class Detector:
         files = {name: entry["file"] for name, entry in self.manifest["networks"].items()}
         expected = {"pixor": {"bev": bev}, "depth": {"rgb": (1, 3, height, width), "sparse_depth": (1, 1, height, width)}}
         for name, session in self._sessions.items():
-            for graph_input in session.get_inputs():
-                want = expected[name].get(graph_input.name)
-                if want is not None and tuple(graph_input.shape) != want:
-                    raise ModelFileError(f"{manifest}: preset_config gives {name} input '{graph_input.name}' the "
-                                         f"shape {list(want)}, but {self.model_dir / files[name]} expects "
-                                         f"{list(graph_input.shape)}")
+            path = self.model_dir / files[name]
+            try:  # a graph may read an input in channel pieces that tile it (export/rewrite.py, 8)
+                shapes = whole_shapes({i.name: tuple(i.shape) for i in session.get_inputs()})
+            except ValueError as exc:
+                raise ModelFileError(f"{path}: {exc}") from exc
+            for input_name, shape in shapes.items():
+                want = expected[name].get(input_name)
+                if want is None:
+                    raise ModelFileError(f"{path}: unknown input '{input_name}' (a {name} network takes "
+                                         f"{', '.join(expected[name])})")
+                if shape != want:
+                    raise ModelFileError(f"{manifest}: preset_config gives {name} input '{input_name}' the "
+                                         f"shape {list(want)}, but {path} expects {list(shape)}")
 
     def _check_provider_loaded(self, explicit: bool) -> str | None:
         """A provider asked for by name must really run the networks: otherwise an InputError naming
@@ -284,8 +294,12 @@ class Detector:
         """depth.onnx on prepared inputs (1, 3, H, W) and (1, 1, H, W) → (H, W) metres."""
         if not self.two_stage:
             raise InputError("models: this model directory has no depth network (LiDAR-only PIXOR)")
-        (depth,) = self._sessions["depth"].run(["depth"], {"rgb": rgb, "sparse_depth": sparse_depth})
+        (depth,) = self._run("depth", ["depth"], {"rgb": rgb, "sparse_depth": sparse_depth})
         return depth[0, 0]
+
+    def _run(self, network: str, outputs: list[str], arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """One network on whole input tensors, fed as the graph takes them (pipeline/graph_inputs.py)."""
+        return self._sessions[network].run(outputs, session_feeds(self._input_names[network], arrays))
 
     def detect(
         self,
@@ -333,9 +347,7 @@ class Detector:
                 inputs = depth_inputs(image, points, calib, self.preset)
                 timings["prepare"] = (time.perf_counter() - tic) * 1e3
                 tic = time.perf_counter()
-                (dense,) = self._sessions["depth"].run(
-                    ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
-                )
+                (dense,) = self._run("depth", ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
                 dense = dense[0, 0]
                 timings["depth_net"] = (time.perf_counter() - tic) * 1e3
                 view_calib = inputs.calib
@@ -362,7 +374,7 @@ class Detector:
         bev = voxelizer(points, pseudo)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
-        score, regression = self._sessions["pixor"].run(["score", "regression"], {"bev": bev[None]})
+        score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]})
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         boxes, scores = boxes_from_maps(score[0, 0], regression[0], voxelizer.height_occupancy, self.preset,
@@ -415,7 +427,6 @@ class Detector:
         for _ in range(runs):
             if self.two_stage:
                 h, w = self.preset.depth.input_hw
-                self._sessions["depth"].run(
-                    ["depth"], {"rgb": np.zeros((1, 3, h, w), np.float32), "sparse_depth": np.zeros((1, 1, h, w), np.float32)}
-                )
-            self._sessions["pixor"].run(["score", "regression"], {"bev": np.zeros((1, *self.preset.bev.shape), np.float32)})
+                self._run("depth", ["depth"], {"rgb": np.zeros((1, 3, h, w), np.float32),
+                                               "sparse_depth": np.zeros((1, 1, h, w), np.float32)})
+            self._run("pixor", ["score", "regression"], {"bev": np.zeros((1, *self.preset.bev.shape), np.float32)})

@@ -29,6 +29,7 @@ from export.manifest import verify_model_dir
 from export.parity import ParityError, cpu_session, depth_parity, require_parity
 from models import build_depth_net, build_pixor
 from models.checkpoint import save_checkpoint
+from pipeline.graph_inputs import session_feeds, whole_inputs, whole_shapes
 from pipeline.model_files import ModelFileError, sha256_file
 from pipeline.presets import get_preset
 
@@ -66,9 +67,12 @@ def test_onnx_interfaces_are_static_and_named(fixture: str, request: pytest.Fixt
     assert graph_io(result.files["depth"]) == {
         "rgb": (1, 3, height, width), "sparse_depth": (1, 1, height, width), "depth": (1, 1, height, width)
     }
-    assert graph_io(result.files["pixor"]) == {
+    pixor_io = graph_io(result.files["pixor"])
+    # The BEV input read in channel pieces that tile it in order (export/rewrite.py, 8) past one NCHWc block.
+    assert whole_shapes(pixor_io) == {
         "bev": (1, channels, ny, nx), "score": (1, 1, ny // 4, nx // 4), "regression": (1, 6, ny // 4, nx // 4)
     }
+    assert len(whole_inputs(pixor_io).get("bev", [None])) == (1 if channels < 16 else 2)
     for path in result.files.values():
         model = onnx.load(str(path))
         onnx.checker.check_model(model, full_check=True)
@@ -183,13 +187,15 @@ def test_edge_is_ten_times_cheaper_than_paper(edge_export: ExportResult, paper_e
 
 def test_export_lowers_graphs_for_cpu_kernels(edge_export: ExportResult) -> None:
     """The edge export (parity-checked by its fixture) has no stride-1 ConvTranspose, one conv for the
-    early fusion, no conv on the 19-channel BEV input itself (split at 16 channels) and no 12-channel
-    conv outputs (padded to 16)."""
+    early fusion, no conv on the 19-channel BEV input itself (split at 16 channels, read as two graph
+    inputs), no 12-channel conv outputs (padded to 16) and one conv for both output heads."""
     rewrites = edge_export.manifest["export"]["cpu_rewrites"]
     assert rewrites == {"depth": {"stride1_transposed_convs": 1, "merged_parallel_convs": 1, "split_input_convs": 0,
-                                  "padded_narrow_convs": 0, "where_as_arithmetic": 6},
+                                  "padded_narrow_convs": 0, "where_as_arithmetic": 6, "inputs_in_channel_pieces": 0,
+                                  "merged_output_heads": 0},
                         "pixor": {"stride1_transposed_convs": 0, "merged_parallel_convs": 0, "split_input_convs": 1,
-                                  "padded_narrow_convs": 4, "where_as_arithmetic": 0}}
+                                  "padded_narrow_convs": 4, "where_as_arithmetic": 0, "inputs_in_channel_pieces": 1,
+                                  "merged_output_heads": 1}}
     depth = onnx.load(str(edge_export.files["depth"]))
     assert not [n for n in depth.graph.node if n.op_type == "Where"]  # the prefill's six, as arithmetic
     assert not any(n.name.startswith(("conv1_d", "conv1_img")) for n in depth.graph.initializer)  # merged
@@ -197,7 +203,9 @@ def test_export_lowers_graphs_for_cpu_kernels(edge_export: ExportResult) -> None
                for a in n.attribute if a.name == "strides"]
     assert strides and all(s == [2, 2] for s in strides)
     pixor = onnx.load(str(edge_export.files["pixor"]))
-    assert [n.op_type for n in pixor.graph.node if "bev" in n.input] == ["Slice", "Slice"]
+    assert [i.name for i in pixor.graph.input] == ["bev[0:16]", "bev[16:19]"]
+    assert [n.op_type for n in pixor.graph.node if {"bev[0:16]", "bev[16:19]"} & set(n.input)] == ["Conv", "Conv"]
+    assert [n.op_type for n in pixor.graph.node][-2:] == ["Split", "Sigmoid"]  # score and boxes from one conv
     weights = {init.name: init.dims for init in pixor.graph.initializer}
     widths = {weights[n.input[1]][0] for n in pixor.graph.node if n.op_type == "Conv"}
     assert 12 not in widths and 16 in widths  # edge PIXOR's 12-wide first stage now runs 16 wide
@@ -276,6 +284,116 @@ def test_merge_and_pad_input_convs_are_exact() -> None:
         np.testing.assert_allclose(run(rewritten, x), reference, rtol=1e-5, atol=1e-6 * float(np.abs(reference).max()))
     assert pad_input_convs(merged, skip=frozenset({"stem"}))[1] == 0
     assert pad_input_convs(input_conv(20))[1] == 0  # already a multiple of 4; the inner conv never reads an input
+
+
+def _stem_graph(channels: int, extra_reader: bool = False) -> onnx.ModelProto:
+    """x (1, C, 12, 10) → 3×3 Conv named "stem" → Relu → out; with ``extra_reader`` x is also summed to a second output."""
+    from onnx import numpy_helper
+
+    rng = np.random.default_rng(channels)
+    inits = [numpy_helper.from_array(rng.standard_normal((16, channels, 3, 3)).astype(np.float32), "w"),
+             numpy_helper.from_array(rng.standard_normal(16).astype(np.float32), "b")]
+    nodes = [helper.make_node("Conv", ["x", "w", "b"], ["y"], name="stem", pads=[1, 1, 1, 1], kernel_shape=[3, 3]),
+             helper.make_node("Relu", ["y"], ["out"], name="relu")]
+    outputs = [helper.make_tensor_value_info("out", TensorProto.FLOAT, [1, 16, 12, 10])]
+    if extra_reader:
+        nodes.append(helper.make_node("ReduceSum", ["x"], ["total"], name="sum", keepdims=0))
+        outputs.append(helper.make_tensor_value_info("total", TensorProto.FLOAT, []))
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, channels, 12, 10])],
+                              outputs, inits)
+    return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=8)
+
+
+def test_channel_slices_become_graph_inputs_fed_as_views_and_join_back() -> None:
+    """A split 19-channel input conv reads two graph inputs x[0:16] and x[16:19]: ONNX Runtime gives the same
+    output when they are fed as views of one array (no copy); for INT8 the pieces join back into x and the
+    conv merges whole again. Inputs with another reader, or slices that do not tile them, stay as they are."""
+    import onnxruntime as ort
+
+    from export.rewrite import (
+        inputs_from_channel_pieces,
+        inputs_from_channel_slices,
+        merge_split_input_convs,
+        split_input_convs,
+    )
+
+    def run(model: onnx.ModelProto, arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
+        onnx.checker.check_model(model, full_check=True)
+        session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        return session.run(None, session_feeds([i.name for i in session.get_inputs()], arrays))
+
+    model = _stem_graph(19)
+    x = np.random.default_rng(3).standard_normal((1, 19, 12, 10)).astype(np.float32)
+    split, _ = split_input_convs(model)
+    pieces, count = inputs_from_channel_slices(split)
+    assert count == 1 and [i.name for i in pieces.graph.input] == ["x[0:16]", "x[16:19]"]
+    assert [n.op_type for n in pieces.graph.node] == ["Conv", "Conv", "Add", "Relu"]
+    assert [[d.dim_value for d in i.type.tensor_type.shape.dim] for i in pieces.graph.input] == [[1, 16, 12, 10],
+                                                                                              [1, 3, 12, 10]]
+    feeds = session_feeds(["x[0:16]", "x[16:19]"], {"x": x})
+    assert all(np.shares_memory(v, x) and v.flags.c_contiguous for v in feeds.values())
+    reference = run(model, {"x": x})[0]
+    np.testing.assert_allclose(run(pieces, {"x": x})[0], reference, rtol=1e-5, atol=1e-5)
+    assert inputs_from_channel_slices(pieces)[1] == 0  # nothing left to rewrite
+
+    joined, count = inputs_from_channel_pieces(pieces)
+    assert count == 1 and [i.name for i in joined.graph.input] == ["x"]
+    merged, count = merge_split_input_convs(joined)
+    assert count == 1 and [n.op_type for n in merged.graph.node] == ["Conv", "Relu"]
+    np.testing.assert_allclose(run(merged, {"x": x})[0], reference, rtol=1e-5, atol=1e-5)
+
+    assert inputs_from_channel_slices(split_input_convs(_stem_graph(19, extra_reader=True))[0])[1] == 0
+    gapped = onnx.ModelProto.FromString(split.SerializeToString())  # the second slice starts one channel late
+    bound = next(init for init in gapped.graph.initializer if init.name == "stem_c1")
+    slice_b = next(n for n in gapped.graph.node if n.name == "stem_slice_b")
+    gapped.graph.initializer.append(helper.make_tensor("late", TensorProto.INT64, [1], [17]))
+    slice_b.input[1] = "late"
+    assert bound.name == "stem_c1" and inputs_from_channel_slices(gapped)[1] == 0
+    with pytest.raises(KeyError, match="y\\[0:16\\]"):
+        session_feeds(["y[0:16]"], {"x": x})
+
+
+def test_merge_output_heads_is_exact_and_only_on_heads() -> None:
+    """Two convs on the same features, one through a Sigmoid to an output and one straight to an output,
+    become one conv and a Split: the same outputs. A conv on those features that feeds another conv, or a
+    head with other settings, stays apart."""
+    import onnxruntime as ort
+    from onnx import numpy_helper
+
+    from export.rewrite import merge_output_heads
+
+    rng = np.random.default_rng(4)
+
+    def weight(name: str, shape: tuple[int, ...]) -> onnx.TensorProto:
+        return numpy_helper.from_array(rng.standard_normal(shape).astype(np.float32), name)
+
+    inits = [weight("wf", (8, 4, 3, 3)), weight("ws", (1, 8, 3, 3)), weight("bs", (1,)), weight("wr", (6, 8, 3, 3)),
+             weight("br", (6,)), weight("wt", (4, 8, 1, 1)), weight("wu", (2, 4, 3, 3)), weight("wv", (3, 8, 1, 1))]
+    conv3 = {"pads": [1, 1, 1, 1], "kernel_shape": [3, 3]}
+    nodes = [helper.make_node("Conv", ["x", "wf"], ["f"], name="features", **conv3),
+             helper.make_node("Relu", ["f"], ["r"], name="relu"),
+             helper.make_node("Conv", ["r", "ws", "bs"], ["s"], name="score_conv", **conv3),
+             helper.make_node("Sigmoid", ["s"], ["score"], name="sigmoid"),
+             helper.make_node("Conv", ["r", "wr", "br"], ["regression"], name="regression_conv", **conv3),
+             helper.make_node("Conv", ["r", "wt"], ["t"], name="inner", kernel_shape=[1, 1]),
+             helper.make_node("Conv", ["t", "wu"], ["other"], name="after_inner", **conv3),
+             helper.make_node("Conv", ["r", "wv"], ["pointwise"], name="pointwise_head", kernel_shape=[1, 1])]
+    shapes = {"score": 1, "regression": 6, "other": 2, "pointwise": 3}
+    graph = helper.make_graph(nodes, "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 4, 10, 12])],
+                              [helper.make_tensor_value_info(n, TensorProto.FLOAT, [1, c, 10, 12]) for n, c in shapes.items()],
+                              inits)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)], ir_version=8)
+    merged, count = merge_output_heads(model)
+    onnx.checker.check_model(merged, full_check=True)
+    assert count == 1  # score and regression; the pointwise head has another kernel, "inner" feeds a conv
+    ops = [n.op_type for n in merged.graph.node]
+    assert ops.count("Conv") == 5 and ops.count("Split") == 1
+    x = {"x": rng.standard_normal((1, 4, 10, 12)).astype(np.float32)}
+    before, after = (ort.InferenceSession(m.SerializeToString(), providers=["CPUExecutionProvider"]).run(list(shapes), x)
+                     for m in (model, merged))
+    for name, a, b in zip(shapes, before, after):
+        np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-5, err_msg=name)
+    assert merge_output_heads(merged)[1] == 0
 
 
 def test_pad_narrow_convs_is_exact_and_only_where_safe() -> None:

@@ -138,11 +138,12 @@ def test_transposed_conv_rewrite_is_exact(tiny_models, network):
     # The fp32 ends: input-side and output-side nodes up to the first and last conv.
     ends = boundary_nodes(rewritten)
     by_name = {n.name: n for n in rewritten.graph.node}
-    # depth: the early-fusion conv (conv1_d and conv1_img merged at export) and convtf; pixor: stem, score, regression
-    assert sum(by_name[n].op_type == "Conv" for n in ends) == {"depth": 2, "pixor": 3}[network]
+    # depth: the early-fusion conv (conv1_d and conv1_img merged at export) and convtf; pixor: stem and the merged
+    # score and regression heads (export/rewrite.py, 9)
+    assert sum(by_name[n].op_type == "Conv" for n in ends) == {"depth": 2, "pixor": 2}[network]
     assert set(boundary_nodes(rewritten, inputs=False)) < set(ends)
     # One conv deeper from the outputs: the depth net's last decoder stage (convt1, rewritten as a conv,
-    # and its attention conv) joins the fp32 tail; PIXOR's header conv before each head.
+    # and its attention conv) joins the fp32 tail; PIXOR's header conv before the heads.
     deeper = boundary_nodes(rewritten, inputs=False, output_convs=2)
     assert set(boundary_nodes(rewritten, inputs=False)) < set(deeper)
     assert sum(by_name[n].op_type == "Conv" for n in deeper) > sum(

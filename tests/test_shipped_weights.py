@@ -139,3 +139,64 @@ def test_camera_pipeline_boxes_sit_at_the_labelled_height(tmp_path):
     assert len(height_errors) >= 10
     assert np.median(np.abs(bottom_errors)) < 0.12, np.round(bottom_errors, 2)
     assert np.median(np.abs(height_errors)) < 0.15, np.round(height_errors, 2)
+
+
+def _with_pixor_graph(tmp_path: Path, name: str, edit) -> Path:
+    """A copy of a shipped directory whose pixor.onnx went through ``edit`` (a ModelProto → ModelProto), sha256 renewed."""
+    import shutil
+
+    import onnx
+
+    from pipeline.model_files import sha256_file
+
+    copy = tmp_path / name
+    shutil.copytree(WEIGHTS / name, copy)
+    onnx.save(edit(onnx.load(str(copy / "pixor.onnx"))), str(copy / "pixor.onnx"))
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["files"]["pixor.onnx"]["sha256"] = sha256_file(copy / "pixor.onnx")
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    return copy
+
+
+def _renamed_input(old: str, new: str):
+    def edit(model):
+        for value in model.graph.input:
+            value.name = new if value.name == old else value.name
+        for node in model.graph.node:
+            for k, name in enumerate(node.input):
+                node.input[k] = new if name == old else name
+        return model
+    return edit
+
+
+def test_shipped_pixor_reads_the_bev_in_pieces_with_the_same_boxes_as_whole(tmp_path):
+    """The shipped PIXORs take the BEV as channel pieces, fed as views of the voxelizer's buffer
+    (export/rewrite.py, 8): the same boxes as the graph joined back to one input."""
+    import onnx
+
+    from export.rewrite import inputs_from_channel_pieces
+
+    assert [i.name for i in onnx.load(str(WEIGHTS / "edge-lidar16" / "pixor.onnx")).graph.input] == ["bev[0:16]",
+                                                                                                   "bev[16:19]"]
+    whole = _with_pixor_graph(tmp_path, "edge-lidar16", lambda m: inputs_from_channel_pieces(m)[0])
+    assert [i.name for i in onnx.load(str(whole / "pixor.onnx")).graph.input] == ["bev"]
+    frame = load_frame(KITTI, "000006")
+    pieces, joined = (Detector(d).detect(None, frame.points, None, 0.1, emulate_to_beams=16)
+                      for d in (WEIGHTS / "edge-lidar16", whole))
+    assert len(pieces.scores) > 0
+    np.testing.assert_allclose(pieces.boxes, joined.boxes, rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(pieces.scores, joined.scores, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(("old", "new", "message"), [
+    ("bev[16:19]", "bev[15:18]", r"the inputs bev\[0:16\], bev\[15:18\] do not cover the channels of 'bev' once"),
+    ("bev[16:19]", "bev[16:20]", "do not match their channel ranges"),
+    ("bev[0:16]", "bev[0:15]", r"the inputs bev\[0:15\], bev\[16:19\] do not cover"),
+    ("bev[16:19]", "grid", "unknown input 'grid'"),
+])
+def test_a_pixor_whose_inputs_do_not_make_the_bev_is_refused_at_load(tmp_path, old, new, message):
+    from pipeline.model_files import ModelFileError
+
+    broken = _with_pixor_graph(tmp_path, "edge-lidar16", _renamed_input(old, new))
+    with pytest.raises(ModelFileError, match=message):
+        Detector(broken)
