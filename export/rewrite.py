@@ -165,6 +165,35 @@ def _replace_nodes(graph: onnx.GraphProto, nodes: list[onnx.NodeProto]) -> None:
     graph.initializer.extend(kept)
 
 
+def _splice(graph: onnx.GraphProto, replacements: dict[str, list[onnx.NodeProto]], dropped: set[str]) -> None:
+    """Put each node keyed (by name, or first output when unnamed) in ``replacements`` by its list, leave out
+    those in ``dropped``, and forget the inferred shapes."""
+    nodes = []
+    for node in graph.node:
+        key = node.name or node.output[0]
+        if key in replacements:
+            nodes.extend(replacements[key])
+        elif key not in dropped:
+            nodes.append(node)
+    _replace_nodes(graph, nodes)
+    del graph.value_info[:]
+
+
+def _plain_conv(node: onnx.NodeProto, initializers: dict) -> bool:
+    """A group-1 Conv whose weights (and bias) are stored in the graph."""
+    return (node.op_type == "Conv" and _attributes(node).get("group", 1) == 1
+            and all(name in initializers for name in node.input[1:] if name))
+
+
+def _consumers(graph: onnx.GraphProto) -> defaultdict[str, list[onnx.NodeProto]]:
+    """The nodes reading each tensor, by tensor name (in graph order)."""
+    consumers = defaultdict(list)
+    for node in graph.node:
+        for name in node.input:
+            consumers[name].append(node)
+    return consumers
+
+
 def _input_conv_weights(graph: onnx.GraphProto):
     """A function giving a node's weight array when it is a plain (group 1) Conv reading a graph input, else
     None: the convs :func:`split_input_convs` and :func:`pad_input_convs` rewrite."""
@@ -296,10 +325,7 @@ def quantize_before_pad(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
     """
     model = onnx.ModelProto.FromString(model.SerializeToString())
     graph = model.graph
-    consumers = defaultdict(list)
-    for node in graph.node:
-        for name in node.input:
-            consumers[name].append(node)
+    consumers = _consumers(graph)
     scalars = {init.name for init in graph.initializer if int(np.prod(init.dims)) == 1}
     outputs = {value.name for value in graph.output}
     replacement: dict[str, list[onnx.NodeProto]] = {}  # a moved Pad's name → the pair in its new order
@@ -340,15 +366,9 @@ def pad_narrow_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.Mode
     model = onnx.ModelProto.FromString(model.SerializeToString())
     graph = model.graph
     initializers = {init.name: init for init in graph.initializer}
-    consumers = defaultdict(list)
-    for node in graph.node:
-        for name in node.input:
-            consumers[name].append(node)
+    consumers = _consumers(graph)
     outputs = {value.name for value in graph.output}
 
-    def plain_conv(node: onnx.NodeProto) -> bool:
-        return (node.op_type == "Conv" and _attributes(node).get("group", 1) == 1
-                and all(name in initializers for name in node.input[1:] if name))
 
     def readers(node: onnx.NodeProto) -> list[onnx.NodeProto] | None:
         """The Convs reading the node's output as their data (through one zero-keeping activation);
@@ -359,7 +379,7 @@ def pad_narrow_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.Mode
                 found.extend((user.output[0], reader) for reader in consumers[user.output[0]])
             else:
                 found.append((node.output[0], user))
-        if not found or not all(plain_conv(reader) and reader.input[0] == tensor for tensor, reader in found):
+        if not found or not all(_plain_conv(reader, initializers) and reader.input[0] == tensor for tensor, reader in found):
             return None
         return [reader for _, reader in found]
 
@@ -368,7 +388,7 @@ def pad_narrow_convs(model: onnx.ModelProto, block: int = 16) -> tuple[onnx.Mode
 
     padded = 0
     for node in graph.node:
-        if not plain_conv(node) or node.output[0] in outputs:
+        if not _plain_conv(node, initializers) or node.output[0] in outputs:
             continue
         weight = numpy_helper.to_array(initializers[node.input[1]])
         narrow = weight.shape[0]
@@ -523,15 +543,7 @@ def merge_parallel_convs(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
             helper.make_node("Relu", [f"{name}_merged_y"], [node.output[0]], name=f"{name}_merged_relu"),
         ]
         merged_away.update(n.name or n.output[0] for pair in branches for n in pair)
-    nodes = []
-    for node in graph.node:
-        key = node.name or node.output[0]
-        if key in replacements:
-            nodes.extend(replacements[key])
-        elif key not in merged_away:
-            nodes.append(node)
-    _replace_nodes(graph, nodes)
-    del graph.value_info[:]
+    _splice(graph, replacements, merged_away)
     return model, len(replacements)
 
 
@@ -550,10 +562,7 @@ def inputs_from_channel_slices(model: onnx.ModelProto) -> tuple[onnx.ModelProto,
     model = onnx.ModelProto.FromString(model.SerializeToString())
     graph = model.graph
     initializers = {init.name: init for init in graph.initializer}
-    consumers = defaultdict(list)
-    for node in graph.node:
-        for name in node.input:
-            consumers[name].append(node)
+    consumers = _consumers(graph)
     outputs = {value.name for value in graph.output}
     new_inputs, renamed, dropped, replaced = [], {}, set(), 0
     for value in graph.input:
@@ -606,10 +615,7 @@ def inputs_from_channel_pieces(model: onnx.ModelProto) -> tuple[onnx.ModelProto,
     """
     model = onnx.ModelProto.FromString(model.SerializeToString())
     graph = model.graph
-    consumers = defaultdict(list)
-    for node in graph.node:
-        for name in node.input:
-            consumers[name].append(node)
+    consumers = _consumers(graph)
     pieces: dict[str, list[tuple[int, int, onnx.ValueInfoProto]]] = {}
     for value in graph.input:
         piece = channel_piece(value.name)
@@ -661,15 +667,11 @@ def merge_output_heads(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
     model = onnx.ModelProto.FromString(model.SerializeToString())
     graph = model.graph
     initializers = {init.name: init for init in graph.initializer}
-    consumers = defaultdict(list)
-    for node in graph.node:
-        for name in node.input:
-            consumers[name].append(node)
+    consumers = _consumers(graph)
     outputs = {value.name for value in graph.output}
 
     def is_head(node: onnx.NodeProto) -> bool:
-        if (node.op_type != "Conv" or _attributes(node).get("group", 1) != 1 or node.input[1] not in initializers
-                or (len(node.input) > 2 and node.input[2] and node.input[2] not in initializers)):
+        if not _plain_conv(node, initializers):
             return False
         out = node.output[0]
         readers = consumers[out]
@@ -704,15 +706,7 @@ def merge_output_heads(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
                              axis=1),
         ]
         dropped.update(h.name or h.output[0] for h in heads[1:])
-    nodes = []
-    for node in graph.node:
-        key = node.name or node.output[0]
-        if key in replacements:
-            nodes.extend(replacements[key])
-        elif key not in dropped:
-            nodes.append(node)
-    _replace_nodes(graph, nodes)
-    del graph.value_info[:]
+    _splice(graph, replacements, dropped)
     return model, len(dropped)
 
 
