@@ -8,7 +8,7 @@ shipped weights come without their training checkpoints. The rewrites are
 exact graph transformations, so they can be applied to the ONNX files
 themselves: this command does that, checks ONNX Runtime's outputs of the new
 graphs against the old ones on a real KITTI frame and on random inputs, and
-rewrites the manifest's sha256s and ``export.cpu_rewrites``. Applying it twice
+rewrites the manifest's sha256s, ``graph_inputs`` and ``export.cpu_rewrites``. Applying it twice
 changes nothing (every rewrite skips what it already lowered, and a directory
 with nothing left to rewrite is not touched).
 """
@@ -27,6 +27,7 @@ import onnxruntime as ort
 
 from export.directory import check_destination, staged
 from export.inputs import kitti_inputs, random_inputs
+from export.manifest import graph_inputs
 from export.rewrite import lower_for_cpu
 from pipeline.graph_inputs import feeds_for
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
@@ -81,7 +82,9 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
         lowered[name], rewrites[name], differences[name] = graph, counts, worst
 
     in_place = out.resolve() == models.resolve()
-    if in_place and not any(any(counts.values()) for counts in rewrites.values()):
+    listed = all(entry.get("graph_inputs") == graph_inputs(models / entry["file"])
+                 for entry in manifest["networks"].values())
+    if in_place and listed and not any(any(counts.values()) for counts in rewrites.values()):
         return LowerResult(out, rewrites, differences)  # already lowered: leave the directory as it is
     if not in_place:
         check_destination(out)
@@ -93,6 +96,7 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
             path = staging / manifest["networks"][name]["file"]
             onnx.save(graph, str(path))
             manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+            manifest["networks"][name]["graph_inputs"] = graph_inputs(path)
             totals = recorded.setdefault(name, {})
             for rewrite, count in rewrites[name].items():
                 totals[rewrite] = totals.get(rewrite, 0) + count

@@ -11,6 +11,8 @@ from dataclasses import asdict, dataclass
 from importlib import metadata
 from pathlib import Path
 
+import onnx
+
 from pipeline.model_files import MANIFEST_NAME, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import Preset
 
@@ -53,6 +55,19 @@ def package_versions(names: tuple[str, ...] = ("torch", "onnx", "onnxruntime", "
     return versions
 
 
+def graph_inputs(path: str | Path) -> list[dict]:
+    """The ONNX file's own inputs, name and shape, as a runtime other than the Detector must feed them.
+
+    They differ from the network's ``inputs`` where the lowering reads a tensor in channel pieces
+    (export/rewrite.py, 8: ``bev[0:32]`` and ``bev[32:37]`` are channels 0–31 and 32–36 of ``bev``).
+    """
+    graph = onnx.load(str(path), load_external_data=False).graph
+    stored = {init.name for init in graph.initializer}
+    return [{"name": value.name,
+             "shape": [d.dim_value if d.HasField("dim_value") else d.dim_param for d in value.type.tensor_type.shape.dim]}
+            for value in graph.input if value.name not in stored]
+
+
 def weights_summary(networks: dict[str, NetworkEntry]) -> str:
     """One string for the whole directory: trained, untrained, or which part is trained."""
     states = {name: entry.weights for name, entry in networks.items()}
@@ -78,7 +93,8 @@ def build_manifest(
         "preset": preset.name,
         "preset_config": preset.to_dict(),
         "weights": weights_summary(networks),
-        "networks": {name: asdict(entry) for name, entry in networks.items()},
+        "networks": {name: {**asdict(entry), "graph_inputs": graph_inputs(directory / entry.file)}
+                     for name, entry in networks.items()},
         "bev_grid": {**asdict(grid), "shape": list(grid.shape), "nx": grid.nx, "ny": grid.ny, "nz": grid.nz},
         "normalisation": normalisation,
         "files": {

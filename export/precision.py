@@ -33,6 +33,7 @@ import onnx
 from tqdm import tqdm
 
 from export.directory import check_destination, staged
+from export.manifest import graph_inputs
 from export.rewrite import (
     boundary_nodes,
     inputs_from_channel_pieces,
@@ -242,6 +243,7 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
                                       output_convs=2 if name == "depth" else 1, moving_average=False,
                                       reduce_range=reduce_range)
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
+        manifest["networks"][name]["graph_inputs"] = graph_inputs(path)  # INT8 reads the BEV whole again
     manifest["precision"] = precision
     manifest["precision_info"] = {
         # Which FP32 files this directory was converted from (their manifest's sha256s).

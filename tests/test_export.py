@@ -585,6 +585,8 @@ def test_manifest_contents(tiny_export: ExportResult, tmp_path: Path) -> None:
     assert manifest["preset_config"] == json.loads(json.dumps(preset.to_dict()))
     assert manifest["weights"] == "initialised (untrained)"
     assert manifest["bev_grid"]["shape"] == list(preset.bev.shape)
+    # tiny's 8-channel BEV is below one NCHWc block: read whole, as declared
+    assert manifest["networks"]["pixor"]["graph_inputs"] == [{"name": "bev", "shape": [1, *preset.bev.shape]}]
     assert manifest["normalisation"]["rgb_mean"] == pytest.approx([123.675, 116.28, 103.53])
     assert manifest["normalisation"]["rgb_std"] == pytest.approx([58.395, 57.12, 57.375])
     assert set(manifest["versions"]) >= {"torch", "onnx", "onnxruntime"}

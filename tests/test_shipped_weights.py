@@ -200,3 +200,20 @@ def test_a_pixor_whose_inputs_do_not_make_the_bev_is_refused_at_load(tmp_path, o
     broken = _with_pixor_graph(tmp_path, "edge-lidar16", _renamed_input(old, new))
     with pytest.raises(ModelFileError, match=message):
         Detector(broken)
+
+
+@pytest.mark.parametrize("name", sorted(SHIPPED))
+def test_shipped_manifest_lists_the_inputs_each_graph_takes(name):
+    """A runtime other than the Detector (Triton, say: docs/deploy.md) feeds what ``graph_inputs`` lists: the
+    ONNX files' own inputs, the BEV in channel pieces for the FP32 PIXORs and whole for INT8's."""
+    from export.manifest import graph_inputs
+    from pipeline.graph_inputs import whole_shapes
+
+    for entry in _manifest(name)["networks"].values():
+        listed = entry["graph_inputs"]
+        assert listed == graph_inputs(WEIGHTS / name / entry["file"])
+        assert whole_shapes({i["name"]: tuple(i["shape"]) for i in listed}) == {
+            i["name"]: tuple(i["shape"]) for i in entry["inputs"]}
+    pixor = [i["name"] for i in _manifest(name)["networks"]["pixor"]["graph_inputs"]]
+    assert pixor == (["bev"] if name == "edge-int8" else ["bev[0:16]", "bev[16:19]"] if "lidar" in name
+                     else ["bev[0:32]", "bev[32:37]"])
