@@ -61,6 +61,7 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
                              "directory and convert it again (python -m export.precision)")
     preset = preset_from_dict(manifest["preset_config"])
     samples = [kitti_inputs(preset), random_inputs(preset, seed=1)]
+    sources: dict[str, onnx.ModelProto] = {}
     lowered: dict[str, onnx.ModelProto] = {}
     rewrites: dict[str, dict[str, int]] = {}
     differences: dict[str, float] = {}
@@ -79,11 +80,11 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
                     raise ValueError(f"{models / entry['file']}: the lowered graph differs from the original by "
                                      f"{float(np.max(np.abs(a - b))):.3g} on {sample.source}")
                 worst = max(worst, float(np.max(np.abs(a - b))))
-        lowered[name], rewrites[name], differences[name] = graph, counts, worst
+        sources[name], lowered[name], rewrites[name], differences[name] = source, graph, counts, worst
 
     in_place = out.resolve() == models.resolve()
-    listed = all(entry.get("graph_inputs") == graph_inputs(models / entry["file"])
-                 for entry in manifest["networks"].values())
+    listed = all(manifest["networks"][name].get("graph_inputs") == graph_inputs(source)
+                 for name, source in sources.items())
     if in_place and listed and not any(any(counts.values()) for counts in rewrites.values()):
         return LowerResult(out, rewrites, differences)  # already lowered: leave the directory as it is
     if not in_place:
@@ -96,7 +97,7 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
             path = staging / manifest["networks"][name]["file"]
             onnx.save(graph, str(path))
             manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
-            manifest["networks"][name]["graph_inputs"] = graph_inputs(path)
+            manifest["networks"][name]["graph_inputs"] = graph_inputs(graph)
             totals = recorded.setdefault(name, {})
             for rewrite, count in rewrites[name].items():
                 totals[rewrite] = totals.get(rewrite, 0) + count

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import onnx
 
+from export.rewrite import value_shape
 from pipeline.model_files import MANIFEST_NAME, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import Preset
 
@@ -55,17 +56,16 @@ def package_versions(names: tuple[str, ...] = ("torch", "onnx", "onnxruntime", "
     return versions
 
 
-def graph_inputs(path: str | Path) -> list[dict]:
-    """The ONNX file's own inputs, name and shape, as a runtime other than the Detector must feed them.
+def graph_inputs(model: onnx.ModelProto | str | Path) -> list[dict]:
+    """An ONNX model's (or file's) own inputs, name and shape, as a runtime other than the Detector must feed them.
 
     They differ from the network's ``inputs`` where the lowering reads a tensor in channel pieces
     (export/rewrite.py, 8: ``bev[0:32]`` and ``bev[32:37]`` are channels 0–31 and 32–36 of ``bev``).
     """
-    graph = onnx.load(str(path), load_external_data=False).graph
-    stored = {init.name for init in graph.initializer}
-    return [{"name": value.name,
-             "shape": [d.dim_value if d.HasField("dim_value") else d.dim_param for d in value.type.tensor_type.shape.dim]}
-            for value in graph.input if value.name not in stored]
+    if not isinstance(model, onnx.ModelProto):
+        model = onnx.load(str(model), load_external_data=False)
+    stored = {init.name for init in model.graph.initializer}
+    return [{"name": value.name, "shape": value_shape(value)} for value in model.graph.input if value.name not in stored]
 
 
 def weights_summary(networks: dict[str, NetworkEntry]) -> str:

@@ -77,13 +77,12 @@
 from __future__ import annotations
 
 from collections import defaultdict
-from itertools import pairwise
 
 import numpy as np
 import onnx
 from onnx import helper, numpy_helper
 
-from pipeline.graph_inputs import channel_piece, piece_name
+from pipeline.graph_inputs import channel_piece, piece_name, tiles
 
 # Kernel row (or column) of a 3×3 stride-2 transposed conv that output phase a ∈ {0, 1} takes from
 # input offset d ∈ {0, 1} (input i + d for output 2i + a); None: no tap. From 2i + a = 2(i + d) − 1 + k.
@@ -547,6 +546,11 @@ def merge_parallel_convs(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
     return model, len(replacements)
 
 
+def value_shape(value: onnx.ValueInfoProto) -> list[int | str]:
+    """A graph input's or output's shape: sizes, or the names of symbolic dimensions."""
+    return [d.dim_value if d.HasField("dim_value") else d.dim_param for d in value.type.tensor_type.shape.dim]
+
+
 def _constant_ints(initializers: dict[str, onnx.TensorProto], name: str) -> list[int] | None:
     """The values of an int64 initializer, or None when ``name`` is not one."""
     if name not in initializers or initializers[name].data_type != onnx.TensorProto.INT64:
@@ -581,12 +585,10 @@ def inputs_from_channel_slices(model: onnx.ModelProto) -> tuple[onnx.ModelProto,
             ranges.append((bounds[0][0], bounds[1][0], node))
         else:
             ranges.sort(key=lambda r: r[0])
-            edges = [r[0] for r in ranges] + [ranges[-1][1]]
-            if edges[0] == 0 and edges[-1] == dims[1].dim_value and all(
-                    r[1] == nxt for r, nxt in zip(ranges, edges[1:])) and all(lo < hi for lo, hi, _ in ranges):
+            if tiles([r[:2] for r in ranges]) and ranges[-1][1] == dims[1].dim_value:
                 for lo, hi, node in ranges:
                     piece = piece_name(value.name, lo, hi)
-                    shape = [d.dim_value if d.HasField("dim_value") else d.dim_param for d in dims]
+                    shape = value_shape(value)
                     shape[1] = hi - lo
                     new_inputs.append(helper.make_tensor_value_info(piece, value.type.tensor_type.elem_type, shape))
                     renamed[node.output[0]] = piece
@@ -624,10 +626,10 @@ def inputs_from_channel_pieces(model: onnx.ModelProto) -> tuple[onnx.ModelProto,
     slices, joined = [], {}
     for base, parts in pieces.items():
         parts.sort(key=lambda p: p[0])
-        if parts[0][0] != 0 or any(a[1] != b[0] for a, b in pairwise(parts)):
+        if not tiles([p[:2] for p in parts]):
             continue
         first = parts[0][2]
-        dims = [d.dim_value if d.HasField("dim_value") else d.dim_param for d in first.type.tensor_type.shape.dim]
+        dims = value_shape(first)
         dims[1] = parts[-1][1]
         joined[base] = (helper.make_tensor_value_info(base, first.type.tensor_type.elem_type, dims),
                         {p[2].name for p in parts})

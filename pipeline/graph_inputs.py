@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import re
 from collections.abc import Iterable, Mapping
+from itertools import pairwise
 
 import numpy as np
 
@@ -52,6 +53,12 @@ def session_feeds(input_names: Iterable[str], arrays: Mapping[str, np.ndarray]) 
     return feeds
 
 
+def tiles(ranges: list[tuple[int, int]]) -> bool:
+    """Channel ranges (lo, hi), sorted, that cover 0…hi of the last once each, none empty."""
+    return (bool(ranges) and ranges[0][0] == 0 and all(lo < hi for lo, hi in ranges)
+            and all(a[1] == b[0] for a, b in pairwise(ranges)))
+
+
 def whole_inputs(input_names: Iterable[str]) -> dict[str, list[tuple[int, int]]]:
     """Each whole tensor a session reads in pieces, with its pieces' channel ranges in order."""
     pieces: dict[str, list[tuple[int, int]]] = {}
@@ -75,8 +82,7 @@ def whole_shapes(shapes: Mapping[str, tuple[int, ...]]) -> dict[str, tuple[int, 
     """
     joined = {name: tuple(shape) for name, shape in shapes.items() if channel_piece(name) is None}
     for base, ranges in whole_inputs(shapes).items():
-        starts = [lo for lo, _ in ranges]
-        if starts != [0] + [hi for _, hi in ranges[:-1]]:
+        if not tiles(ranges):
             raise ValueError(f"the inputs {', '.join(piece_name(base, lo, hi) for lo, hi in ranges)} do not cover "
                              f"the channels of '{base}' once each")
         pieces = [tuple(shapes[piece_name(base, lo, hi)]) for lo, hi in ranges]
