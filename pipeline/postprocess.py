@@ -43,14 +43,14 @@ def estimate_heights(bev_boxes: np.ndarray, bev: np.ndarray, preset: Preset,
     k, rows, cols, _ = box_cells(boxes7, out)
     if k.size == 0:
         return z, h
-    # The stride × stride block of BEV cells under each output cell, every height slice.
-    sub = np.arange(stride)
-    bev_rows = np.repeat(rows * stride, stride * stride) + np.tile(np.repeat(sub, stride), rows.size)
-    bev_cols = np.repeat(cols * stride, stride * stride) + np.tile(np.tile(sub, stride), cols.size)
-    occupancy = bev[: grid.nz, bev_rows, bev_cols].reshape(grid.nz, rows.size, stride * stride).sum(axis=2)
-    one_hot = np.zeros((n, k.size))
-    one_hot[k, np.arange(k.size)] = 1.0
-    histogram = one_hot @ occupancy.T  # (boxes, slices): occupied voxels per height slice
+    # The stride × stride block of BEV cells under each output cell, as flat cell indices, every height
+    # slice; a one-hot matrix of each cell's box sums them per box (exact: the sums are counts).
+    block = (np.arange(stride)[:, None] * grid.nx + np.arange(stride)).reshape(-1)
+    cells = ((rows * (stride * grid.nx) + cols * stride)[:, None] + block).reshape(-1)
+    occupancy = np.take(bev[: grid.nz].reshape(grid.nz, -1), cells, axis=1).astype(np.float64)
+    one_hot = np.zeros((cells.size, n))
+    one_hot[np.arange(cells.size), np.repeat(k, block.size)] = 1.0
+    histogram = (occupancy @ one_hot).T  # (boxes, slices): occupied voxels per height slice
     total = histogram.sum(axis=1)
     cumulative = np.cumsum(histogram, axis=1)
     low = np.argmax(cumulative >= _LOW_Q * total[:, None], axis=1)

@@ -270,6 +270,30 @@ def test_nms_quick_accept_is_a_true_lower_bound():
         assert not _certainly_over(a[i : i + 1], b[i : i + 1], 1.02 * lens / areas + 1e-12)[0]
 
 
+def test_nms_quick_reject_finds_exactly_the_disjoint_pairs():
+    """The separating-axis test NMS uses to skip clipping never calls overlapping boxes apart, and calls
+    every pair apart that lies apart by more than rounding (checked against shapely's areas)."""
+    from shapely.geometry import Polygon
+
+    from pipeline.iou import _certainly_apart
+
+    rng = np.random.default_rng(12)
+    a = random_boxes(rng, 2000)
+    b = a + np.column_stack([rng.normal(0, 3.0, (2000, 2)), rng.normal(0, 0.5, (2000, 2)), rng.uniform(-3, 3, 2000)])
+    b[:, 2:4] = np.abs(b[:, 2:4]) + 0.3
+    apart = _certainly_apart(a, b)
+    corners_a, corners_b = rect_corners(a), rect_corners(b)
+    gaps = np.array([Polygon(ca).distance(Polygon(cb)) for ca, cb in zip(corners_a, corners_b)])
+    overlap = np.array([Polygon(ca).intersection(Polygon(cb)).area for ca, cb in zip(corners_a, corners_b)])
+    assert not np.any(apart & (overlap > 0))
+    np.testing.assert_array_equal(apart[gaps > 1e-6], True)
+    assert 0.2 < apart.mean() < 0.8  # both kinds of pair are there
+    # Boxes sharing a side or a corner are not apart: their gap is 0.
+    touching = np.array([[0, 0, 4, 2, 0.0], [0, 0, 4, 2, 0.0], [0, 0, 4, 2, 0.3]])
+    others = np.array([[4, 0, 4, 2, 0.0], [0, 2, 4, 2, 0.0], [0, 0, 1, 1, 0.0]])
+    assert not _certainly_apart(touching, others).any()
+
+
 def test_nms_equals_plain_greedy_on_clustered_candidates():
     """The circle prefilter changes no decision: compare with greedy NMS over the full IoU matrix."""
 
