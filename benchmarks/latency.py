@@ -39,7 +39,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import metadata
 from pathlib import Path
 
@@ -182,9 +182,9 @@ def onnx_twin(detector: Detector, names: tuple[str, ...]) -> dict:
     return networks
 
 
-def torch_detector(models_dir: Path, networks: dict) -> Detector:
+def torch_detector(models_dir: Path, networks: dict, stage_threads: int | None = None) -> Detector:
     """The same Detector with its sessions swapped for the PyTorch modules (same weights)."""
-    detector = Detector(models_dir, providers="cpu")
+    detector = Detector(models_dir, providers="cpu", stage_threads=stage_threads)
     inputs = {"depth": ["rgb", "sparse_depth"], "pixor": ["bev"]}
     detector._sessions = {name: TorchSession(networks[name].eval(), inputs[name]) for name in detector._sessions}
     detector._input_names = {name: inputs[name] for name in detector._sessions}  # whole tensors, as PyTorch takes them
@@ -198,6 +198,7 @@ class StreamResult:
     stages: dict[str, list[float]]
     wall_s: float
     frames: int
+    overlapped: dict[str, list[float]] = field(default_factory=dict)  # stages run beside a network
 
 
 def run_stream(detector: Detector, frames: list[Frame], count: int, warmup: int) -> StreamResult:
@@ -206,6 +207,7 @@ def run_stream(detector: Detector, frames: list[Frame], count: int, warmup: int)
         f = frames[i % len(frames)]
         detector.detect(f.image, f.points, f.calib)
     stages: dict[str, list[float]] = {}
+    overlapped: dict[str, list[float]] = {}
     totals = []
     tic = time.perf_counter()
     for i in range(count):
@@ -215,7 +217,9 @@ def run_stream(detector: Detector, frames: list[Frame], count: int, warmup: int)
         for stage, ms in result.timings_ms.items():
             if stage != "total":
                 stages.setdefault(stage, []).append(ms)
-    return StreamResult(totals, stages, time.perf_counter() - tic, count)
+        for stage, ms in result.overlapped_ms.items():
+            overlapped.setdefault(stage, []).append(ms)
+    return StreamResult(totals, stages, time.perf_counter() - tic, count, overlapped)
 
 
 def run_paired(first: Detector, second: Detector, frames: list[Frame], count: int, warmup: int,
@@ -413,7 +417,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
         precision: str | None = None, baseline: Path | None = None, worker_kind: str = "thread",
-        peak_size: int = PEAK_MATMUL, ops: bool = False) -> dict:
+        peak_size: int = PEAK_MATMUL, ops: bool = False, stage_threads: int | None = None) -> dict:
     """Measure everything; returns the JSON-able report.
 
     preset: the preset to export and time when ``models`` is None (default :data:`DEFAULT_PRESET`); with
@@ -421,6 +425,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     directory's (a check); without, the exported FP32 preset is converted (calibrated on the benchmark frames).
     peak_size: the MatMul's size in the peak micro-benchmark (12 s at 4096 here; the figures quoted use 4096).
     ops: also profile each network operator by operator (``networks[name]["ops"]``).
+    stage_threads: the single-stream Detectors' (:class:`pipeline.detector.Detector`; None: its default,
+    2 on two or more cores); throughput workers of one core each run their stages in turn.
     """
     cores = sorted(os.sched_getaffinity(0))
     scratch = None
@@ -440,9 +446,10 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         reduced = Path(scratch.name) / precision
         convert_precision(models, reduced, precision, data, calibration_frames=min(frames, 20))
         models = reduced
-    detector = Detector(models, providers=provider, intra_op_threads=len(cores))
+    detector = Detector(models, providers=provider, intra_op_threads=len(cores), stage_threads=stage_threads)
     # Loaded now, so a bad directory is refused before minutes of timing.
-    other = None if baseline is None else Detector(baseline, providers=provider, intra_op_threads=len(cores))
+    other = None if baseline is None else Detector(baseline, providers=provider, intra_op_threads=len(cores),
+                                                   stage_threads=stage_threads)
     actual = detector.manifest.get("precision", "fp32")
     if precision and actual != precision:
         raise InputError(f"--precision {precision}, but {models} holds {actual} models")
@@ -469,7 +476,12 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     report["end_to_end_ms"] = summarize(stream.end_to_end)
     report["fps"] = 1e3 / report["end_to_end_ms"]["mean"]
     report["stages_ms"] = summarize_stages(stream)
-    between = sum(report["stages_ms"][s]["mean"] for s in report["stages_ms"] if s not in ("depth_net", "pixor"))
+    report["stage_threads"] = detector.stage_threads
+    report["overlapped_ms"] = {stage: summarize(ms) for stage, ms in stream.overlapped.items()}
+    # Everything of a frame's wall time outside the network runs (the input checks too); stages run
+    # beside a network count only for the time the frame waited for them.
+    networks_ms = sum(report["stages_ms"][s]["mean"] for s in ("depth_net", "pixor") if s in report["stages_ms"])
+    between = report["end_to_end_ms"]["mean"] - networks_ms
     report["non_network_fraction"] = between / report["end_to_end_ms"]["mean"]
     # A calibration's ray table is built on its first frame only (pipeline/detector.py): what a vehicle,
     # with one calibration, spends between the networks is the rest.
@@ -501,7 +513,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         import torch
 
         torch.set_num_threads(len(cores))
-        paired, eager, ratios = run_paired(detector, torch_detector(models, torch_networks), pool, frames, warmup)
+        paired, eager, ratios = run_paired(detector, torch_detector(models, torch_networks, stage_threads), pool,
+                                           frames, warmup)
         report["torch_end_to_end_ms"] = summarize(eager.end_to_end)
         report["torch_stages_ms"] = summarize_stages(eager)
         # Against the ONNX Runtime frames interleaved with the PyTorch ones, not the stream above.
@@ -568,6 +581,9 @@ def print_report(report: dict) -> None:
         between += (f" ({100 * report['non_network_fraction_fixed_calibration']:.1f} % without building ray tables,"
                     " which a fixed calibration does once: these frames do not share one)")
     print(between)
+    if report.get("overlapped_ms"):
+        beside = ", ".join(f"{stage} {s['p50']:.2f} ms" for stage, s in report["overlapped_ms"].items())
+        print(f"  on the stage thread beside the depth net (p50; on the frame's path only as waited for): {beside}")
     size = report["peak_detail"]["matmul_size"]
     print(f"peak (best of the {size}² MatMul {report['peak_detail'][f'matmul_{size}_gflops']:.0f} and 3×3 conv "
           f"{report['peak_detail']['conv3x3_256_gflops']:.0f} GFLOP/s): {report['peak_gflops']:.0f} GFLOP/s")
@@ -632,6 +648,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ops", action="store_true",
                         help="also time each network operator by operator with ONNX Runtime's profiler "
                         "(20 runs on a real frame's inputs): where its time goes, and the convolutions' own GFLOP/s")
+    parser.add_argument("--stage-threads", type=int, choices=(1, 2),
+                        help="the single stream's threads for the stages between the networks: 2 runs those that "
+                        "need no depth beside the depth net, 1 runs all in turn (default: 2 on two or more cores)")
     parser.add_argument("--json", type=Path, help="write the report as JSON")
     parser.add_argument("--plot", type=Path, help="write the latency distribution per stage as PNG")
     args = parser.parse_args(argv)
@@ -645,7 +664,8 @@ def main(argv: list[str] | None = None) -> int:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
                      args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision,
-                     baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops)
+                     baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops,
+                     stage_threads=args.stage_threads)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -167,6 +167,9 @@ class BevVoxelizer:
         self._heights: np.ndarray | None = None  # made on the first frame that needs it
         self._heights_touched: list[np.ndarray] = []
         self.height_occupancy: np.ndarray = self._out
+        # This frame's real points (add_points), for the pseudo points and the reflectance after them.
+        self._real_occupancy = self._real_cells = np.zeros(0, np.int64)
+        self._real_reflectance = np.zeros(0, np.float32)
 
     def __call__(self, points: np.ndarray,
                  pseudo: PseudoBins | tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
@@ -180,41 +183,63 @@ class BevVoxelizer:
         index arrays it wrote with (``pseudo.occupancy`` among them) to clear those cells on the next
         call: leave them unchanged until then.
         """
+        self.add_points(points)
+        return self.add_pseudo(pseudo)
+
+    def add_points(self, points: np.ndarray) -> None:
+        """The first half of a frame, which needs no depth: clear the last frame's cells, write the real points.
+
+        The Detector runs it while the depth net runs; :meth:`add_pseudo` completes the frame.
+        """
         grid = self.grid
         plane = grid.ny * grid.nx
         for touched in self._touched:  # clear only what the last frame set
             self._flat[touched] = 0.0
         iz, iy, ix, kept = bev_indices(points, grid)
         cell = iy * grid.nx + ix
-        real_occupancy = iz * plane + cell
-        self._flat[real_occupancy] = 1.0
-        self._touched = [real_occupancy]
-        counted = cell
+        self._real_occupancy = iz * plane + cell
+        self._flat[self._real_occupancy] = 1.0
+        self._touched = [self._real_occupancy]
+        self._real_cells, self._real_reflectance = cell, points[kept, 3]
         self.height_occupancy = self._out
+        if grid.split_pseudo:  # the reflectance averages the real points only: it need not wait
+            self._write_reflectance(cell)
+
+    def add_pseudo(self, pseudo: PseudoBins | tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """The second half of a frame after :meth:`add_points`: the pseudo points (None: there are none) and,
+        on a shared grid, the reflectance they dilute. Returns the BEV tensor."""
+        grid = self.grid
+        real_occupancy, counted = self._real_occupancy, self._real_cells
         if pseudo is not None:
             if not isinstance(pseudo, PseudoBins):
                 pseudo = bins_of_xyz(*pseudo, grid)
             sharp = pseudo.occupancy if pseudo.sharp is None else pseudo.occupancy[pseudo.sharp]
             if grid.split_pseudo:
-                # Own channels after the reflectance; the reflectance averages the real points only.
-                pseudo_occupancy = pseudo.occupancy + (grid.nz + 1) * plane
+                # Own channels after the reflectance.
+                pseudo_occupancy = pseudo.occupancy + (grid.nz + 1) * grid.ny * grid.nx
                 self.height_occupancy = self._sharp_occupancy(real_occupancy, sharp)
             else:
                 pseudo_occupancy = pseudo.occupancy
-                counted = np.concatenate([cell, pseudo.cell])
+                counted = np.concatenate([counted, pseudo.cell])
                 if sharp.shape[0] < pseudo.occupancy.shape[0]:
                     self.height_occupancy = self._sharp_occupancy(real_occupancy, sharp)
             self._flat[pseudo_occupancy] = 1.0
             self._touched.append(pseudo_occupancy)
-        # Mean reflectance of each cell with real returns (shared channels: pseudo points add 0 to
-        # the sum but count), written only there: each point writes its cell's mean (duplicates write
-        # the same value), which avoids scanning the whole plane for the occupied cells.
+        if not grid.split_pseudo:
+            self._write_reflectance(counted)
+        return self._out
+
+    def _write_reflectance(self, counted: np.ndarray) -> None:
+        """Mean reflectance of each cell with real returns, over the points in ``counted`` (shared channels:
+        pseudo points add 0 to the sum but count), written only there: each point writes its cell's mean
+        (duplicates write the same value), which avoids scanning the whole plane for the occupied cells."""
+        grid, cell = self.grid, self._real_cells
+        plane = grid.ny * grid.nx
         counts = np.bincount(counted, minlength=plane)
-        sums = np.bincount(cell, weights=points[kept, 3], minlength=plane)
+        sums = np.bincount(cell, weights=self._real_reflectance, minlength=plane)
         reflectance_index = grid.nz * plane + cell
         self._flat[reflectance_index] = sums[cell] / counts[cell]
         self._touched.append(reflectance_index)
-        return self._out
 
     def _sharp_occupancy(self, real: np.ndarray, sharp_pseudo: np.ndarray) -> np.ndarray:
         """The uint8 (nz, ny, nx) occupancy of the real points and the sharp pseudo points (a reused buffer)."""

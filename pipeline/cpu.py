@@ -11,6 +11,7 @@ export.precision --reduce-range``) keep every pair below 2¹⁵ on every CPU.
 
 from __future__ import annotations
 
+import os
 import platform
 from functools import cache
 from pathlib import Path
@@ -71,3 +72,8 @@ def int8_pairs_saturate(flags: frozenset[str] | None = None) -> bool:
     An x86 machine whose flags cannot be read counts as saturating (the safe answer).
     """
     return is_x86() and not has_vnni(flags)
+
+
+def usable_cpus() -> int:
+    """The CPUs this process may run on (its affinity mask where the OS has one, else all)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

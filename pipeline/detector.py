@@ -7,8 +7,14 @@ BEV bins) → ``voxelize`` (BEV tensor of pseudo + real points) → ``pixor`` (p
 smeared across depth edges). A model directory without
 ``depth.onnx`` is a LiDAR-only PIXOR: it skips the first three stages.
 
+With two or more cores for a frame (``stage_threads``), the work that needs
+no depth runs on a second thread while the depth net runs: the calibration's
+rays and the real points' half of the voxelization. Those stages are then
+timed as the frame waited for them (about nothing), and what they took on
+their thread is in ``Detections.overlapped_ms``.
+
 One Detector may be called from several threads at once: ONNX Runtime
-sessions are thread-safe and each thread gets its own BEV buffer.
+sessions are thread-safe and each thread gets its own BEV buffer (and stage thread).
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,7 +33,7 @@ from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import Calibration
-from pipeline.cpu import int8_pairs_saturate
+from pipeline.cpu import int8_pairs_saturate, usable_cpus
 from pipeline.errors import InputError
 from pipeline.graph_inputs import session_feeds, whole_shapes
 from pipeline.kitti import Object3D
@@ -59,14 +66,17 @@ class Detections:
     """Boxes of one frame.
 
     boxes: float64 (K, 7) ``x, y, z, l, w, h, yaw`` in the LiDAR frame; scores (K,),
-    best first. timings_ms: per stage and ``total``. warnings: what was
-    dropped or adjusted on the way.
+    best first. timings_ms: per stage and ``total``, as the frame spent them
+    one after the other. overlapped_ms: stages run on the stage thread while a
+    network ran (not part of ``total``'s sum). warnings: what was dropped or
+    adjusted on the way.
     """
 
     boxes: np.ndarray
     scores: np.ndarray
     label: str = "Car"
     timings_ms: dict[str, float] = field(default_factory=dict)
+    overlapped_ms: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     points: np.ndarray | None = field(default=None, repr=False)  # the points PIXOR saw (for pictures)
 
@@ -145,7 +155,11 @@ class Detector:
         intra_op_threads: int | None = None,
         verify: bool = True,
         trt_cache_dir: str | Path | None = None,
+        stage_threads: int | None = None,
     ) -> None:
+        """stage_threads: 2 runs the stages that need no depth beside the depth net, 1 runs every stage in
+        turn; None: 2 when the networks may use two or more threads (``intra_op_threads`` not 1) and the
+        process two or more CPUs. A worker given one core gains nothing from a second thread."""
         self.model_dir = Path(model_dir)
         self.manifest = load_manifest(self.model_dir)
         if verify:
@@ -184,6 +198,11 @@ class Detector:
         self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}
         self._check_shapes()
         self._local = threading.local()
+        if stage_threads is None:
+            stage_threads = 2 if intra_op_threads != 1 and usable_cpus() >= 2 else 1
+        if stage_threads not in (1, 2):
+            raise InputError(f"stage_threads: 1 or 2, not {stage_threads}")
+        self.stage_threads = stage_threads
         fallback = self._check_provider_loaded(explicit=bool(providers))
         # About the weights and the precision on this machine, logged once at load (and shown by the
         # service's /v1/model).
@@ -284,6 +303,26 @@ class Detector:
             voxelizer = self._local.voxelizer = BevVoxelizer(self.preset.bev)
         return voxelizer
 
+    def _stage_thread(self) -> ThreadPoolExecutor:
+        """The calling thread's stage thread (one each, like the BEV buffer its work writes)."""
+        executor = getattr(self._local, "stage_thread", None)
+        if executor is None:
+            executor = self._local.stage_thread = ThreadPoolExecutor(1, thread_name_prefix="lowres3d-stages")
+        return executor
+
+    def _without_depth(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration) -> dict[str, float]:
+        """The stages of a frame that need no depth: the view's rays (built once per calibration) and the real
+        points' half of the voxelization. Returns what each took."""
+        timings = {}
+        tic = time.perf_counter()
+        height, width = self.preset.depth.input_hw
+        bin_rays(view_calib, height, width, self.preset.pseudo_limits[2], self.preset.bev)
+        timings["ray_table"] = (time.perf_counter() - tic) * 1e3
+        tic = time.perf_counter()
+        voxelizer.add_points(points)
+        timings["voxelize"] = (time.perf_counter() - tic) * 1e3
+        return timings
+
     # ------------------------------------------------------------------ stages
     def dense_depth(self, image: np.ndarray, points: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
         """Depth completion alone: (H, W) metres in the network's view, and that view's calibration."""
@@ -339,26 +378,38 @@ class Detector:
         if mismatch:
             warnings.append(mismatch)
 
+        voxelizer = self._voxelizer()
+        overlapped: dict[str, float] = {}
         if self.two_stage:
             if image is None or calib is None:
                 raise InputError("image and calib: this model needs a camera image and a calibration")
             tic = time.perf_counter()
             if depth is None:
                 inputs = depth_inputs(image, points, calib, self.preset)
-                timings["prepare"] = (time.perf_counter() - tic) * 1e3
+                view_calib = inputs.calib
+            else:
+                given, view_calib = self._given_depth(depth, image, calib)
+            timings["prepare"] = (time.perf_counter() - tic) * 1e3
+            # With a second core, the stages that need no depth run beside the depth net (about 1.8 ms of
+            # an edge frame, 2 % of it, taken off: docs/measurements.md, session 28).
+            beside: Future | None = None
+            if self.stage_threads > 1:
+                beside = self._stage_thread().submit(self._without_depth, voxelizer, points, view_calib)
+            if depth is None:
                 tic = time.perf_counter()
                 (dense,) = self._run("depth", ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
                 dense = dense[0, 0]
                 timings["depth_net"] = (time.perf_counter() - tic) * 1e3
-                view_calib = inputs.calib
             else:
-                dense, view_calib = self._given_depth(depth, image, calib)
-                timings["prepare"] = (time.perf_counter() - tic) * 1e3
+                dense = given
             limits = self.preset.pseudo_limits
             # The view's rays in BEV bin units are built on a calibration's first frame and cached. Timed
             # apart: a vehicle, with one calibration, builds them once; every synthetic frame has its own.
             tic = time.perf_counter()
-            bin_rays(view_calib, dense.shape[0], dense.shape[1], limits[2], self.preset.bev)
+            if beside is not None:
+                overlapped = beside.result()  # the wait for them is the stage's time on the frame's path
+            else:
+                bin_rays(view_calib, dense.shape[0], dense.shape[1], limits[2], self.preset.bev)
             timings["ray_table"] = (time.perf_counter() - tic) * 1e3
             tic = time.perf_counter()
             pseudo = pseudo_bins(dense, view_calib, self.preset.bev, *limits,
@@ -367,11 +418,12 @@ class Detector:
         else:
             if depth is not None:
                 raise InputError("depth: this model has no depth network to replace (a LiDAR-only model directory)")
-            pseudo = None
+            pseudo = beside = None
 
         tic = time.perf_counter()
-        voxelizer = self._voxelizer()
-        bev = voxelizer(points, pseudo)
+        if beside is None:
+            voxelizer.add_points(points)
+        bev = voxelizer.add_pseudo(pseudo)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]})
@@ -384,7 +436,8 @@ class Detector:
         cloud = None
         if keep_points:
             cloud = points if pseudo is None else merge_points(depth_to_points(dense, view_calib, *limits), points)
-        return Detections(boxes=boxes, scores=scores, timings_ms=timings, warnings=warnings, points=cloud)
+        return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped, warnings=warnings,
+                          points=cloud)
 
     def _given_depth(self, depth: np.ndarray, image: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
         """A caller's dense depth map of the whole image, checked, in the depth net's view, and that view's calibration."""

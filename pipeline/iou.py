@@ -161,8 +161,11 @@ def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max
     boxes = boxes[order]
     n = order.size
     radius = 0.5 * np.hypot(boxes[:, 2], boxes[:, 3])
-    gap = boxes[:, None, :2] - boxes[None, :, :2]
-    near = (gap**2).sum(axis=2) < (radius[:, None] + radius[None, :]) ** 2
+    # Per coordinate: an (n, n, 2) block of differences summed over its short last axis took 3× as long.
+    dx = boxes[:, None, 0] - boxes[:, 0]
+    dy = boxes[:, None, 1] - boxes[:, 1]
+    reach = radius[:, None] + radius
+    near = dx * dx + dy * dy < reach * reach
     if iou_threshold < 0:  # IoU 0 > a negative threshold: every pair suppresses
         near[:] = True
     first, second = np.nonzero(np.triu(near, 1))  # first < second: in score order, row-major = sorted by first

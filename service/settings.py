@@ -9,13 +9,13 @@ read at import time: build ``Settings()`` in ``main`` (or a test) and pass it to
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from pipeline.cpu import usable_cpus
 from pipeline.detector import MAX_POINTS
 from pipeline.model_files import DEFAULT_MODELS
 
@@ -67,5 +67,4 @@ class Settings(BaseSettings):
         """The configured intra-op threads, or the usable CPUs divided among the workers (docs/service.md)."""
         if self.intra_op_threads is not None:
             return self.intra_op_threads
-        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-        return max(1, cpus // self.workers)
+        return max(1, usable_cpus() // self.workers)

@@ -275,6 +275,29 @@ def test_split_grid_keeps_the_pseudo_points_in_channels_of_their_own():
     np.testing.assert_array_equal(alone[:nz + 1], reference_voxelize(frame.points, shared))
 
 
+@pytest.mark.parametrize("split_pseudo", [False, True])
+def test_points_then_pseudo_points_equal_one_call(split_pseudo):
+    """The Detector writes a frame in two halves (the real points while the depth net runs, then the pseudo
+    points): the tensor and the heights' occupancy equal one call's, frame after frame of the reused buffer."""
+    from dataclasses import replace
+
+    from pipeline.bev import pseudo_bins
+
+    frame, preset, view_calib = _kitti_view()
+    grid = replace(preset.bev, split_pseudo=split_pseudo)
+    h, w = preset.depth.input_hw
+    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
+    depth[h // 2:, w // 3:w // 2] = 8.0
+    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    whole, halves = BevVoxelizer(grid), BevVoxelizer(grid)
+    for points, d in ((frame.points, depth), (frame.points[::5], depth[::-1].copy()), (frame.points[1::3], None)):
+        bins = None if d is None else pseudo_bins(d, view_calib, grid, *limits, max_jump=0.1)
+        expected = whole(points, bins).copy()
+        halves.add_points(points)
+        np.testing.assert_array_equal(halves.add_pseudo(bins), expected)
+        np.testing.assert_array_equal(halves.height_occupancy, whole.height_occupancy)
+
+
 def test_near35_keeps_the_pseudo_points_up_to_35_m_only():
     """``-near35``: on the real frame's view, a road-like depth map keeps its pixels up to 35 m, whose bins
     all lie within 35 m ahead of the camera, and drops the farther ones that ``edge`` keeps."""

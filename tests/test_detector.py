@@ -93,6 +93,33 @@ def test_threads_give_the_same_answer(detector, frame):
         np.testing.assert_allclose(r.boxes, reference.boxes, rtol=1e-5, atol=1e-5)
 
 
+def test_stage_thread_changes_nothing_but_the_timings(tiny_models, frame, tmp_path):
+    """With a stage thread the calibration's rays and the real points' half of the BEV are made beside the
+    depth net (``overlapped_ms``) and the boxes are those of the stages in turn, frame after frame, on the
+    shared grid and the split one; LiDAR-only models have nothing to overlap."""
+    from export.exporter import ExportConfig, run
+
+    run(ExportConfig(preset="tiny-split", out=tmp_path / "split", parity=False))
+    lidar16 = emulate_beams(frame.points, 16)
+    scans = [lidar16, lidar16[::3], frame.points[::4]]
+    for models in (tiny_models, tmp_path / "split"):
+        in_turn, beside = Detector(models, stage_threads=1), Detector(models, stage_threads=2)
+        assert (in_turn.stage_threads, beside.stage_threads) == (1, 2)
+        for points in scans:
+            a = in_turn.detect(frame.image, points, frame.calib, 0.0)
+            b = beside.detect(frame.image, points, frame.calib, 0.0)
+            np.testing.assert_array_equal(a.boxes, b.boxes)
+            np.testing.assert_array_equal(a.scores, b.scores)
+            np.testing.assert_array_equal(in_turn._voxelizer()._out, beside._voxelizer()._out)
+            assert a.overlapped_ms == {} and set(b.overlapped_ms) == {"ray_table", "voxelize"}
+            assert set(b.timings_ms) == STAGES
+            assert b.timings_ms["total"] >= sum(v for k, v in b.timings_ms.items() if k != "total") * 0.99
+    # One thread per worker (the service's default on two cores, the throughput workers): stages in turn.
+    assert Detector(tiny_models, intra_op_threads=1).stage_threads == 1
+    with pytest.raises(InputError, match="stage_threads"):
+        Detector(tiny_models, stage_threads=3)
+
+
 def test_bad_inputs_are_input_errors(detector, frame):
     with pytest.raises(InputError, match="no points"):
         detector.detect(frame.image, np.zeros((0, 4), np.float32), frame.calib)

@@ -26,6 +26,13 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     assert set(report["stages_ms"]) == {"prepare", "depth_net", "ray_table", "pseudo_points", "voxelize", "pixor", "decode"}
     assert all(set(s) >= {"mean", "p50", "p99"} for s in report["stages_ms"].values())
     assert 0 < report["non_network_fraction_fixed_calibration"] <= report["non_network_fraction"] < 1
+    # The wall time outside the network runs; with a stage thread (two cores here) the rays and the scan's
+    # half of the BEV were made beside the depth net.
+    networks_ms = report["stages_ms"]["depth_net"]["mean"] + report["stages_ms"]["pixor"]["mean"]
+    e2e = report["end_to_end_ms"]["mean"]
+    assert abs(report["non_network_fraction"] - (e2e - networks_ms) / e2e) < 1e-9
+    if report["machine"]["cores"] >= 2:
+        assert report["stage_threads"] == 2 and set(report["overlapped_ms"]) == {"ray_table", "voxelize"}
     t = report["throughput"]
     assert t["workers"] == 2 and t["mode"] == "thread" and t["fps"] > 0 and t["fps_one_worker"] > 0
     assert abs(t["scaling"] - t["fps"] / t["fps_one_worker"]) < 1e-9
@@ -55,12 +62,13 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
 def test_latency_int8_and_precision_check(tmp_path, tiny_models):
     ok = subprocess.run(
         [sys.executable, str(LATENCY), *QUICK_PEAK, "--preset", "tiny", "--precision", "int8", "--frames", "2", "--warmup", "1",
-         "--ops", "--json", str(tmp_path / "q.json")],
+         "--ops", "--stage-threads", "1", "--json", str(tmp_path / "q.json")],
         capture_output=True, text=True, timeout=600, check=False,
     )
     assert ok.returncode == 0, ok.stderr[-2000:]
     report = json.loads((tmp_path / "q.json").read_text())
     assert report["precision"] == "int8"
+    assert report["stage_threads"] == 1 and report["overlapped_ms"] == {}
     for name in ("depth", "pixor"):  # --ops: the quantized graph's own kernels, timed one by one
         ops = report["networks"][name]["ops"]
         assert "QLinearConv" in ops["by_op"] and ops["profiled_runs"] == 20
