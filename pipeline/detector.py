@@ -390,8 +390,8 @@ class Detector:
             else:
                 given, view_calib = self._given_depth(depth, image, calib)
             timings["prepare"] = (time.perf_counter() - tic) * 1e3
-            # With a second core, the stages that need no depth run beside the depth net (about 1.8 ms of
-            # an edge frame, 2 % of it, taken off: docs/measurements.md, session 28).
+            # With a second core, the stages that need no depth run beside the depth net, which has room for
+            # them (an edge frame's path 1.6 ms shorter on two cores: docs/measurements.md, session 28).
             beside: Future | None = None
             if self.stage_threads > 1:
                 beside = self._stage_thread().submit(self._without_depth, voxelizer, points, view_calib)
