@@ -537,11 +537,9 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
                               "paired_stages_ms": summarize_stages(paired)}
         report["speedup_vs_baseline"] = float(np.mean(base.end_to_end) / np.mean(paired.end_to_end))
         report["speedup_vs_baseline_blocks"] = block_spread(ratios)
+    report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages, "overlapped": stream.overlapped}
     if scratch is not None:
-        report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages, "overlapped": stream.overlapped}
         scratch.cleanup()
-    else:
-        report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages, "overlapped": stream.overlapped}
     return report
 
 

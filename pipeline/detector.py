@@ -310,13 +310,17 @@ class Detector:
             executor = self._local.stage_thread = ThreadPoolExecutor(1, thread_name_prefix="lowres3d-stages")
         return executor
 
+    def _ray_table(self, view_calib: Calibration) -> None:
+        """The view's rays in BEV bin units, built on a calibration's first frame and cached (pipeline/pseudo.py)."""
+        height, width = self.preset.depth.input_hw  # the depth map's size, given or from the net
+        bin_rays(view_calib, height, width, self.preset.pseudo_limits[2], self.preset.bev)
+
     def _without_depth(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration) -> dict[str, float]:
         """The stages of a frame that need no depth: the view's rays (built once per calibration) and the real
         points' half of the voxelization. Returns what each took."""
         timings = {}
         tic = time.perf_counter()
-        height, width = self.preset.depth.input_hw
-        bin_rays(view_calib, height, width, self.preset.pseudo_limits[2], self.preset.bev)
+        self._ray_table(view_calib)
         timings["ray_table"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         voxelizer.add_points(points)
@@ -409,7 +413,7 @@ class Detector:
             if beside is not None:
                 overlapped = beside.result()  # the wait for them is the stage's time on the frame's path
             else:
-                bin_rays(view_calib, dense.shape[0], dense.shape[1], limits[2], self.preset.bev)
+                self._ray_table(view_calib)
             timings["ray_table"] = (time.perf_counter() - tic) * 1e3
             tic = time.perf_counter()
             pseudo = pseudo_bins(dense, view_calib, self.preset.bev, *limits,
