@@ -406,7 +406,8 @@ def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], inp
                                        torch.from_numpy(targets.regression)[None]).total))
         score = torch.sigmoid(logits)[0, 0].numpy()
         boxes, scores = boxes_from_maps(score, regression[0].numpy(), voxelizer.height_occupancy, preset,
-                                        score_threshold=0.05, with_pseudo=pseudo is not None)
+                                        score_threshold=0.05, with_pseudo=pseudo is not None,
+                                        mark=voxelizer.height_mark)
         seen = in_camera_view(boxes, frame.calib, frame.image_hw)
         objects = boxes_to_objects(boxes[seen], frame.calib, frame.image_hw, scores[seen])
         gts.append(LabelArrays.from_objects(frame.labels or []))

@@ -434,7 +434,7 @@ class Detector:
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         boxes, scores = boxes_from_maps(score[0, 0], regression[0], voxelizer.height_occupancy, self.preset,
-                                        score_threshold, with_pseudo=pseudo is not None)
+                                        score_threshold, with_pseudo=pseudo is not None, mark=voxelizer.height_mark)
         timings["decode"] = (time.perf_counter() - tic) * 1e3
         timings["total"] = (time.perf_counter() - start) * 1e3
         cloud = None

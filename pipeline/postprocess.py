@@ -26,10 +26,12 @@ _LOW_Q, _HIGH_Q = 0.05, 0.95
 
 
 def estimate_heights(bev_boxes: np.ndarray, bev: np.ndarray, preset: Preset,
-                     with_pseudo: bool = False) -> tuple[np.ndarray, np.ndarray]:
+                     with_pseudo: bool = False, mark: float = 1) -> tuple[np.ndarray, np.ndarray]:
     """Centre z and height h of each BEV box ``[x, y, l, w, yaw]`` from the (≥nz, ny, nx) BEV occupancy.
 
     with_pseudo: the occupancy holds pseudo points (the camera pipeline), which places bottoms differently.
+    mark: the value of an occupied voxel (a BEV tensor: 1; :class:`pipeline.bev.BevVoxelizer`'s height
+    grid: its ``height_mark``).
     """
     decode, grid = preset.decode, preset.bev
     stride = preset.pixor.output_stride
@@ -47,7 +49,7 @@ def estimate_heights(bev_boxes: np.ndarray, bev: np.ndarray, preset: Preset,
     # slice; a one-hot matrix of each cell's box sums them per box (exact: the sums are counts).
     block = (np.arange(stride)[:, None] * grid.nx + np.arange(stride)).reshape(-1)
     cells = ((rows * (stride * grid.nx) + cols * stride)[:, None] + block).reshape(-1)
-    occupancy = np.take(bev[: grid.nz].reshape(grid.nz, -1), cells, axis=1).astype(np.float64)
+    occupancy = (np.take(bev[: grid.nz].reshape(grid.nz, -1), cells, axis=1) == mark).astype(np.float64)
     one_hot = np.zeros((cells.size, n))
     one_hot[np.arange(cells.size), np.repeat(k, block.size)] = 1.0
     histogram = (occupancy @ one_hot).T  # (boxes, slices): occupied voxels per height slice
@@ -72,18 +74,18 @@ def estimate_heights(bev_boxes: np.ndarray, bev: np.ndarray, preset: Preset,
 
 def boxes_from_maps(
     score: np.ndarray, regression: np.ndarray, bev: np.ndarray, preset: Preset,
-    score_threshold: float | None = None, with_pseudo: bool = False,
+    score_threshold: float | None = None, with_pseudo: bool = False, mark: float = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """PIXOR maps (ny/4, nx/4) and (6, ny/4, nx/4) plus the BEV occupancy → (K, 7) LiDAR boxes and (K,) scores.
 
     bev: the BEV input, or any (≥nz, ny, nx) occupancy of the same grid (the heights read only that).
-    with_pseudo: it holds pseudo points (:func:`estimate_heights`).
+    with_pseudo: it holds pseudo points; mark: the value of its occupied voxels (:func:`estimate_heights`).
     """
     candidates, scores = decode_maps(
         score, regression, preset.bev, preset.pixor.output_stride, preset.decode, score_threshold
     )
     keep = rotated_nms(candidates, scores, preset.decode.nms_iou, preset.decode.max_detections)
     bev_boxes, scores = candidates[keep], scores[keep]
-    z, h = estimate_heights(bev_boxes, bev, preset, with_pseudo)
+    z, h = estimate_heights(bev_boxes, bev, preset, with_pseudo, mark)
     boxes = np.column_stack([bev_boxes[:, 0], bev_boxes[:, 1], z, bev_boxes[:, 2], bev_boxes[:, 3], h, bev_boxes[:, 4]])
     return boxes.reshape(-1, 7), scores

@@ -92,7 +92,7 @@ def test_reused_buffers_clear_the_pseudo_points_of_the_previous_frame():
         for points, pseudo in ((frame.points, many), (frame.points[:500], few), (frame.points[:100], None)):
             fresh = BevVoxelizer(grid)
             np.testing.assert_array_equal(voxelizer(points, pseudo), fresh(points, pseudo))
-            np.testing.assert_array_equal(voxelizer.height_occupancy, fresh.height_occupancy)
+            np.testing.assert_array_equal(voxelizer.height_voxels(), fresh.height_voxels())
 
 
 def test_real_scan_equals_reference():
@@ -230,15 +230,46 @@ def test_heights_read_the_real_and_sharp_pseudo_points_only():
     cleaned = depth.copy()
     cleaned[depth_jumps(depth, 0.1)] = 0.0  # below min_depth: dropped
     expected = BevVoxelizer(grid)(frame.points, pseudo_bins(cleaned, view_calib, grid, *limits))[:grid.nz]
-    np.testing.assert_array_equal(voxelizer.height_occupancy, expected.astype(np.uint8))
-    assert voxelizer.height_occupancy.sum() < bev[:grid.nz].sum()
+    np.testing.assert_array_equal(voxelizer.height_voxels(), expected.astype(bool))
+    assert voxelizer.height_voxels().sum() < bev[:grid.nz].sum()
 
     # The next frame clears what this one set; without marked points the heights read the BEV itself.
     voxelizer(frame.points[:1000], pseudo_bins(depth[::-1].copy(), view_calib, grid, *limits, max_jump=0.1))
     again = voxelizer(frame.points, marked)
-    np.testing.assert_array_equal(voxelizer.height_occupancy, expected.astype(np.uint8))
+    np.testing.assert_array_equal(voxelizer.height_voxels(), expected.astype(bool))
     voxelizer(frame.points)
     assert voxelizer.height_occupancy is again
+
+
+def test_height_grid_stamps_come_round_without_stale_voxels():
+    """The height grid is never cleared cell by cell: each frame writes its own stamp, and after 255 frames
+    the stamps start again on a zeroed grid. Around that turn, and with frames that read the BEV itself in
+    between, every frame's heights equal a fresh voxelizer's."""
+    from pipeline.bev import pseudo_bins
+
+    frame, preset, view_calib = _kitti_view()
+    grid = preset.bev
+    h, w = preset.depth.input_hw
+    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
+    depth[h // 2:, w // 3:w // 2] = 8.0
+    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    near = pseudo_bins(depth, view_calib, grid, *limits, max_jump=0.1)
+    far = pseudo_bins(depth[::-1].copy(), view_calib, grid, *limits, max_jump=0.1)
+    voxelizer = BevVoxelizer(grid)
+    stamps = []
+    # The first frame's voxels are never written again: a stale stamp 1 would show at the turn.
+    frames = [(frame.points[:300], near)] + [(frame.points[300:600], far), (frame.points[600:650], None)] * 300
+    for index, (points, pseudo) in enumerate(frames):
+        bev = voxelizer(points, pseudo)
+        if pseudo is None:
+            assert voxelizer.height_occupancy is bev and voxelizer.height_mark == 1
+        else:
+            stamps.append(voxelizer.height_mark)
+        if voxelizer.height_mark in (1, 2, 254, 255) or index >= len(frames) - 4:
+            fresh = BevVoxelizer(grid)
+            fresh(points, pseudo)
+            np.testing.assert_array_equal(voxelizer.height_voxels(), fresh.height_voxels())
+    assert stamps[:255] == list(range(1, 256)) and stamps[255:258] == [1, 2, 3]
 
 
 def test_split_grid_keeps_the_pseudo_points_in_channels_of_their_own():
@@ -268,7 +299,7 @@ def test_split_grid_keeps_the_pseudo_points_in_channels_of_their_own():
     together = merged(frame.points, bins)
     np.testing.assert_array_equal(np.maximum(out[:nz], out[nz + 1:]), together[:nz])
     assert np.count_nonzero(out[nz + 1:]) > np.count_nonzero(out[:nz]) > 0
-    np.testing.assert_array_equal(voxelizer.height_occupancy, merged.height_occupancy)
+    np.testing.assert_array_equal(voxelizer.height_voxels(), merged.height_voxels())
     # Without pseudo points the pseudo channels are empty and the rest is the scan's BEV.
     alone = voxelizer(frame.points)
     assert not alone[nz + 1:].any()
@@ -295,7 +326,7 @@ def test_points_then_pseudo_points_equal_one_call(split_pseudo):
         expected = whole(points, bins).copy()
         halves.add_points(points)
         np.testing.assert_array_equal(halves.add_pseudo(bins), expected)
-        np.testing.assert_array_equal(halves.height_occupancy, whole.height_occupancy)
+        np.testing.assert_array_equal(halves.height_voxels(), whole.height_voxels())
 
 
 def test_near35_keeps_the_pseudo_points_up_to_35_m_only():

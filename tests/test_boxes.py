@@ -193,6 +193,13 @@ def test_heights_from_bev_occupancy():
     # An empty box sits on the road with the mean car height.
     z0, h0 = estimate_heights(np.array([[60.0, -30.0, 4.0, 1.7, 0.0]]), np.zeros(p.bev.shape, np.float32), p)
     assert h0[0] == p.decode.car_height and z0[0] == pytest.approx(p.decode.ground_z + p.decode.car_height / 2)
+    # A stamped height grid (pipeline.bev.BevVoxelizer): only the voxels holding this frame's mark count,
+    # whatever older stamps lie around them.
+    stamped = np.where(bev[: p.bev.nz] > 0, 7, 0).astype(np.uint8)
+    stamped[(stamped == 0) & (np.arange(p.bev.nz)[:, None, None] % 2 == 0)] = 6
+    z_stamped, h_stamped = estimate_heights(cars[:, [0, 1, 3, 4, 6]], stamped, p, mark=7)
+    np.testing.assert_array_equal(z_stamped, z)
+    np.testing.assert_array_equal(h_stamped, h)
 
 
 def test_heights_weigh_what_was_seen_against_the_mean_car_height():
