@@ -103,7 +103,7 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper")
         f"pseudo_points ({dense.shape[1]}x{dense.shape[0]} depth map to BEV bins), as the Detector runs it":
             lambda: pseudo_bins(dense, view_calib, preset.bev, *limits),
         "voxelize (64-line scan)": lambda: voxelize(frame.points),
-        f"voxelize (16-line scan + {bins.cell.size} pseudo points), as the Detector runs it": lambda: voxelize(
+        f"voxelize (16-line scan + {bins.occupancy.size} pseudo points), as the Detector runs it": lambda: voxelize(
             lidar16, bins),
         "for comparison: pseudo x, y, z arrays, then voxelize them with the 16-line scan": lambda: voxelize(
             lidar16, pseudo_xyz(dense, view_calib, *limits)),

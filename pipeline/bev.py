@@ -71,12 +71,13 @@ def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid, 
 class PseudoBins:
     """Pseudo points as BEV bins: flat occupancy index ``iz·ny·nx + iy·nx + ix`` and cell ``iy·nx + ix``.
 
-    sharp: per point, False where its pixel sits on a depth jump
+    cell: None from :func:`pseudo_bins` on a ``split_pseudo`` grid, whose reflectance averages the real
+    returns alone. sharp: per point, False where its pixel sits on a depth jump
     (:func:`pipeline.pseudo.depth_jumps`); None when not asked for.
     """
 
     occupancy: np.ndarray  # int64 (N,)
-    cell: np.ndarray  # int64 (N,)
+    cell: np.ndarray | None  # int64 (N,)
     sharp: np.ndarray | None = None  # bool (N,)
 
 
@@ -143,7 +144,9 @@ def pseudo_bins(
     sharp = None
     if max_jump is not None:
         sharp = ~depth_jumps(depth, max_jump)[::stride, ::stride].reshape(-1)[kept]
-    return PseudoBins(iz[kept].astype(np.int64), iy[kept].astype(np.int64), sharp)
+    # A split grid never counts the pseudo points' cells (0.1 ms of an edge frame's gathers saved).
+    cell = None if grid.split_pseudo else iy[kept].astype(np.int64)
+    return PseudoBins(iz[kept].astype(np.int64), cell, sharp)
 
 
 class BevVoxelizer:
@@ -223,7 +226,8 @@ class BevVoxelizer:
                 self.height_occupancy = self._sharp_occupancy(real_occupancy, sharp)
             else:
                 channels = self._flat
-                counted = np.concatenate([counted, pseudo.cell])
+                cell = pseudo.occupancy % (grid.ny * grid.nx) if pseudo.cell is None else pseudo.cell
+                counted = np.concatenate([counted, cell])
                 if sharp.shape[0] < pseudo.occupancy.shape[0]:
                     self.height_occupancy = self._sharp_occupancy(real_occupancy, sharp)
             channels[pseudo.occupancy] = 1.0
