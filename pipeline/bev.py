@@ -44,14 +44,14 @@ def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid, 
     far outside (half of a 360° scan), so the float64 arithmetic runs only on
     candidates; pseudo points, which mostly lie inside, are better off without it.
     """
+    # Both tests select with their boolean masks (a scan's points in the grid come in runs of azimuth):
+    # 0.36 → 0.31 ms for a 16-line scan against listing the indices first.
     near = None
     if prefilter:
         margin = max(grid.cell, grid.z_cell)
-        near = np.flatnonzero(
-            (x > grid.x_min - margin) & (x < grid.x_max + margin)
-            & (y > grid.y_min - margin) & (y < grid.y_max + margin)
-            & (z > grid.z_min - margin) & (z < grid.z_max + margin)
-        )
+        near = ((x > grid.x_min - margin) & (x < grid.x_max + margin)
+                & (y > grid.y_min - margin) & (y < grid.y_max + margin)
+                & (z > grid.z_min - margin) & (z < grid.z_max + margin))
         x, y, z = x[near], y[near], z[near]
     bins = []
     for values, low, cell in ((z, grid.z_min, grid.z_cell), (y, grid.y_min, grid.cell), (x, grid.x_min, grid.cell)):
@@ -60,10 +60,8 @@ def bev_indices_xyz(x: np.ndarray, y: np.ndarray, z: np.ndarray, grid: BevGrid, 
         np.floor(b, out=b)
         bins.append(b)
     fz, fy, fx = bins
-    inside = np.flatnonzero(
-        (fx >= 0) & (fx < grid.nx) & (fy >= 0) & (fy < grid.ny) & (fz >= 0) & (fz < grid.nz)
-    )
-    kept = inside if near is None else near[inside]
+    inside = (fx >= 0) & (fx < grid.nx) & (fy >= 0) & (fy < grid.ny) & (fz >= 0) & (fz < grid.nz)
+    kept = np.flatnonzero(inside) if near is None else np.flatnonzero(near)[inside]
     return fz[inside].astype(np.int64), fy[inside].astype(np.int64), fx[inside].astype(np.int64), kept
 
 
@@ -131,8 +129,7 @@ def pseudo_bins(
             b = work.astype(np.int32)
             keep &= b.view(np.uint32) < size
             bins.append(b)
-    kept = np.flatnonzero(keep)
-    # The flat indices in int32 over the whole map, then one gather each: against gathering the three
+    # The flat indices in int32 over the whole map, then one selection each: against selecting the three
     # bins and combining them in int64, 0.2 ms less per frame (2.06 → 1.83 ms right after the depth net).
     # Where a bin is out of range the int32 arithmetic may wrap; those pixels are never kept.
     iz, iy, ix = bins
@@ -141,12 +138,14 @@ def pseudo_bins(
         iy += ix
         iz *= grid.ny * grid.nx
         iz += iy
+    # Selected by the mask itself: the kept pixels come in long runs (rows of road, a car's outline), which
+    # boolean indexing copies in stretches, 2.3× faster here than listing their indices and gathering.
     sharp = None
     if max_jump is not None:
-        sharp = ~depth_jumps(depth, max_jump)[::stride, ::stride].reshape(-1)[kept]
+        sharp = ~depth_jumps(depth, max_jump)[::stride, ::stride].reshape(-1)[keep]
     # A split grid never counts the pseudo points' cells (0.1 ms of an edge frame's gathers saved).
-    cell = None if grid.split_pseudo else iy[kept].astype(np.int64)
-    return PseudoBins(iz[kept].astype(np.int64), cell, sharp)
+    cell = None if grid.split_pseudo else iy[keep].astype(np.int64)
+    return PseudoBins(iz[keep].astype(np.int64), cell, sharp)
 
 
 class BevVoxelizer:
