@@ -81,11 +81,8 @@ def test_reused_buffers_clear_the_pseudo_points_of_the_previous_frame():
     from pipeline.presets import get_preset
 
     frame, preset, view_calib = _kitti_view()
-    h, w = preset.depth.input_hw
-    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
-    depth[h // 2:, w // 3:w // 2] = 8.0
+    depth, limits = _road_with_a_near_object(preset)
     for grid in (preset.bev, get_preset("edge-split-near35").bev):
-        limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
         many = pseudo_bins(depth, view_calib, grid, *limits, max_jump=0.1)
         few = pseudo_bins(depth[::-1].copy(), view_calib, grid, *limits, max_jump=0.1)
         voxelizer = BevVoxelizer(grid)
@@ -131,6 +128,16 @@ def _kitti_view(preset_name: str = "edge"):
     preset = PRESETS[preset_name]
     _, view_calib = network_view(frame.image, frame.calib, preset)
     return frame, preset, view_calib
+
+
+def _road_with_a_near_object(preset):
+    """A depth map of the preset's view: a road whose depth falls from 60 to 3 m down the rows, and a near
+    object (8 m) whose outline jumps against it; and the Detector's pseudo-point limits at stride 1."""
+    h, w = preset.depth.input_hw
+    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
+    depth[h // 2:, w // 3:w // 2] = 8.0
+    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    return depth, limits
 
 
 def test_pseudo_bins_straight_from_depth_match_binning_the_points():
@@ -215,10 +222,7 @@ def test_heights_read_the_real_and_sharp_pseudo_points_only():
 
     frame, preset, view_calib = _kitti_view()
     grid = preset.bev
-    h, w = preset.depth.input_hw
-    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
-    depth[h // 2:, w // 3:w // 2] = 8.0  # a near object: its outline jumps against the road
-    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    depth, limits = _road_with_a_near_object(preset)
     plain = pseudo_bins(depth, view_calib, grid, *limits)
     marked = pseudo_bins(depth, view_calib, grid, *limits, max_jump=0.1)
     np.testing.assert_array_equal(marked.occupancy, plain.occupancy)
@@ -249,10 +253,7 @@ def test_height_grid_stamps_come_round_without_stale_voxels():
 
     frame, preset, view_calib = _kitti_view()
     grid = preset.bev
-    h, w = preset.depth.input_hw
-    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
-    depth[h // 2:, w // 3:w // 2] = 8.0
-    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    depth, limits = _road_with_a_near_object(preset)
     near = pseudo_bins(depth, view_calib, grid, *limits, max_jump=0.1)
     far = pseudo_bins(depth[::-1].copy(), view_calib, grid, *limits, max_jump=0.1)
     voxelizer = BevVoxelizer(grid)
@@ -284,10 +285,7 @@ def test_split_grid_keeps_the_pseudo_points_in_channels_of_their_own():
     shared = preset.bev
     split = replace(shared, split_pseudo=True)
     nz = shared.nz
-    h, w = preset.depth.input_hw
-    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
-    depth[h // 2:, w // 3:w // 2] = 8.0
-    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    depth, limits = _road_with_a_near_object(preset)
     bins = pseudo_bins(depth, view_calib, split, *limits, max_jump=0.1)
 
     voxelizer = BevVoxelizer(split)
@@ -316,10 +314,7 @@ def test_points_then_pseudo_points_equal_one_call(split_pseudo):
 
     frame, preset, view_calib = _kitti_view()
     grid = replace(preset.bev, split_pseudo=split_pseudo)
-    h, w = preset.depth.input_hw
-    depth = np.repeat(np.linspace(60, 3, h, dtype=np.float32)[:, None], w, axis=1)
-    depth[h // 2:, w // 3:w // 2] = 8.0
-    limits = (preset.depth.min_depth, preset.depth.max_depth, 1, preset.decode.pseudo_max_height)
+    depth, limits = _road_with_a_near_object(preset)
     whole, halves = BevVoxelizer(grid), BevVoxelizer(grid)
     for points, d in ((frame.points, depth), (frame.points[::5], depth[::-1].copy()), (frame.points[1::3], None)):
         bins = None if d is None else pseudo_bins(d, view_calib, grid, *limits, max_jump=0.1)
