@@ -27,6 +27,34 @@ def test_ring_recovery_finds_64_rings(frame_id):
 
 
 @pytest.mark.parametrize("frame_id", FRAMES)
+def test_float32_medians_by_one_key_sort_equal_the_lexsort(frame_id):
+    """A float32 scan's per-ring medians come from one sort of (segment, elevation-bits) keys; they equal the
+    lexsort path's on the same values widened to float64, for the real rings, for shuffled points (the
+    elevation clusters), and for ties, zeros and negative elevations with an empty segment between."""
+    from pipeline.beams import _segment_medians
+
+    points = scan(frame_id)
+    rings = recover_rings(points)
+    elevation = elevation_deg(points)
+    assert elevation.dtype == np.float32
+    shuffled = np.random.default_rng(0).permutation(points.shape[0])
+    crafted = np.array([-3.5, 0.0, -0.0, 2.25, -3.5, 7.0, -1e-30, 2.25], np.float32)
+    cases = [(rings.ring.astype(np.int64), elevation, rings.n_rings),
+             (recover_rings(points[shuffled], method="elevation").ring.astype(np.int64), elevation[shuffled], 64),
+             (np.array([0, 0, 0, 0, 2, 2, 2, 3]), crafted, 5)]
+    for segment, values, count in cases:
+        by_key = _segment_medians(segment, values, count)
+        by_lexsort = _segment_medians(segment, values.astype(np.float64), count)
+        assert by_key.dtype == np.float32
+        np.testing.assert_array_equal(by_key, by_lexsort.astype(np.float32))
+    # Sorted, segment 0 is -3.5, ±0, ±0, 2.25 (the lower middle: zero) and segment 2 is -3.5, -1e-30, 7.
+    np.testing.assert_array_equal(_segment_medians(*cases[2]), np.array([0.0, -np.inf, -1e-30, 2.25, -np.inf],
+                                                                         np.float32))
+    # The whole recovery: the same rings from the float32 scan as from its float64 copy.
+    np.testing.assert_array_equal(recover_rings(points.astype(np.float64)).ring, rings.ring)
+
+
+@pytest.mark.parametrize("frame_id", FRAMES)
 def test_16_line_emulation_keeps_16_rings_and_a_quarter(frame_id):
     points = scan(frame_id)
     kept = emulate_beams(points, 16)
