@@ -61,6 +61,15 @@ def test_velodyne_roundtrip_and_nonfinite_dropped(tmp_path):
     assert scan.dropped_nonfinite == 2
     assert np.isfinite(scan.points).all()
     np.testing.assert_array_equal(scan.points, np.delete(points, [3, 7], axis=0))
+    # NaN, +inf and −inf in every column, some rows with several: exactly the rows with any are dropped.
+    rng = np.random.default_rng(3)
+    many = rng.normal(size=(1000, 4)).astype(np.float32)
+    many.reshape(-1)[rng.choice(many.size, 60, replace=False)] = rng.choice([np.nan, np.inf, -np.inf], 60)
+    write_velodyne(tmp_path / "many.bin", many)
+    scan = read_velodyne(tmp_path / "many.bin")
+    finite_rows = np.isfinite(many).all(axis=1)
+    assert scan.dropped_nonfinite == np.count_nonzero(~finite_rows) > 50
+    np.testing.assert_array_equal(scan.points, many[finite_rows])
 
 
 def test_velodyne_bad_size_names_file(tmp_path):
