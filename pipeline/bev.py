@@ -164,6 +164,10 @@ class BevVoxelizer:
         self.grid = grid
         self._out = np.zeros(grid.shape, dtype=np.float32)
         self._flat = self._out.reshape(-1)
+        # Flat views of the reflectance plane and of a split grid's pseudo channels: their writes index
+        # them directly, with no channel offset added to the indices.
+        self._reflectance = self._out[grid.nz].reshape(-1)
+        self._pseudo_channels = self._out[grid.nz + 1:].reshape(-1) if grid.split_pseudo else self._flat
         # What the last frame set: each index array it wrote with, and the flat view of the channels it
         # indexes (not concatenated: clearing each costs the same, joining them a pass more).
         self._touched: list[tuple[np.ndarray, np.ndarray]] = []
@@ -219,18 +223,15 @@ class BevVoxelizer:
                 pseudo = bins_of_xyz(*pseudo, grid)
             sharp = pseudo.occupancy if pseudo.sharp is None else pseudo.occupancy[pseudo.sharp]
             if grid.split_pseudo:
-                # Own channels after the reflectance, written through a flat view of them: the indices
-                # need no offset (a pass and an array fewer).
-                channels = self._out[grid.nz + 1:].reshape(-1)
+                # The pseudo points fill channels of their own, so the heights read a grid of their own.
                 self.height_occupancy = self._sharp_occupancy(real_occupancy, sharp)
             else:
-                channels = self._flat
                 cell = pseudo.occupancy % (grid.ny * grid.nx) if pseudo.cell is None else pseudo.cell
                 counted = np.concatenate([counted, cell])
                 if sharp.shape[0] < pseudo.occupancy.shape[0]:
                     self.height_occupancy = self._sharp_occupancy(real_occupancy, sharp)
-            channels[pseudo.occupancy] = 1.0
-            self._touched.append((channels, pseudo.occupancy))
+            self._pseudo_channels[pseudo.occupancy] = 1.0
+            self._touched.append((self._pseudo_channels, pseudo.occupancy))
         if not grid.split_pseudo:
             self._write_reflectance(counted)
         return self._out
@@ -248,9 +249,8 @@ class BevVoxelizer:
         plane = grid.ny * grid.nx
         counts = np.bincount(counted, minlength=plane)
         sums = np.bincount(cell, weights=self._real_reflectance, minlength=plane)
-        reflectance = self._out[grid.nz].reshape(-1)
-        reflectance[cell] = sums[cell] / counts[cell]
-        self._touched.append((reflectance, cell))
+        self._reflectance[cell] = sums[cell] / counts[cell]
+        self._touched.append((self._reflectance, cell))
 
     def _sharp_occupancy(self, real: np.ndarray, sharp_pseudo: np.ndarray) -> np.ndarray:
         """The uint8 (nz, ny, nx) occupancy of the real points and the sharp pseudo points (a reused buffer).
