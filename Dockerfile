@@ -60,6 +60,8 @@ RUN python3 -m venv /opt/venv \
 # hadolint ignore=DL3006
 FROM runtime-${TARGET} AS service
 WORKDIR /app
+# Apache-2.0 asks that the licence travel with every copy of the code and weights.
+COPY LICENSE /app/LICENSE
 COPY pipeline/ /app/pipeline/
 COPY service/ /app/service/
 COPY weights/edge/ /app/weights/edge/

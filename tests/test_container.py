@@ -181,6 +181,7 @@ def test_targets_and_runtime_contents():
     assert stages[-1].startswith("runtime-${TARGET}")
     copied = " ".join(args for keyword, args in instructions() if keyword == "COPY")
     assert "models/" not in copied.replace("weights/", "") and "export/" not in copied  # torch code stays out
+    assert "LICENSE /app/LICENSE" in copied  # Apache-2.0: the licence travels with the code and weights
     for name in ("service-cpu.txt", "service-gpu.txt", "service-jetson.txt"):
         lines = [line for line in (REQUIREMENTS / name).read_text().lower().splitlines() if not line.startswith("#")]
         assert not any("torch" in line for line in lines), name
@@ -226,6 +227,15 @@ def test_service_requirements_are_the_package_runtime_dependencies():
         listed = {re.split(r"[<>=!#\s]", line)[0] for line in (REQUIREMENTS / name).read_text().splitlines()
                   if line.strip() and not line.startswith("#")}
         assert listed == packages, name
+
+
+def test_the_declared_licence_ships_as_its_text():
+    """pyproject declares Apache-2.0; the package and the image carry the licence's text, and KITTI's samples keep theirs."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "Apache-2.0" and project["license-files"] == ["LICENSE"]
+    text = (ROOT / "LICENSE").read_text()
+    assert "Apache License" in text and "Version 2.0, January 2004" in text and "END OF TERMS AND CONDITIONS" in text
+    assert "Attribution-NonCommercial-ShareAlike 3.0" in (ROOT / "tests" / "data" / "README.md").read_text()
 
 
 def test_runtime_parses_as_python_310():
