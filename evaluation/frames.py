@@ -32,6 +32,8 @@ class LabelSet:
 
 
 def _require_dir(path: Path, what: str) -> None:
+    if path.exists() and not path.is_dir():
+        raise InputError(f"{path}: not a directory (the {what} folder is meant)")
     if not path.is_dir():
         raise InputError(f"{path}: {what} directory not found")
 
@@ -93,13 +95,7 @@ def load_label_dirs(
             missing.append(frame_id)
             detections.append(LabelArrays.empty())
             continue
-        objects = read_labels(pred_path)
-        for k, obj in enumerate(objects, start=1):
-            if obj.score is None:
-                raise InputError(
-                    f"{pred_path}: object {k} ({obj.type}) has 15 fields; a result line needs a 16th, the score"
-                )
-        detections.append(LabelArrays.from_objects(objects))
+        detections.append(LabelArrays.from_objects(read_labels(pred_path, needs_score=True)))
     if missing:
         log.warning(
             "%d of %d frames have no result file in %s (counted as no detections), e.g. %s",

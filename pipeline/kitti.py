@@ -79,6 +79,7 @@ _CALIB_KEYS = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
 def parse_calib(text: str, source: str = "<calib>") -> Calibration:
     """Parse a KITTI object ``calib/*.txt`` (keys P2, R0_rect, Tr_velo_to_cam are required)."""
     values: dict[str, np.ndarray] = {}
+    seen: dict[str, int] = {}  # key → the line it was first given on
     for line_no, line in enumerate(text.splitlines(), start=1):
         if not line.strip():
             continue
@@ -86,6 +87,7 @@ def parse_calib(text: str, source: str = "<calib>") -> Calibration:
         key = key.strip()
         if not sep:
             raise InputError(f"{source}, line {line_no}: expected 'KEY: numbers', got {line[:60]!r}")
+        _refuse_repeated_key(key, line_no, seen, source)
         if key not in _CALIB_KEYS:
             continue  # P0, P1, P3, Tr_imu_to_velo: not needed
         try:
@@ -105,6 +107,14 @@ def parse_calib(text: str, source: str = "<calib>") -> Calibration:
         raise InputError(f"{source}: missing calibration key(s) {', '.join(missing)}")
     return _invertible(Calibration(P2=values["P2"], R0_rect=values["R0_rect"],
                                    Tr_velo_to_cam=values["Tr_velo_to_cam"]), source)
+
+
+def _refuse_repeated_key(key: str, line_no: int, seen: dict[str, int], source: object) -> None:
+    """Note where ``key`` is given; a key given twice is refused: which of the two values is meant cannot be
+    known, and taking either silently projects every point with a matrix the file may not mean."""
+    if key in seen:
+        raise InputError(f"{source}, line {line_no}: {key} given twice (first on line {seen[key]})")
+    seen[key] = line_no
 
 
 def _invertible(calib: Calibration, source: str) -> Calibration:
@@ -129,6 +139,7 @@ def read_calib(path: str | Path) -> Calibration:
 
 def _raw_calib_values(path: Path) -> dict[str, np.ndarray]:
     values = {}
+    seen: dict[str, int] = {}
     try:
         text = path.read_text(encoding="ascii")
     except (OSError, UnicodeDecodeError) as exc:
@@ -137,6 +148,7 @@ def _raw_calib_values(path: Path) -> dict[str, np.ndarray]:
         key, sep, rest = line.partition(":")
         if not sep or key.strip() == "calib_time":
             continue
+        _refuse_repeated_key(key.strip(), line_no, seen, path)
         try:
             values[key.strip()] = np.array([float(v) for v in rest.split()])
         except ValueError as exc:
@@ -200,8 +212,28 @@ class Object3D:
     extra: dict = field(default_factory=dict, repr=False)
 
 
-def parse_labels(text: str, source: str = "<labels>") -> list[Object3D]:
-    """Parse KITTI label lines; 15 fields (ground truth) or 16 (result with score)."""
+# The fields of a label_2 line after the type, as the KITTI devkit's readme names them (16th: a result's score).
+LABEL_FIELDS = ("truncated", "occluded", "alpha", "bbox left", "bbox top", "bbox right", "bbox bottom",
+                "height", "width", "length", "x", "y", "z", "rotation_y", "score")
+
+
+def _label_number(text: str, position: int, source: str, line_no: int) -> float:
+    """Field ``position`` (1-based, the type is field 1) of a label line as a finite float, or an InputError naming it."""
+    where = f"{source}, line {line_no}, field {position} ({LABEL_FIELDS[position - 2]})"
+    try:
+        value = float(text)
+    except ValueError:
+        raise InputError(f"{where}: {text[:30]!r} is not a number") from None
+    if not math.isfinite(value):
+        raise InputError(f"{where}: {text!r} is not finite")
+    return value
+
+
+def parse_labels(text: str, source: str = "<labels>", needs_score: bool = False) -> list[Object3D]:
+    """Parse KITTI label lines; 15 fields (ground truth) or 16 (result with score).
+
+    needs_score: every line must have the 16th field (result files, which the evaluation ranks by score).
+    """
     objects: list[Object3D] = []
     for line_no, line in enumerate(text.splitlines(), start=1):
         fields = line.split()
@@ -211,12 +243,9 @@ def parse_labels(text: str, source: str = "<labels>") -> list[Object3D]:
             raise InputError(
                 f"{source}, line {line_no}: expected 15 fields (16 with a score), got {len(fields)}"
             )
-        try:
-            v = [float(x) for x in fields[1:]]
-        except ValueError as exc:
-            raise InputError(f"{source}, line {line_no}: non-numeric field ({exc})") from exc
-        if not all(math.isfinite(x) for x in v):
-            raise InputError(f"{source}, line {line_no}: non-finite field")
+        if needs_score and len(fields) == 15:
+            raise InputError(f"{source}, line {line_no}: {fields[0]} has 15 fields; a result line needs a 16th, the score")
+        v = [_label_number(x, position, source, line_no) for position, x in enumerate(fields[1:], start=2)]
         objects.append(
             Object3D(
                 type=fields[0], truncated=v[0], occluded=int(v[1]), alpha=v[2],
@@ -228,14 +257,14 @@ def parse_labels(text: str, source: str = "<labels>") -> list[Object3D]:
     return objects
 
 
-def read_labels(path: str | Path) -> list[Object3D]:
-    """Read a KITTI ``label_2`` (or result) file."""
+def read_labels(path: str | Path, needs_score: bool = False) -> list[Object3D]:
+    """Read a KITTI ``label_2`` (or result) file; needs_score as :func:`parse_labels`."""
     path = Path(path)
     try:
         text = path.read_text(encoding="ascii")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read labels ({exc})") from exc
-    return parse_labels(text, str(path))
+    return parse_labels(text, str(path), needs_score)
 
 
 def format_label(obj: Object3D) -> str:

@@ -457,6 +457,11 @@ def test_cli_reports_bad_input_without_traceback(tmp_path: Path):
 
     out = _cli("--gt-labels", tmp_path / "nowhere", "--pred-labels", pred_dir)
     assert out.returncode == 2 and str(tmp_path / "nowhere") in out.stderr and "Traceback" not in out.stderr
+    out = _cli("--gt-labels", gt_dir / "000000.txt", "--pred-labels", pred_dir)  # a file, not the folder
+    assert out.returncode == 2 and f"{gt_dir / '000000.txt'}: not a directory (the ground-truth label folder" in out.stderr
+    write_labels(pred_dir / "000000.txt", [obj()])  # 15 fields: a ground-truth line, not a result line
+    out = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir)
+    assert out.returncode == 2 and f"{pred_dir / '000000.txt'}, line 1: Car has 15 fields; a result line needs" in out.stderr
 
     split = tmp_path / "split.txt"
     split.write_text("000007\n")

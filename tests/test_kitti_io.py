@@ -15,6 +15,7 @@ from pipeline.kitti import (
     read_depth_png,
     read_image,
     read_labels,
+    read_raw_calib,
     read_velodyne,
     write_calib,
     write_depth_png,
@@ -111,6 +112,30 @@ def test_calib_errors_name_key_and_line():
                            for line in lines)
         with pytest.raises(InputError, match=f"calib.txt: {key} is singular"):
             parse_calib(zeroed, "calib.txt")
+    # A key given twice: which matrix is meant cannot be known (the last one used to win, silently).
+    with pytest.raises(InputError, match=r"calib\.txt, line 8: P2 given twice \(first on line 3\)"):
+        parse_calib(text.rstrip("\n") + "\nP2: 1 0 0 0 0 1 0 0 0 0 1 0\n", "calib.txt")
+    with pytest.raises(InputError, match=r"line 8: P0 given twice \(first on line 1\)"):  # even keys not used
+        parse_calib(text.rstrip("\n") + "\n" + lines[0] + "\n", "calib.txt")
+
+
+def test_raw_drive_calibration_reads_as_the_object_calibration(tmp_path):
+    """A drive's calib_cam_to_cam.txt and calib_velo_to_cam.txt (the depth-completion layout's calibration)
+    give the same matrices as the object file they were written from; a key given twice is refused."""
+    calib = read_calib(KITTI / "calib" / "000003.txt")
+    numbers = (lambda a: " ".join(f"{v:.12e}" for v in np.ravel(a)))
+    cam = tmp_path / "calib_cam_to_cam.txt"
+    cam.write_text(f"calib_time: 09-Jan-2012 13:57:47\nR_rect_00: {numbers(calib.R0_rect)}\n"
+                   f"P_rect_02: {numbers(calib.P2)}\n")
+    velo = tmp_path / "calib_velo_to_cam.txt"
+    velo.write_text(f"calib_time: 15-Mar-2012 11:37:16\nR: {numbers(calib.Tr_velo_to_cam[:, :3])}\n"
+                    f"T: {numbers(calib.Tr_velo_to_cam[:, 3])}\ndelta_f: 0 0\ndelta_c: 0 0\n")
+    raw = read_raw_calib(cam, velo)
+    for key in ("P2", "R0_rect", "Tr_velo_to_cam"):
+        np.testing.assert_allclose(getattr(raw, key), getattr(calib, key), rtol=1e-12)
+    velo.write_text(velo.read_text() + "T: 0 0 0\n")
+    with pytest.raises(InputError, match=r"calib_velo_to_cam\.txt, line 6: T given twice \(first on line 3\)"):
+        read_raw_calib(cam, velo)
 
 
 def test_labels_read_and_roundtrip(tmp_path):
@@ -137,6 +162,20 @@ def test_label_wrong_field_count_names_line():
     text = "Car 0 0 0 1 2 3 4 1 1 1 1 1 1 0\nCar 0 0 0 1 2 3\n"
     with pytest.raises(InputError, match=r"labels\.txt, line 2: expected 15 fields \(16 with a score\), got 7"):
         parse_labels(text, "labels.txt")
+
+
+def test_label_value_errors_name_line_and_field():
+    good = "Car 0.00 0 -1.58 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59"
+    with pytest.raises(InputError, match=r"labels\.txt, line 3, field 9 \(height\): 'xx' is not a number"):
+        parse_labels(f"{good}\n\n{good.replace(' 1.65 ', ' xx ')}\n", "labels.txt")
+    with pytest.raises(InputError, match=r"line 1, field 14 \(z\): 'nan' is not finite"):
+        parse_labels(good.replace(" 46.70 ", " nan "), "labels.txt")
+    with pytest.raises(InputError, match=r"line 1, field 16 \(score\): '0\.9x' is not a number"):
+        parse_labels(good + " 0.9x", "labels.txt")
+    # Result files: each line needs its score, and the error names the line (blank lines counted).
+    assert parse_labels(good, "gt.txt", needs_score=False)[0].score is None
+    with pytest.raises(InputError, match=r"result\.txt, line 3: Car has 15 fields; a result line needs a 16th, the score"):
+        parse_labels(f"{good} 0.5\n\n{good}\n", "result.txt", needs_score=True)
 
 
 def test_depth_png_roundtrip_and_real_frame(tmp_path, depth_completion_dir):
