@@ -157,6 +157,8 @@ def select_rings(rings: RingAssignment, beams: int, mode: str = "stride") -> np.
 
 def emulate_beams(points: np.ndarray, beams: int = 16, mode: str = "stride") -> np.ndarray:
     """Thin a 64-line scan to ``beams`` lines; returns the kept points in their original order."""
+    if len(points) == 0:
+        raise InputError("points: the scan has no points")
     rings = recover_rings(points)
     if rings.method == "azimuth-wrap" and rings.n_rings < MIN_RINGS_OF_64_LINES:
         # Thinning a 16-line scan "to 16 lines" would keep 4 of its rings, silently.
@@ -185,8 +187,22 @@ def emulate_beams_on_depth_map(depth: np.ndarray, calib, beams: int = 16, mode: 
 
 
 # --------------------------------------------------------------------------- CLI
-def convert_folder(src: Path, dst: Path, beams: int, mode: str = "stride", progress: bool = True) -> int:
-    """Write the beam-emulated copy of every ``*.bin`` in ``src`` into ``dst``; returns the file count."""
+@dataclass(frozen=True)
+class FolderRun:
+    """What :func:`convert_folder` did: scans written, and the scans it skipped (path → why)."""
+
+    written: int
+    skipped: dict[Path, str]
+
+
+def convert_folder(src: Path, dst: Path, beams: int, mode: str = "stride", progress: bool = True) -> FolderRun:
+    """Write the beam-emulated copy of every ``*.bin`` in ``src`` into ``dst``.
+
+    A scan that cannot be thinned (truncated, empty, thinned already) is named on stderr and skipped, and
+    the rest are still written, as ``pipeline.detect`` goes on past a bad frame; an old copy of it in
+    ``dst`` is removed, so ``dst`` holds only this run's scans. Rows with NaN or infinite values are dropped
+    from the copy, with a warning.
+    """
     from tqdm import tqdm
 
     from pipeline.kitti import read_velodyne, write_velodyne
@@ -202,14 +218,26 @@ def convert_folder(src: Path, dst: Path, beams: int, mode: str = "stride", progr
     if dst.exists() and not dst.is_dir():
         raise InputError(f"{dst}: exists and is not a directory")
     dst.mkdir(parents=True, exist_ok=True)
+    skipped: dict[Path, str] = {}
     for path in tqdm(files, desc=f"{beams}-line", unit="scan", disable=not progress):
-        scan = read_velodyne(path)
         try:
-            thinned = emulate_beams(scan.points, beams, mode)
-        except InputError as exc:  # name the scan: a folder may hold one that is already thin
-            raise InputError(f"{path}: {exc}") from exc
+            scan = read_velodyne(path)  # names the file
+            try:
+                thinned = emulate_beams(scan.points, beams, mode)
+            except InputError as exc:  # name the scan: a folder may hold one that is already thin
+                raise InputError(f"{path}: {exc}") from exc
+        except InputError as exc:
+            skipped[path] = str(exc)
+            old = dst / path.name
+            removed = f"; removed the old {old}" if old.is_file() else ""
+            old.unlink(missing_ok=True)
+            tqdm.write(f"error: {exc} (skipped{removed})", file=sys.stderr)
+            continue
+        if scan.dropped_nonfinite:
+            tqdm.write(f"warning: {path}: dropped {scan.dropped_nonfinite} rows with NaN or infinite values",
+                       file=sys.stderr)
         write_velodyne(dst / path.name, thinned)
-    return len(files)
+    return FolderRun(len(files) - len(skipped), skipped)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -227,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        n = convert_folder(args.src_dir, args.dst_dir, args.beams, args.mode)
+        run = convert_folder(args.src_dir, args.dst_dir, args.beams, args.mode)
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -235,7 +263,13 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"error: DST_DIR {args.dst_dir}: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
-    print(f"wrote {n} scans to {args.dst_dir}")
+    print(f"wrote {run.written} scans to {args.dst_dir}")
+    if run.skipped:
+        names = [path.name for path in run.skipped]
+        more = f" and {len(names) - 10} more" if len(names) > 10 else ""
+        print(f"error: {len(names)} of {run.written + len(names)} scan(s) skipped (each named above with its reason): "
+              f"{', '.join(names[:10])}{more}", file=sys.stderr)
+        return 1
     return 0
 
 

@@ -152,10 +152,38 @@ def test_folder_command_names_the_problem_file(tmp_path):
     assert blocked.returncode == 2 and "a-file: exists and is not a directory" in blocked.stderr
     assert "Traceback" not in blocked.stderr
     thin = tmp_path / "thin"
-    convert_folder(src, thin, 16, progress=False)
+    assert convert_folder(src, thin, 16, progress=False).written == 1
     again = subprocess.run([sys.executable, "-m", "pipeline.beams", str(thin), str(tmp_path / "thinner")],
                            capture_output=True, text=True, timeout=120, check=False)
-    assert again.returncode == 2 and f"{thin / '000006.bin'}: " in again.stderr and "Traceback" not in again.stderr
+    assert again.returncode == 1 and f"{thin / '000006.bin'}: points: the scan has " in again.stderr
+    assert "it is thinned already" in again.stderr and "Traceback" not in again.stderr
+
+
+def test_folder_command_goes_on_past_a_bad_scan(tmp_path):
+    """Each unusable scan is named with its reason and skipped, the others are written, the command exits 1;
+    an old copy of a skipped scan in DST_DIR is removed, and rows that are not finite are dropped with a warning."""
+    src, dst = tmp_path / "velodyne", tmp_path / "thin"
+    src.mkdir()
+    scan = (KITTI / "velodyne" / "000006.bin").read_bytes()
+    (src / "000001.bin").write_bytes(scan[:1000])  # truncated: not a multiple of 16 bytes
+    (src / "000002.bin").write_bytes(b"")
+    with_nan = np.frombuffer(scan, np.float32).reshape(-1, 4).copy()
+    with_nan[:11, 2] = np.nan
+    with_nan.tofile(src / "000003.bin")
+    (src / "000004.bin").write_bytes(scan)
+    dst.mkdir()
+    (dst / "000001.bin").write_bytes(scan)  # an earlier run's copy
+    done = subprocess.run([sys.executable, "-m", "pipeline.beams", str(src), str(dst)],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert f"error: {src / '000001.bin'}: size 1000 bytes" in done.stderr and f"removed the old {dst / '000001.bin'}" in done.stderr
+    assert f"error: {src / '000002.bin'}: " in done.stderr and "rings" not in done.stderr.split("000002.bin")[1].split("\n")[0]
+    assert f"warning: {src / '000003.bin'}: dropped 11 rows with NaN or infinite values" in done.stderr
+    assert "2 of 4 scan(s) skipped (each named above with its reason): 000001.bin, 000002.bin" in done.stderr
+    assert "wrote 2 scans" in done.stdout
+    assert sorted(p.name for p in dst.iterdir()) == ["000003.bin", "000004.bin"]
+    thinned = np.fromfile(dst / "000004.bin", np.float32).reshape(-1, 4)
+    np.testing.assert_array_equal(thinned, emulate_beams(np.frombuffer(scan, np.float32).reshape(-1, 4), 16))
 
 
 def test_convert_folder_rejects_missing_source(tmp_path):
