@@ -470,9 +470,10 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
         _check_detection_inputs(args, frames, out)
         if first is not None:  # the first N ground-truth frames: the ones the evaluation below takes
             frames = ground_truth_frames(args.data / "label_2", frames)[:first]
-        predictions = run_detection(args.data, args.models, args.input, out, frames, args.provider,
-                                    progress=not args.no_progress, score_threshold=args.score_threshold,
-                                    depth_dir=args.depth_dir)
+        detection = run_detection(args.data, args.models, args.input, out, frames, args.provider,
+                                  progress=not args.no_progress, score_threshold=args.score_threshold,
+                                  depth_dir=args.depth_dir)
+        predictions = detection.results
         outcome = run(LabelEvalConfig(
             gt_labels=args.data / "label_2", pred_labels=predictions, split_file=split_file, first_frames=first,
             json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
@@ -486,6 +487,12 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
     source = f", depth from {args.depth_dir} instead of the depth network" if args.depth_dir else ""
     print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames{source}), results in {predictions}")
     print(outcome.table)
+    if detection.skipped:  # the table is then not the model's score on this data: say so, and fail
+        ids = list(detection.skipped)
+        more = f" and {len(ids) - 10} more" if len(ids) > 10 else ""
+        print(f"error: {len(ids)} frame(s) skipped (each named above with its reason): {', '.join(ids[:10])}{more}; "
+              "the table counts their cars as missed", file=sys.stderr)
+        return 1
     return 0
 
 

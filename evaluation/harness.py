@@ -31,7 +31,7 @@ from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_depth_png, read_image, read_image_depth_png
 from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
-from pipeline.render import render_depth_panel
+from pipeline.render import render_depth_panel, write_png
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +41,21 @@ INPUTS = {"lidar64": None, "lidar16": 16, "lidar16+camera": 16}
 DEFAULT_SCORE_THRESHOLD = 0.05  # low: AP integrates over the whole precision–recall curve
 
 
+@dataclass(frozen=True)
+class DetectionRun:
+    """Where a detection run wrote its result files, and the frames it skipped (id → why)."""
+
+    results: Path
+    skipped: dict[str, str] = field(default_factory=dict)
+
+
 def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: list[str] | None = None,
                   provider: str | None = None, progress: bool = True,
-                  score_threshold: float = DEFAULT_SCORE_THRESHOLD, depth_dir: Path | None = None) -> Path:
-    """Detect on every frame and write KITTI result files; returns the result directory.
+                  score_threshold: float = DEFAULT_SCORE_THRESHOLD, depth_dir: Path | None = None) -> DetectionRun:
+    """Detect on every frame and write KITTI result files.
 
+    A frame whose files are unusable is skipped (named on stderr) and has no result file, not even one
+    from an earlier run into ``out``: the evaluation counts its cars as missed, and the caller says so.
     depth_dir: dense depth PNGs used instead of the depth network (``pipeline.detect --depth-dir``).
     """
     from pipeline.detect import run as detect
@@ -61,7 +71,7 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
         raise InputError(f"--depth-dir: only the camera pipeline uses depth (--input lidar16+camera, not {input_mode})")
     result = detect(models, out, data=data, frames=frames, emulate_beams=INPUTS[input_mode], provider=provider,
                     pictures=False, progress=progress, score_threshold=score_threshold, depth_dir=depth_dir)
-    return out / "data" if result.result_files else out
+    return DetectionRun(out / "data" if result.result_files else out, result.skipped)
 
 
 @dataclass(frozen=True)
@@ -128,7 +138,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
         if pictures is not None:
             crop = depth_crop(image.shape[:2], *preset.crop_hw).apply(image)
             panel = render_depth_panel(crop, prediction, ground_truth, preset.depth.max_depth)
-            cv2.imwrite(str(Path(pictures) / f"depth_{fid}.png"), panel)
+            write_png(Path(pictures) / f"depth_{fid}.png", panel)
     if layout == "depth-completion":
         used = "velodyne_raw as given (projected 64-line scan)"
         ids = (frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png")))[:first]

@@ -190,8 +190,12 @@ def _ship(config: ReproduceConfig, sources: dict[str, Path]) -> dict[str, str]:
 def _detection_labels(config: ReproduceConfig, models: Path, input_mode: str, name: str) -> LabelSet:
     """Run one model directory on the validation set; its result files and the ground truth, loaded."""
     val = config.data / "val"
-    predictions = run_detection(val, models, input_mode, config.out / "eval" / name, progress=config.progress)
-    return load_label_dirs(val / "label_2", predictions, progress=False)
+    detection = run_detection(val, models, input_mode, config.out / "eval" / name, progress=config.progress)
+    if detection.skipped:  # the recipe's own frames: a skipped one is a fault, and the table would count it missed
+        fid, why = next(iter(detection.skipped.items()))
+        raise InputError(f"{val}: {len(detection.skipped)} validation frame(s) could not be used ({fid}: {why}); "
+                         "the table needs them all")
+    return load_label_dirs(val / "label_2", detection.results, progress=False)
 
 
 def _how_sure(config: ReproduceConfig, labels: dict[str, LabelSet]) -> dict:

@@ -213,6 +213,11 @@ class BevVoxelizer:
         if grid.split_pseudo:  # the reflectance averages the real points only: it need not wait
             self._write_reflectance(cell)
 
+    @property
+    def points_in_grid(self) -> int:
+        """How many of the last frame's real points (:meth:`add_points`) fell inside the grid."""
+        return int(self._real_cells.shape[0])
+
     def add_pseudo(self, pseudo: PseudoBins | tuple[np.ndarray, np.ndarray, np.ndarray] | None) -> np.ndarray:
         """The second half of a frame after :meth:`add_points`: the pseudo points (None: there are none) and,
         on a shared grid, the reflectance they dilute. Returns the BEV tensor."""

@@ -30,7 +30,7 @@ from pipeline.frame import load_frame
 from pipeline.model_files import ModelFileError
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import get_preset
-from pipeline.render import render_bev, render_depth
+from pipeline.render import render_bev, render_depth, write_png
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_DIR = ROOT / "tests" / "data" / "kitti" / "training"
@@ -50,11 +50,11 @@ def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
     elapsed = (time.perf_counter() - tic) * 1e3
     cars = labels_to_boxes([o for o in (frame.labels or []) if o.type == "Car"], frame.calib)
     out.mkdir(parents=True, exist_ok=True)
-    cv2.imwrite(str(out / f"{frame_id}_bev_64.png"), render_bev(frame.points, preset.bev, gt_boxes=cars))
-    cv2.imwrite(str(out / f"{frame_id}_bev_16.png"), render_bev(lidar16, preset.bev, gt_boxes=cars))
+    write_png(out / f"{frame_id}_bev_64.png", render_bev(frame.points, preset.bev, gt_boxes=cars))
+    write_png(out / f"{frame_id}_bev_16.png", render_bev(lidar16, preset.bev, gt_boxes=cars))
     sparse = render_depth(cv2.dilate(inputs.sparse_depth[0, 0], np.ones((3, 3), np.uint8)))
     view = cv2.cvtColor(inputs.rgb[0].transpose(1, 2, 0).astype(np.uint8), cv2.COLOR_RGB2BGR)
-    cv2.imwrite(str(out / f"{frame_id}_sparse_depth_16.png"), np.vstack([view, sparse]))
+    write_png(out / f"{frame_id}_sparse_depth_16.png", np.vstack([view, sparse]))
     return {
         "frame": frame_id, "mode": "core (no model directory)", "points_64": int(frame.points.shape[0]),
         "rings_found": rings.n_rings, "points_16": int(lidar16.shape[0]),

@@ -11,7 +11,9 @@ On a folder, a frame whose files cannot be used (a truncated scan, a broken
 image or calibration) is reported with its file and skipped, and the run goes
 on: one bad file in thousands costs that frame, not the rest of the run. The
 command then exits 1 and lists the skipped frames; a ``--frame`` with no scan
-is refused before any model is loaded.
+is refused before any model is loaded. A skipped frame's result file and
+picture from an earlier run into the same folder are removed, so that
+``OUT/data`` never passes an old result off as this run's.
 """
 
 from __future__ import annotations
@@ -22,8 +24,6 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
-
-import cv2
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import labels_to_boxes
@@ -39,7 +39,7 @@ from pipeline.kitti import (
     write_labels,
 )
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
-from pipeline.render import render_bev
+from pipeline.render import render_bev, write_png
 
 if TYPE_CHECKING:  # the Detector (and ONNX Runtime) load only when a run starts, not for --help
     from pipeline.detector import Detections, Detector
@@ -114,7 +114,8 @@ def run(
         scan = read_velodyne(points)
         single = Frame(ids[0], read_image(image), scan.points, read_calib(calib), None, scan.dropped_nonfinite)
         loader = (lambda fid: single)
-        source = (lambda fid: f"{points}")
+        files = {"image": Path(image), "points": Path(points), "calib": Path(calib)}
+        source = (lambda fid: files)
     else:
         raise InputError("give --data DIR (and optionally --frame), or all of --image, --points and --calib")
 
@@ -130,7 +131,9 @@ def run(
             if data is None:  # one set of files: nothing else to do
                 raise
             skipped[fid] = str(exc)
-            tqdm.write(f"error: {exc} (frame {fid} skipped)", file=sys.stderr)
+            removed = _remove_earlier_outputs(out, fid)
+            also = f"; removed its {' and '.join(removed)} from an earlier run" if removed else ""
+            tqdm.write(f"error: {exc} (frame {fid} skipped{also})", file=sys.stderr)
             continue
         if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
             detections.warnings.append(f"points: dropped rows with NaN or infinite values ({frame.dropped_nonfinite} rows)")
@@ -155,11 +158,24 @@ def run(
             picture = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt)
             (out / "bev").mkdir(parents=True, exist_ok=True)
             path = out / "bev" / f"{frame.frame_id}.png"
-            cv2.imwrite(str(path), picture)
+            write_png(path, picture)
             images.append(path)
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
     return DetectResult(list(ids), results, images, means, count, skipped)
+
+
+def _remove_earlier_outputs(out: Path, fid: str) -> list[str]:
+    """Remove a skipped frame's result file and picture left in ``out`` by an earlier run; what was removed.
+
+    An evaluation reads every result file in ``OUT/data``: an old one would be scored as this run's.
+    """
+    removed = []
+    for kind, path in (("result file", out / "data" / f"{fid}.txt"), ("picture", out / "bev" / f"{fid}.png")):
+        if path.is_file():
+            path.unlink()
+            removed.append(f"{kind} {path}")
+    return removed
 
 
 def _folder_frames(data: Path, frames: list[str] | None) -> list[str]:
@@ -178,20 +194,26 @@ def _folder_frames(data: Path, frames: list[str] | None) -> list[str]:
     return frames
 
 
-def _detect_frame(detector: Detector, frame: Frame, source: str, depth_dir: Path | None,
+def _detect_frame(detector: Detector, frame: Frame, source: str | dict[str, Path], depth_dir: Path | None,
                   score_threshold: float | None, emulate_beams: int | None) -> Detections:
-    """Detect on one loaded frame (with its --depth-dir map); an InputError names the file, or source."""
+    """Detect on one loaded frame (with its --depth-dir map); an InputError names the file, or source:
+    the folder and frame, or for one set of files the file of the field the Detector names."""
     depth = None
     if depth_dir is not None:
         depth = read_image_depth_png(Path(depth_dir) / f"{frame.frame_id}.png", frame.image.shape[:2])
     if frame.points.shape[0] == 0 and frame.dropped_nonfinite:
-        raise InputError(f"{source}: points: none of the scan's {frame.dropped_nonfinite} rows is finite")
+        raise InputError(f"{_where(source, 'points')}: points: none of the scan's {frame.dropped_nonfinite} rows is finite")
     try:
         detections = detector.detect(frame.image, frame.points, frame.calib, score_threshold, emulate_beams,
                                      keep_points=True, depth=depth)
-    except InputError as exc:  # the Detector names the field; say which frame it was
-        raise InputError(f"{source}: {exc}") from exc
+    except InputError as exc:  # the Detector names the field ("image: …"); say which frame or file it was
+        raise InputError(f"{_where(source, str(exc).partition(':')[0])}: {exc}") from exc
     return detections
+
+
+def _where(source: str | dict[str, Path], field: str) -> str:
+    """The folder and frame, or the file that holds ``field`` (the scan's when no file is named by it)."""
+    return source if isinstance(source, str) else str(source.get(field, source["points"]))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -58,6 +58,9 @@ MAX_POINTS = 2_000_000  # far beyond any real scan; protects memory from absurd 
 SCAN_LINES_BY_INPUT = {"lidar16": 16, "pseudo": 16, "lidar64": 64}
 MOST_POINTS_OF_16_LINES = 80_000
 FEWEST_POINTS_OF_64_LINES = 50_000
+# On KITTI about 40 % of a scan lies in the BEV grid in front of the car; a scan with almost none there
+# is in other units (millimetres) or another frame, and would give no boxes without saying why.
+FEWEST_IN_GRID_SHARE = 0.01
 REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 written by another tool
 
 
@@ -429,6 +432,11 @@ class Detector:
             voxelizer.add_points(points)
         bev = voxelizer.add_pseudo(pseudo)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
+        if voxelizer.points_in_grid < FEWEST_IN_GRID_SHARE * points.shape[0]:
+            grid = self.preset.bev
+            warnings.append(f"points: almost none lie in the detection range, x {grid.x_min:g}…{grid.x_max:g} m forward, "
+                            f"y {grid.y_min:g}…{grid.y_max:g} m, z {grid.z_min:g}…{grid.z_max:g} m in the velodyne frame: "
+                            f"are they in metres, in that frame? ({voxelizer.points_in_grid} of {points.shape[0]} points)")
         tic = time.perf_counter()
         score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]})
         timings["pixor"] = (time.perf_counter() - tic) * 1e3

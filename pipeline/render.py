@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import errno
+from pathlib import Path
+
 import cv2
 import numpy as np
 
@@ -88,3 +91,18 @@ def render_depth_panel(image: np.ndarray, prediction: np.ndarray, ground_truth: 
         cv2.rectangle(row, (0, 0), (text_w + 16, text_h + 14), (0, 0, 0), thickness=-1)
         cv2.putText(row, label, (8, text_h + 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
     return np.vstack([row for row, _ in rows])
+
+
+def write_png(path: str | Path, picture: np.ndarray) -> None:
+    """Write a picture as PNG; an OSError naming the file when it cannot be written.
+
+    cv2.imwrite answers False (or raises cv2.error) where open() would raise: a directory in the way,
+    no permission, a full disk. Raising OSError lets the commands report it as any other unwritable output.
+    """
+    try:
+        written = cv2.imwrite(str(path), picture)
+    except cv2.error as exc:
+        raise OSError(errno.EIO, f"could not write the PNG ({exc.err})", str(path)) from exc
+    if not written:
+        raise OSError(errno.EIO, "could not write the PNG (a directory in the way, no permission or a full disk?)",
+                      str(path))

@@ -87,6 +87,28 @@ def test_detection_run_with_depth_from_files_and_distance_bands(tiny_models, tmp
         run_detection(KITTI, lidar_only, "lidar16", tmp_path / "x", depth_dir=depth_dir)
 
 
+def test_a_skipped_frame_fails_the_evaluation_and_no_old_result_stands_in(tiny_models, tmp_path):
+    """A frame whose scan is unusable is named, its cars count as missed, and the command exits 1; a result
+    file left for it by an earlier run into the same folder is removed, not scored as this run's."""
+    data = tmp_path / "kitti"
+    for part, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt")):
+        (data / part).mkdir(parents=True)
+        for fid in ("000003", "000006"):
+            (data / part / f"{fid}{suffix}").write_bytes((KITTI / part / f"{fid}{suffix}").read_bytes())
+    (data / "velodyne" / "000006.bin").write_bytes(b"\0" * 1000)  # not a multiple of 16 bytes
+    stale = tmp_path / "run" / "data" / "000006.txt"
+    stale.parent.mkdir(parents=True)
+    # A perfect old result: scored, it would lift the table.
+    stale.write_text("".join(line + " 1.0\n" for line in (KITTI / "label_2" / "000006.txt").read_text().splitlines()))
+    result = _accuracy("--data", data, "--models", tiny_models, "--input", "lidar16+camera", "--out", tmp_path / "run",
+                       "--json", tmp_path / "ap.json")
+    assert result.returncode == 1 and "Traceback" not in result.stderr
+    assert f"{data / 'velodyne' / '000006.bin'}" in result.stderr and "(frame 000006 skipped; removed its result file" in result.stderr
+    assert "1 frame(s) skipped (each named above with its reason): 000006; the table counts their cars as missed" in result.stderr
+    assert not stale.exists() and "Car AP" in result.stdout
+    assert json.loads((tmp_path / "ap.json").read_text())["frames"] == 2
+
+
 def test_detection_run_refuses_mismatched_models(tiny_models, tmp_path):
     with pytest.raises(InputError, match="does not fit --input lidar16"):
         run_detection(KITTI, tiny_models, "lidar16", tmp_path)

@@ -150,6 +150,17 @@ def test_reflectance_off_kittis_scale_is_refused(detector, frame):
     assert detector.detect(frame.image, edge, frame.calib).boxes.shape[1] == 7
 
 
+def test_a_scan_in_millimetres_is_warned_about(detector, frame):
+    """A driver sending millimetres puts the scan far outside the detection range: no boxes, and a warning that
+    says why, which a scan in metres never gets."""
+    assert not any("detection range" in w for w in detector.detect(frame.image, frame.points, frame.calib).warnings)
+    millimetres = frame.points.copy()
+    millimetres[:, :3] *= 1000
+    warnings = detector.detect(frame.image, millimetres, frame.calib).warnings
+    in_grid = [w for w in warnings if w.startswith("points: almost none lie in the detection range, x 0…")]
+    assert len(in_grid) == 1 and in_grid[0].endswith(f"of {frame.points.shape[0]} points)")
+
+
 def _edited_manifest(tiny_models, tmp_path, edit) -> Path:
     """A copy of the tiny model directory whose manifest went through ``edit`` (its ONNX files untouched)."""
     copy = tmp_path / "edited"
@@ -436,11 +447,18 @@ def test_detect_command_goes_on_past_a_broken_frame(tiny_models, tmp_path):
     (data / "calib" / "000002.txt").write_bytes((KITTI / "calib" / "000003.txt").read_bytes())
     np.zeros((10, 4), np.float32).tofile(data / "velodyne" / "000002.bin")
     (data / "calib" / "000006.txt").write_text("P2: 1 2 3\n")
+    old = {tmp_path / "out" / "data" / "000002.txt": "Car 0 0 0 1 1 2 2 1 1 1 1 1 1 0 0.9\n",
+           tmp_path / "out" / "bev" / "000002.png": "not this run's picture"}
+    for path, text in old.items():  # an earlier run's outputs for a frame this run skips
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
     done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(data),
                            "--emulate-beams", "16", "--no-pictures", "--out", str(tmp_path / "out")],
                           capture_output=True, text=True, timeout=300, check=False)
     assert done.returncode == 1 and "Traceback" not in done.stderr
-    assert f"{data / 'image_2' / '000002.png'}: not a readable PNG or JPEG image (frame 000002 skipped)" in done.stderr
+    assert (f"{data / 'image_2' / '000002.png'}: not a readable PNG or JPEG image (frame 000002 skipped; removed its "
+            f"result file {tmp_path / 'out' / 'data' / '000002.txt'} and picture ") in done.stderr
+    assert not any(path.exists() for path in old)
     assert f"{data / 'calib' / '000006.txt'}" in done.stderr
     assert "2 of 3 frame(s) skipped (each named above with its reason): 000002, 000006" in done.stderr
     assert sorted(p.name for p in (tmp_path / "out" / "data").iterdir()) == ["000003.txt"]
@@ -452,6 +470,29 @@ def test_detect_command_goes_on_past_a_broken_frame(tiny_models, tmp_path):
     assert typo.returncode == 2 and "Traceback" not in typo.stderr
     assert f"--frame 3: no scan {data / 'velodyne' / '3.bin'} (and 1 more --frame without one)" in typo.stderr
     assert not (tmp_path / "typo").exists()
+
+
+def test_a_picture_that_cannot_be_written_is_an_error_naming_it(tiny_models, tmp_path):
+    """cv2.imwrite only answers False: the command must not claim pictures it did not write."""
+    blocked = tmp_path / "out" / "bev" / "000006.png"
+    blocked.mkdir(parents=True)  # a directory where the picture goes
+    done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models),
+                           "--image", str(KITTI / "image_2" / "000006.png"), "--points", str(KITTI / "velodyne" / "000006.bin"),
+                           "--calib", str(KITTI / "calib" / "000006.txt"), "--out", str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2 and "Traceback" not in done.stderr and "BEV pictures" not in done.stdout
+    assert f"error: --out {tmp_path / 'out'}: {blocked}: could not write the PNG" in done.stderr
+
+
+def test_one_set_of_files_names_the_file_of_the_field_at_fault(tiny_models, tmp_path):
+    """With --image/--points/--calib, an image the model cannot use is blamed on the image file, not the scan."""
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((50, 50, 3), np.uint8))
+    done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--image", str(small),
+                           "--points", str(KITTI / "velodyne" / "000006.bin"), "--calib", str(KITTI / "calib" / "000006.txt"),
+                           "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert f"error: {small}: image: 50×50 pixels is smaller than" in done.stderr and "000006.bin" not in done.stderr
 
 
 def test_pictures_survive_boxes_far_off_the_grid():
