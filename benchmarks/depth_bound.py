@@ -170,6 +170,19 @@ def check_inputs(data: Path, models: Path, factor: int) -> Preset:
     return preset
 
 
+def check_destination(data: Path, out: Path, cache: bool) -> Path:
+    """The folder the maps go to, refused when it would overwrite depth maps: the true depth of ``data``
+    (``--out`` the data folder itself), an earlier run's bounds, or a ``models.cache_pseudo`` cache."""
+    target = out if cache else out / "depth_2"
+    if target.resolve() == (data / "depth_2").resolve():
+        raise InputError(f"--out {out}: would overwrite the true depth in {data / 'depth_2'}; give another folder")
+    if (out / "cache.json").exists():
+        raise InputError(f"--out {out}: holds a models.cache_pseudo cache (cache.json); give a new or empty folder")
+    if target.is_dir() and next(target.glob("*.png"), None) is not None:
+        raise InputError(f"--out {out}: {target} already holds depth maps; give a new or empty folder")
+    return target
+
+
 def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int | None = None,
                  upsample: str = "bilinear", cache: bool = False) -> int:
     """Write OUT/depth_2/<id>.png (OUT/<id>.png in the network's view with ``cache``) for the first
@@ -180,7 +193,7 @@ def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int |
     ids = frame_ids(data)[:frames]
     if not ids:
         raise InputError(f"--data {data}: no frames (velodyne/ has no .bin file)")
-    target = out if cache else out / "depth_2"
+    target = check_destination(data, out, cache)
     target.mkdir(parents=True, exist_ok=True)
     for fid in tqdm(ids, desc="bounded depth", unit="frame"):
         frame = load_frame(data, fid)

@@ -129,11 +129,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=positive_int, default=3769, help="frames to generate (default: 3769)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="timed runs; the median is reported")
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--keep", type=Path, metavar="DIR", help="write the label sets here and keep them")
+    parser.add_argument("--keep", type=Path, metavar="DIR",
+                        help="write the label sets here and keep them (a new or empty folder)")
     args = parser.parse_args(argv)
     if args.keep is not None:
         try:
             check_output(args.keep, "--keep", directory=True)
+            # Random labels over a folder's own would destroy them, and an earlier, larger set's files would
+            # be evaluated too while the report says --frames.
+            if args.keep.is_dir() and next(args.keep.iterdir(), None) is not None:
+                raise InputError(f"--keep {args.keep}: not empty; give a new or empty folder")
         except InputError as exc:
             parser.error(str(exc))
     with tempfile.TemporaryDirectory() as tmp:

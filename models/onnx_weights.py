@@ -112,6 +112,17 @@ def _absent(graph: onnx.GraphProto, prefixes: tuple[str, ...]) -> tuple[str, ...
     return tuple(p for p in prefixes if not any(_under(n, (p,)) for n in names))
 
 
+def read_onnx(path: str | Path, load_external_data: bool = True) -> onnx.ModelProto:
+    """An ONNX file, or a ValueError naming it when it is not one (onnx.load raises protobuf's DecodeError for
+    a truncated or foreign file, which is no error a user should read as a trace)."""
+    try:
+        return onnx.load(str(path), load_external_data=load_external_data)
+    except OSError:
+        raise
+    except Exception as exc:  # google.protobuf.message.DecodeError and friends
+        raise ValueError(f"{path}: not a readable ONNX model ({type(exc).__name__}: {exc})") from exc
+
+
 def load_onnx_weights(network: nn.Module, path: str | Path, optional: tuple[str, ...] = ()) -> tuple[str, ...]:
     """Set every parameter and batch-norm buffer of ``network`` from the exported graph at ``path``.
 
@@ -120,7 +131,7 @@ def load_onnx_weights(network: nn.Module, path: str | Path, optional: tuple[str,
     can start from the exported weights. Returns those left as they were.
     Raises ValueError when the graph does not hold this network's weights (another preset, say).
     """
-    model = onnx.load(str(path))
+    model = read_onnx(path)
     if any(node.op_type == "DequantizeLinear" for node in model.graph.node):
         raise ValueError(f"{path}: an INT8 (quantized) graph, whose weights cannot be read back as trained; "
                          "give the FP32 model directory it was converted from (its manifest's precision_info.source)")
@@ -179,11 +190,16 @@ def checkpoints_from_model_dir(models: str | Path, out: str | Path) -> dict[str,
     """
     from models import build_network
     from models.checkpoint import CHECKPOINT_FILES, save_checkpoint
-    from pipeline.model_files import load_manifest
+    from pipeline.errors import InputError
+    from pipeline.model_files import load_manifest, verify_sha256
     from pipeline.presets import preset_from_dict
 
     models, out = Path(models), Path(out)
+    held = [name for name in (*CHECKPOINT_FILES.values(), "state.pt") if (out / name).exists()]
+    if held:  # a training run's own checkpoints (or another conversion's): never replaced
+        raise InputError(f"--out {out}: already holds {' and '.join(held)}; give a new folder")
     manifest = load_manifest(models)
+    verify_sha256(models, manifest)  # a damaged or edited ONNX file is named as such, as the runtime names it
     preset = preset_from_dict(manifest["preset_config"])
     written = {}
     for name, entry in manifest["networks"].items():

@@ -62,7 +62,7 @@ from evaluation.kitti_eval import evaluate
 from evaluation.labels import LabelArrays
 from models import build_depth_net, build_pixor
 from models.allocator import keep_freed_memory
-from models.checkpoint import load_checkpoint, load_network_weights, save_checkpoint
+from models.checkpoint import CHECKPOINT_FILES, load_checkpoint, load_network_weights, save_checkpoint
 from models.data import (
     DETECTOR_INPUTS,
     DepthDataset,
@@ -476,6 +476,11 @@ def run(config: TrainConfig) -> TrainResult:
         check_resumable(config, state, out)
     elif state_path.exists():
         raise InputError(f"--out: {out} already holds a run ({STATE_FILE}); pass --resume to continue it")
+    elif not config.resume and (held := [f for f in CHECKPOINT_FILES.values() if (out / f).exists()]):
+        # Checkpoints without a run's state (models.onnx_weights writes such folders): a new run would replace
+        # one and leave the other beside it, for export --checkpoints to pair.
+        raise InputError(f"--out: {out} already holds {' and '.join(held)} but no {STATE_FILE} (not a run to "
+                         "resume); give a new folder")
     if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
     train_dir, train_ids, val_dir, val_ids = split_ids(config)
@@ -854,9 +859,9 @@ def _bev_channels(path: Path) -> int | None:
     """The BEV channels a PIXOR checkpoint or ``pixor.onnx`` reads (None if it says not)."""
     try:
         if path.suffix == ".onnx":
-            import onnx
+            from models.onnx_weights import read_onnx
 
-            graph = onnx.load(str(path), load_external_data=False).graph
+            graph = read_onnx(path, load_external_data=False).graph
             return graph.input[0].type.tensor_type.shape.dim[1].dim_value
         return preset_from_dict(load_checkpoint(path).preset_config).bev.channels
     except (OSError, ValueError, KeyError, IndexError, AttributeError):

@@ -107,3 +107,10 @@ def test_eval_speed_refuses_a_keep_folder_it_cannot_write(tmp_path):
     done = subprocess.run([*_command("eval_speed"), "--frames", "2", "--keep", str(tmp_path / "a-file")],
                           capture_output=True, text=True, timeout=120, check=False, cwd=REPO)
     assert done.returncode == 2 and "Traceback" not in done.stderr and "--keep" in done.stderr
+    labels = tmp_path / "kitti" / "label_2"
+    labels.mkdir(parents=True)
+    (labels / "000000.txt").write_text("Car 0 0 0 1 2 3 4 1 1 1 1 1 1 0\n")  # someone's real labels
+    done = subprocess.run([*_command("eval_speed"), "--frames", "2", "--keep", str(tmp_path / "kitti")],
+                          capture_output=True, text=True, timeout=120, check=False, cwd=REPO)
+    assert done.returncode == 2 and "--keep" in done.stderr and "not empty" in done.stderr
+    assert (labels / "000000.txt").read_text() == "Car 0 0 0 1 2 3 4 1 1 1 1 1 1 0\n"

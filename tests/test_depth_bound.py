@@ -96,6 +96,24 @@ def test_command_refuses_bad_inputs_naming_the_flag_before_writing(tmp_path, cap
     assert code == 2 and err.startswith("error: --out") and "Traceback" not in err  # was a FileExistsError trace
 
 
+def test_command_never_overwrites_depth_maps(tmp_path, capsys):
+    """Not the data's true depth (--out the data folder), not an earlier run's maps, not a training cache."""
+    data = _dataset(tmp_path / "data")
+    truth = (data / "depth_2" / "000006.png").read_bytes()
+    edge = str(REPO / "weights" / "edge")
+    code, err = _run(capsys, "--data", str(data), "--models", edge, "--out", str(data))
+    assert code == 2 and f"would overwrite the true depth in {data / 'depth_2'}" in err
+    assert (data / "depth_2" / "000006.png").read_bytes() == truth
+    assert _run(capsys, "--data", str(data), "--models", edge, "--factor", "2", "--out", str(tmp_path / "out"))[0] == 0
+    code, err = _run(capsys, "--data", str(data), "--models", edge, "--out", str(tmp_path / "out"))
+    assert code == 2 and "already holds depth maps" in err
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "cache.json").write_text("{}")
+    code, err = _run(capsys, "--data", str(data), "--models", edge, "--cache", "--out", str(cache))
+    assert code == 2 and "models.cache_pseudo cache" in err and list(cache.iterdir()) == [cache / "cache.json"]
+
+
 def test_command_writes_a_map_per_frame(tmp_path, capsys):
     data = _dataset(tmp_path / "data")
     code = main(["--data", str(data), "--models", str(REPO / "weights" / "edge"), "--factor", "2",

@@ -1,6 +1,7 @@
 """ONNX weights back into the PyTorch networks (models/onnx_weights.py): the shipped files and a round trip."""
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -135,3 +136,17 @@ def test_a_model_directory_back_to_checkpoints(tiny_models, tmp_path, capsys):
     (tmp_path / "a-file").write_text("")
     assert main(["--models", str(tiny_models), "--out", str(tmp_path / "a-file")]) == 2
     assert "--out" in capsys.readouterr().err
+    damaged = tmp_path / "damaged"  # a cut-off copy: named by the manifest's sha256, not a protobuf trace
+    shutil.copytree(tiny_models, damaged)
+    (damaged / "pixor.onnx").write_bytes((tiny_models / "pixor.onnx").read_bytes()[:1000])
+    assert main(["--models", str(damaged), "--out", str(tmp_path / "y")]) == 2
+    assert f"{damaged / 'pixor.onnx'}: sha256 mismatch" in capsys.readouterr().err
+
+
+def test_a_file_that_is_not_onnx_is_named(tmp_path):
+    from models.onnx_weights import read_onnx
+
+    garbage = tmp_path / "pixor.onnx"
+    garbage.write_text("hello\n")
+    with pytest.raises(ValueError, match=r"pixor\.onnx: not a readable ONNX model \(DecodeError"):
+        read_onnx(garbage)

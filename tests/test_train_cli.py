@@ -15,6 +15,8 @@ import pytest
 from models.train import TrainConfig, main, run
 from tests.conftest import KITTI
 
+REPO = Path(__file__).resolve().parents[1]
+
 FRAME = "000006"  # four labelled cars
 
 
@@ -192,6 +194,34 @@ def test_out_that_is_a_file_is_refused(tmp_path, capsys, one_frame):
     under = path / "run"
     assert refused(args("detector", under, one_frame), capsys) == f"error: --out: cannot create {under}: {path} is a file"
     assert path.read_text() == "kept\n"
+
+
+def test_checkpoints_without_a_run_are_never_replaced(finished_run, tmp_path, capsys, one_frame):
+    """A folder of checkpoints with no state.pt (models.onnx_weights writes them): a new run there would replace
+    one and leave the other beside it. models.onnx_weights itself never writes over a run's checkpoints."""
+    from models.onnx_weights import main as onnx_weights
+
+    folder = tmp_path / "converted"
+    folder.mkdir()
+    shutil.copy(finished_run / "pixor.pt", folder)
+    before = files(folder)
+    says = refused(args("detector", folder, one_frame, "--input", "lidar16"), capsys)
+    assert says == f"error: --out: {folder} already holds pixor.pt but no state.pt (not a run to resume); give a new folder"
+    run_copy = tmp_path / "run"
+    shutil.copytree(finished_run, run_copy)
+    kept = files(run_copy)
+    assert onnx_weights(["--models", str(REPO / "weights" / "edge-lidar16"), "--out", str(run_copy)]) == 2
+    assert f"--out {run_copy}: already holds pixor.pt and state.pt; give a new folder" in capsys.readouterr().err
+    assert files(run_copy) == kept and files(folder) == before
+
+
+def test_a_start_file_that_is_not_onnx_is_named(tmp_path, capsys, one_frame):
+    garbage = tmp_path / "pixor.onnx"
+    garbage.write_text("hello\n")
+    says = refused(args("detector", tmp_path / "run", one_frame, "--input", "lidar16", "--pixor-checkpoint", str(garbage)),
+                   capsys)
+    assert says.startswith(f"error: {garbage}: not a readable ONNX model (DecodeError")
+    assert not (tmp_path / "run").exists()
 
 
 def test_corrupt_state_is_named_without_a_traceback(finished_run, tmp_path, one_frame):
