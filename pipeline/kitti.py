@@ -8,6 +8,7 @@ are :class:`~pipeline.errors.InputError` naming the source and the problem.
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -320,11 +321,21 @@ def read_image_depth_png(path: str | Path, image_hw: tuple[int, int]) -> np.ndar
 
 
 def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
-    """Write float metres as a KITTI depth PNG (rounded to 1/256 m, clipped to the uint16 range)."""
+    """Write float metres as a KITTI depth PNG (rounded to 1/256 m, clipped to the uint16 range).
+
+    The file appears whole or not at all (written beside it, then renamed): a run killed while writing
+    leaves no cut-off map that a resumed run (the simulator writes depth_2 last, and counts a frame done
+    when it is there) or a reader would take for a finished one.
+    """
+    path = Path(path)
     depth = np.nan_to_num(np.asarray(depth_m, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     raw = np.clip(np.rint(depth * DEPTH_SCALE), 0, 65535).astype(np.uint16)
-    if not cv2.imwrite(str(path), raw):
-        raise InputError(f"{path}: could not write depth PNG")
+    encoded, png = cv2.imencode(".png", raw)
+    if not encoded:
+        raise InputError(f"{path}: could not encode the depth map as PNG")
+    partial = path.with_name(path.name + ".part")
+    partial.write_bytes(png.tobytes())
+    os.replace(partial, path)
 
 
 def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:

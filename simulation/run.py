@@ -52,7 +52,9 @@ def _make(seed: int, index: int, out: Path) -> float:
 
 
 def _complete(out: Path, index: int) -> bool:
-    """All five files of a frame exist (depth_2 is written last), so an interrupted run can resume."""
+    """All five files of a frame exist, so an interrupted run can resume: depth_2 is written last, and whole
+    or not at all (pipeline.kitti.write_depth_png renames it into place), so a frame killed mid-write is
+    made again."""
     name = frame_name(index)
     return all((out / sub / f"{name}{ext}").exists() for sub, ext in (
         ("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt"), ("depth_2", ".png")))

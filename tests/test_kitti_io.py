@@ -185,6 +185,15 @@ def test_depth_png_roundtrip_and_real_frame(tmp_path, depth_completion_dir):
     assert gt.max() < 100
     write_depth_png(tmp_path / "d.png", gt)
     np.testing.assert_array_equal(read_depth_png(tmp_path / "d.png"), gt)
+    # Written beside and renamed (a killed run leaves no cut-off map): no partial file stays, the bytes are
+    # OpenCV's PNG as cv2.imwrite writes them, and a second write replaces the first.
+    assert [p.name for p in tmp_path.iterdir()] == ["d.png"]
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "e.png"), np.rint(gt * 256).astype(np.uint16))
+    assert (tmp_path / "d.png").read_bytes() == (tmp_path / "e.png").read_bytes()
+    write_depth_png(tmp_path / "d.png", gt * 0.5)
+    np.testing.assert_array_equal(read_depth_png(tmp_path / "d.png"), np.rint(gt * 0.5 * 256) / 256)
 
 
 def test_depth_png_rejects_8bit(tmp_path):
