@@ -65,6 +65,10 @@ def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool =
     lidar_input = training.get("input", "lidar16")
     feeds: dict[str, list[dict]] = {name: [] for name in ("depth", "pixor") if name in detector.manifest["networks"]}
     ids = frame_ids(data)[:frames]
+    if len(ids) < frames:  # the default 300 against a small folder (the bundled five frames): say what it got
+        log.warning("warning: --calibration-data %s has %d frame(s), fewer than --calibration-frames %d: INT8 "
+                    "ranges from so few frames may clip real ones; give a few hundred frames of your data",
+                    data, len(ids), frames)
     for fid in tqdm(ids, desc="calibration frames", unit="frame", disable=not progress):
         frame = load_frame(data, fid, with_labels=False)
         points = frame.points if lidar_input == "lidar64" else emulate_beams(frame.points, 16)

@@ -1,6 +1,7 @@
 """FP16 and INT8 model directories: conversion, manifest, and the runtime on a real frame."""
 
 import json
+import logging
 
 import numpy as np
 import onnx
@@ -56,6 +57,20 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     reduced = Detector(out).detect(frame.image, frame.points, frame.calib, 0.0)
     assert reduced.boxes.shape[1] == 7 and np.isfinite(reduced.boxes).all()
     assert abs(len(reduced.scores) - len(reference.scores)) <= 0.2 * len(reference.scores) + 2
+
+
+def test_calibrating_on_fewer_frames_than_asked_is_said(tiny_models, caplog):
+    """The default 300 calibration frames against the bundled five: the conversion says what it got."""
+    from export.precision import calibration_feeds
+
+    with caplog.at_level(logging.WARNING):
+        feeds = calibration_feeds(tiny_models, KITTI, 300)
+    assert len(feeds["pixor"]) == 5
+    assert f"--calibration-data {KITTI} has 5 frame(s), fewer than --calibration-frames 300" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        calibration_feeds(tiny_models, KITTI, 2)
+    assert "fewer than" not in caplog.text
 
 
 def test_unknown_precision(tiny_models, tmp_path):
