@@ -471,9 +471,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
     args = parser.parse_args(argv)
     try:  # before anything is simulated or trained: a typo would otherwise surface an hour in
-        get_preset(args.preset)
+        preset = get_preset(args.preset)
     except ValueError as exc:
         parser.error(f"argument --preset: {exc}")
+    if not preset.depth.use_gam:  # the table's GAM row trains PRESET-no-gam beside it: both would lack them
+        parser.error(f"argument --preset: {args.preset} has no GAMs; the recipe's ablation trains the preset with "
+                     "and without them, so give one with them (drop -no-gam)")
     if args.quick and args.weights is not None:  # it would be ignored: a smoke test never ships
         parser.error("argument --weights: --quick writes its model directories to OUT/weights only")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")

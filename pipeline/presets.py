@@ -228,11 +228,15 @@ def get_preset(name: str) -> Preset:
     Suffixes stack (``edge-refine-no-gam``, ``edge-split-near35``).
     """
     base, changes = name, {"depth": {}, "bev": {}}
+    applied: set[str] = set()
     while base not in PRESETS:
         suffix = next((s for s in ABLATIONS if base.endswith(s)), None)
         if suffix is None:
             choices = ", ".join(list(PRESETS) + [f"{p}{s}" for p in PRESETS for s in ABLATIONS][:2] + ["…"])
             raise ValueError(f"unknown preset {name!r}; choose one of {choices}")
+        if suffix in applied:  # edge-no-gam-no-gam: a name built twice over, which would pass for another preset
+            raise ValueError(f"preset {name!r}: {suffix[1:]} given twice")
+        applied.add(suffix)
         part, change = ABLATIONS[suffix]
         changes[part] = {**change, **changes[part]}
         base = base[: -len(suffix)]

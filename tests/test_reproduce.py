@@ -74,6 +74,8 @@ def test_ablation_presets():
 
     with pytest.raises(ValueError, match="unknown preset 'edge-nogam'"):
         get_preset("edge-nogam")
+    with pytest.raises(ValueError, match="preset 'edge-no-gam-split-no-gam': no-gam given twice"):
+        get_preset("edge-no-gam-split-no-gam")  # built twice over, it would pass for edge-split-no-gam
 
 
 def test_split_recipe_trains_lidar_pixors_on_the_plain_grid():
@@ -106,6 +108,10 @@ def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):
         with pytest.raises(SystemExit) as stop:
             main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), "--preset", "edge-splitt", *quick])
         assert stop.value.code == 2 and "argument --preset: unknown preset 'edge-splitt'" in capsys.readouterr().err
+    # A preset without GAMs: the recipe's ablation would train it "with" and "without" them alike.
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), "--preset", "edge-split-no-gam"])
+    assert stop.value.code == 2 and "argument --preset: edge-split-no-gam has no GAMs" in capsys.readouterr().err
     assert not (tmp_path / "run").exists() and not (tmp_path / "data").exists()
 
 
