@@ -1,6 +1,7 @@
 """Where a network's time goes, operator by operator: ONNX Runtime's own profiler on the graph it runs.
 
-    python benchmarks/latency.py --models DIR --ops
+    python benchmarks/latency.py --models DIR --ops        # per operator type, in the latency report
+    python benchmarks/op_profile.py --models DIR [--top N]  # per node, on one real frame
 
 A network's share of the machine's peak (benchmarks/latency.py) says how far it is from the hardware,
 not why. This times every kernel of the graph ONNX Runtime actually runs (after its fusions and
@@ -92,6 +93,12 @@ def summarize_events(events: list[dict], runs: int) -> OpProfile:
 def profile_network(model: Path, providers: list[str], threads: int, feeds: dict[str, np.ndarray],
                     runs: int = 20, warmup: int = 3) -> OpProfile:
     """Profile ``runs`` runs of one network (after ``warmup`` runs) in a session like the Detector's."""
+    return summarize_events(profile_events(model, providers, threads, feeds, runs, warmup), runs)
+
+
+def profile_events(model: Path, providers: list[str], threads: int, feeds: dict[str, np.ndarray],
+                   runs: int = 20, warmup: int = 3) -> list[dict]:
+    """The profiler's events of ``warmup + runs`` runs of one network in a session like the Detector's."""
     if providers[0] not in PROFILED_PROVIDERS:
         raise ValueError(f"{providers[0]} runs the graph as its own engine; ONNX Runtime's profiler times "
                          f"operators on {' and '.join(PROFILED_PROVIDERS)} only")
@@ -103,8 +110,47 @@ def profile_network(model: Path, providers: list[str], threads: int, feeds: dict
         feeds = feeds_for(session, feeds)
         for _ in range(warmup + runs):
             session.run(None, feeds)
-        events = json.loads(Path(session.end_profiling()).read_text())
-    return summarize_events(events, runs)
+        return json.loads(Path(session.end_profiling()).read_text())
+
+
+@dataclass(frozen=True)
+class NodeTime:
+    """One kernel of the optimised graph: its median time per run, and for a convolution its rate."""
+
+    node: str
+    op: str
+    ms: float
+    output_shape: tuple[int, ...]
+    gflops: float  # 0 for operators whose FLOPs are not counted
+
+
+def _conv_gflop(args: dict) -> float:
+    """A fp32 NCHW(c) ``Conv``'s GFLOP from the profiler's shapes: 2 × output elements × weights per output.
+
+    The profiler records the shapes ONNX Runtime ran with; in the blocked layout the channels are padded
+    to the block, so this counts what the kernel computes."""
+    inputs, outputs = args.get("input_type_shape") or [], args.get("output_type_shape") or []
+    if len(inputs) < 2 or not outputs:
+        return 0.0
+    weight = [int(d) for d in next(iter(inputs[1].values()))]
+    output = [int(d) for d in next(iter(outputs[0].values()))]
+    if len(weight) != 4 or len(output) != 4:
+        return 0.0
+    return 2.0 * float(np.prod(output)) * float(np.prod(weight[1:])) / 1e9
+
+
+def node_times(events: list[dict], runs: int) -> list[NodeTime]:
+    """Every kernel's median time over the last ``runs`` runs, slowest first."""
+    times, ops = kernel_times(events)
+    args = {e["name"][: -len("_kernel_time")]: e.get("args", {}) for e in events
+            if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time")}
+    nodes = []
+    for node, samples in times.items():
+        shapes = args[node].get("output_type_shape") or [{}]
+        output = tuple(int(d) for d in next(iter(shapes[0].values()), []))
+        gflop = _conv_gflop(args[node]) if ops[node] == "Conv" else 0.0
+        nodes.append(NodeTime(node, ops[node], float(np.median(samples[-runs:])) / 1e3, output, gflop))
+    return sorted(nodes, key=lambda n: -n.ms)
 
 
 def describe(name: str, profile: dict, shown: int = 6) -> str:
@@ -118,3 +164,58 @@ def describe(name: str, profile: dict, shown: int = 6) -> str:
             f"{profile['kernels_ms']:.1f} ms in kernels): {', '.join(parts)}; the counted convolutions alone "
             f"{profile['compute_gflops_per_s']:.0f} GFLOP/s ({100 * profile['compute_matmul_peak_fraction']:.0f} % of "
             "the fp32 MatMul's)")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Per-node times of each network of a model directory on one frame, slowest first."""
+    import argparse
+    import sys
+
+    from benchmarks.latency import BUNDLED, load_frames, network_feeds
+    from pipeline.beams import BEAM_COUNTS
+    from pipeline.cli import positive_int
+    from pipeline.detector import Detector
+    from pipeline.errors import InputError
+    from pipeline.model_files import DEFAULT_MODELS, ModelFileError
+
+    parser = argparse.ArgumentParser(
+        prog="python benchmarks/op_profile.py",
+        description="Time every kernel of a model directory's networks on one real frame with ONNX Runtime's "
+        "profiler (the graph it runs, after its fusions and layout changes), slowest first, with each "
+        "convolution's GFLOP/s. benchmarks/latency.py --ops gives the totals per operator type.")
+    parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
+    parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
+    parser.add_argument("--beams", "--emulate-beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help="thin the scan to N lines first (16, the default; 0: keep), as benchmarks/latency.py")
+    parser.add_argument("--threads", type=positive_int, default=2, help="intra-op threads (default 2)")
+    parser.add_argument("--runs", type=positive_int, default=20, help="profiled runs after 3 warm-up runs (default 20)")
+    parser.add_argument("--top", type=positive_int, default=15, help="slowest nodes shown per network (default 15)")
+    args = parser.parse_args(argv)
+    try:
+        detector = Detector(args.models, intra_op_threads=args.threads)
+        frame = load_frames(args.data, 1, args.beams or None)[0]
+        for name, feeds in network_feeds(detector, frame).items():
+            model = detector.model_dir / detector.manifest["networks"][name]["file"]
+            try:
+                events = profile_events(model, detector.providers_in_use[name], args.threads, feeds, args.runs)
+            except ValueError as exc:
+                raise InputError(f"--models: {exc}") from None
+            nodes = node_times(events, args.runs)
+            total = sum(n.ms for n in nodes)
+            print(f"{name} ({model}, frame {frame.frame_id}, {args.threads} thread(s)): {total:.2f} ms in "
+                  f"{len(nodes)} kernels; the slowest {min(args.top, len(nodes))}:")
+            for n in nodes[: args.top]:
+                rate = f"{n.gflops / (n.ms / 1e3):6.0f} GFLOP/s" if n.gflops and n.ms else " " * 13
+                shape = "×".join(map(str, n.output_shape))
+                print(f"  {n.ms:7.2f} ms {100 * n.ms / total:5.1f} %  {n.op:16s} {rate}  out {shape:18s} {n.node}")
+    except (InputError, ModelFileError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # as benchmarks/latency.py: the repository's packages
+    raise SystemExit(main())

@@ -1,5 +1,10 @@
 """The machine's measured peak for ONNX Runtime fp32: a large MatMul and a 256-channel 3×3 convolution.
 
+    python benchmarks/peak.py [--threads N] [--repeats K]
+
+benchmarks/latency.py measures it in the same run as the networks (the networks' share of the peak);
+alone, it tells what a CPU can do before any model is timed on it.
+
 Both graphs are built in memory with onnx.helper and timed with the same
 session options as the detector, so "fraction of peak" compares like with like.
 """
@@ -8,6 +13,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import onnx
@@ -79,3 +85,29 @@ def measure_peak(threads: int, repeats: int = 5, matmul_n: int = 4096, conv_chan
     t = _median_seconds(_session(conv_model(conv_channels, conv_size), threads), {"X": x}, repeats)
     conv = 2 * conv_channels * conv_channels * 9 * conv_size * conv_size / t / 1e9
     return PeakResult(matmul_gflops=matmul, conv_gflops=conv, threads=threads)
+
+
+def main(argv: list[str] | None = None) -> int:
+    import argparse
+    import os
+
+    from pipeline.cli import positive_int
+
+    parser = argparse.ArgumentParser(prog="python benchmarks/peak.py",
+                                     description="Measure ONNX Runtime's fp32 GFLOP/s on this machine: a 4096² MatMul "
+                                     "and a 256-channel 3×3 convolution (the peak benchmarks/latency.py divides by).")
+    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
+                        help="intra-op threads (default: one per core)")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs of each; the median counts (default 5)")
+    args = parser.parse_args(argv)
+    result = measure_peak(args.threads, args.repeats)
+    print(f"{args.threads} thread(s): MatMul 4096² {result.matmul_gflops:.0f} GFLOP/s, 3×3 conv 256 channels "
+          f"{result.conv_gflops:.0f} GFLOP/s; peak {result.peak_gflops:.0f} GFLOP/s")
+    return 0
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # as benchmarks/latency.py: the repository's packages
+    raise SystemExit(main())

@@ -12,7 +12,8 @@ REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO / "tests" / "data" / "kitti" / "training"
 MODULES = ["pipeline.detect", "pipeline.beams", "pipeline.demo", "service", "simulation", "models.train",
            "models.reproduce", "models.cache_pseudo", "export", "export.lower", "export.precision"]
-SCRIPTS = ["latency", "accuracy", "load", "frame_ops", "eval_speed", "sim_report", "network_latency"]
+SCRIPTS = ["latency", "accuracy", "load", "frame_ops", "eval_speed", "sim_report", "network_latency", "peak",
+           "op_profile", "depth_bound"]
 
 
 def _command(name: str) -> list[str]:

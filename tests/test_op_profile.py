@@ -5,7 +5,7 @@ import onnx
 import pytest
 from onnx import TensorProto, helper, numpy_helper
 
-from benchmarks.op_profile import is_compute, profile_network
+from benchmarks.op_profile import is_compute, main, node_times, profile_events, profile_network
 
 
 def conv_then_transpose(path):
@@ -35,6 +35,28 @@ def test_each_kernel_is_timed_and_only_the_counted_ones_give_the_rate(tmp_path):
     assert entry["compute_gflops_per_s"] == pytest.approx(flops / 1e9 / (profile.compute_ms / 1e3))
     assert entry["compute_matmul_peak_fraction"] == pytest.approx(entry["compute_gflops_per_s"] / 100.0)
     assert list(entry["by_op"]) == sorted(entry["by_op"], key=lambda op: -entry["by_op"][op]["ms"])
+
+
+def test_each_node_is_listed_slowest_first_with_the_convolutions_flops(tmp_path):
+    flops = conv_then_transpose(tmp_path / "g.onnx")
+    events = profile_events(tmp_path / "g.onnx", ["CPUExecutionProvider"], 1,
+                            {"x": np.ones((1, 16, 32, 32), np.float32)}, runs=5, warmup=1)
+    nodes = node_times(events, 5)
+    assert [n.ms for n in nodes] == sorted((n.ms for n in nodes), reverse=True) and all(n.ms > 0 for n in nodes)
+    convs = [n for n in nodes if n.op == "Conv"]
+    assert len(convs) == 1 and convs[0].gflops == pytest.approx(flops / 1e9)  # 16 channels: no block padding
+    # The Transpose to NHWC: as is, or folded into the blocked layout's ReorderOutput.
+    assert [n.output_shape for n in nodes if n.op in ("Transpose", "ReorderOutput")] == [(1, 32, 32, 16)]
+    assert all(n.gflops == 0 for n in nodes if n.op != "Conv")
+
+
+def test_the_command_lists_each_networks_slowest_nodes(tiny_models, capsys):
+    assert main(["--models", str(tiny_models), "--runs", "2", "--top", "3", "--threads", "1"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    headers = [i for i, line in enumerate(out) if line.startswith(("depth (", "pixor ("))]
+    assert [out[i].split()[0] for i in headers] == ["depth", "pixor"]
+    assert all(len([line for line in out[i + 1 : i + 4] if " ms " in line]) == 3 for i in headers)
+    assert main(["--models", str(tiny_models.parent / "nowhere")]) == 2 and "error:" in capsys.readouterr().err
 
 
 def test_operator_names_counted_as_compute():
