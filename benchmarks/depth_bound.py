@@ -115,7 +115,7 @@ def to_full_image(view: np.ndarray, image_hw: tuple[int, int], preset: Preset) -
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__,
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--data", type=Path, required=True,
                         help="KITTI-layout folder with the true depth in depth_2/ (the synthetic scenes)")

@@ -620,7 +620,7 @@ def print_report(report: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
     parser.add_argument("--preset", help=f"preset to export and time when --models is not given (default "
                                           f"{DEFAULT_PRESET}); with --models it must be the directory's")
     parser.add_argument("--models", type=Path, help="model directory (default: export --preset with initialised weights)")

@@ -110,7 +110,7 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m export.lower", description=__doc__.split("\n\n")[0],
-                                     epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--models", type=Path, required=True, help="FP32 model directory (manifest.json + ONNX files)")
     parser.add_argument("--out", type=Path, help="output model directory (default: rewrite --models in place)")
     args = parser.parse_args(argv)

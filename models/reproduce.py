@@ -454,7 +454,7 @@ def format_table(report: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m models.reproduce", description=__doc__.split("\n\n")[0],
-                                     epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("runs/edge"), help="run folder (default runs/edge)")
     parser.add_argument("--data", type=Path, default=Path("data/sim"), help="synthetic data folder (default data/sim)")
     parser.add_argument("--weights", type=Path, default=None,

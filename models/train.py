@@ -454,6 +454,7 @@ def run(config: TrainConfig) -> TrainResult:
         raise InputError(f"task: {config.task!r} is not one of {', '.join(TASKS)}")
     if config.task == "detector" and config.input_mode not in DETECTOR_INPUTS:
         raise InputError(f"--input: {config.input_mode!r} is not one of {', '.join(DETECTOR_INPUTS)}")
+    check_flags_apply(config)
     config = recipe(config)
     keep_freed_memory()  # a PIXOR epoch 16 % shorter: no mmap/munmap of the step's buffers (models/allocator.py)
     if config.threads:
@@ -661,6 +662,32 @@ STATE_FILE = "state.pt"
 STATE_KEYS = ("networks", "optimizer", "scheduler", "epoch", "best", "history", "torch_rng", "numpy_rng",
               "python_rng")
 FRAME_FILES = ("velodyne/{}.bin", "image_2/{}.png", "calib/{}.txt")  # what load_frame reads of every frame
+
+
+def check_flags_apply(config: TrainConfig) -> None:
+    """Refuse a setting the task does not use: silently ignored, it would leave a user believing the run
+    used it (a depth run given --pixor-checkpoint, a detector given --depth-loss)."""
+    pseudo = config.task == "detector" and config.input_mode == "pseudo"
+    unused = [
+        ("--input", config.input_mode != TrainConfig.input_mode and config.task != "detector",
+         "only a detector run reads another input (lidar64, pseudo)"),
+        ("--pseudo-dir", config.pseudo_dir is not None and not pseudo, "read by detector runs with --input pseudo only"),
+        ("--val-pseudo-dir", config.val_pseudo_dir is not None and not pseudo,
+         "read by detector runs with --input pseudo only"),
+        ("--depth-checkpoint", config.depth_checkpoint is not None and config.task == "detector",
+         "a detector run trains PIXOR alone"),
+        ("--pixor-checkpoint", config.pixor_checkpoint is not None and config.task == "depth",
+         "a depth run trains the depth net alone"),
+        ("--depth-loss", config.depth_loss != TrainConfig.depth_loss and config.task == "detector",
+         "a detector run has no depth loss"),
+        ("--car-weight", config.car_weight != TrainConfig.car_weight and config.task != "depth",
+         "it weights the depth loss of a depth run"),
+        ("--freeze-bn", config.freeze_bn and config.depth_checkpoint is None and config.pixor_checkpoint is None,
+         "it keeps the batch norms of the weights a run starts from: give --depth-checkpoint or --pixor-checkpoint"),
+    ]
+    for flag, given, why in unused:
+        if given:
+            raise InputError(f"{flag}: not used by a {config.task} run ({why})")
 
 
 def check_out(out: Path) -> None:
@@ -973,7 +1000,7 @@ def _jsonable(value):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n\n")[0],
-                                     epilog=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+                                     epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("task", choices=TASKS)
     parser.add_argument("--data", type=Path, required=True, help="KITTI-layout training folder")
     parser.add_argument("--val-data", type=Path, help="KITTI-layout validation folder (default: --data + --val-split)")

@@ -112,13 +112,14 @@ def test_resume_without_a_run_to_continue_is_refused(tmp_path, capsys, one_frame
     (["--lr", "0.01"], "--lr 0.01, but {run} was started with --lr 0.001"),
     (["--seed", "99"], "--seed 99, but {run} was started with --seed 0"),
     (["--batch-size", "2"], "--batch-size 2, but {run} was started with --batch-size 1"),
-    (["--freeze-bn"], "--freeze-bn, but {run} was started with no --freeze-bn"),
+    (["--freeze-bn", "--pixor-checkpoint", "START"], "--freeze-bn, but {run} was started with no --freeze-bn"),
 ])
 def test_resume_refuses_another_task_input_or_preset(finished_run, tmp_path, capsys, one_frame, change, says):
     run_dir = tmp_path / "run"
     shutil.copytree(finished_run, run_dir)
     before = files(run_dir)
     task = change[0].split("=")[1] if change[0].startswith("task=") else "detector"
+    change = [str(finished_run / "pixor.pt") if c == "START" else c for c in change]
     argv = args(task, run_dir, one_frame, "--resume", "--epochs", "2", *[c for c in change if "=" not in c])
     assert says.format(run=run_dir) in refused(argv, capsys)
     assert files(run_dir) == before
@@ -213,6 +214,25 @@ def test_checkpoints_without_a_run_are_never_replaced(finished_run, tmp_path, ca
     assert onnx_weights(["--models", str(REPO / "weights" / "edge-lidar16"), "--out", str(run_copy)]) == 2
     assert f"--out {run_copy}: already holds pixor.pt and state.pt; give a new folder" in capsys.readouterr().err
     assert files(run_copy) == kept and files(folder) == before
+
+
+@pytest.mark.parametrize(("task", "extra", "says"), [
+    ("depth", ["--pixor-checkpoint", "pixor.pt"], "--pixor-checkpoint: not used by a depth run"),
+    ("depth", ["--input", "lidar64"], "--input: not used by a depth run"),
+    ("joint", ["--input", "pseudo", "--depth-checkpoint", "d.pt", "--pixor-checkpoint", "p.pt"],
+     "--input: not used by a joint run"),
+    ("detector", ["--depth-checkpoint", "depth.pt"], "--depth-checkpoint: not used by a detector run"),
+    ("detector", ["--depth-loss", "l1"], "--depth-loss: not used by a detector run"),
+    ("detector", ["--car-weight", "5"], "--car-weight: not used by a detector run"),
+    ("detector", ["--pseudo-dir", "maps"], "--pseudo-dir: not used by a detector run (read by detector runs with --input"),
+    ("depth", ["--val-pseudo-dir", "maps"], "--val-pseudo-dir: not used by a depth run"),
+    ("depth", ["--freeze-bn"], "--freeze-bn: not used by a depth run (it keeps the batch norms of the weights"),
+])
+def test_a_setting_the_task_does_not_use_is_refused(tmp_path, capsys, one_frame, task, extra, says):
+    """Silently ignored, it would leave the user believing the run used it."""
+    out = tmp_path / "run"
+    assert refused(args(task, out, one_frame, *extra), capsys).startswith(f"error: {says}")
+    assert not out.exists()
 
 
 def test_a_start_file_that_is_not_onnx_is_named(tmp_path, capsys, one_frame):
