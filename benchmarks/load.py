@@ -443,7 +443,8 @@ def format_report(result: LoadResult) -> str:
         f"machine: {result.machine['processor']}, {result.machine['cpus']} CPUs, {result.machine['platform']}",
         (f"{result.clients} clients, {result.requests} requests in {result.duration_s} s, "
          f"{result.frames_sent} distinct frame(s)"),
-        f"status counts: {result.status_counts}",
+        (f"status counts of the real frames (the broken ones: below): {result.status_counts}" if result.broken.get("sent")
+         else f"status counts: {result.status_counts}"),
         (f"throughput: {result.throughput_ok_per_s:.2f} frames/s answered 200 "
          f"({result.throughput_all_per_s:.2f} requests/s in all)"),
         "latency ms (client side)   p50      p99      mean     max",

@@ -863,6 +863,10 @@ def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Pres
     """
     if not path.exists():
         raise InputError(f"--{name}-checkpoint: {path} does not exist")
+    if path.is_dir():  # a run folder: the checkpoint is a file in it
+        inside = path / f"{name}.pt"
+        hint = f": give the checkpoint in it, {inside}" if inside.is_file() else f" (no {name}.pt in it)"
+        raise InputError(f"--{name}-checkpoint: {path} is a folder{hint}")
     if name == "pixor" and preset.bev.split_pseudo and _bev_channels(path) == preset.bev.lidar_channels:
         # A LiDAR-only PIXOR of the same grid: the split net starts as exactly it, its pseudo channels'
         # weights at zero, so the camera pipeline starts from the scan's detector and learns what the

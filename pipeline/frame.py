@@ -44,7 +44,19 @@ def read_split_file(path: str | Path) -> list[str]:
         text = path.read_text(encoding="ascii")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read split file ({exc})") from exc
-    ids = [line.strip() for line in text.splitlines() if line.strip()]
+    ids: list[str] = []
+    first_line: dict[str, int] = {}
+    for line_no, line in enumerate(text.splitlines(), start=1):
+        frame_id = line.strip()
+        if not frame_id or frame_id.startswith("#"):  # blank lines and comments
+            continue
+        if len(frame_id.split()) > 1:
+            raise InputError(f"{path}, line {line_no}: {frame_id[:40]!r} is not a frame id (one id per line)")
+        if frame_id in first_line:  # it would count the frame twice in an evaluation or an epoch
+            raise InputError(f"{path}, line {line_no}: frame {frame_id} listed twice (first on line "
+                             f"{first_line[frame_id]})")
+        first_line[frame_id] = line_no
+        ids.append(frame_id)
     if not ids:
         raise InputError(f"{path}: split file lists no frame ids")
     return ids
@@ -56,6 +68,8 @@ def frame_ids(data_dir: str | Path, split_file: str | Path | None = None) -> lis
     if split_file is not None:
         return read_split_file(split_file)
     velodyne = data_dir / "velodyne"
+    if not data_dir.exists():
+        raise InputError(f"{data_dir}: no such folder")
     if not velodyne.is_dir():
         raise InputError(f"{data_dir}: not a KITTI object folder (no velodyne/ inside)")
     return sorted(p.stem for p in velodyne.glob("*.bin"))

@@ -223,3 +223,21 @@ def test_a_png_cut_off_is_named_so_and_libpng_stays_quiet(capfd):
     assert "libpng" not in capfd.readouterr().err  # refused before OpenCV's decoder complains on stderr
     with pytest.raises(InputError, match="not a readable PNG or JPEG"):  # whole length, but garbled inside
         decode_image(data[:100] + bytes(len(data) - 112) + data[-12:], "image")
+
+
+def test_split_files_name_the_line_at_fault(tmp_path):
+    from pipeline.frame import frame_ids, read_split_file
+
+    split = tmp_path / "val.txt"
+    split.write_text("# frames for the night run\n000001\n\n  000003  \n")
+    assert read_split_file(split) == ["000001", "000003"]  # comments, blank lines and padding are not ids
+    split.write_text("000001\n000003 000004\n")
+    with pytest.raises(InputError, match=r"val\.txt, line 2: '000003 000004' is not a frame id \(one id per line\)"):
+        read_split_file(split)
+    split.write_text("000001\n000003\n000001\n")  # would count 000001 twice
+    with pytest.raises(InputError, match=r"val\.txt, line 3: frame 000001 listed twice \(first on line 1\)"):
+        read_split_file(split)
+    with pytest.raises(InputError, match=r"nowhere: no such folder"):
+        frame_ids(tmp_path / "nowhere")
+    with pytest.raises(InputError, match=r"not a KITTI object folder \(no velodyne/ inside\)"):
+        frame_ids(tmp_path)

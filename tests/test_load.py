@@ -27,6 +27,8 @@ def test_load_test_drives_a_started_service_and_reports(tmp_path, tiny_models):
     broken = report["broken"]
     assert broken["sent"] == broken["answered_4xx"] == 6 and report["server_errors"] == 0
     assert set(broken["statuses"]) == {"points-truncated", "image-cut-off", "calib-without-P2", "query-misspelt"}
+    assert "status counts of the real frames (the broken ones: below): {" in result.stdout
+    assert "broken requests: 6 of 6 answered 4xx" in result.stdout
     assert len(report["windows"]) == 10 and report["trend"]["p50_ms_last_tenth"] > 0
     assert report["server"]["preset"] == "tiny"
     assert report["latency_ms"]["all"]["p50"] > 0 and report["rss_mb"]["end"] > 0

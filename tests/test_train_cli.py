@@ -244,6 +244,11 @@ def test_a_start_file_that_is_not_onnx_is_named(tmp_path, capsys, one_frame):
     assert not (tmp_path / "run").exists()
 
 
+def test_a_run_folder_as_start_checkpoint_points_to_the_file_in_it(finished_run, tmp_path, capsys, one_frame):
+    says = refused(args("detector", tmp_path / "run", one_frame, "--pixor-checkpoint", str(finished_run)), capsys)
+    assert says == f"error: --pixor-checkpoint: {finished_run} is a folder: give the checkpoint in it, {finished_run / 'pixor.pt'}"
+
+
 def test_corrupt_state_is_named_without_a_traceback(finished_run, tmp_path, one_frame):
     run_dir = tmp_path / "run"
     shutil.copytree(finished_run, run_dir)
