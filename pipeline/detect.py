@@ -102,6 +102,8 @@ def run(
         raise InputError("--frame chooses frames of --data DIR; with --image/--points/--calib there is one frame")
     if data is not None:  # the folder and the frame ids are checked before any model is loaded
         ids = _folder_frames(Path(data), frames)
+    if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
+        raise InputError(f"--depth-dir {depth_dir}: directory not found")
     detector = Detector(models, providers=provider)
     if depth_dir is not None and not detector.two_stage:
         raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")

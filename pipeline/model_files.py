@@ -41,6 +41,9 @@ def sha256_file(path: str | Path) -> str:
 def load_manifest(directory: str | Path) -> dict:
     """Parse ``directory/manifest.json``; ModelFileError if it is missing or not a manifest."""
     path = Path(directory) / MANIFEST_NAME
+    if not Path(directory).is_dir():  # a mistyped path, rather than a model directory that lost its manifest
+        what = "a file, not a model directory" if Path(directory).exists() else "no such model directory"
+        raise ModelFileError(f"{directory}: {what} (one holds manifest.json and its ONNX files)")
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:

@@ -270,6 +270,11 @@ def test_corrupted_model_file_is_refused(tiny_models, tmp_path):
         Detector(broken)
     with pytest.raises(ModelFileError, match="no manifest"):
         Detector(tmp_path)
+    with pytest.raises(ModelFileError, match=r"nowhere: no such model directory \(one holds manifest\.json"):
+        Detector(tmp_path / "nowhere")
+    (tmp_path / "pixor.onnx").write_bytes(b"")  # a model file given where its directory is meant
+    with pytest.raises(ModelFileError, match=r"pixor\.onnx: a file, not a model directory"):
+        Detector(tmp_path / "pixor.onnx")
 
 
 def test_lidar_only_model_directory(tiny_models, tmp_path, frame):
@@ -470,6 +475,11 @@ def test_detect_command_goes_on_past_a_broken_frame(tiny_models, tmp_path):
     assert typo.returncode == 2 and "Traceback" not in typo.stderr
     assert f"--frame 3: no scan {data / 'velodyne' / '3.bin'} (and 1 more --frame without one)" in typo.stderr
     assert not (tmp_path / "typo").exists()
+    # A --depth-dir that is not there: one line before any model loads, not every frame skipped in turn.
+    nowhere = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "no-models"),
+                              "--data", str(data), "--depth-dir", str(tmp_path / "maps"), "--out", str(tmp_path / "d")],
+                             capture_output=True, text=True, timeout=120, check=False)
+    assert nowhere.returncode == 2 and f"error: --depth-dir {tmp_path / 'maps'}: directory not found" in nowhere.stderr
 
 
 def test_a_picture_that_cannot_be_written_is_an_error_naming_it(tiny_models, tmp_path):
