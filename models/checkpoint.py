@@ -116,8 +116,8 @@ def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str,
     if differing:
         raise ValueError(
             f"{checkpoint.path}: trained with preset {checkpoint.preset!r} whose {', '.join(differing)} "
-            f"configuration differs from the requested preset {preset.name!r}; export with "
-            f"--preset {checkpoint.preset} or retrain"
+            f"configuration differs from the requested preset {preset.name!r}; give --preset {checkpoint.preset} "
+            f"with it, or a checkpoint trained with {preset.name}"
         )
     if network not in checkpoint.state_dicts:
         raise ValueError(

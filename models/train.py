@@ -879,11 +879,30 @@ def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Pres
     if path.suffix == ".onnx":
         from models.onnx_weights import load_onnx_weights
 
-        left = load_onnx_weights(net, path, optional=train_only)
+        network, exported = _exported_as(path)
+        if network not in (None, name):
+            raise InputError(f"--{name}-checkpoint: {path} is the {network} network of {path.parent}, not the {name} one")
+        try:
+            left = load_onnx_weights(net, path, optional=train_only)
+        except ValueError as exc:  # a weight that does not fit; the manifest can say why
+            if exported and exported != preset.name:
+                raise ValueError(f"{exc}; its manifest says it was exported with --preset {exported}, and this run's "
+                                 f"--preset is {preset.name}") from None
+            raise
         if left:
             log.info("%s: %s not in %s, starting from initialisation", name, ", ".join(left), path)
     else:
         load_network_weights(net, load_checkpoint(path), name, preset)
+
+
+def _exported_as(path: Path) -> tuple[str | None, str | None]:
+    """(network, preset) the manifest beside an exported ``.onnx`` records for it; None where it says nothing."""
+    try:
+        manifest = json.loads((path.parent / "manifest.json").read_text(encoding="utf-8"))
+        network = next((n for n, entry in manifest["networks"].items() if entry.get("file") == path.name), None)
+        return network, manifest.get("preset")
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None, None
 
 
 def _bev_channels(path: Path) -> int | None:

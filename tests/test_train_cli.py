@@ -244,6 +244,17 @@ def test_a_start_file_that_is_not_onnx_is_named(tmp_path, capsys, one_frame):
     assert not (tmp_path / "run").exists()
 
 
+def test_an_exported_start_network_of_another_kind_or_preset_is_named(tmp_path, capsys, one_frame):
+    """The manifest beside an exported .onnx says which network and preset it is: a message a user can act on,
+    not only the weight that did not fit."""
+    edge = REPO / "weights" / "edge"
+    says = refused(args("depth", tmp_path / "a", one_frame, "--depth-checkpoint", str(edge / "pixor.onnx")), capsys)
+    assert says == f"error: --depth-checkpoint: {edge / 'pixor.onnx'} is the pixor network of {edge}, not the depth one"
+    says = refused(args("depth", tmp_path / "b", one_frame, "--depth-checkpoint", str(edge / "depth.onnx")), capsys)
+    assert says.startswith(f"error: {edge / 'depth.onnx'}: not this network's graph (")
+    assert says.endswith("its manifest says it was exported with --preset edge-split-near35, and this run's --preset is tiny")
+
+
 def test_a_run_folder_as_start_checkpoint_points_to_the_file_in_it(finished_run, tmp_path, capsys, one_frame):
     says = refused(args("detector", tmp_path / "run", one_frame, "--pixor-checkpoint", str(finished_run)), capsys)
     assert says == f"error: --pixor-checkpoint: {finished_run} is a folder: give the checkpoint in it, {finished_run / 'pixor.pt'}"
