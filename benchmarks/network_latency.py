@@ -173,13 +173,23 @@ def format_table(rows: list[LatencyRow]) -> str:
     return "\n".join(lines)
 
 
+def _preset_name(text: str) -> str:
+    """A preset name get_preset knows (argparse shows the ValueError's message)."""
+    try:
+        get_preset(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.network_latency",
         description="Per-network latency, ONNX Runtime vs PyTorch eager (fp32, CPU, batch 1, same weights and input).",
     )
-    parser.add_argument("--preset", action="append", choices=sorted(PRESETS),
-                        help="preset to measure (repeatable; default: all)")
+    parser.add_argument("--preset", action="append", type=_preset_name, metavar="P",
+                        help=f"preset to measure, with suffixes as everywhere (edge-split-near35) (repeatable; "
+                        f"default: {', '.join(sorted(PRESETS))})")
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per network and runtime, after 1 warm-up")
     parser.add_argument("--block", type=positive_int, default=5,
                         help="runs of one runtime before switching to the other (default 5); each block starts "

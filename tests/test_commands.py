@@ -103,6 +103,16 @@ def test_frame_ops_bad_input_is_one_line(args, words, tmp_path):
     assert done.returncode == 2 and "Traceback" not in done.stderr and words in done.stderr
 
 
+def test_network_latency_takes_preset_names_with_suffixes():
+    """--preset goes through get_preset, as every other command's: the shipped edge-split-near35 is one."""
+    from benchmarks.network_latency import _preset_name
+
+    assert _preset_name("edge-split-near35") == "edge-split-near35"
+    done = subprocess.run([*_command("network_latency"), "--preset", "edge-splitt"], capture_output=True, text=True,
+                          timeout=120, check=False, cwd=REPO)
+    assert done.returncode == 2 and "argument --preset: unknown preset 'edge-splitt'" in done.stderr
+
+
 def test_eval_speed_refuses_a_keep_folder_it_cannot_write(tmp_path):
     (tmp_path / "a-file").write_text("")
     done = subprocess.run([*_command("eval_speed"), "--frames", "2", "--keep", str(tmp_path / "a-file")],
