@@ -759,7 +759,7 @@ def test_cli_refuses_bad_inputs_in_one_line_before_exporting(tmp_path: Path, cap
         (["--out", out, "--checkpoints", str(only_depth), "--networks", "pixor"],
          "holds depth.pt but no checkpoint of --networks pixor"),
         (["--out", out, "--precision", "int8", "--calibration-data", str(tmp_path / "cal")],
-         f"--calibration-data {tmp_path / 'cal'}: not a KITTI object folder"),
+         f"--calibration-data {tmp_path / 'cal'}: no such folder"),
         (["--out", str(a_file), "--precision", "fp16"], f"--out {a_file}: exists and is not a model directory"),
     ]
     for args, says in cases:
