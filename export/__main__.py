@@ -17,7 +17,7 @@ from pipeline.cli import positive_int, unwritable
 from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import frame_ids
 from pipeline.model_files import ModelFileError
-from pipeline.presets import PRESETS, get_preset
+from pipeline.presets import ABLATIONS, PRESETS, get_preset
 
 try:
     from export.exporter import ExportConfig, run
@@ -34,7 +34,8 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
         description="Export a preset's depth-completion net and PIXOR to ONNX, check ONNX Runtime against "
         "PyTorch on a real KITTI frame and random inputs, and write manifest.json.",
     )
-    parser.add_argument("--preset", required=True, help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with -no-gam, -no-aspp, -refine or -split")
+    parser.add_argument("--preset", required=True, help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with "
+                        f"suffixes {', '.join(ABLATIONS)} (the shipped camera model: edge-split-near35)")
     parser.add_argument("--out", required=True, type=Path,
                         help="output model directory: new, empty, or a model directory to replace (only once the new "
                         "one is written and checked)")
