@@ -279,6 +279,8 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--score-threshold", type=probability, default=0.05,
                         help="keep detections above this score (default 0.05: AP needs the whole curve)")
     detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")
+    detect.add_argument("--mirror-tta", action="store_true",
+                        help="PIXOR also on the BEV mirrored left to right, maps averaged (pipeline.detect --mirror-tta)")
     detect.add_argument(
         "--depth-dir", type=Path, metavar="DIR",
         help="with --input lidar16+camera or --depth: dense depth PNGs of the full camera image (KITTI depth "
@@ -300,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
 # Flags (by dest) that only some modes read; main refuses them in the others.
 _RESULT_FILES = ("gt_labels", "pred_labels")
 _RUN = ("data", "models", "provider")
-_DETECTION = ("input", "out", "score_threshold")
+_DETECTION = ("input", "out", "score_threshold", "mirror_tta")
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
 _AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "compare_pred_labels")
 
@@ -472,7 +474,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             frames = ground_truth_frames(args.data / "label_2", frames)[:first]
         detection = run_detection(args.data, args.models, args.input, out, frames, args.provider,
                                   progress=not args.no_progress, score_threshold=args.score_threshold,
-                                  depth_dir=args.depth_dir)
+                                  depth_dir=args.depth_dir, mirror_tta=args.mirror_tta)
         predictions = detection.results
         outcome = run(LabelEvalConfig(
             gt_labels=args.data / "label_2", pred_labels=predictions, split_file=split_file, first_frames=first,
@@ -485,6 +487,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
         print(f"error: {exc}", file=sys.stderr)
         return 2
     source = f", depth from {args.depth_dir} instead of the depth network" if args.depth_dir else ""
+    source += ", PIXOR with mirror test-time augmentation" if args.mirror_tta else ""
     print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames{source}), results in {predictions}")
     print(outcome.table)
     if detection.skipped:  # the table is then not the model's score on this data: say so, and fail

@@ -51,12 +51,14 @@ class DetectionRun:
 
 def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: list[str] | None = None,
                   provider: str | None = None, progress: bool = True,
-                  score_threshold: float = DEFAULT_SCORE_THRESHOLD, depth_dir: Path | None = None) -> DetectionRun:
+                  score_threshold: float = DEFAULT_SCORE_THRESHOLD, depth_dir: Path | None = None,
+                  mirror_tta: bool = False) -> DetectionRun:
     """Detect on every frame and write KITTI result files.
 
     A frame whose files are unusable is skipped (named on stderr) and has no result file, not even one
     from an earlier run into ``out``: the evaluation counts its cars as missed, and the caller says so.
     depth_dir: dense depth PNGs used instead of the depth network (``pipeline.detect --depth-dir``).
+    mirror_tta: PIXOR also on the mirrored BEV (``pipeline.detect --mirror-tta``).
     """
     from pipeline.detect import run as detect
 
@@ -70,7 +72,8 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
     if depth_dir is not None and not wants_camera:
         raise InputError(f"--depth-dir: only the camera pipeline uses depth (--input lidar16+camera, not {input_mode})")
     result = detect(models, out, data=data, frames=frames, emulate_beams=INPUTS[input_mode], provider=provider,
-                    pictures=False, progress=progress, score_threshold=score_threshold, depth_dir=depth_dir)
+                    pictures=False, progress=progress, score_threshold=score_threshold, depth_dir=depth_dir,
+                    mirror_tta=mirror_tta)
     return DetectionRun(out / "data" if result.result_files else out, result.skipped)
 
 

@@ -61,6 +61,9 @@ FEWEST_POINTS_OF_64_LINES = 50_000
 # On KITTI about 40 % of a scan lies in the BEV grid in front of the car; a scan with almost none there
 # is in other units (millimetres) or another frame, and would give no boxes without saying why.
 FEWEST_IN_GRID_SHARE = 0.01
+# PIXOR's regression targets (pipeline/targets.py: cos yaw, sin yaw, dx, dy, log w, log l) whose sign a
+# left-right mirror of the BEV flips.
+MIRRORED_TARGETS = [1, 3]
 REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 written by another tool
 
 
@@ -159,10 +162,16 @@ class Detector:
         verify: bool = True,
         trt_cache_dir: str | Path | None = None,
         stage_threads: int | None = None,
+        mirror_tta: bool = False,
     ) -> None:
         """stage_threads: 2 runs the stages that need no depth beside the depth net, 1 runs every stage in
         turn; None: 2 when the networks may use two or more threads (``intra_op_threads`` not 1) and the
-        process two or more CPUs. A worker given one core gains nothing from a second thread."""
+        process two or more CPUs. A worker given one core gains nothing from a second thread.
+
+        mirror_tta: run PIXOR a second time on the BEV mirrored left to right and average the two maps
+        (test-time augmentation): PIXOR's time twice over for BEV boxes that are more often right to
+        IoU 0.7 (docs/models.md has the figures). Off by default: the paper's pipeline runs it once."""
+        self.mirror_tta = bool(mirror_tta)
         self.model_dir = Path(model_dir)
         self.manifest = load_manifest(self.model_dir)
         if verify:
@@ -439,6 +448,8 @@ class Detector:
                             f"are they in metres, in that frame? ({voxelizer.points_in_grid} of {points.shape[0]} points)")
         tic = time.perf_counter()
         score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]})
+        if self.mirror_tta:
+            score, regression = self._with_mirror(bev, score, regression)
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         boxes, scores = boxes_from_maps(score[0, 0], regression[0], voxelizer.height_occupancy, self.preset,
@@ -450,6 +461,21 @@ class Detector:
             cloud = points if pseudo is None else merge_points(depth_to_points(dense, view_calib, *limits), points)
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped, warnings=warnings,
                           points=cloud)
+
+    def _with_mirror(self, bev: np.ndarray, score: np.ndarray, regression: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """PIXOR's maps averaged with those of the BEV mirrored left to right (y → −y), mirrored back.
+
+        The grid is symmetric in y, so mirroring flips the rows; in the mirror a box's sin(yaw) and its
+        offset dy change sign, which is undone on the de-normalised targets before averaging.
+        """
+        mirrored = np.ascontiguousarray(bev[:, ::-1])
+        score_m, regression_m = self._run("pixor", ["score", "regression"], {"bev": mirrored[None]})
+        decode = self.preset.decode
+        mean = np.asarray(decode.reg_mean, np.float32)[:, None, None]
+        std = np.asarray(decode.reg_std, np.float32)[:, None, None]
+        raw = regression_m[0, :, ::-1] * std + mean
+        raw[MIRRORED_TARGETS] *= -1
+        return (score + score_m[:, :, ::-1]) / 2, (regression + ((raw - mean) / std)[None]) / 2
 
     def _given_depth(self, depth: np.ndarray, image: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
         """A caller's dense depth map of the whole image, checked, in the depth net's view, and that view's calibration."""

@@ -109,6 +109,23 @@ def test_a_skipped_frame_fails_the_evaluation_and_no_old_result_stands_in(tiny_m
     assert json.loads((tmp_path / "ap.json").read_text())["frames"] == 2
 
 
+def test_mirror_tta_reaches_the_detector_and_says_so(tiny_models, tmp_path):
+    """--mirror-tta runs PIXOR on the mirrored BEV too: other result files than one pass, and the header says
+    so; with result files alone (no model runs) the flag is refused."""
+    runs = {}
+    for name, extra in (("plain", []), ("mirror", ["--mirror-tta"])):
+        result = _accuracy("--data", KITTI, "--models", tiny_models, "--input", "lidar16+camera", "--score-threshold",
+                           "0.0", "--frames", "2", "--out", tmp_path / name, *extra)
+        assert result.returncode == 0, result.stderr
+        runs[name] = result.stdout
+    assert "PIXOR with mirror test-time augmentation" in runs["mirror"] and "test-time" not in runs["plain"]
+    files = {name: sorted((tmp_path / name / "data").glob("*.txt")) for name in runs}
+    assert [p.name for p in files["plain"]] == [p.name for p in files["mirror"]]
+    assert [p.read_text() for p in files["plain"]] != [p.read_text() for p in files["mirror"]]
+    refused = _accuracy("--gt-labels", KITTI / "label_2", "--pred-labels", tmp_path / "plain" / "data", "--mirror-tta")
+    assert refused.returncode == 2 and "argument --mirror-tta: not allowed with argument --gt-labels" in refused.stderr
+
+
 def test_detection_run_refuses_mismatched_models(tiny_models, tmp_path):
     with pytest.raises(InputError, match="does not fit --input lidar16"):
         run_detection(KITTI, tiny_models, "lidar16", tmp_path)

@@ -161,6 +161,48 @@ def test_a_scan_in_millimetres_is_warned_about(detector, frame):
     assert len(in_grid) == 1 and in_grid[0].endswith(f"of {frame.points.shape[0]} points)")
 
 
+def _lidar_only_models(tiny_models: Path, folder: Path) -> Path:
+    """The tiny pixor.onnx alone, as a LiDAR-only model directory."""
+    folder.mkdir()
+    shutil.copy(tiny_models / "pixor.onnx", folder)
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    del manifest["networks"]["depth"]
+    manifest["files"] = {"pixor.onnx": manifest["files"]["pixor.onnx"]}
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return folder
+
+
+def _sorted_boxes(boxes: np.ndarray) -> np.ndarray:
+    return boxes[np.lexsort(np.round(boxes[:, :2], 3).T[::-1])]
+
+
+def test_mirror_tta_averages_the_maps_so_a_mirrored_scene_gives_mirrored_boxes(tiny_models, tmp_path, frame):
+    """With mirror_tta the maps of a left-right mirrored BEV are exactly the mirror of the maps (the average of
+    the same two runs), so the boxes of the mirrored scan are the boxes mirrored: y and yaw change sign. One
+    PIXOR pass alone has no such symmetry, which is what makes the average worth its second run."""
+    lidar = _lidar_only_models(tiny_models, tmp_path / "lidar")
+    grid = PRESETS["tiny"].bev
+    points = frame.points.copy()
+    # Each y at its cell's centre, so that y → −y lands every point in the mirrored cell: a point on a cell
+    # boundary would fall to one side both ways, and the BEVs would differ by a voxel or two.
+    points[:, 1] = (np.floor((points[:, 1] - grid.y_min) / grid.cell) + 0.5) * grid.cell + grid.y_min
+    mirrored = points.copy()
+    mirrored[:, 1] *= -1
+    flip = np.array([1, -1, 1, 1, 1, 1, -1])
+
+    def boxes(detector: Detector, scan: np.ndarray) -> np.ndarray:
+        return detector.detect(None, scan, None, score_threshold=0.0).boxes
+
+    tta = Detector(lidar, mirror_tta=True)
+    assert tta.mirror_tta and not Detector(lidar).mirror_tta
+    straight, mirror = boxes(tta, points), boxes(tta, mirrored)
+    assert len(straight) > 3 and len(mirror) == len(straight)
+    np.testing.assert_allclose(_sorted_boxes(mirror * flip), _sorted_boxes(straight), atol=1e-4)
+    plain = Detector(lidar)
+    one, other = boxes(plain, points), boxes(plain, mirrored)
+    assert len(one) != len(other) or not np.allclose(_sorted_boxes(other * flip), _sorted_boxes(one), atol=1e-4)
+
+
 def _edited_manifest(tiny_models, tmp_path, edit) -> Path:
     """A copy of the tiny model directory whose manifest went through ``edit`` (its ONNX files untouched)."""
     copy = tmp_path / "edited"
