@@ -1,5 +1,7 @@
 """Shared fixtures: the real KITTI samples copied from ../shared/data (see tests/data/README.md)."""
 
+import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -27,3 +29,14 @@ def tiny_models(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("tiny_models")
     run(ExportConfig(preset="tiny", out=out, parity=False))
     return out
+
+
+def lidar_only_models(tiny_models: Path, folder: Path) -> Path:
+    """A LiDAR-only model directory in ``folder``: the tiny pixor.onnx with its manifest entry alone."""
+    folder.mkdir()
+    shutil.copy(tiny_models / "pixor.onnx", folder)
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    del manifest["networks"]["depth"]
+    manifest["files"] = {"pixor.onnx": manifest["files"]["pixor.onnx"]}
+    (folder / "manifest.json").write_text(json.dumps(manifest))
+    return folder

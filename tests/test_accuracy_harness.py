@@ -15,7 +15,7 @@ from pipeline.calib import depth_crop, sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.kitti import read_depth_png, write_depth_png
-from tests.conftest import FRAMES, KITTI
+from tests.conftest import FRAMES, KITTI, lidar_only_models
 
 ACCURACY = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
 
@@ -23,17 +23,6 @@ ACCURACY = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
 def _accuracy(*args: str | Path, timeout: int = 300) -> subprocess.CompletedProcess[str]:
     return subprocess.run([sys.executable, str(ACCURACY), *map(str, args), "--no-progress"],
                           capture_output=True, text=True, timeout=timeout, check=False)
-
-
-def _lidar_only(tiny_models: Path, folder: Path) -> Path:
-    """A LiDAR-only model directory: the tiny pixor.onnx with its manifest entry alone."""
-    folder.mkdir()
-    shutil.copy(tiny_models / "pixor.onnx", folder)
-    manifest = json.loads((tiny_models / "manifest.json").read_text())
-    del manifest["networks"]["depth"]
-    manifest["files"] = {"pixor.onnx": manifest["files"]["pixor.onnx"]}
-    (folder / "manifest.json").write_text(json.dumps(manifest))
-    return folder
 
 
 def _frames_file(folder: Path, *frame_ids: str) -> Path:
@@ -82,7 +71,7 @@ def test_detection_run_with_depth_from_files_and_distance_bands(tiny_models, tmp
     document = json.loads((tmp_path / "ap.json").read_text())
     assert document["depth_source"].startswith(str(depth_dir))
     assert [band["range_m"] for band in document["by_distance"]] == [[0, 30], [30, 80]]
-    lidar_only = _lidar_only(tiny_models, tmp_path / "lidar")  # a LiDAR-only model directory has no depth to replace
+    lidar_only = lidar_only_models(tiny_models, tmp_path / "lidar")  # a LiDAR-only model directory has no depth to replace
     with pytest.raises(InputError, match="--depth-dir: only the camera pipeline"):
         run_detection(KITTI, lidar_only, "lidar16", tmp_path / "x", depth_dir=depth_dir)
 
@@ -289,7 +278,7 @@ def test_dataset_modes_check_output_paths_before_any_work(tiny_models, tmp_path)
 
 
 def test_depth_mode_refuses_a_lidar_only_model_directory(tiny_models, tmp_path):
-    lidar_only = _lidar_only(tiny_models, tmp_path / "lidar")
+    lidar_only = lidar_only_models(tiny_models, tmp_path / "lidar")
     data = tmp_path / "data"
     (data / "depth_2").mkdir(parents=True)
     result = _accuracy("--depth", "--data", data, "--models", lidar_only)

@@ -19,7 +19,7 @@ from pipeline.frame import load_frame
 from pipeline.kitti import read_labels
 from pipeline.model_files import ModelFileError, sha256_file
 from pipeline.presets import PRESETS, preset_from_dict
-from tests.conftest import KITTI
+from tests.conftest import KITTI, lidar_only_models
 
 STAGES = {"prepare", "depth_net", "ray_table", "pseudo_points", "voxelize", "pixor", "decode", "total"}
 
@@ -161,17 +161,6 @@ def test_a_scan_in_millimetres_is_warned_about(detector, frame):
     assert len(in_grid) == 1 and in_grid[0].endswith(f"of {frame.points.shape[0]} points)")
 
 
-def _lidar_only_models(tiny_models: Path, folder: Path) -> Path:
-    """The tiny pixor.onnx alone, as a LiDAR-only model directory."""
-    folder.mkdir()
-    shutil.copy(tiny_models / "pixor.onnx", folder)
-    manifest = json.loads((tiny_models / "manifest.json").read_text())
-    del manifest["networks"]["depth"]
-    manifest["files"] = {"pixor.onnx": manifest["files"]["pixor.onnx"]}
-    (folder / "manifest.json").write_text(json.dumps(manifest))
-    return folder
-
-
 def _sorted_boxes(boxes: np.ndarray) -> np.ndarray:
     return boxes[np.lexsort(np.round(boxes[:, :2], 3).T[::-1])]
 
@@ -180,7 +169,7 @@ def test_mirror_tta_averages_the_maps_so_a_mirrored_scene_gives_mirrored_boxes(t
     """With mirror_tta the maps of a left-right mirrored BEV are exactly the mirror of the maps (the average of
     the same two runs), so the boxes of the mirrored scan are the boxes mirrored: y and yaw change sign. One
     PIXOR pass alone has no such symmetry, which is what makes the average worth its second run."""
-    lidar = _lidar_only_models(tiny_models, tmp_path / "lidar")
+    lidar = lidar_only_models(tiny_models, tmp_path / "lidar")
     grid = PRESETS["tiny"].bev
     points = frame.points.copy()
     # Each y at its cell's centre, so that y → −y lands every point in the mirrored cell: a point on a cell
