@@ -60,7 +60,7 @@ from evaluation.report import (
     spread_json,
     to_json,
 )
-from pipeline.cli import check_output, positive_int, probability
+from pipeline.cli import check_output, positive_int, probability, skipped_summary
 from pipeline.errors import InputError
 
 log = logging.getLogger("accuracy")
@@ -491,10 +491,8 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
     print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames{source}), results in {predictions}")
     print(outcome.table)
     if detection.skipped:  # the table is then not the model's score on this data: say so, and fail
-        ids = list(detection.skipped)
-        more = f" and {len(ids) - 10} more" if len(ids) > 10 else ""
-        print(f"error: {len(ids)} frame(s) skipped (each named above with its reason): {', '.join(ids[:10])}{more}; "
-              "the table counts their cars as missed", file=sys.stderr)
+        print(f"error: {skipped_summary(list(detection.skipped), 'frame')}; the table counts their cars as missed",
+              file=sys.stderr)
         return 1
     return 0
 

@@ -30,6 +30,7 @@ from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_depth_png, read_image, read_image_depth_png
+from pipeline.model_files import load_manifest
 from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
 from pipeline.render import render_depth_panel, write_png
 
@@ -64,10 +65,11 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
 
     if input_mode not in INPUTS:
         raise InputError(f"--input: {input_mode!r} is not one of {', '.join(INPUTS)}")
-    detector = Detector(models, providers=provider)
+    # The manifest says the directory's kind; pipeline.detect loads (and checks) the models once, below.
+    two_stage = "depth" in load_manifest(models).get("networks", {})
     wants_camera = input_mode == "lidar16+camera"
-    if detector.two_stage != wants_camera:
-        kind = "two-stage (depth.onnx + pixor.onnx)" if detector.two_stage else "LiDAR-only (pixor.onnx)"
+    if two_stage != wants_camera:
+        kind = "two-stage (depth.onnx + pixor.onnx)" if two_stage else "LiDAR-only (pixor.onnx)"
         raise InputError(f"--models: {models} is a {kind} model directory, which does not fit --input {input_mode}")
     if depth_dir is not None and not wants_camera:
         raise InputError(f"--depth-dir: only the camera pipeline uses depth (--input lidar16+camera, not {input_mode})")

@@ -81,6 +81,7 @@ from pipeline.cli import non_negative_int, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_calib, read_image_size, read_labels
+from pipeline.model_files import ModelFileError, load_manifest
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, view_calibration
 from pipeline.presets import Preset, get_preset, lidar_only, preset_from_dict
@@ -898,11 +899,11 @@ def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Pres
 def _exported_as(path: Path) -> tuple[str | None, str | None]:
     """(network, preset) the manifest beside an exported ``.onnx`` records for it; None where it says nothing."""
     try:
-        manifest = json.loads((path.parent / "manifest.json").read_text(encoding="utf-8"))
-        network = next((n for n, entry in manifest["networks"].items() if entry.get("file") == path.name), None)
-        return network, manifest.get("preset")
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        manifest = load_manifest(path.parent)
+    except ModelFileError:  # a lone .onnx, or a broken manifest: the weights themselves are checked
         return None, None
+    network = next((n for n, entry in manifest.get("networks", {}).items() if entry.get("file") == path.name), None)
+    return network, manifest.get("preset")
 
 
 def _bev_channels(path: Path) -> int | None:

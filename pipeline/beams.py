@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.cli import skipped_summary
 from pipeline.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -265,10 +266,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(f"wrote {run.written} scans to {args.dst_dir}")
     if run.skipped:
-        names = [path.name for path in run.skipped]
-        more = f" and {len(names) - 10} more" if len(names) > 10 else ""
-        print(f"error: {len(names)} of {run.written + len(names)} scan(s) skipped (each named above with its reason): "
-              f"{', '.join(names[:10])}{more}", file=sys.stderr)
+        print(f"error: {skipped_summary([path.name for path in run.skipped], 'scan', run.written + len(run.skipped))}",
+              file=sys.stderr)
         return 1
     return 0
 

@@ -91,3 +91,11 @@ def write_text_file(path: Path, text: str) -> None:
     """Write an output file checked by :func:`check_output`, making its folder first."""
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text, encoding="utf-8")
+
+
+def skipped_summary(names: list[str], what: str, total: int | None = None) -> str:
+    """The closing line of a run that went on past unusable inputs: ``3 of 300 frame(s) skipped (each named
+    above with its reason): a, b, c`` (the first ten names, then how many more)."""
+    more = f" and {len(names) - 10} more" if len(names) > 10 else ""
+    of = f" of {total}" if total is not None else ""
+    return f"{len(names)}{of} {what}(s) skipped (each named above with its reason): {', '.join(names[:10])}{more}"

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import probability, unwritable
+from pipeline.cli import probability, skipped_summary, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.kitti import (
@@ -268,10 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     if result.pictures:
         print(f"BEV pictures: {args.out}/bev/")
     if result.skipped:
-        ids = list(result.skipped)
-        more = f" and {len(ids) - 10} more" if len(ids) > 10 else ""
-        print(f"error: {len(ids)} of {len(result.frame_ids)} frame(s) skipped (each named above with its reason): "
-              f"{', '.join(ids[:10])}{more}", file=sys.stderr)
+        print(f"error: {skipped_summary(list(result.skipped), 'frame', len(result.frame_ids))}", file=sys.stderr)
         return 1
     return 0
 

@@ -67,9 +67,9 @@ def frame_ids(data_dir: str | Path, split_file: str | Path | None = None) -> lis
     data_dir = Path(data_dir)
     if split_file is not None:
         return read_split_file(split_file)
-    velodyne = data_dir / "velodyne"
     if not data_dir.exists():
         raise InputError(f"{data_dir}: no such folder")
+    velodyne = data_dir / "velodyne"
     if not velodyne.is_dir():
         raise InputError(f"{data_dir}: not a KITTI object folder (no velodyne/ inside)")
     return sorted(p.stem for p in velodyne.glob("*.bin"))
