@@ -64,6 +64,9 @@ from pipeline.presets import get_preset
 BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 DEFAULT_PRESET = "edge"
 PEAK_MATMUL = 4096  # the peak micro-benchmark's MatMul: N × N by N × N
+# The stages that are network runs (pixor_mirror: PIXOR's second run, with --mirror-tta); the rest of a frame's
+# time is "between the networks".
+NETWORK_STAGES = ("depth_net", "pixor", "pixor_mirror")
 PAPER = {"RTX 2080Ti": {"ms": 25.4, "fps": 39.8}, "DRIVE PX2": {"ms": 581.7, "fps_two_threads": 3.4}}
 
 
@@ -182,9 +185,10 @@ def onnx_twin(detector: Detector, names: tuple[str, ...]) -> dict:
     return networks
 
 
-def torch_detector(models_dir: Path, networks: dict, stage_threads: int | None = None) -> Detector:
+def torch_detector(models_dir: Path, networks: dict, stage_threads: int | None = None,
+                   mirror_tta: bool = False) -> Detector:
     """The same Detector with its sessions swapped for the PyTorch modules (same weights)."""
-    detector = Detector(models_dir, providers="cpu", stage_threads=stage_threads)
+    detector = Detector(models_dir, providers="cpu", stage_threads=stage_threads, mirror_tta=mirror_tta)
     inputs = {"depth": ["rgb", "sparse_depth"], "pixor": ["bev"]}
     detector._sessions = {name: TorchSession(networks[name].eval(), inputs[name]) for name in detector._sessions}
     detector._input_names = {name: inputs[name] for name in detector._sessions}  # whole tensors, as PyTorch takes them
@@ -275,7 +279,7 @@ def _frames_on(detector: Detector, frames: list[Frame], count: int, offset: int)
 
 
 def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] | FrameSource, per_worker: int,
-            warmup: int, mine: list[int], start, done, errors) -> None:
+            warmup: int, mine: list[int], start, done, errors, mirror_tta: bool = False) -> None:
     """One throughput worker, a thread or a process: pin itself, load, warm up, wait for the start, run.
 
     A thread gets the frames and a list for its errors; a process gets a :class:`FrameSource` (it
@@ -291,7 +295,7 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
         os.sched_setaffinity(0, mine)  # this thread or process only; ORT threads created below inherit it
         if isinstance(frames, FrameSource):
             frames = frames.load()
-        detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False)
+        detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False, mirror_tta=mirror_tta)
         _frames_on(detector, frames, warmup, index)
     except Exception as exc:  # noqa: BLE001 — reported to the caller of run_workers
         fail(exc)
@@ -309,20 +313,20 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
 
 
 def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameSource, workers: int,
-                per_worker: int, warmup: int, cores: list[int], mode: str = "thread") -> float:
+                per_worker: int, warmup: int, cores: list[int], mode: str = "thread", mirror_tta: bool = False) -> float:
     """Aggregate fps of ``workers`` workers, each pinned to its share of ``cores`` with its own sessions.
 
     mode ``thread``: threads of this process (as the paper ran its PX2's two GPUs), sharing Python's
     interpreter lock between NumPy calls. ``process``: one process each (spawned), sharing nothing;
     ``frames`` must then be a :class:`FrameSource`, from which each loads its own copy before the
-    clock starts (a thread given one does the same).
+    clock starts (a thread given one does the same). mirror_tta: as :class:`pipeline.detector.Detector`'s.
     """
     share = max(1, len(cores) // workers)
     shares = [cores[i * share : (i + 1) * share] or cores for i in range(workers)]
     if mode == "thread":
         start, done, errors = threading.Barrier(workers + 1), threading.Barrier(workers + 1), []
         pool = [threading.Thread(target=_worker, daemon=True,
-                                 args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors))
+                                 args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors, mirror_tta))
                 for i in range(workers)]
     elif mode == "process":
         if not isinstance(frames, FrameSource):
@@ -330,7 +334,7 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
         context = multiprocessing.get_context("spawn")  # no forked copy of this process's ORT thread pools
         start, done, errors = context.Barrier(workers + 1), context.Barrier(workers + 1), context.Queue()
         pool = [context.Process(target=_worker, daemon=True,
-                                args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors))
+                                args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors, mirror_tta))
                 for i in range(workers)]
     else:
         raise ValueError(f"workers mode {mode!r}: expected 'thread' or 'process'")
@@ -353,7 +357,8 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
 
 
 def run_throughput(models: Path, provider: str | None, source: FrameSource, frames: list[Frame], workers: int,
-                   per_worker: int, warmup: int, cores: list[int], rounds: int = 3, mode: str = "thread") -> dict:
+                   per_worker: int, warmup: int, cores: list[int], rounds: int = 3, mode: str = "thread",
+                   mirror_tta: bool = False) -> dict:
     """One worker on its share of the cores and ``workers`` workers on all of them, in alternating rounds
     (1 N N 1 1 N), so a change of load on a shared machine touches both; medians over the rounds."""
     share = max(1, len(cores) // workers)
@@ -361,7 +366,7 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
     for r in range(rounds):
         for n in ((1, workers) if r % 2 == 0 else (workers, 1)):
             fps = run_workers(models, provider, source if mode == "process" else frames, n, per_worker, warmup,
-                              cores[:share] if n == 1 else cores, mode)
+                              cores[:share] if n == 1 else cores, mode, mirror_tta)
             (one if n == 1 else many).append(fps)
     fps_one, fps_many = float(np.median(one)), float(np.median(many))
     return {"workers": workers, "mode": mode, "fps": fps_many, "fps_one_worker": fps_one,
@@ -417,7 +422,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
         precision: str | None = None, baseline: Path | None = None, worker_kind: str = "thread",
-        peak_size: int = PEAK_MATMUL, ops: bool = False, stage_threads: int | None = None) -> dict:
+        peak_size: int = PEAK_MATMUL, ops: bool = False, stage_threads: int | None = None,
+        mirror_tta: bool = False) -> dict:
     """Measure everything; returns the JSON-able report.
 
     preset: the preset to export and time when ``models`` is None (default :data:`DEFAULT_PRESET`); with
@@ -427,6 +433,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     ops: also profile each network operator by operator (``networks[name]["ops"]``).
     stage_threads: the single-stream Detectors' (:class:`pipeline.detector.Detector`; None: its default,
     2 on two or more cores); throughput workers of one core each run their stages in turn.
+    mirror_tta: PIXOR also on the mirrored BEV in every Detector timed (PyTorch's and the baseline's too), timed
+    as the stage ``pixor_mirror``; PIXOR's FLOPs and time per frame count both runs.
     """
     cores = sorted(os.sched_getaffinity(0))
     scratch = None
@@ -446,10 +454,11 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         reduced = Path(scratch.name) / precision
         convert_precision(models, reduced, precision, data, calibration_frames=min(frames, 20))
         models = reduced
-    detector = Detector(models, providers=provider, intra_op_threads=len(cores), stage_threads=stage_threads)
+    detector = Detector(models, providers=provider, intra_op_threads=len(cores), stage_threads=stage_threads,
+                        mirror_tta=mirror_tta)
     # Loaded now, so a bad directory is refused before minutes of timing.
     other = None if baseline is None else Detector(baseline, providers=provider, intra_op_threads=len(cores),
-                                                   stage_threads=stage_threads)
+                                                   stage_threads=stage_threads, mirror_tta=mirror_tta)
     actual = detector.manifest.get("precision", "fp32")
     if precision and actual != precision:
         raise InputError(f"--precision {precision}, but {models} holds {actual} models")
@@ -471,7 +480,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
                     "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,
                     "precision": detector.manifest.get("precision", "fp32"), "frames": frames, "warmup": warmup,
                     "input": f"{beams}-line scan + camera" if beams else "scan as stored + camera",
-                    "data": str(data), "machine": machine(), "versions": versions(), "paper": PAPER}
+                    "data": str(data), "mirror_tta": mirror_tta, "machine": machine(), "versions": versions(),
+                    "paper": PAPER}
     stream = run_stream(detector, pool, frames, warmup)
     report["end_to_end_ms"] = summarize(stream.end_to_end)
     report["fps"] = 1e3 / report["end_to_end_ms"]["mean"]
@@ -480,7 +490,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     report["overlapped_ms"] = {stage: summarize(ms) for stage, ms in stream.overlapped.items()}
     # Everything of a frame's wall time outside the network runs (the input checks too); stages run
     # beside a network count only for the time the frame waited for them.
-    networks_ms = sum(report["stages_ms"][s]["mean"] for s in ("depth_net", "pixor") if s in report["stages_ms"])
+    networks_ms = sum(report["stages_ms"][s]["mean"] for s in NETWORK_STAGES if s in report["stages_ms"])
     between = report["end_to_end_ms"]["mean"] - networks_ms
     report["non_network_fraction"] = between / report["end_to_end_ms"]["mean"]
     # A calibration's ray table is built on its first frame only (pipeline/detector.py): what a vehicle,
@@ -493,12 +503,13 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     report["peak_detail"] = {f"matmul_{peak_size}_gflops": peak.matmul_gflops, "matmul_size": peak_size,
                              "conv3x3_256_gflops": peak.conv_gflops, "threads": peak.threads}
     report["networks"] = {}
-    for name, stage in (("depth", "depth_net"), ("pixor", "pixor")):
-        if name in detector.manifest["networks"] and stage in report["stages_ms"]:
-            flops = detector.manifest["networks"][name]["flops"]
-            ms = report["stages_ms"][stage]["p50"]
+    for name, stages in (("depth", ("depth_net",)), ("pixor", ("pixor", "pixor_mirror"))):
+        if name in detector.manifest["networks"] and stages[0] in report["stages_ms"]:
+            runs = sum(stage in report["stages_ms"] for stage in stages)  # PIXOR runs twice with the mirror
+            flops = detector.manifest["networks"][name]["flops"] * runs
+            ms = sum(report["stages_ms"][stage]["p50"] for stage in stages if stage in report["stages_ms"])
             achieved = flops / (ms / 1e3) / 1e9
-            report["networks"][name] = {"gflops": flops / 1e9, "ms": ms, "achieved_gflops_per_s": achieved,
+            report["networks"][name] = {"gflops": flops / 1e9, "runs": runs, "ms": ms, "achieved_gflops_per_s": achieved,
                                         "peak_fraction": achieved / peak.peak_gflops,
                                         "matmul_peak_fraction": achieved / peak.matmul_gflops}
     if ops:
@@ -508,12 +519,12 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
 
     if threads > 1:
         report["throughput"] = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
-                                              warmup, cores, mode=worker_kind)
+                                              warmup, cores, mode=worker_kind, mirror_tta=mirror_tta)
     if compare_torch:
         import torch
 
         torch.set_num_threads(len(cores))
-        paired, eager, ratios = run_paired(detector, torch_detector(models, torch_networks, stage_threads), pool,
+        paired, eager, ratios = run_paired(detector, torch_detector(models, torch_networks, stage_threads, mirror_tta), pool,
                                            frames, warmup)
         report["torch_end_to_end_ms"] = summarize(eager.end_to_end)
         report["torch_stages_ms"] = summarize_stages(eager)
@@ -526,7 +537,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         # decode, pseudo points to bin), so where the twin has initialised weights only these compare like with like.
         report["speedup_vs_torch_networks"] = {
             stage: report["torch_stages_ms"][stage]["p50"] / report["paired_stages_ms"][stage]["p50"]
-            for stage in ("depth_net", "pixor") if stage in report["paired_stages_ms"]}
+            for stage in NETWORK_STAGES if stage in report["paired_stages_ms"]}
         report["torch_weights"] = torch_weights
     if other is not None:
         paired, base, ratios = run_paired(detector, other, pool, frames, warmup)
@@ -569,7 +580,8 @@ def plot(report: dict, path: Path) -> None:
 
 def print_report(report: dict) -> None:
     e = report["end_to_end_ms"]
-    print(f"preset {report['preset']}, {report['frames']} frames after {report['warmup']} warm-up, "
+    tta = ", PIXOR with mirror TTA (two runs a frame)" if report.get("mirror_tta") else ""
+    print(f"preset {report['preset']}{tta}, {report['frames']} frames after {report['warmup']} warm-up, "
           f"{report['machine']['cpu']} ({report['machine']['cores']} cores; {' '.join(report['machine']['cpu_flags'])}), "
           f"{report['provider']}")
     print(f"end to end: mean {e['mean']:.1f} ms, p50 {e['p50']:.1f}, p90 {e['p90']:.1f}, p99 {e['p99']:.1f} → "
@@ -588,7 +600,8 @@ def print_report(report: dict) -> None:
     print(f"peak (best of the {size}² MatMul {report['peak_detail'][f'matmul_{size}_gflops']:.0f} and 3×3 conv "
           f"{report['peak_detail']['conv3x3_256_gflops']:.0f} GFLOP/s): {report['peak_gflops']:.0f} GFLOP/s")
     for name, n in report["networks"].items():
-        print(f"  {name:6s} {n['gflops']:.2f} GFLOP in {n['ms']:.1f} ms = {n['achieved_gflops_per_s']:.0f} GFLOP/s, "
+        twice = " (two runs)" if n["runs"] == 2 else ""
+        print(f"  {name:6s} {n['gflops']:.2f} GFLOP{twice} in {n['ms']:.1f} ms = {n['achieved_gflops_per_s']:.0f} GFLOP/s, "
               f"{100 * n['peak_fraction']:.0f} % of peak ({100 * n['matmul_peak_fraction']:.0f} % of the MatMul's)")
     for name, n in report["networks"].items():
         if "ops" in n:
@@ -611,7 +624,7 @@ def print_report(report: dict) -> None:
     if "speedup_vs_baseline" in report:
         base, b = report["baseline"], report["speedup_vs_baseline_blocks"]
         nets = "".join(f", {stage} {base['stages_ms'][stage]['p50']:.1f} → {base['paired_stages_ms'][stage]['p50']:.1f} ms"
-                       for stage in ("depth_net", "pixor") if stage in base["stages_ms"])
+                       for stage in NETWORK_STAGES if stage in base["stages_ms"])
         print(f"baseline {base['models']} ({base['precision']}): mean {base['end_to_end_ms']['mean']:.1f} ms vs "
               f"{base['paired_end_to_end_ms']['mean']:.1f} ms in alternating blocks → "
               f"{report['speedup_vs_baseline']:.2f}× faster (per block: median {b['p50']:.2f}×, "
@@ -651,6 +664,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--stage-threads", type=int, choices=(1, 2),
                         help="the single stream's threads for the stages between the networks: 2 runs those that "
                         "need no depth beside the depth net, 1 runs all in turn (default: 2 on two or more cores)")
+    parser.add_argument("--mirror-tta", action="store_true",
+                        help="PIXOR also on the BEV mirrored left to right, maps averaged, as pipeline.detect "
+                        "--mirror-tta and the service's --mirror-tta: PIXOR's time twice over")
     parser.add_argument("--json", type=Path, help="write the report as JSON")
     parser.add_argument("--plot", type=Path, help="write the latency distribution per stage as PNG")
     args = parser.parse_args(argv)
@@ -665,7 +681,7 @@ def main(argv: list[str] | None = None) -> int:
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
                      args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision,
                      baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops,
-                     stage_threads=args.stage_threads)
+                     stage_threads=args.stage_threads, mirror_tta=args.mirror_tta)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -25,7 +25,7 @@ from service.settings import ENV_PREFIX, Settings
 
 log = logging.getLogger("service")
 
-# (flag, type, metavar or choices); the Settings field is the flag without dashes, '-' → '_'.
+# (flag, type, metavar or choices; a bool is a --flag/--no-flag pair); the Settings field is the flag without dashes, '-' → '_'.
 _OPTIONS: list[tuple[str, type, object]] = [
     ("--models", Path, "DIR"),
     ("--host", str, "ADDR"),
@@ -42,6 +42,7 @@ _OPTIONS: list[tuple[str, type, object]] = [
     ("--max-image-pixels", int, "N"),
     ("--token", str, "TOKEN"),
     ("--default-calib", Path, "FILE"),
+    ("--mirror-tta", bool, None),
     ("--warmup-runs", int, "N"),
     ("--shutdown-timeout-s", float, "S"),
     ("--log-level", str, ["debug", "info", "warning", "error"]),
@@ -63,7 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
         default = info.default
         help_text = f"{info.description} (env {env}; default {default if default is not None else 'none'})"
         kwargs: dict = {"type": kind, "default": argparse.SUPPRESS, "help": help_text}
-        if isinstance(meta, list):
+        if kind is bool:  # --mirror-tta / --no-mirror-tta
+            kwargs = {"action": argparse.BooleanOptionalAction, "default": argparse.SUPPRESS, "help": help_text}
+        elif isinstance(meta, list):
             kwargs["choices"] = meta
         else:
             kwargs["metavar"] = meta

@@ -72,18 +72,21 @@ def load_runtime(settings: Settings, metrics: Metrics) -> Runtime:
     count = settings.workers if settings.sessions == "per-worker" else 1
     threads = settings.resolved_intra_op_threads()
     detectors = [
-        Detector(models, providers=settings.provider, intra_op_threads=threads, trt_cache_dir=settings.trt_cache_dir)
+        Detector(models, providers=settings.provider, intra_op_threads=threads, trt_cache_dir=settings.trt_cache_dir,
+                 mirror_tta=settings.mirror_tta)
         for _ in range(count)
     ]
     detector = detectors[0]
     log.info(
-        "loaded %s (preset %s, %s) with %s on %d worker(s), %s session(s), %d intra-op thread(s), queue %d",
+        "loaded %s (preset %s, %s%s) with %s on %d worker(s), %s session(s), %d intra-op thread(s), queue %d",
         models, detector.preset.name, "two-stage" if detector.two_stage else "LiDAR-only",
+        ", PIXOR with mirror TTA" if detector.mirror_tta else "",
         detector.providers_in_use, settings.workers, settings.sessions, threads, settings.queue_size,
     )
     metrics.model.info({
         "preset": detector.preset.name,
         "two_stage": str(detector.two_stage).lower(),
+        "mirror_tta": str(detector.mirror_tta).lower(),
         "providers": ",".join(sorted({p for ps in detector.providers_in_use.values() for p in ps})),
         **{f"sha256_{name.replace('.', '_')}": digest for name, digest in detector.sha256.items()},
     })

@@ -139,6 +139,7 @@ class ModelInfo(BaseModel):
         min_length=2, max_length=2, description="smallest image [height, width] the model accepts"
     )
     default_calib: bool = Field(description="a default calibration is configured (calib is optional)")
+    mirror_tta: bool = Field(description="PIXOR also runs on the mirrored BEV, maps averaged (--mirror-tta)")
     warnings: list[str] = Field(
         default_factory=list, description="about the model's precision on this machine (INT8 this CPU may run inexactly, FP16 on the CPU)"
     )

@@ -121,6 +121,30 @@ def test_latency_throughput_with_worker_processes(tmp_path, tiny_models):
     assert "2 process workers" in result.stdout
 
 
+def test_latency_with_mirror_tta_times_pixors_second_run(tmp_path, tiny_models):
+    """--mirror-tta: PIXOR's second run is a stage of its own, counted as network time, its FLOPs twice; the
+    PyTorch pipeline and the throughput workers run it too."""
+    result = subprocess.run(
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--mirror-tta", "--frames", "4",
+         "--warmup", "1", "--threads", "2", "--compare-torch", "--json", str(tmp_path / "m.json")],
+        capture_output=True, text=True, timeout=600, check=False,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = json.loads((tmp_path / "m.json").read_text())
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    assert report["mirror_tta"] is True and "PIXOR with mirror TTA" in result.stdout
+    assert "pixor_mirror" in report["stages_ms"] and "pixor_mirror" in report["torch_stages_ms"]
+    networks_ms = sum(report["stages_ms"][s]["mean"] for s in ("depth_net", "pixor", "pixor_mirror"))
+    e2e = report["end_to_end_ms"]["mean"]
+    assert abs(report["non_network_fraction"] - (e2e - networks_ms) / e2e) < 1e-9
+    pixor = report["networks"]["pixor"]
+    assert pixor["runs"] == 2 and abs(pixor["gflops"] - 2 * manifest["networks"]["pixor"]["flops"] / 1e9) < 1e-9
+    assert pixor["ms"] == report["stages_ms"]["pixor"]["p50"] + report["stages_ms"]["pixor_mirror"]["p50"]
+    assert report["networks"]["depth"]["runs"] == 1
+    assert set(report["speedup_vs_torch_networks"]) == {"depth_net", "pixor", "pixor_mirror"}
+    assert report["throughput"]["fps"] > 0
+
+
 def test_a_worker_that_fails_is_reported_instead_of_waited_for(tmp_path, tiny_models):
     import os
 

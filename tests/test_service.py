@@ -683,6 +683,39 @@ def test_every_setting_is_a_cli_option_and_an_env_var(monkeypatch: pytest.Monkey
     assert Settings().models == Path(__file__).resolve().parents[1] / "weights" / "edge"
 
 
+def test_mirror_tta_setting_reaches_the_detector(tiny_models: Path, client: AppClient, frame: dict[str, bytes],
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    """--mirror-tta (LOWRES3D_MIRROR_TTA) makes the service's PIXOR run on the mirrored BEV too: its boxes
+    are those of a Detector built with mirror_tta, not those of the plain service."""
+    from pipeline.detector import Detector
+    from pipeline.kitti import read_calib, read_image, read_velodyne
+
+    monkeypatch.setenv("LOWRES3D_MIRROR_TTA", "true")
+    assert settings_from_args([]).mirror_tta is True
+    assert settings_from_args(["--no-mirror-tta"]).mirror_tta is False  # the command line wins
+    monkeypatch.delenv("LOWRES3D_MIRROR_TTA")
+    assert settings_from_args([]).mirror_tta is False and settings_from_args(["--mirror-tta"]).mirror_tta is True
+    assert client.get("/v1/model").json()["mirror_tta"] is False
+
+    params = {"score_threshold": 0.0}
+    plain = client.post("/v1/detect", params=params, files=parts(frame)).json()["detections"]
+    direct = Detector(tiny_models, mirror_tta=True).detect(
+        read_image(KITTI / "image_2" / f"{FRAME}.png"), read_velodyne(KITTI / "velodyne" / f"{FRAME}.bin").points,
+        read_calib(KITTI / "calib" / f"{FRAME}.txt"), score_threshold=0.0)
+    with service(tiny_models, mirror_tta=True) as app_client:
+        assert app_client.get("/v1/model").json()["mirror_tta"] is True
+        assert 'mirror_tta="true"' in app_client.get("/metrics").text
+        body = app_client.post("/v1/detect", params=params, files=parts(frame)).json()
+        mirrored = body["detections"]
+        assert "pixor_mirror" in body["timings_ms"]  # PIXOR's second run, timed as a stage of its own
+        assert 'lowres3d_stage_duration_seconds_count{stage="pixor_mirror"}' in app_client.get("/metrics").text
+    assert len(mirrored) == len(direct.scores) > 0
+    np.testing.assert_allclose([d["score"] for d in mirrored], direct.scores, atol=1e-5)
+    np.testing.assert_allclose([[d["box"][k] for k in ("x", "y", "z", "l", "w", "h", "yaw")] for d in mirrored],
+                               direct.boxes, atol=1e-4)
+    assert [d["score"] for d in mirrored] != [d["score"] for d in plain]
+
+
 def test_per_worker_sessions(tiny_models: Path, frame: dict[str, bytes]) -> None:
     with service(tiny_models, workers=2, sessions="per-worker") as app_client:
         runtime = app_client.app.state.runtime

@@ -30,6 +30,7 @@ async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
         queue_size=settings.queue_size,
         crop_hw=list(detector.preset.crop_hw),
         default_calib=runtime.default_calib is not None,
+        mirror_tta=detector.mirror_tta,
         warnings=detector.load_warnings,
         manifest=detector.manifest,
     )
