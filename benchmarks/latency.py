@@ -65,7 +65,7 @@ BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "tr
 DEFAULT_PRESET = "edge"
 PEAK_MATMUL = 4096  # the peak micro-benchmark's MatMul: N × N by N × N
 # The stages that are network runs (pixor_mirror: PIXOR's second run, with --mirror-tta); the rest of a frame's
-# time is "between the networks".
+# time is "between the networks" (mirror_merge, the mirror's copies and averaging, too).
 NETWORK_STAGES = ("depth_net", "pixor", "pixor_mirror")
 PAPER = {"RTX 2080Ti": {"ms": 25.4, "fps": 39.8}, "DRIVE PX2": {"ms": 581.7, "fps_two_threads": 3.4}}
 
@@ -434,7 +434,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     stage_threads: the single-stream Detectors' (:class:`pipeline.detector.Detector`; None: its default,
     2 on two or more cores); throughput workers of one core each run their stages in turn.
     mirror_tta: PIXOR also on the mirrored BEV in every Detector timed (PyTorch's and the baseline's too), timed
-    as the stage ``pixor_mirror``; PIXOR's FLOPs and time per frame count both runs.
+    as the stage ``pixor_mirror`` (its copies and averaging as ``mirror_merge``); PIXOR's FLOPs and time per
+    frame count both runs.
     """
     cores = sorted(os.sched_getaffinity(0))
     scratch = None

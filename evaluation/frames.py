@@ -71,19 +71,25 @@ def load_label_dirs(
 ) -> LabelSet:
     """Read ``<gt_dir>/<id>.txt`` and ``<pred_dir>/<id>.txt`` for every frame.
 
-    frame_ids: frames to evaluate; default every ``*.txt`` in ``gt_dir``. A listed
-    frame without a ground-truth file is an error; a frame without a result file
+    frame_ids: frames to evaluate; default every ``*.txt`` in ``gt_dir`` (then a result file of
+    another frame is named in a warning). A listed frame without a ground-truth file is an error; a frame without a result file
     has no detections, but no result file for any frame is an error (the wrong
     folder or file names, not a detector that found nothing: that one writes
     empty files). Every result line needs a score (16 fields).
     """
     gt_dir, pred_dir = Path(gt_dir), Path(pred_dir)
+    every_gt_file = frame_ids is None
     frame_ids = ground_truth_frames(gt_dir, frame_ids)
     _require_dir(pred_dir, "prediction label")
     if not any((pred_dir / f"{frame_id}.txt").is_file() for frame_id in frame_ids):
         results = sorted(p.name for p in pred_dir.glob("*.txt"))
         held = f"it holds {len(results)} *.txt file(s), e.g. {results[0]}" if results else "it holds no *.txt file"
         raise InputError(f"{pred_dir}: no result file matches a frame of {gt_dir} ({_some(frame_ids)}); {held}")
+    if every_gt_file:  # a split leaves results out on purpose; every label file should cover every result
+        unscored = sorted({p.stem for p in pred_dir.glob("*.txt")} - set(frame_ids))
+        if unscored:
+            log.warning("%d result file(s) in %s have no ground truth in %s and are not scored, e.g. %s.txt",
+                        len(unscored), pred_dir, gt_dir, unscored[0])
     ground_truth: list[LabelArrays] = []
     detections: list[LabelArrays] = []
     missing: list[str] = []

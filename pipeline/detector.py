@@ -449,10 +449,8 @@ class Detector:
         tic = time.perf_counter()
         score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]})
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
-        if self.mirror_tta:  # a stage of its own, so that PIXOR's two runs show in the timings
-            tic = time.perf_counter()
-            score, regression = self._with_mirror(bev, score, regression)
-            timings["pixor_mirror"] = (time.perf_counter() - tic) * 1e3
+        if self.mirror_tta:
+            score, regression = self._with_mirror(bev, score, regression, timings)
         tic = time.perf_counter()
         boxes, scores = boxes_from_maps(score[0, 0], regression[0], voxelizer.height_occupancy, self.preset,
                                         score_threshold, with_pseudo=pseudo is not None, mark=voxelizer.height_mark)
@@ -464,20 +462,29 @@ class Detector:
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped, warnings=warnings,
                           points=cloud)
 
-    def _with_mirror(self, bev: np.ndarray, score: np.ndarray, regression: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _with_mirror(self, bev: np.ndarray, score: np.ndarray, regression: np.ndarray,
+                     timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """PIXOR's maps averaged with those of the BEV mirrored left to right (y → −y), mirrored back.
 
         The grid is symmetric in y, so mirroring flips the rows; in the mirror a box's sin(yaw) and its
-        offset dy change sign, which is undone on the de-normalised targets before averaging.
+        offset dy change sign, which is undone on the de-normalised targets before averaging. The second
+        run is timed as ``pixor_mirror``, the copies and the averaging as ``mirror_merge`` (NumPy, not a network).
         """
+        tic = time.perf_counter()
         mirrored = np.ascontiguousarray(bev[:, ::-1])
+        merge_ms = (time.perf_counter() - tic) * 1e3
+        tic = time.perf_counter()
         score_m, regression_m = self._run("pixor", ["score", "regression"], {"bev": mirrored[None]})
+        timings["pixor_mirror"] = (time.perf_counter() - tic) * 1e3
+        tic = time.perf_counter()
         decode = self.preset.decode
         mean = np.asarray(decode.reg_mean, np.float32)[:, None, None]
         std = np.asarray(decode.reg_std, np.float32)[:, None, None]
         raw = regression_m[0, :, ::-1] * std + mean
         raw[MIRRORED_TARGETS] *= -1
-        return (score + score_m[:, :, ::-1]) / 2, (regression + ((raw - mean) / std)[None]) / 2
+        averaged = (score + score_m[:, :, ::-1]) / 2, (regression + ((raw - mean) / std)[None]) / 2
+        timings["mirror_merge"] = merge_ms + (time.perf_counter() - tic) * 1e3
+        return averaged
 
     def _given_depth(self, depth: np.ndarray, image: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
         """A caller's dense depth map of the whole image, checked, in the depth net's view, and that view's calibration."""

@@ -76,8 +76,12 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
         app.include_router(router, dependencies=auth)
     for router in open_to_all:
         app.include_router(router)
-    # Every route is a fixed path: the metrics label requests answered before routing (413s) by it.
-    route_paths = frozenset(route.path for router in (*protected, *open_to_all) for route in router.routes)
+    # Every route is a fixed path: the metrics label requests answered before routing (413s) by it, and
+    # those to FastAPI's own routes (/openapi.json, /docs, /redoc), which do not name their route in the scope.
+    route_paths = frozenset(
+        [route.path for router in (*protected, *open_to_all) for route in router.routes]
+        + [path for route in app.routes if isinstance(path := getattr(route, "path", None), str)]  # FastAPI's own
+    )
     # Added last = outermost: the request context wraps the body limit so 413s are counted and carry an id.
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths)

@@ -423,11 +423,14 @@ def test_cli_end_to_end(tmp_path: Path):
         write_labels(gt_dir / f"{i:06d}.txt", [obj(), dontcare(500, 150, 600, 260)])
         if i < 41:  # frame 41 has no result file: its car is missed
             write_labels(pred_dir / f"{i:06d}.txt", [obj(score=0.9)])
+    write_labels(pred_dir / "000099.txt", [obj(score=0.9)])  # a frame the ground truth does not have
     out = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir, "--json", tmp_path / "ap.json",
                "--plots", tmp_path / "plots")
     assert out.returncode == 0, out.stderr
     assert "BEV" in out.stdout and "R40" in out.stdout and "R11" in out.stdout
     assert "no result file" in out.stderr  # the missing frame is reported
+    assert f"1 result file(s) in {pred_dir} have no ground truth in {gt_dir} and are not scored, e.g. 000099.txt" \
+        in out.stderr
     document = json.loads((tmp_path / "ap.json").read_text())
     assert document["missing_predictions"] == ["000041"]
     # 42 cars, 41 found with precision 1. getThresholds skips the 31st true positive (recall

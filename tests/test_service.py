@@ -634,6 +634,7 @@ def test_model_info(client: AppClient, tiny_models: Path) -> None:
 def test_metrics_exposition(client: AppClient, frame: dict[str, bytes]) -> None:
     assert client.post("/v1/detect", files=parts(frame)).status_code == 200
     assert client.get("/no-such-route-7f3a").status_code == 404
+    assert client.get("/openapi.json").status_code == 200
     response = client.get("/metrics")
     assert response.status_code == 200 and response.headers["content-type"].startswith("text/plain")
     text = response.text
@@ -645,6 +646,7 @@ def test_metrics_exposition(client: AppClient, frame: dict[str, bytes]) -> None:
         assert family in text
     # A path no route matches is counted under one label, never its own: clients cannot grow the series.
     assert 'lowres3d_http_requests_total{method="GET",route="unmatched",status="404"}' in text
+    assert 'lowres3d_http_requests_total{method="GET",route="/openapi.json",status="200"}' in text  # FastAPI's own
     assert "no-such-route-7f3a" not in text
 
 
