@@ -4,8 +4,8 @@
     python benchmarks/load.py --url http://127.0.0.1:8000 [...]
 
 Without ``--url`` it starts ``python -m service`` itself on 127.0.0.1 (a free
-port; ``--workers``, ``--queue-size``, ``--sessions``, ``--intra-op-threads``
-passed on) and stops it at the end. ``--clients`` threads send the frames of
+port; ``--workers``, ``--queue-size``, ``--sessions``, ``--intra-op-threads``,
+``--mirror-tta`` passed on) and stops it at the end. ``--clients`` threads send the frames of
 a KITTI folder (``--data``, default tests/data/kitti/training; ``--frame`` for
 one) in turn until ``--duration`` seconds or ``--requests`` requests in total;
 a client that gets a 503 waits ``--backoff-s`` before its next request. With
@@ -439,7 +439,8 @@ def format_report(result: LoadResult) -> str:
     lines = [
         (f"service {result.url}: {result.server.get('preset')} models, {result.server.get('workers')} worker(s), "
          f"{result.server.get('sessions')} sessions, {result.server.get('intra_op_threads')} intra-op thread(s), "
-         f"queue {result.server.get('queue_size')}, {result.server.get('providers')}"),
+         f"queue {result.server.get('queue_size')}, {result.server.get('providers')}"
+         f"{', PIXOR with mirror TTA' if result.server.get('mirror_tta') else ''}"),
         f"machine: {result.machine['processor']}, {result.machine['cpus']} CPUs, {result.machine['platform']}",
         (f"{result.clients} clients, {result.requests} requests in {result.duration_s} s, "
          f"{result.frames_sent} distinct frame(s)"),
@@ -519,6 +520,7 @@ def run(
         server = {
             "preset": info["preset"], "workers": info["workers"], "sessions": info["sessions"],
             "queue_size": info["queue_size"], "intra_op_threads": info.get("intra_op_threads"),
+            "mirror_tta": info.get("mirror_tta", False),
             "providers": sorted({p for ps in info["providers_in_use"].values() for p in ps}),
         }
         rss = {"ready": server_rss_mb(base, headers)}
@@ -571,6 +573,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--queue-size", type=int, help="started service: queue size")
     parser.add_argument("--sessions", choices=["shared", "per-worker"], help="started service: session mode")
     parser.add_argument("--intra-op-threads", type=int, help="started service: ONNX Runtime threads per session")
+    parser.add_argument("--mirror-tta", action="store_true",
+                        help="started service: PIXOR also on the mirrored BEV (python -m service --mirror-tta)")
     parser.add_argument("--json", type=Path, help="write the result as JSON here")
     parser.add_argument("--plot", type=Path, help="write a PNG here: latency histogram, latency and memory over time")
     args = parser.parse_args(argv)
@@ -581,8 +585,11 @@ def main(argv: list[str] | None = None) -> int:
         value = getattr(args, flag)
         if value is not None:
             server_args += [f"--{flag.replace('_', '-')}", str(value)]
+    if args.mirror_tta:
+        server_args.append("--mirror-tta")
     if args.url and server_args:
-        parser.error("--workers/--queue-size/--sessions/--intra-op-threads apply only to a service started here")
+        parser.error("--workers/--queue-size/--sessions/--intra-op-threads/--mirror-tta apply only to a service "
+                     "started here")
     if args.url is None and not args.models.is_dir():
         parser.error(f"--models: {args.models} is not a directory (export one with `python -m export`)")
     try:

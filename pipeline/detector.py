@@ -450,7 +450,7 @@ class Detector:
         score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]})
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
         if self.mirror_tta:
-            score, regression = self._with_mirror(bev, score, regression, timings)
+            score, regression = self._with_mirror(voxelizer, score, regression, timings)
         tic = time.perf_counter()
         boxes, scores = boxes_from_maps(score[0, 0], regression[0], voxelizer.height_occupancy, self.preset,
                                         score_threshold, with_pseudo=pseudo is not None, mark=voxelizer.height_mark)
@@ -462,16 +462,17 @@ class Detector:
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped, warnings=warnings,
                           points=cloud)
 
-    def _with_mirror(self, bev: np.ndarray, score: np.ndarray, regression: np.ndarray,
+    def _with_mirror(self, voxelizer: BevVoxelizer, score: np.ndarray, regression: np.ndarray,
                      timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
         """PIXOR's maps averaged with those of the BEV mirrored left to right (y → −y), mirrored back.
 
         The grid is symmetric in y, so mirroring flips the rows; in the mirror a box's sin(yaw) and its
         offset dy change sign, which is undone on the de-normalised targets before averaging. The second
-        run is timed as ``pixor_mirror``, the copies and the averaging as ``mirror_merge`` (NumPy, not a network).
+        run is timed as ``pixor_mirror``, the mirrored BEV and the averaging as ``mirror_merge`` (NumPy, not a
+        network).
         """
         tic = time.perf_counter()
-        mirrored = np.ascontiguousarray(bev[:, ::-1])
+        mirrored = voxelizer.mirrored()
         merge_ms = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         score_m, regression_m = self._run("pixor", ["score", "regression"], {"bev": mirrored[None]})

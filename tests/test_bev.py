@@ -324,6 +324,28 @@ def test_points_then_pseudo_points_equal_one_call(split_pseudo):
         np.testing.assert_array_equal(halves.height_voxels(), whole.height_voxels())
 
 
+@pytest.mark.parametrize("split_pseudo", [False, True])
+def test_mirrored_bev_equals_the_reversed_rows_frame_after_frame(split_pseudo):
+    """``mirrored()`` writes only the cells a frame set into its own reused buffer: it must equal the BEV with
+    its rows reversed, with nothing left over from a fuller frame before (pseudo points, then none)."""
+    from dataclasses import replace
+
+    from pipeline.bev import pseudo_bins
+
+    frame, preset, view_calib = _kitti_view()
+    grid = replace(preset.bev, split_pseudo=split_pseudo)
+    depth, limits = _road_with_a_near_object(preset)
+    voxelizer = BevVoxelizer(grid)
+    for points, d in ((frame.points, depth), (frame.points[::5], depth[::-1].copy()), (frame.points[1::3], None),
+                      (frame.points[:200], depth)):
+        bins = None if d is None else pseudo_bins(d, view_calib, grid, *limits, max_jump=0.1)
+        bev = voxelizer(points, bins)
+        mirrored = voxelizer.mirrored()
+        assert mirrored is not bev and mirrored.flags.c_contiguous
+        np.testing.assert_array_equal(mirrored, bev[:, ::-1])
+        assert np.count_nonzero(mirrored[grid.nz]) > 0  # the reflectance plane came along
+
+
 def test_near35_keeps_the_pseudo_points_up_to_35_m_only():
     """``-near35``: on the real frame's view, a road-like depth map keeps its pixels up to 35 m, whose bins
     all lie within 35 m ahead of the camera, and drops the farther ones that ``edge`` keeps."""

@@ -15,7 +15,7 @@ def test_load_test_drives_a_started_service_and_reports(tmp_path, tiny_models):
     # 12 requests over the folder's five frames, every second one broken (each kind at least once).
     result = subprocess.run(
         [sys.executable, str(LOAD), "--models", str(tiny_models), "--clients", "2", "--requests", "12",
-         "--bad-every", "2", "--json", str(tmp_path / "load.json"), "--plot", str(tmp_path / "load.png")],
+         "--bad-every", "2", "--mirror-tta", "--json", str(tmp_path / "load.json"), "--plot", str(tmp_path / "load.png")],
         cwd=tmp_path, capture_output=True, text=True, timeout=300, check=False,
     )
     assert result.returncode == 0, result.stderr[-2000:]
@@ -31,6 +31,9 @@ def test_load_test_drives_a_started_service_and_reports(tmp_path, tiny_models):
     assert "broken requests: 6 of 6 answered 4xx" in result.stdout
     assert len(report["windows"]) == 10 and report["trend"]["p50_ms_last_tenth"] > 0
     assert report["server"]["preset"] == "tiny"
+    # --mirror-tta reached the started service: it says so, and its answers time PIXOR's second run.
+    assert report["server"]["mirror_tta"] is True and "PIXOR with mirror TTA" in result.stdout
+    assert {"pixor", "pixor_mirror", "mirror_merge"} <= set(report["stage_p50_ms"])
     assert report["latency_ms"]["all"]["p50"] > 0 and report["rss_mb"]["end"] > 0
     picture = cv2.imread(str(tmp_path / "load.png"))
     assert picture is not None and picture.shape[0] > 100
