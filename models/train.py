@@ -46,7 +46,6 @@ import functools
 import json
 import logging
 import random
-import shutil
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -57,42 +56,49 @@ import torch
 from torch.utils.data import DataLoader
 from tqdm import tqdm
 
-from evaluation.depth_metrics import car_box_shares, car_shares_by_band, moderate_cars_in_view
-from evaluation.kitti_eval import evaluate
-from evaluation.labels import LabelArrays
 from models import build_depth_net, build_pixor
 from models.allocator import keep_freed_memory
-from models.checkpoint import CHECKPOINT_FILES, load_checkpoint, load_network_weights, save_checkpoint
-from models.data import (
-    DETECTOR_INPUTS,
-    DepthDataset,
-    DetectorDataset,
-    cached_pseudo_depth,
-    car_boxes,
-    detector_points,
-    frame_points,
+from models.checkpoint import CHECKPOINT_FILES, save_checkpoint
+from models.data import DETECTOR_INPUTS, DepthDataset, DetectorDataset, car_boxes, frame_points
+from models.devices import (
+    COMPILE_MIN_STEPS,
+    CPU,
+    autocast,
+    resolve_compile,
+    resolve_device,
+    resolve_precision,
+    run_layout,
+    seed_everything,
 )
+from models.joint import joint_bev
 from models.losses import DEPTH_LOSSES, pixor_loss
-from models.soft_bev import soft_occupancy
-from pipeline.bev import BevVoxelizer, pseudo_bins, voxelize_bev
-from pipeline.boxes import boxes_to_objects, in_camera_view
-from pipeline.calib import Calibration
+from models.run_checks import (
+    STATE_FILE,
+    already_trained,
+    check_frames,
+    check_out,
+    check_pseudo_maps,
+    check_resumable,
+    load_state,
+    restore_state,
+)
+from models.start_weights import (
+    freeze_batch_norms,
+    freeze_except,
+    load_start_weights,
+    start_training_metadata,
+)
+from models.validation import validate_depth, validate_detector
 from pipeline.cli import non_negative_int, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
-from pipeline.kitti import read_calib, read_image_size, read_labels
-from pipeline.model_files import ModelFileError, load_manifest
-from pipeline.postprocess import boxes_from_maps
-from pipeline.preprocess import depth_inputs, view_calibration
-from pipeline.presets import Preset, get_preset, lidar_only, preset_from_dict
+from pipeline.preprocess import depth_inputs
+from pipeline.presets import Preset, get_preset
 from pipeline.pseudo import pixel_rays
 from pipeline.targets import encode_targets
 
 log = logging.getLogger(__name__)
 TASKS = ("depth", "detector", "joint")
-CPU = torch.device("cpu")
-COMPILE_MIN_STEPS = 200  # below this, compiling (about a minute per network) costs more than it saves
-COMPILED_TASKS = ("depth", "detector")  # joint's per-frame soft BEV has no fixed shapes to compile for
 
 
 @dataclass
@@ -173,86 +179,32 @@ def recipe(config: TrainConfig) -> TrainConfig:
     return config
 
 
-def resolve_device(device: str) -> torch.device:
-    """``auto`` → the first CUDA GPU when this torch build sees one, else the CPU."""
-    if device == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        resolved = torch.device(device)
-    except RuntimeError:
-        raise InputError(f"--device: {device!r} is not a torch device (auto, cpu, cuda, cuda:N)") from None
-    if resolved.type == "cuda" and not torch.cuda.is_available():
-        raise InputError(f"--device: {device} asked for, but this torch build sees no CUDA GPU "
-                         f"(torch {torch.__version__}; install a CUDA build of torch)")
-    if resolved.type not in ("cpu", "cuda"):
-        raise InputError(f"--device: {device!r}: only cpu and cuda are supported")
-    return resolved
-
-
-def resolve_precision(precision: str, device: torch.device | None = None) -> str:
-    """``auto`` → bf16 where the hardware has native bf16 arithmetic (a CPU with AVX-512 BF16 or AMX, a GPU
-    that supports it), else fp32.
-
-    Measured here (2-core AMD EPYC with AVX-512 BF16), one training step: bf16 autocast with channels-last
-    tensors took PIXOR (edge, batch 8) from 1.42 s to 0.41 s and the depth net (edge, batch 4) from 0.33 s
-    to 0.17 s; weights, optimizer state and losses stay fp32.
-    """
-    if precision not in ("auto", "bf16", "fp32"):
-        raise InputError(f"--precision: {precision!r} is not one of auto, bf16, fp32")
-    if precision == "auto":
-        if device is not None and device.type == "cuda":
-            supported = torch.cuda.is_bf16_supported()
-        else:
-            supported = torch.backends.mkldnn.is_available() and torch.cpu._is_avx512_bf16_supported()
-        return "bf16" if supported else "fp32"
-    return precision
-
-
-def resolve_compile(mode: str, task: str, steps: int, device: torch.device = CPU) -> bool:
-    """Whether to ``torch.compile`` the training forward pass (module docstring).
-
-    ``auto`` → yes for the depth and detector tasks when the run has at least :data:`COMPILE_MIN_STEPS`
-    steps and the device can compile: a CUDA GPU, or a CPU with a C++ compiler on the PATH (Inductor
-    builds its CPU kernels with it). ``on`` insists (an InputError where it cannot), ``off`` never.
-    """
-    if mode not in ("auto", "on", "off"):
-        raise InputError(f"--compile: {mode!r} is not one of auto, on, off")
-    if mode == "off" or task not in COMPILED_TASKS:
-        return False
-    can = device.type == "cuda" or any(shutil.which(c) for c in ("c++", "g++", "clang++"))
-    if mode == "on" and not can:
-        raise InputError("--compile on: torch.compile on the CPU needs a C++ compiler (c++, g++ or clang++) on "
-                         "the PATH; install one or pass --compile off")
-    return can and (mode == "on" or steps >= COMPILE_MIN_STEPS)
-
-
-def channels_last_safe(networks: dict[str, torch.nn.Module]) -> bool:
-    """False when a network has a convolution oneDNN's channels-last path mishandles.
-
-    Found here (torch 2.13.0, oneDNN 3.12): the backward pass of a 1×1 stride-2 convolution with 8 input
-    channels in channels-last layout corrupts the heap ("double free or corruption"), in fp32 and bf16.
-    Such thin strided shortcuts exist only in the ``tiny`` test preset (the 3×3 strided stems of ``edge``
-    with 1 and 3 input channels were checked and are fine).
-    """
-    return not any(m.kernel_size == (1, 1) and m.stride != (1, 1) and m.in_channels < 16
-                   for net in networks.values() for m in net.modules() if isinstance(m, torch.nn.Conv2d))
-
-
-def autocast(precision: str, device: torch.device | None = None):
-    """Mixed-precision context for the forward pass (a no-op in fp32)."""
-    device_type = "cpu" if device is None else device.type
-    return torch.autocast(device_type, dtype=torch.bfloat16, enabled=precision == "bf16")
-
-
-def run_layout(networks: dict[str, torch.nn.Module]) -> torch.memory_format:
-    """NHWC (oneDNN's fast path for convolutions on the CPU) unless a network trips the defect above."""
-    return torch.channels_last if channels_last_safe(networks) else torch.contiguous_format
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed % (2**32))
-    torch.manual_seed(seed)
+# ----------------------------------------------------------------------------- checks before a run
+# (this one reads TrainConfig's defaults; the others, and the run's saved state: models/run_checks.py)
+def check_flags_apply(config: TrainConfig) -> None:
+    """Refuse a setting the task does not use: silently ignored, it would leave a user believing the run
+    used it (a depth run given --pixor-checkpoint, a detector given --depth-loss)."""
+    pseudo = config.task == "detector" and config.input_mode == "pseudo"
+    unused = [
+        ("--input", config.input_mode != TrainConfig.input_mode and config.task != "detector",
+         "only a detector run reads another input (lidar64, pseudo)"),
+        ("--pseudo-dir", config.pseudo_dir is not None and not pseudo, "read by detector runs with --input pseudo only"),
+        ("--val-pseudo-dir", config.val_pseudo_dir is not None and not pseudo,
+         "read by detector runs with --input pseudo only"),
+        ("--depth-checkpoint", config.depth_checkpoint is not None and config.task == "detector",
+         "a detector run trains PIXOR alone"),
+        ("--pixor-checkpoint", config.pixor_checkpoint is not None and config.task == "depth",
+         "a depth run trains the depth net alone"),
+        ("--depth-loss", config.depth_loss != TrainConfig.depth_loss and config.task == "detector",
+         "a detector run has no depth loss"),
+        ("--car-weight", config.car_weight != TrainConfig.car_weight and config.task != "depth",
+         "it weights the depth loss of a depth run"),
+        ("--freeze-bn", config.freeze_bn and config.depth_checkpoint is None and config.pixor_checkpoint is None,
+         "it keeps the batch norms of the weights a run starts from: give --depth-checkpoint or --pixor-checkpoint"),
+    ]
+    for flag, given, why in unused:
+        if given:
+            raise InputError(f"{flag}: not used by a {config.task} run ({why})")
 
 
 # ----------------------------------------------------------------------------- data
@@ -314,138 +266,6 @@ def loader(dataset, batch_size: int, shuffle: bool, seed: int, workers: int, inp
     return DataLoader(dataset, batch_size=batch_size, shuffle=shuffle, generator=generator, num_workers=workers,
                       drop_last=shuffle and len(dataset) > batch_size, persistent_workers=False,
                       collate_fn=functools.partial(stack_in_layout, inputs=inputs, layout=layout))
-
-
-# ----------------------------------------------------------------------------- validation
-@torch.no_grad()
-def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU, loss: str = "mse") -> dict:
-    """RMSE and MAE (mm) of the validation frames; val_loss is the training loss (MSE in m², or L1 in m).
-
-    On labelled object frames also ``car_in_box_<band>``: per distance band, the mean over the moderate
-    cars of the share of their pixels whose point lands in their BEV box, and ``car_stray_<band>``: the
-    share of the other pixels of their 2D boxes that land there too (benchmarks/accuracy.py --depth's two
-    figures: the depth sources that lift the camera row put 0.87–0.96 of the far cars' pixels on them and
-    at most 0.02 of the rest; docs/measurements.md, sessions 23 and 24).
-    """
-    net.eval()
-    sq, ab, n = 0.0, 0.0, 0
-    per_frame_rmse = []
-    shares: list[tuple[float, float]] = []
-    strays: list[tuple[float, float]] = []
-    labelled = isinstance(dataset, DepthDataset) and (Path(dataset.data_dir) / "label_2").is_dir()
-    index = 0
-    for rgb, sparse, target, *_ in DataLoader(dataset, batch_size=2):
-        prediction = net(rgb.to(device), sparse.to(device)).cpu()
-        valid = target > 0
-        err = (prediction - target)[valid] * 1000.0
-        sq += float((err**2).sum())
-        ab += float(err.abs().sum())
-        n += int(valid.sum())
-        for i in range(rgb.shape[0]):
-            v = valid[i]
-            if v.any():
-                per_frame_rmse.append(float(torch.sqrt((((prediction[i] - target[i])[v] * 1000) ** 2).mean())))
-            if labelled:
-                on_car, stray = _car_shares(dataset, index, prediction[i, 0].numpy(), target[i, 0].numpy())
-                shares += on_car
-                strays += stray
-            index += 1
-    val_loss = sq / max(n, 1) / 1e6 if loss == "mse" else ab / max(n, 1) / 1e3
-    metrics = {"val_loss": val_loss, "rmse_mm": float(np.mean(per_frame_rmse)) if per_frame_rmse else float("nan"),
-               "mae_mm": ab / max(n, 1), "pixels": n}
-    for name, per_car in (("car_in_box", shares), ("car_stray", strays)):
-        metrics.update({f"{name}_{band}": c["mean_share"] for band, c in car_shares_by_band(per_car).items()
-                        if c["cars"]})  # no NaN in log.jsonl
-    return metrics
-
-
-def _car_shares(dataset: DepthDataset, index: int, prediction: np.ndarray, target: np.ndarray
-                ) -> tuple[list[tuple[float, float]], list[tuple[float, float]]]:
-    """(car depth, share of its pixels landing in its BEV box) and (car depth, share of the other pixels of
-    its 2D box landing there) of one validation frame's moderate cars.
-
-    Reads only the frame's labels, calibration and image size, not its scan: this runs every epoch."""
-    data, frame_id, preset = Path(dataset.data_dir), dataset.frame_ids[index], dataset.preset
-    label_path = data / "label_2" / f"{frame_id}.txt"
-    if not label_path.exists():
-        return [], []
-    image_hw = read_image_size(data / "image_2" / f"{frame_id}.png")
-    cars = moderate_cars_in_view(read_labels(label_path), image_hw, preset.crop_hw, preset.depth.input_scale)
-    calib = view_calibration(image_hw, read_calib(data / "calib" / f"{frame_id}.txt"), preset)
-    return car_box_shares(prediction, target, cars, calib)
-
-
-@torch.no_grad()
-def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], input_mode: str,
-                      pseudo_dir: Path | None, depth_net=None, device: torch.device = CPU) -> dict:
-    """Validation loss and KITTI BEV AP (moderate, R40) of PIXOR on the validation frames.
-
-    The camera rows go through the Detector's own path (pseudo bins, then the voxelizer, whose height
-    occupancy leaves out the pseudo points on depth edges), so the AP that picks a run's best epoch is
-    the one ``benchmarks/accuracy.py`` measures, up to where the dense depth comes from (the PyTorch
-    net in joint runs, the cached ONNX Runtime maps otherwise).
-    """
-    pixor.eval()
-    if depth_net is not None:
-        depth_net.eval()
-    voxelizer = BevVoxelizer(preset.bev)
-    gts, dets, losses = [], [], []
-    for fid in ids:
-        frame = load_frame(data_dir, fid, with_image=depth_net is not None)  # only joint runs the camera net
-        if depth_net is not None or input_mode == "pseudo":
-            depth, view_calib = (joint_depth(depth_net, frame, preset, device) if depth_net is not None
-                                 else cached_pseudo_depth(pseudo_dir, frame, preset))
-            pseudo = pseudo_bins(depth, view_calib, preset.bev, *preset.pseudo_limits,
-                                 max_jump=preset.decode.height_max_jump)
-            bev = voxelizer(frame_points(frame, 16), pseudo)
-        else:
-            pseudo = None
-            bev = voxelizer(detector_points(data_dir, frame, preset, input_mode, pseudo_dir))
-        targets = encode_targets(car_boxes(frame), preset.bev, preset.pixor.output_stride, preset.decode)
-        logits, regression = (t.cpu() for t in pixor.forward_logits(torch.from_numpy(bev)[None].to(device)))
-        losses.append(float(pixor_loss(logits, regression, torch.from_numpy(targets.score)[None, None],
-                                       torch.from_numpy(targets.regression)[None]).total))
-        score = torch.sigmoid(logits)[0, 0].numpy()
-        boxes, scores = boxes_from_maps(score, regression[0].numpy(), voxelizer.height_occupancy, preset,
-                                        score_threshold=0.05, with_pseudo=pseudo is not None,
-                                        mark=voxelizer.height_mark)
-        seen = in_camera_view(boxes, frame.calib, frame.image_hw)
-        objects = boxes_to_objects(boxes[seen], frame.calib, frame.image_hw, scores[seen])
-        gts.append(LabelArrays.from_objects(frame.labels or []))
-        dets.append(LabelArrays.from_objects(objects))
-    result = evaluate(gts, dets, metrics=("bev",))
-    table = result.ap_table()
-    return {"val_loss": float(np.mean(losses)),
-            "bev_ap_0.7_moderate": table["bev"]["0.7"]["R40"][1], "bev_ap_0.5_moderate": table["bev"]["0.5"]["R40"][1],
-            "bev_ap": table["bev"]}
-
-
-# ----------------------------------------------------------------------------- joint
-def joint_depth(depth_net, frame, preset: Preset, device: torch.device = CPU) -> tuple[np.ndarray, Calibration]:
-    """The (torch) depth net's dense depth of a frame's 16-line scan, and its view's calibration (validation)."""
-    inputs = depth_inputs(frame.image, frame_points(frame, 16), frame.calib, preset)
-    depth = depth_net(torch.from_numpy(inputs.rgb).to(device), torch.from_numpy(inputs.sparse_depth).to(device))
-    return depth[0, 0].cpu().numpy(), inputs.calib
-
-
-def joint_bev(depth: torch.Tensor, rays: torch.Tensor, origin: torch.Tensor, lidar16: np.ndarray,
-              preset: Preset) -> torch.Tensor:
-    """Differentiable BEV of one frame: soft occupancy of pseudo + real points, hard reflectance channel."""
-    d = preset.decode
-    stride = d.pseudo_stride
-    sub = depth[0, ::stride, ::stride]
-    points = sub[None] * rays + origin[:, None, None]  # (3, h, w)
-    valid = (sub >= preset.depth.min_depth) & (sub <= preset.depth.max_depth) & (points[2] <= d.pseudo_max_height)
-    pseudo = points.permute(1, 2, 0)[valid]
-    if preset.bev.split_pseudo:  # the scan's own channels are hard; only the pseudo channels have a gradient
-        lidar = voxelize_bev(lidar16.astype(np.float32, copy=False), lidar_only(preset).bev)
-        return torch.cat([torch.from_numpy(lidar).to(depth.device), soft_occupancy(pseudo, preset.bev)])
-    real = torch.from_numpy(lidar16[:, :3]).to(depth.device)
-    occupancy = soft_occupancy(torch.cat([pseudo, real]), preset.bev)
-    merged = np.concatenate([np.column_stack([pseudo.detach().cpu().numpy(), np.zeros(len(pseudo), np.float32)]),
-                             lidar16])
-    reflectance = torch.from_numpy(voxelize_bev(merged.astype(np.float32), preset.bev)[-1:]).to(depth.device)
-    return torch.cat([occupancy, reflectance])
 
 
 # ----------------------------------------------------------------------------- run
@@ -656,327 +476,6 @@ def run(config: TrainConfig) -> TrainResult:
     checkpoints = {name: out / f"{name}.pt" for name in networks if (out / f"{name}.pt").exists()}
     return TrainResult(out, checkpoints, history, first_loss, last_loss, epochs_before=start_epoch,
                        epochs=config.epochs)
-
-
-# ----------------------------------------------------------------------------- checks before a run
-STATE_FILE = "state.pt"
-STATE_KEYS = ("networks", "optimizer", "scheduler", "epoch", "best", "history", "torch_rng", "numpy_rng",
-              "python_rng")
-FRAME_FILES = ("velodyne/{}.bin", "image_2/{}.png", "calib/{}.txt")  # what load_frame reads of every frame
-
-
-def check_flags_apply(config: TrainConfig) -> None:
-    """Refuse a setting the task does not use: silently ignored, it would leave a user believing the run
-    used it (a depth run given --pixor-checkpoint, a detector given --depth-loss)."""
-    pseudo = config.task == "detector" and config.input_mode == "pseudo"
-    unused = [
-        ("--input", config.input_mode != TrainConfig.input_mode and config.task != "detector",
-         "only a detector run reads another input (lidar64, pseudo)"),
-        ("--pseudo-dir", config.pseudo_dir is not None and not pseudo, "read by detector runs with --input pseudo only"),
-        ("--val-pseudo-dir", config.val_pseudo_dir is not None and not pseudo,
-         "read by detector runs with --input pseudo only"),
-        ("--depth-checkpoint", config.depth_checkpoint is not None and config.task == "detector",
-         "a detector run trains PIXOR alone"),
-        ("--pixor-checkpoint", config.pixor_checkpoint is not None and config.task == "depth",
-         "a depth run trains the depth net alone"),
-        ("--depth-loss", config.depth_loss != TrainConfig.depth_loss and config.task == "detector",
-         "a detector run has no depth loss"),
-        ("--car-weight", config.car_weight != TrainConfig.car_weight and config.task != "depth",
-         "it weights the depth loss of a depth run"),
-        ("--freeze-bn", config.freeze_bn and config.depth_checkpoint is None and config.pixor_checkpoint is None,
-         "it keeps the batch norms of the weights a run starts from: give --depth-checkpoint or --pixor-checkpoint"),
-    ]
-    for flag, given, why in unused:
-        if given:
-            raise InputError(f"{flag}: not used by a {config.task} run ({why})")
-
-
-def check_out(out: Path) -> None:
-    """``--out`` is a folder, or a path where one can be made (no file in its place or above it)."""
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out: {out} is a file, not a run folder")
-    existing = next((parent for parent in out.parents if parent.exists()), None)
-    if existing is not None and not existing.is_dir():
-        raise InputError(f"--out: cannot create {out}: {existing} is a file")
-
-
-def load_state(state_path: Path) -> dict:
-    """The training state a run folder holds (written at the end of each epoch); InputError if it is not one."""
-    try:
-        state = torch.load(state_path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # torch raises pickle, zip, value and runtime errors for files that are not its own
-        raise InputError(f"{state_path}: not a training checkpoint (torch.load cannot read it: "
-                         f"{type(exc).__name__})") from exc
-    if not isinstance(state, dict):
-        raise InputError(f"{state_path}: not a training checkpoint (a {type(state).__name__}, not a dict)")
-    missing = [key for key in STATE_KEYS if key not in state]
-    if missing:
-        raise InputError(f"{state_path}: not a training checkpoint (no {', '.join(missing)})")
-    if not isinstance(state["epoch"], int) or not isinstance(state["networks"], dict):
-        raise InputError(f"{state_path}: not a training checkpoint (epoch {state['epoch']!r})")
-    return state
-
-
-def _flag_text(flag: str, value) -> str:
-    if isinstance(value, (list, tuple)):
-        value = ",".join(value)
-    if value is True:
-        return flag
-    return f"no {flag}" if value is None or value is False or value == "" else f"{flag} {value}"
-
-
-def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
-    """The resumed run is the one started in ``out``: the same task and flags; only --epochs may change.
-
-    The state records the configuration it was started with; a state without one (an older run) is
-    compared by the networks it holds.
-    """
-    recorded = state.get("config") if isinstance(state.get("config"), dict) else {}
-    held = {("depth",): "depth", ("pixor",): "detector", ("depth", "pixor"): "joint"}
-    task = recorded.get("task") or held.get(tuple(sorted(state["networks"])), config.task)
-    if task != config.task:
-        raise InputError(f"task {config.task}: {out} was started as a {task} run "
-                         f"(resume it with python -m models.train {task} … --resume)")
-    compared = [("--preset", "preset"), ("--train-only", "train_only")]
-    if config.task == "detector":
-        compared.insert(1, ("--input", "input_mode"))
-    # Everything else that decides what the remaining epochs train on and how (--epochs may grow):
-    # resumed with other values, the run would silently stop being the one its log and checkpoints describe
-    # (the optimizer's saved learning rate would even override --lr, while the metadata recorded --lr).
-    compared += [("--data", "data"), ("--val-data", "val_data"), ("--train-split", "train_split"),
-                 ("--val-split", "val_split"), ("--max-train-frames", "max_train_frames"),
-                 ("--max-val-frames", "max_val_frames"), ("--batch-size", "batch_size"), ("--lr", "lr"),
-                 ("--seed", "seed"), ("--depth-loss", "depth_loss"), ("--car-weight", "car_weight"),
-                 ("--freeze-bn", "freeze_bn"), ("--quick", "quick"), ("--pseudo-dir", "pseudo_dir"),
-                 ("--val-pseudo-dir", "val_pseudo_dir"), ("--depth-checkpoint", "depth_checkpoint"),
-                 ("--pixor-checkpoint", "pixor_checkpoint")]
-    for flag, key in compared:
-        if key not in recorded:
-            continue
-        wanted, started = getattr(config, key), recorded[key]
-        if isinstance(wanted, (list, tuple)) or isinstance(started, (list, tuple)):
-            wanted, started = tuple(wanted or ()), tuple(started or ())
-        elif key.endswith(("data", "split", "dir", "checkpoint")):  # the same file, however it is spelt
-            wanted, started = (None if v is None else str(Path(v).resolve()) for v in (wanted, started))
-        if wanted != started:
-            raise InputError(f"{_flag_text(flag, wanted)}, but {out} was started with {_flag_text(flag, started)}"
-                             f" (resume with the same flags; only --epochs may change)")
-    for flag, key in (("--precision", "precision"), ("--device", "device")):
-        if key in recorded and recorded[key] != getattr(config, key):
-            log.warning("%s: resumed with %s %s, started with %s: the remaining epochs compute differently",
-                        out, flag, getattr(config, key), recorded[key])
-
-
-def restore_state(state: dict, state_path: Path, networks: dict[str, torch.nn.Module], optimizer, scheduler,
-                  preset_name: str) -> None:
-    """Weights, optimizer, schedule and random generators from a run's state (exact resume)."""
-    for name, net in networks.items():
-        if name not in state["networks"]:
-            raise InputError(f"{state_path}: holds no {name} network (it has {', '.join(state['networks']) or 'none'})")
-        try:
-            net.load_state_dict(state["networks"][name])
-        except RuntimeError as exc:
-            lines = [line.strip() for line in str(exc).splitlines() if line.strip()]  # the first mismatch
-            raise InputError(f"{state_path}: its {name} weights do not fit --preset {preset_name} "
-                             f"({lines[min(1, len(lines) - 1)] if lines else type(exc).__name__})") from None
-    try:
-        optimizer.load_state_dict(state["optimizer"])
-        scheduler.load_state_dict(state["scheduler"])
-        torch.set_rng_state(state["torch_rng"])
-        np.random.set_state(state["numpy_rng"])
-        random.setstate(state["python_rng"])
-    except (ValueError, KeyError, TypeError, RuntimeError) as exc:
-        raise InputError(f"{state_path}: not a training checkpoint of this run "
-                         f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
-
-
-def already_trained(result: TrainResult) -> str:
-    """The command's answer to a resumed run that has nothing left to train."""
-    done, epochs = result.epochs_before, result.epochs
-    trained = f"{done} of {done} epochs" if done == epochs else f"{done} epochs, --epochs asks for {epochs}"
-    return f"{result.run_dir}: already trained {trained}; nothing to do (raise --epochs to train more)"
-
-
-def _missing(folder: Path, pattern: str, ids: list[str]) -> tuple[str, Path, str] | None:
-    """The first of ``ids`` whose ``folder/pattern`` file is missing, that file, and how many more are
-    missing ("" if none); None if none is."""
-    missing = [fid for fid in ids if not (folder / pattern.format(fid)).is_file()]
-    if not missing:
-        return None
-    return missing[0], folder / pattern.format(missing[0]), f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
-
-
-def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path,
-                 val_ids: list[str]) -> None:
-    """Every frame file the run reads is there, before it trains: each frame's scan, image and calibration;
-    its labels (``label_2/``) for the detector and joint tasks, whose targets and AP come from them. Depth
-    runs need no labels (the target is ``depth_2/ID.png`` when present, else the frame's own 64-line scan)
-    unless ``--car-weight`` weighs the labelled cars' pixels."""
-    labels = config.task in ("detector", "joint") or config.car_weight != 1.0
-    needs = f"a {config.task} run" + (" with --car-weight" if config.task == "depth" else "")
-    val_flag = "--val-data" if config.val_data is not None else "--data"
-    for folder, ids, flag, split in ((train_dir, train_ids, "--data", ("--train-split", config.train_split)),
-                                     (val_dir, val_ids, val_flag, ("--val-split", config.val_split))):
-        for pattern in FRAME_FILES:
-            missing = _missing(folder, pattern, ids)
-            if missing is None:
-                continue
-            frame, path, more = missing
-            if split[1] is not None:  # the ids come from a split file: name it
-                raise InputError(f"{split[0]} {split[1]}: frame {frame}{more} is not in {folder} (no {path})")
-            raise InputError(f"{flag} {folder}: frame {frame}{more} has no {path}")
-        if labels:
-            if not (folder / "label_2").is_dir():
-                raise InputError(f"{flag} {folder}: no label_2/ folder; {needs} needs the ground-truth boxes "
-                                 f"(label_2/ID.txt of every frame)")
-            missing = _missing(folder, "label_2/{}.txt", ids)
-            if missing is not None:
-                frame, path, more = missing
-                raise InputError(f"{flag} {folder}: frame {frame}{more} has no ground truth ({path}); {needs} "
-                                 f"needs the labels of every frame")
-        if labels or ids is val_ids:  # depth validation reads the labels that are there (car_in_box_*)
-            for fid in ids:  # InputError naming the file and line of a malformed one
-                if (folder / "label_2" / f"{fid}.txt").is_file():
-                    read_labels(folder / "label_2" / f"{fid}.txt")
-
-
-def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str]) -> None:
-    """``--input pseudo``: the cached dense depth map of every frame the run trains and validates on."""
-    if config.task == "detector" and config.input_mode == "pseudo":
-        if config.pseudo_dir is None:
-            raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir; "
-                             "python -m models.cache_pseudo makes them)")
-        val_pseudo = ("--val-pseudo-dir", config.val_pseudo_dir) if config.val_pseudo_dir else ("--pseudo-dir",
-                                                                                                config.pseudo_dir)
-        for (flag, folder), ids in ((("--pseudo-dir", config.pseudo_dir), train_ids), (val_pseudo, val_ids)):
-            missing = _missing(Path(folder), "{}.png", ids)
-            if missing is not None:
-                frame, path, more = missing
-                raise InputError(f"{flag} {folder}: no cached depth map of frame {frame}{more} ({path})")
-
-
-def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Preset,
-                       train_only: tuple[str, ...] = ()) -> None:
-    """Weights to start from: a checkpoint, or an exported ``.onnx`` of the same network.
-
-    From ONNX, the ``train_only`` submodules the graph lacks (a head added since the export) keep their
-    initialisation; a checkpoint must match the preset exactly (models/checkpoint.py).
-    """
-    if not path.exists():
-        raise InputError(f"--{name}-checkpoint: {path} does not exist")
-    if path.is_dir():  # a run folder: the checkpoint is a file in it
-        inside = path / f"{name}.pt"
-        hint = f": give the checkpoint in it, {inside}" if inside.is_file() else f" (no {name}.pt in it)"
-        raise InputError(f"--{name}-checkpoint: {path} is a folder{hint}")
-    if name == "pixor" and preset.bev.split_pseudo and _bev_channels(path) == preset.bev.lidar_channels:
-        # A LiDAR-only PIXOR of the same grid: the split net starts as exactly it, its pseudo channels'
-        # weights at zero, so the camera pipeline starts from the scan's detector and learns what the
-        # pseudo points add.
-        lidar_net = build_pixor(lidar_only(preset))
-        load_start_weights(lidar_net, name, path, lidar_only(preset), train_only)
-        widen_input_channels(lidar_net, net)
-        log.info("pixor: %s is LiDAR-only; its pseudo channels start at zero", path)
-        return
-    if path.suffix == ".onnx":
-        from models.onnx_weights import load_onnx_weights
-
-        network, exported = _exported_as(path)
-        if network not in (None, name):
-            raise InputError(f"--{name}-checkpoint: {path} is the {network} network of {path.parent}, not the {name} one")
-        try:
-            left = load_onnx_weights(net, path, optional=train_only)
-        except ValueError as exc:  # a weight that does not fit; the manifest can say why
-            if exported and exported != preset.name:
-                raise ValueError(f"{exc}; its manifest says it was exported with --preset {exported}, and this run's "
-                                 f"--preset is {preset.name}") from None
-            raise
-        if left:
-            log.info("%s: %s not in %s, starting from initialisation", name, ", ".join(left), path)
-    else:
-        load_network_weights(net, load_checkpoint(path), name, preset)
-
-
-def _exported_as(path: Path) -> tuple[str | None, str | None]:
-    """(network, preset) the manifest beside an exported ``.onnx`` records for it; None where it says nothing."""
-    try:
-        manifest = load_manifest(path.parent)
-    except ModelFileError:  # a lone .onnx, or a broken manifest: the weights themselves are checked
-        return None, None
-    network = next((n for n, entry in manifest.get("networks", {}).items() if entry.get("file") == path.name), None)
-    return network, manifest.get("preset")
-
-
-def _bev_channels(path: Path) -> int | None:
-    """The BEV channels a PIXOR checkpoint or ``pixor.onnx`` reads (None if it says not)."""
-    try:
-        if path.suffix == ".onnx":
-            from models.onnx_weights import read_onnx
-
-            graph = read_onnx(path, load_external_data=False).graph
-            return graph.input[0].type.tensor_type.shape.dim[1].dim_value
-        return preset_from_dict(load_checkpoint(path).preset_config).bev.channels
-    except (OSError, ValueError, KeyError, IndexError, AttributeError):
-        return None
-
-
-def widen_input_channels(source: torch.nn.Module, target: torch.nn.Module) -> None:
-    """Copy ``source``'s weights into ``target``, whose first conv reads more input channels: those start at zero."""
-    state = source.state_dict()
-    for key, value in target.state_dict().items():
-        if state[key].shape != value.shape:  # the first conv: (out, in, k, k) → (out, in + extra, k, k)
-            widened = torch.zeros_like(value)
-            widened[:, : state[key].shape[1]] = state[key]
-            state[key] = widened
-    target.load_state_dict(state, strict=True)
-
-
-def start_training_metadata(path: Path, name: str) -> dict | None:
-    """How the starting weights were trained: a checkpoint's metadata, or the manifest beside an ONNX file."""
-    try:
-        if path.suffix == ".onnx":
-            manifest = json.loads((path.parent / "manifest.json").read_text(encoding="utf-8"))
-            return manifest["networks"][name].get("training")
-        return load_checkpoint(path).metadata
-    except (OSError, KeyError, ValueError):
-        return None
-
-
-def freeze_except(networks: dict[str, torch.nn.Module], train_only: tuple[str, ...]) -> list[torch.nn.Module]:
-    """With ``train_only`` submodule names: freeze every other parameter; the submodules to put in train mode.
-
-    Without: every network trains (an empty list; the caller puts whole networks in train mode).
-    """
-    if not train_only:
-        return []
-    trained = []
-    for prefix in train_only:
-        found = [net.get_submodule(prefix) for net in networks.values() if _has_submodule(net, prefix)]
-        if not found:
-            raise InputError(f"--train-only: no submodule {prefix!r} in the {', '.join(networks)} network(s)")
-        trained.extend(found)
-    keep = {id(p) for module in trained for p in module.parameters()}
-    for net in networks.values():
-        for parameter in net.parameters():
-            parameter.requires_grad_(id(parameter) in keep)
-    return trained
-
-
-def freeze_batch_norms(networks: dict[str, torch.nn.Module]) -> None:
-    """Batch norms normalise with their running statistics and stop updating them (scale and shift still
-    train). For weights read back from ONNX, whose batch norms come folded into the convolutions (identity
-    statistics), and for batches too small to estimate statistics from."""
-    for net in networks.values():
-        for module in net.modules():
-            if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
-                module.eval()
-
-
-def _has_submodule(net: torch.nn.Module, name: str) -> bool:
-    try:
-        net.get_submodule(name)
-    except AttributeError:
-        return False
-    return True
 
 
 def selection_criterion(task: str, metrics: dict) -> float:

@@ -123,7 +123,7 @@ def test_split_pixor_starts_as_the_lidar_only_pixor_it_is_loaded_from(tmp_path):
     whatever its pseudo channels hold: their weights start at zero."""
     from models import build_pixor
     from models.checkpoint import save_checkpoint
-    from models.train import load_start_weights
+    from models.start_weights import load_start_weights
     from pipeline.presets import get_preset
 
     lidar = build_pixor(PRESETS["tiny"]).eval()
@@ -183,7 +183,7 @@ def small_sim(tmp_path_factory):
 def test_joint_bev_on_a_split_grid_is_the_hard_grid_with_gradient_in_the_pseudo_channels_only():
     """Joint fine-tuning on a -split preset: the forward BEV is the voxelizer's (scan channels, then the
     pseudo points' own), and only the pseudo channels pass a gradient back to the depth map."""
-    from models.train import joint_bev
+    from models.joint import joint_bev
     from pipeline.beams import emulate_beams
     from pipeline.preprocess import network_view
     from pipeline.presets import get_preset
@@ -365,7 +365,7 @@ def test_detector_checkpoints_are_selected_by_ap_not_loss():
 
 def test_precision_and_layout_choices():
     from models import build_depth_net, build_pixor
-    from models.train import autocast, channels_last_safe, resolve_precision
+    from models.devices import autocast, channels_last_safe, resolve_precision
     from pipeline.errors import InputError
 
     assert resolve_precision("auto") in ("bf16", "fp32")
@@ -387,7 +387,7 @@ def test_precision_and_layout_choices():
 
 
 def test_device_choice_is_checked():
-    from models.train import resolve_device
+    from models.devices import resolve_device
     from pipeline.errors import InputError
 
     assert resolve_device("cpu").type == "cpu"
@@ -439,7 +439,7 @@ def test_sample_cache_gives_the_samples_a_fresh_load_gives():
 
 
 def test_compile_choice():
-    from models.train import COMPILE_MIN_STEPS, resolve_compile
+    from models.devices import COMPILE_MIN_STEPS, resolve_compile
     from pipeline.errors import InputError
 
     assert not resolve_compile("off", "detector", 10**6)

@@ -1,0 +1,191 @@
+"""What a training run checks before it trains or writes anything (``--out``, the frames and their labels,
+the cached depth maps of ``--input pseudo``), and the run's saved state (``RUN_DIR/state.pt``): reading it
+back, checking that ``--resume`` continues the run it was started as, and restoring it. (Whether each flag
+applies to the task is checked next to the flags, in models.train.check_flags_apply.)
+"""
+
+from __future__ import annotations
+
+import logging
+import random
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from pipeline.errors import InputError
+from pipeline.kitti import read_labels
+
+if TYPE_CHECKING:
+    from models.train import TrainConfig, TrainResult
+
+log = logging.getLogger(__name__)
+STATE_FILE = "state.pt"
+STATE_KEYS = ("networks", "optimizer", "scheduler", "epoch", "best", "history", "torch_rng", "numpy_rng",
+              "python_rng")
+FRAME_FILES = ("velodyne/{}.bin", "image_2/{}.png", "calib/{}.txt")  # what load_frame reads of every frame
+
+
+def check_out(out: Path) -> None:
+    """``--out`` is a folder, or a path where one can be made (no file in its place or above it)."""
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out: {out} is a file, not a run folder")
+    existing = next((parent for parent in out.parents if parent.exists()), None)
+    if existing is not None and not existing.is_dir():
+        raise InputError(f"--out: cannot create {out}: {existing} is a file")
+
+
+def load_state(state_path: Path) -> dict:
+    """The training state a run folder holds (written at the end of each epoch); InputError if it is not one."""
+    try:
+        state = torch.load(state_path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # torch raises pickle, zip, value and runtime errors for files that are not its own
+        raise InputError(f"{state_path}: not a training checkpoint (torch.load cannot read it: "
+                         f"{type(exc).__name__})") from exc
+    if not isinstance(state, dict):
+        raise InputError(f"{state_path}: not a training checkpoint (a {type(state).__name__}, not a dict)")
+    missing = [key for key in STATE_KEYS if key not in state]
+    if missing:
+        raise InputError(f"{state_path}: not a training checkpoint (no {', '.join(missing)})")
+    if not isinstance(state["epoch"], int) or not isinstance(state["networks"], dict):
+        raise InputError(f"{state_path}: not a training checkpoint (epoch {state['epoch']!r})")
+    return state
+
+
+def _flag_text(flag: str, value) -> str:
+    if isinstance(value, (list, tuple)):
+        value = ",".join(value)
+    if value is True:
+        return flag
+    return f"no {flag}" if value is None or value is False or value == "" else f"{flag} {value}"
+
+
+def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
+    """The resumed run is the one started in ``out``: the same task and flags; only --epochs may change.
+
+    The state records the configuration it was started with; a state without one (an older run) is
+    compared by the networks it holds.
+    """
+    recorded = state.get("config") if isinstance(state.get("config"), dict) else {}
+    held = {("depth",): "depth", ("pixor",): "detector", ("depth", "pixor"): "joint"}
+    task = recorded.get("task") or held.get(tuple(sorted(state["networks"])), config.task)
+    if task != config.task:
+        raise InputError(f"task {config.task}: {out} was started as a {task} run "
+                         f"(resume it with python -m models.train {task} … --resume)")
+    compared = [("--preset", "preset"), ("--train-only", "train_only")]
+    if config.task == "detector":
+        compared.insert(1, ("--input", "input_mode"))
+    # Everything else that decides what the remaining epochs train on and how (--epochs may grow):
+    # resumed with other values, the run would silently stop being the one its log and checkpoints describe
+    # (the optimizer's saved learning rate would even override --lr, while the metadata recorded --lr).
+    compared += [("--data", "data"), ("--val-data", "val_data"), ("--train-split", "train_split"),
+                 ("--val-split", "val_split"), ("--max-train-frames", "max_train_frames"),
+                 ("--max-val-frames", "max_val_frames"), ("--batch-size", "batch_size"), ("--lr", "lr"),
+                 ("--seed", "seed"), ("--depth-loss", "depth_loss"), ("--car-weight", "car_weight"),
+                 ("--freeze-bn", "freeze_bn"), ("--quick", "quick"), ("--pseudo-dir", "pseudo_dir"),
+                 ("--val-pseudo-dir", "val_pseudo_dir"), ("--depth-checkpoint", "depth_checkpoint"),
+                 ("--pixor-checkpoint", "pixor_checkpoint")]
+    for flag, key in compared:
+        if key not in recorded:
+            continue
+        wanted, started = getattr(config, key), recorded[key]
+        if isinstance(wanted, (list, tuple)) or isinstance(started, (list, tuple)):
+            wanted, started = tuple(wanted or ()), tuple(started or ())
+        elif key.endswith(("data", "split", "dir", "checkpoint")):  # the same file, however it is spelt
+            wanted, started = (None if v is None else str(Path(v).resolve()) for v in (wanted, started))
+        if wanted != started:
+            raise InputError(f"{_flag_text(flag, wanted)}, but {out} was started with {_flag_text(flag, started)}"
+                             f" (resume with the same flags; only --epochs may change)")
+    for flag, key in (("--precision", "precision"), ("--device", "device")):
+        if key in recorded and recorded[key] != getattr(config, key):
+            log.warning("%s: resumed with %s %s, started with %s: the remaining epochs compute differently",
+                        out, flag, getattr(config, key), recorded[key])
+
+
+def restore_state(state: dict, state_path: Path, networks: dict[str, torch.nn.Module], optimizer, scheduler,
+                  preset_name: str) -> None:
+    """Weights, optimizer, schedule and random generators from a run's state (exact resume)."""
+    for name, net in networks.items():
+        if name not in state["networks"]:
+            raise InputError(f"{state_path}: holds no {name} network (it has {', '.join(state['networks']) or 'none'})")
+        try:
+            net.load_state_dict(state["networks"][name])
+        except RuntimeError as exc:
+            lines = [line.strip() for line in str(exc).splitlines() if line.strip()]  # the first mismatch
+            raise InputError(f"{state_path}: its {name} weights do not fit --preset {preset_name} "
+                             f"({lines[min(1, len(lines) - 1)] if lines else type(exc).__name__})") from None
+    try:
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["torch_rng"])
+        np.random.set_state(state["numpy_rng"])
+        random.setstate(state["python_rng"])
+    except (ValueError, KeyError, TypeError, RuntimeError) as exc:
+        raise InputError(f"{state_path}: not a training checkpoint of this run "
+                         f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+
+
+def already_trained(result: TrainResult) -> str:
+    """The command's answer to a resumed run that has nothing left to train."""
+    done, epochs = result.epochs_before, result.epochs
+    trained = f"{done} of {done} epochs" if done == epochs else f"{done} epochs, --epochs asks for {epochs}"
+    return f"{result.run_dir}: already trained {trained}; nothing to do (raise --epochs to train more)"
+
+
+def _missing(folder: Path, pattern: str, ids: list[str]) -> tuple[str, Path, str] | None:
+    """The first of ``ids`` whose ``folder/pattern`` file is missing, that file, and how many more are
+    missing ("" if none); None if none is."""
+    missing = [fid for fid in ids if not (folder / pattern.format(fid)).is_file()]
+    if not missing:
+        return None
+    return missing[0], folder / pattern.format(missing[0]), f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+
+
+def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path,
+                 val_ids: list[str]) -> None:
+    """Every frame file the run reads is there, before it trains: each frame's scan, image and calibration;
+    its labels (``label_2/``) for the detector and joint tasks, whose targets and AP come from them. Depth
+    runs need no labels (the target is ``depth_2/ID.png`` when present, else the frame's own 64-line scan)
+    unless ``--car-weight`` weighs the labelled cars' pixels."""
+    labels = config.task in ("detector", "joint") or config.car_weight != 1.0
+    needs = f"a {config.task} run" + (" with --car-weight" if config.task == "depth" else "")
+    val_flag = "--val-data" if config.val_data is not None else "--data"
+    for folder, ids, flag, split in ((train_dir, train_ids, "--data", ("--train-split", config.train_split)),
+                                     (val_dir, val_ids, val_flag, ("--val-split", config.val_split))):
+        for pattern in FRAME_FILES:
+            missing = _missing(folder, pattern, ids)
+            if missing is None:
+                continue
+            frame, path, more = missing
+            if split[1] is not None:  # the ids come from a split file: name it
+                raise InputError(f"{split[0]} {split[1]}: frame {frame}{more} is not in {folder} (no {path})")
+            raise InputError(f"{flag} {folder}: frame {frame}{more} has no {path}")
+        if labels:
+            if not (folder / "label_2").is_dir():
+                raise InputError(f"{flag} {folder}: no label_2/ folder; {needs} needs the ground-truth boxes "
+                                 f"(label_2/ID.txt of every frame)")
+            missing = _missing(folder, "label_2/{}.txt", ids)
+            if missing is not None:
+                frame, path, more = missing
+                raise InputError(f"{flag} {folder}: frame {frame}{more} has no ground truth ({path}); {needs} "
+                                 f"needs the labels of every frame")
+        if labels or ids is val_ids:  # depth validation reads the labels that are there (car_in_box_*)
+            for fid in ids:  # InputError naming the file and line of a malformed one
+                if (folder / "label_2" / f"{fid}.txt").is_file():
+                    read_labels(folder / "label_2" / f"{fid}.txt")
+
+
+def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str]) -> None:
+    """``--input pseudo``: the cached dense depth map of every frame the run trains and validates on."""
+    if config.task == "detector" and config.input_mode == "pseudo":
+        if config.pseudo_dir is None:
+            raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir; "
+                             "python -m models.cache_pseudo makes them)")
+        val_pseudo = ("--val-pseudo-dir", config.val_pseudo_dir) if config.val_pseudo_dir else ("--pseudo-dir",
+                                                                                                config.pseudo_dir)
+        for (flag, folder), ids in ((("--pseudo-dir", config.pseudo_dir), train_ids), (val_pseudo, val_ids)):
+            missing = _missing(Path(folder), "{}.png", ids)
+            if missing is not None:
+                frame, path, more = missing
+                raise InputError(f"{flag} {folder}: no cached depth map of frame {frame}{more} ({path})")
