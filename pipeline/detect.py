@@ -1,13 +1,20 @@
-"""Run the detector on one frame or a KITTI-layout folder; write KITTI results and BEV pictures.
+"""Run the detector on one frame, a KITTI-layout folder or a KITTI raw drive; write KITTI results and BEV pictures.
 
     python -m pipeline.detect --models DIR --data DIR [--frame ID] --out DIR
+    python -m pipeline.detect --models DIR --drive DATE/DATE_drive_NNNN_sync --out DIR [--video OUT.mp4]
     python -m pipeline.detect --models DIR --image F --points F --calib F --out DIR
 
 Writes ``OUT/data/ID.txt`` (KITTI label_2 lines with scores, the format of
 the official evaluation) and ``OUT/bev/ID.png`` (points, predictions in green,
-ground truth in red when labels exist).
+ground truth in red when labels exist); ``--video`` also puts the pictures,
+in frame order, into one MP4.
 
-On a folder, a frame whose files cannot be used (a truncated scan, a broken
+A raw drive (``--drive``) is read as KITTI's raw downloads lay it out:
+``image_02/data/ID.png`` and ``velodyne_points/data/ID.bin`` in the drive
+folder, ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in the date
+folder above it (or in the drive folder).
+
+On a folder or a drive, a frame whose files cannot be used (a truncated scan, a broken
 image or calibration) is reported with its file and skipped, and the run goes
 on: one bad file in thousands costs that frame, not the rest of the run. The
 command then exits 1 and lists the skipped frames; a ``--frame`` with no scan
@@ -25,11 +32,21 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import probability, skipped_summary, unwritable
+from pipeline.cli import check_output, positive_float, probability, skipped_summary, unwritable
 from pipeline.errors import InputError
-from pipeline.frame import Frame, frame_ids, load_frame
+from pipeline.frame import (
+    DRIVE_SCANS,
+    Frame,
+    drive_frame_ids,
+    frame_ids,
+    load_drive_frame,
+    load_frame,
+    read_drive_calib,
+)
 from pipeline.kitti import (
     read_calib,
     read_image,
@@ -39,7 +56,7 @@ from pipeline.kitti import (
     write_labels,
 )
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
-from pipeline.render import render_bev, write_png
+from pipeline.render import BevVideo, render_bev, write_png
 
 if TYPE_CHECKING:  # the Detector (and ONNX Runtime) load only when a run starts, not for --help
     from pipeline.detector import Detections, Detector
@@ -87,23 +104,34 @@ def run(
     progress: bool = True,
     depth_dir: Path | None = None,
     mirror_tta: bool = False,
+    drive: Path | None = None,
+    video: Path | None = None,
+    video_fps: float = 10.0,
 ) -> DetectResult:
-    """Detect on a folder (``data`` + optional ``frames``) or on one set of files; write the outputs.
+    """Detect on a folder (``data`` + optional ``frames``), a KITTI raw drive (``drive`` + optional ``frames``)
+    or one set of files; write the outputs.
 
     depth_dir: ``<id>.png`` dense depth maps of the camera image (KITTI depth PNGs) used instead of the
     depth network, named by frame id (by the scan's file name for one set of files). mirror_tta: PIXOR also
-    on the mirrored BEV, maps averaged (:class:`pipeline.detector.Detector`).
+    on the mirrored BEV, maps averaged (:class:`pipeline.detector.Detector`). video: also the BEV pictures as
+    one MP4 (needs ``pictures``), ``video_fps`` frames a second.
     """
-    from tqdm import tqdm
-
     from pipeline.detector import Detector
 
-    if data is not None and (image is not None or points is not None or calib is not None):
-        raise InputError("give either --data DIR (and optionally --frame) or --image, --points and --calib, not both")
-    if frames and data is None:
-        raise InputError("--frame chooses frames of --data DIR; with --image/--points/--calib there is one frame")
-    if data is not None:  # the folder and the frame ids are checked before any model is loaded
-        ids = _folder_frames(Path(data), frames)
+    files_given = image is not None or points is not None or calib is not None
+    if (data is not None) + (drive is not None) + files_given > 1:
+        raise InputError("give one of --data DIR, --drive DIR, or --image, --points and --calib")
+    if frames and data is None and drive is None:
+        raise InputError("--frame chooses frames of --data DIR or --drive DIR; with --image/--points/--calib there "
+                         "is one frame")
+    if video is not None and not pictures:
+        raise InputError("--video is made of the BEV pictures: leave out --no-pictures")
+    # The folder, the frame ids and a drive's calibration are checked before any model is loaded.
+    if data is not None:
+        ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames")
+    if drive is not None:
+        ids = _chosen_frames(drive_frame_ids(drive), frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames")
+        drive_calib = read_drive_calib(drive)
     if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
         raise InputError(f"--depth-dir {depth_dir}: directory not found")
     detector = Detector(models, providers=provider, mirror_tta=mirror_tta)
@@ -113,6 +141,9 @@ def run(
     if data is not None:
         loader = (lambda fid: load_frame(data, fid, with_labels=False))  # labels: read apart, for pictures
         source = (lambda fid: f"{data}, frame {fid}")
+    elif drive is not None:
+        loader = (lambda fid: load_drive_frame(drive, fid, drive_calib))
+        source = (lambda fid: f"{drive}, frame {fid}")
     elif image is not None and points is not None and calib is not None:
         ids = [Path(points).stem]
         scan = read_velodyne(points)
@@ -121,7 +152,27 @@ def run(
         files = {"image": Path(image), "points": Path(points), "calib": Path(calib)}
         source = (lambda fid: files)
     else:
-        raise InputError("give --data DIR (and optionally --frame), or all of --image, --points and --calib")
+        raise InputError("give --data DIR or --drive DIR (and optionally --frame), or all of --image, --points and "
+                         "--calib")
+    movie = BevVideo(video, video_fps) if video is not None else None
+    try:
+        result = _detect_frames(detector, ids, loader, source, out, data, depth_dir, score_threshold, emulate_beams,
+                                pictures, progress, single=data is None and drive is None, video=movie)
+    except BaseException:
+        if movie is not None:
+            movie.discard()
+        raise
+    if movie is not None:
+        movie.close()
+    return result
+
+
+def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path, data: Path | None,
+                   depth_dir: Path | None, score_threshold: float | None, emulate_beams: int | None, pictures: bool,
+                   progress: bool, single: bool, video: BevVideo | None) -> DetectResult:
+    """The frames in turn: detect, write the result file and the picture (and the video's frame); a folder's
+    or drive's frame whose files are unusable is skipped and named."""
+    from tqdm import tqdm
 
     results, images, totals = [], [], {}
     count = 0
@@ -132,7 +183,7 @@ def run(
             frame = loader(fid)
             detections = _detect_frame(detector, frame, source(fid), depth_dir, score_threshold, emulate_beams)
         except InputError as exc:
-            if data is None:  # one set of files: nothing else to do
+            if single:  # one set of files: nothing else to do
                 raise
             skipped[fid] = str(exc)
             removed = _remove_earlier_outputs(out, fid)
@@ -164,9 +215,21 @@ def run(
             path = out / "bev" / f"{frame.frame_id}.png"
             write_png(path, picture)
             images.append(path)
+            if video is not None:
+                video.add(_captioned(picture, frame.frame_id, len(detections.scores)))
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
     return DetectResult(list(ids), results, images, means, count, skipped)
+
+
+def _captioned(picture: np.ndarray, frame_id: str, cars: int) -> np.ndarray:
+    """A copy of a BEV picture with its frame id and car count in the corner: in a video the frames pass by."""
+    import cv2
+
+    captioned = picture.copy()
+    cv2.putText(captioned, f"{frame_id}  {cars} car(s)", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    return captioned
 
 
 def _remove_earlier_outputs(out: Path, fid: str) -> list[str]:
@@ -182,19 +245,19 @@ def _remove_earlier_outputs(out: Path, fid: str) -> list[str]:
     return removed
 
 
-def _folder_frames(data: Path, frames: list[str] | None) -> list[str]:
-    """The ids to run on: every scan of the folder, or the --frame ids, each of which must have a scan."""
-    scans = frame_ids(data)  # names a folder that is not a KITTI object folder
+def _chosen_frames(scans: list[str], frames: list[str] | None, scan_dir: Path, none: str) -> list[str]:
+    """The ids to run on: every scan of a folder or drive (``scans``, from ``scan_dir``), or the --frame ids,
+    each of which must have a scan."""
     if not frames:
         if not scans:
-            raise InputError(f"{data}: no frames (no .bin scans in {data / 'velodyne'})")
+            raise InputError(f"{none} (no .bin scans in {scan_dir})")
         return scans
     # A misspelt id is a mistake in the command, not a bad file: refuse it rather than skip it.
     present = set(scans)
     unknown = [fid for fid in frames if fid not in present]
     if unknown:
         more = f" (and {len(unknown) - 1} more --frame without one)" if len(unknown) > 1 else ""
-        raise InputError(f"--frame {unknown[0]}: no scan {data / 'velodyne' / (unknown[0] + '.bin')}{more}")
+        raise InputError(f"--frame {unknown[0]}: no scan {scan_dir / (unknown[0] + '.bin')}{more}")
     return frames
 
 
@@ -223,12 +286,17 @@ def _where(source: str | dict[str, Path], field: str) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m pipeline.detect",
-        description="Detect cars with a lowres3d model directory on KITTI-layout frames; write KITTI result "
-        "lines (label_2 format + score) to OUT/data and BEV pictures to OUT/bev.",
+        description="Detect cars with a lowres3d model directory on KITTI-layout frames or a KITTI raw drive; "
+        "write KITTI result lines (label_2 format + score) to OUT/data and BEV pictures to OUT/bev.",
     )
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
     parser.add_argument("--data", type=Path, help="KITTI object folder with image_2/, velodyne/, calib/ (label_2/ optional)")
-    parser.add_argument("--frame", action="append", dest="frames", metavar="ID", help="frame id (repeatable; default all)")
+    parser.add_argument("--drive", type=Path, metavar="DIR",
+                        help="KITTI raw drive folder (DATE_drive_NNNN_sync) with image_02/data/ and "
+                        "velodyne_points/data/; its calib_cam_to_cam.txt and calib_velo_to_cam.txt in the date "
+                        "folder above it (or in it)")
+    parser.add_argument("--frame", action="append", dest="frames", metavar="ID",
+                        help="frame id of --data or --drive (repeatable; default all)")
     parser.add_argument("--image", type=Path, help="camera image (PNG/JPEG), with --points and --calib")
     parser.add_argument("--points", type=Path, help="velodyne .bin scan")
     parser.add_argument("--calib", type=Path, help="KITTI calib .txt")
@@ -243,14 +311,23 @@ def main(argv: list[str] | None = None) -> int:
                         help="also run PIXOR on the BEV mirrored left to right and average the maps: PIXOR's time "
                         "twice over for boxes more often right to IoU 0.7 (docs/models.md)")
     parser.add_argument("--no-pictures", action="store_true", help="skip the BEV PNGs")
+    parser.add_argument("--video", type=Path, metavar="FILE.mp4",
+                        help="also put the BEV pictures, in frame order and captioned, into one MP4")
+    parser.add_argument("--video-fps", type=positive_float, default=10.0,
+                        help="frames a second of --video (default 10: KITTI's LiDAR rate)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
+        if args.video is not None:  # checked before the run: a video that cannot be written is lost after it
+            if args.video.suffix.lower() != ".mp4":
+                raise InputError(f"--video {args.video}: give a file name ending in .mp4")
+            check_output(args.video, "--video")
         result = run(
             args.models, args.out, args.data, args.frames, args.image, args.points, args.calib,
             args.emulate_beams, args.score_threshold, args.provider, not args.no_pictures,
-            depth_dir=args.depth_dir, mirror_tta=args.mirror_tta,
+            depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, drive=args.drive, video=args.video,
+            video_fps=args.video_fps,
         )
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -267,6 +344,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mean per frame: {stages}")
     if result.pictures:
         print(f"BEV pictures: {args.out}/bev/")
+    if args.video is not None and result.pictures:
+        print(f"video: {args.video} ({len(result.pictures)} frames at {args.video_fps:g} a second)")
     if result.skipped:
         print(f"error: {skipped_summary(list(result.skipped), 'frame', len(result.frame_ids))}", file=sys.stderr)
         return 1

@@ -1,4 +1,4 @@
-"""A frame: what one detection runs on, loaded from a KITTI object layout folder."""
+"""A frame: what one detection runs on, loaded from a KITTI object layout folder or a KITTI raw drive."""
 
 from __future__ import annotations
 
@@ -9,7 +9,22 @@ import numpy as np
 
 from pipeline.calib import Calibration
 from pipeline.errors import InputError
-from pipeline.kitti import Object3D, read_calib, read_image, read_image_size, read_labels, read_velodyne
+from pipeline.kitti import (
+    Object3D,
+    read_calib,
+    read_image,
+    read_image_size,
+    read_labels,
+    read_raw_calib,
+    read_velodyne,
+)
+
+# KITTI raw data: a drive folder (``2011_09_26_drive_0005_sync``) holds its frames as
+# ``image_02/data/<10 digits>.png`` and ``velodyne_points/data/<10 digits>.bin``; the drive's one
+# calibration lies in the date folder above it (``2011_09_26/calib_*.txt``).
+DRIVE_IMAGES = Path("image_02") / "data"
+DRIVE_SCANS = Path("velodyne_points") / "data"
+RAW_CALIB_FILES = ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt")
 
 
 @dataclass
@@ -93,3 +108,34 @@ def load_frame(data_dir: str | Path, frame_id: str, with_labels: bool = True, wi
         labels=read_labels(label_path) if with_labels and label_path.exists() else None,
         dropped_nonfinite=scan.dropped_nonfinite,
     )
+
+
+def drive_frame_ids(drive: str | Path) -> list[str]:
+    """Frame ids of a KITTI raw drive folder: the names of its ``velodyne_points/data/*.bin`` scans."""
+    drive = Path(drive)
+    if not drive.exists():
+        raise InputError(f"{drive}: no such folder")
+    scans = drive / DRIVE_SCANS
+    if not scans.is_dir():
+        raise InputError(f"{drive}: not a KITTI raw drive folder (no {DRIVE_SCANS}/ inside)")
+    return sorted(p.stem for p in scans.glob("*.bin"))
+
+
+def read_drive_calib(drive: str | Path) -> Calibration:
+    """A raw drive's calibration, from ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in its date
+    folder (where KITTI's raw downloads put them) or in the drive folder itself."""
+    drive = Path(drive)
+    for folder in (drive.parent, drive):
+        paths = [folder / name for name in RAW_CALIB_FILES]
+        if all(path.is_file() for path in paths):
+            return read_raw_calib(*paths)
+    raise InputError(f"{drive}: no {' and '.join(RAW_CALIB_FILES)} in {drive.parent} (KITTI raw keeps them in the "
+                     "date folder above the drive) or in the drive folder")
+
+
+def load_drive_frame(drive: str | Path, frame_id: str, calib: Calibration) -> Frame:
+    """Load ``image_02/data/ID.png`` and ``velodyne_points/data/ID.bin`` of a raw drive (no labels)."""
+    drive = Path(drive)
+    scan = read_velodyne(drive / DRIVE_SCANS / f"{frame_id}.bin")
+    return Frame(frame_id=frame_id, image=read_image(drive / DRIVE_IMAGES / f"{frame_id}.png"), points=scan.points,
+                 calib=calib, dropped_nonfinite=scan.dropped_nonfinite)

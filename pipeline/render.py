@@ -106,3 +106,48 @@ def write_png(path: str | Path, picture: np.ndarray) -> None:
     if not written:
         raise OSError(errno.EIO, "could not write the PNG (a directory in the way, no permission or a full disk?)",
                       str(path))
+
+
+class BevVideo:
+    """BEV pictures of consecutive frames as one MP4 (``mp4v``), written beside ``path`` and renamed into place
+    by :meth:`close`, so a run that stops half-way leaves no cut-off video under the name asked for.
+
+    Every picture must have the size of the first (one preset's grid: they do). fps: KITTI's LiDAR turns
+    at 10 Hz.
+    """
+
+    def __init__(self, path: str | Path, fps: float = 10.0) -> None:
+        self.path, self.fps = Path(path), fps
+        self._partial = self.path.with_name(f".{self.path.stem}.partial.mp4")
+        self._writer: cv2.VideoWriter | None = None
+        self.frames = 0
+
+    def add(self, picture: np.ndarray) -> None:
+        """Append one BGR picture; an OSError naming the file when the video cannot be written."""
+        if self._writer is None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._size = (picture.shape[1], picture.shape[0])
+            self._writer = cv2.VideoWriter(str(self._partial), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self._size)
+            if not self._writer.isOpened():
+                raise OSError(errno.EIO, "could not open an MP4 video for writing", str(self.path))
+        if (picture.shape[1], picture.shape[0]) != self._size:
+            raise ValueError(f"{self.path}: a {picture.shape[1]}×{picture.shape[0]} picture in a video of "
+                             f"{self._size[0]}×{self._size[1]}")
+        self._writer.write(picture)
+        self.frames += 1
+
+    def close(self) -> bool:
+        """Finish the video and move it into place; False when no picture was added (nothing written)."""
+        if self._writer is None:
+            return False
+        self._writer.release()
+        self._writer = None
+        self._partial.replace(self.path)
+        return True
+
+    def discard(self) -> None:
+        """Drop a video whose run failed: the partial file goes, the name asked for is left as it was."""
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        self._partial.unlink(missing_ok=True)

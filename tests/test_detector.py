@@ -513,6 +513,86 @@ def test_detect_command_goes_on_past_a_broken_frame(tiny_models, tmp_path):
     assert nowhere.returncode == 2 and f"error: --depth-dir {tmp_path / 'maps'}: directory not found" in nowhere.stderr
 
 
+def _raw_drive(tmp_path: Path, frames: dict[str, str]) -> Path:
+    """A KITTI raw drive as the raw downloads lay it out, made of bundled object frames (new id → object id), with
+    the date folder's two calibration files written from frame 000006's calibration."""
+    from pipeline.kitti import read_calib
+
+    drive = tmp_path / "2011_09_26" / "2011_09_26_drive_0005_sync"
+    (drive / "image_02" / "data").mkdir(parents=True)
+    (drive / "velodyne_points" / "data").mkdir(parents=True)
+    for new, old in frames.items():
+        shutil.copy(KITTI / "image_2" / f"{old}.png", drive / "image_02" / "data" / f"{new}.png")
+        shutil.copy(KITTI / "velodyne" / f"{old}.bin", drive / "velodyne_points" / "data" / f"{new}.bin")
+    calib = read_calib(KITTI / "calib" / "000006.txt")
+    numbers = (lambda a: " ".join(f"{v:.12e}" for v in np.ravel(a)))
+    (drive.parent / "calib_cam_to_cam.txt").write_text(
+        f"calib_time: 09-Jan-2012 13:57:47\nR_rect_00: {numbers(calib.R0_rect)}\nP_rect_02: {numbers(calib.P2)}\n")
+    (drive.parent / "calib_velo_to_cam.txt").write_text(
+        f"calib_time: 15-Mar-2012 11:37:16\nR: {numbers(calib.Tr_velo_to_cam[:, :3])}\n"
+        f"T: {numbers(calib.Tr_velo_to_cam[:, 3])}\n")
+    return drive
+
+
+def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
+    """--drive reads a KITTI raw drive (frames in image_02/data and velodyne_points/data, the calibration in the
+    date folder): each frame's results equal those of the same files as an object frame, a broken scan is
+    skipped as in a folder, and --video holds the pictures of the frames detected, in order."""
+    drive = _raw_drive(tmp_path, {"0000000000": "000006", "0000000001": "000006", "0000000002": "000006"})
+    (drive / "velodyne_points" / "data" / "0000000001.bin").write_bytes(b"\0" * 10)  # cut off mid-point
+    command = [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--emulate-beams", "16",
+               "--score-threshold", "0.0"]
+    done = subprocess.run([*command, "--drive", str(drive), "--video", str(tmp_path / "bev.mp4"), "--video-fps", "5",
+                           "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 1, done.stderr
+    assert f"{drive / 'velodyne_points' / 'data' / '0000000001.bin'}" in done.stderr and "Traceback" not in done.stderr
+    assert sorted(p.name for p in (tmp_path / "out" / "data").iterdir()) == ["0000000000.txt", "0000000002.txt"]
+    assert f"video: {tmp_path / 'bev.mp4'} (2 frames at 5 a second)" in done.stdout
+    as_object = subprocess.run([*command, "--data", str(KITTI), "--frame", "000006", "--no-pictures",
+                                "--out", str(tmp_path / "object")], capture_output=True, text=True, timeout=300,
+                               check=False)
+    assert as_object.returncode == 0, as_object.stderr
+    expected = (tmp_path / "object" / "data" / "000006.txt").read_text()
+    assert expected and (tmp_path / "out" / "data" / "0000000000.txt").read_text() == expected
+    video = cv2.VideoCapture(str(tmp_path / "bev.mp4"))
+    picture = cv2.imread(str(tmp_path / "out" / "bev" / "0000000000.png"))
+    assert video.get(cv2.CAP_PROP_FRAME_COUNT) == 2 and video.get(cv2.CAP_PROP_FPS) == 5
+    assert (video.get(cv2.CAP_PROP_FRAME_WIDTH), video.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (picture.shape[1],
+                                                                                           picture.shape[0])
+    assert not list(tmp_path.glob(".*partial*"))
+
+    # Refused before any model loads (there is none here): no calibration, not a drive, a wrong video name.
+    (drive.parent / "calib_velo_to_cam.txt").unlink()
+    for args, message in (
+        (["--drive", str(drive)], f"{drive}: no calib_cam_to_cam.txt and calib_velo_to_cam.txt in {drive.parent}"),
+        (["--drive", str(tmp_path)], f"{tmp_path}: not a KITTI raw drive folder (no velodyne_points/data/ inside)"),
+        (["--data", str(KITTI), "--video", str(tmp_path / "bev.avi")],
+         f"--video {tmp_path / 'bev.avi'}: give a file name ending in .mp4"),
+        (["--data", str(KITTI), "--video", str(tmp_path / "v.mp4"), "--no-pictures"],
+         "--video is made of the BEV pictures"),
+        (["--data", str(KITTI), "--drive", str(drive)], "give one of --data DIR, --drive DIR"),
+    ):
+        refused = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "no-models"),
+                                  *args, "--out", str(tmp_path / "refused")], capture_output=True, text=True,
+                                 timeout=120, check=False)
+        assert refused.returncode == 2 and message in refused.stderr, (args, refused.stderr)
+        assert "Traceback" not in refused.stderr and not (tmp_path / "refused").exists()
+
+
+def test_a_video_that_fails_half_way_leaves_nothing_under_its_name(tmp_path):
+    from pipeline.render import BevVideo
+
+    path = tmp_path / "bev.mp4"
+    path.write_bytes(b"an earlier video")
+    video = BevVideo(path)
+    video.add(np.zeros((64, 48, 3), np.uint8))
+    with pytest.raises(ValueError, match="a 40×64 picture in a video of 48×64"):
+        video.add(np.zeros((64, 40, 3), np.uint8))
+    video.discard()
+    assert path.read_bytes() == b"an earlier video" and sorted(p.name for p in tmp_path.iterdir()) == ["bev.mp4"]
+    assert BevVideo(tmp_path / "none.mp4").close() is False and not (tmp_path / "none.mp4").exists()
+
+
 def test_a_picture_that_cannot_be_written_is_an_error_naming_it(tiny_models, tmp_path):
     """cv2.imwrite only answers False: the command must not claim pictures it did not write."""
     blocked = tmp_path / "out" / "bev" / "000006.png"
