@@ -120,7 +120,7 @@ def run(
 
     files_given = image is not None or points is not None or calib is not None
     if (data is not None) + (drive is not None) + files_given > 1:
-        raise InputError("give one of --data DIR, --drive DIR, or --image, --points and --calib")
+        raise InputError("give one of --data DIR, --drive DIR, or --image, --points and --calib, not two of them")
     if frames and data is None and drive is None:
         raise InputError("--frame chooses frames of --data DIR or --drive DIR; with --image/--points/--calib there "
                          "is one frame")

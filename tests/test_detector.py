@@ -430,7 +430,7 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
     # The two ways to name frames do not mix: neither may be silently ignored.
     one_frame = ["--image", str(KITTI / "image_2" / "000006.png"), "--points", str(KITTI / "velodyne" / "000006.bin"),
                  "--calib", str(KITTI / "calib" / "000006.txt")]
-    for extra, words in ((["--data", str(KITTI)], "not both"), (["--frame", "000003"], "--frame chooses frames of --data")):
+    for extra, words in ((["--data", str(KITTI)], "not two of them"), (["--frame", "000003"], "--frame chooses frames of --data")):
         mixed = subprocess.run(
             [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), *one_frame, *extra,
              "--out", str(tmp_path / "mixed")], capture_output=True, text=True, timeout=120, check=False,
