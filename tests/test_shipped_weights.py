@@ -217,3 +217,25 @@ def test_shipped_manifest_lists_the_inputs_each_graph_takes(name):
     pixor = [i["name"] for i in _manifest(name)["networks"]["pixor"]["graph_inputs"]]
     assert pixor == (["bev"] if name == "edge-int8" else ["bev[0:16]", "bev[16:19]"] if "lidar" in name
                      else ["bev[0:32]", "bev[32:37]"])
+
+
+def test_the_readmes_python_example_runs_as_written():
+    """README "In your own code": the snippet, run as it stands from the repository root, prints the cars the
+    shipped model finds in frame 000006, as the Detector gives them."""
+    import re
+    import subprocess
+    import sys
+
+    root = WEIGHTS.parent
+    snippet = re.search(r"### In your own code.*?```python\n(.*?)```", (root / "README.md").read_text(),
+                        re.DOTALL)
+    assert snippet is not None, "README.md has no 'In your own code' Python block"
+    done = subprocess.run([sys.executable, "-c", snippet.group(1)], cwd=root, capture_output=True, text=True,
+                          timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    frame = load_frame(KITTI, "000006")
+    expected = Detector(WEIGHTS / "edge").detect(frame.image, frame.points, frame.calib, emulate_to_beams=16)
+    cars = [line for line in done.stdout.splitlines() if line.startswith("car ")]
+    assert cars == [f"car {s:.2f}: x {b[0]:.1f} m, y {b[1]:.1f} m, yaw {b[6]:.2f} rad"
+                    for b, s in zip(expected.boxes, expected.scores, strict=True)]
+    assert len(cars) >= 1 and "emulated 16 beams" in done.stdout
