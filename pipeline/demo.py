@@ -2,7 +2,7 @@
 
 With a model directory (the shipped ``weights/edge`` by default) it runs the
 full two-stage detector on the frame's scan thinned to 16 lines and writes the
-KITTI result file and the BEV picture. Without one it runs the frame-processing
+KITTI result file, the BEV picture and the camera view. Without one it runs the frame-processing
 core alone — 16-line emulation, the depth-net view and its sparse depth, the
 BEV tensor — and writes pictures of each step.
 

@@ -1,13 +1,14 @@
-"""Run the detector on one frame, a KITTI-layout folder or a KITTI raw drive; write KITTI results and BEV pictures.
+"""Run the detector on one frame, a KITTI-layout folder or a KITTI raw drive; write KITTI results and pictures.
 
     python -m pipeline.detect --models DIR --data DIR [--frame ID] --out DIR
     python -m pipeline.detect --models DIR --drive DATE/DATE_drive_NNNN_sync --out DIR [--video OUT.mp4]
     python -m pipeline.detect --models DIR --image F --points F --calib F --out DIR
 
 Writes ``OUT/data/ID.txt`` (KITTI label_2 lines with scores, the format of
-the official evaluation) and ``OUT/bev/ID.png`` (points, predictions in green,
-ground truth in red when labels exist); ``--video`` also puts the pictures,
-in frame order, into one MP4.
+the official evaluation), ``OUT/bev/ID.png`` (points, predictions in green,
+ground truth in red when labels exist) and ``OUT/camera/ID.png`` (the camera
+image with the same boxes as wireframes); ``--video`` also puts the two
+pictures, one above the other, in frame order into one MP4.
 
 A raw drive (``--drive``) is read as KITTI's raw downloads lay it out:
 ``image_02/data/ID.png`` and ``velodyne_points/data/ID.bin`` in the drive
@@ -56,7 +57,7 @@ from pipeline.kitti import (
     write_labels,
 )
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
-from pipeline.render import BevVideo, render_bev, write_png
+from pipeline.render import BevVideo, render_bev, render_camera, stack_views, write_png
 
 if TYPE_CHECKING:  # the Detector (and ONNX Runtime) load only when a run starts, not for --help
     from pipeline.detector import Detections, Detector
@@ -66,7 +67,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class DetectResult:
-    """What a run wrote: frame ids, result files, pictures, and per-stage mean timings (ms)."""
+    """What a run wrote: frame ids, result files, pictures (BEV and camera view), and per-stage mean timings (ms)."""
 
     frame_ids: list[str]
     result_files: list[Path]
@@ -113,8 +114,8 @@ def run(
 
     depth_dir: ``<id>.png`` dense depth maps of the camera image (KITTI depth PNGs) used instead of the
     depth network, named by frame id (by the scan's file name for one set of files). mirror_tta: PIXOR also
-    on the mirrored BEV, maps averaged (:class:`pipeline.detector.Detector`). video: also the BEV pictures as
-    one MP4 (needs ``pictures``), ``video_fps`` frames a second.
+    on the mirrored BEV, maps averaged (:class:`pipeline.detector.Detector`). video: also the pictures (camera
+    view above BEV) as one MP4 (needs ``pictures``), ``video_fps`` frames a second.
     """
     from pipeline.detector import Detector
 
@@ -125,7 +126,7 @@ def run(
         raise InputError("--frame chooses frames of --data DIR or --drive DIR; with --image/--points/--calib there "
                          "is one frame")
     if video is not None and not pictures:
-        raise InputError("--video is made of the BEV pictures: leave out --no-pictures")
+        raise InputError("--video is made of the pictures: leave out --no-pictures")
     # The folder, the frame ids and a drive's calibration are checked before any model is loaded.
     if data is not None:
         ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames")
@@ -210,20 +211,22 @@ def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path
             labels = _labels_for_picture(data, fid) if data is not None else None
             if labels:
                 gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
-            picture = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt)
-            (out / "bev").mkdir(parents=True, exist_ok=True)
-            path = out / "bev" / f"{frame.frame_id}.png"
-            write_png(path, picture)
-            images.append(path)
+            bev = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt)
+            camera = render_camera(frame.image, frame.calib, detections.boxes, detections.scores, gt)
+            for kind, picture in (("bev", bev), ("camera", camera)):
+                (out / kind).mkdir(parents=True, exist_ok=True)
+                path = out / kind / f"{frame.frame_id}.png"
+                write_png(path, picture)
+                images.append(path)
             if video is not None:
-                video.add(_captioned(picture, frame.frame_id, len(detections.scores)))
+                video.add(_captioned(stack_views(camera, bev), frame.frame_id, len(detections.scores)))
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
     return DetectResult(list(ids), results, images, means, count, skipped)
 
 
 def _captioned(picture: np.ndarray, frame_id: str, cars: int) -> np.ndarray:
-    """A copy of a BEV picture with its frame id and car count in the corner: in a video the frames pass by."""
+    """A copy of a picture with its frame id and car count in the corner: in a video the frames pass by."""
     import cv2
 
     captioned = picture.copy()
@@ -238,7 +241,8 @@ def _remove_earlier_outputs(out: Path, fid: str) -> list[str]:
     An evaluation reads every result file in ``OUT/data``: an old one would be scored as this run's.
     """
     removed = []
-    for kind, path in (("result file", out / "data" / f"{fid}.txt"), ("picture", out / "bev" / f"{fid}.png")):
+    for kind, path in (("result file", out / "data" / f"{fid}.txt"), ("picture", out / "bev" / f"{fid}.png"),
+                       ("camera picture", out / "camera" / f"{fid}.png")):
         if path.is_file():
             path.unlink()
             removed.append(f"{kind} {path}")
@@ -287,7 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m pipeline.detect",
         description="Detect cars with a lowres3d model directory on KITTI-layout frames or a KITTI raw drive; "
-        "write KITTI result lines (label_2 format + score) to OUT/data and BEV pictures to OUT/bev.",
+        "write KITTI result lines (label_2 format + score) to OUT/data, BEV pictures to OUT/bev and the camera "
+        "view with the boxes to OUT/camera.",
     )
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
     parser.add_argument("--data", type=Path, help="KITTI object folder with image_2/, velodyne/, calib/ (label_2/ optional)")
@@ -310,9 +315,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mirror-tta", action="store_true",
                         help="also run PIXOR on the BEV mirrored left to right and average the maps: PIXOR's time "
                         "twice over for boxes more often right to IoU 0.7 (docs/models.md)")
-    parser.add_argument("--no-pictures", action="store_true", help="skip the BEV PNGs")
+    parser.add_argument("--no-pictures", action="store_true", help="skip the BEV and camera-view PNGs")
     parser.add_argument("--video", type=Path, metavar="FILE.mp4",
-                        help="also put the BEV pictures, in frame order and captioned, into one MP4")
+                        help="also put the pictures (camera view above BEV), in frame order and captioned, into "
+                        "one MP4")
     parser.add_argument("--video-fps", type=positive_float, default=10.0,
                         help="frames a second of --video (default 10: KITTI's LiDAR rate)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
@@ -343,9 +349,9 @@ def main(argv: list[str] | None = None) -> int:
     if stages:
         print(f"mean per frame: {stages}")
     if result.pictures:
-        print(f"BEV pictures: {args.out}/bev/")
+        print(f"pictures: {args.out}/bev/ (BEV) and {args.out}/camera/ (camera view)")
     if args.video is not None and result.pictures:
-        print(f"video: {args.video} ({len(result.pictures)} frames at {args.video_fps:g} a second)")
+        print(f"video: {args.video} ({len(result.pictures) // 2} frames at {args.video_fps:g} a second)")
     if result.skipped:
         print(f"error: {skipped_summary(list(result.skipped), 'frame', len(result.frame_ids))}", file=sys.stderr)
         return 1

@@ -8,11 +8,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.boxes import bev_corners
+from pipeline.boxes import bev_corners, box_corners_3d
+from pipeline.calib import Calibration
 from pipeline.presets import BevGrid
 
 PREDICTION_BGR = (60, 220, 60)
 GROUND_TRUTH_BGR = (60, 60, 230)
+# A box's 12 edges between its corners as pipeline.boxes.box_corners_3d orders them (bottom ring, top ring,
+# uprights), and the two diagonals of its front face (corners 0 and 3 are the front edge) that show its heading.
+BOX_EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
+FRONT_DIAGONALS = ((0, 7), (3, 4))
 
 
 def _to_pixels(xy: np.ndarray, grid: BevGrid, scale: float) -> np.ndarray:
@@ -62,6 +67,43 @@ def render_bev(
                 cv2.putText(canvas, f"{scores[i]:.2f}", tuple(corners[i, 0] + [4, -4]),
                             cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
     return canvas
+
+
+def render_camera(
+    image: np.ndarray,
+    calib: Calibration,
+    boxes: np.ndarray | None = None,
+    scores: np.ndarray | None = None,
+    gt_boxes: np.ndarray | None = None,
+) -> np.ndarray:
+    """BGR uint8 picture of the camera image (RGB in) with the 3D boxes drawn as wireframes, the front face
+    crossed: ground truth in red, predictions in green with their scores. A box with a corner behind the
+    camera (or beyond 1 km) has no wireframe in the picture and is left out; the BEV picture shows it."""
+    canvas = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR)
+    for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
+        if drawn is None or len(drawn) == 0:
+            continue
+        uv, depth = calib.velo_to_image(box_corners_3d(drawn).reshape(-1, 3))
+        uv, depth = uv.reshape(-1, 8, 2), depth.reshape(-1, 8)
+        with np.errstate(invalid="ignore"):
+            # In front of the camera and nearer than any LiDAR sees: a box at 1e25 m (a broken scan can make one)
+            # would project to a dot at the horizon.
+            drawable = ((depth > 0.1) & (depth < 1e3)).all(axis=1) & np.isfinite(uv).all(axis=(1, 2)) \
+                & (np.abs(uv) < 1e5).all(axis=(1, 2))
+        corners = np.rint(uv[drawable]).astype(np.int32)  # (K, 8, 2)
+        segments = corners[:, np.array(BOX_EDGES + FRONT_DIAGONALS)]  # (K, 14, 2, 2)
+        cv2.polylines(canvas, list(segments.reshape(-1, 2, 2)), False, colour, 2, cv2.LINE_AA)
+        if with_score and scores is not None:
+            for (left, top), score in zip(corners.min(axis=1), np.asarray(scores)[drawable], strict=True):
+                cv2.putText(canvas, f"{score:.2f}", (int(left), int(top) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour,
+                            1, cv2.LINE_AA)
+    return canvas
+
+
+def stack_views(camera: np.ndarray, bev: np.ndarray) -> np.ndarray:
+    """The camera picture scaled to the BEV picture's width, above it: one frame of a video."""
+    height = round(camera.shape[0] * bev.shape[1] / camera.shape[1])
+    return np.vstack([cv2.resize(camera, (bev.shape[1], height), interpolation=cv2.INTER_AREA), bev])
 
 
 def render_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:

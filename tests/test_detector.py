@@ -400,6 +400,10 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
         picture = cv2.imread(str(out / "bev" / f"{frame_id}.png"))
         assert picture is not None and picture.shape[2] == 3
         assert (picture == [60, 60, 230]).all(axis=2).any()  # ground truth drawn in red
+        camera = cv2.imread(str(out / "camera" / f"{frame_id}.png"))  # the image with the boxes as wireframes
+        image = cv2.imread(str(KITTI / "image_2" / f"{frame_id}.png"))
+        assert camera.shape == image.shape and (camera == [60, 60, 230]).all(axis=2).any()
+        assert (camera == [60, 220, 60]).all(axis=2).any() and not (image == [60, 220, 60]).all(axis=2).any()
     single = subprocess.run(
         [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models),
          "--image", str(KITTI / "image_2" / "000006.png"), "--points", str(KITTI / "velodyne" / "000006.bin"),
@@ -555,10 +559,12 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
     expected = (tmp_path / "object" / "data" / "000006.txt").read_text()
     assert expected and (tmp_path / "out" / "data" / "0000000000.txt").read_text() == expected
     video = cv2.VideoCapture(str(tmp_path / "bev.mp4"))
-    picture = cv2.imread(str(tmp_path / "out" / "bev" / "0000000000.png"))
+    bev = cv2.imread(str(tmp_path / "out" / "bev" / "0000000000.png"))
+    camera = cv2.imread(str(tmp_path / "out" / "camera" / "0000000000.png"))
     assert video.get(cv2.CAP_PROP_FRAME_COUNT) == 2 and video.get(cv2.CAP_PROP_FPS) == 5
-    assert (video.get(cv2.CAP_PROP_FRAME_WIDTH), video.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (picture.shape[1],
-                                                                                           picture.shape[0])
+    # Each video frame: the camera view scaled to the BEV picture's width, above the BEV picture.
+    stacked_height = bev.shape[0] + round(camera.shape[0] * bev.shape[1] / camera.shape[1])
+    assert (video.get(cv2.CAP_PROP_FRAME_WIDTH), video.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (bev.shape[1], stacked_height)
     assert not list(tmp_path.glob(".*partial*"))
 
     # Refused before any model loads (there is none here): no calibration, not a drive, a wrong video name.
@@ -569,7 +575,7 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
         (["--data", str(KITTI), "--video", str(tmp_path / "bev.avi")],
          f"--video {tmp_path / 'bev.avi'}: give a file name ending in .mp4"),
         (["--data", str(KITTI), "--video", str(tmp_path / "v.mp4"), "--no-pictures"],
-         "--video is made of the BEV pictures"),
+         "--video is made of the pictures"),
         (["--data", str(KITTI), "--drive", str(drive)], "give one of --data DIR, --drive DIR"),
     ):
         refused = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "no-models"),
@@ -601,7 +607,7 @@ def test_a_picture_that_cannot_be_written_is_an_error_naming_it(tiny_models, tmp
                            "--image", str(KITTI / "image_2" / "000006.png"), "--points", str(KITTI / "velodyne" / "000006.bin"),
                            "--calib", str(KITTI / "calib" / "000006.txt"), "--out", str(tmp_path / "out")],
                           capture_output=True, text=True, timeout=120, check=False)
-    assert done.returncode == 2 and "Traceback" not in done.stderr and "BEV pictures" not in done.stdout
+    assert done.returncode == 2 and "Traceback" not in done.stderr and "pictures:" not in done.stdout
     assert f"error: --out {tmp_path / 'out'}: {blocked}: could not write the PNG" in done.stderr
 
 
@@ -625,6 +631,27 @@ def test_pictures_survive_boxes_far_off_the_grid():
     picture = render_bev(np.zeros((3, 4), np.float32), grid, boxes, np.array([1.0, 0.9, 0.5]), boxes)
     green = (picture == [60, 220, 60]).all(axis=2)
     assert green.any() and picture.shape[:2] == (round((grid.x_max - grid.x_min) / 0.1), round((grid.y_max - grid.y_min) / 0.1))
+
+
+def test_camera_picture_draws_each_box_where_its_corners_project(frame):
+    """The wireframe's corners are the 3D corners projected through the calibration; a box behind the camera,
+    far off or not finite is left out, not an OpenCV error."""
+    from pipeline.boxes import box_corners_3d
+    from pipeline.render import render_camera
+
+    boxes = np.array([[15, 2, -0.9, 4, 1.7, 1.5, 0.3],  # ahead and in view
+                      [-10, 0, -0.9, 4, 1.7, 1.5, 0.0],  # behind the camera
+                      [1e25, 3, 0, 4, 1.7, 1.5, 0.3], [np.nan, 0, 0, 4, 1.7, 1.5, 0]])
+    picture = render_camera(frame.image, frame.calib, boxes, np.array([0.9, 0.8, 0.7, 0.6]))
+    assert picture.shape == frame.image.shape and picture.dtype == np.uint8
+    green = (picture == [60, 220, 60]).all(axis=2)
+    uv, _ = frame.calib.velo_to_image(box_corners_3d(boxes[:1]).reshape(-1, 3))
+    for u, v in np.rint(uv).astype(int):  # every corner of the box in view is drawn on
+        assert green[max(v - 1, 0):v + 2, max(u - 1, 0):u + 2].any()
+    left, top = uv.min(axis=0)
+    right, bottom = uv.max(axis=0)
+    rows, cols = np.nonzero(green)  # nothing green outside the box in view (its score label sits just above it)
+    assert rows.min() >= top - 20 and rows.max() <= bottom + 2 and cols.min() >= left - 2 and cols.max() <= right + 40
 
 
 def test_runtime_never_imports_torch_or_onnx():
