@@ -601,8 +601,8 @@ def print_report(report: dict) -> None:
     print(f"peak (best of the {size}² MatMul {report['peak_detail'][f'matmul_{size}_gflops']:.0f} and 3×3 conv "
           f"{report['peak_detail']['conv3x3_256_gflops']:.0f} GFLOP/s): {report['peak_gflops']:.0f} GFLOP/s")
     for name, n in report["networks"].items():
-        twice = " (two runs)" if n["runs"] == 2 else ""
-        print(f"  {name:6s} {n['gflops']:.2f} GFLOP{twice} in {n['ms']:.1f} ms = {n['achieved_gflops_per_s']:.0f} GFLOP/s, "
+        flops = f"2 × {n['gflops'] / 2:.2f}" if n["runs"] == 2 else f"{n['gflops']:.2f}"
+        print(f"  {name:6s} {flops} GFLOP in {n['ms']:.1f} ms = {n['achieved_gflops_per_s']:.0f} GFLOP/s, "
               f"{100 * n['peak_fraction']:.0f} % of peak ({100 * n['matmul_peak_fraction']:.0f} % of the MatMul's)")
     for name, n in report["networks"].items():
         if "ops" in n:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +38,7 @@ import numpy as np
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import check_output, positive_float, probability, skipped_summary, unwritable
+from pipeline.cli import check_output, probability, skipped_summary, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import (
     DRIVE_SCANS,
@@ -57,7 +58,7 @@ from pipeline.kitti import (
     write_labels,
 )
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
-from pipeline.render import BevVideo, render_bev, render_camera, stack_views, write_png
+from pipeline.render import BevVideo, VideoError, render_bev, render_camera, stack_views, write_png
 
 if TYPE_CHECKING:  # the Detector (and ONNX Runtime) load only when a run starts, not for --help
     from pipeline.detector import Detections, Detector
@@ -131,7 +132,10 @@ def run(
     if data is not None:
         ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames")
     if drive is not None:
-        ids = _chosen_frames(drive_frame_ids(drive), frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames")
+        scans = drive_frame_ids(drive)
+        # A drive's ids are ten digits; --frame 5 means 0000000005.
+        frames = [fid.zfill(len(scans[0])) if scans and fid.isdigit() else fid for fid in frames or []]
+        ids = _chosen_frames(scans, frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames")
         drive_calib = read_drive_calib(drive)
     if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
         raise InputError(f"--depth-dir {depth_dir}: directory not found")
@@ -155,17 +159,32 @@ def run(
     else:
         raise InputError("give --data DIR or --drive DIR (and optionally --frame), or all of --image, --points and "
                          "--calib")
+    _warn_of_other_results(out, ids)
     movie = BevVideo(video, video_fps) if video is not None else None
     try:
         result = _detect_frames(detector, ids, loader, source, out, data, depth_dir, score_threshold, emulate_beams,
                                 pictures, progress, single=data is None and drive is None, video=movie)
-    except BaseException:
+    except BaseException:  # an error or Ctrl-C: no cut-off video; one of an earlier run stays as it was
         if movie is not None:
             movie.discard()
         raise
-    if movie is not None:
-        movie.close()
+    if movie is not None and not movie.close() and Path(video).is_file():
+        Path(video).unlink()  # no frame to show: an earlier run's video must not pass for this run's
+        log.warning("warning: --video %s: no frame was detected, so no video was written (the earlier one was "
+                    "removed)", video)
     return result
+
+
+def _warn_of_other_results(out: Path, ids: list[str]) -> None:
+    """A warning when ``OUT/data`` already holds result files of frames this run does not write: another
+    drive's or folder's, which an evaluation of the folder would read as this run's."""
+    folder = out / "data"
+    if not folder.is_dir():
+        return
+    others = sorted({p.stem for p in folder.glob("*.txt")} - set(ids))
+    if others:
+        log.warning("warning: %s holds %d result file(s) of frames this run does not detect (from an earlier run?), "
+                    "e.g. %s.txt", folder, len(others), others[0])
 
 
 def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path, data: Path | None,
@@ -219,19 +238,22 @@ def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path
                 write_png(path, picture)
                 images.append(path)
             if video is not None:
-                video.add(_captioned(stack_views(camera, bev), frame.frame_id, len(detections.scores)))
+                video.add(_captioned(stack_views(camera, bev), frame.frame_id, len(objects)))
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
     return DetectResult(list(ids), results, images, means, count, skipped)
 
 
 def _captioned(picture: np.ndarray, frame_id: str, cars: int) -> np.ndarray:
-    """A copy of a picture with its frame id and car count in the corner: in a video the frames pass by."""
+    """A copy of a picture with its frame id and the count of cars in the camera's view (those of the result
+    file) on a dark box in the corner, readable over a bright sky: in a video the frames pass by."""
     import cv2
 
     captioned = picture.copy()
-    cv2.putText(captioned, f"{frame_id}  {cars} car(s)", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1,
-                cv2.LINE_AA)
+    text = f"{frame_id}  {cars} car{'' if cars == 1 else 's'} in view"
+    (width, height), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+    cv2.rectangle(captioned, (0, 0), (width + 16, height + 14), (0, 0, 0), thickness=-1)
+    cv2.putText(captioned, text, (8, height + 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
     return captioned
 
 
@@ -256,6 +278,9 @@ def _chosen_frames(scans: list[str], frames: list[str] | None, scan_dir: Path, n
         if not scans:
             raise InputError(f"{none} (no .bin scans in {scan_dir})")
         return scans
+    repeated = sorted({fid for fid in frames if frames.count(fid) > 1})
+    if repeated:  # its result file would be written twice, its picture filmed twice
+        raise InputError(f"--frame {repeated[0]} given twice")
     # A misspelt id is a mistake in the command, not a bad file: refuse it rather than skip it.
     present = set(scans)
     unknown = [fid for fid in frames if fid not in present]
@@ -285,6 +310,17 @@ def _detect_frame(detector: Detector, frame: Frame, source: str | dict[str, Path
 def _where(source: str | dict[str, Path], field: str) -> str:
     """The folder and frame, or the file that holds ``field`` (the scan's when no file is named by it)."""
     return source if isinstance(source, str) else str(source.get(field, source["points"]))
+
+
+def video_fps(text: str) -> float:
+    """argparse type of --video-fps: what the MP4 writer accepts (it fails below 0.01 and above 65535 a second)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.1 <= value <= 1000:
+        raise argparse.ArgumentTypeError(f"must be from 0.1 to 1000 frames a second, got {text}")
+    return value
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -318,12 +354,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-pictures", action="store_true", help="skip the BEV and camera-view PNGs")
     parser.add_argument("--video", type=Path, metavar="FILE.mp4",
                         help="also put the pictures (camera view above BEV), in frame order and captioned, into "
-                        "one MP4")
-    parser.add_argument("--video-fps", type=positive_float, default=10.0,
-                        help="frames a second of --video (default 10: KITTI's LiDAR rate)")
+                        "one MP4 (MPEG-4 Part 2: VLC, ffmpeg and most players, not web browsers)")
+    parser.add_argument("--video-fps", type=video_fps, default=None, metavar="FPS",
+                        help="frames a second of --video, 0.1 to 1000 (default 10: KITTI's LiDAR rate)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.video_fps is not None and args.video is None:
+        parser.error("--video-fps sets the frame rate of --video: give --video FILE.mp4 too")
+    # SIGTERM (a supervisor stopping the run) ends it as Ctrl-C does, so the partial video is removed.
+    signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         if args.video is not None:  # checked before the run: a video that cannot be written is lost after it
             if args.video.suffix.lower() != ".mp4":
@@ -333,16 +373,24 @@ def main(argv: list[str] | None = None) -> int:
             args.models, args.out, args.data, args.frames, args.image, args.points, args.calib,
             args.emulate_beams, args.score_threshold, args.provider, not args.no_pictures,
             depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, drive=args.drive, video=args.video,
-            video_fps=args.video_fps,
+            video_fps=args.video_fps or 10.0,
         )
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         if hint := default_models_hint(args.models):
             print(f"error: {hint}", file=sys.stderr)
         return 2
+    except VideoError as exc:
+        print(f"error: --video {args.video}: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
     except OSError as exc:  # an --out that cannot be written (a file in the way, no permission, a full disk)
         print(unwritable(args.out, exc), file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the frames done keep their files
+        video = f"; no video was written{' (the earlier one is kept)' if args.video.is_file() else ''}" \
+            if args.video is not None else ""
+        print(f"interrupted: the frames detected so far have their files in {args.out}{video}", file=sys.stderr)
+        return 130
     stages = ", ".join(f"{k} {v:.1f} ms" for k, v in result.mean_timings_ms.items())
     done = len(result.frame_ids) - len(result.skipped)
     print(f"{done} frame(s), {result.detections} detection(s) → {args.out}/data")
@@ -351,7 +399,8 @@ def main(argv: list[str] | None = None) -> int:
     if result.pictures:
         print(f"pictures: {args.out}/bev/ (BEV) and {args.out}/camera/ (camera view)")
     if args.video is not None and result.pictures:
-        print(f"video: {args.video} ({len(result.pictures) // 2} frames at {args.video_fps:g} a second)")
+        frames = len(result.pictures) // 2  # a BEV and a camera picture per frame
+        print(f"video: {args.video} ({frames} frame{'' if frames == 1 else 's'} at {args.video_fps or 10.0:g} a second)")
     if result.skipped:
         print(f"error: {skipped_summary(list(result.skipped), 'frame', len(result.frame_ids))}", file=sys.stderr)
         return 1

@@ -111,26 +111,35 @@ def load_frame(data_dir: str | Path, frame_id: str, with_labels: bool = True, wi
 
 
 def drive_frame_ids(drive: str | Path) -> list[str]:
-    """Frame ids of a KITTI raw drive folder: the names of its ``velodyne_points/data/*.bin`` scans."""
+    """Frame ids of a KITTI raw drive folder: the names of its ``velodyne_points/data/*.bin`` scans (the folder
+    and its images checked, with a hint for the folders people pass by mistake)."""
     drive = Path(drive)
     if not drive.exists():
         raise InputError(f"{drive}: no such folder")
     scans = drive / DRIVE_SCANS
     if not scans.is_dir():
-        raise InputError(f"{drive}: not a KITTI raw drive folder (no {DRIVE_SCANS}/ inside)")
+        drives = sorted(p.name for p in drive.glob("*_drive_*_sync") if (p / DRIVE_SCANS).is_dir())
+        hint = f"; the drives in it: {', '.join(drives[:5])}{' …' if len(drives) > 5 else ''}" if drives else ""
+        raise InputError(f"{drive}: not a KITTI raw drive folder (no {DRIVE_SCANS}/ inside){hint}")
+    if not any(scans.glob("*.bin")) and any(scans.glob("*.txt")):
+        raise InputError(f"{drive}: its scans are text files (KITTI's unsynced '_extract' download); use the "
+                         "'_sync' drive, whose scans are .bin files")
+    if not (drive / DRIVE_IMAGES).is_dir():
+        raise InputError(f"{drive}: no {DRIVE_IMAGES}/ (the left colour camera's images) inside")
     return sorted(p.stem for p in scans.glob("*.bin"))
 
 
 def read_drive_calib(drive: str | Path) -> Calibration:
-    """A raw drive's calibration, from ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in its date
-    folder (where KITTI's raw downloads put them) or in the drive folder itself."""
-    drive = Path(drive)
-    for folder in (drive.parent, drive):
+    """A raw drive's calibration, from ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in the drive folder
+    or, as KITTI's raw downloads put them, in the date folder above it (the drive folder's win: they are the
+    more specific). ``.`` or a symbolic link is followed to the real folder first."""
+    drive = Path(drive).resolve()
+    for folder in (drive, drive.parent):
         paths = [folder / name for name in RAW_CALIB_FILES]
         if all(path.is_file() for path in paths):
             return read_raw_calib(*paths)
-    raise InputError(f"{drive}: no {' and '.join(RAW_CALIB_FILES)} in {drive.parent} (KITTI raw keeps them in the "
-                     "date folder above the drive) or in the drive folder")
+    raise InputError(f"{drive}: no {' and '.join(RAW_CALIB_FILES)} in it or in {drive.parent} (KITTI raw keeps "
+                     "them in the date folder above the drive)")
 
 
 def load_drive_frame(drive: str | Path, frame_id: str, calib: Calibration) -> Frame:

@@ -138,33 +138,48 @@ def read_calib(path: str | Path) -> Calibration:
     return parse_calib(text, str(path))
 
 
-def _raw_calib_values(path: Path) -> dict[str, np.ndarray]:
+# What a drive's calibration needs of each raw file: key → number of values.
+_RAW_CALIB_KEYS = {"calib_cam_to_cam.txt": {"P_rect_02": 12, "R_rect_00": 9}, "calib_velo_to_cam.txt": {"R": 9, "T": 3}}
+
+
+def _raw_calib_values(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
+    """The ``needed`` keys of a raw calibration file (key → count of numbers), each checked with its line."""
     values = {}
     seen: dict[str, int] = {}
     try:
-        text = path.read_text(encoding="ascii")
+        # 'utf-8-sig' drops the byte-order mark a Windows editor writes (it would stick to the first key).
+        text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: cannot read calibration ({exc})") from exc
     for line_no, line in enumerate(text.splitlines(), start=1):
         key, sep, rest = line.partition(":")
-        if not sep or key.strip() == "calib_time":
+        key = key.strip()
+        if not sep or key == "calib_time":
             continue
-        _refuse_repeated_key(key.strip(), line_no, seen, path)
+        _refuse_repeated_key(key, line_no, seen, path)
+        if key not in needed:
+            continue  # the other cameras' matrices, distortion, corner_dist, delta_f …: not needed
         try:
-            values[key.strip()] = np.array([float(v) for v in rest.split()])
+            numbers = np.array([float(v) for v in rest.split()])
         except ValueError as exc:
-            raise InputError(f"{path}, line {line_no}: {key.strip()} has a non-numeric value ({exc})") from exc
+            raise InputError(f"{path}, line {line_no}: {key} has a non-numeric value ({exc})") from exc
+        if numbers.size != needed[key]:
+            raise InputError(f"{path}, line {line_no}: {key} needs {needed[key]} numbers, got {numbers.size}")
+        if not np.isfinite(numbers).all():
+            raise InputError(f"{path}, line {line_no}: {key} has a non-finite value")
+        values[key] = numbers
+    missing = [key for key in needed if key not in values]
+    if missing:
+        raise InputError(f"{path}: missing calibration key(s) {', '.join(missing)}")
     return values
 
 
 def read_raw_calib(cam_to_cam: str | Path, velo_to_cam: str | Path) -> Calibration:
     """Calibration from KITTI raw-data files (``calib_cam_to_cam.txt``, ``calib_velo_to_cam.txt``),
-    as the depth-completion drives need: P2 = P_rect_02, R0_rect = R_rect_00, Tr_velo_to_cam = [R | T]."""
-    cam, velo = _raw_calib_values(Path(cam_to_cam)), _raw_calib_values(Path(velo_to_cam))
-    for path, table, keys in ((cam_to_cam, cam, ("P_rect_02", "R_rect_00")), (velo_to_cam, velo, ("R", "T"))):
-        missing = [k for k in keys if k not in table]
-        if missing:
-            raise InputError(f"{path}: missing calibration key(s) {', '.join(missing)}")
+    as the raw drives and the depth-completion drives need: P2 = P_rect_02, R0_rect = R_rect_00,
+    Tr_velo_to_cam = [R | T]."""
+    cam = _raw_calib_values(Path(cam_to_cam), _RAW_CALIB_KEYS["calib_cam_to_cam.txt"])
+    velo = _raw_calib_values(Path(velo_to_cam), _RAW_CALIB_KEYS["calib_velo_to_cam.txt"])
     return _invertible(Calibration(
         P2=cam["P_rect_02"].reshape(3, 4), R0_rect=cam["R_rect_00"].reshape(3, 3),
         Tr_velo_to_cam=np.hstack([velo["R"].reshape(3, 3), velo["T"].reshape(3, 1)]),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import os
 from pathlib import Path
 
 import cv2
@@ -150,32 +151,53 @@ def write_png(path: str | Path, picture: np.ndarray) -> None:
                       str(path))
 
 
-class BevVideo:
-    """BEV pictures of consecutive frames as one MP4 (``mp4v``), written beside ``path`` and renamed into place
-    by :meth:`close`, so a run that stops half-way leaves no cut-off video under the name asked for.
+class VideoError(OSError):
+    """A video that cannot be written (reported as ``--video``, not as the output folder)."""
 
-    Every picture must have the size of the first (one preset's grid: they do). fps: KITTI's LiDAR turns
-    at 10 Hz.
+
+def fit_into(picture: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """``picture`` scaled to fit a (width, height) frame, centred on black: the frames of a run whose images
+    differ in size (KITTI's do) keep the first frame's size, as a video must."""
+    width, height = size
+    if (picture.shape[1], picture.shape[0]) == (width, height):
+        return picture
+    scale = min(width / picture.shape[1], height / picture.shape[0])
+    new_w, new_h = max(1, round(picture.shape[1] * scale)), max(1, round(picture.shape[0] * scale))
+    frame = np.zeros((height, width, 3), np.uint8)
+    top, left = (height - new_h) // 2, (width - new_w) // 2
+    frame[top:top + new_h, left:left + new_w] = cv2.resize(picture, (new_w, new_h), interpolation=cv2.INTER_AREA)
+    return frame
+
+
+class BevVideo:
+    """Pictures of consecutive frames as one MP4 (MPEG-4 Part 2, ``mp4v``: VLC, ffmpeg and most players, not web
+    browsers), written to a hidden file beside ``path`` and renamed into place by :meth:`close`, so a run that
+    stops half-way leaves no cut-off video under the name asked for.
+
+    The first picture sets the video's size; a later one of another size (an image of another size above the
+    BEV) is fitted into it. fps: KITTI's LiDAR turns at 10 Hz.
     """
 
     def __init__(self, path: str | Path, fps: float = 10.0) -> None:
         self.path, self.fps = Path(path), fps
-        self._partial = self.path.with_name(f".{self.path.stem}.partial.mp4")
+        # The process id keeps two runs writing the same name from sharing one partial file.
+        self._partial = self.path.with_name(f".{self.path.stem}.{os.getpid()}.partial.mp4")
         self._writer: cv2.VideoWriter | None = None
+        self._size = (0, 0)
         self.frames = 0
 
     def add(self, picture: np.ndarray) -> None:
-        """Append one BGR picture; an OSError naming the file when the video cannot be written."""
+        """Append one BGR picture; a :class:`VideoError` naming the file when the video cannot be written."""
         if self._writer is None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise VideoError(exc.errno, exc.strerror, exc.filename) from exc
             self._size = (picture.shape[1], picture.shape[0])
             self._writer = cv2.VideoWriter(str(self._partial), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self._size)
             if not self._writer.isOpened():
-                raise OSError(errno.EIO, "could not open an MP4 video for writing", str(self.path))
-        if (picture.shape[1], picture.shape[0]) != self._size:
-            raise ValueError(f"{self.path}: a {picture.shape[1]}×{picture.shape[0]} picture in a video of "
-                             f"{self._size[0]}×{self._size[1]}")
-        self._writer.write(picture)
+                raise VideoError(errno.EIO, "could not open an MP4 video for writing", str(self._partial))
+        self._writer.write(fit_into(picture, self._size))
         self.frames += 1
 
     def close(self) -> bool:
@@ -184,7 +206,10 @@ class BevVideo:
             return False
         self._writer.release()
         self._writer = None
-        self._partial.replace(self.path)
+        try:
+            self._partial.replace(self.path)
+        except OSError as exc:
+            raise VideoError(exc.errno, exc.strerror, str(self.path)) from exc
         return True
 
     def discard(self) -> None:

@@ -62,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
         info = fields[name]
         env = ENV_PREFIX + name.upper()
         default = info.default
-        help_text = f"{info.description} (env {env}; default {default if default is not None else 'none'})"
+        shown = ("on" if default else "off") if isinstance(default, bool) else default if default is not None else "none"
+        help_text = f"{info.description} (env {env}; default {shown})"
         kwargs: dict = {"type": kind, "default": argparse.SUPPRESS, "help": help_text}
         if kind is bool:  # --mirror-tta / --no-mirror-tta
             kwargs = {"action": argparse.BooleanOptionalAction, "default": argparse.SUPPRESS, "help": help_text}

@@ -1,9 +1,12 @@
 """The ONNX Runtime Detector and `python -m pipeline.detect` on a real KITTI frame (tiny preset)."""
 
 import json
+import os
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -567,16 +570,39 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
     assert (video.get(cv2.CAP_PROP_FRAME_WIDTH), video.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (bev.shape[1], stacked_height)
     assert not list(tmp_path.glob(".*partial*"))
 
+    # The drive named as "." from inside it, its frame as a plain number; the calibration in the date folder.
+    here = subprocess.run([*command, "--drive", ".", "--frame", "2", "--no-pictures", "--out", str(tmp_path / "here")],
+                          cwd=drive, capture_output=True, text=True, timeout=300, check=False)
+    assert here.returncode == 0, here.stderr
+    assert (tmp_path / "here" / "data" / "0000000002.txt").read_text() == expected
+
+    # Every frame skipped: no video, and the earlier one under that name is removed, not passed off as this run's.
+    broken = _raw_drive(tmp_path / "broken", {"0000000000": "000006"})
+    (broken / "velodyne_points" / "data" / "0000000000.bin").write_bytes(b"\0" * 10)
+    (tmp_path / "old.mp4").write_bytes(b"an earlier run's video")
+    none = subprocess.run([*command, "--drive", str(broken), "--video", str(tmp_path / "old.mp4"),
+                           "--out", str(tmp_path / "none")], capture_output=True, text=True, timeout=300, check=False)
+    assert none.returncode == 1 and not (tmp_path / "old.mp4").exists()
+    assert f"--video {tmp_path / 'old.mp4'}: no frame was detected, so no video was written" in none.stderr
+
     # Refused before any model loads (there is none here): no calibration, not a drive, a wrong video name.
+    (tmp_path / "2011_09_26" / "2011_09_26_drive_0009_sync" / "velodyne_points" / "data").mkdir(parents=True)
+    shutil.rmtree(broken / "image_02")
     (drive.parent / "calib_velo_to_cam.txt").unlink()
     for args, message in (
-        (["--drive", str(drive)], f"{drive}: no calib_cam_to_cam.txt and calib_velo_to_cam.txt in {drive.parent}"),
+        (["--drive", str(drive)], f"{drive}: no calib_cam_to_cam.txt and calib_velo_to_cam.txt in it or in {drive.parent}"),
         (["--drive", str(tmp_path)], f"{tmp_path}: not a KITTI raw drive folder (no velodyne_points/data/ inside)"),
         (["--data", str(KITTI), "--video", str(tmp_path / "bev.avi")],
          f"--video {tmp_path / 'bev.avi'}: give a file name ending in .mp4"),
         (["--data", str(KITTI), "--video", str(tmp_path / "v.mp4"), "--no-pictures"],
          "--video is made of the pictures"),
         (["--data", str(KITTI), "--drive", str(drive)], "give one of --data DIR, --drive DIR"),
+        (["--drive", str(drive.parent)], "the drives in it: 2011_09_26_drive_0005_sync, 2011_09_26_drive_0009_sync"),
+        (["--drive", str(broken)], f"{broken}: no image_02/data/ (the left colour camera's images) inside"),
+        (["--drive", str(drive), "--frame", "0", "--frame", "0000000000"], "--frame 0000000000 given twice"),
+        (["--data", str(KITTI), "--video", str(tmp_path / "v.mp4"), "--video-fps", "0"],
+         "--video-fps: must be from 0.1 to 1000 frames a second, got 0"),
+        (["--data", str(KITTI), "--video-fps", "5"], "--video-fps sets the frame rate of --video"),
     ):
         refused = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "no-models"),
                                   *args, "--out", str(tmp_path / "refused")], capture_output=True, text=True,
@@ -585,18 +611,48 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
         assert "Traceback" not in refused.stderr and not (tmp_path / "refused").exists()
 
 
+def test_a_stopped_run_says_so_and_leaves_no_partial_video(tiny_models, tmp_path):
+    """SIGTERM (as a supervisor stops a run; Ctrl-C is the same) mid-drive: one line saying what is kept, exit
+    130, the frames done keep their files, no hidden partial video, the earlier video under the name kept."""
+    drive = _raw_drive(tmp_path, {"0000000000": "000006"})
+    for index in range(1, 400):  # a long drive of the same frame, linked rather than copied
+        for folder, suffix in (("image_02", ".png"), ("velodyne_points", ".bin")):
+            (drive / folder / "data" / f"{index:010d}{suffix}").symlink_to(drive / folder / "data" / f"0000000000{suffix}")
+    (tmp_path / "run.mp4").write_bytes(b"an earlier run's video")
+    run = subprocess.Popen([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--drive",
+                            str(drive), "--video", str(tmp_path / "run.mp4"), "--out", str(tmp_path / "out")],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not (tmp_path / "out" / "data" / "0000000001.txt").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    run.send_signal(signal.SIGTERM)
+    _, stderr = run.communicate(timeout=120)
+    assert run.returncode == 130, stderr[-2000:]
+    assert f"interrupted: the frames detected so far have their files in {tmp_path / 'out'}; no video was written " \
+           "(the earlier one is kept)" in stderr and "Traceback" not in stderr
+    assert (tmp_path / "run.mp4").read_bytes() == b"an earlier run's video" and not list(tmp_path.glob(".*partial*"))
+    done = len(list((tmp_path / "out" / "data").glob("*.txt")))
+    assert 2 <= done < 400
+
+
 def test_a_video_that_fails_half_way_leaves_nothing_under_its_name(tmp_path):
-    from pipeline.render import BevVideo
+    """A video is written to a hidden file of this process and renamed at the end: discarded, it leaves the
+    earlier video under the name as it was. A picture of another size is fitted into the first one's."""
+    from pipeline.render import BevVideo, fit_into
 
     path = tmp_path / "bev.mp4"
     path.write_bytes(b"an earlier video")
     video = BevVideo(path)
     video.add(np.zeros((64, 48, 3), np.uint8))
-    with pytest.raises(ValueError, match="a 40×64 picture in a video of 48×64"):
-        video.add(np.zeros((64, 40, 3), np.uint8))
+    video.add(np.full((64, 40, 3), 200, np.uint8))  # an image of another size above the BEV
+    assert video.frames == 2 and [p.name for p in tmp_path.glob(".bev.*.partial.mp4")] == [
+        f".bev.{os.getpid()}.partial.mp4"]
     video.discard()
     assert path.read_bytes() == b"an earlier video" and sorted(p.name for p in tmp_path.iterdir()) == ["bev.mp4"]
     assert BevVideo(tmp_path / "none.mp4").close() is False and not (tmp_path / "none.mp4").exists()
+    # Fitted: scaled to fit, centred on black, the first size kept.
+    fitted = fit_into(np.full((20, 40, 3), 255, np.uint8), (40, 40))
+    assert fitted.shape == (40, 40, 3) and fitted[10:30].min() == 255 and fitted[:10].max() == fitted[30:].max() == 0
 
 
 def test_a_picture_that_cannot_be_written_is_an_error_naming_it(tiny_models, tmp_path):

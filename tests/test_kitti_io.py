@@ -133,8 +133,19 @@ def test_raw_drive_calibration_reads_as_the_object_calibration(tmp_path):
     raw = read_raw_calib(cam, velo)
     for key in ("P2", "R0_rect", "Tr_velo_to_cam"):
         np.testing.assert_allclose(getattr(raw, key), getattr(calib, key), rtol=1e-12)
-    velo.write_text(velo.read_text() + "T: 0 0 0\n")
+    # A byte-order mark (a Windows editor's) is read past, as in object calibration files.
+    cam.write_bytes(b"\xef\xbb\xbf" + cam.read_bytes())
+    np.testing.assert_allclose(read_raw_calib(cam, velo).P2, calib.P2, rtol=1e-12)
+    good = velo.read_text()
+    velo.write_text(good + "T: 0 0 0\n")
     with pytest.raises(InputError, match=r"calib_velo_to_cam\.txt, line 6: T given twice \(first on line 3\)"):
+        read_raw_calib(cam, velo)
+    velo.write_text(good.replace(f"T: {numbers(calib.Tr_velo_to_cam[:, 3])}", "T: 1 2"))
+    with pytest.raises(InputError, match=r"calib_velo_to_cam\.txt, line 3: T needs 3 numbers, got 2"):
+        read_raw_calib(cam, velo)
+    cam.write_text(cam.read_text(encoding="utf-8-sig").replace("P_rect_02: ", "P_rect_02: 1 2 3 4 5 6 7 8 9 10 11 #"))
+    velo.write_text(good)
+    with pytest.raises(InputError, match=r"calib_cam_to_cam\.txt, line 3: P_rect_02 has a non-numeric value"):
         read_raw_calib(cam, velo)
 
 
