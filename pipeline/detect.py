@@ -58,7 +58,7 @@ from pipeline.kitti import (
     write_labels,
 )
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
-from pipeline.render import BevVideo, VideoError, render_bev, render_camera, stack_views, write_png
+from pipeline.render import VIDEO_FPS, BevVideo, VideoError, render_bev, render_camera, stack_views, write_png
 
 if TYPE_CHECKING:  # the Detector (and ONNX Runtime) load only when a run starts, not for --help
     from pipeline.detector import Detections, Detector
@@ -108,7 +108,7 @@ def run(
     mirror_tta: bool = False,
     drive: Path | None = None,
     video: Path | None = None,
-    video_fps: float = 10.0,
+    video_fps: float = VIDEO_FPS,
 ) -> DetectResult:
     """Detect on a folder (``data`` + optional ``frames``), a KITTI raw drive (``drive`` + optional ``frames``)
     or one set of files; write the outputs.
@@ -356,7 +356,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="also put the pictures (camera view above BEV), in frame order and captioned, into "
                         "one MP4 (MPEG-4 Part 2: VLC, ffmpeg and most players, not web browsers)")
     parser.add_argument("--video-fps", type=video_fps, default=None, metavar="FPS",
-                        help="frames a second of --video, 0.1 to 1000 (default 10: KITTI's LiDAR rate)")
+                        help=f"frames a second of --video, 0.1 to 1000 (default {VIDEO_FPS:g}: KITTI's LiDAR rate)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -373,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
             args.models, args.out, args.data, args.frames, args.image, args.points, args.calib,
             args.emulate_beams, args.score_threshold, args.provider, not args.no_pictures,
             depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, drive=args.drive, video=args.video,
-            video_fps=args.video_fps or 10.0,
+            video_fps=args.video_fps or VIDEO_FPS,
         )
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -400,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"pictures: {args.out}/bev/ (BEV) and {args.out}/camera/ (camera view)")
     if args.video is not None and result.pictures:
         frames = len(result.pictures) // 2  # a BEV and a camera picture per frame
-        print(f"video: {args.video} ({frames} frame{'' if frames == 1 else 's'} at {args.video_fps or 10.0:g} a second)")
+        print(f"video: {args.video} ({frames} frame{'' if frames == 1 else 's'} at {args.video_fps or VIDEO_FPS:g} a second)")
     if result.skipped:
         print(f"error: {skipped_summary(list(result.skipped), 'frame', len(result.frame_ids))}", file=sys.stderr)
         return 1

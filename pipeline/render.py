@@ -151,6 +151,9 @@ def write_png(path: str | Path, picture: np.ndarray) -> None:
                       str(path))
 
 
+VIDEO_FPS = 10.0  # a video's default frame rate: KITTI's LiDAR turns at 10 Hz, one frame a turn
+
+
 class VideoError(OSError):
     """A video that cannot be written (reported as ``--video``, not as the output folder)."""
 
@@ -175,10 +178,10 @@ class BevVideo:
     stops half-way leaves no cut-off video under the name asked for.
 
     The first picture sets the video's size; a later one of another size (an image of another size above the
-    BEV) is fitted into it. fps: KITTI's LiDAR turns at 10 Hz.
+    BEV) is fitted into it.
     """
 
-    def __init__(self, path: str | Path, fps: float = 10.0) -> None:
+    def __init__(self, path: str | Path, fps: float = VIDEO_FPS) -> None:
         self.path, self.fps = Path(path), fps
         # The process id keeps two runs writing the same name from sharing one partial file.
         self._partial = self.path.with_name(f".{self.path.stem}.{os.getpid()}.partial.mp4")
