@@ -70,6 +70,9 @@ def render_bev(
     return canvas
 
 
+NEAR_PLANE_M = 0.1  # wireframe edges are clipped this far in front of the camera: nothing behind it projects
+
+
 def render_camera(
     image: np.ndarray,
     calib: Calibration,
@@ -78,24 +81,32 @@ def render_camera(
     gt_boxes: np.ndarray | None = None,
 ) -> np.ndarray:
     """BGR uint8 picture of the camera image (RGB in) with the 3D boxes drawn as wireframes, the front face
-    crossed: ground truth in red, predictions in green with their scores. A box with a corner behind the
-    camera (or beyond 1 km) has no wireframe in the picture and is left out; the BEV picture shows it."""
+    crossed: ground truth in red, predictions in green with their scores. An edge reaching behind the camera
+    (a car beside it) is cut at :data:`NEAR_PLANE_M` in front of it; a box wholly behind the camera, beyond
+    1 km or not finite is left out (the BEV picture shows every box)."""
     canvas = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR)
+    edges = np.array(BOX_EDGES + FRONT_DIAGONALS)
     for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
         if drawn is None or len(drawn) == 0:
             continue
-        uv, depth = calib.velo_to_image(box_corners_3d(drawn).reshape(-1, 3))
-        uv, depth = uv.reshape(-1, 8, 2), depth.reshape(-1, 8)
-        with np.errstate(invalid="ignore"):
-            # In front of the camera and nearer than any LiDAR sees: a box at 1e25 m (a broken scan can make one)
-            # would project to a dot at the horizon.
-            drawable = ((depth > 0.1) & (depth < 1e3)).all(axis=1) & np.isfinite(uv).all(axis=(1, 2)) \
-                & (np.abs(uv) < 1e5).all(axis=(1, 2))
-        corners = np.rint(uv[drawable]).astype(np.int32)  # (K, 8, 2)
-        segments = corners[:, np.array(BOX_EDGES + FRONT_DIAGONALS)]  # (K, 14, 2, 2)
-        cv2.polylines(canvas, list(segments.reshape(-1, 2, 2)), False, colour, 2, cv2.LINE_AA)
+        rect = calib.velo_to_rect(box_corners_3d(drawn).reshape(-1, 3)).reshape(-1, 8, 3)
+        ends = rect[:, edges]  # (K, 14, 2, 3): each segment's two ends, in the camera frame (z forward)
+        z, other = ends[..., 2], ends[..., ::-1, :]
+        shown = (z > NEAR_PLANE_M).any(axis=2)  # a segment wholly behind the near plane is not drawn
+        with np.errstate(divide="ignore", invalid="ignore"):
+            along = (NEAR_PLANE_M - z) / (other[..., 2] - z)  # where the segment crosses the near plane
+            clipped = np.where((z <= NEAR_PLANE_M)[..., None], ends + along[..., None] * (other - ends), ends)
+            uv = calib.rect_to_image(clipped.reshape(-1, 3))[0].reshape(*ends.shape[:-1], 2)
+            # Not finite, or a box at 1e25 m (a broken scan can make one) that would project to a dot at the horizon.
+            sane = (np.isfinite(rect).all(axis=(1, 2)) & (np.abs(rect[..., 2]) < 1e3).all(axis=1)
+                    & (np.abs(np.where(shown[..., None, None], uv, 0.0)) < 1e5).all(axis=(1, 2, 3)))
+        drawable = sane & shown.any(axis=1)
+        pixels = np.rint(np.where(shown[..., None, None], uv, 0.0)[drawable]).astype(np.int32)  # (K, 14, 2, 2)
+        cv2.polylines(canvas, list(pixels[shown[drawable]]), False, colour, 2, cv2.LINE_AA)
         if with_score and scores is not None:
-            for (left, top), score in zip(corners.min(axis=1), np.asarray(scores)[drawable], strict=True):
+            # Each score above the leftmost, topmost end of its box's drawn segments.
+            lowest = np.where(shown[drawable][..., None, None], pixels, np.iinfo(np.int32).max).min(axis=(1, 2))
+            for (left, top), score in zip(lowest, np.asarray(scores)[drawable], strict=True):
                 cv2.putText(canvas, f"{score:.2f}", (int(left), int(top) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour,
                             1, cv2.LINE_AA)
     return canvas

@@ -690,24 +690,32 @@ def test_pictures_survive_boxes_far_off_the_grid():
 
 
 def test_camera_picture_draws_each_box_where_its_corners_project(frame):
-    """The wireframe's corners are the 3D corners projected through the calibration; a box behind the camera,
-    far off or not finite is left out, not an OpenCV error."""
+    """The wireframe's corners are the 3D corners projected through the calibration; a box reaching behind the
+    camera (a car beside it) is cut at the near plane, not dropped; a box wholly behind it, far off or not
+    finite is left out, not an OpenCV error."""
     from pipeline.boxes import box_corners_3d
     from pipeline.render import render_camera
 
-    boxes = np.array([[15, 2, -0.9, 4, 1.7, 1.5, 0.3],  # ahead and in view
-                      [-10, 0, -0.9, 4, 1.7, 1.5, 0.0],  # behind the camera
-                      [1e25, 3, 0, 4, 1.7, 1.5, 0.3], [np.nan, 0, 0, 4, 1.7, 1.5, 0]])
-    picture = render_camera(frame.image, frame.calib, boxes, np.array([0.9, 0.8, 0.7, 0.6]))
+    ahead = np.array([[15, 2, -0.9, 4, 1.7, 1.5, 0.3]])
+    away = np.array([[-10, 0, -0.9, 4, 1.7, 1.5, 0.0], [1e25, 3, 0, 4, 1.7, 1.5, 0.3], [np.nan, 0, 0, 4, 1.7, 1.5, 0]])
+    beside = np.array([[1.0, -3.0, -0.9, 4.5, 1.8, 1.5, 0.0]])  # from 1.25 m behind the LiDAR to 3.25 m ahead
+    green = (lambda boxes: (render_camera(frame.image, frame.calib, boxes, np.full(len(boxes), 0.9))
+                            == [60, 220, 60]).all(axis=2))
+    picture = render_camera(frame.image, frame.calib, np.vstack([ahead, away]), np.array([0.9, 0.8, 0.7, 0.6]))
     assert picture.shape == frame.image.shape and picture.dtype == np.uint8
-    green = (picture == [60, 220, 60]).all(axis=2)
-    uv, _ = frame.calib.velo_to_image(box_corners_3d(boxes[:1]).reshape(-1, 3))
+    np.testing.assert_array_equal((picture == [60, 220, 60]).all(axis=2), green(ahead))  # the others: nothing
+    drawn = green(ahead)
+    uv, _ = frame.calib.velo_to_image(box_corners_3d(ahead).reshape(-1, 3))
     for u, v in np.rint(uv).astype(int):  # every corner of the box in view is drawn on
-        assert green[max(v - 1, 0):v + 2, max(u - 1, 0):u + 2].any()
+        assert drawn[max(v - 1, 0):v + 2, max(u - 1, 0):u + 2].any()
     left, top = uv.min(axis=0)
     right, bottom = uv.max(axis=0)
-    rows, cols = np.nonzero(green)  # nothing green outside the box in view (its score label sits just above it)
+    rows, cols = np.nonzero(drawn)  # nothing green outside the box (its score label sits just above it)
     assert rows.min() >= top - 20 and rows.max() <= bottom + 2 and cols.min() >= left - 2 and cols.max() <= right + 40
+    corners_z = frame.calib.velo_to_rect(box_corners_3d(beside).reshape(-1, 3))[:, 2]
+    assert (corners_z < 0).any() and (corners_z > 0).any()  # the car beside reaches behind the camera
+    side = green(beside)
+    assert side.sum() > 500 and np.nonzero(side)[1].min() > frame.image.shape[1] // 2  # drawn, on the right (y < 0)
 
 
 def test_runtime_never_imports_torch_or_onnx():
