@@ -46,6 +46,18 @@ def probability(text: str) -> float:
     return value
 
 
+def frame_rate(text: str) -> float:
+    """Frames a second of a video (argparse type), 0.1 to 1000: OpenCV's MP4 writer fails outside 0.01–65535,
+    and beyond those bounds no video of driving frames is meant (a frame every 10 s, or 100 times real time)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.1 <= value <= 1000:
+        raise argparse.ArgumentTypeError(f"must be from 0.1 to 1000 frames a second, got {text}")
+    return value
+
+
 def unwritable(out: object, exc: OSError) -> str:
     """The one-line error for an output folder the system refused (a file in the way, no permission, full)."""
     where = f"{exc.filename}: " if exc.filename else ""

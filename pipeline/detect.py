@@ -37,8 +37,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from pipeline.beams import BEAM_COUNTS
-from pipeline.boxes import labels_to_boxes
-from pipeline.cli import check_output, probability, skipped_summary, unwritable
+from pipeline.boxes import in_camera_view, labels_to_boxes
+from pipeline.cli import frame_rate, probability, skipped_summary, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import (
     DRIVE_SCANS,
@@ -58,7 +58,15 @@ from pipeline.kitti import (
     write_labels,
 )
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint
-from pipeline.render import VIDEO_FPS, BevVideo, VideoError, render_bev, render_camera, stack_views, write_png
+from pipeline.render import (
+    VIDEO_FPS,
+    FrameVideo,
+    VideoError,
+    render_bev,
+    render_camera,
+    stack_views,
+    write_png,
+)
 
 if TYPE_CHECKING:  # the Detector (and ONNX Runtime) load only when a run starts, not for --help
     from pipeline.detector import Detections, Detector
@@ -76,6 +84,7 @@ class DetectResult:
     mean_timings_ms: dict[str, float]
     detections: int
     skipped: dict[str, str] = field(default_factory=dict)  # frame id → why (folder runs go on past a bad frame)
+    video_frames: int = 0  # frames in --video (0: no video written)
 
 
 def _labels_for_picture(data: Path, fid: str) -> list | None:
@@ -132,13 +141,13 @@ def run(
     if data is not None:
         ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames")
     if drive is not None:
-        scans = drive_frame_ids(drive)
-        # A drive's ids are ten digits; --frame 5 means 0000000005.
-        frames = [fid.zfill(len(scans[0])) if scans and fid.isdigit() else fid for fid in frames or []]
-        ids = _chosen_frames(scans, frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames")
+        ids = _chosen_frames(drive_frame_ids(drive), frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames")
         drive_calib = read_drive_calib(drive)
     if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
         raise InputError(f"--depth-dir {depth_dir}: directory not found")
+    movie = FrameVideo(video, video_fps) if video is not None else None
+    if movie is not None:  # a folder the video cannot be written into is refused before the models load
+        movie.probe()
     detector = Detector(models, providers=provider, mirror_tta=mirror_tta)
     if depth_dir is not None and not detector.two_stage:
         raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
@@ -159,37 +168,41 @@ def run(
     else:
         raise InputError("give --data DIR or --drive DIR (and optionally --frame), or all of --image, --points and "
                          "--calib")
-    _warn_of_other_results(out, ids)
-    movie = BevVideo(video, video_fps) if video is not None else None
+    _warn_of_earlier_outputs(out, ids, pictures)
     try:
         result = _detect_frames(detector, ids, loader, source, out, data, depth_dir, score_threshold, emulate_beams,
                                 pictures, progress, single=data is None and drive is None, video=movie)
-    except BaseException:  # an error or Ctrl-C: no cut-off video; one of an earlier run stays as it was
+        if movie is not None and movie.close():
+            result.video_frames = movie.frames
+    except BaseException as exc:  # an error or Ctrl-C: no cut-off video; one of an earlier run stays as it was
         if movie is not None:
             movie.discard()
+            exc.video_written = movie.written  # an interrupt may come just after the video was put in place
         raise
-    if movie is not None and not movie.close() and Path(video).is_file():
-        Path(video).unlink()  # no frame to show: an earlier run's video must not pass for this run's
-        log.warning("warning: --video %s: no frame was detected, so no video was written (the earlier one was "
-                    "removed)", video)
+    if movie is not None and not movie.written and Path(video).is_file():
+        log.warning("warning: --video %s: no frame was detected, so no video was written; the file there is an "
+                    "earlier run's", video)
     return result
 
 
-def _warn_of_other_results(out: Path, ids: list[str]) -> None:
-    """A warning when ``OUT/data`` already holds result files of frames this run does not write: another
-    drive's or folder's, which an evaluation of the folder would read as this run's."""
+def _warn_of_earlier_outputs(out: Path, ids: list[str], pictures: bool) -> None:
+    """Warnings for what an earlier run left in ``out`` that this one will not replace: result files of frames
+    it does not detect (another drive's or folder's, which an evaluation of the folder would read as this
+    run's), and, with no pictures asked for, pictures that no longer match the results."""
     folder = out / "data"
-    if not folder.is_dir():
-        return
-    others = sorted({p.stem for p in folder.glob("*.txt")} - set(ids))
+    others = sorted({p.stem for p in folder.glob("*.txt")} - set(ids)) if folder.is_dir() else []
     if others:
         log.warning("warning: %s holds %d result file(s) of frames this run does not detect (from an earlier run?), "
                     "e.g. %s.txt", folder, len(others), others[0])
+    stale = [out / kind for kind in ("bev", "camera") if not pictures and any((out / kind).glob("*.png"))]
+    if stale:
+        log.warning("warning: %s hold(s) pictures of an earlier run; this run writes none (--no-pictures), so they "
+                    "will not match its results", " and ".join(map(str, stale)))
 
 
 def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path, data: Path | None,
                    depth_dir: Path | None, score_threshold: float | None, emulate_beams: int | None, pictures: bool,
-                   progress: bool, single: bool, video: BevVideo | None) -> DetectResult:
+                   progress: bool, single: bool, video: FrameVideo | None) -> DetectResult:
     """The frames in turn: detect, write the result file and the picture (and the video's frame); a folder's
     or drive's frame whose files are unusable is skipped and named."""
     from tqdm import tqdm
@@ -231,7 +244,8 @@ def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path
             if labels:
                 gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
             bev = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt)
-            camera = render_camera(frame.image, frame.calib, detections.boxes, detections.scores, gt)
+            seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)  # the result file's boxes
+            camera = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt)
             for kind, picture in (("bev", bev), ("camera", camera)):
                 (out / kind).mkdir(parents=True, exist_ok=True)
                 path = out / kind / f"{frame.frame_id}.png"
@@ -272,22 +286,25 @@ def _remove_earlier_outputs(out: Path, fid: str) -> list[str]:
 
 
 def _chosen_frames(scans: list[str], frames: list[str] | None, scan_dir: Path, none: str) -> list[str]:
-    """The ids to run on: every scan of a folder or drive (``scans``, from ``scan_dir``), or the --frame ids,
-    each of which must have a scan."""
+    """The ids to run on, in order: every scan of a folder or drive (``scans``, from ``scan_dir``), or the
+    --frame ids, each of which must have a scan. A plain number stands for the scan it names with its
+    zeros (``5`` → ``000005`` in an object folder, ``0000000005`` in a drive)."""
     if not frames:
         if not scans:
             raise InputError(f"{none} (no .bin scans in {scan_dir})")
         return scans
+    present = set(scans)
+    width = next((len(fid) for fid in scans if fid.isdigit()), 0)  # KITTI names every frame with one width
+    frames = [fid.zfill(width) if fid not in present and fid.isdigit() else fid for fid in frames]
     repeated = sorted({fid for fid in frames if frames.count(fid) > 1})
     if repeated:  # its result file would be written twice, its picture filmed twice
         raise InputError(f"--frame {repeated[0]} given twice")
     # A misspelt id is a mistake in the command, not a bad file: refuse it rather than skip it.
-    present = set(scans)
     unknown = [fid for fid in frames if fid not in present]
     if unknown:
         more = f" (and {len(unknown) - 1} more --frame without one)" if len(unknown) > 1 else ""
         raise InputError(f"--frame {unknown[0]}: no scan {scan_dir / (unknown[0] + '.bin')}{more}")
-    return frames
+    return sorted(frames)
 
 
 def _detect_frame(detector: Detector, frame: Frame, source: str | dict[str, Path], depth_dir: Path | None,
@@ -312,15 +329,12 @@ def _where(source: str | dict[str, Path], field: str) -> str:
     return source if isinstance(source, str) else str(source.get(field, source["points"]))
 
 
-def video_fps(text: str) -> float:
-    """argparse type of --video-fps: what the MP4 writer accepts (it fails below 0.01 and above 65535 a second)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not 0.1 <= value <= 1000:
-        raise argparse.ArgumentTypeError(f"must be from 0.1 to 1000 frames a second, got {text}")
-    return value
+class Stopped(KeyboardInterrupt):
+    """SIGTERM (a supervisor stopping the run), raised as Ctrl-C is so that the same clean-up runs."""
+
+
+def _stop(signum: int, frame: object) -> None:
+    raise Stopped(signum)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -337,7 +351,7 @@ def main(argv: list[str] | None = None) -> int:
                         "velodyne_points/data/; its calib_cam_to_cam.txt and calib_velo_to_cam.txt in the date "
                         "folder above it (or in it)")
     parser.add_argument("--frame", action="append", dest="frames", metavar="ID",
-                        help="frame id of --data or --drive (repeatable; default all)")
+                        help="frame id of --data or --drive, or its number (5 for 000005; repeatable; default all)")
     parser.add_argument("--image", type=Path, help="camera image (PNG/JPEG), with --points and --calib")
     parser.add_argument("--points", type=Path, help="velodyne .bin scan")
     parser.add_argument("--calib", type=Path, help="KITTI calib .txt")
@@ -355,7 +369,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--video", type=Path, metavar="FILE.mp4",
                         help="also put the pictures (camera view above BEV), in frame order and captioned, into "
                         "one MP4 (MPEG-4 Part 2: VLC, ffmpeg and most players, not web browsers)")
-    parser.add_argument("--video-fps", type=video_fps, default=None, metavar="FPS",
+    parser.add_argument("--video-fps", type=frame_rate, default=None, metavar="FPS",
                         help=f"frames a second of --video, 0.1 to 1000 (default {VIDEO_FPS:g}: KITTI's LiDAR rate)")
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     args = parser.parse_args(argv)
@@ -363,12 +377,30 @@ def main(argv: list[str] | None = None) -> int:
     if args.video_fps is not None and args.video is None:
         parser.error("--video-fps sets the frame rate of --video: give --video FILE.mp4 too")
     # SIGTERM (a supervisor stopping the run) ends it as Ctrl-C does, so the partial video is removed.
-    signal.signal(signal.SIGTERM, signal.default_int_handler)
+    previous = signal.signal(signal.SIGTERM, _stop)
     try:
-        if args.video is not None:  # checked before the run: a video that cannot be written is lost after it
+        return _run_and_report(args)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the frames done keep their files
+        if args.video is None:
+            video = ""
+        elif getattr(exc, "video_written", False):
+            video = f"; the video {args.video} was written"
+        else:
+            video = f"; no video was written{' (the earlier one is kept)' if args.video.is_file() else ''}"
+        print(f"interrupted: the frames detected so far have their files in {args.out}{video}", file=sys.stderr)
+        return 128 + (exc.args[0] if isinstance(exc, Stopped) else signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _run_and_report(args: argparse.Namespace) -> int:
+    """The run of :func:`main`'s arguments and its summary; the exit status (errors reported in one line)."""
+    try:
+        if args.video is not None:  # checked before the run (run() also tries its folder): lost after it
             if args.video.suffix.lower() != ".mp4":
                 raise InputError(f"--video {args.video}: give a file name ending in .mp4")
-            check_output(args.video, "--video")
+            if args.video.is_dir():
+                raise InputError(f"--video {args.video}: is a directory; give a file name")
         result = run(
             args.models, args.out, args.data, args.frames, args.image, args.points, args.calib,
             args.emulate_beams, args.score_threshold, args.provider, not args.no_pictures,
@@ -381,16 +413,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {hint}", file=sys.stderr)
         return 2
     except VideoError as exc:
-        print(f"error: --video {args.video}: {exc.filename or ''}: {exc.strerror or exc}", file=sys.stderr)
+        print(f"error: --video {args.video}: {exc.strerror or exc}", file=sys.stderr)
         return 2
     except OSError as exc:  # an --out that cannot be written (a file in the way, no permission, a full disk)
         print(unwritable(args.out, exc), file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the frames done keep their files
-        video = f"; no video was written{' (the earlier one is kept)' if args.video.is_file() else ''}" \
-            if args.video is not None else ""
-        print(f"interrupted: the frames detected so far have their files in {args.out}{video}", file=sys.stderr)
-        return 130
     stages = ", ".join(f"{k} {v:.1f} ms" for k, v in result.mean_timings_ms.items())
     done = len(result.frame_ids) - len(result.skipped)
     print(f"{done} frame(s), {result.detections} detection(s) → {args.out}/data")
@@ -398,9 +425,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"mean per frame: {stages}")
     if result.pictures:
         print(f"pictures: {args.out}/bev/ (BEV) and {args.out}/camera/ (camera view)")
-    if args.video is not None and result.pictures:
-        frames = len(result.pictures) // 2  # a BEV and a camera picture per frame
-        print(f"video: {args.video} ({frames} frame{'' if frames == 1 else 's'} at {args.video_fps or VIDEO_FPS:g} a second)")
+    if result.video_frames:
+        frames = result.video_frames
+        print(f"video: {args.video} ({frames} frame{'' if frames == 1 else 's'} at {args.video_fps or VIDEO_FPS:g} "
+              "a second)")
     if result.skipped:
         print(f"error: {skipped_summary(list(result.skipped), 'frame', len(result.frame_ids))}", file=sys.stderr)
         return 1

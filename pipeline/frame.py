@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -130,16 +131,21 @@ def drive_frame_ids(drive: str | Path) -> list[str]:
 
 
 def read_drive_calib(drive: str | Path) -> Calibration:
-    """A raw drive's calibration, from ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in the drive folder
-    or, as KITTI's raw downloads put them, in the date folder above it (the drive folder's win: they are the
-    more specific). ``.`` or a symbolic link is followed to the real folder first."""
-    drive = Path(drive).resolve()
-    for folder in (drive, drive.parent):
-        paths = [folder / name for name in RAW_CALIB_FILES]
-        if all(path.is_file() for path in paths):
-            return read_raw_calib(*paths)
-    raise InputError(f"{drive}: no {' and '.join(RAW_CALIB_FILES)} in it or in {drive.parent} (KITTI raw keeps "
-                     "them in the date folder above the drive)")
+    """A raw drive's calibration, from ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt``, each looked for in
+    the drive folder, then in the date folder above it (where KITTI's raw downloads put them): above the path
+    as given (``..`` folded, links kept), then above the real folder it leads to."""
+    given = Path(os.path.abspath(drive))
+    real = given.resolve()
+    folders = list(dict.fromkeys((given, given.parent, real, real.parent)))  # in order, each once
+    paths = []
+    for name in RAW_CALIB_FILES:
+        found = next((folder / name for folder in folders if (folder / name).is_file()), None)
+        if found is None:
+            raise InputError(f"{given}: no {name} in it or in {given.parent}"
+                             f"{f' (nor in {real} or {real.parent})' if real != given else ''}; KITTI raw keeps "
+                             "the calibration files in the date folder above the drive")
+        paths.append(found)
+    return read_raw_calib(*paths)
 
 
 def load_drive_frame(drive: str | Path, frame_id: str, calib: Calibration) -> Frame:

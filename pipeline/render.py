@@ -81,9 +81,10 @@ def render_camera(
     gt_boxes: np.ndarray | None = None,
 ) -> np.ndarray:
     """BGR uint8 picture of the camera image (RGB in) with the 3D boxes drawn as wireframes, the front face
-    crossed: ground truth in red, predictions in green with their scores. An edge reaching behind the camera
-    (a car beside it) is cut at :data:`NEAR_PLANE_M` in front of it; a box wholly behind the camera, beyond
-    1 km or not finite is left out (the BEV picture shows every box)."""
+    crossed: ground truth in red, predictions in green with their scores (kept inside the picture). An edge
+    reaching behind the camera (a car beside it) is cut at :data:`NEAR_PLANE_M` in front of it; a box wholly
+    behind the camera, with a corner beyond 1 km, not finite or projecting more than 1e5 pixels away is left
+    out (the BEV picture shows every box)."""
     canvas = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR)
     edges = np.array(BOX_EDGES + FRONT_DIAGONALS)
     for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
@@ -104,18 +105,22 @@ def render_camera(
         pixels = np.rint(np.where(shown[..., None, None], uv, 0.0)[drawable]).astype(np.int32)  # (K, 14, 2, 2)
         cv2.polylines(canvas, list(pixels[shown[drawable]]), False, colour, 2, cv2.LINE_AA)
         if with_score and scores is not None:
-            # Each score above the leftmost, topmost end of its box's drawn segments.
-            lowest = np.where(shown[drawable][..., None, None], pixels, np.iinfo(np.int32).max).min(axis=(1, 2))
-            for (left, top), score in zip(lowest, np.asarray(scores)[drawable], strict=True):
-                cv2.putText(canvas, f"{score:.2f}", (int(left), int(top) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour,
-                            1, cv2.LINE_AA)
+            # Each score above the top-left end of its box's drawn segments, moved into the picture when that
+            # end is off it (a box cut by the image's edge or by the near plane).
+            top_left = np.where(shown[drawable][..., None, None], pixels, np.iinfo(np.int32).max).min(axis=(1, 2))
+            height, width = canvas.shape[:2]
+            for (left, top), score in zip(top_left, np.asarray(scores)[drawable], strict=True):
+                at = (int(np.clip(left, 0, max(width - 40, 0))), int(np.clip(top - 4, 14, max(height - 2, 14))))
+                cv2.putText(canvas, f"{score:.2f}", at, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
     return canvas
 
 
 def stack_views(camera: np.ndarray, bev: np.ndarray) -> np.ndarray:
-    """The camera picture scaled to the BEV picture's width, above it: one frame of a video."""
-    height = round(camera.shape[0] * bev.shape[1] / camera.shape[1])
-    return np.vstack([cv2.resize(camera, (bev.shape[1], height), interpolation=cv2.INTER_AREA), bev])
+    """One frame of a video: the camera picture above the BEV picture, scaled to the BEV's width (at most to
+    its height, for an image taller than wide), centred on black."""
+    scale = min(bev.shape[1] / camera.shape[1], bev.shape[0] / camera.shape[0])
+    height = max(1, round(camera.shape[0] * scale))
+    return np.vstack([fit_into(camera, (bev.shape[1], height)), bev])
 
 
 def render_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
@@ -183,13 +188,13 @@ def fit_into(picture: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return frame
 
 
-class BevVideo:
+class FrameVideo:
     """Pictures of consecutive frames as one MP4 (MPEG-4 Part 2, ``mp4v``: VLC, ffmpeg and most players, not web
     browsers), written to a hidden file beside ``path`` and renamed into place by :meth:`close`, so a run that
     stops half-way leaves no cut-off video under the name asked for.
 
     The first picture sets the video's size; a later one of another size (an image of another size above the
-    BEV) is fitted into it.
+    BEV) is fitted into it. ``written`` says whether :meth:`close` put the video in place.
     """
 
     def __init__(self, path: str | Path, fps: float = VIDEO_FPS) -> None:
@@ -199,6 +204,18 @@ class BevVideo:
         self._writer: cv2.VideoWriter | None = None
         self._size = (0, 0)
         self.frames = 0
+        self.written = False
+
+    def probe(self) -> None:
+        """Create and remove the hidden file beside the name, before any work: a folder the video cannot be
+        written into (not writable, immutable, a file in the way) is a :class:`VideoError` at once."""
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._partial.open("xb").close()
+            self._partial.unlink()
+        except OSError as exc:
+            raise VideoError(exc.errno, f"cannot create files in {self.path.parent} ({exc.strerror or exc})",
+                             str(self.path)) from exc
 
     def add(self, picture: np.ndarray) -> None:
         """Append one BGR picture; a :class:`VideoError` naming the file when the video cannot be written."""
@@ -206,11 +223,12 @@ class BevVideo:
             try:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
-                raise VideoError(exc.errno, exc.strerror, exc.filename) from exc
+                raise VideoError(exc.errno, exc.strerror, str(self.path)) from exc
             self._size = (picture.shape[1], picture.shape[0])
             self._writer = cv2.VideoWriter(str(self._partial), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self._size)
             if not self._writer.isOpened():
-                raise VideoError(errno.EIO, "could not open an MP4 video for writing", str(self._partial))
+                raise VideoError(errno.EIO, f"OpenCV could not open an MP4 writer for {self._size[0]}×{self._size[1]} "
+                                 "frames", str(self.path))
         self._writer.write(fit_into(picture, self._size))
         self.frames += 1
 
@@ -224,6 +242,7 @@ class BevVideo:
             self._partial.replace(self.path)
         except OSError as exc:
             raise VideoError(exc.errno, exc.strerror, str(self.path)) from exc
+        self.written = True
         return True
 
     def discard(self) -> None:

@@ -508,10 +508,10 @@ def test_detect_command_goes_on_past_a_broken_frame(tiny_models, tmp_path):
     assert "1 frame(s)" in done.stdout
     # Unknown ids: refused whatever the model directory holds (here none), and nothing is written.
     typo = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "no-models"),
-                           "--data", str(data), "--frame", "000003", "--frame", "3", "--frame", "000007",
+                           "--data", str(data), "--frame", "000003", "--frame", "3a", "--frame", "000007",
                            "--out", str(tmp_path / "typo")], capture_output=True, text=True, timeout=120, check=False)
     assert typo.returncode == 2 and "Traceback" not in typo.stderr
-    assert f"--frame 3: no scan {data / 'velodyne' / '3.bin'} (and 1 more --frame without one)" in typo.stderr
+    assert f"--frame 3a: no scan {data / 'velodyne' / '3a.bin'} (and 1 more --frame without one)" in typo.stderr
     assert not (tmp_path / "typo").exists()
     # A --depth-dir that is not there: one line before any model loads, not every frame skipped in turn.
     nowhere = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "no-models"),
@@ -576,21 +576,43 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
     assert here.returncode == 0, here.stderr
     assert (tmp_path / "here" / "data" / "0000000002.txt").read_text() == expected
 
-    # Every frame skipped: no video, and the earlier one under that name is removed, not passed off as this run's.
+    # Every frame skipped: no video; the earlier one under that name is kept, and said to be an earlier run's.
     broken = _raw_drive(tmp_path / "broken", {"0000000000": "000006"})
     (broken / "velodyne_points" / "data" / "0000000000.bin").write_bytes(b"\0" * 10)
     (tmp_path / "old.mp4").write_bytes(b"an earlier run's video")
     none = subprocess.run([*command, "--drive", str(broken), "--video", str(tmp_path / "old.mp4"),
                            "--out", str(tmp_path / "none")], capture_output=True, text=True, timeout=300, check=False)
-    assert none.returncode == 1 and not (tmp_path / "old.mp4").exists()
-    assert f"--video {tmp_path / 'old.mp4'}: no frame was detected, so no video was written" in none.stderr
+    assert none.returncode == 1 and (tmp_path / "old.mp4").read_bytes() == b"an earlier run's video"
+    assert (f"--video {tmp_path / 'old.mp4'}: no frame was detected, so no video was written; the file there is an "
+            "earlier run's") in none.stderr
+
+    # A drive reached through a symbolic link, its calibration in the date folder the user named (the link's
+    # parent), not above the real folder; the object folder's frame given as a plain number.
+    linked = tmp_path / "links" / "2011_09_26"
+    linked.mkdir(parents=True)
+    for name in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt"):
+        shutil.copy(drive.parent / name, linked / name)
+    real = tmp_path / "real" / drive.name
+    shutil.copytree(drive, real)
+    (linked / "drive").symlink_to(real)
+    via_link = subprocess.run([*command, "--drive", str(linked / "drive"), "--frame", "0", "--no-pictures",
+                               "--out", str(tmp_path / "link")], capture_output=True, text=True, timeout=300,
+                              check=False)
+    assert via_link.returncode == 0, via_link.stderr
+    assert (tmp_path / "link" / "data" / "0000000000.txt").read_text() == expected
+    numbered = subprocess.run([*command, "--data", str(KITTI), "--frame", "6", "--no-pictures", "--out",
+                               str(tmp_path / "numbered")], capture_output=True, text=True, timeout=300, check=False)
+    assert numbered.returncode == 0 and (tmp_path / "numbered" / "data" / "000006.txt").read_text() == expected
 
     # Refused before any model loads (there is none here): no calibration, not a drive, a wrong video name.
     (tmp_path / "2011_09_26" / "2011_09_26_drive_0009_sync" / "velodyne_points" / "data").mkdir(parents=True)
     shutil.rmtree(broken / "image_02")
     (drive.parent / "calib_velo_to_cam.txt").unlink()
+    (tmp_path / "a-file").write_text("")
     for args, message in (
-        (["--drive", str(drive)], f"{drive}: no calib_cam_to_cam.txt and calib_velo_to_cam.txt in it or in {drive.parent}"),
+        (["--drive", str(drive)], f"{drive}: no calib_velo_to_cam.txt in it or in {drive.parent}"),
+        (["--data", str(KITTI), "--video", str(tmp_path / "a-file" / "v.mp4")],
+         f"--video {tmp_path / 'a-file' / 'v.mp4'}: cannot create files in {tmp_path / 'a-file'}"),
         (["--drive", str(tmp_path)], f"{tmp_path}: not a KITTI raw drive folder (no velodyne_points/data/ inside)"),
         (["--data", str(KITTI), "--video", str(tmp_path / "bev.avi")],
          f"--video {tmp_path / 'bev.avi'}: give a file name ending in .mp4"),
@@ -612,8 +634,8 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
 
 
 def test_a_stopped_run_says_so_and_leaves_no_partial_video(tiny_models, tmp_path):
-    """SIGTERM (as a supervisor stops a run; Ctrl-C is the same) mid-drive: one line saying what is kept, exit
-    130, the frames done keep their files, no hidden partial video, the earlier video under the name kept."""
+    """SIGTERM (as a supervisor stops a run; Ctrl-C is the same, exit 130) mid-drive: one line saying what is
+    kept, exit 143, the frames done keep their files, no hidden partial video, the earlier video kept."""
     drive = _raw_drive(tmp_path, {"0000000000": "000006"})
     for index in range(1, 400):  # a long drive of the same frame, linked rather than copied
         for folder, suffix in (("image_02", ".png"), ("velodyne_points", ".bin")):
@@ -627,7 +649,7 @@ def test_a_stopped_run_says_so_and_leaves_no_partial_video(tiny_models, tmp_path
         time.sleep(0.05)
     run.send_signal(signal.SIGTERM)
     _, stderr = run.communicate(timeout=120)
-    assert run.returncode == 130, stderr[-2000:]
+    assert run.returncode == 128 + signal.SIGTERM, stderr[-2000:]
     assert f"interrupted: the frames detected so far have their files in {tmp_path / 'out'}; no video was written " \
            "(the earlier one is kept)" in stderr and "Traceback" not in stderr
     assert (tmp_path / "run.mp4").read_bytes() == b"an earlier run's video" and not list(tmp_path.glob(".*partial*"))
@@ -638,18 +660,18 @@ def test_a_stopped_run_says_so_and_leaves_no_partial_video(tiny_models, tmp_path
 def test_a_video_that_fails_half_way_leaves_nothing_under_its_name(tmp_path):
     """A video is written to a hidden file of this process and renamed at the end: discarded, it leaves the
     earlier video under the name as it was. A picture of another size is fitted into the first one's."""
-    from pipeline.render import BevVideo, fit_into
+    from pipeline.render import FrameVideo, fit_into
 
     path = tmp_path / "bev.mp4"
     path.write_bytes(b"an earlier video")
-    video = BevVideo(path)
+    video = FrameVideo(path)
     video.add(np.zeros((64, 48, 3), np.uint8))
     video.add(np.full((64, 40, 3), 200, np.uint8))  # an image of another size above the BEV
     assert video.frames == 2 and [p.name for p in tmp_path.glob(".bev.*.partial.mp4")] == [
         f".bev.{os.getpid()}.partial.mp4"]
     video.discard()
     assert path.read_bytes() == b"an earlier video" and sorted(p.name for p in tmp_path.iterdir()) == ["bev.mp4"]
-    assert BevVideo(tmp_path / "none.mp4").close() is False and not (tmp_path / "none.mp4").exists()
+    assert FrameVideo(tmp_path / "none.mp4").close() is False and not (tmp_path / "none.mp4").exists()
     # Fitted: scaled to fit, centred on black, the first size kept.
     fitted = fit_into(np.full((20, 40, 3), 255, np.uint8), (40, 40))
     assert fitted.shape == (40, 40, 3) and fitted[10:30].min() == 255 and fitted[:10].max() == fitted[30:].max() == 0
