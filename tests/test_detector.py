@@ -570,6 +570,15 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
     assert (video.get(cv2.CAP_PROP_FRAME_WIDTH), video.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (bev.shape[1], stacked_height)
     assert not list(tmp_path.glob(".*partial*"))
 
+    # Into the same --out again, one frame and no pictures: what the earlier run left that this one will not
+    # replace is named (the other frame's result file, the pictures).
+    again = subprocess.run([*command, "--drive", str(drive), "--frame", "0", "--no-pictures", "--out",
+                            str(tmp_path / "out")], capture_output=True, text=True, timeout=300, check=False)
+    assert again.returncode == 0, again.stderr
+    assert f"{tmp_path / 'out' / 'data'} holds 1 result file(s) of frames this run does not detect" in again.stderr
+    assert f"{tmp_path / 'out' / 'bev'} and {tmp_path / 'out' / 'camera'} hold(s) pictures of an earlier run" \
+        in again.stderr
+
     # The drive named as "." from inside it, its frame as a plain number; the calibration in the date folder.
     here = subprocess.run([*command, "--drive", ".", "--frame", "2", "--no-pictures", "--out", str(tmp_path / "here")],
                           cwd=drive, capture_output=True, text=True, timeout=300, check=False)
