@@ -30,6 +30,7 @@ import argparse
 import logging
 import signal
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -129,20 +130,9 @@ def run(
     """
     from pipeline.detector import Detector
 
-    files_given = image is not None or points is not None or calib is not None
-    if (data is not None) + (drive is not None) + files_given > 1:
-        raise InputError("give one of --data DIR, --drive DIR, or --image, --points and --calib, not two of them")
-    if frames and data is None and drive is None:
-        raise InputError("--frame chooses frames of --data DIR or --drive DIR; with --image/--points/--calib there "
-                         "is one frame")
+    frames_of = frame_source(data, drive, frames, image, points, calib)  # checked before any model loads
     if video is not None and not pictures:
         raise InputError("--video is made of the pictures: leave out --no-pictures")
-    # The folder, the frame ids and a drive's calibration are checked before any model is loaded.
-    if data is not None:
-        ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames")
-    if drive is not None:
-        ids = _chosen_frames(drive_frame_ids(drive), frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames")
-        drive_calib = read_drive_calib(drive)
     if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
         raise InputError(f"--depth-dir {depth_dir}: directory not found")
     movie = FrameVideo(video, video_fps) if video is not None else None
@@ -152,26 +142,10 @@ def run(
     if depth_dir is not None and not detector.two_stage:
         raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
     out = Path(out)
-    if data is not None:
-        loader = (lambda fid: load_frame(data, fid, with_labels=False))  # labels: read apart, for pictures
-        source = (lambda fid: f"{data}, frame {fid}")
-    elif drive is not None:
-        loader = (lambda fid: load_drive_frame(drive, fid, drive_calib))
-        source = (lambda fid: f"{drive}, frame {fid}")
-    elif image is not None and points is not None and calib is not None:
-        ids = [Path(points).stem]
-        scan = read_velodyne(points)
-        single = Frame(ids[0], read_image(image), scan.points, read_calib(calib), None, scan.dropped_nonfinite)
-        loader = (lambda fid: single)
-        files = {"image": Path(image), "points": Path(points), "calib": Path(calib)}
-        source = (lambda fid: files)
-    else:
-        raise InputError("give --data DIR or --drive DIR (and optionally --frame), or all of --image, --points and "
-                         "--calib")
-    _warn_of_earlier_outputs(out, ids, pictures)
+    _warn_of_earlier_outputs(out, frames_of.ids, pictures)
     try:
-        result = _detect_frames(detector, ids, loader, source, out, data, depth_dir, score_threshold, emulate_beams,
-                                pictures, progress, single=data is None and drive is None, video=movie)
+        result = _detect_frames(detector, frames_of, out, depth_dir, score_threshold, emulate_beams, pictures,
+                                progress, movie)
         if movie is not None and movie.close():
             result.video_frames = movie.frames
     except BaseException as exc:  # an error or Ctrl-C: no cut-off video; one of an earlier run stays as it was
@@ -183,6 +157,45 @@ def run(
         log.warning("warning: --video %s: no frame was detected, so no video was written; the file there is an "
                     "earlier run's", video)
     return result
+
+
+@dataclass
+class FrameSource:
+    """The frames of a run: their ids, how each is loaded, and where an error says it came from."""
+
+    ids: list[str]
+    load: Callable[[str], Frame]
+    where: Callable[[str], str | dict[str, Path]]  # the folder and frame, or the files of one frame
+    labels: Path | None = None  # a KITTI object folder: the pictures draw its label_2 ground truth
+    single: bool = False  # one set of files: an unusable one is an error, not a skipped frame
+
+
+def frame_source(data: Path | None, drive: Path | None, frames: list[str] | None, image: Path | None,
+                 points: Path | None, calib: Path | None) -> FrameSource:
+    """The frames a run detects on: a KITTI object folder (``data``), a raw drive (``drive``), each with
+    optional ``frames`` ids, or one set of files. The folder, the ids and a drive's calibration (or the one
+    frame's files) are read and checked here, before any model loads."""
+    files_given = image is not None or points is not None or calib is not None
+    if (data is not None) + (drive is not None) + files_given > 1:
+        raise InputError("give one of --data DIR, --drive DIR, or --image, --points and --calib, not two of them")
+    if frames and data is None and drive is None:
+        raise InputError("--frame chooses frames of --data DIR or --drive DIR; with --image/--points/--calib there "
+                         "is one frame")
+    if data is not None:
+        ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames")
+        return FrameSource(ids, lambda fid: load_frame(data, fid, with_labels=False),  # labels: read for pictures
+                           lambda fid: f"{data}, frame {fid}", labels=Path(data))
+    if drive is not None:
+        ids = _chosen_frames(drive_frame_ids(drive), frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames")
+        drive_calib = read_drive_calib(drive)
+        return FrameSource(ids, lambda fid: load_drive_frame(drive, fid, drive_calib), lambda fid: f"{drive}, frame {fid}")
+    if image is not None and points is not None and calib is not None:
+        scan = read_velodyne(points)
+        frame = Frame(Path(points).stem, read_image(image), scan.points, read_calib(calib), None, scan.dropped_nonfinite)
+        files = {"image": Path(image), "points": Path(points), "calib": Path(calib)}
+        return FrameSource([frame.frame_id], lambda fid: frame, lambda fid: files, single=True)
+    raise InputError("give --data DIR or --drive DIR (and optionally --frame), or all of --image, --points and "
+                     "--calib")
 
 
 def _warn_of_earlier_outputs(out: Path, ids: list[str], pictures: bool) -> None:
@@ -200,9 +213,9 @@ def _warn_of_earlier_outputs(out: Path, ids: list[str], pictures: bool) -> None:
                     "will not match its results", " and ".join(map(str, stale)))
 
 
-def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path, data: Path | None,
-                   depth_dir: Path | None, score_threshold: float | None, emulate_beams: int | None, pictures: bool,
-                   progress: bool, single: bool, video: FrameVideo | None) -> DetectResult:
+def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_dir: Path | None,
+                   score_threshold: float | None, emulate_beams: int | None, pictures: bool, progress: bool,
+                   video: FrameVideo | None) -> DetectResult:
     """The frames in turn: detect, write the result file and the picture (and the video's frame); a folder's
     or drive's frame whose files are unusable is skipped and named."""
     from tqdm import tqdm
@@ -211,12 +224,14 @@ def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path
     count = 0
     warned: set[str] = set()
     skipped: dict[str, str] = {}
+    ids = frames_of.ids
     for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
         try:
-            frame = loader(fid)
-            detections = _detect_frame(detector, frame, source(fid), depth_dir, score_threshold, emulate_beams)
+            frame = frames_of.load(fid)
+            detections = _detect_frame(detector, frame, frames_of.where(fid), depth_dir, score_threshold,
+                                       emulate_beams)
         except InputError as exc:
-            if single:  # one set of files: nothing else to do
+            if frames_of.single:  # one set of files: nothing else to do
                 raise
             skipped[fid] = str(exc)
             removed = _remove_earlier_outputs(out, fid)
@@ -240,7 +255,7 @@ def _detect_frames(detector: Detector, ids: list[str], loader, source, out: Path
         results.append(result)
         if pictures:
             gt = None
-            labels = _labels_for_picture(data, fid) if data is not None else None
+            labels = _labels_for_picture(frames_of.labels, fid) if frames_of.labels is not None else None
             if labels:
                 gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
             bev = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt)
