@@ -139,7 +139,8 @@ def read_calib(path: str | Path) -> Calibration:
 
 
 # What a drive's calibration needs of each raw file: key → number of values.
-_RAW_CALIB_KEYS = {"calib_cam_to_cam.txt": {"P_rect_02": 12, "R_rect_00": 9}, "calib_velo_to_cam.txt": {"R": 9, "T": 3}}
+_CAM_TO_CAM_KEYS = {"P_rect_02": 12, "R_rect_00": 9}  # calib_cam_to_cam.txt: the left colour camera, rectified
+_VELO_TO_CAM_KEYS = {"R": 9, "T": 3}  # calib_velo_to_cam.txt: the LiDAR's rotation and translation
 
 
 def _raw_calib_values(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
@@ -178,8 +179,8 @@ def read_raw_calib(cam_to_cam: str | Path, velo_to_cam: str | Path) -> Calibrati
     """Calibration from KITTI raw-data files (``calib_cam_to_cam.txt``, ``calib_velo_to_cam.txt``),
     as the raw drives and the depth-completion drives need: P2 = P_rect_02, R0_rect = R_rect_00,
     Tr_velo_to_cam = [R | T]."""
-    cam = _raw_calib_values(Path(cam_to_cam), _RAW_CALIB_KEYS["calib_cam_to_cam.txt"])
-    velo = _raw_calib_values(Path(velo_to_cam), _RAW_CALIB_KEYS["calib_velo_to_cam.txt"])
+    cam = _raw_calib_values(Path(cam_to_cam), _CAM_TO_CAM_KEYS)
+    velo = _raw_calib_values(Path(velo_to_cam), _VELO_TO_CAM_KEYS)
     return _invertible(Calibration(
         P2=cam["P_rect_02"].reshape(3, 4), R0_rect=cam["R_rect_00"].reshape(3, 3),
         Tr_velo_to_cam=np.hstack([velo["R"].reshape(3, 3), velo["T"].reshape(3, 1)]),
