@@ -205,6 +205,27 @@ def test_bev_png(client: AppClient, frame: dict[str, bytes]) -> None:
     assert (picture == (60, 220, 60)).all(axis=2).any()  # predicted boxes drawn in green
 
 
+def test_camera_png_draws_the_boxes_of_the_kitti_answer(client: AppClient, frame: dict[str, bytes]) -> None:
+    """camera.png: the uploaded image with the boxes format=kitti answers (those the camera sees) as wireframes:
+    each box's projected 2D extent (the KITTI line's bbox) holds green, and no green is outside them."""
+    params = {"score_threshold": 0.0}
+    response = client.post("/v1/detect/camera.png", params=params, files=parts(frame))
+    assert response.status_code == 200 and response.headers["content-type"] == "image/png"
+    picture = cv2.imdecode(np.frombuffer(response.content, np.uint8), cv2.IMREAD_COLOR)
+    image = cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR)
+    assert picture.shape == image.shape
+    objects = parse_labels(client.post("/v1/detect", params={**params, "format": "kitti"}, files=parts(frame)).text,
+                           "response")
+    green = (picture == (60, 220, 60)).all(axis=2) & ~(image == (60, 220, 60)).all(axis=2)
+    assert objects and green.any()
+    covered = np.zeros_like(green)
+    for obj in objects:
+        left, top, right, bottom = (round(v) for v in obj.bbox)
+        assert green[top:bottom + 1, left:right + 1].any()
+        covered[max(top - 20, 0):bottom + 3, max(left - 3, 0):right + 45] = True  # the score sits above it
+    assert not (green & ~covered).any()
+
+
 def test_jpeg_image_accepted(client: AppClient, frame: dict[str, bytes]) -> None:
     bgr = cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR)
     jpeg = cv2.imencode(".jpg", bgr)[1].tobytes()
@@ -347,7 +368,7 @@ def test_query_check_leaves_open_routes_alone(client: AppClient) -> None:
      ({"data": {"image": "x"}}, "application/x-www-form-urlencoded"), ({}, "none")],
 )
 def test_non_multipart_body_is_415(client: AppClient, kwargs: dict, shown: str) -> None:
-    for route in ("/v1/detect", "/v1/detect/bev.png"):
+    for route in ("/v1/detect", "/v1/detect/bev.png", "/v1/detect/camera.png"):
         assert_error(client.post(route, **kwargs), 415, "unsupported_media_type", "multipart/form-data", shown)
 
 
@@ -401,7 +422,7 @@ def test_unknown_repeated_or_text_parts_are_422_naming_them(
     files = parts(frame, calib=None) if "calib" in str(send) else parts(frame)
     extra = send.get("files", {})
     files = list(files.items()) + (list(extra.items()) if isinstance(extra, dict) else extra)
-    for route in ("/v1/detect", "/v1/detect/bev.png"):
+    for route in ("/v1/detect", "/v1/detect/bev.png", "/v1/detect/camera.png"):
         response = client.post(route, files=files, data=send.get("data"))
         assert_error(response, 422, "invalid_input", *words)
 
@@ -415,7 +436,7 @@ def test_warnings_travel_in_a_header_where_the_body_has_no_room(client: AppClien
     params = {"emulate_beams": 16, "score_threshold": 0.0}
     warnings = client.post("/v1/detect", params=params, files=parts(frame)).json()["warnings"]
     assert any("emulated 16 beams" in warning for warning in warnings)
-    for route, extra in (("/v1/detect", {"format": "kitti"}), ("/v1/detect/bev.png", {})):
+    for route, extra in (("/v1/detect", {"format": "kitti"}), ("/v1/detect/bev.png", {}), ("/v1/detect/camera.png", {})):
         response = client.post(route, params={**params, **extra}, files=parts(frame))
         assert response.status_code == 200, response.text
         assert json.loads(response.headers["x-warnings"]) == warnings
@@ -665,7 +686,8 @@ def test_openapi_documents_the_contract(client: AppClient) -> None:
     assert params["score_threshold"]["schema"]["anyOf"][0]["maximum"] == 1.0
     assert schema["components"]["schemas"]["DetectResponse"]["examples"]
     assert schema["components"]["schemas"]["ErrorResponse"]["examples"]
-    assert "image/png" in schema["paths"]["/v1/detect/bev.png"]["post"]["responses"]["200"]["content"]
+    for picture in ("bev.png", "camera.png"):
+        assert "image/png" in schema["paths"][f"/v1/detect/{picture}"]["post"]["responses"]["200"]["content"]
     assert "security" not in detect  # no token configured: the schema asks for none
     for path in ("/healthz", "/readyz", "/v1/model", "/metrics", "/v2/health/live", "/v2/health/ready"):
         assert path in schema["paths"]

@@ -1,6 +1,7 @@
-"""``POST /v1/detect`` (JSON or KITTI lines) and ``POST /v1/detect/bev.png`` (the BEV picture).
+"""``POST /v1/detect`` (JSON or KITTI lines), ``POST /v1/detect/bev.png`` (the BEV picture) and
+``POST /v1/detect/camera.png`` (the camera image with the boxes as wireframes).
 
-Both take multipart/form-data parts ``image``, ``points`` and optionally
+All three take multipart/form-data parts ``image``, ``points`` and optionally
 ``calib``. Cheap checks run on the event loop; decoding, detection and
 rendering run on the inference pool.
 """
@@ -11,17 +12,18 @@ import json
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from enum import Enum
 from typing import Annotated
 
 import cv2
 from fastapi import APIRouter, Depends, File, Query, UploadFile
 from fastapi.responses import PlainTextResponse, Response
 
-from pipeline.boxes import bev_corners
+from pipeline.boxes import bev_corners, in_camera_view
 from pipeline.calib import Calibration
 from pipeline.detector import Detections, Detector
 from pipeline.kitti import format_label
-from pipeline.render import render_bev
+from pipeline.render import render_bev, render_camera
 from service.deps import (
     MetricsDep,
     ReadyRuntimeDep,
@@ -44,6 +46,13 @@ from service.settings import Settings
 router = APIRouter(prefix="/v1", tags=["detect"], dependencies=[Depends(reject_unknown_query)])
 
 _KITTI_EXAMPLE = "Car 0.00 0 -1.59 582.33 178.06 629.75 207.93 1.52 1.63 3.88 -0.95 1.68 25.30 -1.61 0.9137\n"
+
+
+class Picture(Enum):
+    """The picture a detection route answers (its value names it in messages)."""
+
+    bev = "BEV"
+    camera = "camera view"
 
 
 @dataclass(frozen=True)
@@ -95,9 +104,9 @@ class FrameResult:
 
 
 def _detect_job(
-    upload: FrameUpload, options: FrameOptions, default_calib: Calibration | None, picture: bool
+    upload: FrameUpload, options: FrameOptions, default_calib: Calibration | None, picture: Picture | None
 ) -> Callable[[Detector], FrameResult]:
-    """The work of one frame on a worker: decode the parts, detect, optionally render the BEV PNG."""
+    """The work of one frame on a worker: decode the parts, detect, optionally render a picture as PNG."""
 
     def job(detector: Detector) -> FrameResult:
         tic = time.perf_counter()
@@ -105,17 +114,21 @@ def _detect_job(
         parse_ms = (time.perf_counter() - tic) * 1e3
         detections = detector.detect(
             frame.image, frame.points, frame.calib, options.score_threshold, options.emulate_beams,
-            keep_points=picture,
+            keep_points=picture is Picture.bev,
         )
         timings = {"parse_inputs": parse_ms, **{k: v for k, v in detections.timings_ms.items() if k != "total"}}
         png = None
-        if picture:
+        if picture is not None:
             tic = time.perf_counter()
-            points = detections.points if detections.points is not None else frame.points
-            bgr = render_bev(points, detector.preset.bev, detections.boxes, detections.scores)
+            if picture is Picture.bev:
+                points = detections.points if detections.points is not None else frame.points
+                bgr = render_bev(points, detector.preset.bev, detections.boxes, detections.scores)
+            else:  # the boxes of format=kitti: those whose centre the camera sees
+                seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)
+                bgr = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen])
             ok, encoded = cv2.imencode(".png", bgr)
             if not ok:
-                raise RuntimeError("PNG encoding of the BEV picture failed")
+                raise RuntimeError(f"PNG encoding of the {picture.value} picture failed")
             png = encoded.tobytes()
             timings["render"] = (time.perf_counter() - tic) * 1e3
         return FrameResult(frame, detections, timings, png)
@@ -125,7 +138,7 @@ def _detect_job(
 
 async def _run_frame(
     runtime: Runtime, settings: Settings, metrics: Metrics, upload: FrameUpload, options: FrameOptions,
-    picture: bool,
+    picture: Picture | None,
 ) -> FrameResult:
     """Check, queue and run one frame; pool conditions become 503/504 answers."""
     check_upload(upload, settings.max_points, settings.max_image_pixels, runtime.crop_hw)
@@ -184,7 +197,7 @@ def _warning_headers(result: FrameResult) -> dict[str, str]:
 
 
 _WARNINGS_HEADER = {"X-Warnings": {
-    "description": "with `format=kitti` and on `bev.png`: the frame's warnings as a JSON list (absent when none)",
+    "description": "with `format=kitti` and on the pictures: the frame's warnings as a JSON list (absent when none)",
     "schema": {"type": "string"},
 }}
 
@@ -229,7 +242,7 @@ async def detect(
     'http://127.0.0.1:8000/v1/detect?emulate_beams=16'`
     """
     upload = await _read_upload(image, points, calib)
-    result = await _run_frame(runtime, settings, metrics, upload, options, picture=False)
+    result = await _run_frame(runtime, settings, metrics, upload, options, picture=None)
     if output_format is OutputFormat.kitti:
         objects = result.detections.to_objects(result.frame.calib, result.frame.image_hw)
         return PlainTextResponse("".join(format_label(o) + "\n" for o in objects), headers=_warning_headers(result))
@@ -258,6 +271,33 @@ async def detect_bev_png(
 ) -> Response:
     """The same inputs as `/v1/detect`; the answer is a PNG (x forward points up)."""
     upload = await _read_upload(image, points, calib)
-    result = await _run_frame(runtime, settings, metrics, upload, options, picture=True)
+    result = await _run_frame(runtime, settings, metrics, upload, options, picture=Picture.bev)
+    assert result.png is not None
+    return Response(result.png, media_type="image/png", headers=_warning_headers(result))
+
+
+@router.post(
+    "/detect/camera.png",
+    summary="Detect cars and answer the camera image with the boxes drawn",
+    dependencies=[Depends(require_multipart), Depends(check_parts)],
+    response_class=Response,
+    responses={
+        200: {"description": "the uploaded image with each box the camera sees as a wireframe and its score",
+              "content": {"image/png": {}}, "headers": _WARNINGS_HEADER},
+        **DETECT_ERRORS,
+    },
+)
+async def detect_camera_png(
+    runtime: ReadyRuntimeDep,
+    settings: SettingsDep,
+    metrics: MetricsDep,
+    options: FrameOptionsDep,
+    image: ImagePart,
+    points: PointsPart,
+    calib: CalibPart = None,
+) -> Response:
+    """The same inputs as `/v1/detect`; the answer is the image as PNG with the boxes of `format=kitti` drawn."""
+    upload = await _read_upload(image, points, calib)
+    result = await _run_frame(runtime, settings, metrics, upload, options, picture=Picture.camera)
     assert result.png is not None
     return Response(result.png, media_type="image/png", headers=_warning_headers(result))
