@@ -201,8 +201,22 @@ _WARNINGS_HEADER = {"X-Warnings": {
     "schema": {"type": "string"},
 }}
 
-# Both detection routes answer the same errors (documented for clients and the OpenAPI fuzz test).
+# The detection routes answer the same errors (documented for clients and the OpenAPI fuzz test).
 DETECT_ERRORS = error_responses(400, 401, 413, 415, 422, 500, 503, 504)
+
+
+def _picture_responses(description: str) -> dict:
+    """The OpenAPI answers of a route answering a PNG picture."""
+    return {200: {"description": description, "content": {"image/png": {}}, "headers": _WARNINGS_HEADER},
+            **DETECT_ERRORS}
+
+
+async def _picture_answer(runtime: Runtime, settings: Settings, metrics: Metrics, options: FrameOptions,
+                          upload: FrameUpload, picture: Picture) -> Response:
+    """Detect on an uploaded frame and answer ``picture`` as PNG, the frame's warnings in X-Warnings."""
+    result = await _run_frame(runtime, settings, metrics, upload, options, picture=picture)
+    assert result.png is not None
+    return Response(result.png, media_type="image/png", headers=_warning_headers(result))
 
 
 @router.post(
@@ -254,11 +268,7 @@ async def detect(
     summary="Detect cars and answer the bird's-eye-view picture",
     dependencies=[Depends(require_multipart), Depends(check_parts)],
     response_class=Response,
-    responses={
-        200: {"description": "BEV picture: points, detected boxes and scores", "content": {"image/png": {}},
-              "headers": _WARNINGS_HEADER},
-        **DETECT_ERRORS,
-    },
+    responses=_picture_responses("BEV picture: points, detected boxes and scores"),
 )
 async def detect_bev_png(
     runtime: ReadyRuntimeDep,
@@ -270,10 +280,8 @@ async def detect_bev_png(
     calib: CalibPart = None,
 ) -> Response:
     """The same inputs as `/v1/detect`; the answer is a PNG (x forward points up)."""
-    upload = await _read_upload(image, points, calib)
-    result = await _run_frame(runtime, settings, metrics, upload, options, picture=Picture.bev)
-    assert result.png is not None
-    return Response(result.png, media_type="image/png", headers=_warning_headers(result))
+    return await _picture_answer(runtime, settings, metrics, options, await _read_upload(image, points, calib),
+                                 Picture.bev)
 
 
 @router.post(
@@ -281,11 +289,7 @@ async def detect_bev_png(
     summary="Detect cars and answer the camera image with the boxes drawn",
     dependencies=[Depends(require_multipart), Depends(check_parts)],
     response_class=Response,
-    responses={
-        200: {"description": "the uploaded image with each box the camera sees as a wireframe and its score",
-              "content": {"image/png": {}}, "headers": _WARNINGS_HEADER},
-        **DETECT_ERRORS,
-    },
+    responses=_picture_responses("the uploaded image with each box the camera sees as a wireframe and its score"),
 )
 async def detect_camera_png(
     runtime: ReadyRuntimeDep,
@@ -297,7 +301,5 @@ async def detect_camera_png(
     calib: CalibPart = None,
 ) -> Response:
     """The same inputs as `/v1/detect`; the answer is the image as PNG with the boxes of `format=kitti` drawn."""
-    upload = await _read_upload(image, points, calib)
-    result = await _run_frame(runtime, settings, metrics, upload, options, picture=Picture.camera)
-    assert result.png is not None
-    return Response(result.png, media_type="image/png", headers=_warning_headers(result))
+    return await _picture_answer(runtime, settings, metrics, options, await _read_upload(image, points, calib),
+                                 Picture.camera)
