@@ -77,8 +77,11 @@ def write_velodyne(path: str | Path, points: np.ndarray) -> None:
 _CALIB_KEYS = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
 
 
-def parse_calib(text: str, source: str = "<calib>") -> Calibration:
-    """Parse a KITTI object ``calib/*.txt`` (keys P2, R0_rect, Tr_velo_to_cam are required)."""
+def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
+                  every_line_a_key: bool = True) -> dict[str, np.ndarray]:
+    """The ``shapes`` keys of a calibration text's ``KEY: numbers`` lines, each checked with its line (numbers,
+    their count, finite) and reshaped; a key given twice is refused, the other keys are skipped. A line without
+    a colon is an error where ``every_line_a_key`` (object files), else skipped (raw files)."""
     values: dict[str, np.ndarray] = {}
     seen: dict[str, int] = {}  # key → the line it was first given on
     for line_no, line in enumerate(text.splitlines(), start=1):
@@ -87,15 +90,17 @@ def parse_calib(text: str, source: str = "<calib>") -> Calibration:
         key, sep, rest = line.partition(":")
         key = key.strip()
         if not sep:
-            raise InputError(f"{source}, line {line_no}: expected 'KEY: numbers', got {line[:60]!r}")
+            if every_line_a_key:
+                raise InputError(f"{source}, line {line_no}: expected 'KEY: numbers', got {line[:60]!r}")
+            continue
         _refuse_repeated_key(key, line_no, seen, source)
-        if key not in _CALIB_KEYS:
-            continue  # P0, P1, P3, Tr_imu_to_velo: not needed
+        if key not in shapes:
+            continue  # keys not needed: P0, P1, P3, Tr_imu_to_velo; the raw files' other cameras, calib_time …
         try:
             numbers = np.array([float(v) for v in rest.split()], dtype=np.float64)
         except ValueError as exc:
             raise InputError(f"{source}, line {line_no}: {key} has a non-numeric value ({exc})") from exc
-        shape = _CALIB_KEYS[key]
+        shape = shapes[key]
         if numbers.size != shape[0] * shape[1]:
             raise InputError(
                 f"{source}, line {line_no}: {key} needs {shape[0] * shape[1]} numbers, got {numbers.size}"
@@ -103,9 +108,15 @@ def parse_calib(text: str, source: str = "<calib>") -> Calibration:
         if not np.isfinite(numbers).all():
             raise InputError(f"{source}, line {line_no}: {key} has a non-finite value")
         values[key] = numbers.reshape(shape)
-    missing = [k for k in _CALIB_KEYS if k not in values]
+    missing = [k for k in shapes if k not in values]
     if missing:
         raise InputError(f"{source}: missing calibration key(s) {', '.join(missing)}")
+    return values
+
+
+def parse_calib(text: str, source: str = "<calib>") -> Calibration:
+    """Parse a KITTI object ``calib/*.txt`` (keys P2, R0_rect, Tr_velo_to_cam are required)."""
+    values = _calib_values(text, source, _CALIB_KEYS)
     return _invertible(Calibration(P2=values["P2"], R0_rect=values["R0_rect"],
                                    Tr_velo_to_cam=values["Tr_velo_to_cam"]), source)
 
@@ -127,64 +138,36 @@ def _invertible(calib: Calibration, source: str) -> Calibration:
     return calib
 
 
+def _calib_text(path: Path) -> str:
+    """A calibration file's text; 'utf-8-sig' drops the byte-order mark a Windows editor writes (it would
+    stick to the first key)."""
+    try:
+        return path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read calibration ({exc})") from exc
+
+
 def read_calib(path: str | Path) -> Calibration:
     """Read a KITTI object calibration file."""
     path = Path(path)
-    try:
-        # 'utf-8-sig' drops the byte-order mark a Windows editor writes (it would stick to the first key).
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read calibration ({exc})") from exc
-    return parse_calib(text, str(path))
+    return parse_calib(_calib_text(path), str(path))
 
 
-# What a drive's calibration needs of each raw file: key → number of values.
-_CAM_TO_CAM_KEYS = {"P_rect_02": 12, "R_rect_00": 9}  # calib_cam_to_cam.txt: the left colour camera, rectified
-_VELO_TO_CAM_KEYS = {"R": 9, "T": 3}  # calib_velo_to_cam.txt: the LiDAR's rotation and translation
-
-
-def _raw_calib_values(path: Path, needed: dict[str, int]) -> dict[str, np.ndarray]:
-    """The ``needed`` keys of a raw calibration file (key → count of numbers), each checked with its line."""
-    values = {}
-    seen: dict[str, int] = {}
-    try:
-        # 'utf-8-sig' drops the byte-order mark a Windows editor writes (it would stick to the first key).
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read calibration ({exc})") from exc
-    for line_no, line in enumerate(text.splitlines(), start=1):
-        key, sep, rest = line.partition(":")
-        key = key.strip()
-        if not sep or key == "calib_time":
-            continue
-        _refuse_repeated_key(key, line_no, seen, path)
-        if key not in needed:
-            continue  # the other cameras' matrices, distortion, corner_dist, delta_f …: not needed
-        try:
-            numbers = np.array([float(v) for v in rest.split()])
-        except ValueError as exc:
-            raise InputError(f"{path}, line {line_no}: {key} has a non-numeric value ({exc})") from exc
-        if numbers.size != needed[key]:
-            raise InputError(f"{path}, line {line_no}: {key} needs {needed[key]} numbers, got {numbers.size}")
-        if not np.isfinite(numbers).all():
-            raise InputError(f"{path}, line {line_no}: {key} has a non-finite value")
-        values[key] = numbers
-    missing = [key for key in needed if key not in values]
-    if missing:
-        raise InputError(f"{path}: missing calibration key(s) {', '.join(missing)}")
-    return values
+# What a drive's calibration needs of each raw file: key → shape.
+_CAM_TO_CAM_KEYS = {"P_rect_02": (3, 4), "R_rect_00": (3, 3)}  # calib_cam_to_cam.txt: the left colour camera
+_VELO_TO_CAM_KEYS = {"R": (3, 3), "T": (3, 1)}  # calib_velo_to_cam.txt: the LiDAR's rotation and translation
 
 
 def read_raw_calib(cam_to_cam: str | Path, velo_to_cam: str | Path) -> Calibration:
     """Calibration from KITTI raw-data files (``calib_cam_to_cam.txt``, ``calib_velo_to_cam.txt``),
     as the raw drives and the depth-completion drives need: P2 = P_rect_02, R0_rect = R_rect_00,
     Tr_velo_to_cam = [R | T]."""
-    cam = _raw_calib_values(Path(cam_to_cam), _CAM_TO_CAM_KEYS)
-    velo = _raw_calib_values(Path(velo_to_cam), _VELO_TO_CAM_KEYS)
-    return _invertible(Calibration(
-        P2=cam["P_rect_02"].reshape(3, 4), R0_rect=cam["R_rect_00"].reshape(3, 3),
-        Tr_velo_to_cam=np.hstack([velo["R"].reshape(3, 3), velo["T"].reshape(3, 1)]),
-    ), f"{cam_to_cam} and {velo_to_cam}")
+    cam_to_cam, velo_to_cam = Path(cam_to_cam), Path(velo_to_cam)
+    cam = _calib_values(_calib_text(cam_to_cam), cam_to_cam, _CAM_TO_CAM_KEYS, every_line_a_key=False)
+    velo = _calib_values(_calib_text(velo_to_cam), velo_to_cam, _VELO_TO_CAM_KEYS, every_line_a_key=False)
+    return _invertible(Calibration(P2=cam["P_rect_02"], R0_rect=cam["R_rect_00"],
+                                   Tr_velo_to_cam=np.hstack([velo["R"], velo["T"]])),
+                       f"{cam_to_cam} and {velo_to_cam}")
 
 
 def format_calib(calib: Calibration) -> str:
