@@ -63,6 +63,7 @@ from pipeline.render import (
     VIDEO_FPS,
     FrameVideo,
     VideoError,
+    draw_label,
     render_bev,
     render_camera,
     stack_views,
@@ -274,16 +275,9 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
 
 
 def _captioned(picture: np.ndarray, frame_id: str, cars: int) -> np.ndarray:
-    """A copy of a picture with its frame id and the count of cars in the camera's view (those of the result
-    file) on a dark box in the corner, readable over a bright sky: in a video the frames pass by."""
-    import cv2
-
-    captioned = picture.copy()
-    text = f"{frame_id}  {cars} car{'' if cars == 1 else 's'} in view"
-    (width, height), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
-    cv2.rectangle(captioned, (0, 0), (width + 16, height + 14), (0, 0, 0), thickness=-1)
-    cv2.putText(captioned, text, (8, height + 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
-    return captioned
+    """The video's frame: the picture with its frame id and the count of cars in the camera's view (those of
+    the result file) in the corner; in a video the frames pass by. ``picture`` is a fresh stack_views array."""
+    return draw_label(picture, f"{frame_id}  {cars} car{'' if cars == 1 else 's'} in view")
 
 
 def _remove_earlier_outputs(out: Path, fid: str) -> list[str]:

@@ -123,6 +123,15 @@ def stack_views(camera: np.ndarray, bev: np.ndarray) -> np.ndarray:
     return np.vstack([fit_into(camera, (bev.shape[1], height)), bev])
 
 
+def draw_label(picture: np.ndarray, text: str) -> np.ndarray:
+    """``text`` in white on a black box in the picture's top-left corner (in place; readable on any colour,
+    a bright sky included); returns the picture."""
+    (text_w, text_h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
+    cv2.rectangle(picture, (0, 0), (text_w + 16, text_h + 14), (0, 0, 0), thickness=-1)
+    cv2.putText(picture, text, (8, text_h + 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    return picture
+
+
 def render_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
     """BGR uint8 colour map of a depth map (near = warm, far = cool, black = no depth)."""
     scaled = np.clip(depth / max_depth, 0, 1)
@@ -145,11 +154,7 @@ def render_depth_panel(image: np.ndarray, prediction: np.ndarray, ground_truth: 
     rows = [(camera, "camera"), (render_depth(prediction, max_depth), f"predicted depth (0-{max_depth:.0f} m)"),
             (render_depth(ground_truth, max_depth), "ground truth"),
             (error_map, f"absolute error where ground truth exists (0-{max_error:.0f} m)")]
-    for row, label in rows:  # white on a black box: readable on any colour
-        (text_w, text_h), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.6, 1)
-        cv2.rectangle(row, (0, 0), (text_w + 16, text_h + 14), (0, 0, 0), thickness=-1)
-        cv2.putText(row, label, (8, text_h + 6), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
-    return np.vstack([row for row, _ in rows])
+    return np.vstack([draw_label(row, label) for row, label in rows])
 
 
 def write_png(path: str | Path, picture: np.ndarray) -> None:
