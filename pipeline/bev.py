@@ -148,6 +148,18 @@ def pseudo_bins(
     return PseudoBins(iz[keep].astype(np.int64), cell, sharp)
 
 
+def zeros_in_memory(shape: tuple[int, ...], dtype: type) -> np.ndarray:
+    """A zeroed array whose pages are all written once now.
+
+    ``np.zeros`` maps untouched pages that the kernel fills on first write, so a kept buffer would
+    pay its page faults over the first frames that set its cells (and PIXOR's reads of it map
+    nothing). Writing the zeros once moves that cost to start-up.
+    """
+    array = np.empty(shape, dtype)
+    array.fill(0)
+    return array
+
+
 class BevVoxelizer:
     """Voxelizes frames into one reused output buffer (not thread-safe: one per worker).
 
@@ -160,9 +172,12 @@ class BevVoxelizer:
     the sharp pseudo points only, marked with the frame's stamp (1–255).
     """
 
-    def __init__(self, grid: BevGrid) -> None:
+    def __init__(self, grid: BevGrid, prefault: bool = False) -> None:
+        """prefault: write each buffer's pages once when it is made (:func:`zeros_in_memory`), for a
+        voxelizer kept over many frames; a one-off one (:func:`voxelize_bev`) needs only the pages it sets."""
         self.grid = grid
-        self._out = np.zeros(grid.shape, dtype=np.float32)
+        self._zeros = zeros_in_memory if prefault else np.zeros
+        self._out = self._zeros(grid.shape, np.float32)
         self._flat = self._out.reshape(-1)
         # Flat views of the reflectance plane and of a split grid's pseudo channels: their writes index
         # them directly, with no channel offset added to the indices.
@@ -254,7 +269,7 @@ class BevVoxelizer:
         all of it (21 MB for the edge grid) took 3 ms a frame here, longer than the voxelization.
         """
         if self._mirror is None:
-            self._mirror = np.zeros_like(self._out)
+            self._mirror = self._zeros(self._out.shape, np.float32)
             grid = self.grid
             views = ((self._flat, self._mirror.reshape(-1)), (self._reflectance, self._mirror[grid.nz].reshape(-1)),
                      (self._pseudo_channels, self._mirror[grid.nz + 1:].reshape(-1) if grid.split_pseudo
@@ -297,7 +312,7 @@ class BevVoxelizer:
         """
         if self._heights is None or self._stamp == 255:
             if self._heights is None:
-                self._heights = np.zeros((self.grid.nz, self.grid.ny, self.grid.nx), dtype=np.uint8)
+                self._heights = self._zeros((self.grid.nz, self.grid.ny, self.grid.nx), np.uint8)
             else:
                 self._heights.fill(0)
             self._stamp = 0

@@ -88,6 +88,31 @@ class Calibration:
         return Calibration(P2=shift @ self.P2, R0_rect=self.R0_rect, Tr_velo_to_cam=self.Tr_velo_to_cam)
 
 
+# --------------------------------------------------------------------------- a typical KITTI camera
+# KITTI drive 2011_09_26 (training frames 000001/000003/000004 in tests/data/kitti; a test checks these
+# against the file): the simulator's base calibration, and the frame the service warms its workers up on.
+KITTI_IMAGE_HW = (375, 1242)  # image_2 size (rows, columns)
+KITTI_CALIBRATION = Calibration(
+    P2=np.array([
+        [7.215377e02, 0.0, 6.095593e02, 4.485728e01],
+        [0.0, 7.215377e02, 1.728540e02, 2.163791e-01],
+        [0.0, 0.0, 1.0, 2.745884e-03],
+    ]),
+    R0_rect=np.array([
+        [9.999239e-01, 9.837760e-03, -7.445048e-03],
+        [-9.869795e-03, 9.999421e-01, -4.278459e-03],
+        [7.402527e-03, 4.351614e-03, 9.999631e-01],
+    ]),
+    Tr_velo_to_cam=np.array([
+        [7.533745e-03, -9.999714e-01, -6.166020e-04, -4.069766e-03],
+        [1.480249e-02, 7.280733e-04, -9.998902e-01, -7.631618e-02],
+        [9.998621e-01, 7.523790e-03, 1.480755e-02, -2.717806e-01],
+    ]),
+)
+for _matrix in (KITTI_CALIBRATION.P2, KITTI_CALIBRATION.R0_rect, KITTI_CALIBRATION.Tr_velo_to_cam):
+    _matrix.setflags(write=False)  # shared by every user of the constant
+
+
 # --------------------------------------------------------------------------- depth-net crop
 @dataclass(frozen=True)
 class CropWindow:

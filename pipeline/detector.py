@@ -32,7 +32,7 @@ import onnxruntime as ort
 from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import boxes_to_objects, in_camera_view
-from pipeline.calib import Calibration
+from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration
 from pipeline.cpu import int8_pairs_saturate, usable_cpus
 from pipeline.errors import InputError
 from pipeline.graph_inputs import session_feeds, whole_shapes
@@ -312,7 +312,7 @@ class Detector:
     def _voxelizer(self) -> BevVoxelizer:
         voxelizer = getattr(self._local, "voxelizer", None)
         if voxelizer is None:
-            voxelizer = self._local.voxelizer = BevVoxelizer(self.preset.bev)
+            voxelizer = self._local.voxelizer = BevVoxelizer(self.preset.bev, prefault=True)
         return voxelizer
 
     def _stage_thread(self) -> ThreadPoolExecutor:
@@ -531,3 +531,19 @@ class Detector:
                 self._run("depth", ["depth"], {"rgb": np.zeros((1, 3, h, w), np.float32),
                                                "sparse_depth": np.zeros((1, 1, h, w), np.float32)})
             self._run("pixor", ["score", "regression"], {"bev": np.zeros((1, *self.preset.bev.shape), np.float32)})
+
+    def warm_up_thread(self) -> None:
+        """Run one whole frame on the calling thread, so that its first real frame is not slow either.
+
+        Each thread that calls :meth:`detect` keeps its own BEV buffers (the mirror's too) and its stage
+        thread, made on its first frame. The frame is a flat road ahead and a black image under KITTI's
+        usual calibration. (The view's rays are cached per calibration and image size, which a default
+        calibration does not give, so a vehicle's first frame still builds its own: about 1 ms.)
+        """
+        grid = self.preset.bev
+        x, y = np.meshgrid(np.arange(max(grid.x_min, 2.0), grid.x_max, 0.5, dtype=np.float32),
+                           np.arange(grid.y_min, grid.y_max, 0.5, dtype=np.float32))
+        road = np.stack([x.ravel(), y.ravel(), np.full(x.size, self.preset.decode.ground_z, np.float32),
+                         np.full(x.size, 0.3, np.float32)], axis=1)
+        image = np.zeros((*KITTI_IMAGE_HW, 3), np.uint8)
+        self.detect(image, road, KITTI_CALIBRATION)

@@ -32,6 +32,9 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
+# The warm-up frames meet at a barrier, one per worker thread; a thread that never comes is a bug, not a wait.
+WARM_UP_BARRIER_S = 60.0
+
 
 class PoolFull(Exception):
     """Every worker is busy and the queue is full."""
@@ -148,9 +151,23 @@ class InferencePool:
             raise PoolTimeout(f"the frame took longer than {timeout_s:g} s") from None
 
     def warm_up(self, runs: int) -> None:
-        """Run every distinct Detector's networks ``runs`` times (blocking; call it off the event loop)."""
+        """Run every distinct Detector's networks ``runs`` times, then one frame on each worker thread.
+
+        Blocking; call it off the event loop. The frames wait for each other at a barrier, so each one
+        starts a worker thread of its own and makes that thread's buffers (Detector.warm_up_thread).
+        """
+        if runs == 0:
+            return
         for detector in self.detectors:
             detector.warm_up(runs)
+        barrier = threading.Barrier(self.workers)
+
+        def on_a_worker() -> None:
+            barrier.wait(timeout=WARM_UP_BARRIER_S)
+            self._local.detector.warm_up_thread()
+
+        for future in [self._executor.submit(on_a_worker) for _ in range(self.workers)]:
+            future.result()
 
     def shutdown(self) -> None:
         """Refuse new jobs, let running and waiting ones finish, stop the threads."""

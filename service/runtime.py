@@ -45,7 +45,7 @@ class Runtime:
         return tuple(detector.preset.crop_hw) if detector.two_stage else None  # type: ignore[return-value]
 
     def warm_up(self, runs: int) -> None:
-        """Run the networks ``runs`` times, then mark the runtime ready (blocking)."""
+        """Run the networks ``runs`` times and a frame on each worker, then mark the runtime ready (blocking)."""
         try:
             self.pool.warm_up(runs)
         except Exception as exc:  # an execution provider failing at first run: stay not ready, say why

@@ -61,7 +61,10 @@ class Settings(BaseSettings):
         False, description="also run PIXOR on the BEV mirrored left to right and average the maps: more boxes right "
         "to IoU 0.7, PIXOR's time twice over (docs/models.md)"
     )
-    warmup_runs: int = Field(1, ge=0, le=1000, description="network runs on zero inputs before /readyz says ready")
+    warmup_runs: int = Field(
+        1, ge=0, le=1000, description="network runs on zero inputs before /readyz says ready, then one frame on each "
+        "worker thread to make its buffers (0: none of it)"
+    )
     shutdown_timeout_s: float = Field(
         60.0, gt=0, description="on SIGTERM, how long in-flight requests may take to finish"
     )

@@ -9,26 +9,15 @@ from __future__ import annotations
 
 import numpy as np
 
-# --------------------------------------------------------------------------- camera
-IMAGE_HW = (375, 1242)  # KITTI image_2 size (rows, columns)
+from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW
 
-# Base calibration: KITTI drive 2011_09_26 (training frames 000001/000003/000004 in
-# tests/data/kitti); a test checks these against the file. Frames perturb it slightly.
-BASE_P2 = np.array([
-    [7.215377e02, 0.0, 6.095593e02, 4.485728e01],
-    [0.0, 7.215377e02, 1.728540e02, 2.163791e-01],
-    [0.0, 0.0, 1.0, 2.745884e-03],
-])
-BASE_R0_RECT = np.array([
-    [9.999239e-01, 9.837760e-03, -7.445048e-03],
-    [-9.869795e-03, 9.999421e-01, -4.278459e-03],
-    [7.402527e-03, 4.351614e-03, 9.999631e-01],
-])
-BASE_TR_VELO_TO_CAM = np.array([
-    [7.533745e-03, -9.999714e-01, -6.166020e-04, -4.069766e-03],
-    [1.480249e-02, 7.280733e-04, -9.998902e-01, -7.631618e-02],
-    [9.998621e-01, 7.523790e-03, 1.480755e-02, -2.717806e-01],
-])
+# --------------------------------------------------------------------------- camera
+IMAGE_HW = KITTI_IMAGE_HW
+
+# Base calibration: KITTI drive 2011_09_26 (pipeline.calib.KITTI_CALIBRATION). Frames perturb it slightly.
+BASE_P2 = KITTI_CALIBRATION.P2
+BASE_R0_RECT = KITTI_CALIBRATION.R0_rect
+BASE_TR_VELO_TO_CAM = KITTI_CALIBRATION.Tr_velo_to_cam
 # Per-frame calibration jitter (1 sigma): KITTI's drives differ by about this much.
 CALIB_FOCAL_SIGMA = 3.0  # pixels
 CALIB_PRINCIPAL_SIGMA = 4.0  # pixels

@@ -92,6 +92,44 @@ def test_reused_buffers_clear_the_pseudo_points_of_the_previous_frame():
             np.testing.assert_array_equal(voxelizer.height_voxels(), fresh.height_voxels())
 
 
+# Run in a fresh interpreter: in a process whose allocator already holds freed memory (as the test
+# workers do, and training's allocator settings), np.zeros may reuse it, zeroed and so already written.
+_PAGE_FAULTS = """
+import resource, sys
+from pipeline.bev import BevVoxelizer
+from pipeline.kitti import read_velodyne
+from pipeline.presets import PRESETS
+
+points = read_velodyne(sys.argv[1]).points
+kept = []
+for prefault in (False, True):
+    voxelizer = BevVoxelizer(PRESETS["edge"].bev, prefault=prefault)
+    kept += [voxelizer(points), voxelizer.mirrored()]
+    before = resource.getrusage(resource.RUSAGE_THREAD).ru_minflt
+    for buffer in kept[-2:]:
+        buffer.fill(0.5)  # every page of the BEV and of its mirror
+    print(resource.getrusage(resource.RUSAGE_THREAD).ru_minflt - before)
+"""
+
+
+def test_a_prefaulted_voxelizer_writes_every_page_when_made():
+    """A Detector's kept voxelizer pays its page faults at start-up, not over its first frames; its BEV
+    and mirror are the plain voxelizer's."""
+    import subprocess
+    import sys
+
+    scan = KITTI / "velodyne" / "000006.bin"
+    result = subprocess.run([sys.executable, "-c", _PAGE_FAULTS, str(scan)], capture_output=True, text=True,
+                            check=True, timeout=120)
+    plain, prefaulted = map(int, result.stdout.split())
+    assert prefaulted <= 2 < plain
+    points = read_velodyne(scan).points
+    grid = PRESETS["edge"].bev
+    voxelizer = BevVoxelizer(grid, prefault=True)
+    np.testing.assert_array_equal(voxelizer(points), voxelize_bev(points, grid))
+    np.testing.assert_array_equal(voxelizer.mirrored(), voxelize_bev(points, grid)[:, ::-1])
+
+
 def test_real_scan_equals_reference():
     points = read_velodyne(KITTI / "velodyne" / "000006.bin").points
     grid = BevGrid()

@@ -612,6 +612,47 @@ def test_health_routes(client: AppClient) -> None:
         assert client.request("HEAD", path).status_code == 200
 
 
+def test_warm_up_runs_a_frame_on_every_worker_thread(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    """After the warm-up each worker thread holds its BEV buffers (the mirror's too)."""
+    from pipeline.detector import Detector
+
+    detector = Detector(tiny_models, mirror_tta=True)
+    calib = parse_calib(frame["calib"].decode())
+    image = cv2.cvtColor(cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    points = np.frombuffer(frame["points"], np.float32).reshape(-1, 4)
+    met = threading.Barrier(2)
+
+    def buffers(d: Detector) -> tuple[int, bool]:
+        met.wait(10)  # two probes at once: one on each worker thread
+        voxelizer = getattr(d._local, "voxelizer", None)
+        made = voxelizer is not None and voxelizer._mirror is not None
+        d.detect(image, points, calib, emulate_to_beams=16)
+        return threading.get_ident(), made
+
+    async def probe(pool: InferencePool) -> list[tuple[int, bool]]:
+        results: list[tuple[int, bool]] = []
+
+        async def one() -> None:
+            results.append((await pool.run(buffers, timeout_s=30)).value)
+
+        async with anyio.create_task_group() as group:
+            group.start_soon(one)
+            group.start_soon(one)
+        return results
+
+    cold = InferencePool([detector], workers=2, queue_size=0, metrics=Metrics())
+    cold.warm_up(0)  # no warm-up: nothing made before the first frames
+    assert [made for _, made in anyio.run(probe, cold)] == [False, False]
+    cold.shutdown()
+
+    warm = InferencePool([Detector(tiny_models, mirror_tta=True)], workers=2, queue_size=0, metrics=Metrics())
+    warm.warm_up(1)
+    results = anyio.run(probe, warm)
+    warm.shutdown()
+    assert len({thread for thread, _ in results}) == 2
+    assert [made for _, made in results] == [True, True]
+
+
 def test_not_ready_until_warmed_up(tiny_models: Path, frame: dict[str, bytes]) -> None:
     from service.metrics import Metrics as MetricsClass
     from service.runtime import load_runtime
