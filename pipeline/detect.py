@@ -63,6 +63,7 @@ from pipeline.render import (
     VIDEO_FPS,
     FrameVideo,
     VideoError,
+    camera_scale_in_stack,
     draw_label,
     render_bev,
     render_camera,
@@ -267,8 +268,10 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
                 path = out / kind / f"{frame.frame_id}.png"
                 write_png(path, picture)
                 images.append(path)
-            if video is not None:
-                video.add(_captioned(stack_views(camera, bev), frame.frame_id, len(objects)))
+            if video is not None:  # the camera view drawn again at the video's size, so its scores stay readable
+                small = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
+                                      scale=camera_scale_in_stack(frame.image_hw, bev))
+                video.add(_captioned(stack_views(small, bev), frame.frame_id, len(objects)))
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
     return DetectResult(list(ids), results, images, means, count, skipped)

@@ -11,6 +11,7 @@ import numpy as np
 
 from pipeline.boxes import bev_corners, box_corners_3d
 from pipeline.calib import Calibration
+from pipeline.preprocess import scale_calibration
 from pipeline.presets import BevGrid
 
 PREDICTION_BGR = (60, 220, 60)
@@ -79,12 +80,20 @@ def render_camera(
     boxes: np.ndarray | None = None,
     scores: np.ndarray | None = None,
     gt_boxes: np.ndarray | None = None,
+    scale: float = 1.0,
 ) -> np.ndarray:
     """BGR uint8 picture of the camera image (RGB in) with the 3D boxes drawn as wireframes, the front face
     crossed: ground truth in red, predictions in green with their scores (kept inside the picture). An edge
     reaching behind the camera (a car beside it) is cut at :data:`NEAR_PLANE_M` in front of it; a box wholly
     behind the camera, with a corner beyond 1 km, not finite or projecting more than 1e5 pixels away is left
-    out (the BEV picture shows every box)."""
+    out (the BEV picture shows every box).
+
+    scale: the image is resized by it first and the boxes drawn on the result, so lines and scores keep
+    their size in pixels (a video's frame: :func:`camera_scale_in_stack`)."""
+    if scale != 1.0:
+        size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
+        image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+        calib = scale_calibration(calib, scale)
     canvas = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR)
     edges = np.array(BOX_EDGES + FRONT_DIAGONALS)
     for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
@@ -115,11 +124,16 @@ def render_camera(
     return canvas
 
 
+def camera_scale_in_stack(image_hw: tuple[int, int], bev: np.ndarray) -> float:
+    """How much :func:`stack_views` scales a camera picture of ``image_hw`` to sit above ``bev``: to the BEV's
+    width, at most to its height (an image taller than wide)."""
+    return min(bev.shape[1] / image_hw[1], bev.shape[0] / image_hw[0])
+
+
 def stack_views(camera: np.ndarray, bev: np.ndarray) -> np.ndarray:
-    """One frame of a video: the camera picture above the BEV picture, scaled to the BEV's width (at most to
-    its height, for an image taller than wide), centred on black."""
-    scale = min(bev.shape[1] / camera.shape[1], bev.shape[0] / camera.shape[0])
-    height = max(1, round(camera.shape[0] * scale))
+    """One frame of a video: the camera picture above the BEV picture, scaled by
+    :func:`camera_scale_in_stack` (not at all when drawn at that scale already), centred on black."""
+    height = max(1, round(camera.shape[0] * camera_scale_in_stack(camera.shape[:2], bev)))
     return np.vstack([fit_into(camera, (bev.shape[1], height)), bev])
 
 

@@ -749,6 +749,27 @@ def test_camera_picture_draws_each_box_where_its_corners_project(frame):
     assert side.sum() > 500 and np.nonzero(side)[1].min() > frame.image.shape[1] // 2  # drawn, on the right (y < 0)
 
 
+def test_camera_picture_drawn_at_a_scale_keeps_its_lines_and_scores_in_pixels(frame):
+    """A video's camera view is drawn after the image is scaled: the corners land at their projections times
+    the scale, and the score label is as many pixels tall as in the full-size picture."""
+    from pipeline.boxes import box_corners_3d
+    from pipeline.render import render_camera
+
+    ahead = np.array([[15, 2, -0.9, 4, 1.7, 1.5, 0.3]])
+    black = np.zeros_like(frame.image)
+    uv, _ = frame.calib.velo_to_image(box_corners_3d(ahead).reshape(-1, 3))
+    label_rows = {}
+    for scale in (1.0, 0.5):
+        picture = render_camera(black, frame.calib, ahead, np.array([0.9]), scale=scale)
+        assert picture.shape[:2] == (round(black.shape[0] * scale), round(black.shape[1] * scale))
+        drawn = (picture == [60, 220, 60]).all(axis=2)
+        for u, v in np.rint(uv * scale).astype(int):  # each corner, where it projects in the scaled picture
+            assert drawn[max(v - 1, 0):v + 2, max(u - 1, 0):u + 2].any()
+        rows = np.nonzero(drawn.any(axis=1))[0]
+        label_rows[scale] = int((rows < uv[:, 1].min() * scale - 1).sum())  # green rows above the box: the label
+    assert label_rows[1.0] >= 8 and abs(label_rows[0.5] - label_rows[1.0]) <= 1
+
+
 def test_runtime_never_imports_torch_or_onnx():
     """The service container carries neither: torch is for training, the onnx package for export and the
     benchmarks' peak micro-benchmark (requirements/service-*.txt leave it out)."""
