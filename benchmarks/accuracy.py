@@ -60,7 +60,7 @@ from evaluation.report import (
     spread_json,
     to_json,
 )
-from pipeline.cli import check_output, positive_int, probability, skipped_summary
+from pipeline.cli import check_output, positive_int, probability, quiet_interrupt, skipped_summary
 from pipeline.errors import InputError
 
 log = logging.getLogger("accuracy")
@@ -346,6 +346,7 @@ def _refuse_flags_of_other_modes(parser: argparse.ArgumentParser, args: argparse
                 parser.error(f"argument {_flag(dest)}: only with --data DIR (the detector runs over a dataset)")
 
 
+@quiet_interrupt("no table was made; what was written before (--out's result files, --plots' pictures) stays")
 def main(argv: list[str] | None = None) -> int:
     """Parse flags, run, print the table; input errors are printed without a traceback (exit code 2)."""
     parser = build_parser()

@@ -49,7 +49,7 @@ except ModuleNotFoundError as exc:
     raise SystemExit(TORCH_MISSING) from exc
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
-from pipeline.cli import check_output, positive_int, unwritable
+from pipeline.cli import check_output, positive_int, quiet_interrupt, unwritable
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_depth_png, write_depth_png
 from pipeline.model_files import ModelFileError, load_manifest
@@ -114,6 +114,7 @@ def to_full_image(view: np.ndarray, image_hw: tuple[int, int], preset: Preset) -
     return full
 
 
+@quiet_interrupt("the maps written so far stay in --out")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -26,7 +26,7 @@ import numpy as np
 from evaluation.frames import load_label_dirs
 from evaluation.kitti_eval import KittiEvalResult, evaluate
 from evaluation.report import format_table
-from pipeline.cli import check_output, positive_int
+from pipeline.cli import check_output, positive_int, quiet_interrupt
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D, write_labels
 
@@ -124,6 +124,7 @@ def write_random_label_sets(out_dir: Path, n_frames: int, seed: int) -> tuple[Pa
     return gt_dir, det_dir
 
 
+@quiet_interrupt("no timing was reported (--keep's label sets written so far stay)")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=positive_int, default=3769, help="frames to generate (default: 3769)")

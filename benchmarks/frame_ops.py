@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import check_output, positive_int, write_text_file
+from pipeline.cli import check_output, positive_int, quiet_interrupt, write_text_file
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.postprocess import boxes_from_maps
@@ -123,6 +123,7 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper")
     }
 
 
+@quiet_interrupt("no report was written (--json is written at the end)")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frame", default="000006", help="bundled KITTI frame id (default 000006)")

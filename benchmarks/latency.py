@@ -52,7 +52,14 @@ from benchmarks.op_profile import profile_network
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
-from pipeline.cli import check_figure, check_output, non_negative_int, positive_int, write_text_file
+from pipeline.cli import (
+    check_figure,
+    check_output,
+    non_negative_int,
+    positive_int,
+    quiet_interrupt,
+    write_text_file,
+)
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.errors import InputError
@@ -632,6 +639,7 @@ def print_report(report: dict) -> None:
               f"{b['min']:.2f}–{b['max']:.2f}× over {b['blocks']} blocks){nets} (p50)")
 
 
+@quiet_interrupt("no report was written (--json and --plot are written at the end)")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])

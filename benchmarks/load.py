@@ -55,7 +55,14 @@ except ImportError:  # the runtime install (make setup) leaves the test tools ou
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from pipeline.cli import check_figure, check_output, non_negative_int, positive_float, positive_int
+from pipeline.cli import (
+    check_figure,
+    check_output,
+    non_negative_int,
+    positive_float,
+    positive_int,
+    quiet_interrupt,
+)
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids
 
@@ -547,6 +554,7 @@ def check_frames(data: Path, frames: list[str]) -> None:
                 raise InputError(f"--data {data}: frame {frame} has no {folder}/{frame}{suffix}")
 
 
+@quiet_interrupt("no report was written (--json and --plot come at the end); a service it started is stopped")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python benchmarks/load.py",

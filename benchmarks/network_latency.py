@@ -36,7 +36,7 @@ from tqdm import tqdm
 
 from export import run as export_run
 from export.inputs import kitti_inputs
-from pipeline.cli import positive_int
+from pipeline.cli import positive_int, quiet_interrupt
 from pipeline.detector import session_options
 from pipeline.errors import TORCH_MISSING
 from pipeline.graph_inputs import feeds_for
@@ -182,6 +182,7 @@ def _preset_name(text: str) -> str:
     return text
 
 
+@quiet_interrupt("no report was written")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.network_latency",

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
+from pipeline.cli import quiet_interrupt
 from pipeline.detector import session_options
 from pipeline.graph_inputs import feeds_for
 
@@ -166,6 +167,7 @@ def describe(name: str, profile: dict, shown: int = 6) -> str:
             "the fp32 MatMul's)")
 
 
+@quiet_interrupt("no report was written")
 def main(argv: list[str] | None = None) -> int:
     """Per-node times of each network of a model directory on one frame, slowest first."""
     import argparse

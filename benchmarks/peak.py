@@ -20,6 +20,8 @@ import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 
+from pipeline.cli import quiet_interrupt
+
 
 @dataclass(frozen=True)
 class PeakResult:
@@ -87,6 +89,7 @@ def measure_peak(threads: int, repeats: int = 5, matmul_n: int = 4096, conv_chan
     return PeakResult(matmul_gflops=matmul, conv_gflops=conv, threads=threads)
 
 
+@quiet_interrupt("no report was written")
 def main(argv: list[str] | None = None) -> int:
     import argparse
     import os

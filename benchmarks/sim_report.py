@@ -26,7 +26,7 @@ sys.path.insert(0, str(ROOT))
 from pipeline.beams import emulate_beams
 from pipeline.boxes import box_corners_3d, labels_to_boxes, points_in_boxes
 from pipeline.calib import Calibration
-from pipeline.cli import check_figure, positive_int
+from pipeline.cli import check_figure, positive_int, quiet_interrupt
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D, read_calib, read_image, read_labels, read_velodyne
 
@@ -198,6 +198,7 @@ def run(config: ReportConfig) -> str:
     return tables(sim, real)
 
 
+@quiet_interrupt("no report was written (--figure is drawn at the end)")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

@@ -13,7 +13,7 @@ from pathlib import Path
 from export.directory import check_destination
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
 from export.precision import REDUCE_RANGE_HELP
-from pipeline.cli import positive_int, unwritable
+from pipeline.cli import interrupted, positive_int, unwritable
 from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import frame_ids
 from pipeline.model_files import ModelFileError
@@ -108,8 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     except BaseException as exc:
         if not _interrupted(exc):
             raise
-        print(f"error: interrupted; --out {config.out} is as it was (nothing written)", file=sys.stderr)
-        return 130
+        return interrupted(f"--out {config.out} is as it was (nothing written)")
 
 
 def _interrupted(exc: BaseException | None) -> bool:

@@ -29,6 +29,7 @@ from export.directory import check_destination, staged
 from export.inputs import kitti_inputs, random_inputs
 from export.manifest import graph_inputs
 from export.rewrite import lower_for_cpu
+from pipeline.cli import interrupted
 from pipeline.graph_inputs import feeds_for
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import preset_from_dict
@@ -122,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # an unwritable or full --out: the source is untouched
         print(f"error: {exc.filename or args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # the staging folder is removed; the result is swapped in only at the end
+        return interrupted(f"{args.out or args.models} is as it was (nothing written)")
     for name, counts in result.rewrites.items():
         changed = ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "nothing to rewrite"
         print(f"{name}: {changed}; max |difference| {result.max_abs_difference[name]:.3g}")

@@ -272,7 +272,7 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     from export.inputs import DEFAULT_KITTI_DIR
-    from pipeline.cli import positive_int
+    from pipeline.cli import interrupted, positive_int
     from pipeline.errors import InputError
 
     parser = argparse.ArgumentParser(prog="python -m export.precision",
@@ -297,6 +297,8 @@ def main(argv: list[str] | None = None) -> int:
     except OSError as exc:  # an unwritable or full --out: the source and any earlier --out are untouched
         print(f"error: {exc.filename or args.out}: {exc.strerror or exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # the staging folder is removed; --out is swapped in only at the end
+        return interrupted(f"--out {args.out} is as it was (nothing written)")
     print(f"wrote {args.out} ({args.precision}); deviation from fp32: "
           f"{json.dumps(manifest['precision_info']['deviation_from_fp32'])}")
     return 0

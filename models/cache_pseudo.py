@@ -20,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.beams import BEAM_COUNTS, emulate_beams
-from pipeline.cli import check_output, unwritable
+from pipeline.cli import check_output, interrupted, unwritable
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
@@ -121,9 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         print(unwritable(args.out, exc), file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"error: interrupted; the maps already in {args.out} stay: rerun the same command to resume",
-              file=sys.stderr)
-        return 130
+        return interrupted(f"the maps already in {args.out} stay; rerun the same command to resume")
     print(f"cached {n} depth map(s) in {args.out}")
     return 0
 

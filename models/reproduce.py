@@ -66,7 +66,7 @@ from models.cache_pseudo import run as cache_pseudo
 from models.schedule import Job, JobFailed, run_jobs
 from models.train import TrainConfig
 from models.train import run as train
-from pipeline.cli import check_output, positive_float, positive_int
+from pipeline.cli import check_output, interrupted, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError
 from pipeline.presets import PRESETS, get_preset, lidar_only
@@ -493,9 +493,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}; rerun the same command to resume", file=sys.stderr)
         return 2 if exc.user_error else 1
     except KeyboardInterrupt:
-        print(f"error: interrupted; {config.weights} is as it was; rerun the same command to resume",
-              file=sys.stderr)
-        return 130
+        return interrupted(f"{config.weights} is as it was; rerun the same command to resume")
     print(format_table(report))
     print(f"shipped {report['shipped']} ({report['shipped_from']}); {report['total_seconds'] / 60:.1f} min in all")
     return 0

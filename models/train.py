@@ -89,7 +89,7 @@ from models.start_weights import (
     start_training_metadata,
 )
 from models.validation import validate_depth, validate_detector
-from pipeline.cli import non_negative_int, positive_float, positive_int
+from pipeline.cli import interrupted, non_negative_int, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.preprocess import depth_inputs
@@ -576,8 +576,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         kept = ("keeps the last finished epoch (state.pt); rerun with --resume to continue"
                 if (args.out / STATE_FILE).is_file() else "has no finished epoch yet; nothing to resume")
-        print(f"interrupted: {args.out} {kept}", file=sys.stderr)
-        return 130
+        return interrupted(f"{args.out} {kept}")
     if result.nothing_to_do:
         print(already_trained(result))
         return 0

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.cli import skipped_summary
+from pipeline.cli import interrupted, skipped_summary
 from pipeline.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -264,6 +264,8 @@ def main(argv: list[str] | None = None) -> int:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"error: DST_DIR {args.dst_dir}: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        return interrupted(f"the scans written so far stay in {args.dst_dir}")
     print(f"wrote {run.written} scans to {args.dst_dir}")
     if run.skipped:
         print(f"error: {skipped_summary([path.name for path in run.skipped], 'scan', run.written + len(run.skipped))}",

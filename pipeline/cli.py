@@ -1,5 +1,6 @@
 """Argument types and output checks shared by the commands: numbers that must be positive are refused by
-argparse itself, output files that cannot be written before any work.
+argparse itself, output files that cannot be written before any work; and how a command says Ctrl-C
+stopped it (:func:`interrupted`, :func:`quiet_interrupt`).
 
 A count of 0 is not "the default": ``--epochs 0`` used to fall through to the recipe's 30 epochs.
 """
@@ -7,8 +8,11 @@ A count of 0 is not "the default": ``--epochs 0`` used to fall through to the re
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import os
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.errors import InputError
@@ -111,3 +115,30 @@ def skipped_summary(names: list[str], what: str, total: int | None = None) -> st
     more = f" and {len(names) - 10} more" if len(names) > 10 else ""
     of = f" of {total}" if total is not None else ""
     return f"{len(names)}{of} {what}(s) skipped (each named above with its reason): {', '.join(names[:10])}{more}"
+
+
+INTERRUPTED_STATUS = 130  # 128 + SIGINT: what a shell reports for a command that Ctrl-C stopped
+
+
+def interrupted(leaves: str) -> int:
+    """Say in one line on stderr that Ctrl-C stopped the command, and what it leaves (``leaves``: what the
+    user has now and how to go on), instead of a traceback. Returns the exit status, 130."""
+    print(f"interrupted: {leaves}", file=sys.stderr)
+    return INTERRUPTED_STATUS
+
+
+Main = Callable[..., int]
+
+
+def quiet_interrupt(leaves: str) -> Callable[[Main], Main]:
+    """Decorate a command's ``main``: Ctrl-C ends it with :func:`interrupted`'s one line (for commands whose
+    outputs are written at the end, so an interruption leaves the same thing whenever it comes)."""
+    def decorate(main: Main) -> Main:
+        @functools.wraps(main)
+        def run(*args: object, **kwargs: object) -> int:
+            try:
+                return main(*args, **kwargs)
+            except KeyboardInterrupt:
+                return interrupted(leaves)
+        return run
+    return decorate

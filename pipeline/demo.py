@@ -24,7 +24,7 @@ import numpy as np
 from pipeline.beams import emulate_beams, recover_rings
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import unwritable
+from pipeline.cli import quiet_interrupt, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.model_files import ModelFileError
@@ -81,6 +81,7 @@ def run(models: Path | None, frame_id: str, out: Path) -> dict:
     }
 
 
+@quiet_interrupt("the pictures and result files written so far stay in --out")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")

@@ -39,7 +39,7 @@ import numpy as np
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import in_camera_view, labels_to_boxes
-from pipeline.cli import frame_rate, probability, skipped_summary, unwritable
+from pipeline.cli import frame_rate, interrupted, probability, skipped_summary, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import (
     DRIVE_SCANS,
@@ -399,8 +399,8 @@ def main(argv: list[str] | None = None) -> int:
             video = f"; the video {args.video} was written"
         else:
             video = f"; no video was written{' (the earlier one is kept)' if args.video.is_file() else ''}"
-        print(f"interrupted: the frames detected so far have their files in {args.out}{video}", file=sys.stderr)
-        return 128 + (exc.args[0] if isinstance(exc, Stopped) else signal.SIGINT)
+        status = interrupted(f"the frames detected so far have their files in {args.out}{video}")
+        return 128 + exc.args[0] if isinstance(exc, Stopped) else status
     finally:
         signal.signal(signal.SIGTERM, previous)
 

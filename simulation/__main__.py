@@ -8,7 +8,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from pipeline.cli import non_negative_int, positive_int
+from pipeline.cli import interrupted, non_negative_int, positive_int
 from simulation.run import RunConfig, run
 
 
@@ -34,6 +34,8 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # each frame's files are whole (depth_2 last, renamed into place)
+        return interrupted(f"the frames finished are in {args.out}; rerun the same command to resume")
     except OSError as exc:  # --out cannot be written (no permission, a full disk)
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"error: --out {args.out}: {where}{exc.strerror or exc}", file=sys.stderr)

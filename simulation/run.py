@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import signal
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -42,6 +43,12 @@ class RunResult:
     ids: list[str]
     list_file: Path
     seconds_per_frame: list[float] = field(default_factory=list)
+
+
+def _leave_ctrl_c_to_the_parent() -> None:
+    """A worker process ignores Ctrl-C, which reaches every process of the terminal's group: the parent says
+    it once, stops handing out frames, and the frames being made finish whole."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _make(seed: int, index: int, out: Path) -> float:
@@ -104,7 +111,7 @@ def run(config: RunConfig) -> RunResult:
             times.append(_make(config.seed, i, out))
             bar.update()
     else:
-        with ProcessPoolExecutor(max_workers=config.workers) as pool:
+        with ProcessPoolExecutor(max_workers=config.workers, initializer=_leave_ctrl_c_to_the_parent) as pool:
             for seconds in pool.map(_make, [config.seed] * len(indices), indices, [out] * len(indices)):
                 times.append(seconds)
                 bar.update()

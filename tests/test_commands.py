@@ -125,3 +125,44 @@ def test_eval_speed_refuses_a_keep_folder_it_cannot_write(tmp_path):
                           capture_output=True, text=True, timeout=120, check=False, cwd=REPO)
     assert done.returncode == 2 and "--keep" in done.stderr and "not empty" in done.stderr
     assert (labels / "000000.txt").read_text() == "Car 0 0 0 1 2 3 4 1 1 1 1 1 1 0\n"
+
+
+def _stop(*_: object, **__: object) -> None:
+    raise KeyboardInterrupt
+
+
+# (command, its arguments, the function Ctrl-C is raised in: a name in the command's module, or the argument
+# parser for the commands that write their outputs only at the end, and what the line says is left).
+INTERRUPTIONS = [
+    ("simulation", ["--out", "{tmp}/sim", "--frames", "1", "--seed", "1"], "run",
+     "the frames finished are in {tmp}/sim; rerun the same command to resume"),
+    ("pipeline.beams", [str(KITTI / "velodyne"), "{tmp}/v16"], "convert_folder", "the scans written so far stay in"),
+    ("export.precision", ["--models", "weights/edge", "--precision", "int8", "--out", "{tmp}/int8"],
+     "convert_precision", "--out {tmp}/int8 is as it was (nothing written)"),
+    ("export.lower", ["--models", "weights/edge", "--out", "{tmp}/low"], "run", "{tmp}/low is as it was"),
+    ("pipeline.demo", [], "argparse", "the pictures and result files written so far stay in --out"),
+    *[(name, [], "argparse", "") for name in SCRIPTS],
+]
+
+
+@pytest.mark.parametrize(("name", "args", "where", "says"), INTERRUPTIONS, ids=[i[0] for i in INTERRUPTIONS])
+def test_ctrl_c_ends_a_command_with_one_line(name, args, where, says, tmp_path, monkeypatch, capsys):
+    """Ctrl-C (a KeyboardInterrupt wherever it comes) ends each command with exit status 130 and one line that
+    says what it leaves, not a traceback."""
+    import argparse
+    import importlib
+
+    module = importlib.import_module(f"benchmarks.{name}" if name in SCRIPTS else
+                                     f"{name}.__main__" if name == "simulation" else name)
+    if where == "argparse":
+        monkeypatch.setattr(argparse.ArgumentParser, "parse_args", _stop)
+    else:
+        monkeypatch.setattr(module, where, _stop)
+    monkeypatch.chdir(REPO)
+    try:
+        code = module.main([arg.format(tmp=tmp_path) for arg in args])
+    except KeyboardInterrupt:
+        pytest.fail(f"{name}: Ctrl-C escaped its main as a traceback")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 130 and len(err) == 1 and err[0].startswith("interrupted: "), err
+    assert says.format(tmp=tmp_path) in err[0]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -197,6 +198,40 @@ def test_resuming_needs_the_same_seed_and_extending_keeps_the_list(dataset: Path
                            str(SEED), "--no-progress"], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and "all 2 frames were already in" in done.stdout, done.stderr
     assert _ids(folder) == [f"{i:06d}" for i in range(FRAMES + 1)]
+
+
+def test_ctrl_c_stops_every_worker_with_one_line_and_keeps_whole_frames(tmp_path: Path) -> None:
+    """Ctrl-C reaches the whole process group: the workers leave it to the parent, which says it once (no
+    traceback from any process) and exits 130; every frame on disk is whole, and the rerun resumes."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out, frames = tmp_path / "sim", 40
+    command = [sys.executable, "-m", "simulation", "--out", str(out), "--frames", str(frames), "--seed", str(SEED),
+               "--workers", "2", "--no-progress"]
+    log = tmp_path / "stderr.txt"
+    with open(log, "w") as stderr:  # the workers' own stderr included
+        process = subprocess.Popen(command, stderr=stderr, stdout=subprocess.DEVNULL, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while len(list((out / "depth_2").glob("*.png"))) < 2 and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert process.poll() is None, "the run ended before it could be interrupted"
+    os.killpg(process.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the parent and its workers
+    code = process.wait(timeout=120)
+    err = log.read_text()
+    assert code == 130 and "Traceback" not in err, err[-2000:]
+    assert err.count("interrupted:") == 1
+    assert f"interrupted: the frames finished are in {out}; rerun the same command to resume" in err
+    finished = sorted(p.stem for p in (out / "depth_2").glob("*.png") if p.name.count(".") == 1)
+    assert 2 <= len(finished) < frames
+    for name in finished:  # each frame whose depth map is there has all its files
+        assert all((out / sub / f"{name}{ext}").is_file() for sub, ext in (
+            ("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt")))
+    upto = int(finished[-1]) + 2  # one frame past the last finished
+    resumed = run(RunConfig(out=out, frames=upto, seed=SEED, progress=False))
+    assert len(resumed.seconds_per_frame) == upto - len(finished)  # only the frames not finished before
 
 
 def test_bad_run_options_are_refused_before_any_folder_is_made(tmp_path: Path) -> None:
