@@ -134,26 +134,37 @@ def recover_rings(points: np.ndarray, expected_rings: int = 64, method: str = "a
     return RingAssignment(ring=ring, n_rings=n_segments, elevation_deg=medians, method=used)
 
 
+def check_beam_mode(beams: int, mode: str) -> None:
+    """Refuse a line count its mode cannot give (a folder run checks it before its first scan)."""
+    if mode == "stride":
+        if beams <= 0 or 64 % beams != 0:
+            raise InputError(f"--beams: {beams} must divide 64 ({', '.join(map(str, BEAM_COUNTS))})")
+    elif mode == "vlp16":
+        if beams != 16:  # it used to keep the same 9 rings for --beams 4 as for 16, under the 4-line label
+            raise InputError(f"--beams: {beams} with --mode vlp16, which emulates a VLP-16's 16 lines: give --beams 16, "
+                             "or --mode stride for other line counts")
+    else:
+        raise InputError(f"--mode: unknown beam emulation mode {mode!r} (stride or vlp16)")
+
+
 def select_rings(rings: RingAssignment, beams: int, mode: str = "stride") -> np.ndarray:
     """Ring ids to keep.
 
     mode "stride": every k-th ring in elevation order from the top, k = 64 / beams
     (beams ∈ 32, 16, 8, 4), exactly ``beams`` rings even when a partial 65th segment exists.
-    mode "vlp16": for each VLP-16 elevation inside the HDL-64E field of view, the nearest ring.
+    mode "vlp16" (beams 16): for each VLP-16 elevation inside the HDL-64E field of view, the nearest ring:
+    9 of its 16 (−15° … +1°; the others look above the HDL-64E's +2°).
     """
+    check_beam_mode(beams, mode)
     if mode == "stride":
-        if beams <= 0 or 64 % beams != 0:
-            raise InputError(f"--beams: {beams} must divide 64 ({', '.join(map(str, BEAM_COUNTS))})")
         step = 64 // beams
         top = rings.n_rings - 1
         kept = np.arange(top, -1, -step)[:beams]
         return np.sort(kept).astype(np.int32)
-    if mode == "vlp16":
-        lo, hi = HDL64_ELEVATION_RANGE_DEG
-        targets = VLP16_ELEVATIONS_DEG[(VLP16_ELEVATIONS_DEG >= lo) & (VLP16_ELEVATIONS_DEG <= hi)]
-        nearest = np.argmin(np.abs(rings.elevation_deg[None, :] - targets[:, None]), axis=1)
-        return np.unique(nearest).astype(np.int32)
-    raise InputError(f"--mode: unknown beam emulation mode {mode!r} (stride or vlp16)")
+    lo, hi = HDL64_ELEVATION_RANGE_DEG
+    targets = VLP16_ELEVATIONS_DEG[(VLP16_ELEVATIONS_DEG >= lo) & (VLP16_ELEVATIONS_DEG <= hi)]
+    nearest = np.argmin(np.abs(rings.elevation_deg[None, :] - targets[:, None]), axis=1)
+    return np.unique(nearest).astype(np.int32)
 
 
 def emulate_beams(points: np.ndarray, beams: int = 16, mode: str = "stride") -> np.ndarray:
@@ -196,6 +207,24 @@ class FolderRun:
     skipped: dict[Path, str]
 
 
+def _refuse_full_scans_in(dst: Path, targets: list[Path]) -> None:
+    """Refuse a ``dst`` whose scans of the names to be written are full 64-line scans: SRC and DST given the
+    wrong way round. The run would overwrite them, and remove those of the scans it cannot thin."""
+    from pipeline.kitti import read_velodyne
+
+    existing = next((path for path in targets if path.is_file()), None)
+    if existing is None:
+        return
+    try:
+        rings = recover_rings(read_velodyne(existing).points)
+    except InputError:  # an unreadable old copy is not a scan to keep
+        return
+    if rings.method == "azimuth-wrap" and rings.n_rings >= MIN_RINGS_OF_64_LINES:
+        raise InputError(f"DST_DIR {dst}: holds full 64-line scans ({existing.name} among them), which "
+                         "this run would overwrite: are SRC_DIR and DST_DIR the wrong way round? Give a folder for "
+                         "the thinned copies")
+
+
 def convert_folder(src: Path, dst: Path, beams: int, mode: str = "stride", progress: bool = True) -> FolderRun:
     """Write the beam-emulated copy of every ``*.bin`` in ``src`` into ``dst``.
 
@@ -218,6 +247,8 @@ def convert_folder(src: Path, dst: Path, beams: int, mode: str = "stride", progr
         raise InputError(f"{src}: no velodyne .bin files")
     if dst.exists() and not dst.is_dir():
         raise InputError(f"{dst}: exists and is not a directory")
+    check_beam_mode(beams, mode)
+    _refuse_full_scans_in(dst, [dst / path.name for path in files])
     dst.mkdir(parents=True, exist_ok=True)
     skipped: dict[Path, str] = {}
     for path in tqdm(files, desc=f"{beams}-line", unit="scan", disable=not progress):
@@ -252,7 +283,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--beams", type=int, default=16, choices=BEAM_COUNTS, metavar="N",
                         help="lines to keep: 32, 16, 8 or 4 (default 16)")
     parser.add_argument("--mode", choices=["stride", "vlp16"], default="stride",
-                        help="stride: every k-th ring by elevation; vlp16: rings nearest the VLP-16 angles")
+                        help="stride: every k-th ring by elevation; vlp16 (with --beams 16): the rings nearest the "
+                        "VLP-16's angles inside the HDL-64E's field, 9 of its 16 (-15° … +1°)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:

@@ -172,7 +172,8 @@ def test_folder_command_goes_on_past_a_bad_scan(tmp_path):
     with_nan.tofile(src / "000003.bin")
     (src / "000004.bin").write_bytes(scan)
     dst.mkdir()
-    (dst / "000001.bin").write_bytes(scan)  # an earlier run's copy
+    thin_copy = emulate_beams(np.frombuffer(scan, np.float32).reshape(-1, 4), 16)
+    thin_copy.tofile(dst / "000001.bin")  # an earlier run's copy
     done = subprocess.run([sys.executable, "-m", "pipeline.beams", str(src), str(dst)],
                           capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 1 and "Traceback" not in done.stderr
@@ -184,6 +185,30 @@ def test_folder_command_goes_on_past_a_bad_scan(tmp_path):
     assert sorted(p.name for p in dst.iterdir()) == ["000003.bin", "000004.bin"]
     thinned = np.fromfile(dst / "000004.bin", np.float32).reshape(-1, 4)
     np.testing.assert_array_equal(thinned, emulate_beams(np.frombuffer(scan, np.float32).reshape(-1, 4), 16))
+
+
+def test_source_and_destination_swapped_is_refused_and_loses_nothing(tmp_path):
+    """A DST_DIR of full 64-line scans (the folders given the wrong way round) is refused before any scan is
+    written or removed: a thinned scan given as a source used to be skipped and its full-scan namesake in
+    DST_DIR removed, emptying the original folder."""
+    velodyne, thin = tmp_path / "velodyne", tmp_path / "velodyne16"
+    velodyne.mkdir()
+    for frame_id in ("000003", "000006"):
+        (velodyne / f"{frame_id}.bin").write_bytes((KITTI / "velodyne" / f"{frame_id}.bin").read_bytes())
+    before = {p.name: p.read_bytes() for p in velodyne.iterdir()}
+    assert convert_folder(velodyne, thin, 16, progress=False).written == 2
+    done = subprocess.run([sys.executable, "-m", "pipeline.beams", str(thin), str(velodyne)],
+                          capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert f"DST_DIR {velodyne}: holds full 64-line scans" in done.stderr and "wrong way round" in done.stderr
+    assert {p.name: p.read_bytes() for p in velodyne.iterdir()} == before
+
+
+def test_vlp16_mode_takes_16_lines_only():
+    """--mode vlp16 used to keep the same 9 rings for --beams 4 or 32 as for 16."""
+    for beams in (4, 8, 32):
+        with pytest.raises(InputError, match=f"--beams: {beams} with --mode vlp16"):
+            emulate_beams(scan("000006"), beams, "vlp16")
 
 
 def test_convert_folder_rejects_missing_source(tmp_path):
