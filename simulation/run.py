@@ -45,6 +45,10 @@ class RunResult:
     seconds_per_frame: list[float] = field(default_factory=list)
 
 
+# A frame's files, in the order write_frame writes them.
+FRAME_FILES = (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt"), ("depth_2", ".png"))
+
+
 def _leave_ctrl_c_to_the_parent() -> None:
     """A worker process ignores Ctrl-C, which reaches every process of the terminal's group: the parent says
     it once, stops handing out frames, and the frames being made finish whole."""
@@ -63,20 +67,28 @@ def _complete(out: Path, index: int) -> bool:
     or not at all (pipeline.kitti.write_depth_png renames it into place), so a frame killed mid-write is
     made again."""
     name = frame_name(index)
-    return all((out / sub / f"{name}{ext}").exists() for sub, ext in (
-        ("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt"), ("depth_2", ".png")))
+    return all((out / sub / f"{name}{ext}").exists() for sub, ext in FRAME_FILES)
 
 
-def _written_with_seed(out: Path, seed: int, index: int) -> bool:
-    """Whether the frame ``index`` already in ``out`` is the one ``seed`` generates (its calibration and
-    labels, byte for byte): a run resumed with another seed would otherwise mix two data sets."""
+def _not_written_with_seed(out: Path, seed: int, index: int) -> Path | None:
+    """The first file of frame ``index`` in ``out`` that ``seed`` does not make, or None: a run resumed with
+    another seed would otherwise mix two data sets, and one given a real KITTI folder would overwrite it.
+
+    Each file present must be the start of what the seed writes (a run killed while writing leaves a file
+    cut short), read in the order the frame is written, the calibration and labels first: they are small,
+    and exact across library versions, as an image's PNG encoding may not be.
+    """
     with tempfile.TemporaryDirectory(prefix="lowres3d-sim-") as scratch:
         for sub in SUBDIRS:
             (Path(scratch) / sub).mkdir(parents=True)
         write_frame(Path(scratch), generate_frame(seed, index))
         name = frame_name(index)
-        return all((Path(scratch) / sub / f"{name}.txt").read_bytes() == (out / sub / f"{name}.txt").read_bytes()
-                   for sub in ("calib", "label_2"))
+        for sub, ext in (("calib", ".txt"), ("label_2", ".txt"), ("velodyne", ".bin"), ("image_2", ".png")):
+            present = out / sub / f"{name}{ext}"
+            if present.is_file() and not (Path(scratch) / sub / f"{name}{ext}").read_bytes().startswith(
+                    present.read_bytes()):
+                return present
+    return None
 
 
 def run(config: RunConfig) -> RunResult:
@@ -96,12 +108,19 @@ def run(config: RunConfig) -> RunResult:
         (out / sub).mkdir(parents=True, exist_ok=True)
     all_indices = list(range(config.start, config.start + config.frames))
     indices = [i for i in all_indices if not _complete(out, i)]
-    if len(indices) < len(all_indices):
-        todo = set(indices)
-        present = next(i for i in all_indices if i not in todo)
-        if not _written_with_seed(out, config.seed, present):
-            raise ValueError(f"{out}: frame {frame_name(present)} there is not the one seed {config.seed} makes; "
-                             "resume with the seed that wrote the folder, or give another --out")
+    # The first frame already there whole, and the first of those to make that has files already (a KITTI
+    # folder has all but depth_2): each must be this seed's, or the run would mix or overwrite data sets.
+    todo = set(indices)
+    whole = next((i for i in all_indices if i not in todo), None)
+    begun = next((i for i in indices if any((out / sub / f"{frame_name(i)}{ext}").is_file()
+                                           for sub, ext in FRAME_FILES)), None)
+    for present in (whole, begun):
+        foreign = _not_written_with_seed(out, config.seed, present) if present is not None else None
+        if foreign is not None:
+            raise ValueError(f"{out}: frame {frame_name(present)} there is not the one seed {config.seed} makes "
+                             f"({foreign} differs); resume with the seed that wrote the folder, or give another --out "
+                             "(a folder of real KITTI frames is never written over)")
+    if whole is not None:
         log.info("resuming: %d of %d frames already written", len(all_indices) - len(indices), len(all_indices))
     log.info("writing %d frames (seed %d) to %s with %d worker(s)", len(indices), config.seed, out, config.workers)
     bar = tqdm(total=len(indices), unit="frame", desc="simulating", disable=not config.progress)

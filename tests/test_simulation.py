@@ -234,6 +234,43 @@ def test_ctrl_c_stops_every_worker_with_one_line_and_keeps_whole_frames(tmp_path
     assert len(resumed.seconds_per_frame) == upto - len(finished)  # only the frames not finished before
 
 
+def test_a_folder_of_real_kitti_frames_is_never_written_over(kitti_dir: Path, tmp_path: Path) -> None:
+    """KITTI's folders have every file of a frame but depth_2, so each frame counted as not made yet and was
+    overwritten with a synthetic one; now the run is refused and the files stay as they were."""
+    import shutil
+    import subprocess
+    import sys
+
+    folder = tmp_path / "kitti"
+    shutil.copytree(kitti_dir, folder)
+    before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    done = subprocess.run([sys.executable, "-m", "simulation", "--out", str(folder), "--frames", "1", "--seed",
+                           str(SEED), "--no-progress"], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert (f"{folder}: frame 000000 there is not the one seed {SEED} makes ({folder / 'calib' / '000000.txt'} "
+            "differs)") in done.stderr
+    assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} == before
+
+
+def test_a_frame_cut_off_by_a_killed_run_is_made_again(dataset: Path, tmp_path: Path) -> None:
+    """A run killed while writing leaves a frame's first files, the last one cut short: that frame is this
+    seed's, so the rerun makes it whole."""
+    folder = tmp_path / "sim"
+    for sub, ext in (("image_2", "png"), ("velodyne", "bin")):
+        (folder / sub).mkdir(parents=True)
+        data = (dataset / sub / f"000000.{ext}").read_bytes()
+        (folder / sub / f"000000.{ext}").write_bytes(data if sub == "image_2" else data[: len(data) // 3])
+    result = run(RunConfig(out=folder, frames=1, seed=SEED, progress=False))
+    assert len(result.seconds_per_frame) == 1
+    for sub, ext in (("image_2", "png"), ("velodyne", "bin"), ("calib", "txt"), ("label_2", "txt"), ("depth_2", "png")):
+        assert (folder / sub / f"000000.{ext}").read_bytes() == (dataset / sub / f"000000.{ext}").read_bytes()
+    other = tmp_path / "other"
+    (other / "velodyne").mkdir(parents=True)
+    (other / "velodyne" / "000000.bin").write_bytes(b"\0" * 64)  # not what the seed writes
+    with pytest.raises(ValueError, match="velodyne/000000.bin differs"):
+        run(RunConfig(out=other, frames=1, seed=SEED, progress=False))
+
+
 def test_bad_run_options_are_refused_before_any_folder_is_made(tmp_path: Path) -> None:
     """A negative seed, a split name that is a path, and an --out that is a file: one line each, nothing written."""
     with pytest.raises(ValueError, match="--seed: must be 0 or more"):
