@@ -60,7 +60,14 @@ from evaluation.report import (
     spread_json,
     to_json,
 )
-from pipeline.cli import check_output, positive_int, probability, quiet_interrupt, skipped_summary
+from pipeline.cli import (
+    check_not_input,
+    check_output,
+    positive_int,
+    probability,
+    quiet_interrupt,
+    skipped_summary,
+)
 from pipeline.errors import InputError
 
 log = logging.getLogger("accuracy")
@@ -381,13 +388,17 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _check_outputs(args: argparse.Namespace, out: Path | None = None) -> None:
-    """--json, --plots and (detect mode) --out, before any work."""
-    if args.json is not None:
-        check_output(args.json, "--json", directory=False)
-    if args.plots is not None:
-        check_output(args.plots, "--plots", directory=True)
+    """--json, --plots and (detect mode) --out, before any work: writable, and not over an input (a --json
+    named as a label file used to replace it)."""
+    inputs = {"--gt-labels": args.gt_labels, "--pred-labels": args.pred_labels,
+              "--compare-pred-labels": args.compare_pred_labels, "--split-file": args.split_file,
+              "--depth-dir": args.depth_dir, "--data": args.data, "--models": args.models}
+    for path, flag, directory in ((args.json, "--json", False), (args.plots, "--plots", True),
+                                  (out, "--out", True)):
+        if path is not None:
+            check_output(path, flag, directory=directory)
+            check_not_input(path, flag, inputs)
     if out is not None:
-        check_output(out, "--out", directory=True)
         check_output(out / "data", "--out", directory=True)  # where the result files go
 
 

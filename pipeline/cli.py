@@ -90,6 +90,27 @@ def check_output(path: Path, flag: str, directory: bool = False) -> None:
         raise InputError(f"{flag} {path}: cannot create it in {parent} (not writable)")
 
 
+# The folders of a --data root that hold what a run reads (KITTI object and depth-completion layouts).
+DATA_FOLDERS = ("image_2", "velodyne", "calib", "label_2", "depth_2", "ImageSets", "image_02", "velodyne_raw",
+                "groundtruth")
+
+
+def check_not_input(path: Path, flag: str, inputs: dict[str, Path | None]) -> None:
+    """Refuse an output that would be written over what the run reads: an input (``inputs``: flag → path;
+    None for one not given) itself, or a path inside an input folder. ``--data`` is a dataset root: there
+    only its own folders (:data:`DATA_FOLDERS`) are refused, so a new folder in it may hold outputs."""
+    out = Path(path).resolve()
+    for name, source in inputs.items():
+        if source is None:
+            continue
+        source = Path(source).resolve()
+        read = [source / folder for folder in DATA_FOLDERS] if name == "--data" else [source]
+        hit = next((r for r in read if out == r or r in out.parents), None)
+        if out == source or hit is not None:
+            raise InputError(f"{flag} {path}: would be written over what {name} {source} holds, which this run "
+                             "reads; give a path outside it")
+
+
 FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")  # what matplotlib writes from the file name
 
 

@@ -39,7 +39,7 @@ import numpy as np
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import in_camera_view, labels_to_boxes
-from pipeline.cli import frame_rate, interrupted, probability, skipped_summary, unwritable
+from pipeline.cli import check_output, frame_rate, interrupted, probability, skipped_summary, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import (
     DRIVE_SCANS,
@@ -137,13 +137,17 @@ def run(
         raise InputError("--video is made of the pictures: leave out --no-pictures")
     if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
         raise InputError(f"--depth-dir {depth_dir}: directory not found")
+    out = Path(out)
+    # The folders each frame writes into, before the models load (a file in the way used to be found only
+    # after the first frame was detected).
+    for folder in (out, out / "data", *((out / "bev", out / "camera") if pictures else ())):
+        check_output(folder, "--out", directory=True)
     movie = FrameVideo(video, video_fps) if video is not None else None
     if movie is not None:  # a folder the video cannot be written into is refused before the models load
         movie.probe()
     detector = Detector(models, providers=provider, mirror_tta=mirror_tta)
     if depth_dir is not None and not detector.two_stage:
         raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
-    out = Path(out)
     _warn_of_earlier_outputs(out, frames_of.ids, pictures)
     try:
         result = _detect_frames(detector, frames_of, out, depth_dir, score_threshold, emulate_beams, pictures,

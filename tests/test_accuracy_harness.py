@@ -277,6 +277,35 @@ def test_dataset_modes_check_output_paths_before_any_work(tiny_models, tmp_path)
     assert result.stdout == "" and a_file.read_text() == "kept\n"  # no metrics computed, nothing overwritten
 
 
+def test_outputs_over_the_inputs_are_refused(tiny_models, tmp_path):
+    """--json named as a ground-truth file used to replace it with JSON; --plots or --out inside an input
+    folder would write among what the run reads. A new folder inside --data stays allowed."""
+    data = tmp_path / "kitti"
+    shutil.copytree(KITTI, data)
+    labels = data / "label_2"
+    before = {p.name: p.read_bytes() for p in labels.iterdir()}
+    for args, flag, path, source in (
+        (["--gt-labels", labels, "--pred-labels", labels, "--json", labels / "000006.txt"], "--json",
+         labels / "000006.txt", "--gt-labels"),
+        (["--gt-labels", labels, "--pred-labels", labels, "--plots", labels / "plots"], "--plots", labels / "plots",
+         "--gt-labels"),
+        (["--data", data, "--models", tiny_models, "--input", "lidar16+camera", "--out", data / "calib"], "--out",
+         data / "calib", "--data"),
+        (["--data", data, "--models", tiny_models, "--input", "lidar16+camera", "--json",
+          tiny_models / "manifest.json"], "--json", tiny_models / "manifest.json", "--models"),
+    ):
+        result = _accuracy(*args)
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        assert f"error: {flag} {path}: would be written over what {source} " in result.stderr, result.stderr
+    assert {p.name: p.read_bytes() for p in labels.iterdir()} == before
+    scored = tmp_path / "scored"  # the ground truth as results with score 1
+    scored.mkdir()
+    for label in labels.iterdir():
+        scored.joinpath(label.name).write_text("".join(f"{line} 1\n" for line in label.read_text().splitlines()))
+    result = _accuracy("--gt-labels", labels, "--pred-labels", scored, "--json", data / "ap.json")
+    assert result.returncode == 0 and json.loads((data / "ap.json").read_text()), result.stderr
+
+
 def test_depth_mode_refuses_a_lidar_only_model_directory(tiny_models, tmp_path):
     lidar_only = lidar_only_models(tiny_models, tmp_path / "lidar")
     data = tmp_path / "data"

@@ -634,9 +634,11 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
         (["--data", str(KITTI), "--video", str(tmp_path / "v.mp4"), "--video-fps", "0"],
          "--video-fps: must be from 0.1 to 1000 frames a second, got 0"),
         (["--data", str(KITTI), "--video-fps", "5"], "--video-fps sets the frame rate of --video"),
+        (["--data", str(KITTI), "--out", str(tmp_path / "a-file")],
+         f"--out {tmp_path / 'a-file'}: exists and is not a directory"),  # the last --out is the one taken
     ):
         refused = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "no-models"),
-                                  *args, "--out", str(tmp_path / "refused")], capture_output=True, text=True,
+                                  "--out", str(tmp_path / "refused"), *args], capture_output=True, text=True,
                                  timeout=120, check=False)
         assert refused.returncode == 2 and message in refused.stderr, (args, refused.stderr)
         assert "Traceback" not in refused.stderr and not (tmp_path / "refused").exists()
