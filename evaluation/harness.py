@@ -24,11 +24,11 @@ from evaluation.depth_metrics import (
     mean_over_frames,
     moderate_cars_in_view,
 )
-from pipeline.beams import emulate_beams
-from pipeline.calib import depth_crop
+from pipeline.beams import emulate_beams, emulate_beams_on_depth_map
+from pipeline.calib import Calibration, depth_crop
 from pipeline.detector import Detector
 from pipeline.errors import InputError
-from pipeline.frame import frame_ids, load_frame
+from pipeline.frame import frame_ids, load_frame, read_drive_calib
 from pipeline.kitti import read_depth_png, read_image, read_image_depth_png
 from pipeline.model_files import load_manifest
 from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
@@ -112,7 +112,10 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
     """Depth completion metrics on the KITTI crop, at full resolution.
 
     Layouts: KITTI depth completion (``image_02/``, ``velodyne_raw/``,
-    ``groundtruth/`` PNGs; the projected 64-line input is used as given), or a
+    ``groundtruth/`` PNGs), whose projected 64-line scan is thinned to ``beams``
+    lines through the drive's calibration (``calib_cam_to_cam.txt`` and
+    ``calib_velo_to_cam.txt`` in the folder or the one above it) and used as given
+    without one, with a warning; or a
     KITTI object folder with dense ground truth in ``depth_2/`` (the synthetic
     scenes), whose scan is thinned to ``beams`` lines first. pictures: a folder
     for one PNG per frame (``depth_<id>.png``: camera, prediction, ground truth, error).
@@ -145,11 +148,21 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             panel = render_depth_panel(crop, prediction, ground_truth, preset.depth.max_depth)
             write_png(Path(pictures) / f"depth_{fid}.png", panel)
     if layout == "depth-completion":
-        used = "velodyne_raw as given (projected 64-line scan)"
+        drive_calib = _depth_completion_calib(data) if beams else None
+        if drive_calib is not None:
+            used = f"{beams}-line emulated on velodyne_raw through the drive's calibration"
+        else:
+            used = "velodyne_raw as given (projected 64-line scan)"
+            if beams:  # the paper's figures, and the model's training, are on 16 lines
+                log.warning("--data %s: no calib_cam_to_cam.txt and calib_velo_to_cam.txt in it or above it, "
+                            "so velodyne_raw goes in with all 64 lines, not thinned to %d as the model was trained "
+                            "and the paper measured: put the drive's calibration files there to thin it", data, beams)
         ids = (frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png")))[:first]
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             image = read_image(data / "image_02" / f"{fid}.png")
             sparse = read_depth_png(data / "velodyne_raw" / f"{fid}.png")
+            if drive_calib is not None:
+                sparse = emulate_beams_on_depth_map(sparse, drive_calib, beams)
             gt = read_depth_png(data / "groundtruth" / f"{fid}.png")
             crop_gt = _crop_ground_truth(gt, preset)
             if depth_dir is None:
@@ -194,6 +207,17 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
         used = f"depth maps from {depth_dir}, not the depth network; their pixels without depth left out"
     return DepthRun(mean=mean_over_frames(list(per_frame.values())), per_frame=per_frame, layout=layout, input=used,
                     car_errors=car_errors, car_in_box=car_in_box, car_stray=car_stray)
+
+
+def _depth_completion_calib(data: Path) -> Calibration | None:
+    """The drive's calibration of a depth-completion folder (its raw-data files in it or the folder above, as
+    ``pipeline.detect --drive`` looks for them), or None when they are not there."""
+    try:
+        return read_drive_calib(data)
+    except InputError as exc:
+        if "no calib_" in str(exc):  # not there: the caller says what that means
+            return None
+        raise  # there, but unreadable: named by read_raw_calib
 
 
 def _given_pixels(prediction: np.ndarray, depth_dir: Path | None) -> np.ndarray | None:

@@ -146,6 +146,40 @@ def test_depth_metrics_on_real_depth_completion_frame(tiny_models, depth_complet
     assert 0 < given.mean.mae_mm < m.mae_mm  # the measured returns beat an untrained net
 
 
+def test_depth_completion_scan_is_thinned_to_16_lines_with_the_drives_calibration(
+        tiny_models, depth_completion_dir, tmp_path, monkeypatch, caplog):
+    """The paper measures depth from 16 lines: a depth-completion folder with its drive's raw calibration files
+    has velodyne_raw thinned through them before the net; without them it goes in whole, with a warning."""
+    from pipeline.detector import Detector
+    from pipeline.kitti import read_calib
+
+    seen: list[int] = []
+    real = Detector.run_depth_net
+
+    def counting(self, rgb, sparse_depth):  # the real net, its sparse input's returns counted
+        seen.append(int(np.count_nonzero(sparse_depth)))
+        return real(self, rgb, sparse_depth)
+
+    monkeypatch.setattr(Detector, "run_depth_net", counting)
+    whole = run_depth(depth_completion_dir, tiny_models, progress=False)
+    assert whole.input == "velodyne_raw as given (projected 64-line scan)"
+    assert "not thinned to 16 as the model was trained" in caplog.text
+    data = tmp_path / "drive"
+    shutil.copytree(depth_completion_dir, data)
+    calib = read_calib(KITTI / "calib" / "000001.txt")  # drive 2011_09_26's, as the frame's
+
+    def numbers(matrix: np.ndarray) -> str:
+        return " ".join(f"{v:.9e}" for v in matrix.ravel())
+
+    (tmp_path / "calib_cam_to_cam.txt").write_text(f"R_rect_00: {numbers(calib.R0_rect)}\nP_rect_02: {numbers(calib.P2)}\n")
+    (tmp_path / "calib_velo_to_cam.txt").write_text(f"R: {numbers(calib.Tr_velo_to_cam[:, :3])}\n"
+                                                    f"T: {numbers(calib.Tr_velo_to_cam[:, 3])}\n")
+    thinned = run_depth(data, tiny_models, progress=False)
+    assert thinned.input == "16-line emulated on velodyne_raw through the drive's calibration"
+    assert 0.15 * seen[0] < seen[1] < 0.4 * seen[0]  # about a quarter of the returns
+    assert thinned.mean.n_pixels == whole.mean.n_pixels and thinned.mean.mae_mm != whole.mean.mae_mm
+
+
 def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp_path):
     data = tmp_path / "data"
     for sub in ("image_2", "velodyne", "calib", "label_2"):
