@@ -65,12 +65,19 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
 
     if input_mode not in INPUTS:
         raise InputError(f"--input: {input_mode!r} is not one of {', '.join(INPUTS)}")
-    # The manifest says the directory's kind; pipeline.detect loads (and checks) the models once, below.
-    two_stage = "depth" in load_manifest(models).get("networks", {})
+    # The manifest says the directory's kind and what its PIXOR learned from; pipeline.detect loads (and
+    # checks) the models once, below.
+    networks = load_manifest(models).get("networks", {})
+    two_stage = "depth" in networks
     wants_camera = input_mode == "lidar16+camera"
     if two_stage != wants_camera:
         kind = "two-stage (depth.onnx + pixor.onnx)" if two_stage else "LiDAR-only (pixor.onnx)"
         raise InputError(f"--models: {models} is a {kind} model directory, which does not fit --input {input_mode}")
+    trained_on = ((networks.get("pixor") or {}).get("training") or {}).get("input")
+    if not two_stage and trained_on in ("lidar16", "lidar64") and trained_on != input_mode:
+        # It would run, and be scored as the other row of the table (a 64-line PIXOR on 16-line scans).
+        raise InputError(f"--models: {models}'s PIXOR was trained on --input {trained_on} scans (its manifest), "
+                         f"not {input_mode}: give --input {trained_on}, or the model directory trained for {input_mode}")
     if depth_dir is not None and not wants_camera:
         raise InputError(f"--depth-dir: only the camera pipeline uses depth (--input lidar16+camera, not {input_mode})")
     result = detect(models, out, data=data, frames=frames, emulate_beams=INPUTS[input_mode], provider=provider,

@@ -109,8 +109,18 @@ def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
     return paths
 
 
+def band_ap(result: KittiEvalResult, metric: str, iou: float, difficulty: str = "moderate",
+            points: str = "R40") -> float:
+    """A distance band's AP, NaN when the band holds no car of that difficulty: the protocol's 0 there would
+    read as "misses every car near", where there is nothing to miss."""
+    if result.curve(metric, iou, difficulty).n_ground_truth == 0:
+        return float("nan")
+    return result.ap(metric, iou, difficulty, points)
+
+
 def format_distance_table(bands: dict[tuple[float, float], KittiEvalResult], name: str | None = None) -> str:
-    """AP per distance band at moderate difficulty (R40): one row per band, counted cars beside it."""
+    """AP per distance band at moderate difficulty (R40): one row per band, counted cars beside it ("n/a" in a
+    band without cars)."""
     first = next(iter(bands.values()))
     columns = [(m, iou) for m in ("bev", "3d") if m in first.metrics for iou in sorted(first.iou_thresholds)]
     header = "".join(f" | {METRIC_TITLES[m]} {iou}" for m, iou in columns)
@@ -119,18 +129,26 @@ def format_distance_table(bands: dict[tuple[float, float], KittiEvalResult], nam
              f"  band (m)    cars{header}"]
     for (low, high), result in bands.items():
         cars = result.curve(columns[0][0], columns[0][1], "moderate").n_ground_truth if columns else 0
-        cells = "".join(f" | {result.ap(m, iou, 'moderate'):{len(METRIC_TITLES[m]) + 4}.1f}" for m, iou in columns)
+        cells = "".join(f" | {_ap_cell(band_ap(result, m, iou), len(METRIC_TITLES[m]) + 4)}" for m, iou in columns)
         lines.append(f"  {low:>4g}–{high:<4g}  {cars:>6}{cells}")
     return "\n".join(lines)
 
 
+def _ap_cell(ap: float, width: int) -> str:
+    return f"{'n/a':>{width}}" if np.isnan(ap) else f"{ap:{width}.1f}"
+
+
 def distance_json(bands: dict[tuple[float, float], KittiEvalResult]) -> list[dict[str, Any]]:
-    """``[{"range_m": [low, high], "num_ground_truth": {difficulty: n}, class: AP table}, …]``."""
+    """``[{"range_m": [low, high], "num_ground_truth": {difficulty: n}, class: AP table}, …]``; an AP is null
+    where the band holds no car of its difficulty."""
     out = []
     for (low, high), result in bands.items():
         metric, iou = result.metrics[0], result.iou_thresholds[0]
         counts = {d: result.curve(metric, iou, d).n_ground_truth for d in DIFFICULTIES}
-        out.append({"range_m": [low, high], "num_ground_truth": counts, result.class_name: result.ap_table()})
+        table = {m: {f"{t}": {points: [None if np.isnan(ap := band_ap(result, m, t, d, points)) else ap
+                                       for d in DIFFICULTIES] for points in ("R40", "R11")}
+                     for t in result.iou_thresholds} for m in result.metrics}
+        out.append({"range_m": [low, high], "num_ground_truth": counts, result.class_name: table})
     return out
 
 
@@ -147,10 +165,11 @@ def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: st
     for metric in [m for m in ("bev", "3d") if m in first.metrics]:
         for iou in sorted(first.iou_thresholds):
             suffix = f" ({names[0]})" if other else ""
-            (line,) = ax.plot(labels, [r.ap(metric, iou, "moderate") for r in bands.values()], marker="o",
+            # A band without cars has no AP: NaN leaves a gap in the line, not a point at 0.
+            (line,) = ax.plot(labels, [band_ap(r, metric, iou) for r in bands.values()], marker="o",
                               label=f"{METRIC_TITLES[metric]} @{iou}{suffix}")
             if other and metric in next(iter(other.values())).metrics:
-                ax.plot(labels, [r.ap(metric, iou, "moderate") for r in other.values()], marker="s", linestyle="--",
+                ax.plot(labels, [band_ap(r, metric, iou) for r in other.values()], marker="s", linestyle="--",
                         color=line.get_color(), label=f"{METRIC_TITLES[metric]} @{iou} ({names[1]})")
     ax.set(ylim=(0, 102), xlabel="distance band (m, camera depth of the box centre)", ylabel="AP$_{40}$ (%), moderate",
            title=f"{first.class_name} AP by distance")

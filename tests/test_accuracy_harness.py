@@ -120,6 +120,12 @@ def test_detection_run_refuses_mismatched_models(tiny_models, tmp_path):
         run_detection(KITTI, tiny_models, "lidar16", tmp_path)
     with pytest.raises(InputError, match="--input"):
         run_detection(KITTI, tiny_models, "radar", tmp_path)
+    # A LiDAR-only PIXOR on the other line count would be scored as the other row of the table.
+    repo = Path(__file__).resolve().parents[1]
+    for models, trained, asked in (("edge-lidar16", "lidar16", "lidar64"), ("edge-lidar64", "lidar64", "lidar16")):
+        with pytest.raises(InputError, match=f"trained on --input {trained} scans .*not {asked}"):
+            run_detection(KITTI, repo / "weights" / models, asked, tmp_path / "refused")
+    assert not (tmp_path / "refused").exists()
 
 
 def test_depth_metrics_on_real_depth_completion_frame(tiny_models, depth_completion_dir, tmp_path):

@@ -249,6 +249,14 @@ def test_a_distance_band_ignores_cars_and_detections_outside_it(tmp_path: Path):
     for bad in ("20,10", "0", "0,a,5", "-5,10"):
         out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "pred", "--by-distance", bad)
         assert out.returncode == 2 and "--by-distance" in out.stderr and "Traceback" not in out.stderr
+    # A band without cars has no AP: "n/a" and null, not the protocol's 0 ("misses every car near").
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "pred", "--by-distance", "0,5,20,80",
+               "--json", tmp_path / "empty.json")
+    assert out.returncode == 0, out.stderr
+    row = next(line for line in out.stdout.splitlines() if line.strip().startswith("0–5"))
+    assert row.split()[1] == "0" and "n/a" in row and "0.0" not in row
+    empty = json.loads((tmp_path / "empty.json").read_text())["by_distance"][0]
+    assert empty["num_ground_truth"]["moderate"] == 0 and empty["Car"]["bev"]["0.7"]["R40"][1] is None
 
 
 def test_frame_bootstrap_intervals_and_paired_differences(tmp_path: Path):
