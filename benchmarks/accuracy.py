@@ -38,8 +38,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from itertools import pairwise
 from pathlib import Path
+from typing import Any
 
-from evaluation.frames import LabelSet, ground_truth_frames, load_label_dirs, read_split_file
+from evaluation.frames import LabelSet, first_frames, ground_truth_frames, load_label_dirs, read_split_file
 from evaluation.kitti_eval import (
     DEFAULT_IOU_THRESHOLDS,
     BootstrapResult,
@@ -97,6 +98,7 @@ class LabelEvalConfig:
     bootstrap: int = 0  # draws of the frame bootstrap (0: none): the AP's spread over frame samples
     seed: int = 0  # of the bootstrap draws
     compare_pred_labels: Path | None = None  # another model's results on the same frames: AP differences
+    detector: dict[str, Any] | None = None  # what made pred_labels, when this run detected (JSON "run")
 
 
 @dataclass(frozen=True)
@@ -116,7 +118,7 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
     """Load both label directories, evaluate, write the JSON and plots if asked."""
     frame_ids = read_split_file(config.split_file) if config.split_file else None
     if config.first_frames is not None:
-        frame_ids = (frame_ids or ground_truth_frames(config.gt_labels))[: config.first_frames]
+        frame_ids = first_frames(frame_ids or ground_truth_frames(config.gt_labels), config.first_frames)
     if config.compare_pred_labels is not None and not Path(config.compare_pred_labels).is_dir():
         raise InputError(f"--compare-pred-labels: {config.compare_pred_labels}: prediction label directory not found")
     labels = load_label_dirs(config.gt_labels, config.pred_labels, frame_ids, progress=config.progress)
@@ -146,6 +148,10 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         if config.depth_dir is not None:
             document["depth_source"] = f"{config.depth_dir} (not the depth network)"
         document["missing_predictions"] = list(labels.missing_predictions)
+        # What the figures are of, so a JSON file read later needs no command line beside it.
+        document["run"] = {"gt_labels": str(config.gt_labels), "pred_labels": str(config.pred_labels),
+                           "split_file": None if config.split_file is None else str(config.split_file),
+                           "first_frames": config.first_frames, **(config.detector or {})}
         document["small_detections"] = "ignored (devkit)" if config.ignore_small_detections else "counted (diagnostic)"
         with _writing(config.json_path, "--json"):
             config.json_path.parent.mkdir(parents=True, exist_ok=True)
@@ -339,6 +345,8 @@ def _refuse_flags_of_other_modes(parser: argparse.ArgumentParser, args: argparse
 
     if "split_file" in given and "frames" in given:
         parser.error("argument --frames: not allowed with argument --split-file (the same flag: give one)")
+    if "seed" in given and not args.bootstrap:
+        parser.error("argument --seed: only with --bootstrap N (it seeds the bootstrap's frame draws)")
     if args.depth:
         refuse(_RESULT_FILES + _DETECTION + _AP, "--depth", "depth completion evaluates depth maps, not boxes")
     elif args.data is not None:
@@ -472,6 +480,8 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                 with _writing(args.json, "--json"):
                     args.json.parent.mkdir(parents=True, exist_ok=True)
                     args.json.write_text(json.dumps({
+                        "run": {"data": str(args.data), "models": str(args.models),
+                                "depth_dir": None if args.depth_dir is None else str(args.depth_dir)},
                         "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
                         "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
                                   "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
@@ -483,7 +493,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             return 0
         _check_detection_inputs(args, frames, out)
         if first is not None:  # the first N ground-truth frames: the ones the evaluation below takes
-            frames = ground_truth_frames(args.data / "label_2", frames)[:first]
+            frames = first_frames(ground_truth_frames(args.data / "label_2", frames), first)
         detection = run_detection(args.data, args.models, args.input, out, frames, args.provider,
                                   progress=not args.no_progress, score_threshold=args.score_threshold,
                                   depth_dir=args.depth_dir, mirror_tta=args.mirror_tta)
@@ -494,6 +504,9 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
             depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed,
             compare_pred_labels=args.compare_pred_labels,
+            detector={"data": str(args.data), "models": str(args.models), "input": args.input,
+                      "score_threshold": args.score_threshold, "mirror_tta": args.mirror_tta,
+                      "provider": args.provider or "best available"},
         ))
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -45,6 +45,14 @@ def _some(ids: Sequence[str], shown: int = 5) -> str:
     return ", ".join(ids[: shown - 2]) + f", … {len(ids)} frames"
 
 
+def first_frames(ids: list[str], count: int | None) -> list[str]:
+    """The first ``count`` of ``ids`` (--frames N; all with None), with a warning when there are fewer: the
+    table's "(N frames)" would be the only sign."""
+    if count is not None and len(ids) < count:
+        log.warning("--frames %d: only %d frame(s) to evaluate; using them all", count, len(ids))
+    return ids[:count]
+
+
 def ground_truth_frames(gt_dir: str | Path, frame_ids: Sequence[str] | None = None) -> list[str]:
     """The frames to evaluate, checked before any work: ``frame_ids`` or every ``*.txt`` in ``gt_dir``.
 

@@ -24,6 +24,7 @@ from evaluation.depth_metrics import (
     mean_over_frames,
     moderate_cars_in_view,
 )
+from evaluation.frames import first_frames
 from pipeline.beams import emulate_beams, emulate_beams_on_depth_map
 from pipeline.calib import Calibration, depth_crop
 from pipeline.detector import Detector
@@ -164,7 +165,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
                 log.warning("--data %s: no calib_cam_to_cam.txt and calib_velo_to_cam.txt in it or above it, "
                             "so velodyne_raw goes in with all 64 lines, not thinned to %d as the model was trained "
                             "and the paper measured: put the drive's calibration files there to thin it", data, beams)
-        ids = (frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png")))[:first]
+        ids = first_frames(frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png")), first)
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             image = read_image(data / "image_02" / f"{fid}.png")
             sparse = read_depth_png(data / "velodyne_raw" / f"{fid}.png")
@@ -181,7 +182,7 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             picture(fid, image, prediction, crop_gt)
     else:
         used = f"{beams}-line emulated scan" if beams else "scan as stored"
-        ids = (frames or frame_ids(data))[:first]
+        ids = first_frames(frames or frame_ids(data), first)
         labelled = (data / "label_2").is_dir()
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             frame = load_frame(data, fid, with_labels=labelled)

@@ -104,15 +104,29 @@ def test_mirror_tta_reaches_the_detector_and_says_so(tiny_models, tmp_path):
     runs = {}
     for name, extra in (("plain", []), ("mirror", ["--mirror-tta"])):
         result = _accuracy("--data", KITTI, "--models", tiny_models, "--input", "lidar16+camera", "--score-threshold",
-                           "0.0", "--frames", "2", "--out", tmp_path / name, *extra)
+                           "0.0", "--frames", "2", "--out", tmp_path / name, "--json", tmp_path / f"{name}.json", *extra)
         assert result.returncode == 0, result.stderr
         runs[name] = result.stdout
+        # The JSON says what made its figures.
+        assert json.loads((tmp_path / f"{name}.json").read_text())["run"] == {
+            "gt_labels": str(KITTI / "label_2"), "pred_labels": str(tmp_path / name / "data"), "split_file": None,
+            "first_frames": 2, "data": str(KITTI), "models": str(tiny_models), "input": "lidar16+camera",
+            "score_threshold": 0.0, "mirror_tta": name == "mirror", "provider": "best available"}
     assert "PIXOR with mirror test-time augmentation" in runs["mirror"] and "test-time" not in runs["plain"]
     files = {name: sorted((tmp_path / name / "data").glob("*.txt")) for name in runs}
     assert [p.name for p in files["plain"]] == [p.name for p in files["mirror"]]
     assert [p.read_text() for p in files["plain"]] != [p.read_text() for p in files["mirror"]]
     refused = _accuracy("--gt-labels", KITTI / "label_2", "--pred-labels", tmp_path / "plain" / "data", "--mirror-tta")
     assert refused.returncode == 2 and "argument --mirror-tta: not allowed with argument --gt-labels" in refused.stderr
+    # --frames N past the frames there says so; --seed without --bootstrap would seed nothing.
+    more = _accuracy("--gt-labels", KITTI / "label_2", "--pred-labels", tmp_path / "plain" / "data", "--frames", "2",
+                     "--json", tmp_path / "two.json")
+    assert more.returncode == 0 and "--frames 2: only" not in more.stderr, more.stderr
+    more = _accuracy("--data", KITTI, "--models", tiny_models, "--input", "lidar16+camera", "--frames", "9",
+                     "--out", tmp_path / "nine")
+    assert more.returncode == 0 and f"--frames 9: only {len(FRAMES)} frame(s) to evaluate; using them all" in more.stderr
+    seed = _accuracy("--gt-labels", KITTI / "label_2", "--pred-labels", tmp_path / "plain" / "data", "--seed", "5")
+    assert seed.returncode == 2 and "argument --seed: only with --bootstrap N" in seed.stderr
 
 
 def test_detection_run_refuses_mismatched_models(tiny_models, tmp_path):
