@@ -153,7 +153,9 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
     def picture(fid: str, image: np.ndarray, prediction: np.ndarray, ground_truth: np.ndarray) -> None:
         if pictures is not None:
             crop = depth_crop(image.shape[:2], *preset.crop_hw).apply(image)
-            panel = render_depth_panel(crop, prediction, ground_truth, preset.depth.max_depth)
+            # Shown to 80 m whatever range the preset's pseudo points keep (35 m for the shipped model), so the
+            # far ground truth is not clipped to the colour of the range's end.
+            panel = render_depth_panel(crop, prediction, ground_truth)
             write_png(Path(pictures) / f"depth_{fid}.png", panel)
     if layout == "depth-completion":
         drive_calib = _depth_completion_calib(data) if beams else None

@@ -146,10 +146,16 @@ def draw_label(picture: np.ndarray, text: str) -> np.ndarray:
     return picture
 
 
+# The colour map's darkest blues are left out, so that the farthest depth stays apart from black (no depth).
+FARTHEST_COLOUR_INDEX = 30
+
+
 def render_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
-    """BGR uint8 colour map of a depth map (near = warm, far = cool, black = no depth)."""
+    """BGR uint8 colour map of a depth map (near = warm, far = blue at ``max_depth`` and beyond, black = no
+    depth)."""
     scaled = np.clip(depth / max_depth, 0, 1)
-    colour = cv2.applyColorMap((255 * (1 - scaled)).astype(np.uint8), cv2.COLORMAP_TURBO)
+    index = FARTHEST_COLOUR_INDEX + (255 - FARTHEST_COLOUR_INDEX) * (1 - scaled)
+    colour = cv2.applyColorMap(index.astype(np.uint8), cv2.COLORMAP_TURBO)
     colour[depth <= 0] = 0
     return colour
 
@@ -166,7 +172,7 @@ def render_depth_panel(image: np.ndarray, prediction: np.ndarray, ground_truth: 
     error_map = cv2.applyColorMap((255 * np.clip(error / max_error, 0, 1)).astype(np.uint8), cv2.COLORMAP_INFERNO)
     error_map[~known] = 0
     rows = [(camera, "camera"), (render_depth(prediction, max_depth), f"predicted depth (0-{max_depth:.0f} m)"),
-            (render_depth(ground_truth, max_depth), "ground truth"),
+            (render_depth(ground_truth, max_depth), f"ground truth (0-{max_depth:.0f} m, black: none)"),
             (error_map, f"absolute error where ground truth exists (0-{max_error:.0f} m)")]
     return np.vstack([draw_label(row, label) for row, label in rows])
 

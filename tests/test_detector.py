@@ -772,6 +772,18 @@ def test_camera_picture_drawn_at_a_scale_keeps_its_lines_and_scores_in_pixels(fr
     assert label_rows[1.0] >= 8 and abs(label_rows[0.5] - label_rows[1.0]) <= 1
 
 
+def test_depth_colours_keep_far_depth_apart_from_no_depth():
+    """The depth pictures colour 35 m and 70 m apart, and the farthest depth stays visibly apart from black
+    (no depth): the accuracy harness's panels once clipped at the preset's 35 m, where the colour map's end
+    is nearly black."""
+    from pipeline.render import render_depth
+
+    colours = render_depth(np.array([[0.0, 10.0, 35.0, 70.0, 500.0]]))[0].astype(int)
+    assert (colours[0] == 0).all()
+    assert all(colour.max() >= 120 for colour in colours[1:])  # bright enough not to read as black
+    assert np.abs(colours[2] - colours[3]).sum() > 100 and np.abs(colours[1] - colours[2]).sum() > 100
+
+
 def test_runtime_never_imports_torch_or_onnx():
     """The service container carries neither: torch is for training, the onnx package for export and the
     benchmarks' peak micro-benchmark (requirements/service-*.txt leave it out)."""
