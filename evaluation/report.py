@@ -88,7 +88,7 @@ def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
     recall = np.arange(N_SAMPLE_PTS) / (N_SAMPLE_PTS - 1)
     paths = []
     for difficulty in DIFFICULTIES:
-        fig, ax = plt.subplots(figsize=(5.0, 3.6))
+        fig, ax = plt.subplots(figsize=(6.6, 3.6))
         for metric in result.metrics:
             for iou in result.iou_thresholds:
                 curve = result.curve(metric, iou, difficulty)
@@ -99,11 +99,11 @@ def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
         ax.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="Recall", ylabel="Precision",
                title=f"{result.class_name}, {difficulty}")
         ax.grid(alpha=0.3)
-        if result.metrics:
-            ax.legend(fontsize=7, loc="lower left")
+        if result.metrics:  # beside the axes: inside, it covers the curves of a run with low recall
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
         fig.tight_layout()
         path = out_dir / f"pr_{result.class_name.lower()}_{difficulty}.png"
-        fig.savefig(path, dpi=120)
+        fig.savefig(path, dpi=120, bbox_inches="tight")
         plt.close(fig)
         paths.append(path)
     return paths
@@ -161,7 +161,7 @@ def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: st
     first = next(iter(bands.values()))
     cars = [r.curve(first.metrics[0], first.iou_thresholds[0], "moderate").n_ground_truth for r in bands.values()]
     labels = [f"{low:g}–{high:g}\n{n} cars" for (low, high), n in zip(bands, cars)]
-    fig, ax = plt.subplots(figsize=(7.6 if other else 5.0, 3.6))
+    fig, ax = plt.subplots(figsize=(7.6 if other else 6.6, 3.6))
     for metric in [m for m in ("bev", "3d") if m in first.metrics]:
         for iou in sorted(first.iou_thresholds):
             suffix = f" ({names[0]})" if other else ""
@@ -174,10 +174,7 @@ def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: st
     ax.set(ylim=(0, 102), xlabel="distance band (m, camera depth of the box centre)", ylabel="AP$_{40}$ (%), moderate",
            title=f"{first.class_name} AP by distance")
     ax.grid(alpha=0.3)
-    if other:  # eight lines: the legend goes beside the axes, not over them
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
-    else:
-        ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the axes, not over the lines
     return _save(fig, path)
 
 

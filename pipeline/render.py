@@ -51,6 +51,8 @@ def render_bev(
     origin = tuple(int(v) for v in _to_pixels(np.array([0.0, 0.0]), grid, metres_per_pixel))
     for r in range(10, int(grid.x_max) + 1, 10):
         cv2.circle(canvas, origin, int(r / metres_per_pixel), (70, 70, 70), 1, cv2.LINE_AA)
+        cv2.putText(canvas, f"{r} m", (origin[0] + 4, origin[1] - int(r / metres_per_pixel) - 4),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (110, 110, 110), 1, cv2.LINE_AA)
     for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
         if drawn is None or len(drawn) == 0:
             continue
@@ -120,7 +122,11 @@ def render_camera(
             height, width = canvas.shape[:2]
             for (left, top), score in zip(top_left, np.asarray(scores)[drawable], strict=True):
                 at = (int(np.clip(left, 0, max(width - 40, 0))), int(np.clip(top - 4, 14, max(height - 2, 14))))
-                cv2.putText(canvas, f"{score:.2f}", at, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
+                text = f"{score:.2f}"
+                (text_w, text_h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+                # On a dark box: thin green text alone is lost on foliage and on a green car.
+                cv2.rectangle(canvas, (at[0] - 2, at[1] - text_h - 3), (at[0] + text_w + 2, at[1] + 3), (0, 0, 0), -1)
+                cv2.putText(canvas, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
     return canvas
 
 
