@@ -20,7 +20,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.beams import BEAM_COUNTS, emulate_beams
-from pipeline.cli import check_output, interrupted, unwritable
+from pipeline.cli import check_not_input, check_output, interrupted, unwritable
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
@@ -39,6 +39,7 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
     """
     out = Path(out)
     check_output(out, "--out", directory=True)
+    check_not_input(out, "--out", {"--data": data, "--models": models})
     ids = _frames(Path(data), split_file)
     detector = Detector(models, intra_op_threads=threads)
     if not detector.two_stage:
@@ -87,9 +88,16 @@ def _frames(data: Path, split_file: Path | None) -> list[str]:
 def _check_record(out: Path, wanted: dict) -> None:
     """Refuse a cache folder whose maps came from another depth net or line count; record ours in it.
 
-    A folder from before the record existed is taken as it is (and recorded): its maps cannot be checked.
+    A folder of PNGs without the record is refused too: its files would be skipped as maps already made and
+    then certified by the record (a folder of camera images given as --out was), whatever made them.
     """
     record = out / "cache.json"
+    if not record.exists():
+        stray = next(out.glob("*.png"), None)
+        if stray is not None:
+            raise InputError(f"--out {out}: holds PNGs ({stray.name} among them) but no cache.json, so not maps this "
+                             "command made; give a new or empty folder (a cache made before cache.json existed: "
+                             "delete it and cache again)")
     if record.exists():
         try:
             held = json.loads(record.read_text(encoding="utf-8"))

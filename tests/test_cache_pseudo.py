@@ -56,11 +56,22 @@ def test_bad_inputs_get_one_line_before_anything_is_written(tiny_models: Path, k
         (["--data", str(kitti_dir), "--out", str(out), "--split-file", str(split)],
          f"frame 999999 (listed in --split-file {split}) has no velodyne/999999.bin"),
     ]
+    # A folder of other PNGs (camera images) would have been skipped as maps made and certified by cache.json.
+    images = tmp_path / "images"
+    images.mkdir()
+    (images / "000006.png").write_bytes((kitti_dir / "image_2" / "000006.png").read_bytes())
+    cases += [
+        (["--data", str(kitti_dir), "--out", str(images)],
+         f"--out {images}: holds PNGs (000006.png among them) but no cache.json"),
+        (["--data", str(kitti_dir), "--out", str(kitti_dir / "image_2")],
+         f"--out {kitti_dir / 'image_2'}: would be written over what --data"),
+    ]
     for args, says in cases:
         code, err = _main(["--models", str(tiny_models), *args], capsys)
         assert code == 2 and says in err and len(err.strip().splitlines()) == 1, (args, err)
         assert "Traceback" not in err
     assert not out.exists() and a_file.read_text() == "mine"
+    assert sorted(p.name for p in images.iterdir()) == ["000006.png"]  # no cache.json written into it
 
 
 def test_ctrl_c_keeps_the_finished_maps_and_the_rerun_resumes(tiny_models: Path, kitti_dir: Path,
