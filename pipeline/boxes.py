@@ -50,17 +50,40 @@ def bev_corners(boxes: np.ndarray) -> np.ndarray:
     return rect_corners(boxes[:, [0, 1, 3, 4, 6]])
 
 
+# A box's 12 edges between its corners as box_corners_3d orders them (bottom ring, top ring, uprights).
+BOX_EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
+NEAR_PLANE_M = 0.1  # box edges are cut this far in front of the camera: nothing behind it projects
+
+
+def segments_in_front(rect: np.ndarray, segments: tuple[tuple[int, int], ...] = BOX_EDGES,
+                      near: float = NEAR_PLANE_M) -> tuple[np.ndarray, np.ndarray]:
+    """Segments between the corners of boxes in the camera frame ((K, 8, 3), z forward), cut at the near plane.
+
+    Returns each segment's two ends (K, S, 2, 3), an end behind the plane moved along the segment onto it,
+    and (K, S) whether any of the segment lies in front of it. A car beside the vehicle reaches behind the
+    camera: its edges are cut, not dropped, and the cut ends project towards the image's border on that side.
+    """
+    ends = rect[:, np.array(segments)]
+    z, other = ends[..., 2], ends[..., ::-1, :]
+    shown = (z > near).any(axis=2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along = (near - z) / (other[..., 2] - z)  # where the segment crosses the near plane
+        cut = np.where((z <= near)[..., None], ends + along[..., None] * (other - ends), ends)
+    return cut, shown
+
+
 def image_boxes(boxes: np.ndarray, calib: Calibration, image_hw: tuple[int, int]) -> np.ndarray:
     """2D boxes (left, top, right, bottom) of the projected 3D boxes, clipped to the image.
 
-    Boxes with a corner behind the camera are clipped at the image border on that side.
+    A box reaching behind the camera is the box of its part in front (its edges cut at the near plane), which
+    runs to the image's border on that side; one wholly behind covers the image.
     """
-    corners = box_corners_3d(boxes).reshape(-1, 3)
-    uv, depth = calib.velo_to_image(corners)
-    uv = uv.reshape(-1, 8, 2)
-    depth = depth.reshape(-1, 8)
+    rect = calib.velo_to_rect(box_corners_3d(boxes).reshape(-1, 3)).reshape(-1, 8, 3)
+    ends, shown = segments_in_front(rect)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = calib.rect_to_image(ends.reshape(-1, 3))[0].reshape(*ends.shape[:-1], 2)
+    uv = np.where(shown[..., None, None], uv, np.nan).reshape(len(rect), -1, 2)
     h, w = image_hw
-    uv = np.where(depth[..., None] > 0.1, uv, np.nan)
     with np.errstate(invalid="ignore"):
         left = np.nan_to_num(np.nanmin(uv[..., 0], axis=1), nan=0.0)
         right = np.nan_to_num(np.nanmax(uv[..., 0], axis=1), nan=w - 1.0)

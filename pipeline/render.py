@@ -9,16 +9,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.boxes import bev_corners, box_corners_3d
+from pipeline.boxes import BOX_EDGES, bev_corners, box_corners_3d, segments_in_front
 from pipeline.calib import Calibration
 from pipeline.preprocess import scale_calibration
 from pipeline.presets import BevGrid
 
 PREDICTION_BGR = (60, 220, 60)
 GROUND_TRUTH_BGR = (60, 60, 230)
-# A box's 12 edges between its corners as pipeline.boxes.box_corners_3d orders them (bottom ring, top ring,
-# uprights), and the two diagonals of its front face (corners 0 and 3 are the front edge) that show its heading.
-BOX_EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
+# The two diagonals of a box's front face (corners 0 and 3 are the front edge), drawn to show its heading.
 FRONT_DIAGONALS = ((0, 7), (3, 4))
 
 
@@ -73,9 +71,6 @@ def render_bev(
     return canvas
 
 
-NEAR_PLANE_M = 0.1  # wireframe edges are clipped this far in front of the camera: nothing behind it projects
-
-
 def render_camera(
     image: np.ndarray,
     calib: Calibration,
@@ -86,7 +81,7 @@ def render_camera(
 ) -> np.ndarray:
     """BGR uint8 picture of the camera image (RGB in) with the 3D boxes drawn as wireframes, the front face
     crossed: ground truth in red, predictions in green with their scores (kept inside the picture). An edge
-    reaching behind the camera (a car beside it) is cut at :data:`NEAR_PLANE_M` in front of it; a box wholly
+    reaching behind the camera (a car beside it) is cut at :data:`pipeline.boxes.NEAR_PLANE_M` in front of it; a box wholly
     behind the camera, with a corner beyond 1 km, not finite or projecting more than 1e5 pixels away is left
     out (the BEV picture shows every box).
 
@@ -97,18 +92,14 @@ def render_camera(
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         calib = scale_calibration(calib, scale)
     canvas = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR)
-    edges = np.array(BOX_EDGES + FRONT_DIAGONALS)
     for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
         if drawn is None or len(drawn) == 0:
             continue
         rect = calib.velo_to_rect(box_corners_3d(drawn).reshape(-1, 3)).reshape(-1, 8, 3)
-        ends = rect[:, edges]  # (K, 14, 2, 3): each segment's two ends, in the camera frame (z forward)
-        z, other = ends[..., 2], ends[..., ::-1, :]
-        shown = (z > NEAR_PLANE_M).any(axis=2)  # a segment wholly behind the near plane is not drawn
+        # (K, 14, 2, 3): each segment's two ends, cut at the near plane; one wholly behind it is not drawn.
+        ends, shown = segments_in_front(rect, BOX_EDGES + FRONT_DIAGONALS)
         with np.errstate(divide="ignore", invalid="ignore"):
-            along = (NEAR_PLANE_M - z) / (other[..., 2] - z)  # where the segment crosses the near plane
-            clipped = np.where((z <= NEAR_PLANE_M)[..., None], ends + along[..., None] * (other - ends), ends)
-            uv = calib.rect_to_image(clipped.reshape(-1, 3))[0].reshape(*ends.shape[:-1], 2)
+            uv = calib.rect_to_image(ends.reshape(-1, 3))[0].reshape(*ends.shape[:-1], 2)
             # Not finite, or a box at 1e25 m (a broken scan can make one) that would project to a dot at the horizon.
             sane = (np.isfinite(rect).all(axis=(1, 2)) & (np.abs(rect[..., 2]) < 1e3).all(axis=1)
                     & (np.abs(np.where(shown[..., None, None], uv, 0.0)) < 1e5).all(axis=(1, 2, 3)))

@@ -325,3 +325,24 @@ def test_nms_equals_plain_greedy_on_clustered_candidates():
         for threshold, max_keep in ((0.1, None), (0.5, None), (0.0, 3)):
             np.testing.assert_array_equal(rotated_nms(boxes, scores, threshold, max_keep),
                                           greedy(boxes, scores, threshold, max_keep))
+
+
+def test_the_2d_box_of_a_car_reaching_behind_the_camera_runs_to_the_image_border():
+    """A 2D box (the result file's bbox, which the devkit's minimum height reads) is that of the box's part in
+    front of the camera: a car beside the vehicle runs to the image's border on its side, as KITTI labels such
+    a car. Dropping its corners behind the camera made the box only as large as its far end."""
+    from pipeline.boxes import image_boxes
+
+    frame = load_frame(KITTI, "000006")
+    h, w = frame.image_hw
+    ahead = np.array([[15, 2, -0.9, 4, 1.7, 1.5, 0.3]])
+    beside = np.array([[2.5, -2.0, -0.9, 4.5, 1.8, 1.5, 0.0]])  # from 0.25 m behind the LiDAR to 4.75 m ahead
+    uv, depth = frame.calib.velo_to_image(box_corners_3d(ahead).reshape(-1, 3))
+    assert (depth > 0).all()
+    np.testing.assert_allclose(image_boxes(ahead, frame.calib, frame.image_hw)[0],
+                               [uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()])
+    left, top, right, bottom = image_boxes(beside, frame.calib, frame.image_hw)[0]
+    _, corner_depth = frame.calib.velo_to_image(box_corners_3d(beside).reshape(-1, 3))
+    assert (corner_depth < 0).any() and (corner_depth > 0).any()
+    # On the right (y < 0), to the border; its corners in front alone end 150 px short of it.
+    assert right == w - 1 and bottom == h - 1 and w / 2 < left < w - 300
