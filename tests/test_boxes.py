@@ -341,7 +341,7 @@ def test_the_2d_box_of_a_car_reaching_behind_the_camera_runs_to_the_image_border
     assert (depth > 0).all()
     np.testing.assert_allclose(image_boxes(ahead, frame.calib, frame.image_hw)[0],
                                [uv[:, 0].min(), uv[:, 1].min(), uv[:, 0].max(), uv[:, 1].max()])
-    left, top, right, bottom = image_boxes(beside, frame.calib, frame.image_hw)[0]
+    left, _, right, bottom = image_boxes(beside, frame.calib, frame.image_hw)[0]
     _, corner_depth = frame.calib.velo_to_image(box_corners_3d(beside).reshape(-1, 3))
     assert (corner_depth < 0).any() and (corner_depth > 0).any()
     # On the right (y < 0), to the border; its corners in front alone end 150 px short of it.
