@@ -12,7 +12,9 @@ a client that gets a 503 waits ``--backoff-s`` before its next request. With
 more clients than the server's workers + queue, some requests are refused with
 503 by design. ``--bad-every N`` makes every Nth request a broken one (a
 truncated scan, a cut-off PNG, a calibration without P2, a misspelt query
-parameter), which must be answered 4xx, never 5xx.
+parameter), which must be answered 4xx, never 5xx: the service checks each of
+them before the frame takes a place in its queue, so not even a full queue
+answers them 503. Well-formed and broken requests each take the frames in turn.
 
 Reports: throughput (answered 200 per second), p50/p99 latency of the 200s
 and of everything, counts per status, the server's per-stage timings (from
@@ -218,13 +220,18 @@ def broken_upload(good: Upload, kind: str) -> Upload:
 
 class RequestSource:
     """What each request sends, shared by the clients: the frames in turn, with every ``bad_every``th request
-    a broken one (0: none); stops after ``total`` requests (None: no limit). Thread-safe."""
+    a broken one (0: none); stops after ``total`` requests (None: no limit). Thread-safe.
+
+    The well-formed and the broken requests each go through the frames in turn on a count of their own: on one
+    shared count, a ``bad_every`` dividing the number of frames (5 with the five bundled ones) broke the same
+    frames every time, and those were never sent intact."""
 
     def __init__(self, data: Path, frames: list[str], params: dict, total: int | None, bad_every: int = 0) -> None:
         self.data, self.frames, self.params = data, frames, params
         self.bad_every = bad_every
         self._left = total
         self._count = 0
+        self._turns = {False: 0, True: 0}  # requests sent so far: well-formed, broken
         self._lock = threading.Lock()
 
     def take(self) -> Upload | None:
@@ -235,10 +242,13 @@ class RequestSource:
                 self._left -= 1
             index = self._count
             self._count += 1
+            broken = bool(self.bad_every) and (index + 1) % self.bad_every == 0
+            turn = self._turns[broken]
+            self._turns[broken] += 1
         # Read per request (the page cache holds them): a folder of hundreds of frames is not held in memory.
-        good = frame_upload(self.data, self.frames[index % len(self.frames)], self.params)
-        if self.bad_every and (index + 1) % self.bad_every == 0:
-            return broken_upload(good, BROKEN_KINDS[(index // self.bad_every) % len(BROKEN_KINDS)])
+        good = frame_upload(self.data, self.frames[turn % len(self.frames)], self.params)
+        if broken:
+            return broken_upload(good, BROKEN_KINDS[turn % len(BROKEN_KINDS)])
         return good
 
 

@@ -338,7 +338,7 @@ def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
 
 
 def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
-    """Decode a PNG or JPEG into uint8 RGB (H, W, 3)."""
+    """Decode a PNG or JPEG into uint8 RGB (H, W, 3), its pixels as stored (an EXIF orientation is not applied)."""
     if not data:
         raise InputError(f"{source}: empty image")
     # A PNG ends with its IEND chunk. Checking for it names the usual fault (an upload or copy that
@@ -347,7 +347,9 @@ def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
     # transports append, are ignored by libpng and must not read as a cut-off file.)
     if data.startswith(PNG_SIGNATURE) and data.rfind(b"IEND") == -1:
         raise InputError(f"{source}: PNG cut off before its end ({len(data)} bytes, no IEND chunk)")
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+    # The pixels as the sensor stored them: IMREAD_COLOR alone turns a JPEG by its EXIF Orientation tag, and
+    # the calibration's P2 describes the stored pixels, not a turned picture.
+    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if bgr is None:
         raise InputError(f"{source}: not a readable PNG or JPEG image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)

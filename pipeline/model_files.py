@@ -29,26 +29,40 @@ class ModelFileError(RuntimeError):
     """A model directory is missing a file, has a malformed manifest, or a file's checksum differs."""
 
 
+def _reason(exc: OSError) -> str:
+    """The operating system's words for an OSError ("Permission denied"), without its errno and path."""
+    return exc.strerror or str(exc)
+
+
 def sha256_file(path: str | Path) -> str:
-    """Hex sha256 of a file, read in 1 MiB chunks."""
+    """Hex sha256 of a file, read in 1 MiB chunks; ModelFileError naming the file when it cannot be read."""
     digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for chunk in iter(lambda: handle.read(_CHUNK), b""):
-            digest.update(chunk)
+    try:
+        with open(path, "rb") as handle:
+            for chunk in iter(lambda: handle.read(_CHUNK), b""):
+                digest.update(chunk)
+    except OSError as exc:  # no permission, a directory in its place, a failing disk
+        raise ModelFileError(f"{path}: cannot read the model file ({_reason(exc)})") from exc
     return digest.hexdigest()
 
 
 def load_manifest(directory: str | Path) -> dict:
     """Parse ``directory/manifest.json``; ModelFileError if it is missing or not a manifest."""
     path = Path(directory) / MANIFEST_NAME
-    if not Path(directory).is_dir():  # a mistyped path, rather than a model directory that lost its manifest
-        what = "a file, not a model directory" if Path(directory).exists() else "no such model directory"
-        raise ModelFileError(f"{directory}: {what} (one holds manifest.json and its ONNX files)")
+    try:
+        # is_dir() and exists() raise for some errors too: no permission on a parent folder, a name too long.
+        if not Path(directory).is_dir():  # a mistyped path, rather than a model directory that lost its manifest
+            what = "a file, not a model directory" if Path(directory).exists() else "no such model directory"
+            raise ModelFileError(f"{directory}: {what} (one holds manifest.json and its ONNX files)")
+    except OSError as exc:
+        raise ModelFileError(f"{directory}: cannot open the model directory ({_reason(exc)})") from exc
     try:
         manifest = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise ModelFileError(f"{path}: no manifest; export the models with `python -m export`") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+    except OSError as exc:
+        raise ModelFileError(f"{path}: unreadable manifest ({_reason(exc)})") from exc
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ModelFileError(f"{path}: unreadable manifest ({exc})") from exc
     if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict) or not manifest["files"]:
         raise ModelFileError(f"{path}: manifest has no 'files' table with sha256 checksums")
@@ -77,7 +91,7 @@ def _check_tables(manifest: dict, path: Path) -> None:
 def verify_sha256(directory: str | Path, manifest: dict) -> None:
     """Check every file listed in ``manifest["files"]`` against its sha256.
 
-    Raises ModelFileError naming the first missing or mismatching file.
+    Raises ModelFileError naming the first missing, unreadable or mismatching file.
     """
     directory = Path(directory)
     for name, entry in manifest["files"].items():
@@ -85,7 +99,13 @@ def verify_sha256(directory: str | Path, manifest: dict) -> None:
         expected = entry.get("sha256") if isinstance(entry, dict) else None
         if not expected:
             raise ModelFileError(f"{directory / MANIFEST_NAME}: no sha256 for {name}")
-        if not path.is_file():
+        try:
+            is_dir, is_file = path.is_dir(), path.is_file()
+        except OSError as exc:  # no permission on the directory, a name too long
+            raise ModelFileError(f"{path}: cannot open the model file ({_reason(exc)})") from exc
+        if is_dir:
+            raise ModelFileError(f"{path}: a directory, where the manifest lists a model file")
+        if not is_file:
             raise ModelFileError(f"{path}: model file listed in the manifest is missing")
         actual = sha256_file(path)
         if actual != expected:

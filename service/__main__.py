@@ -3,25 +3,38 @@
     python -m service [--models DIR] [--host 127.0.0.1] [--port 8000] [--workers N] [--provider cpu|cuda|tensorrt]
 
 Every option is also an environment variable (``--queue-size`` ↔
-``LOWRES3D_QUEUE_SIZE``); the command line wins. The models are loaded and
-their sha256 checked before the port is bound: a missing or corrupted model
-file stops the start with a message naming it (exit status 2). SIGTERM or
-Ctrl-C stop accepting connections and let in-flight requests finish (up to
-``--shutdown-timeout-s``).
+``LOWRES3D_QUEUE_SIZE``); the command line wins; a ``LOWRES3D_*`` variable that
+is no setting (a typo) gets a warning. The address is bound first (not yet
+listened on), then the models are loaded and their sha256 checked: an address
+in use, a missing or corrupted model file stops the start with one line naming
+the option or the file (exit status 2), before any warm-up. SIGTERM or Ctrl-C
+stop accepting connections and let in-flight requests finish (up to
+``--shutdown-timeout-s``); those still running then are answered 503
+``shutting_down`` (service/middleware.py).
 """
 
 from __future__ import annotations
 
 import argparse
+import difflib
+import errno
 import logging
+import os
+import socket
 import sys
+from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError, default_models_hint
 from service.settings import ENV_PREFIX, Settings
+
+if TYPE_CHECKING:
+    import uvicorn
+    from fastapi import FastAPI
 
 log = logging.getLogger("service")
 
@@ -64,7 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
         default = info.default
         shown = ("on" if default else "off") if isinstance(default, bool) else default if default is not None else "none"
         help_text = f"{info.description} (env {env}; default {shown})"
-        kwargs: dict = {"type": kind, "default": argparse.SUPPRESS, "help": help_text}
+        # Paths stay strings here: Settings refuses an empty one before making it a Path (Path("") is ".").
+        kwargs: dict = {"type": str if kind is Path else kind, "default": argparse.SUPPRESS, "help": help_text}
         if kind is bool:  # --mirror-tta / --no-mirror-tta
             kwargs = {"action": argparse.BooleanOptionalAction, "default": argparse.SUPPRESS, "help": help_text}
         elif isinstance(meta, list):
@@ -87,19 +101,127 @@ def settings_errors(exc: ValidationError) -> list[str]:
     for error in exc.errors():
         name = str(error["loc"][0]) if error["loc"] else ""
         named = f"--{name.replace('_', '-')} ({ENV_PREFIX}{name.upper()})" if name else "settings"
-        given = f" {error['input']}" if name and not isinstance(error["input"], dict) else ""
+        value = error["input"]
+        # The token is never echoed (logs are read by others); an empty value has nothing to show.
+        shown = name and name != "token" and not isinstance(value, dict) and str(value).strip()
+        given = f" {value}" if shown else ""
         lines.append(f"{named}{given}: {error['msg'][:1].lower()}{error['msg'][1:]}")
     return lines
 
 
+def unknown_env_warnings(environ: Mapping[str, str]) -> list[str]:
+    """One line per ``LOWRES3D_*`` variable that is no setting, with the closest setting's name or the list.
+
+    pydantic-settings reads only the variables of its fields, so a misspelt one (``LOWRES3D_WORKER=4``) would
+    be ignored without a word. Names are compared in upper case: the settings read them case-insensitively.
+    """
+    fields = [name.upper() for name in Settings.model_fields]
+    lines = []
+    for name in sorted(environ):
+        upper = name.upper()
+        if not upper.startswith(ENV_PREFIX) or upper.removeprefix(ENV_PREFIX) in fields:
+            continue
+        # Compared without the prefix, which every name shares and would make any two look alike.
+        close = difflib.get_close_matches(upper.removeprefix(ENV_PREFIX), fields, n=1, cutoff=0.6)
+        hint = (f"did you mean {ENV_PREFIX}{close[0]}?" if close
+                else f"the settings are {', '.join(ENV_PREFIX + field for field in fields)}")
+        lines.append(f"environment variable {name}: not a setting, ignored ({hint})")
+    return lines
+
+
+class AddressError(Exception):
+    """The address to listen on cannot be had; the message names --host or --port."""
+
+
+def _address_error(host: str, port: int, exc: OSError) -> AddressError:
+    """One line naming the option at fault in a failed bind."""
+    reason = (exc.strerror or str(exc)).lower()
+    if exc.errno == errno.EADDRINUSE:
+        return AddressError(f"--port {port} ({ENV_PREFIX}PORT): {reason} on {host} (another process listens "
+                            "there; choose another port, or 0 for any free one)")
+    if exc.errno == errno.EACCES and 0 < port < 1024:
+        return AddressError(f"--port {port} ({ENV_PREFIX}PORT): {reason} (ports below 1024 need privileges)")
+    if exc.errno == errno.EADDRNOTAVAIL:
+        return AddressError(f"--host {host} ({ENV_PREFIX}HOST): {reason} (not an address of this machine)")
+    return AddressError(f"--host {host} --port {port}: cannot listen there ({reason})")
+
+
+def bind_listeners(host: str, port: int) -> list[socket.socket]:
+    """Bind, without listening yet, the sockets uvicorn would open for ``host:port``: AddressError if it cannot.
+
+    Bound as asyncio's create_server binds them (every address the host resolves to, SO_REUSEADDR, IPv6
+    sockets IPv6-only, an address family the machine lacks skipped), so uvicorn serves as it would on its
+    own; but an address in use is found before the models load and warm up, not after. Until uvicorn
+    listens on them, connections are refused.
+    """
+    try:
+        infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except (OSError, UnicodeError) as exc:  # UnicodeError: a name IDNA cannot encode (an empty label: "a..b")
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise AddressError(f"--host {host} ({ENV_PREFIX}HOST): cannot resolve it ({reason})") from None
+    sockets: list[socket.socket] = []
+    missing: OSError | None = None
+    for family, kind, proto, _, address in dict.fromkeys(infos):
+        sock = socket.socket(family, kind, proto)
+        try:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            if family == socket.AF_INET6:
+                sock.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_V6ONLY, 1)
+            sock.bind(address)
+        except OSError as exc:
+            sock.close()
+            if exc.errno == errno.EADDRNOTAVAIL:  # as asyncio: the family is not enabled here (bpo-30945)
+                missing = exc
+                continue
+            for bound in sockets:
+                bound.close()
+            raise _address_error(host, port, exc) from None
+        sockets.append(sock)
+    if not sockets:
+        raise _address_error(host, port, missing or OSError(errno.EADDRNOTAVAIL, os.strerror(errno.EADDRNOTAVAIL)))
+    return sockets
+
+
+def uvicorn_config(settings: Settings, app: FastAPI) -> uvicorn.Config:
+    """uvicorn's configuration for the service."""
+    import uvicorn
+
+    return uvicorn.Config(
+        app,
+        host=settings.host,
+        port=settings.port,
+        log_level=settings.log_level,
+        # A float: uvicorn waits in asyncio.timeout(), which takes fractions (int() made 0.9 s no grace at all).
+        timeout_graceful_shutdown=settings.shutdown_timeout_s,  # type: ignore[arg-type]  # annotated int there
+        access_log=settings.log_level == "debug",
+        server_header=False,
+        log_config=None,  # keep the logging configured in main()
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Parse options, load and check the models, serve until SIGTERM/SIGINT; the exit status."""
+    """Parse options, bind the address, load and check the models, serve until SIGTERM/SIGINT; the exit status."""
     import uvicorn
 
     from service.app import create_app
     from service.memory import limit_malloc_arenas
     from service.metrics import Metrics
+    from service.middleware import CancelledRequestLogFilter
     from service.runtime import load_runtime
+
+    class Server(uvicorn.Server):
+        """uvicorn's server on the sockets bound here; it logs where it listens, as uvicorn does for a host and
+        port (given sockets, uvicorn leaves that line to the code that bound them)."""
+
+        async def startup(self, sockets: list[socket.socket] | None = None) -> None:
+            await super().startup(sockets=sockets)
+            if not self.started:
+                return
+            for sock in sockets or []:
+                address, bound_port = sock.getsockname()[:2]
+                shown = f"[{address}]" if sock.family == socket.AF_INET6 else address
+                logging.getLogger("uvicorn.error").info("Uvicorn running on http://%s:%d (Press CTRL+C to quit)",
+                                                        shown, bound_port)
 
     try:
         settings = settings_from_args(argv)
@@ -108,28 +230,27 @@ def main(argv: list[str] | None = None) -> int:
             print(f"python -m service: {line}", file=sys.stderr)
         return 2
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.getLogger("uvicorn.error").addFilter(CancelledRequestLogFilter())
+    for line in unknown_env_warnings(os.environ):
+        log.warning(line)
+    try:
+        sockets = bind_listeners(settings.host, settings.port)
+    except AddressError as exc:
+        log.error("cannot start: %s", exc)
+        return 2
     limit_malloc_arenas()  # before the worker threads exist (service/memory.py: the memory of a long run)
     metrics = Metrics()
     try:
         runtime = load_runtime(settings, metrics)
     except (ModelFileError, InputError) as exc:
+        for sock in sockets:
+            sock.close()
         log.error("cannot start: %s", exc)
         if hint := default_models_hint(settings.models):
             log.error("%s (or LOWRES3D_MODELS)", hint)
         return 2
-    app = create_app(settings, runtime=runtime, metrics=metrics)
-    config = uvicorn.Config(
-        app,
-        host=settings.host,
-        port=settings.port,
-        log_level=settings.log_level,
-        timeout_graceful_shutdown=int(settings.shutdown_timeout_s),
-        access_log=settings.log_level == "debug",
-        server_header=False,
-        log_config=None,  # keep the logging configured above
-    )
-    server = uvicorn.Server(config)
-    server.run()
+    server = Server(uvicorn_config(settings, create_app(settings, runtime=runtime, metrics=metrics)))
+    server.run(sockets=sockets)
     return 0 if server.started else 3
 
 

@@ -12,6 +12,7 @@ import asyncio
 import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
+from typing import Any
 
 from fastapi import Depends, FastAPI
 
@@ -32,7 +33,9 @@ pseudo point cloud → BEV → PIXOR), on ONNX Runtime.
 
 Send a frame as multipart/form-data to `POST /v1/detect`: `image` (PNG/JPEG), `points`
 (KITTI velodyne `.bin`) and `calib` (KITTI `calib.txt`, optional when the server has a
-default). Boxes come back in the LiDAR frame (x forward, y left, z up).
+default). A LiDAR-only model (`two_stage` false in `GET /v1/model`) needs `points` alone,
+and the image and a calibration only for `format=kitti` and the camera picture. Boxes come
+back in the LiDAR frame (x forward, y left, z up).
 
 Every error is JSON `{"error": {"code", "message", "request_id"}}`; the message names the
 field at fault. A full queue answers 503 with `Retry-After`.
@@ -41,7 +44,7 @@ field at fault. A full queue answers 503 with `Retry-After`.
 
 def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metrics | None = None) -> FastAPI:
     """Build the app. ``runtime``: models already loaded (``python -m service`` loads them before
-    binding the port so a bad model directory fails fast); None loads them in the lifespan."""
+    uvicorn starts, so a bad model directory fails fast); None loads them in the lifespan."""
     metrics = metrics or Metrics()
 
     @asynccontextmanager
@@ -53,6 +56,7 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
         try:
             yield
         finally:
+            loaded.stopping.set()  # a warm-up still running stops after its current network run
             await warm_up
             metrics.ready.set(0)
             await asyncio.to_thread(loaded.pool.shutdown)
@@ -85,4 +89,47 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     # Added last = outermost: the request context wraps the body limit so 413s are counted and carry an id.
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths)
+    _schema_follows_the_model(app)
     return app
+
+
+def _schema_follows_the_model(app: FastAPI) -> None:
+    """Make ``/openapi.json`` mark the detection routes' ``image`` part required for a camera model.
+
+    The routes declare it optional, as a LiDAR-only model takes a frame without it, so the schema (generated
+    once by FastAPI, and before the models load when the lifespan loads them) is adjusted to the loaded model
+    each time it is served: required unless the model is LiDAR-only.
+    """
+    generate = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        schema = generate()
+        runtime: Runtime | None = app.state.runtime
+        camera = runtime is None or runtime.detector.two_stage  # the shipped models are camera models
+        for path, operations in schema.get("paths", {}).items():
+            if not path.startswith("/v1/detect"):
+                continue
+            content = operations.get("post", {}).get("requestBody", {}).get("content", {})
+            ref = content.get("multipart/form-data", {}).get("schema", {}).get("$ref", "")
+            body = schema.get("components", {}).get("schemas", {}).get(ref.rsplit("/", 1)[-1])
+            if body is not None and "image" in body.get("properties", {}):
+                _set_image_required(body, camera)
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _set_image_required(body: dict[str, Any], required: bool) -> None:
+    """The ``image`` property of a multipart body schema: a required file, or an optional one (file or null)."""
+    image = body["properties"]["image"]
+    if "anyOf" in image:
+        file_schema = next(branch for branch in image.pop("anyOf") if branch.get("type") != "null")
+    else:
+        file_schema = {key: image.pop(key) for key in list(image) if key not in ("title", "description")}
+    names = [name for name in body.get("required", []) if name != "image"]
+    if required:
+        image.update(file_schema)
+        body["required"] = ["image", *names]
+    else:
+        image["anyOf"] = [file_schema, {"type": "null"}]
+        body["required"] = names

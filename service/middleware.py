@@ -3,7 +3,11 @@
 :class:`RequestContextMiddleware` is the outermost layer: it gives each request
 an id (``X-Request-ID``, echoed in every answer and error), counts and times
 it, and turns any unhandled exception into a 500 that carries only the request
-id while the trace goes to the log. :class:`BodyLimitMiddleware` counts body
+id while the trace goes to the log. A request cancelled because uvicorn's
+graceful shutdown (``--shutdown-timeout-s``) ran out is answered 503
+``shutting_down`` instead, when its answer has not begun, and the cancellation goes
+on (:class:`CancelledRequestLogFilter` keeps uvicorn from logging it as a crash).
+:class:`BodyLimitMiddleware` counts body
 bytes as they arrive, so a client that sends no Content-Length (chunked) is
 cut off as soon as it passes the limit, and answers 413 itself. While counting it
 also notes whether a multipart body ended with its close delimiter
@@ -13,6 +17,8 @@ check: :func:`service.deps.require_multipart` answers 400 for a cut-off upload.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import logging
 import re
 import time
@@ -70,8 +76,23 @@ async def send_error(send: Send, status: int, code: str, message: str, request_i
     await send({"type": "http.response.body", "body": body})
 
 
+class CancelledRequestLogFilter(logging.Filter):
+    """Drops uvicorn's "Exception in ASGI application" record (with its traceback) for a cancelled request.
+
+    uvicorn cancels the requests still running when its graceful shutdown times out, and logs each
+    cancellation that leaves the app as a crash. RequestContextMiddleware has answered such a request and
+    logged one line for it; the cancellation itself must still leave the app (asyncio's contract with the
+    canceller). Add it to the ``uvicorn.error`` logger.
+    """
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        cancelled = record.exc_info is not None and isinstance(record.exc_info[1], asyncio.CancelledError)
+        return not (cancelled and str(record.msg).startswith("Exception in ASGI application"))
+
+
 class RequestContextMiddleware:
-    """Request id, request metrics, and a JSON 500 (trace logged, never returned) for unhandled errors."""
+    """Request id, request metrics, a JSON 500 (trace logged, never returned) for unhandled errors, and a JSON
+    503 for requests cancelled by the server's shutdown."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics, route_paths: frozenset[str] = frozenset()) -> None:
         self.app = app
@@ -100,6 +121,26 @@ class RequestContextMiddleware:
         tic = time.perf_counter()
         try:
             await self.app(scope, receive, send_with_id)
+        except asyncio.CancelledError:
+            # uvicorn cancels the requests still running when --shutdown-timeout-s runs out (and answers a plain
+            # 500 itself): answer in the service's format while the connection is still open, then let the
+            # cancellation go on. A frame already on a worker finishes there; one still queued never runs.
+            if not started:
+                status = 503
+                log.warning("request %s (%s %s) cut off by the shutdown: answered 503 shutting_down",
+                            request_id, scope.get("method"), scope.get("path"))
+                # Best effort: the client may be gone, and nothing may replace the cancellation below.
+                with contextlib.suppress(Exception):
+                    await send_error(
+                        send, 503, "shutting_down",
+                        "the service shut down before this request finished; send it again (to another replica)",
+                        request_id, [(b"x-request-id", request_id.encode()), (b"retry-after", b"1"),
+                                     (b"connection", b"close")],
+                    )
+            else:  # the answer had begun: the client sees the connection close before the end of the body
+                log.warning("request %s (%s %s) cut off by the shutdown during its answer",
+                            request_id, scope.get("method"), scope.get("path"))
+            raise
         except Exception:
             log.exception("internal error on %s %s (request id %s)", scope.get("method"), scope.get("path"), request_id)
             status = 500

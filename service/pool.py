@@ -145,21 +145,34 @@ class InferencePool:
         future.add_done_callback(self._release)
         try:
             return await asyncio.wait_for(asyncio.wrap_future(future), timeout_s)
-        except TimeoutError:
+        # Both names: on Python 3.10 (the Jetson image) asyncio.wait_for raises asyncio.TimeoutError, a class of
+        # its own there (the builtin only from 3.11 on); catching the builtin alone made a deadline a 500.
+        # (ruff, set for 3.11, calls the second name redundant.)
+        except (TimeoutError, asyncio.TimeoutError):  # noqa: UP041
             future.cancel()  # succeeds only while the job is still waiting
             self._metrics.rejected.labels(reason="timeout").inc()
             raise PoolTimeout(f"the frame took longer than {timeout_s:g} s") from None
 
-    def warm_up(self, runs: int) -> None:
+    def warm_up(self, runs: int, stop: threading.Event | None = None) -> bool:
         """Run every distinct Detector's networks ``runs`` times, then one frame on each worker thread.
 
         Blocking; call it off the event loop. The frames wait for each other at a barrier, so each one
         starts a worker thread of its own and makes that thread's buffers (Detector.warm_up_thread).
+        ``stop`` (set when the service shuts down) ends it between two runs; False when it did.
         """
         if runs == 0:
-            return
-        for detector in self.detectors:
-            detector.warm_up(runs)
+            return True
+        stop = stop or threading.Event()
+        for _ in range(runs):
+            for detector in self.detectors:
+                # Checked before each run, not during one: a session run already started goes on to its end
+                # (Detector runs its sessions without the RunOptions whose terminate flag could stop them), so a
+                # shutdown waits for at most one network run.
+                if stop.is_set():
+                    return False
+                detector.warm_up(1)
+        if stop.is_set():
+            return False
         barrier = threading.Barrier(self.workers)
 
         def on_a_worker() -> None:
@@ -168,6 +181,7 @@ class InferencePool:
 
         for future in [self._executor.submit(on_a_worker) for _ in range(self.workers)]:
             future.result()
+        return True
 
     def shutdown(self) -> None:
         """Refuse new jobs, let running and waiting ones finish, stop the threads."""

@@ -31,6 +31,7 @@ class Runtime:
     pool: InferencePool
     default_calib: Calibration | None
     ready: threading.Event = field(default_factory=threading.Event)
+    stopping: threading.Event = field(default_factory=threading.Event)  # set on shutdown: the warm-up ends early
     warm_up_error: str | None = None
 
     @property
@@ -45,12 +46,18 @@ class Runtime:
         return tuple(detector.preset.crop_hw) if detector.two_stage else None  # type: ignore[return-value]
 
     def warm_up(self, runs: int) -> None:
-        """Run the networks ``runs`` times and a frame on each worker, then mark the runtime ready (blocking)."""
+        """Run the networks ``runs`` times and a frame on each worker, then mark the runtime ready (blocking).
+
+        Ends between two network runs once ``stopping`` is set, so a SIGTERM during a long warm-up (many
+        ``--warmup-runs``, TensorRT) does not wait for all of it."""
         try:
-            self.pool.warm_up(runs)
+            finished = self.pool.warm_up(runs, self.stopping)
         except Exception as exc:  # an execution provider failing at first run: stay not ready, say why
             self.warm_up_error = f"warm-up failed: {exc}"
             log.exception("warm-up failed; /readyz stays 503")
+            return
+        if not finished:
+            log.info("warm-up stopped: the service is shutting down")
             return
         self.ready.set()
         log.info("warmed up (%d run(s) per session): ready", runs)
@@ -63,7 +70,11 @@ def load_runtime(settings: Settings, metrics: Metrics) -> Runtime:
     pipeline.errors.InputError for a bad provider or default calibration.
     """
     models = settings.models
-    if not models.is_dir():
+    try:
+        found = models.is_dir()
+    except OSError as exc:  # a name too long, no permission on a parent folder
+        raise ModelFileError(f"{models}: cannot open the model directory ({exc.strerror or exc})") from exc
+    if not found:
         raise ModelFileError(
             f"{models}: model directory not found; pass --models DIR (or LOWRES3D_MODELS) pointing to a "
             "directory written by `python -m export`"

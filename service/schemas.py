@@ -135,8 +135,9 @@ class ModelInfo(BaseModel):
     sessions: str = Field(description="'shared' or 'per-worker'")
     intra_op_threads: int = Field(description="ONNX Runtime intra-op threads per session")
     queue_size: int
-    crop_hw: list[int] = Field(
-        min_length=2, max_length=2, description="smallest image [height, width] the model accepts"
+    crop_hw: Annotated[list[int], Field(min_length=2, max_length=2)] | None = Field(
+        description="smallest image [height, width] the model accepts; null for a LiDAR-only model, which "
+        "needs no image"
     )
     default_calib: bool = Field(description="a default calibration is configured (calib is optional)")
     mirror_tta: bool = Field(description="PIXOR also runs on the mirrored BEV, maps averaged (--mirror-tta)")

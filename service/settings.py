@@ -12,7 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
+from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from pipeline.cpu import usable_cpus
@@ -66,9 +67,35 @@ class Settings(BaseSettings):
         "worker thread to make its buffers (0: none of it)"
     )
     shutdown_timeout_s: float = Field(
-        60.0, gt=0, description="on SIGTERM, how long in-flight requests may take to finish"
+        60.0, gt=0, description="on SIGTERM, how long in-flight requests may take to finish (seconds, fractions "
+        "too); those still running then are answered 503"
     )
     log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="logging level")
+
+    @field_validator("models", "trt_cache_dir", "default_calib", mode="before")
+    @classmethod
+    def _path_not_empty(cls, value: object) -> object:
+        """Refuse an empty path: ``LOWRES3D_MODELS=`` left blank would become Path(""), the current directory."""
+        if isinstance(value, str) and not value.strip():
+            raise PydanticCustomError("empty_path", "empty; give a path (an empty one would be the current directory)")
+        return value
+
+    @field_validator("token")
+    @classmethod
+    def _token_usable(cls, token: SecretStr | None) -> SecretStr | None:
+        """Refuse a token no request can send: it would lock every /v1 route with 401 (``LOWRES3D_TOKEN=``)."""
+        if token is None:
+            return None
+        value = token.get_secret_value()
+        if not value.strip():
+            raise PydanticCustomError(
+                "empty_token", "empty; give a token, or leave both unset to serve /v1/* without one"
+            )
+        if value != value.strip():  # HTTP drops the whitespace around a header value: it could never match
+            raise PydanticCustomError(
+                "token_whitespace", "starts or ends with whitespace, which an Authorization header cannot carry"
+            )
+        return token
 
     def resolved_intra_op_threads(self) -> int:
         """The configured intra-op threads, or the usable CPUs divided among the workers (docs/service.md)."""

@@ -39,6 +39,25 @@ def test_load_test_drives_a_started_service_and_reports(tmp_path, tiny_models):
     assert picture is not None and picture.shape[0] > 100
 
 
+def test_every_frame_is_sent_intact_and_broken_whatever_bad_every():
+    """--bad-every equal to the number of frames (or dividing it) used to break the same frame every time:
+    that frame was never sent well-formed."""
+    from benchmarks.load import BROKEN_KINDS, KITTI, RequestSource
+
+    frames = sorted(path.stem for path in (KITTI / "velodyne").glob("*.bin"))
+    assert len(frames) == 5
+    for bad_every in (2, 5):
+        source = RequestSource(KITTI, frames, {}, total=10 * len(frames) * bad_every, bad_every=bad_every)
+        uploads = list(iter(source.take, None))
+        intact = [u.name for u in uploads if not u.broken]
+        broken = [(u.name, u.files["image"][0].removesuffix(".png")) for u in uploads if u.broken]
+        assert len(broken) == len(uploads) // bad_every
+        assert set(intact) == set(frames), bad_every
+        assert intact[: 2 * len(frames)] == frames * 2  # the frames in turn
+        assert {frame for _, frame in broken} == set(frames), bad_every
+        assert {kind for kind, _ in broken} == set(BROKEN_KINDS)
+
+
 def test_load_test_without_a_service_at_url_answers_one_line(tmp_path):
     with socket.socket() as sock:  # a loopback port nothing listens on
         sock.bind(("127.0.0.1", 0))

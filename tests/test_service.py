@@ -233,6 +233,42 @@ def test_jpeg_image_accepted(client: AppClient, frame: dict[str, bytes]) -> None
     assert response.status_code == 200, response.text
 
 
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """The JPEG with an EXIF APP1 segment right after its start marker holding one tag, Orientation (0x0112)."""
+    entry = struct.pack(">HHIHH", 0x0112, 3, 1, orientation, 0)  # tag, SHORT, one value, the value, padding
+    tiff = b"MM\x00\x2a" + struct.pack(">I", 8) + struct.pack(">H", 1) + entry + struct.pack(">I", 0)
+    app1 = b"\xff\xe1" + struct.pack(">H", 2 + 6 + len(tiff)) + b"Exif\x00\x00" + tiff
+    assert jpeg.startswith(b"\xff\xd8")
+    return jpeg[:2] + app1 + jpeg[2:]
+
+
+@pytest.mark.parametrize("orientation", [3, 6])
+def test_jpeg_exif_orientation_is_not_applied(orientation: int) -> None:
+    """The calibration describes the pixels as the sensor stored them: a JPEG's EXIF Orientation (3: turned
+    half-way, 6: a quarter) must not turn them, or every projection would miss."""
+    from pipeline.kitti import decode_image
+
+    picture = np.zeros((48, 64, 3), np.uint8)
+    picture[:16, :24] = (255, 0, 0)  # a corner mark that any turn moves
+    jpeg = cv2.imencode(".jpg", picture)[1].tobytes()
+    tagged = _with_exif_orientation(jpeg, orientation)
+    def turned(data: bytes) -> np.ndarray:
+        return cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+
+    assert not np.array_equal(turned(tagged), turned(jpeg))  # the tag is one OpenCV reads: the test can fail
+    np.testing.assert_array_equal(decode_image(tagged, "image"), decode_image(jpeg, "image"))
+
+
+def test_jpeg_with_exif_orientation_detects_as_without(client: AppClient, frame: dict[str, bytes]) -> None:
+    bgr = cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR)
+    jpeg = cv2.imencode(".jpg", bgr)[1].tobytes()
+    params = {"score_threshold": 0.0}
+    plain = client.post("/v1/detect", params=params, files=parts(frame, image=jpeg))
+    tagged = client.post("/v1/detect", params=params, files=parts(frame, image=_with_exif_orientation(jpeg, 6)))
+    assert plain.status_code == tagged.status_code == 200, tagged.text
+    assert tagged.json()["detections"] == plain.json()["detections"]
+
+
 def test_nonfinite_points_dropped_with_warning(client: AppClient, frame: dict[str, bytes]) -> None:
     points = np.frombuffer(frame["points"], "<f4").reshape(-1, 4).copy()
     points[:5, 0] = np.nan
@@ -299,6 +335,7 @@ BAD_PARTS = {
     "calib no colon": ({"calib": b"garbage line\n"}, 422, "invalid_input", ("calib", "KEY: numbers")),
     "calib binary": ({"calib": b"\xff\xfe\x00\x81"}, 422, "invalid_input", ("calib", "not text")),
     "calib empty": ({"calib": b"  \n"}, 422, "invalid_input", ("calib", "empty")),
+    "calib too big": ({"calib": b"P2: " + b"0 " * 40000}, 422, "invalid_input", ("calib", "80004 bytes", "65536")),
     "missing points": ({"points": None}, 422, "invalid_input", ("points", "required")),
     "missing image": ({"image": None}, 422, "invalid_input", ("image", "required")),
     "missing calib, no default": ({"calib": None}, 422, "invalid_input", ("calib", "default")),
@@ -517,6 +554,76 @@ def test_queue_full_answers_503_with_retry_after(tiny_models: Path, frame: dict[
         assert "lowres3d_inference_queue_depth 0.0" in metrics
 
 
+def _without_p2(calib: bytes) -> bytes:
+    return b"\n".join(line for line in calib.splitlines() if not line.startswith(b"P2:"))
+
+
+def test_a_request_that_cannot_succeed_is_422_even_when_the_queue_is_full(
+    tiny_models: Path, frame: dict[str, bytes]
+) -> None:
+    """The checks that need no decoding run before a frame takes a place in the queue: a full queue answers
+    a broken request 422, never 503 "retry later", which it never would succeed on."""
+    with service(tiny_models, workers=1, queue_size=0) as app_client:
+        pool = app_client.app.state.runtime.pool
+        release = threading.Event()
+        held = app_client.portal.start_task_soon(pool.run, lambda _: release.wait(30), 60)
+        try:
+            deadline = time.monotonic() + 10
+            while pool.depth != (0, 1):  # the only place is taken
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+            assert_error(app_client.post("/v1/detect", files=parts(frame)), 503, "overloaded")
+            broken = {
+                "calib": ({"calib": None}, ("calib: required", "no default calibration")),
+                "calib without P2": ({"calib": _without_p2(frame["calib"])}, ("calib", "P2")),
+                "cut-off PNG": ({"image": frame["image"][: len(frame["image"]) // 2]}, ("image", "PNG cut off")),
+                "scan size": ({"points": frame["points"][:-6]}, ("points", "multiple of 16")),
+                "empty image": ({"image": b""}, ("image", "empty")),
+                "missing image": ({"image": None}, ("image: required",)),
+            }
+            for case, (replace, words) in broken.items():
+                response = app_client.post("/v1/detect", files=parts(frame, **replace))
+                assert response.status_code == 422, (case, response.text)
+                assert_error(response, 422, "invalid_input", *words)
+        finally:
+            release.set()
+            held.result(30)
+
+
+def test_pool_deadline_is_a_timeout_with_python_310s_timeout_class(
+    tiny_models: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """On Python 3.10 (the Jetson image) asyncio.wait_for raises asyncio.TimeoutError, a class of its own there;
+    stood in for here by a class that is no builtin TimeoutError. A deadline must still be PoolTimeout (504)."""
+    import asyncio
+    import types
+
+    import service.pool as pool_module
+    from pipeline.detector import Detector
+
+    class Py310TimeoutError(Exception):
+        """asyncio.exceptions.TimeoutError of Python 3.10: not a subclass of the builtin TimeoutError."""
+
+    async def wait_for(awaitable: Any, timeout: float) -> Any:
+        try:
+            return await asyncio.wait_for(awaitable, timeout)
+        except TimeoutError:
+            raise Py310TimeoutError from None
+
+    monkeypatch.setattr(pool_module, "asyncio", types.SimpleNamespace(
+        wait_for=wait_for, wrap_future=asyncio.wrap_future, TimeoutError=Py310TimeoutError))
+    pool = InferencePool([Detector(tiny_models)], workers=1, queue_size=0, metrics=Metrics())
+
+    async def late() -> None:
+        await pool.run(lambda _: time.sleep(0.5), timeout_s=0.05)
+
+    try:
+        with pytest.raises(PoolTimeout):
+            anyio.run(late)
+    finally:
+        pool.shutdown()
+
+
 def test_pool_admission_is_bounded_and_deadlines_cancel_waiting_jobs(tiny_models: Path) -> None:
     from pipeline.detector import Detector
 
@@ -596,6 +703,54 @@ def test_internal_error_answers_only_a_request_id(
         assert app_client.get("/healthz").status_code == 200
 
 
+def test_a_request_cancelled_by_the_shutdown_is_answered_503_and_stays_cancelled() -> None:
+    """What uvicorn does when --shutdown-timeout-s runs out: cancel the request's task. The middleware answers
+    the service's 503 shutting_down (with the request id) and lets the cancellation go on; the log filter then
+    keeps uvicorn's "Exception in ASGI application" traceback for it out of the log, and only for it."""
+    import asyncio
+
+    from service.middleware import CancelledRequestLogFilter, RequestContextMiddleware
+
+    sent: list[dict] = []
+    metrics = Metrics()
+
+    async def never_answers(scope: Any, receive: Any, send: Any) -> None:
+        await asyncio.Event().wait()
+
+    async def send(message: dict) -> None:
+        sent.append(message)
+
+    async def receive() -> dict:
+        return {"type": "http.request", "body": b"", "more_body": False}
+
+    async def scenario() -> None:
+        scope = {"type": "http", "method": "POST", "path": "/v1/detect", "headers": [(b"x-request-id", b"cut-1")]}
+        task = asyncio.ensure_future(RequestContextMiddleware(never_answers, metrics)(scope, receive, send))
+        await asyncio.sleep(0.01)
+        task.cancel()
+        with pytest.raises(asyncio.CancelledError):
+            await task
+
+    asyncio.run(scenario())
+    start, body = sent
+    assert start["status"] == 503
+    headers = dict(start["headers"])
+    assert headers[b"x-request-id"] == b"cut-1" and headers[b"retry-after"] == b"1"
+    assert headers[b"content-type"] == b"application/json"
+    assert json.loads(body["body"])["error"] == {
+        "code": "shutting_down", "request_id": "cut-1",
+        "message": "the service shut down before this request finished; send it again (to another replica)"}
+    assert 'lowres3d_http_requests_total{method="POST",route="unmatched",status="503"} 1.0' in metrics.render().decode()
+
+    def record(exc: BaseException) -> logging.LogRecord:
+        return logging.LogRecord("uvicorn.error", logging.ERROR, __file__, 1, "Exception in ASGI application\n",
+                                 None, (type(exc), exc, None))
+
+    log_filter = CancelledRequestLogFilter()
+    assert not log_filter.filter(record(asyncio.CancelledError()))
+    assert log_filter.filter(record(RuntimeError("a bug")))  # a real crash keeps its traceback
+
+
 def test_unsafe_request_ids_are_replaced(client: AppClient) -> None:
     assert client.get("/healthz", headers={"X-Request-ID": "abc-123"}).headers["x-request-id"] == "abc-123"
     replaced = client.get("/healthz", headers={"X-Request-ID": "bad id\twith spaces"}).headers["x-request-id"]
@@ -608,8 +763,9 @@ def test_health_routes(client: AppClient) -> None:
     assert client.get("/readyz").json() == {"status": "ready", "ready": True}
     assert client.get("/v2/health/live").json() == {"live": True}
     assert client.get("/v2/health/ready").json() == {"ready": True}
-    for path in ("/healthz", "/readyz"):
-        assert client.request("HEAD", path).status_code == 200
+    for path in ("/healthz", "/readyz", "/v2/health/live", "/v2/health/ready"):
+        head = client.request("HEAD", path)
+        assert head.status_code == 200 and head.content == b"", path
 
 
 def test_warm_up_runs_a_frame_on_every_worker_thread(tiny_models: Path, frame: dict[str, bytes]) -> None:
@@ -693,6 +849,48 @@ def test_model_info(client: AppClient, tiny_models: Path) -> None:
     assert info["warnings"] == [untrained]
 
 
+def test_lidar_only_model_needs_the_scan_alone(tiny_models: Path, frame: dict[str, bytes], tmp_path: Path) -> None:
+    """A LiDAR-only model answers from points alone (boxes in the LiDAR frame); only the answers about the camera
+    (format=kitti, camera.png) need the image and a calibration. Its /v1/model has no crop, and the schema
+    agrees: image is optional there, required for a camera model."""
+    from tests.conftest import lidar_only_models
+
+    models = lidar_only_models(tiny_models, tmp_path / "lidar")
+    params = {"score_threshold": 0.0}
+    with service(models) as app_client:
+        info = app_client.get("/v1/model").json()
+        assert info["two_stage"] is False and info["crop_hw"] is None
+        alone = app_client.post("/v1/detect", params=params, files=parts(frame, image=None, calib=None))
+        assert alone.status_code == 200, alone.text
+        assert alone.json()["detections"] and "depth_net" not in alone.json()["timings_ms"]
+        whole = app_client.post("/v1/detect", params=params, files=parts(frame))
+        assert whole.json()["detections"] == alone.json()["detections"]  # the image changes nothing here
+        bev = app_client.post("/v1/detect/bev.png", params=params, files=parts(frame, image=None, calib=None))
+        assert bev.status_code == 200 and bev.content.startswith(b"\x89PNG")
+
+        kitti = {**params, "format": "kitti"}
+        assert_error(app_client.post("/v1/detect", params=kitti, files=parts(frame, calib=None)),
+                     422, "invalid_input", "calib: required", "format=kitti", "no default calibration")
+        assert_error(app_client.post("/v1/detect", params=kitti, files=parts(frame, image=None)),
+                     422, "invalid_input", "image: required", "format=kitti")
+        lines = app_client.post("/v1/detect", params=kitti, files=parts(frame))
+        assert lines.status_code == 200 and lines.text.startswith("Car ")
+        assert_error(app_client.post("/v1/detect/camera.png", params=params, files=parts(frame, image=None)),
+                     422, "invalid_input", "image: required", "camera picture")
+        camera = app_client.post("/v1/detect/camera.png", params=params, files=parts(frame))
+        assert camera.status_code == 200 and camera.content.startswith(b"\x89PNG")
+        assert_error(app_client.post("/v1/detect", files=parts(frame, points=b"\x00" * 100)), 422, "invalid_input",
+                     "points", "multiple of 16")
+
+        schema = app_client.get("/openapi.json").json()
+        assert schema["components"]["schemas"]["ModelInfo"]["properties"]["crop_hw"]["anyOf"][1] == {"type": "null"}
+        for route in ("/v1/detect", "/v1/detect/bev.png", "/v1/detect/camera.png"):
+            ref = schema["paths"][route]["post"]["requestBody"]["content"]["multipart/form-data"]["schema"]["$ref"]
+            body = schema["components"]["schemas"][ref.rsplit("/", 1)[1]]
+            assert body["required"] == ["points"], route
+            assert {"type": "null"} in body["properties"]["image"]["anyOf"]
+
+
 def test_metrics_exposition(client: AppClient, frame: dict[str, bytes]) -> None:
     assert client.post("/v1/detect", files=parts(frame)).status_code == 200
     assert client.get("/no-such-route-7f3a").status_code == 404
@@ -730,6 +928,14 @@ def test_openapi_documents_the_contract(client: AppClient) -> None:
     for picture in ("bev.png", "camera.png"):
         assert "image/png" in schema["paths"][f"/v1/detect/{picture}"]["post"]["responses"]["200"]["content"]
     assert "security" not in detect  # no token configured: the schema asks for none
+    # The headers that come with a status are declared with it, on every route that declares the status.
+    for path, method in (("/v1/detect", "post"), ("/v1/detect/bev.png", "post"), ("/v1/model", "get"),
+                         ("/readyz", "get"), ("/v2/health/ready", "get")):
+        responses = schema["paths"][path][method]["responses"]
+        assert responses["503"]["headers"]["Retry-After"]["required"] is True, path
+        if "401" in responses:
+            assert responses["401"]["headers"]["WWW-Authenticate"]["required"] is True, path
+    assert "401" in detect["responses"] and "401" in schema["paths"]["/v1/model"]["get"]["responses"]
     for path in ("/healthz", "/readyz", "/v1/model", "/metrics", "/v2/health/live", "/v2/health/ready"):
         assert path in schema["paths"]
 
@@ -746,6 +952,58 @@ def test_every_setting_is_a_cli_option_and_an_env_var(monkeypatch: pytest.Monkey
     assert Settings().models == tiny_models
     monkeypatch.delenv("LOWRES3D_MODELS")
     assert Settings().models == Path(__file__).resolve().parents[1] / "weights" / "edge"
+
+
+@pytest.mark.parametrize(
+    ("argv", "env", "line"),
+    [(["--token", ""], {}, "--token (LOWRES3D_TOKEN): empty; give a token"),
+     ([], {"LOWRES3D_TOKEN": ""}, "--token (LOWRES3D_TOKEN): empty; give a token"),
+     ([], {"LOWRES3D_TOKEN": " s3cret "}, "--token (LOWRES3D_TOKEN): starts or ends with whitespace"),
+     (["--models", ""], {}, "--models (LOWRES3D_MODELS): empty; give a path"),
+     ([], {"LOWRES3D_MODELS": ""}, "--models (LOWRES3D_MODELS): empty; give a path"),
+     ([], {"LOWRES3D_DEFAULT_CALIB": " "}, "--default-calib (LOWRES3D_DEFAULT_CALIB): empty; give a path")],
+    ids=["empty --token", "empty LOWRES3D_TOKEN", "token with spaces", "empty --models", "empty LOWRES3D_MODELS",
+         "blank LOWRES3D_DEFAULT_CALIB"],
+)
+def test_settings_refuse_an_empty_token_or_path(
+    monkeypatch: pytest.MonkeyPatch, argv: list[str], env: dict[str, str], line: str
+) -> None:
+    """An empty token would lock every /v1 route with 401; an empty path would be the current directory."""
+    from pydantic import ValidationError
+
+    from service.__main__ import settings_errors
+
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    with pytest.raises(ValidationError) as caught:
+        settings_from_args(argv)
+    lines = settings_errors(caught.value)
+    assert len(lines) == 1 and lines[0].startswith(line), lines
+    assert "s3cret" not in lines[0]  # a token is never echoed
+
+
+def test_unknown_lowres3d_variables_are_named_with_the_closest_setting() -> None:
+    from service.__main__ import unknown_env_warnings
+
+    environ = {"LOWRES3D_WORKER": "4", "lowres3d_queue_sise": "2", "LOWRES3D_ZZZ": "1", "LOWRES3D_WORKERS": "2",
+               "lowres3d_port": "9000", "PATH": "/bin"}
+    lines = unknown_env_warnings(environ)
+    assert lines[:2] == [
+        "environment variable LOWRES3D_WORKER: not a setting, ignored (did you mean LOWRES3D_WORKERS?)",
+        "environment variable LOWRES3D_ZZZ: not a setting, ignored (the settings are LOWRES3D_MODELS, LOWRES3D_HOST, "
+        + ", ".join(f"LOWRES3D_{name.upper()}" for name in list(Settings.model_fields)[2:]) + ")",
+    ]
+    # Read case-insensitively, like the settings.
+    assert lines[2:] == ["environment variable lowres3d_queue_sise: not a setting, ignored (did you mean "
+                         + "LOWRES3D_QUEUE_SIZE?)"]
+
+
+def test_uvicorn_waits_the_fraction_of_a_second_given(tiny_models: Path) -> None:
+    """--shutdown-timeout-s 0.9 is 0.9 s of grace, not int(0.9) = none (uvicorn waits in asyncio.timeout)."""
+    from service.__main__ import uvicorn_config
+
+    settings = Settings(models=tiny_models, shutdown_timeout_s=0.9)
+    assert uvicorn_config(settings, create_app(settings)).timeout_graceful_shutdown == 0.9
 
 
 def test_mirror_tta_setting_reaches_the_detector(tiny_models: Path, client: AppClient, frame: dict[str, bytes],

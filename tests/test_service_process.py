@@ -2,8 +2,11 @@
 
 Covers what only a real server shows: HTTP over a socket (chunked uploads,
 Content-Length), the OpenAPI schema fuzzed by schemathesis, SIGTERM letting
-in-flight requests finish, and a corrupted model directory stopping the start.
-Every server gets a free port, a bounded start-up time, and is killed in teardown.
+in-flight requests finish (and answering those it cuts off, and ending a long
+warm-up), and bad start configurations (a corrupted or unreadable model
+directory, an address in use, empty or misspelt settings) stopping the start
+with one line. Every server gets a free port, a bounded start-up time, and is
+killed in teardown.
 """
 
 from __future__ import annotations
@@ -66,8 +69,8 @@ def _stop(process: subprocess.Popen) -> None:
 
 
 @contextmanager
-def running_service(models: Path, log_path: Path, *args: str) -> Iterator[Server]:
-    """Start the service, wait until /readyz answers 200, stop it (SIGTERM, then SIGKILL) afterwards."""
+def running_service(models: Path, log_path: Path, *args: str, until: str = "/readyz") -> Iterator[Server]:
+    """Start the service, wait until ``until`` answers 200, stop it (SIGTERM, then SIGKILL) afterwards."""
     port = free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
     with open(log_path, "w") as log_file:
@@ -82,7 +85,7 @@ def running_service(models: Path, log_path: Path, *args: str) -> Iterator[Server
             if process.poll() is not None:
                 pytest.fail(f"the service exited with {process.returncode} during start:\n{server.log()}")
             try:
-                if httpx.get(f"{server.url}/readyz", timeout=1).status_code == 200:
+                if httpx.get(f"{server.url}{until}", timeout=1).status_code == 200:
                     break
             except httpx.TransportError:
                 pass
@@ -153,7 +156,7 @@ def test_body_limit_over_http(server: Server, frame: dict[str, bytes]) -> None: 
 
 def test_probes_answer_head_over_http(server: Server) -> None:
     """Load balancers and uptime checkers often probe with HEAD: same status as GET, no body."""
-    for path in ("/healthz", "/readyz"):
+    for path in ("/healthz", "/readyz", "/v2/health/live", "/v2/health/ready"):
         response = httpx.head(f"{server.url}{path}", timeout=5)
         assert response.status_code == 200 and response.content == b"", path
     assert httpx.head(f"{server.url}/v1/detect", timeout=5).status_code == 405
@@ -228,12 +231,81 @@ def test_sigterm_lets_in_flight_requests_finish(
             httpx.get(f"{running.url}/healthz", timeout=2)
 
 
-def _start_fails(models: Path, *args: str) -> tuple[int, str]:
-    result = subprocess.run(
-        [sys.executable, "-m", "service", "--models", str(models), "--port", str(free_port()), *args],
-        check=False, cwd=REPO, capture_output=True, text=True, timeout=START_TIMEOUT_S,
-        env={k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")},
-    )
+def _log_time(log: str, text: str) -> float:
+    """Seconds (since midnight) of the first log line holding ``text`` (the format of service/__main__.py)."""
+    match = re.search(rf"^\S+ (\d+):(\d+):(\d+),(\d+) .*{re.escape(text)}", log, re.MULTILINE)
+    assert match, f"no log line with {text!r}:\n{log}"
+    hours, minutes, seconds, millis = (int(group) for group in match.groups())
+    return hours * 3600 + minutes * 60 + seconds + millis / 1000
+
+
+def _queue_depth(server: Server) -> float:
+    """The frames waiting for a worker, from the server's /metrics."""
+    text = httpx.get(f"{server.url}/metrics", timeout=5).text
+    return float(re.search(r"^lowres3d_inference_queue_depth (\S+)$", text, re.MULTILINE).group(1))
+
+
+def test_requests_cut_off_by_the_shutdown_get_a_json_503(frame: dict[str, bytes], tmp_path: Path) -> None:  # noqa: F811
+    """When --shutdown-timeout-s runs out uvicorn cancels the requests still running: each gets the service's 503
+    shutting_down with its request id (not uvicorn's plain-text 500), the log a line each and no traceback; and
+    the grace lasts the fraction of a second given (int(0.3) was none at all)."""
+    # The shipped models with mirror TTA on one worker (0.15–0.3 s a frame here): twelve frames queue up for
+    # seconds, far beyond the grace.
+    args = ("--workers", "1", "--queue-size", "11", "--mirror-tta", "--shutdown-timeout-s", "0.3")
+    with running_service(REPO / "weights" / "edge", tmp_path / "service.log", *args) as running:
+        with ThreadPoolExecutor(12) as clients:
+            futures = [clients.submit(httpx.post, f"{running.url}/v1/detect", params={"emulate_beams": 16},
+                                      files=parts(frame), timeout=60, headers={"X-Request-ID": f"cut-{i}"})
+                       for i in range(12)]
+            deadline = time.monotonic() + 30
+            while _queue_depth(running) < 8:  # over a second of work waiting: more than the grace lets finish
+                assert time.monotonic() < deadline, "the frames did not queue up"
+                time.sleep(0.01)
+            running.process.send_signal(signal.SIGTERM)
+            responses = [f.result() for f in futures]
+        assert running.process.wait(30) in (0, -signal.SIGTERM)
+        log = running.log()
+    statuses = [r.status_code for r in responses]
+    assert set(statuses) <= {200, 503} and 503 in statuses, statuses
+    for response in responses:
+        if response.status_code == 503:
+            error = assert_error(response, 503, "shutting_down", "shut down before this request finished")
+            assert error["request_id"].startswith("cut-") and response.headers["retry-after"] == "1"
+            assert f"request {error['request_id']} (POST /v1/detect) cut off by the shutdown" in log
+    assert "Traceback" not in log and "Exception in ASGI application" not in log, log
+    assert "inference pool stopped" in log
+    assert _log_time(log, "Cancel ") - _log_time(log, "Shutting down") >= 0.3
+
+
+def test_sigterm_during_a_long_warm_up_stops_promptly(tmp_path: Path) -> None:
+    """The warm-up stops between two network runs once the shutdown begins: a thousand runs of the shipped
+    models (minutes) do not hold a SIGTERM up."""
+    args = ("--workers", "1", "--warmup-runs", "1000", "--shutdown-timeout-s", "2")
+    with running_service(REPO / "weights" / "edge", tmp_path / "service.log", *args, until="/healthz") as running:
+        assert httpx.get(f"{running.url}/readyz", timeout=5).status_code == 503  # still warming up
+        time.sleep(0.5)
+        sent = time.monotonic()
+        running.process.send_signal(signal.SIGTERM)
+        try:
+            code = running.process.wait(60)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"still running 60 s after SIGTERM:\n{running.log()}")
+        took = time.monotonic() - sent
+        log = running.log()
+    assert code in (0, -signal.SIGTERM), log
+    assert took < 10, f"{took:.1f} s to stop:\n{log}"
+    assert "warm-up stopped: the service is shutting down" in log and ": ready" not in log
+    assert "inference pool stopped" in log and "Traceback" not in log
+
+
+def _start_fails(models: Path | None, *args: str, env: dict[str, str] | None = None) -> tuple[int, str]:
+    """Run a start that must fail: its exit status and output. ``models`` None: no --models; a free port unless
+    ``args`` give one; ``env``: LOWRES3D_* variables (the test's own are left out)."""
+    command = [sys.executable, "-m", "service", *(["--models", str(models)] if models is not None else []),
+               *([] if "--port" in args else ["--port", str(free_port())]), *args]
+    environ = {k: v for k, v in os.environ.items() if not k.upper().startswith("LOWRES3D_")}
+    result = subprocess.run(command, check=False, cwd=REPO, capture_output=True, text=True,
+                            timeout=START_TIMEOUT_S, env=environ | (env or {}))
     return result.returncode, result.stdout + result.stderr
 
 
@@ -279,3 +351,76 @@ def test_without_models_outside_a_checkout_the_start_says_where_the_weights_are(
     assert result.returncode == 2, result.stderr
     assert f"{site / 'weights' / 'edge'}" in result.stderr and "exists only in a source checkout" in result.stderr
     assert "--models" in result.stderr and "LOWRES3D_MODELS" in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("fault", ["a directory in its place", "a read error"])
+def test_unreadable_model_file_stops_the_start_with_one_line(
+    tiny_models: Path, tmp_path: Path, fault: str  # noqa: F811
+) -> None:
+    """The tests run as root, whom chmod 000 does not stop: a directory where the file should be, and a file
+    whose reading fails for anyone (/proc/self/mem at offset 0, an address no process maps: EIO)."""
+    if fault == "a read error" and not Path("/proc/self/mem").exists():
+        pytest.skip("needs Linux's /proc")
+    models = tmp_path / "models"
+    shutil.copytree(tiny_models, models)
+    pixor = models / "pixor.onnx"
+    pixor.unlink()
+    if fault == "a directory in its place":
+        pixor.mkdir()
+        message = f"{pixor}: a directory, where the manifest lists a model file"
+    else:
+        pixor.symlink_to("/proc/self/mem")
+        message = f"{pixor}: cannot read the model file (Input/output error)"
+    code, output = _start_fails(models)
+    assert code == 2, output
+    assert message in output and "Traceback" not in output and "Uvicorn running" not in output
+    assert [line for line in output.splitlines() if "ERROR" in line] == [output.strip().splitlines()[-1]]
+
+
+@pytest.mark.parametrize(
+    ("host", "message"),
+    [("127.0.0.1", "--port {port} (LOWRES3D_PORT): address already in use on 127.0.0.1"),
+     ("192.0.2.1", ("--host 192.0.2.1 (LOWRES3D_HOST): cannot assign requested address (not an address of "
+                    "this machine)")),
+     ("a..b", "--host a..b (LOWRES3D_HOST): cannot resolve it")],
+    ids=["port in use", "address not here", "host name unusable"],
+)
+def test_an_unusable_address_stops_the_start_before_the_models_load(
+    tiny_models: Path, host: str, message: str  # noqa: F811
+) -> None:
+    """One line naming --port or --host, exit status 2, and no model loaded or warmed up first. (192.0.2.1 is a
+    documentation address no machine has; binding it sends nothing.)"""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        code, output = _start_fails(tiny_models, "--host", host, "--port", str(port))
+    assert code == 2, output
+    lines = output.strip().splitlines()
+    assert len(lines) == 1 and f"ERROR service: cannot start: {message.format(port=port)}" in lines[0], output
+    assert "Traceback" not in output and "loaded" not in output and "warm" not in output
+
+
+@pytest.mark.parametrize(
+    ("args", "env", "message"),
+    [(("--token", ""), {}, "--token (LOWRES3D_TOKEN): empty; give a token"),
+     ((), {"LOWRES3D_TOKEN": ""}, "--token (LOWRES3D_TOKEN): empty; give a token"),
+     ((), {"LOWRES3D_MODELS": ""}, "--models (LOWRES3D_MODELS): empty; give a path")],
+    ids=["--token ''", "LOWRES3D_TOKEN=", "LOWRES3D_MODELS="],
+)
+def test_an_empty_token_or_model_directory_is_refused_at_start(
+    tiny_models: Path, args: tuple[str, ...], env: dict[str, str], message: str  # noqa: F811
+) -> None:
+    """An empty token would lock every /v1 route with 401; an empty model directory would be the current one."""
+    code, output = _start_fails(None if "LOWRES3D_MODELS" in env else tiny_models, *args, env=env)
+    assert code == 2, output
+    lines = output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"python -m service: {message}"), output
+
+
+def test_a_misspelt_lowres3d_variable_is_named_at_start(tmp_path: Path) -> None:
+    """pydantic-settings reads only its own variables: a typo gets a warning naming the closest setting."""
+    code, output = _start_fails(tmp_path / "nowhere", env={"LOWRES3D_WORKER": "4"})
+    assert code == 2, output  # no model directory: the start stops after the warning
+    assert ("WARNING service: environment variable LOWRES3D_WORKER: not a setting, ignored "
+            "(did you mean LOWRES3D_WORKERS?)") in output

@@ -2,7 +2,9 @@
 ``POST /v1/detect/camera.png`` (the camera image with the boxes as wireframes).
 
 All three take multipart/form-data parts ``image``, ``points`` and optionally
-``calib``. Cheap checks run on the event loop; decoding, detection and
+``calib`` (and ``image`` too for a LiDAR-only model, unless the answer is about
+the camera: ``format=kitti``, ``camera.png``). The checks that need no decoding
+run on the event loop before the frame is queued; decoding, detection and
 rendering run on the inference pool.
 """
 
@@ -86,7 +88,12 @@ def frame_options(
 
 
 FrameOptionsDep = Annotated[FrameOptions, Depends(frame_options)]
-ImagePart = Annotated[UploadFile, File(description="camera image, PNG or JPEG (at least the model's crop)")]
+# Optional in the signature: a LiDAR-only model answers from the scan alone. The schema marks it required
+# for a camera model (service.app), and service.inputs.check_upload answers 422 when it is missing.
+ImagePart = Annotated[UploadFile | None, File(
+    description="camera image, PNG or JPEG (at least the model's crop); a LiDAR-only model needs it only for "
+    "`format=kitti` and the camera picture"
+)]
 PointsPart = Annotated[UploadFile, File(description="KITTI velodyne .bin: little-endian float32 rows x, y, z, reflectance")]
 CalibPart = Annotated[
     UploadFile | None, File(description="KITTI object calib.txt (P2, R0_rect, Tr_velo_to_cam); optional with a server default")
@@ -104,13 +111,13 @@ class FrameResult:
 
 
 def _detect_job(
-    upload: FrameUpload, options: FrameOptions, default_calib: Calibration | None, picture: Picture | None
+    upload: FrameUpload, options: FrameOptions, calib: Calibration | None, picture: Picture | None
 ) -> Callable[[Detector], FrameResult]:
     """The work of one frame on a worker: decode the parts, detect, optionally render a picture as PNG."""
 
     def job(detector: Detector) -> FrameResult:
         tic = time.perf_counter()
-        frame = decode_frame(upload, default_calib, options.nonfinite)
+        frame = decode_frame(upload, calib, options.nonfinite)
         parse_ms = (time.perf_counter() - tic) * 1e3
         detections = detector.detect(
             frame.image, frame.points, frame.calib, options.score_threshold, options.emulate_beams,
@@ -124,6 +131,7 @@ def _detect_job(
                 points = detections.points if detections.points is not None else frame.points
                 bgr = render_bev(points, detector.preset.bev, detections.boxes, detections.scores)
             else:  # the boxes of format=kitti: those whose centre the camera sees
+                assert frame.image is not None and frame.calib is not None and frame.image_hw is not None  # checked
                 seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)
                 bgr = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen])
             ok, encoded = cv2.imencode(".png", bgr)
@@ -136,13 +144,25 @@ def _detect_job(
     return job
 
 
+def _camera_use(runtime: Runtime, answer: str | None) -> str | None:
+    """Why a request needs the camera image and a calibration, for the 422 when one is missing; None when the
+    scan alone answers it. ``answer``: what of the answer needs them (None: nothing, boxes in the LiDAR frame)."""
+    if runtime.detector.two_stage:
+        return "a camera model: depth completion projects the scan into the image"
+    return answer
+
+
 async def _run_frame(
     runtime: Runtime, settings: Settings, metrics: Metrics, upload: FrameUpload, options: FrameOptions,
-    picture: Picture | None,
+    picture: Picture | None, needs_camera: str | None = None,
 ) -> FrameResult:
-    """Check, queue and run one frame; pool conditions become 503/504 answers."""
-    check_upload(upload, settings.max_points, settings.max_image_pixels, runtime.crop_hw)
-    job = _detect_job(upload, options, runtime.default_calib, picture)
+    """Check, queue and run one frame; pool conditions become 503/504 answers.
+
+    needs_camera: what of the answer needs the image and a calibration even from a LiDAR-only model."""
+    # Before the queue: a request that can never succeed gets its 4xx even while the queue is full.
+    calib = check_upload(upload, settings.max_points, settings.max_image_pixels, runtime.crop_hw,
+                         runtime.default_calib, _camera_use(runtime, needs_camera))
+    job = _detect_job(upload, options, calib, picture)
     started = time.perf_counter()
     try:
         outcome: JobResult[FrameResult] = await runtime.pool.run(job, settings.request_timeout_s)
@@ -163,9 +183,10 @@ async def _run_frame(
     return result
 
 
-async def _read_upload(image: UploadFile, points: UploadFile, calib: UploadFile | None) -> FrameUpload:
+async def _read_upload(image: UploadFile | None, points: UploadFile, calib: UploadFile | None) -> FrameUpload:
     return FrameUpload(
-        image=await image.read(), points=await points.read(), calib=await calib.read() if calib is not None else None
+        image=await image.read() if image is not None else None, points=await points.read(),
+        calib=await calib.read() if calib is not None else None,
     )
 
 
@@ -214,7 +235,8 @@ def _picture_responses(description: str) -> dict:
 async def _picture_answer(runtime: Runtime, settings: Settings, metrics: Metrics, options: FrameOptions,
                           upload: FrameUpload, picture: Picture) -> Response:
     """Detect on an uploaded frame and answer ``picture`` as PNG, the frame's warnings in X-Warnings."""
-    result = await _run_frame(runtime, settings, metrics, upload, options, picture=picture)
+    needs = "the camera picture draws the boxes on the image" if picture is Picture.camera else None
+    result = await _run_frame(runtime, settings, metrics, upload, options, picture=picture, needs_camera=needs)
     assert result.png is not None
     return Response(result.png, media_type="image/png", headers=_warning_headers(result))
 
@@ -238,10 +260,10 @@ async def detect(
     settings: SettingsDep,
     metrics: MetricsDep,
     options: FrameOptionsDep,
-    image: ImagePart,
+    *,
+    image: ImagePart = None,
     points: PointsPart,
     calib: CalibPart = None,
-    *,
     output_format: Annotated[
         OutputFormat, Query(
             alias="format",
@@ -252,13 +274,21 @@ async def detect(
 ) -> DetectResponse | Response:
     """Boxes in the LiDAR frame with scores, per-stage timings, the model's identity and warnings.
 
+    A camera model needs `image`, `points` and a calibration (`calib`, or the server's default); a LiDAR-only
+    model (`two_stage` false in `/v1/model`) needs `points` alone, and the image and a calibration only for
+    `format=kitti`.
+
     Example: `curl -F image=@000006.png -F points=@000006.bin -F calib=@000006.txt
     'http://127.0.0.1:8000/v1/detect?emulate_beams=16'`
     """
     upload = await _read_upload(image, points, calib)
-    result = await _run_frame(runtime, settings, metrics, upload, options, picture=None)
-    if output_format is OutputFormat.kitti:
-        objects = result.detections.to_objects(result.frame.calib, result.frame.image_hw)
+    kitti = output_format is OutputFormat.kitti
+    needs = "format=kitti gives the boxes the camera sees, in its image" if kitti else None
+    result = await _run_frame(runtime, settings, metrics, upload, options, picture=None, needs_camera=needs)
+    if kitti:
+        frame = result.frame
+        assert frame.calib is not None and frame.image_hw is not None  # check_upload refused a frame without
+        objects = result.detections.to_objects(frame.calib, frame.image_hw)
         return PlainTextResponse("".join(format_label(o) + "\n" for o in objects), headers=_warning_headers(result))
     return _to_response(result, runtime, request_id)
 
@@ -275,7 +305,8 @@ async def detect_bev_png(
     settings: SettingsDep,
     metrics: MetricsDep,
     options: FrameOptionsDep,
-    image: ImagePart,
+    *,
+    image: ImagePart = None,
     points: PointsPart,
     calib: CalibPart = None,
 ) -> Response:
@@ -296,7 +327,8 @@ async def detect_camera_png(
     settings: SettingsDep,
     metrics: MetricsDep,
     options: FrameOptionsDep,
-    image: ImagePart,
+    *,
+    image: ImagePart = None,
     points: PointsPart,
     calib: CalibPart = None,
 ) -> Response:

@@ -46,12 +46,14 @@ async def readyz(_: ReadyRuntimeDep) -> Health:
 
 
 @router.get("/v2/health/live", summary="Open Inference Protocol liveness")
+@router.head("/v2/health/live", include_in_schema=False)
 async def v2_live() -> LiveResponse:
     """Always 200 while the server runs."""
     return LiveResponse(live=True)
 
 
 @router.get("/v2/health/ready", summary="Open Inference Protocol readiness", responses=error_responses(503))
+@router.head("/v2/health/ready", include_in_schema=False)
 async def v2_ready(_: ReadyRuntimeDep) -> ReadyResponse:
     """200 once the models are warmed up; 503 before."""
     return ReadyResponse(ready=True)

@@ -28,7 +28,7 @@ async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
         sessions=settings.sessions,
         intra_op_threads=settings.resolved_intra_op_threads(),
         queue_size=settings.queue_size,
-        crop_hw=list(detector.preset.crop_hw),
+        crop_hw=list(runtime.crop_hw) if runtime.crop_hw is not None else None,
         default_calib=runtime.default_calib is not None,
         mirror_tta=detector.mirror_tta,
         warnings=detector.load_warnings,
