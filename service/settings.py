@@ -66,9 +66,10 @@ class Settings(BaseSettings):
         1, ge=0, le=1000, description="network runs on zero inputs before /readyz says ready, then one frame on each "
         "worker thread to make its buffers (0: none of it)"
     )
+    # 25 s: under Kubernetes' default kill grace of 30 s, so the requests left are answered before the kill.
     shutdown_timeout_s: float = Field(
-        60.0, gt=0, description="on SIGTERM, how long in-flight requests may take to finish (seconds, fractions "
-        "too); those still running then are answered 503"
+        25.0, gt=0, description="on SIGTERM, how long in-flight requests may take to finish (seconds, fractions "
+        "too); those still running then are answered 503. Keep it below the orchestrator's kill grace"
     )
     log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="logging level")
 

@@ -211,6 +211,17 @@ def test_every_setting_is_documented_for_the_container():
     deploy = (ROOT / "docs" / "deploy.md").read_text()
     for field in Settings.model_fields:
         assert f"LOWRES3D_{field.upper()}" in deploy, field
+    # Each default the table gives as a literal is the setting's own (the shutdown grace's once said 60).
+    literal = dict(re.findall(r"^\| `LOWRES3D_(\w+)` \| `([^`]+)`", deploy, re.MULTILINE))
+    assert len(literal) >= 10
+    for name, shown in literal.items():
+        default = Settings.model_fields[name.lower()].default
+        if default is None:  # derived at start (MODELS/trt_cache): the table says from what
+            continue
+        default = str(default).lower() if isinstance(default, bool) else default
+        if isinstance(default, Path):  # the checkout's weights/edge, absolute
+            default = default.relative_to(ROOT).as_posix()
+        assert shown == str(default) or (isinstance(default, float) and float(shown) == default), (name, shown)
 
 
 def test_service_requirements_are_the_package_runtime_dependencies():
