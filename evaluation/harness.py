@@ -29,7 +29,7 @@ from pipeline.beams import emulate_beams, emulate_beams_on_depth_map
 from pipeline.calib import Calibration, depth_crop
 from pipeline.detector import Detector
 from pipeline.errors import InputError
-from pipeline.frame import frame_ids, load_frame, read_drive_calib
+from pipeline.frame import CalibrationNotFound, frame_ids, load_frame, read_drive_calib
 from pipeline.kitti import read_depth_png, read_image, read_image_depth_png
 from pipeline.model_files import load_manifest
 from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
@@ -223,11 +223,9 @@ def _depth_completion_calib(data: Path) -> Calibration | None:
     """The drive's calibration of a depth-completion folder (its raw-data files in it or the folder above, as
     ``pipeline.detect --drive`` looks for them), or None when they are not there."""
     try:
-        return read_drive_calib(data)
-    except InputError as exc:
-        if "no calib_" in str(exc):  # not there: the caller says what that means
-            return None
-        raise  # there, but unreadable: named by read_raw_calib
+        return read_drive_calib(data)  # files there but unreadable: an InputError naming them
+    except CalibrationNotFound:  # not there: the caller says what that means
+        return None
 
 
 def _given_pixels(prediction: np.ndarray, depth_dir: Path | None) -> np.ndarray | None:

@@ -130,6 +130,10 @@ def drive_frame_ids(drive: str | Path) -> list[str]:
     return sorted(p.stem for p in scans.glob("*.bin"))
 
 
+class CalibrationNotFound(InputError):
+    """A drive's calibration files are in neither its folder nor the one above (they may be optional there)."""
+
+
 def read_drive_calib(drive: str | Path) -> Calibration:
     """A raw drive's calibration, from ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt``, each looked for in
     the drive folder, then in the date folder above it (where KITTI's raw downloads put them): above the path
@@ -141,7 +145,7 @@ def read_drive_calib(drive: str | Path) -> Calibration:
     for name in RAW_CALIB_FILES:
         found = next((folder / name for folder in folders if (folder / name).is_file()), None)
         if found is None:
-            raise InputError(f"{given}: no {name} in it or in {given.parent}"
+            raise CalibrationNotFound(f"{given}: no {name} in it or in {given.parent}"
                              f"{f' (nor in {real} or {real.parent})' if real != given else ''}; KITTI raw keeps "
                              "the calibration files in the date folder above the drive")
         paths.append(found)
