@@ -337,16 +337,22 @@ def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
     os.replace(partial, path)
 
 
+def check_png_end(data: bytes, source: str) -> None:
+    """InputError when ``data`` is a PNG without its closing IEND chunk: an upload or copy that stopped early.
+
+    Naming it keeps libpng's own complaint out of a service's log. (Searched from the end, not only in the
+    last 12 bytes: bytes after IEND, which some tools and transports append, are ignored by libpng and must
+    not read as a cut-off file.)
+    """
+    if data.startswith(PNG_SIGNATURE) and data.rfind(b"IEND") == -1:
+        raise InputError(f"{source}: PNG cut off before its end ({len(data)} bytes, no IEND chunk)")
+
+
 def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
     """Decode a PNG or JPEG into uint8 RGB (H, W, 3), its pixels as stored (an EXIF orientation is not applied)."""
     if not data:
         raise InputError(f"{source}: empty image")
-    # A PNG ends with its IEND chunk. Checking for it names the usual fault (an upload or copy that
-    # stopped early) and keeps libpng's own complaint about it out of a service's log.
-    # (Searched from the end, not only in the last 12 bytes: bytes after IEND, which some tools and
-    # transports append, are ignored by libpng and must not read as a cut-off file.)
-    if data.startswith(PNG_SIGNATURE) and data.rfind(b"IEND") == -1:
-        raise InputError(f"{source}: PNG cut off before its end ({len(data)} bytes, no IEND chunk)")
+    check_png_end(data, source)
     # The pixels as the sensor stored them: IMREAD_COLOR alone turns a JPEG by its EXIF Orientation tag, and
     # the calibration's P2 describes the stored pixels, not a turned picture.
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)

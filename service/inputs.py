@@ -21,7 +21,7 @@ import numpy as np
 
 from pipeline.calib import Calibration
 from pipeline.errors import InputError
-from pipeline.kitti import POINT_BYTES, decode_image, parse_calib, parse_velodyne
+from pipeline.kitti import POINT_BYTES, check_png_end, decode_image, parse_calib, parse_velodyne
 from service.errors import ServiceError
 from service.schemas import NonFinitePolicy
 
@@ -114,9 +114,7 @@ def _check_image(data: bytes, max_image_pixels: int, crop_hw: tuple[int, int] | 
     if crop_hw is not None and (height < crop_hw[0] or width < crop_hw[1]):
         crop_h, crop_w = crop_hw
         raise InputError(f"image: {width}×{height} pixels is smaller than the model's {crop_w}×{crop_h} crop")
-    # As pipeline.kitti.decode_image checks, here before the queue: an upload that stopped early.
-    if data.startswith(PNG_SIGNATURE) and data.rfind(b"IEND") == -1:
-        raise InputError(f"image: PNG cut off before its end ({len(data)} bytes, no IEND chunk)")
+    check_png_end(data, "image")  # as decode_image checks it, here before the queue
 
 
 def _check_points(data: bytes, max_points: int) -> None:
