@@ -20,6 +20,7 @@ from pipeline.errors import InputError
 
 POINT_BYTES = 16  # float32 x, y, z, reflectance
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"  # the first 8 bytes of every PNG file
+JPEG_START, JPEG_SCAN, JPEG_END = b"\xff\xd8", b"\xff\xda", b"\xff\xd9"  # start of image, of a scan, end of image
 
 
 # --------------------------------------------------------------------------- velodyne
@@ -337,22 +338,28 @@ def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
     os.replace(partial, path)
 
 
-def check_png_end(data: bytes, source: str) -> None:
-    """InputError when ``data`` is a PNG without its closing IEND chunk: an upload or copy that stopped early.
+def check_image_end(data: bytes, source: str) -> None:
+    """InputError when ``data`` is a PNG or JPEG that stops before its end: an upload or copy cut off.
 
-    Naming it keeps libpng's own complaint out of a service's log. (Searched from the end, not only in the
-    last 12 bytes: bytes after IEND, which some tools and transports append, are ignored by libpng and must
-    not read as a cut-off file.)
+    A PNG must hold its closing IEND chunk, a JPEG its end-of-image marker after its last scan's start.
+    Checked here rather than left to the decoder: libpng complains on stderr, and the libjpeg of some
+    OpenCV builds (4.x) decodes a cut-off JPEG's missing rows as grey without an error. (Both searched
+    from the end, not only in the last bytes: bytes after the end, which some tools and transports
+    append, are ignored by the decoders and must not read as a cut-off file. A JPEG's scan data cannot
+    hold either marker: a 0xFF byte there is always followed by 0x00 or a restart marker.)
     """
     if data.startswith(PNG_SIGNATURE) and data.rfind(b"IEND") == -1:
         raise InputError(f"{source}: PNG cut off before its end ({len(data)} bytes, no IEND chunk)")
+    if data.startswith(JPEG_START) and data.rfind(JPEG_END) < data.rfind(JPEG_SCAN):
+        raise InputError(f"{source}: JPEG cut off before its end ({len(data)} bytes, no end-of-image marker "
+                         "after its last scan)")
 
 
 def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
     """Decode a PNG or JPEG into uint8 RGB (H, W, 3), its pixels as stored (an EXIF orientation is not applied)."""
     if not data:
         raise InputError(f"{source}: empty image")
-    check_png_end(data, source)
+    check_image_end(data, source)
     # The pixels as the sensor stored them: IMREAD_COLOR alone turns a JPEG by its EXIF Orientation tag, and
     # the calibration's P2 describes the stored pixels, not a turned picture.
     bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)

@@ -21,7 +21,7 @@ import numpy as np
 
 from pipeline.calib import Calibration
 from pipeline.errors import InputError
-from pipeline.kitti import POINT_BYTES, check_png_end, decode_image, parse_calib, parse_velodyne
+from pipeline.kitti import POINT_BYTES, check_image_end, decode_image, parse_calib, parse_velodyne
 from service.errors import ServiceError
 from service.schemas import NonFinitePolicy
 
@@ -107,14 +107,14 @@ def image_size(data: bytes) -> tuple[int, int]:
 
 
 def _check_image(data: bytes, max_image_pixels: int, crop_hw: tuple[int, int] | None) -> None:
-    """The image checks that need no decoding: format, pixel count and crop from the header, a PNG's end."""
+    """The image checks that need no decoding: format, pixel count and crop from the header, a PNG's or JPEG's end."""
     width, height = image_size(data)
     if width * height > max_image_pixels:
         raise InputError(f"image: {width}×{height} pixels is more than the limit of {max_image_pixels} pixels")
     if crop_hw is not None and (height < crop_hw[0] or width < crop_hw[1]):
         crop_h, crop_w = crop_hw
         raise InputError(f"image: {width}×{height} pixels is smaller than the model's {crop_w}×{crop_h} crop")
-    check_png_end(data, "image")  # as decode_image checks it, here before the queue
+    check_image_end(data, "image")  # as decode_image checks it, here before the queue
 
 
 def _check_points(data: bytes, max_points: int) -> None:

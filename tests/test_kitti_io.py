@@ -1,5 +1,6 @@
 """KITTI file formats on the real samples, and clear errors on bad files."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -234,6 +235,23 @@ def test_a_png_cut_off_is_named_so_and_libpng_stays_quiet(capfd):
     assert "libpng" not in capfd.readouterr().err  # refused before OpenCV's decoder complains on stderr
     with pytest.raises(InputError, match="not a readable PNG or JPEG"):  # whole length, but garbled inside
         decode_image(data[:100] + bytes(len(data) - 112) + data[-12:], "image")
+
+
+@pytest.mark.parametrize("progressive", [False, True])
+def test_a_jpeg_cut_off_is_named_so(progressive):
+    """A JPEG that stops before its end-of-image marker is refused by name, whatever the OpenCV build's
+    libjpeg would make of it (some decode the missing rows as grey without an error)."""
+    from pipeline.kitti import decode_image
+
+    bgr = cv2.imread(str(KITTI / "image_2" / "000006.png"))
+    data = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_PROGRESSIVE, int(progressive)])[1].tobytes()
+    assert decode_image(data, "image").shape == (374, 1238, 3)
+    assert decode_image(data + bytes(16), "image").shape == (374, 1238, 3)  # bytes after the end are ignored
+    for kept in (0.5, 0.99):  # in the first scan, and in the last one
+        with pytest.raises(InputError, match=r"image: JPEG cut off before its end \(\d+ bytes, no end-of-image"):
+            decode_image(data[: int(len(data) * kept)], "image")
+    with pytest.raises(InputError, match="not a readable PNG or JPEG"):  # cut off before its first scan
+        decode_image(data[:200], "image")
 
 
 def test_split_files_name_the_line_at_fault(tmp_path):

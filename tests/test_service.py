@@ -315,6 +315,11 @@ def test_default_calibration_with_byte_order_mark(tiny_models: Path, frame: dict
 
 
 # --------------------------------------------------------------------------- bad inputs
+def _jpeg(png: bytes) -> bytes:
+    """The same picture as a JPEG."""
+    return cv2.imencode(".jpg", cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR))[1].tobytes()
+
+
 def _png_header(width: int, height: int) -> bytes:
     return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + struct.pack(">II", width, height) + b"\x08\x02\x00\x00\x00"
 
@@ -577,6 +582,7 @@ def test_a_request_that_cannot_succeed_is_422_even_when_the_queue_is_full(
                 "calib": ({"calib": None}, ("calib: required", "no default calibration")),
                 "calib without P2": ({"calib": _without_p2(frame["calib"])}, ("calib", "P2")),
                 "cut-off PNG": ({"image": frame["image"][: len(frame["image"]) // 2]}, ("image", "PNG cut off")),
+                "cut-off JPEG": ({"image": _jpeg(frame["image"])[:-5000]}, ("image", "JPEG cut off")),
                 "scan size": ({"points": frame["points"][:-6]}, ("points", "multiple of 16")),
                 "empty image": ({"image": b""}, ("image", "empty")),
                 "missing image": ({"image": None}, ("image: required",)),
