@@ -15,6 +15,8 @@ their thread is in ``Detections.overlapped_ms``.
 
 One Detector may be called from several threads at once: ONNX Runtime
 sessions are thread-safe and each thread gets its own BEV buffer (and stage thread).
+Another thread may stop a frame it no longer wants (its deadline passed, the
+service is shutting down) through a :class:`Cancellation`.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -65,6 +67,33 @@ FEWEST_IN_GRID_SHARE = 0.01
 # left-right mirror of the BEV flips.
 MIRRORED_TARGETS = [1, 3]
 REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 written by another tool
+
+
+class RunCancelled(Exception):
+    """The frame was cancelled (:meth:`Cancellation.cancel`) before or during one of its network runs."""
+
+
+class Cancellation:
+    """Stops one frame's detection from another thread.
+
+    ONNX Runtime checks its run options' terminate flag between the nodes of a graph, so a network run
+    already under way ends within about one node's time rather than running to its end; a run not yet
+    started does not start. The stages between the networks take a few milliseconds and are not
+    interrupted. One per frame: the flag stays set.
+    """
+
+    def __init__(self) -> None:
+        self.run_options = ort.RunOptions()
+        self._cancelled = threading.Event()
+
+    def cancel(self) -> None:
+        """Stop the frame at its next network node; safe from any thread, and more than once."""
+        self._cancelled.set()
+        self.run_options.terminate = True
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancelled.is_set()
 
 
 @dataclass
@@ -352,9 +381,20 @@ class Detector:
         (depth,) = self._run("depth", ["depth"], {"rgb": rgb, "sparse_depth": sparse_depth})
         return depth[0, 0]
 
-    def _run(self, network: str, outputs: list[str], arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
-        """One network on whole input tensors, fed as the graph takes them (pipeline/graph_inputs.py)."""
-        return self._sessions[network].run(outputs, session_feeds(self._input_names[network], arrays))
+    def _run(self, network: str, outputs: list[str], arrays: dict[str, np.ndarray],
+             cancel: Cancellation | None = None) -> list[np.ndarray]:
+        """One network on whole input tensors, fed as the graph takes them (pipeline/graph_inputs.py).
+
+        RunCancelled when ``cancel`` stops it (ONNX Runtime's own error for it is a generic failure)."""
+        feeds = session_feeds(self._input_names[network], arrays)
+        if cancel is None:
+            return self._sessions[network].run(outputs, feeds)
+        try:
+            return self._sessions[network].run(outputs, feeds, cancel.run_options)
+        except Exception:
+            if cancel.cancelled:
+                raise RunCancelled(f"the frame was cancelled in or before its {network} network run") from None
+            raise
 
     def detect(
         self,
@@ -365,6 +405,7 @@ class Detector:
         emulate_to_beams: int | None = None,
         keep_points: bool = False,
         depth: np.ndarray | None = None,
+        cancel: Cancellation | None = None,
     ) -> Detections:
         """Detect cars in one frame.
 
@@ -376,7 +417,8 @@ class Detector:
         straight to their BEV bins and are never built. depth: a dense depth
         map of the whole image (H, W, metres, 0 = none) from another source
         (stereo, or ground truth for an upper bound), used instead of the
-        depth network; a two-stage model only.
+        depth network; a two-stage model only. cancel: another thread's way
+        to stop the frame (RunCancelled).
         """
         timings: dict[str, float] = {}
         warnings: list[str] = []
@@ -413,7 +455,13 @@ class Detector:
                 beside = self._stage_thread().submit(self._without_depth, voxelizer, points, view_calib)
             if depth is None:
                 tic = time.perf_counter()
-                (dense,) = self._run("depth", ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
+                try:
+                    (dense,) = self._run("depth", ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth},
+                                         cancel)
+                except BaseException:
+                    if beside is not None:  # the frame ends here: its half on the stage thread ends first
+                        wait([beside])
+                    raise
                 dense = dense[0, 0]
                 timings["depth_net"] = (time.perf_counter() - tic) * 1e3
             else:
@@ -447,10 +495,10 @@ class Detector:
                             f"y {grid.y_min:g}…{grid.y_max:g} m, z {grid.z_min:g}…{grid.z_max:g} m in the velodyne frame: "
                             f"are they in metres, in that frame? ({voxelizer.points_in_grid} of {points.shape[0]} points)")
         tic = time.perf_counter()
-        score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]})
+        score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]}, cancel)
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
         if self.mirror_tta:
-            score, regression = self._with_mirror(voxelizer, score, regression, timings)
+            score, regression = self._with_mirror(voxelizer, score, regression, timings, cancel)
         tic = time.perf_counter()
         boxes, scores = boxes_from_maps(score[0, 0], regression[0], voxelizer.height_occupancy, self.preset,
                                         score_threshold, with_pseudo=pseudo is not None, mark=voxelizer.height_mark)
@@ -463,7 +511,7 @@ class Detector:
                           points=cloud)
 
     def _with_mirror(self, voxelizer: BevVoxelizer, score: np.ndarray, regression: np.ndarray,
-                     timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+                     timings: dict[str, float], cancel: Cancellation | None = None) -> tuple[np.ndarray, np.ndarray]:
         """PIXOR's maps averaged with those of the BEV mirrored left to right (y → −y), mirrored back.
 
         The grid is symmetric in y, so mirroring flips the rows; in the mirror a box's sin(yaw) and its
@@ -475,7 +523,7 @@ class Detector:
         mirrored = voxelizer.mirrored()
         merge_ms = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
-        score_m, regression_m = self._run("pixor", ["score", "regression"], {"bev": mirrored[None]})
+        score_m, regression_m = self._run("pixor", ["score", "regression"], {"bev": mirrored[None]}, cancel)
         timings["pixor_mirror"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
         decode = self.preset.decode
@@ -523,16 +571,18 @@ class Detector:
                              f"lies in [{low:.4g}, {high:.4g}] (divide 0–255 intensities by 255)")
         return points.astype(np.float32, copy=False)
 
-    def warm_up(self, runs: int = 1) -> None:
-        """Run the networks on zero inputs so the first real request is not slow."""
+    def warm_up(self, runs: int = 1, cancel: Cancellation | None = None) -> None:
+        """Run the networks on zero inputs so the first real request is not slow (RunCancelled when
+        ``cancel`` stops it)."""
         for _ in range(runs):
             if self.two_stage:
                 h, w = self.preset.depth.input_hw
                 self._run("depth", ["depth"], {"rgb": np.zeros((1, 3, h, w), np.float32),
-                                               "sparse_depth": np.zeros((1, 1, h, w), np.float32)})
-            self._run("pixor", ["score", "regression"], {"bev": np.zeros((1, *self.preset.bev.shape), np.float32)})
+                                               "sparse_depth": np.zeros((1, 1, h, w), np.float32)}, cancel)
+            self._run("pixor", ["score", "regression"], {"bev": np.zeros((1, *self.preset.bev.shape), np.float32)},
+                      cancel)
 
-    def warm_up_thread(self) -> None:
+    def warm_up_thread(self, cancel: Cancellation | None = None) -> None:
         """Run one whole frame on the calling thread, so that its first real frame is not slow either.
 
         Each thread that calls :meth:`detect` keeps its own BEV buffers (the mirror's too) and its stage
@@ -546,4 +596,4 @@ class Detector:
         road = np.stack([x.ravel(), y.ravel(), np.full(x.size, self.preset.decode.ground_z, np.float32),
                          np.full(x.size, 0.3, np.float32)], axis=1)
         image = np.zeros((*KITTI_IMAGE_HW, 3), np.uint8)
-        self.detect(image, road, KITTI_CALIBRATION)
+        self.detect(image, road, KITTI_CALIBRATION, cancel=cancel)

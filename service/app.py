@@ -56,7 +56,7 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
         try:
             yield
         finally:
-            loaded.stopping.set()  # a warm-up still running stops after its current network run
+            loaded.stopping.cancel()  # a warm-up still running stops at its next network node
             await warm_up
             metrics.ready.set(0)
             await asyncio.to_thread(loaded.pool.shutdown)

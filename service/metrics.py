@@ -2,7 +2,7 @@
 
 Exposed at ``GET /metrics``: request counts by route, method and status;
 request latency per route; per-stage latency of the detector; inference queue
-depth and in-flight frames; HTTP requests in flight; readiness; and the
+depth, in-flight frames and frames stopped on a worker; HTTP requests in flight; readiness; and the
 process collector's memory and CPU (``process_resident_memory_bytes``, Linux).
 """
 
@@ -53,6 +53,10 @@ class Metrics:
         )
         self.rejected = Counter(
             "lowres3d_inference_rejected", "frames refused or abandoned", ["reason"], registry=self.registry
+        )
+        self.stopped = Counter(
+            "lowres3d_inference_stopped", "frames stopped on their worker after their deadline or their request's end",
+            registry=self.registry,
         )
         self.ready = Gauge("lowres3d_ready", "1 when models are loaded and warmed up", registry=self.registry)
         self.model = Info("lowres3d_model", "the loaded model directory", registry=self.registry)

@@ -4,9 +4,11 @@ At most ``workers`` frames run at once and at most ``queue_size`` more wait;
 a job that finds the pool full is refused at once (:class:`PoolFull`, the
 service answers 503 with ``Retry-After``), so a burst never becomes an
 unbounded backlog. A job that misses its deadline raises :class:`PoolTimeout`
-(504); if it is still waiting it is cancelled, if it is already running it
-finishes in its thread and keeps its slot until then (a thread cannot be
-stopped), so the bound on concurrent work always holds.
+(504); if it is still waiting it never starts, if it is already running it is
+told to stop (its :class:`~pipeline.detector.Cancellation`: ONNX Runtime ends
+the network run at its next node) and keeps its slot until it has, so the
+bound on concurrent work always holds. A request cancelled while its job runs
+(the service's shutdown grace ran out) stops its job the same way.
 
 Sessions: ``detectors`` holds either one Detector shared by every worker
 (ONNX Runtime sessions are thread-safe) or one per worker thread.
@@ -25,7 +27,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Generic, TypeVar
 
-from pipeline.detector import Detector
+from pipeline.detector import Cancellation, Detector, RunCancelled
 from service.metrics import Metrics
 
 log = logging.getLogger(__name__)
@@ -61,7 +63,10 @@ class JobResult(Generic[T]):
 
 
 class InferencePool:
-    """Runs ``job(detector)`` callables on worker threads with admission control."""
+    """Runs ``job(detector, cancel)`` callables on worker threads with admission control.
+
+    A job passes ``cancel`` to :meth:`Detector.detect`, so that a frame past its deadline stops.
+    """
 
     def __init__(self, detectors: Sequence[Detector], workers: int, queue_size: int, metrics: Metrics) -> None:
         if not detectors:
@@ -93,13 +98,19 @@ class InferencePool:
         self._metrics.queue_depth.set(self._admitted - self._running)
         self._metrics.in_flight.set(self._running)
 
-    def _run(self, job: Callable[[Detector], T], admitted_at: float) -> JobResult[T]:
+    def _run(self, job: Callable[[Detector, Cancellation], T], cancel: Cancellation,
+             admitted_at: float) -> JobResult[T]:
         started = time.perf_counter()
         with self._lock:
             self._running += 1
             self._update_gauges()
         try:
-            return JobResult(job(self._local.detector), (started - admitted_at) * 1e3)
+            return JobResult(job(self._local.detector, cancel), (started - admitted_at) * 1e3)
+        except RunCancelled:
+            self._metrics.stopped.inc()
+            log.info("a frame past its deadline stopped after %.0f ms on its worker",
+                     (time.perf_counter() - started) * 1e3)
+            raise
         finally:
             elapsed = time.perf_counter() - started
             with self._lock:
@@ -125,8 +136,9 @@ class InferencePool:
             estimate = self._mean_job_s * self._admitted / self.workers
         return max(1, math.ceil(estimate))
 
-    async def run(self, job: Callable[[Detector], T], timeout_s: float) -> JobResult[T]:
-        """Run ``job`` on a worker; PoolFull at once when over capacity, PoolTimeout after ``timeout_s``."""
+    async def run(self, job: Callable[[Detector, Cancellation], T], timeout_s: float) -> JobResult[T]:
+        """Run ``job`` on a worker; PoolFull at once when over capacity, PoolTimeout after ``timeout_s``
+        (the job stopped: it never starts, or its frame is cancelled)."""
         with self._lock:
             if self._closed:
                 raise PoolClosed("the service is shutting down")
@@ -137,8 +149,9 @@ class InferencePool:
         if full:
             self._metrics.rejected.labels(reason="queue_full").inc()
             raise PoolFull(self.retry_after_s())
+        cancel = Cancellation()
         try:
-            future = self._executor.submit(self._run, job, time.perf_counter())
+            future = self._executor.submit(self._run, job, cancel, time.perf_counter())
         except RuntimeError:  # the executor was shut down between the check and the submit
             self._release(Future())
             raise PoolClosed("the service is shutting down") from None
@@ -149,38 +162,43 @@ class InferencePool:
         # its own there (the builtin only from 3.11 on); catching the builtin alone made a deadline a 500.
         # (ruff, set for 3.11, calls the second name redundant.)
         except (TimeoutError, asyncio.TimeoutError):  # noqa: UP041
-            future.cancel()  # succeeds only while the job is still waiting
+            self._stop(future, cancel)
             self._metrics.rejected.labels(reason="timeout").inc()
             raise PoolTimeout(f"the frame took longer than {timeout_s:g} s") from None
+        except asyncio.CancelledError:  # the request was cancelled: nobody waits for the frame any more
+            self._stop(future, cancel)
+            raise
 
-    def warm_up(self, runs: int, stop: threading.Event | None = None) -> bool:
+    @staticmethod
+    def _stop(future: Future, cancel: Cancellation) -> None:
+        """A job nobody waits for: drop it while it waits, stop its frame if it runs."""
+        if not future.cancel():  # succeeds only while the job is still waiting
+            cancel.cancel()
+
+    def warm_up(self, runs: int, stop: Cancellation | None = None) -> bool:
         """Run every distinct Detector's networks ``runs`` times, then one frame on each worker thread.
 
         Blocking; call it off the event loop. The frames wait for each other at a barrier, so each one
         starts a worker thread of its own and makes that thread's buffers (Detector.warm_up_thread).
-        ``stop`` (set when the service shuts down) ends it between two runs; False when it did.
+        ``stop`` (cancelled when the service shuts down) ends it at the next network node; False when it did.
         """
         if runs == 0:
             return True
-        stop = stop or threading.Event()
-        for _ in range(runs):
-            for detector in self.detectors:
-                # Checked before each run, not during one: a session run already started goes on to its end
-                # (Detector runs its sessions without the RunOptions whose terminate flag could stop them), so a
-                # shutdown waits for at most one network run.
-                if stop.is_set():
-                    return False
-                detector.warm_up(1)
-        if stop.is_set():
+        stop = stop or Cancellation()
+        try:
+            for _ in range(runs):
+                for detector in self.detectors:
+                    detector.warm_up(1, stop)
+            barrier = threading.Barrier(self.workers)
+
+            def on_a_worker() -> None:
+                barrier.wait(timeout=WARM_UP_BARRIER_S)
+                self._local.detector.warm_up_thread(stop)
+
+            for future in [self._executor.submit(on_a_worker) for _ in range(self.workers)]:
+                future.result()
+        except RunCancelled:
             return False
-        barrier = threading.Barrier(self.workers)
-
-        def on_a_worker() -> None:
-            barrier.wait(timeout=WARM_UP_BARRIER_S)
-            self._local.detector.warm_up_thread()
-
-        for future in [self._executor.submit(on_a_worker) for _ in range(self.workers)]:
-            future.result()
         return True
 
     def shutdown(self) -> None:

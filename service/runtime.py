@@ -13,7 +13,7 @@ import threading
 from dataclasses import dataclass, field
 
 from pipeline.calib import Calibration
-from pipeline.detector import Detector
+from pipeline.detector import Cancellation, Detector
 from pipeline.kitti import read_calib
 from pipeline.model_files import ModelFileError
 from service.metrics import Metrics
@@ -31,7 +31,7 @@ class Runtime:
     pool: InferencePool
     default_calib: Calibration | None
     ready: threading.Event = field(default_factory=threading.Event)
-    stopping: threading.Event = field(default_factory=threading.Event)  # set on shutdown: the warm-up ends early
+    stopping: Cancellation = field(default_factory=Cancellation)  # cancelled on shutdown: the warm-up ends early
     warm_up_error: str | None = None
 
     @property
@@ -48,8 +48,8 @@ class Runtime:
     def warm_up(self, runs: int) -> None:
         """Run the networks ``runs`` times and a frame on each worker, then mark the runtime ready (blocking).
 
-        Ends between two network runs once ``stopping`` is set, so a SIGTERM during a long warm-up (many
-        ``--warmup-runs``, TensorRT) does not wait for all of it."""
+        Ends at the next network node once ``stopping`` is cancelled, so a SIGTERM during a long warm-up
+        (many ``--warmup-runs``, TensorRT) does not wait for all of it."""
         try:
             finished = self.pool.warm_up(runs, self.stopping)
         except Exception as exc:  # an execution provider failing at first run: stay not ready, say why

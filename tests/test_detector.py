@@ -16,7 +16,14 @@ import pytest
 
 from pipeline.beams import emulate_beams
 from pipeline.calib import Calibration
-from pipeline.detector import Detector, provider_fallbacks, resolve_providers, session_options
+from pipeline.detector import (
+    Cancellation,
+    Detector,
+    RunCancelled,
+    provider_fallbacks,
+    resolve_providers,
+    session_options,
+)
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.kitti import read_labels
@@ -94,6 +101,42 @@ def test_threads_give_the_same_answer(detector, frame):
         results = list(pool.map(lambda _: detector.detect(frame.image, lidar16, frame.calib, 0.0), range(4)))
     for r in results:
         np.testing.assert_allclose(r.boxes, reference.boxes, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("stage_threads", [1, 2])
+def test_a_cancelled_frame_stops_in_onnx_runtime_and_leaves_the_thread_sound(tiny_models, frame, stage_threads,
+                                                                             monkeypatch):
+    """A Cancellation set before or during a frame stops it with RunCancelled: ONNX Runtime itself ends the run
+    on its terminate flag (the error it raised is the context). The thread's next frame is as a fresh one's."""
+    lidar16 = emulate_beams(frame.points, 16)
+    detector = Detector(tiny_models, stage_threads=stage_threads)
+    detector.detect(frame.image, lidar16, frame.calib, 0.0)
+
+    cancel = Cancellation()
+    cancel.cancel()
+    with pytest.raises(RunCancelled, match="depth network run") as stopped:
+        detector.detect(frame.image, lidar16[::2], frame.calib, 0.0, cancel=cancel)
+    assert "terminate flag" in str(stopped.value.__context__)  # ONNX Runtime's own refusal, not a check of ours
+
+    # Cancelled by another thread while the frame runs: with a stage thread, from the work beside the depth
+    # net; without one, between the depth net and PIXOR.
+    during = Cancellation()
+    with monkeypatch.context() as patch:
+        if stage_threads == 2:
+            beside = detector._without_depth
+            patch.setattr(detector, "_without_depth", lambda *args: (during.cancel(), beside(*args))[1])
+            network = "(depth|pixor)"  # the depth net's run, unless it was over before that thread came to run
+        else:
+            add_pseudo = detector._voxelizer().add_pseudo
+            patch.setattr(detector._voxelizer(), "add_pseudo", lambda *args: (during.cancel(), add_pseudo(*args))[1])
+            network = "pixor"
+        with pytest.raises(RunCancelled, match=f"{network} network run"):
+            detector.detect(frame.image, lidar16[::3], frame.calib, 0.0, cancel=during)
+
+    fresh = Detector(tiny_models, stage_threads=stage_threads)
+    again, expected = (d.detect(frame.image, lidar16[::5], frame.calib, 0.0) for d in (detector, fresh))
+    np.testing.assert_array_equal(again.boxes, expected.boxes)
+    np.testing.assert_array_equal(detector._voxelizer()._out, fresh._voxelizer()._out)  # no cell of a stopped frame
 
 
 def test_stage_thread_changes_nothing_but_the_timings(tiny_models, frame, tmp_path):

@@ -30,6 +30,7 @@ import numpy as np
 import pytest
 
 from pipeline.boxes import bev_corners, in_camera_view
+from pipeline.detector import Cancellation
 from pipeline.kitti import parse_calib, parse_labels
 from service.__main__ import _OPTIONS, settings_from_args
 from service.app import create_app
@@ -571,7 +572,7 @@ def test_a_request_that_cannot_succeed_is_422_even_when_the_queue_is_full(
     with service(tiny_models, workers=1, queue_size=0) as app_client:
         pool = app_client.app.state.runtime.pool
         release = threading.Event()
-        held = app_client.portal.start_task_soon(pool.run, lambda _: release.wait(30), 60)
+        held = app_client.portal.start_task_soon(pool.run, lambda _d, _c: release.wait(30), 60)
         try:
             deadline = time.monotonic() + 10
             while pool.depth != (0, 1):  # the only place is taken
@@ -621,7 +622,7 @@ def test_pool_deadline_is_a_timeout_with_python_310s_timeout_class(
     pool = InferencePool([Detector(tiny_models)], workers=1, queue_size=0, metrics=Metrics())
 
     async def late() -> None:
-        await pool.run(lambda _: time.sleep(0.5), timeout_s=0.05)
+        await pool.run(lambda _d, _c: time.sleep(0.5), timeout_s=0.05)
 
     try:
         with pytest.raises(PoolTimeout):
@@ -639,13 +640,13 @@ def test_pool_admission_is_bounded_and_deadlines_cancel_waiting_jobs(tiny_models
     started = threading.Event()
     ran: list[str] = []
 
-    def blocking(detector: Detector) -> str:
+    def blocking(detector: Detector, _: Cancellation) -> str:
         started.set()
         release.wait(10)
         ran.append("blocking")
         return detector.preset.name
 
-    def quick(_: Detector) -> str:
+    def quick(_d: Detector, _c: Cancellation) -> str:
         ran.append("quick")
         return "quick"
 
@@ -680,6 +681,60 @@ def test_pool_admission_is_bounded_and_deadlines_cancel_waiting_jobs(tiny_models
     assert ran == ["blocking", "quick"]  # the timed-out job never ran
     assert pool.depth == (0, 0)
     pool.shutdown()
+
+
+def test_a_frame_nobody_waits_for_stops_on_its_worker(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    """Past its deadline, or when its request is cancelled (the shutdown grace ran out), a running frame is
+    stopped at its next network node and gives its worker back; counted in lowres3d_inference_stopped."""
+    from pipeline.detector import Detector
+
+    calib = parse_calib(frame["calib"].decode())
+    image = cv2.cvtColor(cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+    points = np.frombuffer(frame["points"], np.float32).reshape(-1, 4)
+    metrics = Metrics()
+    pool = InferencePool([Detector(tiny_models)], workers=1, queue_size=0, metrics=metrics)
+    started, finished = threading.Event(), []
+
+    def late_frame(detector: Detector, cancel: Cancellation) -> None:
+        started.set()
+        time.sleep(0.5)  # the frame is still on its worker when nobody waits for it any more
+        detector.detect(image, points, calib, cancel=cancel)
+        finished.append(True)
+
+    def stopped() -> float:
+        return metrics.registry.get_sample_value("lowres3d_inference_stopped_total")
+
+    def worker_free() -> None:
+        deadline = time.monotonic() + 10
+        while pool.depth != (0, 0):
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+
+    async def past_its_deadline() -> None:
+        await pool.run(late_frame, timeout_s=0.2)
+
+    async def request_cancelled() -> None:
+        async with anyio.create_task_group() as group:
+            group.start_soon(pool.run, late_frame, 30)
+            await anyio.to_thread.run_sync(started.wait, 5)
+            group.cancel_scope.cancel()
+
+    try:
+        with pytest.raises(PoolTimeout):
+            anyio.run(past_its_deadline)
+        worker_free()
+        assert (finished, stopped()) == ([], 1.0)
+        started.clear()
+        anyio.run(request_cancelled)
+        worker_free()
+        assert (finished, stopped()) == ([], 2.0)
+
+        async def on_time() -> Any:
+            return await pool.run(lambda d, c: d.detect(image, points, calib, cancel=c), timeout_s=30)
+
+        assert anyio.run(on_time).value.boxes.shape[1] == 7  # the worker goes on with the next frame
+    finally:
+        pool.shutdown()
 
 
 def test_request_timeout_is_504(tiny_models: Path, frame: dict[str, bytes]) -> None:
@@ -784,7 +839,7 @@ def test_warm_up_runs_a_frame_on_every_worker_thread(tiny_models: Path, frame: d
     points = np.frombuffer(frame["points"], np.float32).reshape(-1, 4)
     met = threading.Barrier(2)
 
-    def buffers(d: Detector) -> tuple[int, bool]:
+    def buffers(d: Detector, _: Cancellation) -> tuple[int, bool]:
         met.wait(10)  # two probes at once: one on each worker thread
         voxelizer = getattr(d._local, "voxelizer", None)
         made = voxelizer is not None and voxelizer._mirror is not None
@@ -825,9 +880,9 @@ def test_not_ready_until_warmed_up(tiny_models: Path, frame: dict[str, bytes]) -
     gate = threading.Event()
     original = runtime.detector.warm_up
 
-    def slow_warm_up(runs: int = 1) -> None:  # hold the warm-up until the test has probed
+    def slow_warm_up(runs: int = 1, cancel: Cancellation | None = None) -> None:  # held until the test has probed
         gate.wait(10)
-        original(runs)
+        original(runs, cancel)
 
     runtime.detector.warm_up = slow_warm_up
     with AppClient(create_app(settings, runtime=runtime, metrics=metrics)) as app_client:

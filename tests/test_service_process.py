@@ -278,7 +278,7 @@ def test_requests_cut_off_by_the_shutdown_get_a_json_503(frame: dict[str, bytes]
 
 
 def test_sigterm_during_a_long_warm_up_stops_promptly(tmp_path: Path) -> None:
-    """The warm-up stops between two network runs once the shutdown begins: a thousand runs of the shipped
+    """The warm-up stops at its next network node once the shutdown begins: a thousand runs of the shipped
     models (minutes) do not hold a SIGTERM up."""
     args = ("--workers", "1", "--warmup-runs", "1000", "--shutdown-timeout-s", "2")
     with running_service(REPO / "weights" / "edge", tmp_path / "service.log", *args, until="/healthz") as running:

@@ -23,7 +23,7 @@ from fastapi.responses import PlainTextResponse, Response
 
 from pipeline.boxes import bev_corners, in_camera_view
 from pipeline.calib import Calibration
-from pipeline.detector import Detections, Detector
+from pipeline.detector import Cancellation, Detections, Detector
 from pipeline.kitti import format_label
 from pipeline.render import render_bev, render_camera
 from service.deps import (
@@ -112,16 +112,16 @@ class FrameResult:
 
 def _detect_job(
     upload: FrameUpload, options: FrameOptions, calib: Calibration | None, picture: Picture | None
-) -> Callable[[Detector], FrameResult]:
+) -> Callable[[Detector, Cancellation], FrameResult]:
     """The work of one frame on a worker: decode the parts, detect, optionally render a picture as PNG."""
 
-    def job(detector: Detector) -> FrameResult:
+    def job(detector: Detector, cancel: Cancellation) -> FrameResult:
         tic = time.perf_counter()
         frame = decode_frame(upload, calib, options.nonfinite)
         parse_ms = (time.perf_counter() - tic) * 1e3
         detections = detector.detect(
             frame.image, frame.points, frame.calib, options.score_threshold, options.emulate_beams,
-            keep_points=picture is Picture.bev,
+            keep_points=picture is Picture.bev, cancel=cancel,
         )
         timings = {"parse_inputs": parse_ms, **{k: v for k, v in detections.timings_ms.items() if k != "total"}}
         png = None
