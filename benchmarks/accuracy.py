@@ -70,6 +70,7 @@ from pipeline.cli import (
     skipped_summary,
 )
 from pipeline.errors import InputError
+from pipeline.frame import frame_ids
 
 log = logging.getLogger("accuracy")
 
@@ -410,13 +411,20 @@ def _check_outputs(args: argparse.Namespace, out: Path | None = None) -> None:
         check_output(out / "data", "--out", directory=True)  # where the result files go
 
 
-def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, out: Path) -> None:
+def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, first: int | None, out: Path) -> None:
     """What the evaluation after the detector reads, before the detector runs."""
     if not args.data.is_dir():
         raise InputError(f"--data {args.data}: directory not found")
     if not (args.data / "label_2").is_dir():
         raise InputError(f"--data {args.data}: no label_2/ (the ground truth to evaluate the detections against)")
     ground_truth_frames(args.data / "label_2", frames)
+    if frames is None and first is None:  # every scan is run: each one's cars must be scored too
+        unlabelled = [fid for fid in frame_ids(args.data) if not (args.data / "label_2" / f"{fid}.txt").is_file()]
+        if unlabelled:
+            more = f" (and {len(unlabelled) - 1} more)" if len(unlabelled) > 1 else ""
+            raise InputError(f"--data {args.data}: frame {unlabelled[0]}{more} has no ground truth "
+                             f"(label_2/{unlabelled[0]}.txt), so its cars could not be scored; give --split-file or "
+                             "--frames to leave it out")
     if args.depth_dir is not None and not args.depth_dir.is_dir():
         raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
     if args.compare_pred_labels is not None:
@@ -491,7 +499,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                                   "car_stray_points_in_box_by_band": stray},
                     }, indent=1) + "\n", encoding="utf-8")
             return 0
-        _check_detection_inputs(args, frames, out)
+        _check_detection_inputs(args, frames, first, out)
         if first is not None:  # the first N ground-truth frames: the ones the evaluation below takes
             frames = first_frames(ground_truth_frames(args.data / "label_2", frames), first)
         detection = run_detection(args.data, args.models, args.input, out, frames, args.provider,

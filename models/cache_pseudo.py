@@ -8,6 +8,10 @@ depth PNGs (the network's view, metres × 256) named by frame id. Frames already
 cached are skipped, so an interrupted run resumes; ``cache.json`` records the
 depth net's sha256 and the line count the maps were made with, and a run with another
 depth net or another line count is refused instead of mixing its maps with those.
+It also records each map's source files by their sizes: frame ids repeat across
+data sets (every synthetic set and KITTI split starts at 000000), so a map of
+another set's frame 000003, or of frames made again since, is refused by name
+here and by ``models.train`` rather than taken for this frame's.
 """
 
 from __future__ import annotations
@@ -28,6 +32,33 @@ from pipeline.kitti import write_depth_png
 from pipeline.model_files import ModelFileError
 
 FRAME_FILES = (("velodyne", ".bin"), ("image_2", ".png"), ("calib", ".txt"))  # what a frame's map is made from
+RECORD = "cache.json"
+
+
+def source_sizes(data: Path, fid: str) -> list[int]:
+    """The byte sizes of the files a frame's map is made from: what tells one data set's frame from another's
+    of the same id without reading them (a scan's size is its point count)."""
+    return [(data / folder / f"{fid}{ext}").stat().st_size for folder, ext in FRAME_FILES]
+
+
+def recorded_sources(cache: Path) -> dict[str, list[int]]:
+    """The source sizes ``cache``'s record holds per frame ({} for a folder without one, or an older record)."""
+    try:
+        held = json.loads((cache / RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return held.get("frames", {}) if isinstance(held, dict) else {}
+
+
+def check_sources(cache: Path, flag: str, data: Path, data_flag: str, ids: list[str], hint: str = "") -> None:
+    """InputError naming the first of ``ids`` whose cached map was made from other files than ``data``'s."""
+    made_from = recorded_sources(cache)
+    clash = [fid for fid in ids if fid in made_from and made_from[fid] != source_sizes(data, fid)]
+    if clash:
+        more = f"; {len(clash) - 1} more frame(s) too" if len(clash) > 1 else ""
+        raise InputError(f"{flag} {cache}: its map of frame {clash[0]} was made from other files than frame "
+                         f"{clash[0]} of {data_flag} {data} (another data set, or its frames made again){more}; "
+                         f"cache {data_flag}'s frames into a folder of their own{hint}")
 
 
 def run(data: Path, models: Path, out: Path, split_file: Path | None = None, beams: int = 16,
@@ -46,12 +77,16 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
         raise InputError(f"--models: {models} has no depth network")
     out.mkdir(parents=True, exist_ok=True)
     depth_file = detector.manifest["networks"]["depth"]["file"]  # the maps depend on the depth net alone
-    _check_record(out, {"depth_sha256": detector.sha256[depth_file], "preset": detector.preset.name, "beams": beams})
+    record = {"depth_sha256": detector.sha256[depth_file], "preset": detector.preset.name, "beams": beams}
+    _check_record(out, record)
+    check_sources(out, "--out", Path(data), "--data", ids, hint=" (give another --out)")
+    record["frames"] = made_from = recorded_sources(out)
     computed = 0
     for fid in tqdm(ids, desc="pseudo depth", unit="frame", disable=not progress):
         target = out / f"{fid}.png"
-        if target.exists():
-            continue
+        sources = source_sizes(Path(data), fid)
+        if target.exists() and made_from.get(fid) == sources:
+            continue  # a map without its sources recorded (a run stopped between the two) is made again
         frame = load_frame(data, fid, with_labels=False)
         depth, _ = detector.dense_depth(frame.image, emulate_beams(frame.points, beams), frame.calib)
         partial = target.with_suffix(".tmp.png")
@@ -60,6 +95,8 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
             partial.replace(target)
         finally:
             partial.unlink(missing_ok=True)
+        made_from[fid] = sources
+        _write_record(out, record)
         computed += 1
     return computed
 
@@ -91,7 +128,7 @@ def _check_record(out: Path, wanted: dict) -> None:
     A folder of PNGs without the record is refused too: its files would be skipped as maps already made and
     then certified by the record (a folder of camera images given as --out was), whatever made them.
     """
-    record = out / "cache.json"
+    record = out / RECORD
     if not record.exists():
         stray = next(out.glob("*.png"), None)
         if stray is not None:
@@ -103,11 +140,19 @@ def _check_record(out: Path, wanted: dict) -> None:
             held = json.loads(record.read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise InputError(f"{record}: unreadable ({exc}); delete it or give another --out") from exc
-        if held != wanted:
+        if not isinstance(held, dict) or {key: held.get(key) for key in wanted} != wanted:
+            held = held if isinstance(held, dict) else {}
             raise InputError(f"--out {out}: holds depth maps of another depth net or line count ({record}: "
                              f"{held.get('preset')}, {held.get('beams')} lines); give another --out")
         return
-    record.write_text(json.dumps(wanted, indent=2) + "\n", encoding="utf-8")
+    _write_record(out, {**wanted, "frames": {}})
+
+
+def _write_record(out: Path, record: dict) -> None:
+    """Write the record whole, then rename it over the old one: a stopped run never leaves half a record."""
+    partial = out / f"{RECORD}.tmp"
+    partial.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+    partial.replace(out / RECORD)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -14,8 +14,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from models.cache_pseudo import check_sources
 from pipeline.errors import InputError
-from pipeline.kitti import read_labels
+from pipeline.kitti import POINT_BYTES, check_image_file, read_calib, read_labels
 
 if TYPE_CHECKING:
     from models.train import TrainConfig, TrainResult
@@ -142,6 +143,18 @@ def _missing(folder: Path, pattern: str, ids: list[str]) -> tuple[str, Path, str
     return missing[0], folder / pattern.format(missing[0]), f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
 
 
+def _check_frame_files(folder: Path, fid: str) -> None:
+    """A frame's files as far as they can be checked without decoding them: the calibration's keys, a scan
+    of whole points, an image that starts and ends as a PNG or JPEG (InputError naming the file)."""
+    read_calib(folder / "calib" / f"{fid}.txt")
+    scan = folder / "velodyne" / f"{fid}.bin"
+    size = scan.stat().st_size
+    if size == 0 or size % POINT_BYTES:
+        raise InputError(f"{scan}: size {size} bytes is not a whole number of {POINT_BYTES}-byte points "
+                         "(a KITTI scan is float32 rows x, y, z, reflectance)")
+    check_image_file(folder / "image_2" / f"{fid}.png")
+
+
 def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path,
                  val_ids: list[str]) -> None:
     """Every frame file the run reads is there, before it trains: each frame's scan, image and calibration;
@@ -161,6 +174,8 @@ def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val
             if split[1] is not None:  # the ids come from a split file: name it
                 raise InputError(f"{split[0]} {split[1]}: frame {frame}{more} is not in {folder} (no {path})")
             raise InputError(f"{flag} {folder}: frame {frame}{more} has no {path}")
+        for fid in ids:  # what a file's size and ends tell, so that a broken one fails now, not an epoch in
+            _check_frame_files(folder, fid)
         if labels:
             if not (folder / "label_2").is_dir():
                 raise InputError(f"{flag} {folder}: no label_2/ folder; {needs} needs the ground-truth boxes "
@@ -184,8 +199,14 @@ def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[s
                              "python -m models.cache_pseudo makes them)")
         val_pseudo = ("--val-pseudo-dir", config.val_pseudo_dir) if config.val_pseudo_dir else ("--pseudo-dir",
                                                                                                 config.pseudo_dir)
-        for (flag, folder), ids in ((("--pseudo-dir", config.pseudo_dir), train_ids), (val_pseudo, val_ids)):
+        val_data = ("--val-data", config.val_data) if config.val_data is not None else ("--data", config.data)
+        # One folder for both suits splits of one --data; with another --val-data, the same ids are other frames.
+        hint = " and give it as --val-pseudo-dir" if config.val_pseudo_dir is None else ""
+        for (flag, folder), ids, (data_flag, data), also in (
+                (("--pseudo-dir", config.pseudo_dir), train_ids, ("--data", config.data), ""),
+                (val_pseudo, val_ids, val_data, hint)):
             missing = _missing(Path(folder), "{}.png", ids)
             if missing is not None:
                 frame, path, more = missing
                 raise InputError(f"{flag} {folder}: no cached depth map of frame {frame}{more} ({path})")
+            check_sources(Path(folder), flag, Path(data), data_flag, ids, also)

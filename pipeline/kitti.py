@@ -21,6 +21,7 @@ from pipeline.errors import InputError
 POINT_BYTES = 16  # float32 x, y, z, reflectance
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"  # the first 8 bytes of every PNG file
 JPEG_START, JPEG_SCAN, JPEG_END = b"\xff\xd8", b"\xff\xda", b"\xff\xd9"  # start of image, of a scan, end of image
+IMAGE_TAIL_BYTES = 4096  # where check_image_file looks for an image's end
 
 
 # --------------------------------------------------------------------------- velodyne
@@ -353,6 +354,27 @@ def check_image_end(data: bytes, source: str) -> None:
     if data.startswith(JPEG_START) and data.rfind(JPEG_END) < data.rfind(JPEG_SCAN):
         raise InputError(f"{source}: JPEG cut off before its end ({len(data)} bytes, no end-of-image marker "
                          "after its last scan)")
+
+
+def check_image_file(path: str | Path) -> None:
+    """InputError for an image file that is empty, neither PNG nor JPEG, or cut off before its end: what its
+    first and last bytes tell without decoding it (a training run checks every frame's so before it starts)."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as handle:
+            head = handle.read(24)
+            size = handle.seek(0, 2)
+            handle.seek(max(size - IMAGE_TAIL_BYTES, len(head)))
+            tail = handle.read()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read image ({exc.strerror})") from exc
+    if not head:
+        raise InputError(f"{path}: empty image")
+    if not head.startswith((PNG_SIGNATURE, JPEG_START)):
+        raise InputError(f"{path}: not a PNG or JPEG image")
+    if head.startswith(PNG_SIGNATURE) and b"IEND" not in tail:  # maybe many bytes after IEND: read it all
+        tail = path.read_bytes()
+    check_image_end(head + tail, str(path))
 
 
 def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:

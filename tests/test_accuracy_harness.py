@@ -379,6 +379,15 @@ def test_detection_run_checks_label_2_before_detecting(tiny_models, tmp_path):
     assert f"error: --data {data}: no label_2/" in result.stderr
     assert not (tmp_path / "run").exists()  # no frame was detected
 
+    # One frame's label file lost: run over every scan, its cars would vanish from the table.
+    shutil.copytree(KITTI / "label_2", data / "label_2")
+    (data / "label_2" / "000003.txt").unlink()
+    result = _accuracy("--data", data, "--models", tiny_models, "--input", "lidar16+camera", "--out", tmp_path / "run")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert (f"error: --data {data}: frame 000003 has no ground truth (label_2/000003.txt), so its cars could not be "
+            "scored; give --split-file or --frames to leave it out") in result.stderr
+    assert not (tmp_path / "run").exists()
+
 
 def test_depth_mode_with_depth_dir_names_a_missing_folder_or_a_map_of_another_size(tiny_models, tmp_path):
     data = tmp_path / "data"

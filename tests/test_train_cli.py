@@ -177,6 +177,38 @@ def test_a_malformed_label_line_is_named_before_any_epoch(tmp_path, capsys, one_
         assert not (tmp_path / task).exists()
 
 
+@pytest.mark.parametrize(("breakage", "says"), [
+    ("calib", f"calib/{FRAME}.txt: missing calibration key(s) Tr_velo_to_cam"),
+    ("velodyne", f"velodyne/{FRAME}.bin: size 1001 bytes is not a whole number of 16-byte points"),
+    ("empty velodyne", f"velodyne/{FRAME}.bin: size 0 bytes"),
+    ("image", f"image_2/{FRAME}.png: PNG cut off before its end"),
+    ("not an image", f"image_2/{FRAME}.png: not a PNG or JPEG image"),
+])
+def test_a_broken_frame_file_is_named_before_any_epoch(tmp_path, capsys, one_frame, breakage, says):
+    """A calibration without a key, a scan of no whole points, an image cut off: refused before --out is made,
+    for every task (the datasets would meet them only when their batch comes, maybe most of an epoch in)."""
+    data = tmp_path / "data"
+    for folder in ("velodyne", "image_2", "calib", "label_2"):
+        shutil.copytree(KITTI / folder, data / folder)
+    calib, scan, image = data / "calib" / f"{FRAME}.txt", data / "velodyne" / f"{FRAME}.bin", data / "image_2" / f"{FRAME}.png"
+    if breakage == "calib":
+        calib.write_text("".join(line for line in calib.read_text().splitlines(True) if not line.startswith("Tr_velo")))
+    elif breakage == "velodyne":
+        scan.write_bytes(scan.read_bytes()[:1001])
+    elif breakage == "empty velodyne":
+        scan.write_bytes(b"")
+    elif breakage == "image":
+        image.write_bytes(image.read_bytes()[:2000])
+    else:
+        image.write_bytes(b"GIF89a" + bytes(100))
+    for task in ("detector", "depth"):
+        argv = args(task, tmp_path / task, one_frame, *(["--input", "lidar16"] if task == "detector" else []))
+        argv[argv.index("--data") + 1] = str(data)
+        said = refused(argv, capsys)
+        assert says in said, said
+        assert not (tmp_path / task).exists()
+
+
 def test_ctrl_c_says_what_was_kept(tmp_path, capsys, one_frame, monkeypatch):
     from models import train
 

@@ -353,6 +353,46 @@ def test_pseudo_cache_is_not_mixed_across_depth_nets_or_line_counts(small_sim, t
         cache_pseudo(small_sim, tmp_path / "int8", cache, progress=False)
 
 
+def test_pseudo_maps_of_another_data_set_are_refused_by_frame(small_sim, tmp_path, tiny_models):
+    """Frame ids repeat across data sets: a cache of one set's maps is refused for another set's frames of the
+    same ids, by cache_pseudo (nothing made or overwritten) and by a training run whose --val-data would read
+    them through the default --val-pseudo-dir, before its --out is made."""
+    from models.cache_pseudo import run as cache_pseudo
+    from pipeline.errors import InputError
+    from simulation.run import RunConfig
+    from simulation.run import run as simulate
+
+    other = tmp_path / "other"
+    simulate(RunConfig(out=other, frames=3, seed=12, workers=1, progress=False))
+    cache = tmp_path / "pseudo"
+    assert cache_pseudo(small_sim, tiny_models, cache, progress=False) == 3
+    maps = {path.name: path.read_bytes() for path in cache.iterdir()}
+    with pytest.raises(InputError, match=rf"--out {cache}: its map of frame 000000 was made from other files than "
+                                         rf"frame 000000 of --data {other} .*; 2 more frame\(s\) too"):
+        cache_pseudo(other, tiny_models, cache, progress=False)
+    assert {path.name: path.read_bytes() for path in cache.iterdir()} == maps
+    assert cache_pseudo(small_sim, tiny_models, cache, progress=False) == 0  # its own frames: all there
+
+    config = {"task": "detector", "data": small_sim, "val_data": other, "preset": "tiny", "out": tmp_path / "run",
+              "input_mode": "pseudo", "pseudo_dir": cache, "epochs": 1, "batch_size": 2, "progress": False}
+    with pytest.raises(InputError, match=rf"--pseudo-dir {cache}: its map of frame 000000 .* of --val-data {other} .*"
+                                         "give it as --val-pseudo-dir"):
+        run(TrainConfig(**config))
+    assert not (tmp_path / "run").exists()
+    own = tmp_path / "pseudo_other"
+    assert cache_pseudo(other, tiny_models, own, progress=False) == 3
+    assert run(TrainConfig(**config, val_pseudo_dir=own)).history[0]["val_loss"] > 0
+
+    # Frames made again since their maps were cached are other frames too.
+    (small_sim / "calib" / "000001.txt").write_text((small_sim / "calib" / "000001.txt").read_text() + "\n")
+    try:
+        with pytest.raises(InputError, match=rf"--pseudo-dir {cache}: its map of frame 000001 .* of --data"):
+            run(TrainConfig(**{**config, "out": tmp_path / "run2"}, val_pseudo_dir=own))
+    finally:
+        calib = small_sim / "calib" / "000001.txt"
+        calib.write_text(calib.read_text()[:-1])
+
+
 def test_detector_checkpoints_are_selected_by_ap_not_loss():
     from models.train import selection_criterion
 
