@@ -8,9 +8,9 @@ is no setting (a typo) gets a warning. The address is bound first (not yet
 listened on), then the models are loaded and their sha256 checked: an address
 in use, a missing or corrupted model file stops the start with one line naming
 the option or the file (exit status 2), before any warm-up. SIGTERM or Ctrl-C
-stop accepting connections and let in-flight requests finish (up to
-``--shutdown-timeout-s``); those still running then are answered 503
-``shutting_down`` (service/middleware.py).
+while the models load stop the start there; once serving, they stop accepting
+connections and let in-flight requests finish (up to ``--shutdown-timeout-s``);
+those still running then are answered 503 ``shutting_down`` (service/middleware.py).
 """
 
 from __future__ import annotations
@@ -20,9 +20,11 @@ import difflib
 import errno
 import logging
 import os
+import signal
 import socket
 import sys
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -182,6 +184,44 @@ def bind_listeners(host: str, port: int) -> list[socket.socket]:
     return sockets
 
 
+class StoppedBeforeServing(BaseException):
+    """SIGTERM or SIGINT came before uvicorn took the signals over. A BaseException, as KeyboardInterrupt is:
+    the model loading's own ``except Exception`` (a graph ONNX Runtime cannot load) must not take it."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+@contextmanager
+def stop_on_signals_until_serving() -> Iterator[None]:
+    """Until uvicorn installs its own handlers, SIGTERM and SIGINT raise :class:`StoppedBeforeServing`.
+
+    Python has no SIGTERM handler of its own, and the first process of a container (no init) ignores a
+    signal it has no handler for: a ``docker stop`` or a rollout while the models loaded (TensorRT builds its
+    engines then, minutes on a Jetson) was lost, and the service went on to serve until it was killed.
+    """
+    def stop(signum: int, _frame: object) -> None:
+        raise StoppedBeforeServing(signum)
+
+    previous = {signum: signal.signal(signum, stop) for signum in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+def stopped_before_serving(signum: int) -> int:
+    """End the process as the signal would have, after the clean-up: by the signal itself (uvicorn does so
+    after a shutdown too), or, where it is ignored (the first process of a container), 128 + its number."""
+    if signum == signal.SIGINT:
+        return 130
+    signal.signal(signum, signal.SIG_DFL)
+    signal.raise_signal(signum)
+    return 128 + signum
+
+
 def uvicorn_config(settings: Settings, app: FastAPI) -> uvicorn.Config:
     """uvicorn's configuration for the service."""
     import uvicorn
@@ -241,7 +281,9 @@ def main(argv: list[str] | None = None) -> int:
     limit_malloc_arenas()  # before the worker threads exist (service/memory.py: the memory of a long run)
     metrics = Metrics()
     try:
-        runtime = load_runtime(settings, metrics)
+        with stop_on_signals_until_serving():
+            runtime = load_runtime(settings, metrics)
+            server = Server(uvicorn_config(settings, create_app(settings, runtime=runtime, metrics=metrics)))
     except (ModelFileError, InputError) as exc:
         for sock in sockets:
             sock.close()
@@ -249,8 +291,12 @@ def main(argv: list[str] | None = None) -> int:
         if hint := default_models_hint(settings.models):
             log.error("%s (or LOWRES3D_MODELS)", hint)
         return 2
-    server = Server(uvicorn_config(settings, create_app(settings, runtime=runtime, metrics=metrics)))
-    server.run(sockets=sockets)
+    except StoppedBeforeServing as stopped:
+        for sock in sockets:
+            sock.close()
+        log.info("%s before serving: stopped while loading the models; not started", stopped)
+        return stopped_before_serving(stopped.signum)
+    server.run(sockets=sockets)  # uvicorn's own signal handlers from here on
     return 0 if server.started else 3
 
 

@@ -81,6 +81,7 @@ def load_runtime(settings: Settings, metrics: Metrics) -> Runtime:
         )
     default_calib = read_calib(settings.default_calib) if settings.default_calib is not None else None
     count = settings.workers if settings.sessions == "per-worker" else 1
+    log.info("loading %s (%d session set(s); with TensorRT, its first load builds the engines: minutes)", models, count)
     threads = settings.resolved_intra_op_threads()
     detectors = [
         Detector(models, providers=settings.provider, intra_op_threads=threads, trt_cache_dir=settings.trt_cache_dir,

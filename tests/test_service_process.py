@@ -277,6 +277,33 @@ def test_requests_cut_off_by_the_shutdown_get_a_json_503(frame: dict[str, bytes]
     assert _log_time(log, "Cancel ") - _log_time(log, "Shutting down") >= 0.3
 
 
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_stop_while_the_models_load_ends_the_start(tmp_path: Path, signum: int) -> None:
+    """SIGTERM or Ctrl-C while the models load stop the start there, in one line: Python has no SIGTERM handler
+    of its own, and a container's first process ignores a signal without one, so a stop then used to be lost."""
+    log_path = tmp_path / "service.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
+    with open(log_path, "w") as log_file:  # two session sets of the shipped models: a load of a second or so
+        process = subprocess.Popen(
+            [sys.executable, "-m", "service", "--models", str(REPO / "weights" / "edge"), "--port", str(free_port()),
+             "--workers", "2", "--sessions", "per-worker"],
+            cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT,
+        )
+    try:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while "service.runtime: loading" not in log_path.read_text():
+            assert process.poll() is None and time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.01)
+        process.send_signal(signum)
+        code = process.wait(30)
+    finally:
+        _stop(process)
+    log = log_path.read_text()
+    assert code == (130 if signum == signal.SIGINT else -signal.SIGTERM), log
+    assert f"{signal.Signals(signum).name} before serving: stopped while loading the models; not started" in log
+    assert "Uvicorn running" not in log and "Traceback" not in log
+
+
 def test_sigterm_during_a_long_warm_up_stops_promptly(tmp_path: Path) -> None:
     """The warm-up stops at its next network node once the shutdown begins: a thousand runs of the shipped
     models (minutes) do not hold a SIGTERM up."""
