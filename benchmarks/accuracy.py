@@ -64,6 +64,7 @@ from evaluation.report import (
 from pipeline.cli import (
     check_not_input,
     check_output,
+    list_or_count,
     positive_int,
     probability,
     quiet_interrupt,
@@ -319,13 +320,6 @@ _RUN = ("data", "models", "provider")
 _DETECTION = ("input", "out", "score_threshold", "mirror_tta")
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
 _AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "compare_pred_labels")
-
-
-def list_or_count(value: str) -> Path | int:
-    """--frames: a file of frame ids, or a count N (digits naming no file) for the first N frames."""
-    if value.isdigit() and not Path(value).exists():
-        return positive_int(value)
-    return Path(value)
 
 
 def _flag(dest: str) -> str:

@@ -142,7 +142,7 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
         from export.precision import convert_precision
 
         # Checked before the fp32 export, which takes minutes, rather than by the conversion after it.
-        check_destination(config.out)
+        check_destination(config.out, get_preset(config.preset).name, args.precision)
         _check_calibration_data(args.calibration_data)
         with tempfile.TemporaryDirectory(prefix="lowres3d-fp32-") as fp32_dir:
             result = run(replace(config, out=Path(fp32_dir)))

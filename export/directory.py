@@ -2,7 +2,8 @@
 
 The commands that write a model directory (``python -m export``, ``export.lower``,
 ``export.precision``) replace their ``--out`` as a whole. So they refuse an ``--out`` that
-holds anything but a model directory (an empty folder is fine), and they write into a
+holds anything but a model directory (an empty folder is fine) or a model directory of
+another preset or precision (a typo in ``--out``, not a wish to lose that model), and they write into a
 staging folder beside it that is swapped in only when everything is written and checked:
 a failure on the way (a parity check, a calibration error, a full disk) leaves the source
 and any earlier ``--out`` as they were.
@@ -16,15 +17,27 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from pipeline.cli import check_output
-from pipeline.model_files import MANIFEST_NAME, ModelFileError
+from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest
 
 
-def check_destination(out: Path) -> None:
+def check_destination(out: Path, preset: str | None = None, precision: str | None = None) -> None:
     """Refuse an ``--out`` that exists and is neither a model directory nor an empty folder, or that cannot
-    be made (a file above it, no permission): before any work, not when the staging folder is made."""
+    be made (a file above it, no permission): before any work, not when the staging folder is made.
+
+    preset, precision: what will be written; a model directory of another preset or precision is refused
+    too (replacing one with a new export of the same model is what ``--out`` over a model directory is for).
+    """
     out = Path(out)
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / MANIFEST_NAME).exists())):
         raise ModelFileError(f"--out {out}: exists and is not a model directory; give a new or empty folder")
+    if (out / MANIFEST_NAME).exists():
+        held = load_manifest(out)
+        held_preset, held_precision = held.get("preset"), held.get("precision", "fp32")
+        if (preset is not None and held_preset != preset) or (precision is not None and held_precision != precision):
+            raise ModelFileError(
+                f"--out {out}: holds a model of preset {held_preset} ({held_precision}); this writes preset "
+                f"{preset or held_preset} ({precision or held_precision}): give a new folder, or remove {out} "
+                "first to replace that model")
     check_output(out, "--out", directory=True)
 
 

@@ -150,7 +150,7 @@ def run(config: ExportConfig) -> ExportResult:
     if unknown or "pixor" not in config.networks:
         raise ValueError(f"--networks: {', '.join(config.networks)}; choose 'depth pixor' or 'pixor'")
     # Every input is checked before the minutes of export: a misspelt flag fails at once.
-    check_destination(out)
+    check_destination(out, preset.name, "fp32")
     checkpoints = _checkpoint_files(config)
     _check_keeps_trained(out, checkpoints, config.networks)
     sources: list[NetworkInputs] = []

@@ -2,7 +2,7 @@
 
     python -m export.lower --models DIR [--out DIR]
 
-The exporter lowers every graph it traces (:func:`export.rewrite.lower_for_cpu`),
+The exporter lowers every graph it traces (``export.rewrite.lower_for_cpu``),
 but a directory exported before a rewrite existed keeps its older graphs, and
 shipped weights come without their training checkpoints. The rewrites are
 exact graph transformations, so they can be applied to the ONNX files
@@ -44,6 +44,7 @@ class LowerResult:
     directory: Path
     rewrites: dict[str, dict[str, int]]
     max_abs_difference: dict[str, float]
+    written: bool = True  # False: rewritten in place with nothing to rewrite, so left as it was
 
 
 def run(models: Path, out: Path | None = None) -> LowerResult:
@@ -87,9 +88,9 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
     listed = all(manifest["networks"][name].get("graph_inputs") == graph_inputs(source)
                  for name, source in sources.items())
     if in_place and listed and not any(any(counts.values()) for counts in rewrites.values()):
-        return LowerResult(out, rewrites, differences)  # already lowered: leave the directory as it is
+        return LowerResult(out, rewrites, differences, written=False)  # already lowered: left as it is
     if not in_place:
-        check_destination(out)
+        check_destination(out, manifest.get("preset"), manifest.get("precision", "fp32"))
 
     # Everything is written into a staging copy first and swapped in at the end (export.directory).
     with staged(out, source=models) as staging:
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, counts in result.rewrites.items():
         changed = ", ".join(f"{k} {v}" for k, v in counts.items() if v) or "nothing to rewrite"
         print(f"{name}: {changed}; max |difference| {result.max_abs_difference[name]:.3g}")
-    print(f"wrote {result.directory}")
+    print(f"wrote {result.directory}" if result.written else f"unchanged: {result.directory} (already lowered)")
     return 0
 
 

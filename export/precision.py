@@ -208,14 +208,14 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
                              + (f" it came from ({came_from})" if came_from else "") + " instead")
     if precision == "fp32":
         if out.resolve() != fp32_dir.resolve():
-            check_destination(out)
+            check_destination(out, manifest.get("preset"), "fp32")
             with staged(out, source=fp32_dir):
                 pass
         return manifest
     if out.resolve() == fp32_dir.resolve():
         raise ModelFileError(f"--out {out}: is --models itself; the FP32 source must stay (its manifest records "
                              "where a converted directory came from): give a new folder")
-    check_destination(out)
+    check_destination(out, manifest.get("preset"), precision)
     source_files = dict(manifest["files"])
     feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames, progress)
     with staged(out, source=fp32_dir) as staging:

@@ -1,6 +1,6 @@
 """Cache the trained depth net's dense depth for every frame, for ``models.train detector --input pseudo``.
 
-    python -m models.cache_pseudo --data DIR --models DIR --out PSEUDO_DIR [--split-file F]
+    python -m models.cache_pseudo --data DIR --models DIR --out PSEUDO_DIR [--split-file F | --frames N]
 
 Runs ``depth.onnx`` through the runtime Detector — exactly the depth maps
 inference produces — on each frame's 16-line scan, and writes them as KITTI
@@ -24,7 +24,7 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.beams import BEAM_COUNTS, emulate_beams
-from pipeline.cli import check_not_input, check_output, interrupted, unwritable
+from pipeline.cli import check_not_input, check_output, interrupted, list_or_count, unwritable
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
@@ -62,16 +62,16 @@ def check_sources(cache: Path, flag: str, data: Path, data_flag: str, ids: list[
 
 
 def run(data: Path, models: Path, out: Path, split_file: Path | None = None, beams: int = 16,
-        progress: bool = True, threads: int | None = None) -> int:
+        progress: bool = True, threads: int | None = None, first: int | None = None) -> int:
     """Write one depth PNG per frame into ``out``; returns how many were computed (not skipped).
 
     Every input is checked before ``out`` is made or any map computed. threads: ONNX Runtime's
-    intra-op threads (None: one per core).
+    intra-op threads (None: one per core). first: only the first N frames (of the split file, or in id order).
     """
     out = Path(out)
     check_output(out, "--out", directory=True)
     check_not_input(out, "--out", {"--data": data, "--models": models})
-    ids = _frames(Path(data), split_file)
+    ids = _frames(Path(data), split_file)[:first]
     detector = Detector(models, intra_op_threads=threads)
     if not detector.two_stage:
         raise InputError(f"--models: {models} has no depth network")
@@ -160,13 +160,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, required=True, help="KITTI-layout folder")
     parser.add_argument("--models", type=Path, required=True, help="model directory with depth.onnx")
     parser.add_argument("--out", type=Path, required=True, help="folder for the depth PNGs")
-    parser.add_argument("--split-file", type=Path, help="frame ids, one per line (default: all)")
+    parser.add_argument("--split-file", "--frames", dest="frames", type=list_or_count, metavar="LIST|N",
+                        help="frame ids, one per line (default: all); or N: the first N frames in id order, as "
+                        "--frames N of the other commands")
     parser.add_argument("--beams", "--emulate-beams", dest="beams", type=int, default=16, choices=BEAM_COUNTS,
                         metavar="N",
                         help="lines the 64-line scan is thinned to (default 16; 32, 8, 4)")
     args = parser.parse_args(argv)
     try:
-        n = run(args.data, args.models, args.out, args.split_file, args.beams)
+        split_file, first = (args.frames, None) if not isinstance(args.frames, int) else (None, args.frames)
+        n = run(args.data, args.models, args.out, split_file, args.beams, first=first)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

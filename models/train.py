@@ -30,7 +30,7 @@ either way.
 
 Compilation: the training forward pass of the depth and detector tasks runs
 through ``torch.compile`` (``--compile auto``, the default, when the run has
-at least :data:`COMPILE_MIN_STEPS` steps and, on the CPU, a C++ compiler is on
+at least 200 steps (``COMPILE_MIN_STEPS``) and, on the CPU, a C++ compiler is on
 the PATH; ``on``, ``off``). Compiling takes about a minute per network and
 process; Inductor fuses batch norm's backward pass with its neighbours, which
 eager PyTorch runs as separate memory-bound passes (44 % of an eager edge PIXOR

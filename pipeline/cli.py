@@ -26,6 +26,13 @@ def positive_int(text: str) -> int:
     return value
 
 
+def list_or_count(value: str) -> Path | int:
+    """--frames: a file of frame ids, or a count N (digits naming no file) for the first N frames."""
+    if value.isdigit() and not Path(value).exists():
+        return positive_int(value)
+    return Path(value)
+
+
 def non_negative_int(text: str) -> int:
     """An integer ≥ 0 (argparse type)."""
     value = int(text)

@@ -38,6 +38,16 @@ def test_caches_every_frame_and_resumes(tiny_models: Path, kitti_dir: Path, tmp_
     assert run(kitti_dir, tiny_models, out, progress=False) == 0  # all cached: nothing recomputed
 
 
+def test_frames_n_caches_the_first_frames(tiny_models: Path, kitti_dir: Path, tmp_path: Path,
+                                          capsys: pytest.CaptureFixture) -> None:
+    """--frames N as in the other commands: the first N frames in id order (--split-file is the same flag)."""
+    out = tmp_path / "pseudo"
+    code, err = _main(["--data", str(kitti_dir), "--models", str(tiny_models), "--out", str(out), "--frames", "2"],
+                      capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in out.glob("*.png")) == ["000000.png", "000001.png"]
+
+
 def test_bad_inputs_get_one_line_before_anything_is_written(tiny_models: Path, kitti_dir: Path, tmp_path: Path,
                                                            capsys: pytest.CaptureFixture) -> None:
     """An --out that is (or sits under) a file, a --data without frames, a split file naming a frame

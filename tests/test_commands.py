@@ -1,6 +1,7 @@
 """Every command answers --help, and a count of zero is refused by the flag, in one line, before any work."""
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -26,6 +27,12 @@ def test_every_command_answers_help(name):
                           cwd=REPO)
     assert done.returncode == 0, done.stderr[-1000:]
     assert done.stdout.startswith("usage:") and "--help" in done.stdout
+    # The module docstrings that become the help are plain text to a user: no Sphinx roles.
+    assert not re.search(r":(data|func|class|meth|attr|mod):`", done.stdout), done.stdout
+    if name == "models.train":
+        from models.devices import COMPILE_MIN_STEPS
+
+        assert f"at least {COMPILE_MIN_STEPS} steps" in done.stdout  # the docstring's number is the constant's
 
 
 @pytest.mark.parametrize(("name", "flag"), [("frame_ops", "--repeats"), ("eval_speed", "--frames"),

@@ -32,6 +32,7 @@ from models.checkpoint import save_checkpoint
 from pipeline.graph_inputs import session_feeds, whole_inputs, whole_shapes
 from pipeline.model_files import ModelFileError, sha256_file
 from pipeline.presets import get_preset
+from tests.conftest import KITTI
 
 
 @pytest.fixture(scope="module")
@@ -525,7 +526,8 @@ def test_merge_parallel_convs_is_exact_and_only_where_alike() -> None:
     assert merge_parallel_convs(model)[1] == 0
 
 
-def test_lower_command_upgrades_an_old_directory_and_is_idempotent(tiny_export: ExportResult, tmp_path: Path) -> None:
+def test_lower_command_upgrades_an_old_directory_and_is_idempotent(tiny_export: ExportResult, tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture) -> None:
     """A directory exported before the lowering (the depth net's Where ops, a stride-1 ConvTranspose) gets
     the lowered graphs, the same outputs and a manifest whose sha256s the Detector accepts."""
     from export.lower import main as lower_main
@@ -562,6 +564,7 @@ def test_lower_command_upgrades_an_old_directory_and_is_idempotent(tiny_export: 
     digest = sha256_file(again)
     assert lower_main(["--models", str(tmp_path / "new")]) == 0  # in place: nothing left to rewrite
     assert sha256_file(again) == digest
+    assert capsys.readouterr().out.splitlines()[-1] == f"unchanged: {tmp_path / 'new'} (already lowered)"
 
     other = tmp_path / "notes"
     other.mkdir()
@@ -726,6 +729,29 @@ def test_a_failed_export_leaves_the_earlier_model_directory_as_it_was(tmp_path: 
     with pytest.raises(ModelFileError, match="is not a model directory"):
         run(ExportConfig(preset="tiny", out=broken, parity=False))
     assert sorted(p.name for p in broken.iterdir()) == ["pixor.pt"]
+
+
+def test_a_model_directory_of_another_preset_or_precision_is_not_replaced(tmp_path: Path) -> None:
+    """--out over a model directory replaces it with a new export of the same model; one of another preset
+    or precision is refused untouched (a typo, such as the shipped weights/edge given as --out)."""
+    from export.lower import run as lower_run
+    from export.precision import convert_precision
+
+    out = tmp_path / "models"
+    run(ExportConfig(preset="tiny", out=out, parity=False))
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    with pytest.raises(ModelFileError, match=rf"--out {out}: holds a model of preset tiny \(fp32\); this writes preset "
+                                             rf"tiny-split \(fp32\): give a new folder, or remove {out} first"):
+        run(ExportConfig(preset="tiny-split", out=out, parity=False))
+    int8 = tmp_path / "int8"
+    convert_precision(out, int8, "int8", KITTI, calibration_frames=1)
+    with pytest.raises(ModelFileError, match=r"holds a model of preset tiny \(int8\); this writes preset tiny \(fp16\)"):
+        convert_precision(out, int8, "fp16", KITTI, calibration_frames=1)
+    with pytest.raises(ModelFileError, match=r"holds a model of preset tiny \(int8\); this writes preset tiny \(fp32\)"):
+        lower_run(out, int8)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    run(ExportConfig(preset="tiny", out=out, parity=False, seed=1))  # the same model exported again: replaced
+    assert {p.name: p.read_bytes() for p in out.iterdir()} != before
 
 
 # --------------------------------------------------------------------------- the command's inputs, checked first
