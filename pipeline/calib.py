@@ -88,6 +88,41 @@ class Calibration:
         return Calibration(P2=shift @ self.P2, R0_rect=self.R0_rect, Tr_velo_to_cam=self.Tr_velo_to_cam)
 
 
+# --------------------------------------------------------------------------- checks
+CALIBRATION_SHAPES = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
+
+
+def _describe(value: object) -> str:
+    """What a value is, for an error message: an array's dtype and shape, else its type."""
+    if isinstance(value, np.ndarray):
+        return f"a {value.dtype} array of shape {value.shape}"
+    return f"a {type(value).__name__}"
+
+
+def check_calibration(calib: object, source: str = "calib") -> Calibration:
+    """``calib`` if it is a :class:`Calibration` of real, finite matrices of its shapes whose 3×3 blocks can be
+    inverted, as back-projection needs; else an InputError naming ``source`` and the matrix (a singular or
+    NaN matrix would otherwise fail deep inside the pipeline, or give boxes that vanish later). About 65 µs:
+    the detector checks every frame's."""
+    if not isinstance(calib, Calibration):
+        raise InputError(f"{source}: expected a pipeline.calib.Calibration (pipeline.kitti.read_calib or parse_calib "
+                         f"makes one), got {_describe(calib)}")
+    p2, r0, tr = matrices = (calib.P2, calib.R0_rect, calib.Tr_velo_to_cam)
+    for (key, shape), matrix in zip(CALIBRATION_SHAPES.items(), matrices, strict=True):
+        if not isinstance(matrix, np.ndarray) or matrix.shape != shape or matrix.dtype.kind not in "fiu":
+            raise InputError(f"{source}: {key} must be a {shape[0]}×{shape[1]} array of real numbers, "
+                             f"got {_describe(matrix)}")
+    for key, matrix in zip(CALIBRATION_SHAPES, matrices, strict=True):
+        if not np.isfinite(matrix).all():
+            raise InputError(f"{source}: {key} has a non-finite value (NaN or infinity)")
+    # One stacked call: matrix_rank's own tolerance, in about a third of the time of three calls.
+    ranks = np.linalg.matrix_rank(np.stack([p2[:, :3], r0, tr[:, :3]]))
+    for key, rank in zip(CALIBRATION_SHAPES, ranks, strict=True):
+        if rank < 3:
+            raise InputError(f"{source}: {key} is singular (its 3×3 block cannot be inverted): not a camera calibration")
+    return calib
+
+
 # --------------------------------------------------------------------------- a typical KITTI camera
 # KITTI drive 2011_09_26 (training frames 000001/000003/000004 in tests/data/kitti; a test checks these
 # against the file): the simulator's base calibration, and the frame the service warms its workers up on.

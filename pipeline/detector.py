@@ -34,7 +34,8 @@ import onnxruntime as ort
 from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import boxes_to_objects, in_camera_view
-from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration
+from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration, check_calibration
+from pipeline.checks import calibration_mismatch, check_image, check_options, image_hw_of
 from pipeline.cpu import int8_pairs_saturate, usable_cpus
 from pipeline.errors import InputError
 from pipeline.graph_inputs import session_feeds, whole_shapes
@@ -115,8 +116,11 @@ class Detections:
     warnings: list[str] = field(default_factory=list)
     points: np.ndarray | None = field(default=None, repr=False)  # the points PIXOR saw (for pictures)
 
-    def to_objects(self, calib: Calibration, image_hw: tuple[int, int]) -> list[Object3D]:
-        """KITTI result objects (label_2 format with score) of the boxes the camera sees."""
+    def to_objects(self, calib: Calibration, image_hw: tuple[int, ...]) -> list[Object3D]:
+        """KITTI result objects (label_2 format with score; :func:`pipeline.kitti.format_label` writes one as a
+        line) of the boxes the camera sees. image_hw: (rows, columns), or an image's ``shape``."""
+        calib = check_calibration(calib, "calib")
+        image_hw = image_hw_of(image_hw)
         seen = in_camera_view(self.boxes, calib, image_hw)
         return boxes_to_objects(self.boxes[seen], calib, image_hw, self.scores[seen], self.label)
 
@@ -371,6 +375,7 @@ class Detector:
     # ------------------------------------------------------------------ stages
     def dense_depth(self, image: np.ndarray, points: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
         """Depth completion alone: (H, W) metres in the network's view, and that view's calibration."""
+        image, calib = check_image(image), check_calibration(calib, "calib")
         inputs = depth_inputs(image, points, calib, self.preset)
         return self.run_depth_net(inputs.rgb, inputs.sparse_depth), inputs.calib
 
@@ -411,7 +416,9 @@ class Detector:
 
         image: uint8 RGB (H, W, 3), required for a two-stage model. points:
         (N, 4) float32 velodyne points, finite. calib: required for a
-        two-stage model. emulate_to_beams: thin a 64-line scan first.
+        two-stage model; a warning when its principal point does not fit the
+        image's size. score_threshold: in [0, 1] (None: the model's default).
+        emulate_to_beams: thin a 64-line scan to 32, 16, 8 or 4 lines first.
         keep_points: also return the point cloud PIXOR saw (pseudo + real),
         for pictures; otherwise the pseudo points go from the depth map
         straight to their BEV bins and are never built. depth: a dense depth
@@ -423,9 +430,18 @@ class Detector:
         timings: dict[str, float] = {}
         warnings: list[str] = []
         start = time.perf_counter()
+        check_options(score_threshold, emulate_to_beams)
         points = self._check_points(points)
+        if image is not None:
+            image = check_image(image)
+        if calib is not None:
+            calib = check_calibration(calib, "calib")
+            if image is not None:
+                misfit = calibration_mismatch(image.shape[:2], calib)
+                if misfit:
+                    warnings.append(misfit)
 
-        if emulate_to_beams:
+        if emulate_to_beams:  # None or 0: the scan as given
             tic = time.perf_counter()
             before = points.shape[0]
             points = emulate_beams(points, emulate_to_beams)
@@ -554,7 +570,14 @@ class Detector:
         return None
 
     def _check_points(self, points: np.ndarray) -> np.ndarray:
-        points = np.asarray(points)
+        """The scan as finite float32 (N, 4) points on KITTI's reflectance scale, else an InputError naming ``points``."""
+        try:
+            points = np.asarray(points)
+        except (TypeError, ValueError):  # ragged nested lists
+            raise InputError(f"points: expected an (N, 4) array of x, y, z, reflectance, got a {type(points).__name__} "
+                             "of rows of different lengths") from None
+        if points.dtype.kind not in "fiu":  # np.isfinite fails on strings, drops a complex part, passes booleans
+            raise InputError(f"points: expected real numbers (float32 x, y, z, reflectance), got {points.dtype} values")
         if points.ndim != 2 or points.shape[1] != 4:
             raise InputError(f"points: expected shape (N, 4) x, y, z, reflectance; got {points.shape}")
         if points.shape[0] == 0:

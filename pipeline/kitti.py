@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.calib import Calibration
+from pipeline.calib import CALIBRATION_SHAPES, Calibration, check_calibration
 from pipeline.errors import InputError
 
 POINT_BYTES = 16  # float32 x, y, z, reflectance
@@ -76,7 +76,7 @@ def write_velodyne(path: str | Path, points: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- calibration
-_CALIB_KEYS = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
+_CALIB_KEYS = CALIBRATION_SHAPES
 
 
 def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
@@ -119,8 +119,8 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
 def parse_calib(text: str, source: str = "<calib>") -> Calibration:
     """Parse a KITTI object ``calib/*.txt`` (keys P2, R0_rect, Tr_velo_to_cam are required)."""
     values = _calib_values(text, source, _CALIB_KEYS)
-    return _invertible(Calibration(P2=values["P2"], R0_rect=values["R0_rect"],
-                                   Tr_velo_to_cam=values["Tr_velo_to_cam"]), source)
+    return check_calibration(Calibration(P2=values["P2"], R0_rect=values["R0_rect"],
+                                         Tr_velo_to_cam=values["Tr_velo_to_cam"]), source)
 
 
 def _refuse_repeated_key(key: str, line_no: int, seen: dict[str, int], source: object) -> None:
@@ -129,15 +129,6 @@ def _refuse_repeated_key(key: str, line_no: int, seen: dict[str, int], source: o
     if key in seen:
         raise InputError(f"{source}, line {line_no}: {key} given twice (first on line {seen[key]})")
     seen[key] = line_no
-
-
-def _invertible(calib: Calibration, source: str) -> Calibration:
-    """``calib`` if every projection in it can be inverted, as back-projection needs (else an InputError):
-    a singular matrix is a broken file, and would otherwise fail deep inside the pipeline."""
-    for key, block in (("P2", calib.P2[:, :3]), ("R0_rect", calib.R0_rect), ("Tr_velo_to_cam", calib.Tr_velo_to_cam[:, :3])):
-        if np.linalg.matrix_rank(block) < 3:
-            raise InputError(f"{source}: {key} is singular (its 3×3 block cannot be inverted): not a camera calibration")
-    return calib
 
 
 def _calib_text(path: Path) -> str:
@@ -167,9 +158,9 @@ def read_raw_calib(cam_to_cam: str | Path, velo_to_cam: str | Path) -> Calibrati
     cam_to_cam, velo_to_cam = Path(cam_to_cam), Path(velo_to_cam)
     cam = _calib_values(_calib_text(cam_to_cam), cam_to_cam, _CAM_TO_CAM_KEYS, every_line_a_key=False)
     velo = _calib_values(_calib_text(velo_to_cam), velo_to_cam, _VELO_TO_CAM_KEYS, every_line_a_key=False)
-    return _invertible(Calibration(P2=cam["P_rect_02"], R0_rect=cam["R_rect_00"],
-                                   Tr_velo_to_cam=np.hstack([velo["R"], velo["T"]])),
-                       f"{cam_to_cam} and {velo_to_cam}")
+    return check_calibration(Calibration(P2=cam["P_rect_02"], R0_rect=cam["R_rect_00"],
+                                         Tr_velo_to_cam=np.hstack([velo["R"], velo["T"]])),
+                             f"{cam_to_cam} and {velo_to_cam}")
 
 
 def format_calib(calib: Calibration) -> str:

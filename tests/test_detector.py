@@ -26,10 +26,10 @@ from pipeline.detector import (
 )
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
-from pipeline.kitti import read_labels
+from pipeline.kitti import format_label, read_labels
 from pipeline.model_files import ModelFileError, sha256_file
 from pipeline.presets import PRESETS, preset_from_dict
-from tests.conftest import KITTI, lidar_only_models
+from tests.conftest import FRAMES, KITTI, lidar_only_models
 
 STAGES = {"prepare", "depth_net", "ray_table", "pseudo_points", "voxelize", "pixor", "decode", "total"}
 
@@ -205,6 +205,123 @@ def test_a_scan_in_millimetres_is_warned_about(detector, frame):
     warnings = detector.detect(frame.image, millimetres, frame.calib).warnings
     in_grid = [w for w in warnings if w.startswith("points: almost none lie in the detection range, x 0…")]
     assert len(in_grid) == 1 and in_grid[0].endswith(f"of {frame.points.shape[0]} points)")
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+@pytest.mark.parametrize(("make", "given", "hint"), [
+    (lambda im: _grey(im), r"uint8 \(374, 1238\)", "one channel"),
+    (lambda im: _grey(im)[..., None], r"uint8 \(374, 1238, 1\)", "one channel"),
+    (lambda im: cv2.cvtColor(im, cv2.COLOR_RGB2BGRA), r"uint8 \(374, 1238, 4\)", r"drop the alpha channel"),
+    (lambda im: im.ravel(), r"uint8 \(1389036,\)", "1-D array"),
+    (lambda im: im.astype(np.int64), r"int64 \(374, 1238, 3\)", r"image\.astype\(np\.uint8\)"),
+    (lambda im: im.astype(np.float16), r"float16 \(374, 1238, 3\)", "clip"),
+    (lambda im: im > 127, r"bool \(374, 1238, 3\)", ""),
+    (lambda im: im.astype(np.float32) / 255, r"float32 \(374, 1238, 3\)", r"values 0–1: convert with \(image \* 255\)"),
+    (lambda im: im.astype(np.uint16) * 257, r"uint16 \(374, 1238, 3\)", r"16-bit: .*\(image // 257\)\.astype"),
+    (lambda im: np.full(im.shape, np.nan, np.float32), r"float32 \(374, 1238, 3\)", "no finite pixel value"),
+])
+def test_an_image_that_is_not_uint8_rgb_is_refused_saying_what_it_is(detector, frame, make, given, hint):
+    """Grey, 4-channel, flat, float, 16-bit or boolean images used to fail inside ONNX Runtime or OpenCV, or to
+    run on wrong pixel values (0–1 floats, uint16, NaN gave boxes): refused, naming what was given and, where
+    it can be said, how to convert it."""
+    lidar16 = emulate_beams(frame.points, 16)
+    with pytest.raises(InputError, match=rf"^image: expected uint8 RGB \(H, W, 3\), got {given}.*{hint}"):
+        detector.detect(make(frame.image), lidar16, frame.calib, 0.0)
+
+
+def test_an_image_the_calibration_does_not_fit_is_warned_about(detector, frame):
+    """An image resized after calibrating puts P2's principal point outside its middle: the scan projects into
+    the wrong pixels. A warning, not an error (exotic cameras exist); KITTI's own frames get none."""
+    lidar16 = emulate_beams(frame.points, 16)
+    doubled = cv2.resize(frame.image, None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR)
+    result = detector.detect(doubled, lidar16, frame.calib, 0.0)
+    assert len(result.scores) > 0  # still detected
+    (warning,) = [w for w in result.warnings if w.startswith("image and calib")]
+    assert warning.startswith("image and calib: P2's principal point (600.4, 181.5) lies outside the middle half "
+                              "of the 2476×748 image (x 619…1857, y 187…561)")
+    for frame_id in FRAMES:  # 1224–1242 × 370–376 pixels, principal points (600–610, 170–190)
+        kitti = load_frame(KITTI, frame_id)
+        warnings = detector.detect(kitti.image, emulate_beams(kitti.points, 16), kitti.calib, 0.0).warnings
+        assert not [w for w in warnings if w.startswith("image and calib")], (frame_id, warnings)
+
+
+def _calibration(calib: Calibration, **replace) -> Calibration:
+    matrices = {"P2": calib.P2.copy(), "R0_rect": calib.R0_rect.copy(), "Tr_velo_to_cam": calib.Tr_velo_to_cam.copy()}
+    return Calibration(**{**matrices, **replace})
+
+
+def test_a_calibration_built_in_code_is_checked_as_a_file_is(detector, frame):
+    """A NaN gave boxes that vanished in to_objects, a zero matrix a LinAlgError, a 3×3 P2 a matmul error, a
+    dict an AttributeError: each is an InputError naming calib and the matrix, with parse_calib's checks."""
+    lidar16 = emulate_beams(frame.points, 16)
+    calib = frame.calib
+    cases = [
+        (_calibration(calib, P2=calib.P2 * np.nan), r"calib: P2 has a non-finite value"),
+        (_calibration(calib, R0_rect=np.full((3, 3), np.inf)), r"calib: R0_rect has a non-finite value"),
+        (_calibration(calib, P2=np.zeros((3, 4))), r"calib: P2 is singular"),
+        (_calibration(calib, Tr_velo_to_cam=np.zeros((3, 4))), r"calib: Tr_velo_to_cam is singular"),
+        (_calibration(calib, P2=calib.P2[:, :3]), r"calib: P2 must be a 3×4 array .*got a float64 array of shape \(3, 3\)"),
+        (_calibration(calib, R0_rect=calib.R0_rect.tolist()), r"calib: R0_rect must be a 3×3 array .*got a list"),
+        (_calibration(calib, Tr_velo_to_cam=calib.Tr_velo_to_cam.astype(str)), r"calib: Tr_velo_to_cam must be"),
+        ({"P2": calib.P2, "R0_rect": calib.R0_rect, "Tr_velo_to_cam": calib.Tr_velo_to_cam},
+         r"calib: expected a pipeline\.calib\.Calibration .*got a dict"),
+    ]
+    for bad, message in cases:
+        with pytest.raises(InputError, match=f"^{message}"):
+            detector.detect(frame.image, lidar16, bad, 0.0)
+    # Checked on every frame: a matrix changed in place after its first frame is seen.
+    mine = _calibration(calib)
+    detector.detect(frame.image, lidar16, mine, 0.0)
+    mine.P2[1, 1] = np.nan
+    with pytest.raises(InputError, match="^calib: P2 has a non-finite value"):
+        detector.detect(frame.image, lidar16, mine, 0.0)
+
+
+@pytest.mark.parametrize("dtype", [str, object, np.complex64, bool])
+def test_points_that_are_not_real_numbers_are_refused(detector, frame, dtype):
+    """Strings and objects failed in np.isfinite with a TypeError, complex points ran (a ComplexWarning, then
+    boxes) and booleans were taken for coordinates."""
+    points = emulate_beams(frame.points, 16).astype(dtype)
+    with pytest.raises(InputError, match=r"^points: expected real numbers .*got (<U\d+|object|complex64|bool) values"):
+        detector.detect(frame.image, points, frame.calib, 0.0)
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"emulate_to_beams": "16"}, r"emulate_to_beams: one of 32, 16, 8, 4 lines .*got '16'"),
+    ({"emulate_to_beams": 12}, r"emulate_to_beams: one of 32, 16, 8, 4 lines .*got 12"),
+    ({"emulate_to_beams": 16.0}, r"emulate_to_beams: .*got 16\.0"),
+    ({"emulate_to_beams": True}, r"emulate_to_beams: .*got True"),
+    ({"score_threshold": "0.5"}, r"score_threshold: a probability in \[0, 1\] .*got '0\.5'"),
+    ({"score_threshold": float("nan")}, r"score_threshold: a probability in \[0, 1\] .*got nan"),
+    ({"score_threshold": 1.5}, r"score_threshold: a probability in \[0, 1\] .*got 1\.5"),
+    ({"score_threshold": -0.1}, r"score_threshold: .*got -0\.1"),
+])
+def test_bad_keyword_arguments_are_input_errors_naming_them(detector, frame, options, message):
+    """A string beam count raised a TypeError and a string threshold a UFuncTypeError; a NaN threshold gave no
+    boxes without a word."""
+    with pytest.raises(InputError, match=f"^{message}"):
+        detector.detect(frame.image, frame.points, frame.calib, **options)
+
+
+def test_keyword_arguments_may_be_numpy_numbers(detector, frame):
+    """What a caller reads from a NumPy array or a config: NumPy integers and floats are numbers like any other."""
+    a = detector.detect(frame.image, frame.points, frame.calib, np.float32(0.25), emulate_to_beams=np.int64(16))
+    b = detector.detect(frame.image, frame.points, frame.calib, 0.25, emulate_to_beams=16)
+    np.testing.assert_array_equal(a.boxes, b.boxes)
+
+
+def test_to_objects_takes_the_images_shape(detector, frame):
+    """README: ``to_objects(calib, image.shape)`` gives the KITTI objects that format_label writes as lines; a
+    size of another length is refused naming image_hw."""
+    result = detector.detect(frame.image, emulate_beams(frame.points, 16), frame.calib, 0.0)
+    by_size = [format_label(o) for o in result.to_objects(frame.calib, frame.image_hw)]
+    assert by_size and [format_label(o) for o in result.to_objects(frame.calib, frame.image.shape)] == by_size
+    for bad in [(375,), (1, 375, 1242, 3), 375, (375.0, 1242.0)]:
+        with pytest.raises(InputError, match=r"^image_hw: expected \(rows, columns\) or an image's shape"):
+            result.to_objects(frame.calib, bad)
 
 
 def _sorted_boxes(boxes: np.ndarray) -> np.ndarray:

@@ -488,6 +488,21 @@ def test_warnings_travel_in_a_header_where_the_body_has_no_room(client: AppClien
     assert quiet.status_code == 200 and "x-warnings" not in quiet.headers
 
 
+def test_an_image_the_calibration_does_not_fit_gets_the_detectors_warning(client: AppClient, frame: dict[str, bytes]) -> None:
+    """A camera image resized after calibrating is answered (a warning, not an error), and the client is told
+    that the calibration's principal point does not fit the image; the frame as recorded gets no warning."""
+    image = cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR)
+    doubled = cv2.imencode(".png", cv2.resize(image, None, fx=2, fy=2))[1].tobytes()
+    params = {"score_threshold": 0.0}
+    response = client.post("/v1/detect", params=params, files=parts(frame, image=doubled))
+    assert response.status_code == 200, response.text
+    (warning,) = [w for w in response.json()["warnings"] if w.startswith("image and calib")]
+    assert "P2's principal point (600.4, 181.5) lies outside the middle half of the 2476×748 image" in warning
+    kitti = client.post("/v1/detect", params={**params, "format": "kitti"}, files=parts(frame, image=doubled))
+    assert kitti.status_code == 200 and warning in json.loads(kitti.headers["x-warnings"])
+    assert client.post("/v1/detect", params=params, files=parts(frame)).json()["warnings"] == []
+
+
 def test_oversized_body_is_413_with_and_without_content_length(tiny_models: Path, frame: dict[str, bytes]) -> None:
     limit = 1024 * 1024  # above the image (749 kB), below image + scan (2.5 MB)
     with service(tiny_models, max_body_bytes=limit) as app_client:
