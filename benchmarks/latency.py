@@ -24,17 +24,27 @@ over the blocks. ``--baseline DIR`` does the same with another model directory
 (an INT8 directory against its FP32 source, say): on a shared machine, two
 separate runs minutes apart differed by more than the precisions did.
 
-Without ``--models`` the preset is exported first with initialised weights
-(latency does not depend on the weights' values).
+Without ``--models`` it times the shipped model, ``weights/edge`` (``weights/edge-int8``
+with ``--precision int8``), as the README's figures were timed; ``--preset P`` (or
+``--checkpoints``) exports P first (default: the shipped model's preset), with
+initialised weights where no checkpoints are given (the networks' time does not
+depend on the weights' values; the decoding's a little does). Scans are thinned to
+the line count the model was trained on (16 for ``weights/edge``; a 64-line
+model's are kept as stored) unless ``--beams`` says otherwise; each distinct
+warning of the Detector (a scan unlike the model's, initialised weights) is
+printed once. Ctrl-C stops the throughput workers (between frames, or inside a
+network run) before the command ends.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import logging
 import multiprocessing
 import os
 import platform
+import re
 import sys
 import tempfile
 import threading
@@ -61,15 +71,20 @@ from pipeline.cli import (
     write_text_file,
 )
 from pipeline.cpu import describe as describe_cpu
-from pipeline.detector import Detector
-from pipeline.errors import InputError
+from pipeline.cpu import usable_cpus
+from pipeline.detector import Cancellation, Detector, RunCancelled
+from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.model_files import ModelFileError, load_manifest
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import get_preset
 
-BUNDLED = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
-DEFAULT_PRESET = "edge"
+ROOT = Path(__file__).resolve().parents[1]
+BUNDLED = ROOT / "tests" / "data" / "kitti" / "training"
+# What runs without --models: the shipped model (the README's latency figures are of it), and its INT8 twin.
+SHIPPED = ROOT / "weights" / "edge"
+SHIPPED_INT8 = ROOT / "weights" / "edge-int8"
+DEFAULT_PRESET = "edge-split-near35"  # the shipped model's preset (weights/edge/manifest.json): --preset's default
 PEAK_MATMUL = 4096  # the peak micro-benchmark's MatMul: N × N by N × N
 # The stages that are network runs (pixor_mirror: PIXOR's second run, with --mirror-tta); the rest of a frame's
 # time is "between the networks" (mirror_merge, the mirror's copies and averaging, too).
@@ -107,6 +122,60 @@ def block_spread(ratios: list[float]) -> dict:
     """Median, min and max of the per-block ratios of :func:`run_paired`."""
     return {"p50": float(np.median(ratios)), "min": float(min(ratios)), "max": float(max(ratios)),
             "blocks": len(ratios)}
+
+
+class TorchMissing(Exception):
+    """PyTorch is needed (an export, the PyTorch pipeline) and the runtime install has none."""
+
+
+def require_torch(why: str) -> None:
+    """Raise :class:`TorchMissing` (``why``: what needs it) when torch cannot be imported."""
+    try:
+        import torch  # noqa: F401
+    except ModuleNotFoundError as exc:
+        if exc.name != "torch":
+            raise
+        raise TorchMissing(why) from None
+
+
+class Warnings:
+    """Each distinct warning of the Detectors timed, in the order they came; said once on stderr when ``say``.
+
+    The Detector warns per frame (a scan unlike the model's, with its point count) and each Detector at load
+    (initialised weights), and a run builds many (every throughput round's workers): once each is enough.
+    Warnings that differ only in their numbers are one warning; ``seen`` keeps the first of each.
+    """
+
+    def __init__(self, say: bool = True) -> None:
+        self.seen: list[str] = []
+        self.say = say
+        self._kinds: set[str] = set()
+        self._lock = threading.Lock()
+
+    def add(self, messages: list[str]) -> None:
+        for message in messages:
+            kind = re.sub(r"\d+", "#", message)
+            with self._lock:
+                if kind in self._kinds:
+                    continue
+                self._kinds.add(kind)
+                self.seen.append(message)
+            if self.say:
+                print(f"warning: {message}", file=sys.stderr)
+
+
+class _LoadWarnings(logging.Filter):
+    """Routes pipeline.detector's load warnings to a :class:`Warnings` (instead of one line per Detector)."""
+
+    def __init__(self, warnings: Warnings) -> None:
+        super().__init__()
+        self.warnings = warnings
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno >= logging.WARNING:
+            self.warnings.add([record.getMessage()])
+            return False
+        return True
 
 
 # ----------------------------------------------------------------------------- torch eager twin
@@ -212,11 +281,15 @@ class StreamResult:
     overlapped: dict[str, list[float]] = field(default_factory=dict)  # stages run beside a network
 
 
-def run_stream(detector: Detector, frames: list[Frame], count: int, warmup: int) -> StreamResult:
-    """Frames one after the other (cycling), after ``warmup`` untimed frames."""
+def run_stream(detector: Detector, frames: list[Frame], count: int, warmup: int,
+               warnings: Warnings | None = None) -> StreamResult:
+    """Frames one after the other (cycling), after ``warmup`` untimed frames; the Detector's warnings of each
+    frame go to ``warnings``."""
     for i in range(warmup):
         f = frames[i % len(frames)]
-        detector.detect(f.image, f.points, f.calib)
+        result = detector.detect(f.image, f.points, f.calib)
+        if warnings is not None:
+            warnings.add(result.warnings)
     stages: dict[str, list[float]] = {}
     overlapped: dict[str, list[float]] = {}
     totals = []
@@ -224,6 +297,8 @@ def run_stream(detector: Detector, frames: list[Frame], count: int, warmup: int)
     for i in range(count):
         f = frames[i % len(frames)]
         result = detector.detect(f.image, f.points, f.calib)
+        if warnings is not None:
+            warnings.add(result.warnings)
         totals.append(result.timings_ms["total"])
         for stage, ms in result.timings_ms.items():
             if stage != "total":
@@ -234,7 +309,7 @@ def run_stream(detector: Detector, frames: list[Frame], count: int, warmup: int)
 
 
 def run_paired(first: Detector, second: Detector, frames: list[Frame], count: int, warmup: int,
-               block: int = 4) -> tuple[StreamResult, StreamResult, list[float]]:
+               block: int = 4, warnings: Warnings | None = None) -> tuple[StreamResult, StreamResult, list[float]]:
     """Two detectors on the same frames in alternating blocks, A B B A A B …, so a change of load on a
     shared machine slows both alike; returns both streams and each pair of blocks' time ratio second/first.
 
@@ -246,7 +321,9 @@ def run_paired(first: Detector, second: Detector, frames: list[Frame], count: in
     for detector in detectors:
         for i in range(warmup):
             f = frames[i % len(frames)]
-            detector.detect(f.image, f.points, f.calib)
+            result = detector.detect(f.image, f.points, f.calib)
+            if warnings is not None:
+                warnings.add(result.warnings)
     ratios = []
     blocks = max(1, -(-count // block))
     for b in range(blocks):
@@ -256,6 +333,8 @@ def run_paired(first: Detector, second: Detector, frames: list[Frame], count: in
             for i in range(b * block, min((b + 1) * block, count)):
                 f = frames[i % len(frames)]
                 result = detectors[which].detect(f.image, f.points, f.calib)
+                if warnings is not None:
+                    warnings.add(result.warnings)
                 runs[which][0].append(result.timings_ms["total"])
                 runs[which][1].append(result.timings_ms)
                 spent[which] += result.timings_ms["total"]
@@ -279,18 +358,33 @@ class FrameSource:
         return load_frames(self.data, self.count, self.beams)
 
 
-def _frames_on(detector: Detector, frames: list[Frame], count: int, offset: int) -> None:
+def _frames_on(detector: Detector, frames: list[Frame], count: int, offset: int, cancel: Cancellation | None = None,
+               warnings: Warnings | None = None) -> bool:
+    """``count`` frames from ``offset`` on; False when ``cancel`` stopped them (between frames, or inside a
+    network run: ONNX Runtime's terminate flag)."""
     for i in range(count):
+        if cancel is not None and cancel.cancelled:
+            return False
         f = frames[(i + offset) % len(frames)]
-        detector.detect(f.image, f.points, f.calib)
+        try:
+            result = detector.detect(f.image, f.points, f.calib, cancel=cancel)
+        except RunCancelled:
+            return False
+        if warnings is not None:
+            warnings.add(result.warnings)
+    return True
 
 
 def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] | FrameSource, per_worker: int,
-            warmup: int, mine: list[int], start, done, errors, mirror_tta: bool = False) -> None:
+            warmup: int, mine: list[int], start, done, errors, mirror_tta: bool = False,
+            cancel: Cancellation | None = None, warnings: Warnings | None = None) -> None:
     """One throughput worker, a thread or a process: pin itself, load, warm up, wait for the start, run.
 
-    A thread gets the frames and a list for its errors; a process gets a :class:`FrameSource` (it
-    loads its own copy) and a queue, which carries the errors as text.
+    A thread gets the frames, a list for its errors, a :class:`Cancellation` by which the caller stops it
+    (Ctrl-C: a thread still inside ONNX Runtime when the interpreter ends aborts the process) and the run's
+    :class:`Warnings`; a process gets a :class:`FrameSource` (it loads its own copy) and a queue, which
+    carries the errors as text, and is stopped by its parent (it leaves Ctrl-C to the parent, and its
+    Detector's warnings too: the parent's said them).
     """
     def fail(exc: Exception) -> None:
         if isinstance(errors, list):
@@ -298,42 +392,72 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
         else:
             errors.put(f"worker {index}: {type(exc).__name__}: {exc}")
 
+    process = isinstance(frames, FrameSource)
+    if process:
+        logging.getLogger("pipeline.detector").setLevel(logging.ERROR)
     try:
-        os.sched_setaffinity(0, mine)  # this thread or process only; ORT threads created below inherit it
-        if isinstance(frames, FrameSource):
-            frames = frames.load()
-        detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False, mirror_tta=mirror_tta)
-        _frames_on(detector, frames, warmup, index)
-    except Exception as exc:  # noqa: BLE001 — reported to the caller of run_workers
-        fail(exc)
-        start.abort()
+        try:
+            os.sched_setaffinity(0, mine)  # this thread or process only; ORT threads created below inherit it
+            if process:
+                frames = frames.load()
+            detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False,
+                                mirror_tta=mirror_tta)
+            if not _frames_on(detector, frames, warmup, index, cancel, warnings):
+                start.abort()
+                return
+        except Exception as exc:  # noqa: BLE001 — reported to the caller of run_workers
+            fail(exc)
+            start.abort()
+            return
+        try:
+            start.wait()
+        except threading.BrokenBarrierError:  # another worker failed, or the run was stopped: nothing to time
+            return
+        try:
+            if not _frames_on(detector, frames, per_worker, index, cancel, warnings):
+                return
+        except Exception as exc:  # noqa: BLE001 — reported to the caller of run_workers
+            fail(exc)
+        done.wait()
+    except threading.BrokenBarrierError:  # stopped while the others finished
         return
-    try:
-        start.wait()
-    except threading.BrokenBarrierError:  # another worker failed: nothing to time
-        return
-    try:
-        _frames_on(detector, frames, per_worker, index)
-    except Exception as exc:  # noqa: BLE001 — reported to the caller of run_workers
-        fail(exc)
-    done.wait()
+    except KeyboardInterrupt:  # a process's Ctrl-C (the terminal's goes to the whole group): the parent says it
+        if not process:
+            raise
+
+
+def check_workers(workers: int, mode: str = "thread", cores: int | None = None) -> None:
+    """Refuse more throughput workers than usable cores: each is pinned to a share of its own, and a worker
+    past the cores would get none (it used to fall back to all of them, oversubscribing the others)."""
+    cores = usable_cpus() if cores is None else cores
+    if workers > cores:
+        raise InputError(f"--threads {workers}: {mode} workers are each pinned to cores of their own, and this "
+                         f"process may use {cores} core{'s' if cores != 1 else ''}; give --threads {cores} or fewer")
 
 
 def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameSource, workers: int,
-                per_worker: int, warmup: int, cores: list[int], mode: str = "thread", mirror_tta: bool = False) -> float:
+                per_worker: int, warmup: int, cores: list[int], mode: str = "thread", mirror_tta: bool = False,
+                warnings: Warnings | None = None) -> float:
     """Aggregate fps of ``workers`` workers, each pinned to its share of ``cores`` with its own sessions.
 
     mode ``thread``: threads of this process (as the paper ran its PX2's two GPUs), sharing Python's
     interpreter lock between NumPy calls. ``process``: one process each (spawned), sharing nothing;
     ``frames`` must then be a :class:`FrameSource`, from which each loads its own copy before the
     clock starts (a thread given one does the same). mirror_tta: as :class:`pipeline.detector.Detector`'s.
+    More workers than cores are refused (:func:`check_workers`). Ctrl-C (KeyboardInterrupt) stops the
+    workers and waits for them before it goes on up: thread workers end between frames or inside a
+    network run, worker processes are terminated.
     """
-    share = max(1, len(cores) // workers)
-    shares = [cores[i * share : (i + 1) * share] or cores for i in range(workers)]
+    check_workers(workers, mode, len(cores))
+    share = len(cores) // workers
+    shares = [cores[i * share : (i + 1) * share] for i in range(workers)]
+    cancels: list[Cancellation | None] = [None] * workers
     if mode == "thread":
         start, done, errors = threading.Barrier(workers + 1), threading.Barrier(workers + 1), []
+        cancels = [Cancellation() for _ in range(workers)]
         pool = [threading.Thread(target=_worker, daemon=True,
-                                 args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors, mirror_tta))
+                                 args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors,
+                                       mirror_tta, cancels[i], warnings))
                 for i in range(workers)]
     elif mode == "process":
         if not isinstance(frames, FrameSource):
@@ -345,17 +469,21 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
                 for i in range(workers)]
     else:
         raise ValueError(f"workers mode {mode!r}: expected 'thread' or 'process'")
-    for worker in pool:
-        worker.start()
     try:
-        start.wait()
-        tic = time.perf_counter()
-        done.wait()
-        wall = time.perf_counter() - tic
-    except threading.BrokenBarrierError:
-        wall = None  # a worker failed before the clock started; its error is raised below
-    for worker in pool:
-        worker.join()
+        for worker in pool:
+            worker.start()
+        try:
+            start.wait()
+            tic = time.perf_counter()
+            done.wait()
+            wall = time.perf_counter() - tic
+        except threading.BrokenBarrierError:
+            wall = None  # a worker failed before the clock started; its error is raised below
+        for worker in pool:
+            worker.join()
+    except KeyboardInterrupt:
+        _stop(pool, cancels, start, done)
+        raise
     failures = list(errors) if mode == "thread" else [errors.get() for _ in range(errors.qsize())]
     if failures or wall is None:
         failure = failures[0] if failures else "a worker stopped before the clock started"
@@ -363,17 +491,39 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
     return workers * per_worker / wall
 
 
+def _stop(pool: list, cancels: list[Cancellation | None], start, done) -> None:
+    """Stop the workers of :func:`run_workers` and wait for them: a daemon thread still inside ONNX Runtime
+    when the interpreter ends takes the process down with ``terminate called without an active exception``."""
+    for cancel in cancels:
+        if cancel is not None:
+            cancel.cancel()  # ends the network run under way, and the frames after it
+    start.abort()  # workers waiting for the start or for the others to finish go home
+    done.abort()
+    for worker in pool:
+        if isinstance(worker, multiprocessing.process.BaseProcess) and worker.is_alive():
+            worker.terminate()
+    for worker in pool:
+        while True:
+            try:
+                if worker.ident is not None:  # started
+                    worker.join()
+                break
+            except KeyboardInterrupt:  # Ctrl-C again: the workers are ending already; still wait for them
+                continue
+
+
 def run_throughput(models: Path, provider: str | None, source: FrameSource, frames: list[Frame], workers: int,
                    per_worker: int, warmup: int, cores: list[int], rounds: int = 3, mode: str = "thread",
-                   mirror_tta: bool = False) -> dict:
+                   mirror_tta: bool = False, warnings: Warnings | None = None) -> dict:
     """One worker on its share of the cores and ``workers`` workers on all of them, in alternating rounds
     (1 N N 1 1 N), so a change of load on a shared machine touches both; medians over the rounds."""
-    share = max(1, len(cores) // workers)
+    check_workers(workers, mode, len(cores))
+    share = len(cores) // workers
     one, many = [], []
     for r in range(rounds):
         for n in ((1, workers) if r % 2 == 0 else (workers, 1)):
             fps = run_workers(models, provider, source if mode == "process" else frames, n, per_worker, warmup,
-                              cores[:share] if n == 1 else cores, mode, mirror_tta)
+                              cores[:share] if n == 1 else cores, mode, mirror_tta, warnings)
             (one if n == 1 else many).append(fps)
     fps_one, fps_many = float(np.median(one)), float(np.median(many))
     return {"workers": workers, "mode": mode, "fps": fps_many, "fps_one_worker": fps_one,
@@ -426,16 +576,24 @@ def machine() -> dict:
 
 # ----------------------------------------------------------------------------- main job
 def run(preset: str | None = None, models: Path | None = None, provider: str | None = None, threads: int = 1,
-        frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = 16,
+        frames: int = 20, warmup: int = 3, data: Path = BUNDLED, beams: int | None = None,
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
         precision: str | None = None, baseline: Path | None = None, worker_kind: str = "thread",
         peak_size: int = PEAK_MATMUL, ops: bool = False, stage_threads: int | None = None,
         mirror_tta: bool = False) -> dict:
-    """Measure everything; returns the JSON-able report.
+    """Measure everything; returns the JSON-able report (``warnings``: each distinct warning of the Detectors,
+    said once on stderr as it came where ``progress``, with a line as each measurement starts).
 
-    preset: the preset to export and time when ``models`` is None (default :data:`DEFAULT_PRESET`); with
-    ``models`` it may only name the directory's own preset. precision: with ``models`` it must match the
-    directory's (a check); without, the exported FP32 preset is converted (calibrated on the benchmark frames).
+    models: the model directory; None: :data:`SHIPPED` (:data:`SHIPPED_INT8` for ``precision`` int8) when
+    neither ``preset`` nor ``checkpoints`` is given and it is there, else ``preset`` (default
+    :data:`DEFAULT_PRESET`) exported with ``checkpoints`` or initialised weights (PyTorch:
+    :class:`TorchMissing` without it). With ``models`` ``preset`` may only name the directory's own preset.
+    precision: with ``models`` it must match the directory's (a check); without, the FP32 directory is
+    converted (calibrated on the benchmark frames; INT8 with 7-bit weights, as the shipped one).
+    beams: the line count to thin scans to; None: the model's own (its manifest's
+    ``networks.pixor.training.input``: a 64-line model's scans are kept as stored, others thinned to 16);
+    0: as stored.
+    threads: throughput workers (1: none), at most one per usable core (InputError).
     peak_size: the MatMul's size in the peak micro-benchmark (12 s at 4096 here; the figures quoted use 4096).
     ops: also profile each network operator by operator (``networks[name]["ops"]``).
     stage_threads: the single-stream Detectors' (:class:`pipeline.detector.Detector`; None: its default,
@@ -444,10 +602,45 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     as the stage ``pixor_mirror`` (its copies and averaging as ``mirror_merge``); PIXOR's FLOPs and time per
     frame count both runs.
     """
+    if threads > 1:  # before anything is exported or timed
+        check_workers(threads, worker_kind, len(os.sched_getaffinity(0)))
+    warnings = Warnings(say=progress)
+    said_once = _LoadWarnings(warnings)
+    logger = logging.getLogger("pipeline.detector")
+    logger.addFilter(said_once)
+    try:
+        report = _run(preset, models, provider, threads, frames, warmup, data, beams, compare_torch, checkpoints,
+                      progress, precision, baseline, worker_kind, peak_size, ops, stage_threads, mirror_tta, warnings)
+    finally:
+        logger.removeFilter(said_once)
+    report["warnings"] = list(warnings.seen)
+    return report
+
+
+def _step(progress: bool, what: str) -> None:
+    if progress:
+        print(f"timing {what} …", file=sys.stderr, flush=True)
+
+
+def _run(preset: str | None, models: Path | None, provider: str | None, threads: int, frames: int, warmup: int,
+         data: Path, beams: int | None, compare_torch: bool, checkpoints: Path | None, progress: bool,
+         precision: str | None, baseline: Path | None, worker_kind: str, peak_size: int, ops: bool,
+         stage_threads: int | None, mirror_tta: bool, warnings: Warnings) -> dict:
+    """:func:`run`'s measurements."""
     cores = sorted(os.sched_getaffinity(0))
     scratch = None
     torch_networks, torch_weights = None, ""
-    if models is None:
+    if compare_torch:
+        require_torch("--compare-torch times the PyTorch networks")
+    shipped = models is None and preset is None and checkpoints is None and (SHIPPED / "manifest.json").is_file()
+    if shipped:
+        shipped_int8 = precision == "int8" and (SHIPPED_INT8 / "manifest.json").is_file()
+        models = SHIPPED_INT8 if shipped_int8 else SHIPPED
+        described = str(models)
+        convert = precision not in (None, "fp32") and not shipped_int8
+    elif models is None:
+        require_torch(f"--preset {preset or DEFAULT_PRESET} is exported with PyTorch first (without --preset and "
+                      "--checkpoints the shipped weights/edge is timed, which needs none)")
         from export.exporter import ExportConfig
         from export.exporter import run as export
 
@@ -456,12 +649,22 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         result = export(ExportConfig(preset=preset or DEFAULT_PRESET, out=models, parity=False, checkpoints=checkpoints))
         torch_networks = result.networks  # the exported modules: the same weights on both sides
         torch_weights = str(checkpoints) if checkpoints else "initialised, the same as the ONNX files'"
-    if scratch is not None and precision not in (None, "fp32"):
+        described = f"exported ({checkpoints})" if checkpoints else "exported (initialised weights)"
+        convert = precision not in (None, "fp32")
+    else:
+        described, convert = str(models), False
+    if convert:
         from export.precision import convert_precision
 
+        if scratch is None:
+            scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
         reduced = Path(scratch.name) / precision
-        convert_precision(models, reduced, precision, data, calibration_frames=min(frames, 20))
+        # INT8 as the shipped weights/edge-int8 is made (python -m export.precision --reduce-range): 7-bit
+        # weights, exact on every x86 CPU; full 8-bit ones saturate on CPUs without VNNI (pipeline/cpu.py).
+        convert_precision(models, reduced, precision, data, calibration_frames=min(frames, 20),
+                          reduce_range=precision == "int8")
         models = reduced
+        described = f"{described}, converted to {precision}"
     detector = Detector(models, providers=provider, intra_op_threads=len(cores), stage_threads=stage_threads,
                         mirror_tta=mirror_tta)
     # Loaded now, so a bad directory is refused before minutes of timing.
@@ -481,16 +684,26 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         # The PyTorch twin of a model directory is built for that directory's preset and networks, before
         # any timing, so a mismatch is refused at once instead of after minutes of measurements.
         torch_networks, torch_weights = torch_twin(detector, checkpoints)
-    source = FrameSource(data, max(frames, warmup), beams)
+    trained_on = (detector.manifest["networks"]["pixor"].get("training") or {}).get("input")
+    if beams is None:  # the model's own: a 64-line model's scans as they are (KITTI's have 64), else 16 lines
+        beams = None if detector.trained_lines == 64 else 16
+    source = FrameSource(data, max(frames, warmup), beams or None)
     pool = source.load()
 
-    report: dict = {"preset": preset_name, "models": str(models) if scratch is None else "exported (initialised weights)",
+    scan = f"{beams}-line scan" if beams else "scan as stored"
+    info = detector.manifest.get("precision_info") or {}
+    report: dict = {"preset": preset_name, "models": described,
                     "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,
-                    "precision": detector.manifest.get("precision", "fp32"), "frames": frames, "warmup": warmup,
-                    "input": f"{beams}-line scan + camera" if beams else "scan as stored + camera",
+                    "precision": detector.manifest.get("precision", "fp32"),
+                    "quantization": {key: info[key] for key in ("weights", "reduce_range") if key in info},
+                    "frames": frames, "warmup": warmup,
+                    "input": f"{scan} + camera" if detector.two_stage else
+                             f"{scan}, LiDAR only (PIXOR trained on {trained_on or 'an input not recorded'})",
+                    "beams": beams or None, "trained_on": trained_on,
                     "data": str(data), "mirror_tta": mirror_tta, "machine": machine(), "versions": versions(),
                     "paper": PAPER}
-    stream = run_stream(detector, pool, frames, warmup)
+    _step(progress, f"the single stream: {frames} frames after {warmup} warm-up, {report['input']}")
+    stream = run_stream(detector, pool, frames, warmup, warnings)
     report["end_to_end_ms"] = summarize(stream.end_to_end)
     report["fps"] = 1e3 / report["end_to_end_ms"]["mean"]
     report["stages_ms"] = summarize_stages(stream)
@@ -506,6 +719,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     rays = report["stages_ms"].get("ray_table", {"mean": 0.0})["mean"]
     report["non_network_fraction_fixed_calibration"] = (between - rays) / (report["end_to_end_ms"]["mean"] - rays)
 
+    _step(progress, f"the peak ({peak_size}² MatMul, 3×3 conv)")
     peak = measure_peak(len(cores), matmul_n=peak_size)
     report["peak_gflops"] = peak.peak_gflops
     report["peak_detail"] = {f"matmul_{peak_size}_gflops": peak.matmul_gflops, "matmul_size": peak_size,
@@ -526,14 +740,16 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
                 report["networks"][name]["ops"] = profile
 
     if threads > 1:
+        _step(progress, f"the throughput: 1 and {threads} {worker_kind} workers in 3 alternating rounds")
         report["throughput"] = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
-                                              warmup, cores, mode=worker_kind, mirror_tta=mirror_tta)
+                                              warmup, cores, mode=worker_kind, mirror_tta=mirror_tta, warnings=warnings)
     if compare_torch:
         import torch
 
+        _step(progress, "PyTorch eager against ONNX Runtime in alternating blocks")
         torch.set_num_threads(len(cores))
         paired, eager, ratios = run_paired(detector, torch_detector(models, torch_networks, stage_threads, mirror_tta), pool,
-                                           frames, warmup)
+                                           frames, warmup, warnings=warnings)
         report["torch_end_to_end_ms"] = summarize(eager.end_to_end)
         report["torch_stages_ms"] = summarize_stages(eager)
         # Against the ONNX Runtime frames interleaved with the PyTorch ones, not the stream above.
@@ -548,7 +764,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
             for stage in NETWORK_STAGES if stage in report["paired_stages_ms"]}
         report["torch_weights"] = torch_weights
     if other is not None:
-        paired, base, ratios = run_paired(detector, other, pool, frames, warmup)
+        _step(progress, f"the baseline {baseline} against it in alternating blocks")
+        paired, base, ratios = run_paired(detector, other, pool, frames, warmup, warnings=warnings)
         report["baseline"] = {"models": str(baseline), "precision": other.manifest.get("precision", "fp32"),
                               "end_to_end_ms": summarize(base.end_to_end),
                               "stages_ms": summarize_stages(base),
@@ -589,7 +806,8 @@ def plot(report: dict, path: Path) -> None:
 def print_report(report: dict) -> None:
     e = report["end_to_end_ms"]
     tta = ", PIXOR with mirror TTA (two runs a frame)" if report.get("mirror_tta") else ""
-    print(f"preset {report['preset']}{tta}, {report['frames']} frames after {report['warmup']} warm-up, "
+    print(f"{report['models']}: preset {report['preset']}{tta}, {report['precision']}, {report['input']}; "
+          f"{report['frames']} frames after {report['warmup']} warm-up, "
           f"{report['machine']['cpu']} ({report['machine']['cores']} cores; {' '.join(report['machine']['cpu_flags'])}), "
           f"{report['provider']}")
     print(f"end to end: mean {e['mean']:.1f} ms, p50 {e['p50']:.1f}, p90 {e['p90']:.1f}, p99 {e['p99']:.1f} → "
@@ -643,13 +861,21 @@ def print_report(report: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    parser.add_argument("--preset", help=f"preset to export and time when --models is not given (default "
-                                          f"{DEFAULT_PRESET}); with --models it must be the directory's")
-    parser.add_argument("--models", type=Path, help="model directory (default: export --preset with initialised weights)")
+    parser.add_argument("--preset", help=f"export this preset (with initialised weights, or --checkpoints) and time it "
+                                          f"instead of the shipped model (default {DEFAULT_PRESET}, the shipped "
+                                          "model's; needs PyTorch); with --models it must be the directory's")
+    parser.add_argument("--models", type=Path,
+                        help=f"model directory (default: the shipped {SHIPPED.relative_to(ROOT)}, as the README's "
+                             f"figures were timed, or {SHIPPED_INT8.relative_to(ROOT)} with --precision int8; "
+                             "--preset or --checkpoints export instead)")
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best)")
     parser.add_argument("--precision", choices=["fp32", "fp16", "int8"],
-                        help="with --models: check the directory is this precision; without: convert the export")
-    parser.add_argument("--threads", type=positive_int, default=1, help="workers for the throughput mode (default 1: off)")
+                        help="with --models: check the directory is this precision; without: the shipped INT8 "
+                             "directory for int8, else convert (INT8 with 7-bit weights, as the shipped one)")
+    parser.add_argument("--threads", type=positive_int, default=1, metavar="N",
+                        help="throughput workers (default 1: no throughput run): N detectors, each pinned to its own "
+                             "share of the cores, at most one per usable core; not ONNX Runtime's intra-op threads "
+                             "(--threads of op_profile.py and peak.py), which here are a worker's share of the cores")
     # Not --workers: every other command (service, load test, training, simulation) counts with that name.
     parser.add_argument("--worker-kind", choices=["thread", "process"], default="thread",
                         help="what a throughput worker is: a thread of this process (default, as the paper ran "
@@ -657,8 +883,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=positive_int, default=20, help="timed frames (default 20)")
     parser.add_argument("--warmup", type=non_negative_int, default=3, help="untimed warm-up frames (default 3)")
     parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
-    parser.add_argument("--beams", "--emulate-beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
-                        help="thin scans to N lines before timing (16, the default; 32, 8, 4; 0: keep); "
+    parser.add_argument("--beams", "--emulate-beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help="thin scans to N lines before timing (16, 32, 8, 4; 0: keep as stored); default: the "
+                        "model's own line count (16; a 64-line LiDAR-only model's scans kept as stored); "
                         "--emulate-beams as in pipeline.detect")
     parser.add_argument("--compare-torch", action="store_true", help="also time the PyTorch eager pipeline, in blocks alternating with ONNX Runtime")
     parser.add_argument("--checkpoints", type=Path, help="checkpoints for --compare-torch with trained --models")
@@ -688,11 +915,14 @@ def main(argv: list[str] | None = None) -> int:
         if args.models is None and args.preset is not None:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
-                     args.beams or None, args.compare_torch, args.checkpoints, precision=args.precision,
+                     args.beams, args.compare_torch, args.checkpoints, precision=args.precision,
                      baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops,
                      stage_threads=args.stage_threads, mirror_tta=args.mirror_tta)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except TorchMissing as exc:  # the runtime install: one line, as the other commands that need torch
+        print(f"{TORCH_MISSING}; {exc}", file=sys.stderr)
         return 2
     except ValueError as exc:  # get_preset's list of the valid names
         print(f"error: --preset: {exc}", file=sys.stderr)
