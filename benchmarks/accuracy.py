@@ -290,7 +290,7 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--frames", type=list_or_count, metavar="LIST|N",
                         help="frame ids to run and evaluate, one per line, as --split-file (default all); or N: "
                         "the first N frames in id order, as --frames N of the other commands")
-    detect.add_argument("--out", type=Path, metavar="DIR", help="run folder: result files go to DIR/data (default outputs/accuracy/INPUT)")
+    detect.add_argument("--out", type=Path, metavar="DIR", help="run folder: result files go to DIR/data (default outputs/accuracy/INPUT, + written _: outputs/accuracy/lidar16_camera)")
     detect.add_argument("--score-threshold", type=probability, default=0.05,
                         help="keep detections above this score (default 0.05: AP needs the whole curve)")
     detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")

@@ -11,5 +11,6 @@ class InputError(ValueError):
 
 
 # The runtime install (`make demo`, `pip install -e .`) has no torch; the commands that need it say so.
-TORCH_MISSING = ("error: training and export need PyTorch, which the runtime install leaves out; "
-                 "install it with `make setup-dev` (pip install -e '.[train]', CPU torch 2.13.0 pinned)")
+TORCH_MISSING = ("error: this command needs PyTorch, which the runtime install leaves out; install it with "
+                 "`make setup-dev` (pip install -e '.[train]': torch 2.13.0, pinned in version only; for the CPU "
+                 "build, install it first from PyTorch's CPU index, as the README says)")

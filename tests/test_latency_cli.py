@@ -63,7 +63,7 @@ def test_without_torch_what_needs_it_is_refused_in_one_line(tiny_models):
                               capture_output=True, text=True, timeout=300, check=False, cwd=ROOT)
         assert done.returncode == 2, done.stderr[-2000:]
         assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1, done.stderr[-2000:]
-        assert done.stderr.startswith("error: training and export need PyTorch") and says in done.stderr
+        assert done.stderr.startswith("error: this command needs PyTorch") and says in done.stderr
 
 
 @pytest.mark.skipif(not (SHIPPED / "manifest.json").is_file(), reason="weights/edge is not here")
