@@ -71,10 +71,11 @@ def timed(fn, repeats: int) -> dict:
     return {"p50": float(np.median(samples)), "p90": float(np.percentile(samples, 90)), "min": float(samples.min())}
 
 
-def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper") -> dict:
-    """Time every non-network step; returns {step: {p50, p90, min}} plus the baseline ratio."""
+def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper", data: Path = KITTI) -> dict:
+    """Time every non-network step on frame ``frame_id`` of ``data`` (a KITTI-layout folder with labels, whose
+    cars give the targets); returns {step: {p50, p90, min}} plus the baseline ratio."""
     preset = get_preset(preset_name)
-    frame = load_frame(KITTI, frame_id)
+    frame = load_frame(data, frame_id)
     lidar16 = emulate_beams(frame.points, 16)
     # A dense depth map of the depth-net view: nearest-neighbour fill of the 64-line sparse depth stands in
     # for the network's output, so the pseudo cloud has the real geometry and the full 428k-point size.
@@ -126,7 +127,9 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper")
 @quiet_interrupt("no report was written (--json is written at the end)")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frame", default="000006", help="bundled KITTI frame id (default 000006)")
+    parser.add_argument("--data", type=Path, default=KITTI,
+                        help="KITTI-layout folder with label_2 (default: the bundled real frames)")
+    parser.add_argument("--frame", default="000006", help="frame id in --data (default 000006)")
     parser.add_argument("--preset", default="paper", help="preset whose grid and crop are used (default paper)")
     parser.add_argument("--repeats", type=positive_int, default=30, help="timed calls per step (default 30)")
     parser.add_argument("--json", type=Path, help="write the figures as JSON")
@@ -138,8 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.json is not None:
             check_output(args.json, "--json")
-        report = run(args.frame, args.repeats, args.preset)
-    except InputError as exc:  # a frame that is not bundled, an output that cannot be written
+        report = run(args.frame, args.repeats, args.preset, args.data)
+    except InputError as exc:  # a frame --data lacks, an output that cannot be written
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(f"frame {report['frame']} ({report['points_64']} points), preset {report['preset']}, "

@@ -174,10 +174,11 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     from benchmarks.latency import BUNDLED, load_frames, network_feeds
-    from pipeline.beams import BEAM_COUNTS
+    from pipeline.beams import BEAM_COUNTS, emulate_beams
     from pipeline.cli import positive_int
     from pipeline.detector import Detector
     from pipeline.errors import InputError
+    from pipeline.frame import load_frame
     from pipeline.model_files import DEFAULT_MODELS, ModelFileError
 
     parser = argparse.ArgumentParser(
@@ -187,15 +188,25 @@ def main(argv: list[str] | None = None) -> int:
         "convolution's GFLOP/s. benchmarks/latency.py --ops gives the totals per operator type.")
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
     parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
+    parser.add_argument("--frame", help="frame id in --data (default: its first)")
+    parser.add_argument("--provider", choices=["cpu", "cuda"],
+                        help="execution provider (default: the best available; TensorRT runs a graph as an engine of "
+                        "its own, which ONNX Runtime's profiler does not see into)")
     parser.add_argument("--beams", "--emulate-beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
                         help="thin the scan to N lines first (16, the default; 0: keep), as benchmarks/latency.py")
-    parser.add_argument("--threads", type=positive_int, default=2, help="intra-op threads (default 2)")
+    parser.add_argument("--threads", type=positive_int, default=2,
+                        help="ONNX Runtime's intra-op threads (default 2; latency.py's --threads are workers)")
     parser.add_argument("--runs", type=positive_int, default=20, help="profiled runs after 3 warm-up runs (default 20)")
     parser.add_argument("--top", type=positive_int, default=15, help="slowest nodes shown per network (default 15)")
     args = parser.parse_args(argv)
     try:
-        detector = Detector(args.models, intra_op_threads=args.threads)
-        frame = load_frames(args.data, 1, args.beams or None)[0]
+        detector = Detector(args.models, providers=args.provider, intra_op_threads=args.threads)
+        if args.frame is None:
+            frame = load_frames(args.data, 1, args.beams or None)[0]
+        else:
+            frame = load_frame(args.data, args.frame, with_labels=False)
+            if args.beams:
+                frame.points = emulate_beams(frame.points, args.beams)
         for name, feeds in network_feeds(detector, frame).items():
             model = detector.model_dir / detector.manifest["networks"][name]["file"]
             try:

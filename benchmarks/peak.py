@@ -100,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
                                      description="Measure ONNX Runtime's fp32 GFLOP/s on this machine: a 4096² MatMul "
                                      "and a 256-channel 3×3 convolution (the peak benchmarks/latency.py divides by).")
     parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
-                        help="intra-op threads (default: one per core)")
+                        help="ONNX Runtime's intra-op threads (default: one per core; latency.py's --threads are workers)")
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs of each; the median counts (default 5)")
     args = parser.parse_args(argv)
     result = measure_peak(args.threads, args.repeats)

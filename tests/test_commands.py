@@ -101,7 +101,8 @@ def test_a_picture_name_matplotlib_cannot_write_is_refused_before_the_run(name, 
 
 
 @pytest.mark.parametrize(("args", "words"), [(["--frame", "999999"], "999999"), (["--preset", "nope"], "unknown preset"),
-                                             (["--json", "{file}/x.json"], "--json")])
+                                             (["--json", "{file}/x.json"], "--json"),
+                                             (["--data", "{file}", "--frame", "000000"], "a-file")])
 def test_frame_ops_bad_input_is_one_line(args, words, tmp_path):
     (tmp_path / "a-file").write_text("")
     args = [arg.replace("{file}", str(tmp_path / "a-file")) for arg in args]

@@ -59,6 +59,15 @@ def test_the_command_lists_each_networks_slowest_nodes(tiny_models, capsys):
     assert main(["--models", str(tiny_models.parent / "nowhere")]) == 2 and "error:" in capsys.readouterr().err
 
 
+def test_the_command_profiles_the_frame_and_provider_asked_for(tiny_models, capsys):
+    """--frame as in frame_ops.py (default: the folder's first), --provider as in latency.py."""
+    assert main(["--models", str(tiny_models), "--runs", "1", "--top", "1", "--frame", "000004", "--provider", "cpu"]) == 0
+    headers = [line for line in capsys.readouterr().out.splitlines() if line.startswith(("depth (", "pixor ("))]
+    assert len(headers) == 2 and all("frame 000004," in line for line in headers)
+    assert main(["--models", str(tiny_models), "--frame", "999999"]) == 2
+    assert "999999" in capsys.readouterr().err
+
+
 def test_operator_names_counted_as_compute():
     assert all(is_compute(op) for op in ("Conv", "FusedConv", "QLinearConv", "ConvTranspose", "MatMul", "Gemm"))
     assert not any(is_compute(op) for op in ("Transpose", "ReorderInput", "DepthToSpace", "QuantizeLinear"))
