@@ -8,4 +8,5 @@ Modules:
     frames        reading a ground-truth and a result directory into frames.
     report        the paper's table, the JSON document and precision-recall plots.
     depth_metrics RMSE, MAE, iRMSE, iMAE of a dense depth map against sparse ground truth.
+    harness       accuracy runs: the detector over a KITTI-layout dataset, and depth completion.
 """

@@ -74,17 +74,21 @@ def kitti_inputs(preset: Preset, kitti_dir: str | Path = DEFAULT_KITTI_DIR, fram
 def random_inputs(preset: Preset, seed: int = 0, depth_density: float = 0.05, occupancy: float = 0.02) -> NetworkInputs:
     """Random but realistic inputs: uniform RGB, ~5 % of pixels with 1–80 m depth, sparse BEV occupancy.
 
-    Occupied BEV cells get a random reflectance in the last channel, empty cells 0,
-    like the voxelizer's output.
+    Laid out as the voxelizer's output (pipeline.presets.BevGrid): nz occupancy channels, then a random
+    reflectance in the cells they occupy (0 elsewhere), then on a ``split_pseudo`` grid the pseudo points'
+    own nz occupancy channels.
     """
     rng = np.random.default_rng(seed)
     height, width = preset.depth.input_hw
     rgb = rng.uniform(0.0, 255.0, (1, 3, height, width)).astype(np.float32)
     has_depth = rng.random((1, 1, height, width)) < depth_density
     sparse = np.where(has_depth, rng.uniform(1.0, 80.0, has_depth.shape), 0.0).astype(np.float32)
-    channels, ny, nx = preset.bev.shape
-    occupied = (rng.random((channels - 1, ny, nx)) < occupancy).astype(np.float32)
-    any_point = occupied.max(axis=0)
-    reflectance = any_point * rng.uniform(0.0, 1.0, (ny, nx)).astype(np.float32)
-    bev = np.concatenate([occupied, reflectance[None]], axis=0)[None].astype(np.float32)
+    grid = preset.bev
+    _, ny, nx = grid.shape
+    occupied = (rng.random((grid.nz, ny, nx)) < occupancy).astype(np.float32)
+    reflectance = occupied.max(axis=0) * rng.uniform(0.0, 1.0, (ny, nx)).astype(np.float32)
+    layers = [occupied, reflectance[None]]
+    if grid.split_pseudo:
+        layers.append((rng.random((grid.nz, ny, nx)) < occupancy).astype(np.float32))
+    bev = np.concatenate(layers, axis=0)[None].astype(np.float32)
     return NetworkInputs(rgb=rgb, sparse_depth=sparse, bev=bev, source=f"random (seed {seed})")

@@ -150,14 +150,14 @@ def car_boxes(frame: Frame) -> np.ndarray:
     return labels_to_boxes([o for o in (frame.labels or []) if o.type == "Car"], frame.calib)
 
 
-def detector_points(data_dir: Path, frame: Frame, preset: Preset, input_mode: str,
+def detector_points(frame: Frame, preset: Preset, input_mode: str,
                     pseudo_dir: Path | None) -> np.ndarray:
     """The point cloud PIXOR sees for ``input_mode``: pseudo points first (``pseudo``), then the scan."""
-    pseudo, real = detector_clouds(data_dir, frame, preset, input_mode, pseudo_dir)
+    pseudo, real = detector_clouds(frame, preset, input_mode, pseudo_dir)
     return real if pseudo is None else merge_points(pseudo, real)
 
 
-def detector_clouds(data_dir: Path, frame: Frame, preset: Preset, input_mode: str,
+def detector_clouds(frame: Frame, preset: Preset, input_mode: str,
                     pseudo_dir: Path | None) -> tuple[np.ndarray | None, np.ndarray]:
     """The (M, 4) pseudo points (``pseudo`` only, else None) and the (N, 4) scan PIXOR sees for ``input_mode``."""
     if input_mode == "lidar64":
@@ -200,7 +200,7 @@ class DetectorDataset(Dataset):
     def _load(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The (M, 4) pseudo points (M = 0 without), the (N, 4) scan PIXOR sees, and the (K, 7) car boxes."""
         frame = load_frame(self.data_dir, self.frame_ids[index], with_image=False)  # PIXOR sees no pixels
-        pseudo, real = detector_clouds(self.data_dir, frame, self.preset, self.input_mode, self.pseudo_dir)
+        pseudo, real = detector_clouds(frame, self.preset, self.input_mode, self.pseudo_dir)
         return (np.zeros((0, 4), np.float32) if pseudo is None else pseudo), real, car_boxes(frame)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

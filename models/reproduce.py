@@ -74,7 +74,6 @@ from simulation.run import RunConfig
 from simulation.run import run as simulate
 
 log = logging.getLogger(__name__)
-ROWS = ("lidar64", "lidar16", "lidar16+camera", "lidar16+camera (joint)")
 
 
 @dataclass

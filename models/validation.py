@@ -111,7 +111,7 @@ def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], inp
             bev = voxelizer(frame_points(frame, 16), pseudo)
         else:
             pseudo = None
-            bev = voxelizer(detector_points(data_dir, frame, preset, input_mode, pseudo_dir))
+            bev = voxelizer(detector_points(frame, preset, input_mode, pseudo_dir))
         targets = encode_targets(car_boxes(frame), preset.bev, preset.pixor.output_stride, preset.decode)
         logits, regression = (t.cpu() for t in pixor.forward_logits(torch.from_numpy(bev)[None].to(device)))
         losses.append(float(pixor_loss(logits, regression, torch.from_numpy(targets.score)[None, None],

@@ -23,8 +23,6 @@ import numpy as np
 from pipeline.cli import interrupted, skipped_summary
 from pipeline.errors import InputError
 
-log = logging.getLogger(__name__)
-
 # HDL-64E: about +2° … −24.9°; VLP-16: −15° … +15° in 2° steps.
 HDL64_ELEVATION_RANGE_DEG = (-24.9, 2.0)
 VLP16_ELEVATIONS_DEG = np.arange(-15.0, 15.1, 2.0)

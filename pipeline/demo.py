@@ -27,14 +27,13 @@ from pipeline.boxes import labels_to_boxes
 from pipeline.cli import quiet_interrupt, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
-from pipeline.model_files import ModelFileError
+from pipeline.model_files import DEFAULT_MODELS, ModelFileError
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import get_preset
 from pipeline.render import render_bev, render_depth, write_png
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_DIR = ROOT / "tests" / "data" / "kitti" / "training"
-DEFAULT_MODELS = ROOT / "weights" / "edge"
 
 
 def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:

@@ -85,7 +85,7 @@ class DetectResult:
     result_files: list[Path]
     pictures: list[Path]
     mean_timings_ms: dict[str, float]
-    detections: int
+    detection_count: int  # result lines written, over every frame
     skipped: dict[str, str] = field(default_factory=dict)  # frame id → why (folder runs go on past a bad frame)
     video_frames: int = 0  # frames in --video (0: no video written)
 
@@ -436,7 +436,7 @@ def _run_and_report(args: argparse.Namespace) -> int:
         return 2
     stages = ", ".join(f"{k} {v:.1f} ms" for k, v in result.mean_timings_ms.items())
     done = len(result.frame_ids) - len(result.skipped)
-    print(f"{done} frame(s), {result.detections} detection(s) → {args.out}/data")
+    print(f"{done} frame(s), {result.detection_count} detection(s) → {args.out}/data")
     if stages:
         print(f"mean per frame: {stages}")
     if result.pictures:

@@ -1,11 +1,14 @@
 """The ONNX Runtime two-stage detector: image + sparse scan + calibration → 3D car boxes.
 
-Stages (each timed): ``prepare`` (depth-net view and sparse depth) →
-``depth_net`` (depth.onnx) → ``pseudo_points`` (back-projection, straight to
-BEV bins) → ``voxelize`` (BEV tensor of pseudo + real points) → ``pixor`` (pixor.onnx) →
-``decode`` (candidates, rotated NMS, z and h; heights skip the pseudo points
-smeared across depth edges). A model directory without
-``depth.onnx`` is a LiDAR-only PIXOR: it skips the first three stages.
+Stages (each timed): ``emulate_beams`` (only when asked to thin a 64-line scan) →
+``prepare`` (depth-net view and sparse depth) → ``depth_net`` (depth.onnx) →
+``ray_table`` (the view's rays in BEV bins, once per calibration) →
+``pseudo_points`` (back-projection, straight to BEV bins) → ``voxelize`` (BEV
+tensor of pseudo + real points) → ``pixor`` (pixor.onnx; with mirror TTA also
+``pixor_mirror`` and ``mirror_merge``) → ``decode`` (candidates, rotated NMS, z and
+h; heights skip the pseudo points smeared across depth edges). A model directory
+whose manifest lists no depth network is a LiDAR-only PIXOR: it skips the
+stages from ``prepare`` to ``pseudo_points``.
 
 With two or more cores for a frame (``stage_threads``), the work that needs
 no depth runs on a second thread while the depth net runs: the calibration's

@@ -47,7 +47,8 @@ class Frame:
     size_hw: tuple[int, int] | None = None
 
     @property
-    def image_hw(self) -> tuple[int, int]:
+    def image_hw(self) -> tuple[int, int] | None:
+        """(rows, columns) of the image, or ``size_hw`` without one (None when neither is known)."""
         if self.image is None:
             return self.size_hw
         return (int(self.image.shape[0]), int(self.image.shape[1]))

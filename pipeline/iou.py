@@ -150,11 +150,12 @@ def _certainly_apart(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def rotated_nms(boxes: np.ndarray, scores: np.ndarray, iou_threshold: float, max_keep: int | None = None) -> np.ndarray:
     """Greedy NMS on rotated BEV boxes: indices of kept boxes, best score first.
 
-    Only pairs whose circumscribed circles overlap can have a non-zero IoU, so
-    the exact IoU runs once, vectorized, on those pairs (a car's cluster of
-    candidates, not every pair of the frame); the greedy walk over kept boxes
-    then only reads which later boxes each one suppresses. Each IoU call has a
-    fixed cost of about 0.15 ms here, which one call per kept box used to pay.
+    Only pairs whose circumscribed circles overlap can have a non-zero IoU (a car's
+    cluster of candidates, not every pair of the frame); of those, pairs whose
+    inscribed circles overlap enough are over the threshold for certain and pairs
+    a separating axis keeps apart are under it, and the exact IoU runs once,
+    vectorized, on the pairs left unsure (on an edge frame usually none). The greedy
+    walk over kept boxes then only reads which later boxes each one suppresses.
     """
     boxes = np.asarray(boxes, np.float64).reshape(-1, 5)
     order = np.argsort(-np.asarray(scores), kind="stable")

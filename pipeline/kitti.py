@@ -1,7 +1,9 @@
 """KITTI file formats: velodyne scans, object calibration, label_2 lines, depth PNGs.
 
-Every reader has a ``parse_*`` twin that takes bytes or text plus a ``source``
-name, so files on disk and HTTP uploads share one validated code path. Errors
+The readers of what the service also receives have a twin that takes bytes or
+text plus a ``source`` name (``parse_velodyne``, ``parse_calib``, ``parse_labels``,
+``decode_image``, ``decode_depth_png``), so files on disk and HTTP uploads share
+one validated code path. Errors
 are :class:`~pipeline.errors.InputError` naming the source and the problem.
 """
 
@@ -76,7 +78,6 @@ def write_velodyne(path: str | Path, points: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- calibration
-_CALIB_KEYS = CALIBRATION_SHAPES
 
 
 def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
@@ -118,7 +119,7 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
 
 def parse_calib(text: str, source: str = "<calib>") -> Calibration:
     """Parse a KITTI object ``calib/*.txt`` (keys P2, R0_rect, Tr_velo_to_cam are required)."""
-    values = _calib_values(text, source, _CALIB_KEYS)
+    values = _calib_values(text, source, CALIBRATION_SHAPES)
     return check_calibration(Calibration(P2=values["P2"], R0_rect=values["R0_rect"],
                                          Tr_velo_to_cam=values["Tr_velo_to_cam"]), source)
 

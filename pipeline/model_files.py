@@ -1,4 +1,5 @@
-"""Model directory integrity: read ``manifest.json`` and check each file's sha256.
+"""Model directories: where the shipped one is (``DEFAULT_MODELS``), reading ``manifest.json`` and checking
+each file's sha256.
 
 Imports only json, hashlib and pathlib so the runtime (and the service
 container, which has no torch) can refuse a corrupted or swapped model file
@@ -22,6 +23,8 @@ def default_models_hint(models: Path) -> str | None:
         return None
     return (f"the default --models {DEFAULT_MODELS} exists only in a source checkout (make setup, or pip install "
             "-e .); give the model directory with --models")
+
+
 _CHUNK = 1 << 20
 
 

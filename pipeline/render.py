@@ -1,4 +1,5 @@
-"""Pictures people look at: the BEV view of points and boxes, and depth maps (OpenCV only)."""
+"""Pictures people look at (OpenCV only): the BEV view of points and boxes, the camera image with the boxes
+as 3D wireframes, depth maps, and a frame's views stacked into the frames of an MP4 video (FrameVideo)."""
 
 from __future__ import annotations
 

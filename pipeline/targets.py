@@ -124,7 +124,7 @@ def decode_maps(
     """Network maps → candidate BEV boxes ``[x, y, l, w, yaw]`` (K, 5) and scores (K,), best first.
 
     score: (ny, nx) probabilities; regression: (6, ny, nx) normalised targets.
-    Keeps cells above the threshold, at most ``decode.max_candidates`` of them.
+    Keeps cells at or above the threshold, at most ``decode.max_candidates`` of them.
     """
     threshold = decode.score_threshold if score_threshold is None else score_threshold
     out = OutputGrid.from_bev(grid, stride)

@@ -8,7 +8,6 @@ request id and the trace goes to the log (see :mod:`service.middleware`).
 from __future__ import annotations
 
 import json
-import logging
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -18,8 +17,6 @@ from fastapi.responses import JSONResponse
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from pipeline.errors import InputError
-
-log = logging.getLogger(__name__)
 
 _HTTP_CODES = {
     400: "bad_request",

@@ -21,11 +21,17 @@ import numpy as np
 
 from pipeline.calib import Calibration
 from pipeline.errors import InputError
-from pipeline.kitti import POINT_BYTES, check_image_end, decode_image, parse_calib, parse_velodyne
+from pipeline.kitti import (
+    PNG_SIGNATURE,
+    POINT_BYTES,
+    check_image_end,
+    decode_image,
+    parse_calib,
+    parse_velodyne,
+)
 from service.errors import ServiceError
 from service.schemas import NonFinitePolicy
 
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 JPEG_SIGNATURE = b"\xff\xd8\xff"
 # JPEG start-of-frame markers (baseline, progressive, lossless, arithmetic); C4, C8, CC are not frames.
 _JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}

@@ -16,11 +16,12 @@ import os
 import struct
 import threading
 import time
+import typing
 from collections.abc import AsyncIterator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Self
+from typing import Any, Literal, Self
 from unittest.mock import ANY
 
 import anyio.from_thread
@@ -1016,8 +1017,22 @@ def test_openapi_documents_the_contract(client: AppClient) -> None:
         assert path in schema["paths"]
 
 
+def test_the_beam_counts_the_api_takes_are_the_pipelines() -> None:
+    """emulate_beams's values in the HTTP API are pipeline.beams.BEAM_COUNTS, which the Python API checks."""
+    from pipeline.beams import BEAM_COUNTS
+    from service.schemas import BeamCount
+
+    assert sorted(BeamCount) == sorted(BEAM_COUNTS)
+
+
 def test_every_setting_is_a_cli_option_and_an_env_var(monkeypatch: pytest.MonkeyPatch, tiny_models: Path) -> None:
     assert {flag[2:].replace("-", "_") for flag, _, _ in _OPTIONS} == set(Settings.model_fields)
+    for flag, _, choices in _OPTIONS:  # a choice the command line lists by hand is the setting's own Literal
+        if isinstance(choices, list):
+            annotation = Settings.model_fields[flag[2:].replace("-", "_")].annotation
+            union = (annotation,) if typing.get_origin(annotation) is Literal else typing.get_args(annotation)
+            literal = next(arg for arg in union if typing.get_origin(arg) is Literal)
+            assert choices == list(typing.get_args(literal)), flag
     monkeypatch.setenv("LOWRES3D_QUEUE_SIZE", "7")
     monkeypatch.setenv("LOWRES3D_WORKERS", "3")
     monkeypatch.setenv("LOWRES3D_MODELS", str(tiny_models))

@@ -81,8 +81,8 @@ def test_detector_samples_without_pixels_equal_those_with(tmp_path):
     full, light = load_frame(KITTI, "000006"), load_frame(KITTI, "000006", with_image=False)
     assert light.image is None and light.image_hw == full.image_hw == (374, 1238)
     for mode in ("lidar64", "lidar16", "pseudo"):
-        np.testing.assert_array_equal(detector_points(KITTI, light, preset, mode, tmp_path),
-                                      detector_points(KITTI, full, preset, mode, tmp_path))
+        np.testing.assert_array_equal(detector_points(light, preset, mode, tmp_path),
+                                      detector_points(full, preset, mode, tmp_path))
 
 
 def test_split_detector_samples_keep_the_pseudo_points_apart(tmp_path):
@@ -105,7 +105,7 @@ def test_split_detector_samples_keep_the_pseudo_points_apart(tmp_path):
     np.testing.assert_array_equal(np.maximum(bev[:nz], bev[nz + 1:]), shared[:nz])
     assert bev[nz + 1:].sum() > 0 and lidar16[:nz].sum() > 0
     # The mirror flips the pseudo points with the scan.
-    pseudo, real = detector_clouds(KITTI, load_frame(KITTI, "000006", with_image=False), split, "pseudo", tmp_path)
+    pseudo, real = detector_clouds(load_frame(KITTI, "000006", with_image=False), split, "pseudo", tmp_path)
     mirror = np.array([1, -1, 1, 1], np.float32)
     mirrored = DetectorDataset(KITTI, ["000006"], split, "pseudo", pseudo_dir=tmp_path, augment=True)
     samples = []

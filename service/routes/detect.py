@@ -21,7 +21,7 @@ import cv2
 from fastapi import APIRouter, Depends, File, Query, UploadFile
 from fastapi.responses import PlainTextResponse, Response
 
-from pipeline.boxes import bev_corners, in_camera_view
+from pipeline.boxes import BOX_FIELDS, bev_corners, in_camera_view
 from pipeline.calib import Calibration
 from pipeline.detector import Cancellation, Detections, Detector
 from pipeline.kitti import format_label
@@ -59,7 +59,7 @@ class Picture(Enum):
 
 @dataclass(frozen=True)
 class FrameOptions:
-    """Query options shared by both detection routes."""
+    """Query options shared by the three detection routes."""
 
     score_threshold: float | None
     emulate_beams: int | None
@@ -128,8 +128,8 @@ def _detect_job(
         if picture is not None:
             tic = time.perf_counter()
             if picture is Picture.bev:
-                points = detections.points if detections.points is not None else frame.points
-                bgr = render_bev(points, detector.preset.bev, detections.boxes, detections.scores)
+                assert detections.points is not None  # keep_points=True: the points PIXOR saw
+                bgr = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores)
             else:  # the boxes of format=kitti: those whose centre the camera sees
                 assert frame.image is not None and frame.calib is not None and frame.image_hw is not None  # checked
                 seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)
@@ -198,7 +198,7 @@ def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> Dete
             Detection(
                 label=detections.label,
                 score=float(score),
-                box=Box(**dict(zip(("x", "y", "z", "l", "w", "h", "yaw"), map(float, box), strict=True))),
+                box=Box(**dict(zip(BOX_FIELDS, map(float, box), strict=True))),
                 bev_corners=[[float(x), float(y)] for x, y in corners[i]],
             )
             for i, (box, score) in enumerate(zip(detections.boxes, detections.scores, strict=True))
