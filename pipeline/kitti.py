@@ -165,7 +165,8 @@ def read_raw_calib(cam_to_cam: str | Path, velo_to_cam: str | Path) -> Calibrati
 
 
 def format_calib(calib: Calibration) -> str:
-    """KITTI calib text for ``calib`` (P0/P1/P3 written as copies of P2 so other tools can read it)."""
+    """KITTI calib text for ``calib``: P0/P1/P3 written as copies of P2 and Tr_imu_to_velo as the identity, so
+    that other tools find every key (one camera, no IMU: placeholders, not a stereo rig)."""
 
     def row(name: str, m: np.ndarray) -> str:
         return f"{name}: " + " ".join(f"{v:.12e}" for v in np.asarray(m, dtype=np.float64).ravel())

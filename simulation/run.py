@@ -47,6 +47,7 @@ class RunResult:
 
 # A frame's files, in the order write_frame writes them.
 FRAME_FILES = (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt"), ("depth_2", ".png"))
+MAX_FRAMES = 1_000_000  # ids 000000 … 999999
 
 
 def _leave_ctrl_c_to_the_parent() -> None:
@@ -101,6 +102,9 @@ def run(config: RunConfig) -> RunResult:
         raise ValueError(f"--seed: must be 0 or more, got {config.seed}")
     if not config.split or Path(config.split).name != config.split or config.split in (".", ".."):
         raise ValueError(f"--split: {config.split!r} names a list file in ImageSets/, not a path")
+    if config.start + config.frames > MAX_FRAMES:  # KITTI's ids have six digits, and the lists sort as text
+        raise ValueError(f"--start {config.start} --frames {config.frames}: frame ids end at {MAX_FRAMES - 1:06d} "
+                         "(KITTI's six digits)")
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a directory")
@@ -108,13 +112,17 @@ def run(config: RunConfig) -> RunResult:
         (out / sub).mkdir(parents=True, exist_ok=True)
     all_indices = list(range(config.start, config.start + config.frames))
     indices = [i for i in all_indices if not _complete(out, i)]
-    # The first frame already there whole, and the first of those to make that has files already (a KITTI
-    # folder has all but depth_2): each must be this seed's, or the run would mix or overwrite data sets.
+    # The first frame already there whole, the first of those to make that has files already (a KITTI
+    # folder has all but depth_2), and the folder's first frame outside this run's range (another run's, which
+    # --start extends): each must be this seed's, or the run would mix or overwrite data sets.
     todo = set(indices)
     whole = next((i for i in all_indices if i not in todo), None)
     begun = next((i for i in indices if any((out / sub / f"{frame_name(i)}{ext}").is_file()
                                            for sub, ext in FRAME_FILES)), None)
-    for present in (whole, begun):
+    in_range = set(all_indices)
+    elsewhere = next((i for i in sorted(int(p.stem) for p in (out / "calib").glob("*.txt") if p.stem.isdigit())
+                      if i not in in_range), None)
+    for present in (whole, begun, elsewhere):
         foreign = _not_written_with_seed(out, config.seed, present) if present is not None else None
         if foreign is not None:
             raise ValueError(f"{out}: frame {frame_name(present)} there is not the one seed {config.seed} makes "
@@ -125,20 +133,29 @@ def run(config: RunConfig) -> RunResult:
     log.info("writing %d frames (seed %d) to %s with %d worker(s)", len(indices), config.seed, out, config.workers)
     bar = tqdm(total=len(indices), unit="frame", desc="simulating", disable=not config.progress)
     times: list[float] = []
-    if config.workers == 1:
-        for i in indices:
-            times.append(_make(config.seed, i, out))
-            bar.update()
-    else:
-        with ProcessPoolExecutor(max_workers=config.workers, initializer=_leave_ctrl_c_to_the_parent) as pool:
-            for seconds in pool.map(_make, [config.seed] * len(indices), indices, [out] * len(indices)):
-                times.append(seconds)
-                bar.update()
-    bar.close()
-    ids = [frame_name(i) for i in all_indices]
     list_file = out / "ImageSets" / f"{config.split}.txt"
+    try:
+        if config.workers == 1:
+            for i in indices:
+                times.append(_make(config.seed, i, out))
+                bar.update()
+        else:
+            with ProcessPoolExecutor(max_workers=config.workers, initializer=_leave_ctrl_c_to_the_parent) as pool:
+                for seconds in pool.map(_make, [config.seed] * len(indices), indices, [out] * len(indices)):
+                    times.append(seconds)
+                    bar.update()
+    except KeyboardInterrupt:  # the frames finished are usable as they are: list them (the rerun lists the rest)
+        _extend_list(list_file, [frame_name(i) for i in all_indices if _complete(out, i)])
+        raise
+    finally:
+        bar.close()
+    ids = [frame_name(i) for i in all_indices]
+    _extend_list(list_file, ids)
+    return RunResult(out=out, ids=ids, list_file=list_file, seconds_per_frame=times)
+
+
+def _extend_list(list_file: Path, ids: list[str]) -> None:
+    """Add ``ids`` to a split list: a run that adds frames (--start) never drops the ids an earlier run listed."""
     list_file.parent.mkdir(parents=True, exist_ok=True)
-    # A run that adds frames (--start) extends the list; it never drops the ids an earlier run listed.
     listed = list_file.read_text(encoding="ascii").split() if list_file.exists() else []
     list_file.write_text("".join(f"{i}\n" for i in sorted(set(listed) | set(ids))), encoding="ascii")
-    return RunResult(out=out, ids=ids, list_file=list_file, seconds_per_frame=times)

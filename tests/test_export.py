@@ -731,6 +731,20 @@ def test_a_failed_export_leaves_the_earlier_model_directory_as_it_was(tmp_path: 
     assert sorted(p.name for p in broken.iterdir()) == ["pixor.pt"]
 
 
+@pytest.mark.parametrize("name", ["edge", "edge-split-near35"])
+def test_random_inputs_are_laid_out_as_the_voxelizers_output(name: str) -> None:
+    """Occupancy in the height channels (and, on a split grid, the pseudo points' own after the reflectance),
+    the reflectance in channel nz, only where the real returns' channels are occupied."""
+    grid = get_preset(name).bev
+    bev = random_inputs(get_preset(name)).bev[0]
+    assert bev.shape == grid.shape
+    occupancy = np.delete(bev, grid.nz, axis=0)
+    assert set(np.unique(occupancy)) == {0.0, 1.0}
+    reflectance = bev[grid.nz]
+    assert 0.0 < reflectance.max() < 1.0 and len(np.unique(reflectance)) > 100
+    np.testing.assert_array_equal(reflectance > 0, bev[: grid.nz].max(axis=0) > 0)
+
+
 def test_a_model_directory_of_another_preset_or_precision_is_not_replaced(tmp_path: Path) -> None:
     """--out over a model directory replaces it with a new export of the same model; one of another preset
     or precision is refused untouched (a typo, such as the shipped weights/edge given as --out)."""

@@ -198,6 +198,10 @@ def test_resuming_needs_the_same_seed_and_extending_keeps_the_list(dataset: Path
                            str(SEED), "--no-progress"], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0 and "all 2 frames were already in" in done.stdout, done.stderr
     assert _ids(folder) == [f"{i:06d}" for i in range(FRAMES + 1)]
+    # Frames added elsewhere in the folder (--start) with another seed: the folder's own frames are checked too.
+    with pytest.raises(ValueError, match=f"frame 000000 there is not the one seed {SEED + 1} makes"):
+        run(RunConfig(out=folder, frames=1, seed=SEED + 1, start=FRAMES + 5, progress=False))
+    assert not (folder / "velodyne" / f"{FRAMES + 5:06d}.bin").exists()
 
 
 def test_ctrl_c_stops_every_worker_with_one_line_and_keeps_whole_frames(tmp_path: Path) -> None:
@@ -226,6 +230,7 @@ def test_ctrl_c_stops_every_worker_with_one_line_and_keeps_whole_frames(tmp_path
     assert f"interrupted: the frames finished are in {out}; rerun the same command to resume" in err
     finished = sorted(p.stem for p in (out / "depth_2").glob("*.png") if p.name.count(".") == 1)
     assert 2 <= len(finished) < frames
+    assert _ids(out) == finished  # the finished frames are listed, usable as they are
     for name in finished:  # each frame whose depth map is there has all its files
         assert all((out / sub / f"{name}{ext}").is_file() for sub, ext in (
             ("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt")))
@@ -280,4 +285,6 @@ def test_bad_run_options_are_refused_before_any_folder_is_made(tmp_path: Path) -
     (tmp_path / "c").write_text("")
     with pytest.raises(ValueError, match="exists and is not a directory"):
         run(RunConfig(out=tmp_path / "c", frames=1, seed=1, progress=False))
+    with pytest.raises(ValueError, match=r"--start 999999 --frames 2: frame ids end at 999999 \(KITTI's six digits\)"):
+        run(RunConfig(out=tmp_path / "d", frames=2, seed=1, start=999_999, progress=False))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["c"]
