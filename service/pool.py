@@ -108,7 +108,8 @@ class InferencePool:
             return JobResult(job(self._local.detector, cancel), (started - admitted_at) * 1e3)
         except RunCancelled:
             self._metrics.stopped.inc()
-            log.info("a frame past its deadline stopped after %.0f ms on its worker",
+            log.info("a frame nobody waits for (its deadline passed, or the shutdown's) stopped after %.0f ms "
+                     "on its worker",
                      (time.perf_counter() - started) * 1e3)
             raise
         finally:
