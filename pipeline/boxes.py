@@ -37,7 +37,7 @@ def labels_to_boxes(objects: list[Object3D], calib: Calibration) -> np.ndarray:
 def box_corners_3d(boxes: np.ndarray) -> np.ndarray:
     """(N, 7) boxes → (N, 8, 3) corners: the 4 BEV corners at the bottom, then at the top."""
     boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
-    bev = rect_corners(boxes[:, [0, 1, 3, 4, 6]])  # (N, 4, 2)
+    bev = bev_corners(boxes)  # (N, 4, 2)
     bottom = (boxes[:, 2] - boxes[:, 5] / 2)[:, None, None]
     top = (boxes[:, 2] + boxes[:, 5] / 2)[:, None, None]
     z = np.concatenate([np.repeat(bottom, 4, axis=1), np.repeat(top, 4, axis=1)], axis=1)

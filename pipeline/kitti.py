@@ -34,6 +34,7 @@ class Scan:
     points: float32 (N, 4) rows ``x, y, z, reflectance``, all finite, in file order
     (the order carries the ring structure that beam emulation relies on).
     dropped_nonfinite: rows removed because a value was NaN or infinite.
+    source: where the scan came from (a file's path, or the upload's field name), for messages.
     """
 
     points: np.ndarray

@@ -40,14 +40,18 @@ def scale_calibration(calib: Calibration, scale: float) -> Calibration:
     return Calibration(P2=resize @ calib.P2, R0_rect=calib.R0_rect, Tr_velo_to_cam=calib.Tr_velo_to_cam)
 
 
-def network_view(image: np.ndarray, calib: Calibration, preset: Preset) -> tuple[np.ndarray, Calibration]:
-    """The depth net's view of a camera image: (H, W, 3) uint8 and its calibration."""
-    crop = depth_crop(image.shape[:2], *preset.crop_hw)
-    view = crop.apply(image)
+def in_view(array: np.ndarray, preset: Preset, interpolation: int) -> np.ndarray:
+    """An image or map of the whole camera image, cropped as the depth net sees it and resized to its input."""
+    view = depth_crop(array.shape[:2], *preset.crop_hw).apply(array)
     height, width = preset.depth.input_hw
     if view.shape[:2] != (height, width):
-        view = cv2.resize(view, (width, height), interpolation=cv2.INTER_AREA)
-    return view, view_calibration(image.shape[:2], calib, preset)
+        view = cv2.resize(view, (width, height), interpolation=interpolation)
+    return view
+
+
+def network_view(image: np.ndarray, calib: Calibration, preset: Preset) -> tuple[np.ndarray, Calibration]:
+    """The depth net's view of a camera image: (H, W, 3) uint8 and its calibration."""
+    return in_view(image, preset, cv2.INTER_AREA), view_calibration(image.shape[:2], calib, preset)
 
 
 def view_calibration(image_hw: tuple[int, int], calib: Calibration, preset: Preset) -> Calibration:
@@ -83,11 +87,7 @@ def depth_view(depth: np.ndarray, preset: Preset) -> np.ndarray:
     Same crop as :func:`network_view`; resized by nearest neighbour, which keeps every depth a
     real one (no blend of a car and what is behind it across its outline).
     """
-    view = depth_crop(depth.shape[:2], *preset.crop_hw).apply(depth)
-    height, width = preset.depth.input_hw
-    if view.shape != (height, width):
-        view = cv2.resize(view, (width, height), interpolation=cv2.INTER_NEAREST)
-    return np.ascontiguousarray(view, dtype=np.float32)
+    return np.ascontiguousarray(in_view(depth, preset, cv2.INTER_NEAREST), dtype=np.float32)
 
 
 def downscale_sparse_depth(sparse: np.ndarray, factor: int) -> np.ndarray:
@@ -113,12 +113,8 @@ def view_from_depth_png(image: np.ndarray, sparse: np.ndarray, preset: Preset) -
     network's view: the same crop as object frames, the sparse map shrunk by
     nearest return (no calibration needed).
     """
-    crop = depth_crop(image.shape[:2], *preset.crop_hw)
-    view = crop.apply(image)
-    sparse_view = crop.apply(sparse)
-    height, width = preset.depth.input_hw
-    if view.shape[:2] != (height, width):
-        view = cv2.resize(view, (width, height), interpolation=cv2.INTER_AREA)
+    sparse_view = depth_crop(image.shape[:2], *preset.crop_hw).apply(sparse)  # the image's crop, as network_view
+    if sparse_view.shape != tuple(preset.depth.input_hw):
         sparse_view = downscale_sparse_depth(sparse_view, round(1 / preset.depth.input_scale))
-    rgb = planar_float(view)
+    rgb = planar_float(in_view(image, preset, cv2.INTER_AREA))
     return rgb, np.ascontiguousarray(sparse_view[None, None], dtype=np.float32)

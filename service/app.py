@@ -19,13 +19,17 @@ from fastapi import Depends, FastAPI
 from service.deps import require_token
 from service.errors import install_error_handlers
 from service.metrics import Metrics
-from service.middleware import BodyLimitMiddleware, RequestContextMiddleware
+from service.middleware import BodyLimitMiddleware, RequestContextMiddleware, RequestsInFlight
 from service.routes import detect, health, model
 from service.routes import metrics as metrics_route
 from service.runtime import Runtime, load_runtime
 from service.settings import Settings
 
 log = logging.getLogger(__name__)
+
+# How long the shutdown waits, after the pool has stopped, for cut-off requests to send their 503s (they take
+# milliseconds).
+SHUTDOWN_ANSWERS_S = 2.0
 
 DESCRIPTION = """\
 3D car detection from a 16-line LiDAR scan plus a camera image (depth completion →
@@ -46,6 +50,7 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     """Build the app. ``runtime``: models already loaded (``python -m service`` loads them before
     uvicorn starts, so a bad model directory fails fast); None loads them in the lifespan."""
     metrics = metrics or Metrics()
+    in_flight = RequestsInFlight()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -61,6 +66,9 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
             metrics.ready.set(0)
             await asyncio.to_thread(loaded.pool.shutdown)
             log.info("inference pool stopped")
+            # Requests uvicorn cut off at the end of the grace answer 503 when the loop next runs them: let them.
+            if not await in_flight.drained(SHUTDOWN_ANSWERS_S):
+                log.warning("%d request(s) still unanswered at exit", in_flight.count)
 
     app = FastAPI(
         title="lowres3d detection service",
@@ -88,7 +96,7 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     )
     # Added last = outermost: the request context wraps the body limit so 413s are counted and carry an id.
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
-    app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths)
+    app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths, in_flight=in_flight)
     _schema_follows_the_model(app)
     return app
 

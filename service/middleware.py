@@ -90,14 +90,35 @@ class CancelledRequestLogFilter(logging.Filter):
         return not (cancelled and str(record.msg).startswith("Exception in ASGI application"))
 
 
+class RequestsInFlight:
+    """How many HTTP requests :class:`RequestContextMiddleware` is handling.
+
+    The lifespan's shutdown waits for them to end before the process does: the requests uvicorn cancels when
+    the shutdown grace runs out answer their 503 as the event loop next runs them, which a process ending at
+    once would not let them do (polled, not an asyncio.Event: an app may be served on more than one loop).
+    """
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    async def drained(self, timeout_s: float) -> bool:
+        """Wait until no request is in flight; False if some still are after ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while self.count and time.monotonic() < deadline:
+            await asyncio.sleep(0.01)
+        return not self.count
+
+
 class RequestContextMiddleware:
     """Request id, request metrics, a JSON 500 (trace logged, never returned) for unhandled errors, and a JSON
     503 for requests cancelled by the server's shutdown."""
 
-    def __init__(self, app: ASGIApp, metrics: Metrics, route_paths: frozenset[str] = frozenset()) -> None:
+    def __init__(self, app: ASGIApp, metrics: Metrics, route_paths: frozenset[str] = frozenset(),
+                 in_flight: RequestsInFlight | None = None) -> None:
         self.app = app
         self.metrics = metrics
         self.route_paths = route_paths
+        self.in_flight = in_flight or RequestsInFlight()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -118,13 +139,14 @@ class RequestContextMiddleware:
             await send(message)
 
         self.metrics.http_in_flight.inc()
+        self.in_flight.count += 1
         tic = time.perf_counter()
         try:
             await self.app(scope, receive, send_with_id)
         except asyncio.CancelledError:
             # uvicorn cancels the requests still running when --shutdown-timeout-s runs out (and answers a plain
             # 500 itself): answer in the service's format while the connection is still open, then let the
-            # cancellation go on. A frame already on a worker finishes there; one still queued never runs.
+            # cancellation go on. A frame already on a worker is stopped there; one still queued never runs.
             if not started:
                 status = 503
                 log.warning("request %s (%s %s) cut off by the shutdown: answered 503 shutting_down",
@@ -152,6 +174,7 @@ class RequestContextMiddleware:
                 )
         finally:
             self.metrics.http_in_flight.dec()
+            self.in_flight.count -= 1
             label = _route_label(scope, self.route_paths)
             self.metrics.requests.labels(route=label, method=scope.get("method", ""), status=str(status)).inc()
             self.metrics.request_latency.labels(route=label).observe(time.perf_counter() - tic)

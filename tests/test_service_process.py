@@ -239,10 +239,11 @@ def _log_time(log: str, text: str) -> float:
     return hours * 3600 + minutes * 60 + seconds + millis / 1000
 
 
-def _queue_depth(server: Server) -> float:
-    """The frames waiting for a worker, from the server's /metrics."""
+def _pool_state(server: Server) -> tuple[float, float]:
+    """(frames waiting for a worker, frames on one), from the server's /metrics."""
     text = httpx.get(f"{server.url}/metrics", timeout=5).text
-    return float(re.search(r"^lowres3d_inference_queue_depth (\S+)$", text, re.MULTILINE).group(1))
+    return tuple(float(re.search(rf"^lowres3d_inference_{name} (\S+)$", text, re.MULTILINE).group(1))
+                 for name in ("queue_depth", "in_flight"))  # type: ignore[return-value]
 
 
 def test_requests_cut_off_by_the_shutdown_get_a_json_503(frame: dict[str, bytes], tmp_path: Path) -> None:  # noqa: F811
@@ -258,7 +259,10 @@ def test_requests_cut_off_by_the_shutdown_get_a_json_503(frame: dict[str, bytes]
                                       files=parts(frame), timeout=60, headers={"X-Request-ID": f"cut-{i}"})
                        for i in range(12)]
             deadline = time.monotonic() + 30
-            while _queue_depth(running) < 8:  # over a second of work waiting: more than the grace lets finish
+            while True:  # over a second of work waiting (more than the grace lets finish), and every upload in:
+                waiting, on_a_worker = _pool_state(running)  # a request cut off in its upload can see a reset
+                if waiting >= 8 and waiting + on_a_worker + sum(f.done() for f in futures) == len(futures):
+                    break
                 assert time.monotonic() < deadline, "the frames did not queue up"
                 time.sleep(0.01)
             running.process.send_signal(signal.SIGTERM)
