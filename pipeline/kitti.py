@@ -79,8 +79,6 @@ def write_velodyne(path: str | Path, points: np.ndarray) -> None:
 
 
 # --------------------------------------------------------------------------- calibration
-
-
 def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
                   every_line_a_key: bool = True) -> dict[str, np.ndarray]:
     """The ``shapes`` keys of a calibration text's ``KEY: numbers`` lines, each checked with its line (numbers,
@@ -366,9 +364,9 @@ def check_image_file(path: str | Path) -> None:
         raise InputError(f"{path}: empty image")
     if not head.startswith((PNG_SIGNATURE, JPEG_START)):
         raise InputError(f"{path}: not a PNG or JPEG image")
-    if head.startswith(PNG_SIGNATURE) and b"IEND" not in tail:  # maybe many bytes after IEND: read it all
-        tail = path.read_bytes()
-    check_image_end(head + tail, str(path))
+    # A PNG's IEND may lie further back than the tail read (many bytes appended after it): then read it all.
+    whole = path.read_bytes() if head.startswith(PNG_SIGNATURE) and b"IEND" not in tail else head + tail
+    check_image_end(whole, str(path))
 
 
 def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
