@@ -2,6 +2,7 @@
 
 import json
 import shutil
+import signal
 from pathlib import Path
 
 import pytest
@@ -9,6 +10,14 @@ import pytest
 DATA = Path(__file__).parent / "data"
 KITTI = DATA / "kitti" / "training"
 FRAMES = ["000000", "000001", "000003", "000004", "000006"]
+
+
+def pytest_configure(config) -> None:
+    """Ctrl-C tests need a SIGINT their commands can catch. A shell starts background jobs (`make test &`)
+    with SIGINT ignored, and an ignored signal stays ignored through exec, so every command the tests start would
+    ignore it too; Python's own handler here is reset to the default in each child instead."""
+    if signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session")
