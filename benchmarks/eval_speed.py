@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import platform
 import statistics
 import sys
 import tempfile
@@ -27,6 +26,7 @@ from evaluation.frames import load_label_dirs
 from evaluation.kitti_eval import KittiEvalResult, evaluate
 from evaluation.report import format_table
 from pipeline.cli import check_output, positive_int, quiet_interrupt
+from pipeline.cpu import cpu_label
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D, write_labels
 
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     print(
         f"{args.frames} frames, {args.repeats} runs (read files + evaluate {len(result.metrics)} metrics "
         f"x {len(result.iou_thresholds)} IoU x 3 difficulties): median {statistics.median(times):.2f} s, "
-        f"min {min(times):.2f} s, max {max(times):.2f} s on {platform.processor() or platform.machine()}"
+        f"min {min(times):.2f} s, max {max(times):.2f} s on {cpu_label()}"
     )
     return 0
 

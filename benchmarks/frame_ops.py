@@ -27,6 +27,7 @@ from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import labels_to_boxes
 from pipeline.cli import check_output, positive_int, quiet_interrupt, write_text_file
+from pipeline.cpu import describe as describe_cpu
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.postprocess import boxes_from_maps
@@ -119,7 +120,7 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper",
     return {
         "frame": frame_id, "preset": preset_name, "points_64": int(frame.points.shape[0]),
         "pseudo_points": int(pseudo.shape[0]), "repeats": repeats,
-        "machine": f"{platform.processor() or platform.machine()}, {platform.system()}",
+        "machine": {**describe_cpu(), "system": platform.platform()},
         "steps_ms": results, "voxelize_speedup_vs_reference": baseline["p50"] / ours,
     }
 

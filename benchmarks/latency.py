@@ -70,8 +70,8 @@ from pipeline.cli import (
     quiet_interrupt,
     write_text_file,
 )
+from pipeline.cpu import cpu_label, usable_cpus
 from pipeline.cpu import describe as describe_cpu
-from pipeline.cpu import usable_cpus
 from pipeline.detector import Cancellation, Detector, RunCancelled
 from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import Frame, frame_ids, load_frame
@@ -808,7 +808,7 @@ def print_report(report: dict) -> None:
     tta = ", PIXOR with mirror TTA (two runs a frame)" if report.get("mirror_tta") else ""
     print(f"{report['models']}: preset {report['preset']}{tta}, {report['precision']}, {report['input']}; "
           f"{report['frames']} frames after {report['warmup']} warm-up, "
-          f"{report['machine']['cpu']} ({report['machine']['cores']} cores; {' '.join(report['machine']['cpu_flags'])}), "
+          f"{cpu_label(report['machine'])} ({report['machine']['cores']} cores; {' '.join(report['machine']['cpu_flags'])}), "
           f"{report['provider']}")
     print(f"end to end: mean {e['mean']:.1f} ms, p50 {e['p50']:.1f}, p90 {e['p90']:.1f}, p99 {e['p99']:.1f} → "
           f"{report['fps']:.2f} fps")

@@ -65,6 +65,8 @@ from pipeline.cli import (
     positive_int,
     quiet_interrupt,
 )
+from pipeline.cpu import cpu_label
+from pipeline.cpu import describe as describe_cpu
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids
 
@@ -403,8 +405,8 @@ def summarise(samples: list[Sample], wall_s: float, url: str, clients: int, rss:
             "p50_ms_last_tenth": float(np.median([s.latency_ms for s in by_start[-tenth:]])) if ok else None,
         },
         windows=windows, server=server,
-        machine={"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                 "cpus": os.cpu_count(), "python": platform.python_version()},
+        machine={**describe_cpu(), "platform": platform.platform(), "cpus": os.cpu_count(),
+                 "python": platform.python_version()},
     )
 
 
@@ -458,7 +460,7 @@ def format_report(result: LoadResult) -> str:
          f"{result.server.get('sessions')} sessions, {result.server.get('intra_op_threads')} intra-op thread(s), "
          f"queue {result.server.get('queue_size')}, {result.server.get('providers')}"
          f"{', PIXOR with mirror TTA' if result.server.get('mirror_tta') else ''}"),
-        f"machine: {result.machine['processor']}, {result.machine['cpus']} CPUs, {result.machine['platform']}",
+        f"machine: {cpu_label(result.machine)}, {result.machine['cpus']} CPUs, {result.machine['platform']}",
         (f"{result.clients} clients, {result.requests} requests in {result.duration_s} s, "
          f"{result.frames_sent} distinct frame(s)"),
         (f"status counts of the real frames (the broken ones: below): {result.status_counts}" if result.broken.get("sent")

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import sys
 import tempfile
@@ -37,6 +36,7 @@ from tqdm import tqdm
 from export import run as export_run
 from export.inputs import kitti_inputs
 from pipeline.cli import positive_int, quiet_interrupt
+from pipeline.cpu import cpu_label
 from pipeline.detector import session_options
 from pipeline.errors import TORCH_MISSING
 from pipeline.graph_inputs import feeds_for
@@ -147,16 +147,8 @@ def run(presets: list[str], repeats: int = 5, threads: int | None = None, progre
 
 
 def hardware() -> str:
-    """CPU model and core count, for the table header."""
-    model = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{model}, {os.cpu_count()} logical CPUs"
+    """CPU model, generation and core count, for the table header."""
+    return f"{cpu_label()}, {os.cpu_count()} logical CPUs"
 
 
 def format_table(rows: list[LatencyRow]) -> str:

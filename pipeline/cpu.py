@@ -25,8 +25,9 @@ def _cpuinfo(field: str) -> str | None:
     """The first ``field : value`` of /proc/cpuinfo (None where there is none: not Linux, or no such field)."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith(field):
-                return line.split(":", 1)[1].strip()
+            key, colon, value = line.partition(":")
+            if colon and key.strip() == field:  # whole names: "model" is not "model name"
+                return value.strip()
     except OSError:
         pass
     return None
@@ -52,9 +53,26 @@ def cpu_model() -> str:
     return _cpuinfo("model name") or platform.processor() or platform.machine()
 
 
+def cpu_generation() -> str | None:
+    """x86 family and model numbers, "family 25 model 17" (None where /proc/cpuinfo has none). A virtual machine's
+    model name is often just "AMD EPYC", while these tell a Zen 2 (family 23 model 49) from a Zen 4 (25, 17)."""
+    family, model = _cpuinfo("cpu family"), _cpuinfo("model")
+    return f"family {family} model {model}" if family and model else None
+
+
 def describe() -> dict:
-    """The CPU in a report: model, the flags that set ONNX Runtime's speed, and whether INT8 pair sums saturate."""
-    return {"cpu": cpu_model(), "cpu_flags": speed_flags(), "int8_pair_sums_saturate": int8_pairs_saturate()}
+    """The CPU in a report: model, generation, the flags that set ONNX Runtime's speed, and whether INT8 pair sums
+    saturate."""
+    return {"cpu": cpu_model(), "cpu_generation": cpu_generation(), "cpu_flags": speed_flags(),
+            "int8_pair_sums_saturate": int8_pairs_saturate()}
+
+
+def cpu_label(described: dict | None = None) -> str:
+    """The CPU in one phrase for a report's header, "AMD EPYC, family 25 model 17", from :func:`describe`'s dict
+    (default: this machine's; one from before the generation was recorded gives the model name alone)."""
+    described = describe() if described is None else described
+    generation = described.get("cpu_generation")
+    return f"{described['cpu']}, {generation}" if generation else described["cpu"]
 
 
 def is_x86() -> bool:

@@ -32,4 +32,8 @@ def test_speed_flags_keep_their_order_and_only_the_known_ones():
 def test_a_report_names_the_cpu_and_what_its_int8_does():
     report = describe()
     assert report["cpu"] and report["cpu_flags"] == speed_flags()
+    if is_x86() and Path("/proc/cpuinfo").exists():  # e.g. "family 25 model 17", the first processor's numbers
+        first = Path("/proc/cpuinfo").read_text().split("\n\n")[0]
+        info = {key.strip(): value.strip() for key, _, value in (line.partition(":") for line in first.splitlines())}
+        assert report["cpu_generation"] == f"family {info['cpu family']} model {info['model']}"
     assert report["int8_pair_sums_saturate"] == int8_pairs_saturate()
