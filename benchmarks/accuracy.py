@@ -95,6 +95,7 @@ class LabelEvalConfig:
     iou_thresholds: tuple[float, ...] = DEFAULT_IOU_THRESHOLDS
     progress: bool = True
     ignore_small_detections: bool = True  # the devkit's rule (evaluation.kitti_eval.evaluate)
+    missing_as_empty: bool = False  # a frame without a result file has no detections (the devkit: an error)
     distance_edges: tuple[float, ...] = ()  # also AP per band [edge_i, edge_i+1) of camera depth z
     depth_dir: Path | None = None  # the camera row's depth came from these PNGs, not the network (JSON note)
     bootstrap: int = 0  # draws of the frame bootstrap (0: none): the AP's spread over frame samples
@@ -123,9 +124,11 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         frame_ids = first_frames(frame_ids or ground_truth_frames(config.gt_labels), config.first_frames)
     if config.compare_pred_labels is not None and not Path(config.compare_pred_labels).is_dir():
         raise InputError(f"--compare-pred-labels: {config.compare_pred_labels}: prediction label directory not found")
-    labels = load_label_dirs(config.gt_labels, config.pred_labels, frame_ids, progress=config.progress)
+    labels = load_label_dirs(config.gt_labels, config.pred_labels, frame_ids, progress=config.progress,
+                             missing_as_empty=config.missing_as_empty)
     if not any((d.types == config.class_name.lower()).any() for d in labels.detections):
         log.warning("no %s detection in %s: every AP is 0", config.class_name, config.pred_labels)
+    _warn_if_cut_at_a_score(labels, config)
     result = evaluate(
         labels.ground_truth, labels.detections, class_name=config.class_name,
         iou_thresholds=config.iou_thresholds, progress=config.progress,
@@ -177,10 +180,31 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         table += "\n" + format_difference(result, other, str(config.compare_pred_labels))
     if not config.ignore_small_detections:
         table = "not the devkit protocol: detections with 2D boxes under the minimum height are counted\n" + table
+    if labels.missing_predictions:
+        table = (f"{len(labels.missing_predictions)} of {result.n_frames} frames have no result file, counted as "
+                 "frames without detections (--missing-as-empty)\n" + table)
     return LabelEvalRun(
         result=result, table=table, by_distance=by_distance, spread=spread, missing_predictions=labels.missing_predictions,
         json_path=config.json_path, plot_paths=plot_paths,
     )
+
+
+# Lowest score below which a result folder looks complete. The precision-recall curve's tail needs the
+# low-score detections: accuracy.py's own runs keep scores above 0.05, pipeline.detect above 0.5 by default.
+CUT_SCORE = 0.1
+
+
+def _warn_if_cut_at_a_score(labels: LabelSet, config: LabelEvalConfig) -> None:
+    """A warning when no detection of the class scores under CUT_SCORE: result files written with a score
+    threshold (pipeline.detect keeps 0.5 and up by default) lower AP (5 points at IoU 0.7 moderate on 30 of
+    the synthetic validation frames, docs/evaluation.md)."""
+    scores = [d.score[d.types == config.class_name.lower()] for d in labels.detections]
+    lowest = min((float(s.min()) for s in scores if s.size), default=None)
+    if lowest is not None and lowest >= CUT_SCORE:
+        log.warning("the lowest %s score in %s is %.2f: if these results were written with a score threshold, "
+                    "they miss the low-score detections that AP's recall needs, and AP comes out lower; write them "
+                    "with --score-threshold 0.05 (python -m pipeline.detect keeps 0.5 and up by default)",
+                    config.class_name, config.pred_labels, lowest)
 
 
 @contextmanager
@@ -212,7 +236,8 @@ def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None,
     other = other_labels = None
     if config.compare_pred_labels is not None:
         try:
-            other_labels = load_label_dirs(config.gt_labels, config.compare_pred_labels, frame_ids, progress=False)
+            other_labels = load_label_dirs(config.gt_labels, config.compare_pred_labels, frame_ids, progress=False,
+                                           missing_as_empty=config.missing_as_empty)
         except InputError as exc:
             raise InputError(f"--compare-pred-labels: {exc}") from exc
         other = evaluate(other_labels.ground_truth, other_labels.detections, class_name=config.class_name,
@@ -254,9 +279,11 @@ def build_parser() -> argparse.ArgumentParser:
     labels.add_argument("--gt-labels", type=Path, metavar="DIR", help="KITTI label_2 directory (ground truth)")
     labels.add_argument(
         "--pred-labels", type=Path, metavar="DIR",
-        help="KITTI result files <id>.txt (label lines + score); a missing file means no detections "
-        "(no file for any frame is an error)",
+        help="KITTI result files <id>.txt (label lines + score), one per frame (an empty file: no detections)",
     )
+    labels.add_argument("--missing-as-empty", action="store_true",
+                        help="count a frame without a result file as a frame without detections (default: refuse, "
+                        "as the KITTI devkit does; a detector that finds nothing writes an empty file)")
     labels.add_argument("--split-file", type=Path, metavar="F",
                         help="frame ids to evaluate, one per line (default: every ground-truth file); in every "
                         "mode, and the same as --frames (with --data: the frames the detector runs on)")
@@ -315,7 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 # Flags (by dest) that only some modes read; main refuses them in the others.
-_RESULT_FILES = ("gt_labels", "pred_labels")
+_RESULT_FILES = ("gt_labels", "pred_labels", "missing_as_empty")
 _RUN = ("data", "models", "provider")
 _DETECTION = ("input", "out", "score_threshold", "mirror_tta")
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
@@ -375,6 +402,7 @@ def main(argv: list[str] | None = None) -> int:
         json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
         ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
         bootstrap=args.bootstrap, seed=args.seed, compare_pred_labels=args.compare_pred_labels,
+        missing_as_empty=args.missing_as_empty,
     )
     try:
         _check_outputs(args)
@@ -412,12 +440,19 @@ def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, 
     if not (args.data / "label_2").is_dir():
         raise InputError(f"--data {args.data}: no label_2/ (the ground truth to evaluate the detections against)")
     ground_truth_frames(args.data / "label_2", frames)
-    if frames is None and first is None:  # every scan is run: each one's cars must be scored too
-        unlabelled = [fid for fid in frame_ids(args.data) if not (args.data / "label_2" / f"{fid}.txt").is_file()]
+    if frames is None and first is None:  # every scan is run and every label scored: each needs the other
+        scans = frame_ids(args.data)
+        unlabelled = [fid for fid in scans if not (args.data / "label_2" / f"{fid}.txt").is_file()]
         if unlabelled:
             more = f" (and {len(unlabelled) - 1} more)" if len(unlabelled) > 1 else ""
             raise InputError(f"--data {args.data}: frame {unlabelled[0]}{more} has no ground truth "
                              f"(label_2/{unlabelled[0]}.txt), so its cars could not be scored; give --split-file or "
+                             "--frames to leave it out")
+        unscanned = sorted({p.stem for p in (args.data / "label_2").glob("*.txt")} - set(scans))
+        if unscanned:
+            more = f" (and {len(unscanned) - 1} more)" if len(unscanned) > 1 else ""
+            raise InputError(f"--data {args.data}: label_2/{unscanned[0]}.txt{more} has no scan "
+                             f"(velodyne/{unscanned[0]}.bin), so its cars would count as missed; give --split-file or "
                              "--frames to leave it out")
     if args.depth_dir is not None and not args.depth_dir.is_dir():
         raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
@@ -505,7 +540,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
             ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
             depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed,
-            compare_pred_labels=args.compare_pred_labels,
+            compare_pred_labels=args.compare_pred_labels, missing_as_empty=bool(detection.skipped),
             detector={"data": str(args.data), "models": str(args.models), "input": args.input,
                       "score_threshold": args.score_threshold, "mirror_tta": args.mirror_tta,
                       "provider": args.provider or "best available"},

@@ -76,20 +76,23 @@ def load_label_dirs(
     pred_dir: str | Path,
     frame_ids: Sequence[str] | None = None,
     progress: bool = False,
+    missing_as_empty: bool = False,
 ) -> LabelSet:
     """Read ``<gt_dir>/<id>.txt`` and ``<pred_dir>/<id>.txt`` for every frame.
 
     frame_ids: frames to evaluate; default every ``*.txt`` in ``gt_dir`` (then a result file of
-    another frame is named in a warning). A listed frame without a ground-truth file is an error; a frame without a result file
-    has no detections, but no result file for any frame is an error (the wrong
-    folder or file names, not a detector that found nothing: that one writes
-    empty files). Every result line needs a score (16 fields).
+    another frame is named in a warning). A listed frame without a ground-truth file is an error, and so is a
+    frame without a result file, as in the official devkit: a detector that found nothing writes an empty
+    file, so a missing one is a lost or unfinished result. ``missing_as_empty`` counts those frames as
+    having no detections instead (with a warning); no result file for any frame is an error either way (the
+    wrong folder or file names). Every result line needs a score (16 fields).
     """
     gt_dir, pred_dir = Path(gt_dir), Path(pred_dir)
     every_gt_file = frame_ids is None
     frame_ids = ground_truth_frames(gt_dir, frame_ids)
     _require_dir(pred_dir, "prediction label")
-    if not any((pred_dir / f"{frame_id}.txt").is_file() for frame_id in frame_ids):
+    missing = [frame_id for frame_id in frame_ids if not (pred_dir / f"{frame_id}.txt").is_file()]
+    if len(missing) == len(frame_ids):
         results = sorted(p.name for p in pred_dir.glob("*.txt"))
         held = f"it holds {len(results)} *.txt file(s), e.g. {results[0]}" if results else "it holds no *.txt file"
         raise InputError(f"{pred_dir}: no result file matches a frame of {gt_dir} ({_some(frame_ids)}); {held}")
@@ -98,23 +101,21 @@ def load_label_dirs(
         if unscored:
             log.warning("%d result file(s) in %s have no ground truth in %s and are not scored, e.g. %s.txt",
                         len(unscored), pred_dir, gt_dir, unscored[0])
+    if missing and not missing_as_empty:
+        raise InputError(
+            f"{pred_dir}: {len(missing)} of {len(frame_ids)} frames have no result file, e.g. {missing[0]}.txt; the "
+            "KITTI devkit refuses such a submission (a detector that finds nothing in a frame writes an empty file); "
+            "--missing-as-empty counts them as frames without detections")
+    if missing:
+        log.warning("%d of %d frames have no result file in %s (counted as no detections), e.g. %s",
+                    len(missing), len(frame_ids), pred_dir, missing[0])
     ground_truth: list[LabelArrays] = []
     detections: list[LabelArrays] = []
-    missing: list[str] = []
     for frame_id in tqdm(frame_ids, desc="labels", disable=not progress):
-        gt_path = gt_dir / f"{frame_id}.txt"
-        ground_truth.append(LabelArrays.from_objects(read_labels(gt_path)))
+        ground_truth.append(LabelArrays.from_objects(read_labels(gt_dir / f"{frame_id}.txt")))
         pred_path = pred_dir / f"{frame_id}.txt"
-        if not pred_path.is_file():
-            missing.append(frame_id)
-            detections.append(LabelArrays.empty())
-            continue
-        detections.append(LabelArrays.from_objects(read_labels(pred_path, needs_score=True)))
-    if missing:
-        log.warning(
-            "%d of %d frames have no result file in %s (counted as no detections), e.g. %s",
-            len(missing), len(frame_ids), pred_dir, missing[0],
-        )
+        detections.append(LabelArrays.from_objects(read_labels(pred_path, needs_score=True)) if pred_path.is_file()
+                          else LabelArrays.empty())
     return LabelSet(
         frame_ids=tuple(frame_ids), ground_truth=tuple(ground_truth), detections=tuple(detections),
         missing_predictions=tuple(missing),

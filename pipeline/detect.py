@@ -373,7 +373,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calib", type=Path, help="KITTI calib .txt")
     parser.add_argument("--emulate-beams", type=int, metavar="N", choices=BEAM_COUNTS,
                         help=f"thin a 64-line scan to N lines first ({', '.join(map(str, BEAM_COUNTS))})")
-    parser.add_argument("--score-threshold", type=probability, help="minimum score (default: the model's)")
+    parser.add_argument("--score-threshold", type=probability,
+                        help="minimum score (default: the model's, 0.5 for the shipped ones); for result files "
+                        "to evaluate give 0.05: AP needs the low-score detections")
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best available)")
     parser.add_argument("--depth-dir", type=Path, metavar="DIR",
                         help="dense depth PNGs of the camera image (KITTI depth format, <id>.png) used instead of "

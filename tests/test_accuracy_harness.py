@@ -388,6 +388,15 @@ def test_detection_run_checks_label_2_before_detecting(tiny_models, tmp_path):
             "scored; give --split-file or --frames to leave it out") in result.stderr
     assert not (tmp_path / "run").exists()
 
+    # And the other way: a label file whose scan is lost would count its cars as missed.
+    shutil.copy(KITTI / "label_2" / "000003.txt", data / "label_2")
+    (data / "velodyne" / "000004.bin").unlink()
+    result = _accuracy("--data", data, "--models", tiny_models, "--input", "lidar16+camera", "--out", tmp_path / "run")
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert (f"error: --data {data}: label_2/000004.txt has no scan (velodyne/000004.bin), so its cars would count "
+            "as missed; give --split-file or --frames to leave it out") in result.stderr
+    assert not (tmp_path / "run").exists()
+
 
 def test_depth_mode_with_depth_dir_names_a_missing_folder_or_a_map_of_another_size(tiny_models, tmp_path):
     data = tmp_path / "data"

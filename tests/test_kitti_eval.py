@@ -423,6 +423,18 @@ def _cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
     )
 
 
+def test_results_with_low_scores_get_no_warning_of_a_cut(tmp_path: Path):
+    gt_dir, pred_dir = tmp_path / "gt", tmp_path / "pred"
+    gt_dir.mkdir()
+    pred_dir.mkdir()
+    for i in range(3):
+        write_labels(gt_dir / f"{i:06d}.txt", [obj()])
+        write_labels(pred_dir / f"{i:06d}.txt", [obj(score=0.9), obj(x=8.0, score=0.06)])
+    out = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir)
+    assert out.returncode == 0 and "BEV" in out.stdout, out.stderr
+    assert "lowest Car score" not in out.stderr and "no result file" not in out.stdout
+
+
 def test_cli_end_to_end(tmp_path: Path):
     gt_dir, pred_dir = tmp_path / "gt", tmp_path / "pred"
     gt_dir.mkdir()
@@ -432,11 +444,21 @@ def test_cli_end_to_end(tmp_path: Path):
         if i < 41:  # frame 41 has no result file: its car is missed
             write_labels(pred_dir / f"{i:06d}.txt", [obj(score=0.9)])
     write_labels(pred_dir / "000099.txt", [obj(score=0.9)])  # a frame the ground truth does not have
+    # As the devkit: a frame without a result file is refused, naming it, and nothing is written.
+    refused = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir, "--json", tmp_path / "ap.json")
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr
+    assert "1 of 42 frames have no result file, e.g. 000041.txt" in refused.stderr and "--missing-as-empty" in \
+        refused.stderr
+    assert not (tmp_path / "ap.json").exists()
     out = _cli("--gt-labels", gt_dir, "--pred-labels", pred_dir, "--json", tmp_path / "ap.json",
-               "--plots", tmp_path / "plots")
+               "--plots", tmp_path / "plots", "--missing-as-empty")
     assert out.returncode == 0, out.stderr
     assert "BEV" in out.stdout and "R40" in out.stdout and "R11" in out.stdout
-    assert "no result file" in out.stderr  # the missing frame is reported
+    assert "no result file" in out.stderr  # the missing frame is reported, and the table says so
+    assert out.stdout.startswith("1 of 42 frames have no result file, counted as frames without detections")
+    # No score under 0.1: as if written with a threshold (pipeline.detect's 0.5), which lowers AP: said once.
+    assert out.stderr.count(f"the lowest Car score in {pred_dir} is 0.90: if these results were written with a "
+                            "score threshold") == 1
     assert f"1 result file(s) in {pred_dir} have no ground truth in {gt_dir} and are not scored, e.g. 000099.txt" \
         in out.stderr
     document = json.loads((tmp_path / "ap.json").read_text())
