@@ -379,23 +379,21 @@ def test_detection_run_checks_label_2_before_detecting(tiny_models, tmp_path):
     assert f"error: --data {data}: no label_2/" in result.stderr
     assert not (tmp_path / "run").exists()  # no frame was detected
 
+    def refused_before_detecting(message: str) -> None:
+        result = _accuracy("--data", data, "--models", tiny_models, "--input", "lidar16+camera", "--out",
+                           tmp_path / "run")
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        assert f"error: --data {data}: {message}; give --split-file or --frames to leave it out" in result.stderr
+        assert not (tmp_path / "run").exists()
+
     # One frame's label file lost: run over every scan, its cars would vanish from the table.
     shutil.copytree(KITTI / "label_2", data / "label_2")
     (data / "label_2" / "000003.txt").unlink()
-    result = _accuracy("--data", data, "--models", tiny_models, "--input", "lidar16+camera", "--out", tmp_path / "run")
-    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
-    assert (f"error: --data {data}: frame 000003 has no ground truth (label_2/000003.txt), so its cars could not be "
-            "scored; give --split-file or --frames to leave it out") in result.stderr
-    assert not (tmp_path / "run").exists()
-
+    refused_before_detecting("frame 000003 has no ground truth (label_2/000003.txt), so its cars could not be scored")
     # And the other way: a label file whose scan is lost would count its cars as missed.
     shutil.copy(KITTI / "label_2" / "000003.txt", data / "label_2")
     (data / "velodyne" / "000004.bin").unlink()
-    result = _accuracy("--data", data, "--models", tiny_models, "--input", "lidar16+camera", "--out", tmp_path / "run")
-    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
-    assert (f"error: --data {data}: label_2/000004.txt has no scan (velodyne/000004.bin), so its cars would count "
-            "as missed; give --split-file or --frames to leave it out") in result.stderr
-    assert not (tmp_path / "run").exists()
+    refused_before_detecting("label_2/000004.txt has no scan (velodyne/000004.bin), so its cars would count as missed")
 
 
 def test_depth_mode_with_depth_dir_names_a_missing_folder_or_a_map_of_another_size(tiny_models, tmp_path):
