@@ -61,7 +61,6 @@ from benchmarks.op_profile import describe as describe_ops
 from benchmarks.op_profile import profile_network
 from benchmarks.peak import measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
-from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.cli import (
     check_figure,
     check_output,
@@ -76,7 +75,6 @@ from pipeline.detector import Cancellation, Detector, RunCancelled
 from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.model_files import ModelFileError, load_manifest
-from pipeline.preprocess import depth_inputs
 from pipeline.presets import get_preset
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -533,15 +531,7 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
 
 def network_feeds(detector: Detector, frame: Frame) -> dict[str, dict[str, np.ndarray]]:
     """Each network's inputs for one frame, as the Detector gives them (the BEV with the frame's pseudo points)."""
-    preset = detector.preset
-    feeds, pseudo = {}, None
-    if detector.two_stage:
-        inputs = depth_inputs(frame.image, frame.points, frame.calib, preset)
-        feeds["depth"] = {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth}
-        dense = detector.run_depth_net(inputs.rgb, inputs.sparse_depth)
-        pseudo = pseudo_bins(dense, inputs.calib, preset.bev, *preset.pseudo_limits)
-    feeds["pixor"] = {"bev": BevVoxelizer(preset.bev)(frame.points, pseudo)[None].copy()}
-    return feeds
+    return detector.network_inputs(frame.image, frame.points, frame.calib)
 
 
 def profile_operators(detector: Detector, frame: Frame, threads: int, matmul_gflops: float) -> dict:

@@ -12,10 +12,9 @@ from pathlib import Path
 
 from export.directory import check_destination
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
-from export.precision import REDUCE_RANGE_HELP
+from export.precision import REDUCE_RANGE_HELP, calibration_frame_ids
 from pipeline.cli import interrupted, positive_int, unwritable
-from pipeline.errors import TORCH_MISSING, InputError
-from pipeline.frame import frame_ids
+from pipeline.errors import TORCH_MISSING
 from pipeline.model_files import ModelFileError
 from pipeline.presets import ABLATIONS, PRESETS, get_preset
 
@@ -125,12 +124,7 @@ def _interrupted(exc: BaseException | None) -> bool:
 
 def _check_calibration_data(data: Path) -> None:
     """Refuse a --calibration-data folder without frames (InputError naming the flag)."""
-    try:
-        ids = frame_ids(data)
-    except InputError as exc:
-        raise InputError(f"--calibration-data {exc}") from None
-    if not ids:
-        raise InputError(f"--calibration-data {data}: no frames (velodyne/*.bin) to calibrate on")
+    calibration_frame_ids(data, 1)
 
 
 def export(config: ExportConfig, args: argparse.Namespace) -> int:

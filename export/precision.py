@@ -43,14 +43,12 @@ from export.rewrite import (
     quantize_before_pad,
     rewrite_transposed_convs,
 )
-from pipeline.beams import emulate_beams
-from pipeline.bev import voxelize_bev
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
+from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.graph_inputs import feeds_for
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
-from pipeline.preprocess import depth_inputs
 
 log = logging.getLogger(__name__)
 PRECISIONS = ("fp32", "fp16", "int8")
@@ -58,27 +56,46 @@ REDUCE_RANGE_HELP = ("int8: weights in 7 bits, exact on x86 CPUs without VNNI, w
                      "saturate ONNX Runtime's 16-bit sums of product pairs (pipeline/cpu.py)")
 
 
-def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool = False) -> dict[str, list[dict]]:
-    """Inputs of each network on ``frames`` frames of ``data``, as the FP32 pipeline produces them."""
+DEVIATION_FRAMES = 8  # a converted network's deviation from fp32 is measured on the first frames' inputs
+FEWEST_CALIBRATION_FRAMES = 100  # INT8 from fewer frames gets a warning: their ranges may clip real ones
+
+
+def calibration_frame_ids(data: Path, frames: int) -> list[str]:
+    """The first ``frames`` frame ids of the --calibration-data folder (InputError naming the flag when it has none)."""
+    try:
+        ids = frame_ids(data)
+    except InputError as exc:
+        raise InputError(f"--calibration-data {exc}") from None
+    if not ids:
+        raise InputError(f"--calibration-data {data}: no frames (velodyne/*.bin) to calibrate on")
+    return ids[:frames]
+
+
+def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool = False, beams: int | None = None,
+                      calibrating: bool = True) -> dict[str, list[dict]]:
+    """Inputs of each network on the first ``frames`` frames of ``data``, exactly as the FP32 Detector feeds them.
+
+    beams: thin each scan to this many lines first; None: to 16 for a model not trained on 64-line scans, as
+    the pipeline's users do with 64-line data; 0: the scans as stored (a 16-line sensor's own recordings).
+    calibrating: INT8 (warns when the frames are few); FP16 only measures its deviation on them."""
     detector = Detector(model_dir)
-    training = detector.manifest["networks"]["pixor"].get("training") or {}
-    lidar_input = training.get("input", "lidar16")
+    if beams is None:
+        beams = 0 if detector.trained_lines == 64 else 16
+    ids = calibration_frame_ids(data, frames)
+    if calibrating and len(ids) < FEWEST_CALIBRATION_FRAMES:
+        log.warning("warning: INT8 calibrated on %d frame(s) of %s: ranges from so few frames may clip real ones; "
+                    "give a few hundred frames of your data (--calibration-frames, default 300)", len(ids), data)
     feeds: dict[str, list[dict]] = {name: [] for name in ("depth", "pixor") if name in detector.manifest["networks"]}
-    ids = frame_ids(data)[:frames]
-    if len(ids) < frames:  # the default 300 against a small folder (the bundled five frames): say what it got
-        log.warning("warning: --calibration-data %s has %d frame(s), fewer than --calibration-frames %d: INT8 "
-                    "ranges from so few frames may clip real ones; give a few hundred frames of your data",
-                    data, len(ids), frames)
     for fid in tqdm(ids, desc="calibration frames", unit="frame", disable=not progress):
         frame = load_frame(data, fid, with_labels=False)
-        points = frame.points if lidar_input == "lidar64" else emulate_beams(frame.points, 16)
-        if detector.two_stage:
-            inputs = depth_inputs(frame.image, points, frame.calib, detector.preset)
-            feeds["depth"].append({"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
-            cloud = detector.detect(frame.image, points, frame.calib, keep_points=True).points
-        else:
-            cloud = points
-        feeds["pixor"].append({"bev": voxelize_bev(cloud, detector.preset.bev)[None].astype(np.float16)})
+        try:
+            inputs = detector.network_inputs(frame.image, frame.points, frame.calib, emulate_to_beams=beams or None)
+        except InputError as exc:
+            hint = "; give --beams 0 to use the scans as stored" if beams else ""
+            raise InputError(f"--calibration-data {data}, frame {fid}: {exc}{hint}") from None
+        for name, feed in inputs.items():
+            # The BEV as float16 halves the memory of a few hundred frames (its values are 0/1 and heights).
+            feeds[name].append({k: v.astype(np.float16) if name == "pixor" else v for k, v in feed.items()})
     return feeds
 
 
@@ -168,7 +185,8 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
 
 
 def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -> dict:
-    """Max deviation of each reduced network from FP32 on the calibration inputs."""
+    """Max deviation of each reduced network from FP32 on the first frames' inputs (for INT8: frames it was
+    calibrated on, so a check that the conversion worked, not a measure of accuracy: benchmarks/accuracy.py)."""
     import onnxruntime as ort
 
     report = {}
@@ -176,7 +194,7 @@ def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -
         ref = ort.InferenceSession(str(fp32_dir / f"{name}.onnx"), providers=["CPUExecutionProvider"])
         low = ort.InferenceSession(str(reduced_dir / f"{name}.onnx"), providers=["CPUExecutionProvider"])
         errors = []
-        for feed in samples[: min(len(samples), 8)]:
+        for feed in samples[:DEVIATION_FRAMES]:
             feed = {k: v.astype(np.float32) for k, v in feed.items()}
             a, b = ref.run(None, feeds_for(ref, feed))[0], low.run(None, feeds_for(low, feed))[0]
             errors.append(float(np.max(np.abs(a - b) / np.maximum(np.abs(a), 1.0))) if name == "depth"
@@ -188,11 +206,13 @@ def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -
 
 def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_data: Path,
                       calibration_frames: int = 300, progress: bool = False, reduce_range: bool = False,
-                      source: str | None = None) -> dict:
+                      source: str | None = None, beams: int | None = None) -> dict:
     """Write ``out`` as a copy of the FP32 directory ``fp32_dir`` at ``precision``; returns the manifest.
 
-    reduce_range: INT8 weights in 7 bits, exact on every CPU (:func:`to_int8`). source: what the manifest
-    records as the FP32 source (default ``fp32_dir``; say what made it when that is a temporary folder).
+    reduce_range: INT8 weights in 7 bits, the same outputs on every x86 CPU (:func:`to_int8`). source: what the
+    manifest records as the FP32 source (default ``fp32_dir``; say what made it when that is a temporary
+    folder). beams: how the calibration scans are thinned (:func:`calibration_feeds`). FP16 reads only the
+    first DEVIATION_FRAMES frames, for its deviation from fp32.
     """
     if precision not in PRECISIONS:
         raise ValueError(f"--precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
@@ -217,7 +237,9 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
                              "where a converted directory came from): give a new folder")
     check_destination(out, manifest.get("preset"), precision)
     source_files = dict(manifest["files"])
-    feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames, progress)
+    int8 = precision == "int8"
+    feeds = calibration_feeds(fp32_dir, calibration_data, calibration_frames if int8 else DEVIATION_FRAMES,
+                              progress, beams, calibrating=int8)
     with staged(out, source=fp32_dir) as staging:
         _convert(fp32_dir, staging, manifest, source_files, feeds, precision, calibration_data, reduce_range,
                  source)
@@ -252,13 +274,15 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
     manifest["precision_info"] = {
         # Which FP32 files this directory was converted from (their manifest's sha256s).
         "source": {"directory": source or str(fp32_dir), "sha256": {name: entry["sha256"] for name, entry in source_files.items()}},
-        "calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
-        **({"activations": "uint8", "weights": "int8 per channel" + (", 7-bit range" if reduce_range else ""),
+        **({"calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
+            "activations": "uint8", "weights": "int8 per channel" + (", 7-bit range" if reduce_range else ""),
             "reduce_range": reduce_range, "format": "QDQ",
             "calibration": {name: info["calibration"] for name, info in int8_info.items()},
             "graph": int8_info} if precision == "int8"
            else {"io": "float32 (keep_io_types)"}),
         "deviation_from_fp32": deviation(fp32_dir, out, feeds),
+        "deviation_data": str(calibration_data),
+        "deviation_frames": min(DEVIATION_FRAMES, len(next(iter(feeds.values())))),
         # Full-range INT8 computes differently on CPUs whose pair sums saturate: where was it measured?
         "deviation_measured_on": describe_cpu(),
     }
@@ -272,8 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     from export.inputs import DEFAULT_KITTI_DIR
-    from pipeline.cli import interrupted, positive_int
-    from pipeline.errors import InputError
+    from pipeline.cli import interrupted, non_negative_int, positive_int
 
     parser = argparse.ArgumentParser(prog="python -m export.precision",
                                      description="Convert an FP32 model directory to FP16 or INT8 (QDQ).")
@@ -284,13 +307,20 @@ def main(argv: list[str] | None = None) -> int:
                         help="KITTI-layout folder: INT8 calibrates on its frames, and both precisions measure their "
                         "deviation from fp32 there (default: the bundled real KITTI frames, as python -m export; "
                         "give a few hundred frames of your data for INT8)")
-    parser.add_argument("--calibration-frames", type=positive_int, default=300, help="frames used (default 300)")
+    parser.add_argument("--calibration-frames", type=positive_int, default=300,
+                        help="int8: the first N frames calibrate it (default 300; fewer than 100 get a warning); fp16 "
+                        f"reads only the first {DEVIATION_FRAMES}, for its deviation from fp32")
     parser.add_argument("--reduce-range", action="store_true", help=REDUCE_RANGE_HELP)
+    parser.add_argument("--beams", "--emulate-beams", type=non_negative_int, metavar="N",
+                        help="thin the calibration scans to N lines first (default: 16 for a model not trained "
+                        "on 64-line scans, as the pipeline's users do with 64-line data; 0: the scans as stored, "
+                        "e.g. a 16-line sensor's own recordings)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         manifest = convert_precision(args.models, args.out, args.precision, args.calibration_data,
-                                     args.calibration_frames, progress=True, reduce_range=args.reduce_range)
+                                     args.calibration_frames, progress=True, reduce_range=args.reduce_range,
+                                     beams=args.beams)
     except (InputError, ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -389,11 +389,28 @@ class Detector:
         (depth,) = self._run("depth", ["depth"], {"rgb": rgb, "sparse_depth": sparse_depth})
         return depth[0, 0]
 
+    def network_inputs(self, image: np.ndarray | None, points: np.ndarray, calib: Calibration | None,
+                       emulate_to_beams: int | None = None) -> dict[str, dict[str, np.ndarray]]:
+        """Each network's whole input tensors for one frame: copies of exactly what :meth:`detect` feeds it.
+
+        For what needs the real distribution, such as INT8 calibration and operator profiles: on the split
+        grid the pseudo points fill BEV channels of their own, which a BEV voxelized from the merged cloud
+        leaves empty."""
+        self._local.recorded = {}
+        try:
+            self.detect(image, points, calib, emulate_to_beams=emulate_to_beams)
+            return self._local.recorded
+        finally:
+            self._local.recorded = None
+
     def _run(self, network: str, outputs: list[str], arrays: dict[str, np.ndarray],
              cancel: Cancellation | None = None) -> list[np.ndarray]:
         """One network on whole input tensors, fed as the graph takes them (pipeline/graph_inputs.py).
 
         RunCancelled when ``cancel`` stops it (ONNX Runtime's own error for it is a generic failure)."""
+        recorded = getattr(self._local, "recorded", None)
+        if recorded is not None:  # network_inputs: copies, as the voxelizer reuses its buffer; mirror TTA's 2nd run not
+            recorded.setdefault(network, {name: np.array(array, copy=True) for name, array in arrays.items()})
         feeds = session_feeds(self._input_names[network], arrays)
         if cancel is None:
             return self._sessions[network].run(outputs, feeds)

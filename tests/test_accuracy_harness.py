@@ -98,6 +98,37 @@ def test_a_skipped_frame_fails_the_evaluation_and_no_old_result_stands_in(tiny_m
     assert json.loads((tmp_path / "ap.json").read_text())["frames"] == 2
 
 
+def test_a_run_warns_of_its_own_score_threshold_only_when_it_cuts(tiny_models, tmp_path, caplog):
+    """The detector's run knows its threshold: 0.05 (the default) gets no warning whatever the lowest score
+    written, 0.5 (pipeline.detect's default) one line saying what it costs."""
+    for threshold, warned in (("0.05", False), ("0.5", True)):
+        result = _accuracy("--data", KITTI, "--models", tiny_models, "--input", "lidar16+camera", "--frames", "1",
+                           "--score-threshold", threshold, "--out", tmp_path / threshold)
+        assert result.returncode == 0, result.stderr
+        assert ("--score-threshold 0.50 leaves out the low-score detections" in result.stderr) is warned
+        assert "the lowest Car score" not in result.stderr
+
+    # Its own results are judged by the threshold, not by their lowest score, even when that is high.
+    import dataclasses
+    import logging
+
+    from benchmarks.accuracy import LabelEvalConfig, _warn_if_cut_at_a_score
+    from evaluation.frames import load_label_dirs
+    from pipeline.kitti import read_labels, write_labels
+
+    results = tmp_path / "high"
+    results.mkdir()
+    for label in sorted((KITTI / "label_2").glob("*.txt")):
+        cars = [o for o in read_labels(label) if o.type == "Car"]
+        write_labels(results / label.name, [dataclasses.replace(o, score=0.9) for o in cars])
+    labels = load_label_dirs(KITTI / "label_2", results)
+    for detector, warned in (({"score_threshold": 0.05}, False), (None, True)):
+        with caplog.at_level(logging.WARNING):
+            caplog.clear()
+            _warn_if_cut_at_a_score(labels, LabelEvalConfig(KITTI / "label_2", results, detector=detector))
+        assert ("the lowest Car score" in caplog.text) is warned
+
+
 def test_mirror_tta_reaches_the_detector_and_says_so(tiny_models, tmp_path):
     """--mirror-tta runs PIXOR on the mirrored BEV too: other result files than one pass, and the header says
     so; with result files alone (no model runs) the flag is refused."""

@@ -7,12 +7,16 @@ import numpy as np
 import onnx
 import pytest
 
-from export.precision import convert_precision
+from export.precision import calibration_feeds, convert_precision
 from pipeline.cpu import int8_pairs_saturate
 from pipeline.detector import Detector
+from pipeline.errors import InputError
 from pipeline.frame import load_frame
+from pipeline.graph_inputs import session_feeds
 from pipeline.model_files import verify_sha256
 from tests.conftest import KITTI
+
+SHIPPED_EDGE = KITTI.parents[3] / "weights" / "edge"
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +32,10 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     assert json.loads((out / "manifest.json").read_text())["precision"] == precision
     verify_sha256(out, manifest)
     info = manifest["precision_info"]
-    assert info["calibration_frames"] == 3
+    if precision == "int8":  # calibrated on the first 3 frames; fp16 has no calibration, its deviation on 5
+        assert info["calibration_frames"] == 3 and info["deviation_frames"] == 3
+    else:
+        assert "calibration_frames" not in info and info["deviation_frames"] == len(list((KITTI / "velodyne").iterdir()))
     source = json.loads((tiny_models / "manifest.json").read_text())["files"]
     assert info["source"]["sha256"] == {file: entry["sha256"] for file, entry in source.items()}
     assert set(info["deviation_from_fp32"]) == {"depth", "pixor"}
@@ -59,18 +66,21 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     assert abs(len(reduced.scores) - len(reference.scores)) <= 0.2 * len(reference.scores) + 2
 
 
-def test_calibrating_on_fewer_frames_than_asked_is_said(tiny_models, caplog):
-    """The default 300 calibration frames against the bundled five: the conversion says what it got."""
-    from export.precision import calibration_feeds
-
+def test_calibrating_on_few_frames_is_said_and_fp16_calibrates_nothing(tiny_models, caplog):
+    """INT8 from fewer than 100 frames (the default 300 against the bundled five, or a small
+    --calibration-frames) gets a warning saying what it got; FP16's deviation frames get none."""
     with caplog.at_level(logging.WARNING):
         feeds = calibration_feeds(tiny_models, KITTI, 300)
     assert len(feeds["pixor"]) == 5
-    assert f"--calibration-data {KITTI} has 5 frame(s), fewer than --calibration-frames 300" in caplog.text
+    assert f"INT8 calibrated on 5 frame(s) of {KITTI}: ranges from so few frames may clip" in caplog.text
     caplog.clear()
     with caplog.at_level(logging.WARNING):
-        calibration_feeds(tiny_models, KITTI, 2)
-    assert "fewer than" not in caplog.text
+        assert len(calibration_feeds(tiny_models, KITTI, 2)["pixor"]) == 2
+    assert "INT8 calibrated on 2 frame(s)" in caplog.text
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        calibration_feeds(tiny_models, KITTI, 8, calibrating=False)
+    assert "INT8" not in caplog.text
 
 
 def test_unknown_precision(tiny_models, tmp_path):
@@ -365,3 +375,56 @@ def test_fp16_on_the_cpu_provider_is_flagged(tiny_models, tmp_path, frame):
     assert "initialised (untrained) weights" in untrained
     assert "FP16 networks (depth, pixor) run on the CPU provider" in warning
     assert detector.detect(frame.image, frame.points, frame.calib, 0.0).boxes.shape[1] == 7
+
+
+class _Recording:
+    """An ONNX Runtime session stand-in that keeps the feeds of each run and passes them on."""
+
+    def __init__(self, session) -> None:
+        self.session, self.feeds = session, []
+
+    def run(self, outputs, feeds, *args):
+        self.feeds.append({name: array.copy() for name, array in feeds.items()})
+        return self.session.run(outputs, feeds, *args)
+
+
+def test_calibration_sees_what_the_detector_feeds_pixor(frame):
+    """INT8 calibrates on the BEV the runtime gives PIXOR: on the shipped split grid the pseudo points fill
+    channels of their own (a BEV voxelized from the merged cloud, as calibration did until session 34, left
+    them empty and put the pseudo points among the LiDAR heights)."""
+    detector = Detector(SHIPPED_EDGE)
+    recording = detector._sessions["pixor"] = _Recording(detector._sessions["pixor"])
+    detector.detect(frame.image, frame.points, frame.calib, emulate_to_beams=16)
+    (fed,) = recording.feeds
+    (bev,) = calibration_feeds(SHIPPED_EDGE, KITTI, 5)["pixor"][-1:]  # 000006 is the fifth bundled frame
+    assert bev["bev"].dtype == np.float16
+    expected = session_feeds(fed.keys(), {"bev": bev["bev"].astype(np.float32)})
+    assert fed.keys() == expected.keys()
+    for name in fed:
+        np.testing.assert_allclose(fed[name], expected[name], atol=2e-3)  # float16 storage
+    grid = detector.preset.bev
+    assert grid.split_pseudo
+    occupied = (bev["bev"][0, grid.lidar_channels:] > 0).sum()  # channels nz + 1 … 2·nz: the pseudo points'
+    assert occupied > 1000
+
+
+def test_calibration_of_a_16_line_recording_keeps_its_scans(tmp_path):
+    """--beams 0 calibrates on scans as stored; thinning a 16-line scan again is refused naming the frame."""
+    import shutil
+
+    from pipeline.beams import emulate_beams
+    from pipeline.kitti import read_velodyne, write_velodyne
+
+    data = tmp_path / "data"
+    for sub in ("image_2", "calib"):
+        shutil.copytree(KITTI / sub, data / sub)
+    (data / "velodyne").mkdir()
+    for scan in sorted((KITTI / "velodyne").glob("*.bin"))[:2]:
+        write_velodyne(data / "velodyne" / scan.name, emulate_beams(read_velodyne(scan).points, 16))
+    with pytest.raises(InputError, match=r"frame 000000: .*thinned already.*give --beams 0"):
+        calibration_feeds(SHIPPED_EDGE, data, 2)
+    feeds = calibration_feeds(SHIPPED_EDGE, data, 2, beams=0)
+    assert len(feeds["pixor"]) == len(feeds["depth"]) == 2
+    (tmp_path / "empty" / "velodyne").mkdir(parents=True)  # a KITTI folder with no frames: one line, no traceback
+    with pytest.raises(InputError, match="--calibration-data .*empty: no frames"):
+        calibration_feeds(SHIPPED_EDGE, tmp_path / "empty", 2)
