@@ -46,9 +46,15 @@ def staged(out: Path, source: Path | None = None) -> Iterator[Path]:
     """A folder to write the model directory ``out`` in: a copy of the model directory ``source``, or empty.
 
     It becomes ``out`` when the block ends without an error (``out`` may be ``source`` itself) and is
-    removed when the block raises.
+    removed when the block raises. Into another folder only the model's own files are copied (its manifest
+    and the files it lists), not what else lies in ``source``, such as a TensorRT engine cache built for the
+    source's graphs; rewriting ``source`` in place keeps everything. An ``out`` inside ``source`` is refused.
     """
     target = Path(out).resolve()
+    in_place = source is not None and target == Path(source).resolve()
+    if source is not None and not in_place and target.is_relative_to(Path(source).resolve()):
+        raise ModelFileError(f"--out {out}: lies inside the model directory {source}, whose copies would then "
+                             "carry it along; give a folder outside it")
     staging = target.parent / f".{target.name}.staging"
     if staging.exists():  # left by a run that was killed
         shutil.rmtree(staging)
@@ -58,9 +64,12 @@ def staged(out: Path, source: Path | None = None) -> Iterator[Path]:
     except OSError as exc:  # what check_destination cannot foresee (a read-only mount): one line, no traceback
         raise ModelFileError(f"--out {out}: cannot write there ({exc.strerror or exc})") from exc
     try:
-        if source is not None:
+        if in_place:
             staging.rmdir()
             shutil.copytree(source, staging)
+        elif source is not None:
+            for name in (MANIFEST_NAME, *load_manifest(source)["files"]):
+                shutil.copy2(Path(source) / name, staging / name)
         yield staging
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)

@@ -33,7 +33,7 @@ import onnx
 from tqdm import tqdm
 
 from export.directory import check_destination, staged
-from export.manifest import graph_inputs
+from export.manifest import graph_inputs, package_versions
 from export.rewrite import (
     boundary_nodes,
     inputs_from_channel_pieces,
@@ -271,9 +271,15 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
         manifest["networks"][name]["graph_inputs"] = graph_inputs(path)  # INT8 reads the BEV whole again
     manifest["precision"] = precision
+    # The FP32 export's parity check, CPU lowering and package versions describe the source's files, not these:
+    # they move under precision_info.source, and this conversion's versions take their place.
+    fp32_records = {"parity": manifest.pop("parity", None), "versions": manifest.get("versions"),
+                    "export": manifest.pop("export", None)}
+    manifest["versions"] = package_versions(("onnx", "onnxruntime", "numpy"))
     manifest["precision_info"] = {
-        # Which FP32 files this directory was converted from (their manifest's sha256s).
-        "source": {"directory": source or str(fp32_dir), "sha256": {name: entry["sha256"] for name, entry in source_files.items()}},
+        # Which FP32 files this directory was converted from (their manifest's sha256s), and what that export said.
+        "source": {"directory": source or str(fp32_dir),
+                   "sha256": {name: entry["sha256"] for name, entry in source_files.items()}, **fp32_records},
         **({"calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
             "activations": "uint8", "weights": "int8 per channel" + (", 7-bit range" if reduce_range else ""),
             "reduce_range": reduce_range, "format": "QDQ",

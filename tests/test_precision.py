@@ -13,7 +13,7 @@ from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.graph_inputs import session_feeds
-from pipeline.model_files import verify_sha256
+from pipeline.model_files import ModelFileError, verify_sha256
 from tests.conftest import KITTI
 
 SHIPPED_EDGE = KITTI.parents[3] / "weights" / "edge"
@@ -36,8 +36,12 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
         assert info["calibration_frames"] == 3 and info["deviation_frames"] == 3
     else:
         assert "calibration_frames" not in info and info["deviation_frames"] == len(list((KITTI / "velodyne").iterdir()))
-    source = json.loads((tiny_models / "manifest.json").read_text())["files"]
-    assert info["source"]["sha256"] == {file: entry["sha256"] for file, entry in source.items()}
+    fp32 = json.loads((tiny_models / "manifest.json").read_text())
+    assert info["source"]["sha256"] == {file: entry["sha256"] for file, entry in fp32["files"].items()}
+    # The FP32 export's parity check and lowering describe its files: they stay with the source's record.
+    assert "parity" not in manifest and "export" not in manifest
+    assert (info["source"]["parity"], info["source"]["export"]) == (fp32["parity"], fp32["export"])
+    assert set(manifest["versions"]) == {"onnx", "onnxruntime", "numpy"}
     assert set(info["deviation_from_fp32"]) == {"depth", "pixor"}
     if precision == "int8":
         assert info["calibration"] == {"depth": "min-max", "pixor": "min-max"}
@@ -428,3 +432,20 @@ def test_calibration_of_a_16_line_recording_keeps_its_scans(tmp_path):
     (tmp_path / "empty" / "velodyne").mkdir(parents=True)  # a KITTI folder with no frames: one line, no traceback
     with pytest.raises(InputError, match="--calibration-data .*empty: no frames"):
         calibration_feeds(SHIPPED_EDGE, tmp_path / "empty", 2)
+
+
+def test_a_conversion_copies_the_model_files_alone_and_not_into_its_source(tiny_models, tmp_path):
+    """What else lies in --models (a TensorRT engine cache of the fp32 graphs, notes) is not carried into
+    --out, and an --out inside --models, whose next copy would carry it along, is refused."""
+    import shutil
+
+    source = tmp_path / "fp32"
+    shutil.copytree(tiny_models, source)
+    (source / "trt_cache").mkdir()
+    (source / "trt_cache" / "engine.bin").write_bytes(b"an fp32 engine")
+    out = tmp_path / "fp16"
+    convert_precision(source, out, "fp16", KITTI, calibration_frames=2)
+    assert sorted(p.name for p in out.iterdir()) == ["depth.onnx", "manifest.json", "pixor.onnx"]
+    with pytest.raises(ModelFileError, match=r"lies inside the model directory"):
+        convert_precision(source, source / "fp16", "fp16", KITTI, calibration_frames=2)
+    assert not (source / "fp16").exists() and (source / "trt_cache" / "engine.bin").exists()
