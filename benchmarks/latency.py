@@ -529,6 +529,12 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
             "scaling_per_round": [m / o for m, o in zip(many, one, strict=True)]}
 
 
+def _reads(detector: Detector) -> str:
+    """What a model directory's pipeline reads, for a refusal: "reads a 16-line scan + camera"."""
+    lines = f"{detector.trained_lines}-line scan" if detector.trained_lines else "scan"
+    return f"reads a {lines} + camera" if detector.two_stage else f"reads a {lines} alone (LiDAR-only)"
+
+
 def network_feeds(detector: Detector, frame: Frame) -> dict[str, dict[str, np.ndarray]]:
     """Each network's inputs for one frame, as the Detector gives them (the BEV with the frame's pseudo points)."""
     return detector.network_inputs(frame.image, frame.points, frame.calib)
@@ -660,6 +666,10 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     # Loaded now, so a bad directory is refused before minutes of timing.
     other = None if baseline is None else Detector(baseline, providers=provider, intra_op_threads=len(cores),
                                                    stage_threads=stage_threads, mirror_tta=mirror_tta)
+    if other is not None and (other.two_stage, other.trained_lines) != (detector.two_stage, detector.trained_lines):
+        # The same frames would be another pipeline's input (and thinned for --models alone): no speed-up to say.
+        raise InputError(f"--baseline {baseline}: {_reads(other)}, and {models} {_reads(detector)}: give a baseline "
+                         "of the same input (its FP32 source, say)")
     actual = detector.manifest.get("precision", "fp32")
     if precision and actual != precision:
         raise InputError(f"--precision {precision}, but {models} holds {actual} models")

@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 
 from pipeline.cpu import int8_pairs_saturate, speed_flags
+from tests.conftest import lidar_only_models
 
 LATENCY = Path(__file__).resolve().parents[1] / "benchmarks" / "latency.py"
 QUICK_PEAK = ["--peak-size", "512"]  # the 4096² MatMul of the real peak takes 12 s a run; the keys are the same
@@ -109,6 +110,15 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
         capture_output=True, text=True, timeout=300, check=False,
     )
     assert missing.returncode == 2 and "nowhere" in missing.stderr and "Traceback" not in missing.stderr
+    # A LiDAR-only baseline runs another pipeline on the frames: no speed-up of one over the other to report.
+    lidar_only = lidar_only_models(tiny_models, tmp_path / "lidar")
+    other = subprocess.run(
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--baseline", str(lidar_only),
+         "--frames", "1", "--warmup", "1"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )
+    assert other.returncode == 2 and "Traceback" not in other.stderr, other.stderr
+    assert f"--baseline {lidar_only}: reads a " in other.stderr and "alone (LiDAR-only)" in other.stderr
 
 
 def test_latency_throughput_with_worker_processes(tmp_path, tiny_models):
