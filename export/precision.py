@@ -52,8 +52,8 @@ from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, s
 
 log = logging.getLogger(__name__)
 PRECISIONS = ("fp32", "fp16", "int8")
-REDUCE_RANGE_HELP = ("int8: weights in 7 bits, exact on x86 CPUs without VNNI, where full 8-bit weights can "
-                     "saturate ONNX Runtime's 16-bit sums of product pairs (pipeline/cpu.py)")
+REDUCE_RANGE_HELP = ("int8: weights in 7 bits, the same outputs on x86 CPUs without VNNI as with it (full 8-bit "
+                     "weights can saturate ONNX Runtime's 16-bit sums of product pairs there: pipeline/cpu.py)")
 
 
 DEVIATION_FRAMES = 8  # a converted network's deviation from fp32 is measured on the first frames' inputs
