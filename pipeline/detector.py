@@ -166,6 +166,26 @@ def provider_fallbacks(wanted: str, in_use: dict[str, list[str]]) -> dict[str, s
     return {name: providers[0] for name, providers in in_use.items() if providers and providers[0] != wanted}
 
 
+def tensorrt_options(manifest: dict, cache_root: Path) -> dict:
+    """ONNX Runtime's TensorRT provider options for a model directory with this manifest.
+
+    Building TensorRT engines takes minutes, so they are cached (a volume in the container), in a folder
+    of their own per model: named by the ONNX files' sha256s, since ONNX Runtime does not notice new
+    weights under an old file name and would run the stale engine. An FP16 directory asks TensorRT for
+    FP16 kernels too (its builder flag), which its fp16 tensors alone do not choose."""
+    files = manifest.get("files", {})
+    key = "-".join(files[name]["sha256"][:12] for name in sorted(files))
+    cache = Path(cache_root) / f"{manifest.get('preset', 'model')}-{manifest.get('precision', 'fp32')}-{key}"
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"--trt-cache-dir {cache_root}: cannot create the TensorRT engine cache "
+                         f"({exc.strerror or exc})") from exc
+    return {"trt_engine_cache_enable": True, "trt_engine_cache_path": str(cache),
+            "trt_timing_cache_enable": True, "trt_timing_cache_path": str(cache),
+            "trt_fp16_enable": manifest.get("precision") == "fp16"}
+
+
 def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
     """The ONNX Runtime session options every Detector session runs with (and the benchmarks time).
 
@@ -219,15 +239,7 @@ class Detector:
         self.providers = resolve_providers(providers)
         session_providers: list = list(self.providers)
         if "TensorrtExecutionProvider" in self.providers:
-            # Building TensorRT engines takes minutes: cache them (a volume in the container).
-            cache = Path(trt_cache_dir or self.model_dir / "trt_cache")
-            try:
-                cache.mkdir(parents=True, exist_ok=True)
-            except OSError as exc:
-                raise InputError(f"--trt-cache-dir {cache}: cannot create the TensorRT engine cache "
-                                 f"({exc.strerror or exc})") from exc
-            trt_options = {"trt_engine_cache_enable": True, "trt_engine_cache_path": str(cache),
-                           "trt_timing_cache_enable": True, "trt_timing_cache_path": str(cache)}
+            trt_options = tensorrt_options(self.manifest, Path(trt_cache_dir or self.model_dir / "trt_cache"))
             session_providers = [("TensorrtExecutionProvider", trt_options) if p == "TensorrtExecutionProvider" else p
                                  for p in self.providers]
         options = session_options(intra_op_threads)

@@ -957,3 +957,26 @@ def test_runtime_never_imports_torch_or_onnx():
     )
     result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 0, result.stderr
+
+
+def test_tensorrt_engines_are_cached_per_model_and_fp16_asks_for_fp16(tmp_path):
+    """ONNX Runtime's TensorRT provider would run a cached engine of old weights under the same file name:
+    each model's engines get a folder named by its files' sha256s. An FP16 directory sets the FP16 flag."""
+    import copy
+    import json
+
+    from pipeline.detector import tensorrt_options
+
+    fp32 = json.loads((Path(__file__).resolve().parents[1] / "weights" / "edge" / "manifest.json").read_text())
+    options = tensorrt_options(fp32, tmp_path / "cache")
+    cache = Path(options["trt_engine_cache_path"])
+    assert cache.is_dir() and cache.parent == tmp_path / "cache" and options["trt_timing_cache_path"] == str(cache)
+    assert cache.name.startswith("edge-split-near35-fp32-") and options["trt_fp16_enable"] is False
+    retrained = copy.deepcopy(fp32)
+    retrained["files"]["pixor.onnx"]["sha256"] = "0" * 64
+    assert tensorrt_options(retrained, tmp_path / "cache")["trt_engine_cache_path"] != str(cache)
+    fp16 = {**fp32, "precision": "fp16"}
+    assert tensorrt_options(fp16, tmp_path / "cache")["trt_fp16_enable"] is True
+    (tmp_path / "file").write_text("not a folder")
+    with pytest.raises(InputError, match="--trt-cache-dir .*file: cannot create the TensorRT engine cache"):
+        tensorrt_options(fp32, tmp_path / "file")
