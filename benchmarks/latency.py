@@ -641,7 +641,7 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
         from export.exporter import run as export
 
         scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
-        models = Path(scratch.name)
+        models = Path(scratch.name) / "fp32"  # a reduced precision is converted beside it, not inside it
         result = export(ExportConfig(preset=preset or DEFAULT_PRESET, out=models, parity=False, checkpoints=checkpoints))
         torch_networks = result.networks  # the exported modules: the same weights on both sides
         torch_weights = str(checkpoints) if checkpoints else "initialised, the same as the ONNX files'"
@@ -656,7 +656,7 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
             scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
         reduced = Path(scratch.name) / precision
         # INT8 as the shipped weights/edge-int8 is made (python -m export.precision --reduce-range): 7-bit
-        # weights, exact on every x86 CPU; full 8-bit ones saturate on CPUs without VNNI (pipeline/cpu.py).
+        # weights, the same outputs on every x86 CPU; full 8-bit ones saturate on CPUs without VNNI (pipeline/cpu.py).
         convert_precision(models, reduced, precision, data, calibration_frames=min(frames, 20),
                           reduce_range=precision == "int8")
         models = reduced
