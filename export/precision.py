@@ -12,12 +12,12 @@ FP16 converts weights and activations and keeps float32 inputs and outputs,
 so the runtime feeds the same tensors. INT8 quantizes statically in QDQ
 format with unsigned 8-bit activations and signed per-channel weights (on
 this AVX-512 VNNI CPU signed activations gave no speed-up at all), calibrated
-on real frames run through the FP32 pipeline: ``depth.onnx`` sees the inputs
-inference gives it, ``pixor.onnx`` the BEV tensors of the pseudo clouds the
-FP32 depth net produces; both networks' ranges are the extremes over the
-calibration frames (``to_int8`` can average the per-frame extremes instead, which
-the plain grid's PIXOR preferred). The manifest records the precision, the calibration
-and each network's deviation from FP32 on the calibration frames.
+on real frames run through the FP32 Detector: each network sees exactly the
+tensors inference gives it (``Detector.network_inputs``), PIXOR the BEV with the
+FP32 depth net's pseudo points. The depth net's ranges are the extremes over the
+calibration frames, PIXOR's moving averages of the per-frame extremes. The
+manifest records the precision, the calibration and each network's deviation
+from FP32 on the first calibration frames.
 """
 
 from __future__ import annotations
@@ -259,14 +259,15 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
             # The depth net's last decoder stage stays fp32 too (output_convs 2): with the prefill its output
             # is a correction of centimetres to the filled map, and uint8 decoder features put 0.19 m of
             # median error at 0–10 m where fp32 has 0.08 m (BEV AP at IoU 0.7 moderate 77.3 vs 82.6).
-            # Both networks' ranges are the extremes over the calibration frames. The camera PIXOR on the
-            # split grid (edge-split-near35, shipped since session 25) lost 3.4 BEV AP at IoU 0.7 moderate
-            # with moving averages of the per-frame extremes (85.8 → 82.4 on the 300 validation frames; the
-            # INT8 depth net alone lost 0.2 on 150 of them) and 0.9 with the extremes (150 frames). The plain
-            # grid's PIXOR had been the other way round (extremes 82.6 → 80.4, averaged 82.7), and the depth
-            # net always kept the extremes: averaged, its median error at 0–10 m grew from 122 to 140 mm.
+            # The depth net's ranges are the extremes over the calibration frames (averaged, its median
+            # error at 0–10 m grew from 122 to 140 mm); PIXOR's are moving averages of the per-frame
+            # extremes. Calibrated on the BEV the Detector feeds it (session 34), the camera PIXOR on the
+            # split grid lost 0.5 BEV AP at IoU 0.7 moderate so (85.8 → 85.3 on the 300 validation frames)
+            # and 1.7 with the extremes (84.1). Until then calibration voxelized the merged cloud, which
+            # leaves the split grid's pseudo channels empty; on those inputs the extremes had lost 1.1 and
+            # the averages 3.4 (docs/measurements.md, sessions 25 and 34).
             int8_info[name] = to_int8(fp32_dir / path.name, path, frames, inputs_fp32=name == "depth",
-                                      output_convs=2 if name == "depth" else 1, moving_average=False,
+                                      output_convs=2 if name == "depth" else 1, moving_average=name == "pixor",
                                       reduce_range=reduce_range)
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
         manifest["networks"][name]["graph_inputs"] = graph_inputs(path)  # INT8 reads the BEV whole again

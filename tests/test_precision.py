@@ -44,7 +44,7 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     assert set(manifest["versions"]) == {"onnx", "onnxruntime", "numpy"}
     assert set(info["deviation_from_fp32"]) == {"depth", "pixor"}
     if precision == "int8":
-        assert info["calibration"] == {"depth": "min-max", "pixor": "min-max"}
+        assert info["calibration"] == {"depth": "min-max", "pixor": "min-max, moving average (0.01)"}
     pixor = onnx.load(str(out / "pixor.onnx"))
     ops = {node.op_type for node in pixor.graph.node}
     if precision == "int8":
