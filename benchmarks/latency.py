@@ -535,15 +535,10 @@ def _reads(detector: Detector) -> str:
     return f"reads a {lines} + camera" if detector.two_stage else f"reads a {lines} alone (LiDAR-only)"
 
 
-def network_feeds(detector: Detector, frame: Frame) -> dict[str, dict[str, np.ndarray]]:
-    """Each network's inputs for one frame, as the Detector gives them (the BEV with the frame's pseudo points)."""
-    return detector.network_inputs(frame.image, frame.points, frame.calib)
-
-
 def profile_operators(detector: Detector, frame: Frame, threads: int, matmul_gflops: float) -> dict:
     """Each network's time per operator type (benchmarks/op_profile.py), for the report's ``networks``."""
     profiles = {}
-    for name, feeds in network_feeds(detector, frame).items():
+    for name, feeds in detector.network_inputs(frame.image, frame.points, frame.calib).items():
         entry = detector.manifest["networks"][name]
         providers = detector.providers_in_use[name]
         try:

@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import sys
 
-    from benchmarks.latency import BUNDLED, load_frames, network_feeds
+    from benchmarks.latency import BUNDLED, load_frames
     from pipeline.beams import BEAM_COUNTS, emulate_beams
     from pipeline.cli import positive_int
     from pipeline.detector import Detector
@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
             frame = load_frame(args.data, args.frame, with_labels=False)
             if args.beams:
                 frame.points = emulate_beams(frame.points, args.beams)
-        for name, feeds in network_feeds(detector, frame).items():
+        for name, feeds in detector.network_inputs(frame.image, frame.points, frame.calib).items():
             model = detector.model_dir / detector.manifest["networks"][name]["file"]
             try:
                 events = profile_events(model, detector.providers_in_use[name], args.threads, feeds, args.runs)

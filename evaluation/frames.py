@@ -111,11 +111,11 @@ def load_label_dirs(
                     len(missing), len(frame_ids), pred_dir, missing[0])
     ground_truth: list[LabelArrays] = []
     detections: list[LabelArrays] = []
+    absent = set(missing)
     for frame_id in tqdm(frame_ids, desc="labels", disable=not progress):
         ground_truth.append(LabelArrays.from_objects(read_labels(gt_dir / f"{frame_id}.txt")))
-        pred_path = pred_dir / f"{frame_id}.txt"
-        detections.append(LabelArrays.from_objects(read_labels(pred_path, needs_score=True)) if pred_path.is_file()
-                          else LabelArrays.empty())
+        detections.append(LabelArrays.empty() if frame_id in absent
+                          else LabelArrays.from_objects(read_labels(pred_dir / f"{frame_id}.txt", needs_score=True)))
     return LabelSet(
         frame_ids=tuple(frame_ids), ground_truth=tuple(ground_truth), detections=tuple(detections),
         missing_predictions=tuple(missing),

@@ -122,11 +122,6 @@ def _interrupted(exc: BaseException | None) -> bool:
     return False
 
 
-def _check_calibration_data(data: Path) -> None:
-    """Refuse a --calibration-data folder without frames (InputError naming the flag)."""
-    calibration_frame_ids(data, 1)
-
-
 def export(config: ExportConfig, args: argparse.Namespace) -> int:
     """Export (and convert) as ``args`` asks; prints what was written."""
     if args.precision == "fp32":
@@ -137,7 +132,7 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
 
         # Checked before the fp32 export, which takes minutes, rather than by the conversion after it.
         check_destination(config.out, get_preset(config.preset).name, args.precision)
-        _check_calibration_data(args.calibration_data)
+        calibration_frame_ids(args.calibration_data, 1)  # a folder without frames: refused now
         with tempfile.TemporaryDirectory(prefix="lowres3d-fp32-") as fp32_dir:
             result = run(replace(config, out=Path(fp32_dir)))
             # The FP32 directory is temporary: record what made it, not a folder that is gone after this.
