@@ -240,3 +240,43 @@ def test_the_readmes_python_example_runs_as_written():
     assert cars == [f"car {s:.2f}: x {b[0]:.1f} m, y {b[1]:.1f} m, yaw {b[6]:.2f} rad"
                     for b, s in zip(expected.boxes, expected.scores, strict=True)]
     assert len(cars) >= 1 and "emulated 16 beams" in done.stdout
+
+
+# Run in a fresh interpreter: OpenBLAS starts its worker threads as NumPy loads, so the threads there
+# before anything else is imported are NumPy's. Prints their count and the CPU clock ticks they used
+# while the camera pipeline ran frames.
+_BLAS_WORKER_TICKS = r"""
+import os, sys
+import numpy as np
+workers = [t for t in os.listdir("/proc/self/task") if int(t) != os.getpid()]
+def ticks():  # utime + stime, fields 14 and 15 of /proc/<pid>/task/<tid>/stat (the name may hold spaces)
+    return sum(int(v) for t in workers
+               for v in open(f"/proc/self/task/{t}/stat").read().rsplit(")", 1)[1].split()[11:13])
+from pipeline.detector import Detector
+from pipeline.frame import load_frame
+detector = Detector(sys.argv[1])
+frames = [load_frame(sys.argv[2], frame_id) for frame_id in sys.argv[3:]]
+detector.detect(frames[0].image, frames[0].points, frames[0].calib, score_threshold=0.05)
+before = ticks()
+for frame in frames * 2:
+    detector.detect(frame.image, frame.points, frame.calib, score_threshold=0.05)
+print(len(workers), ticks() - before)
+"""
+
+
+def test_the_frame_path_leaves_numpys_blas_threads_idle():
+    """No matrix product of the frame path goes to OpenBLAS: its worker thread would spin for about 0.1 s
+    after each one, on the cores the next network needs (the depth net took twice as long). Whole 64-line
+    scans (110,000 points to project) and the evaluation's score threshold (100 boxes to measure the heights
+    of) were the two ways in; before the fix these frames cost the worker about 95 ticks (0.95 s)."""
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", _BLAS_WORKER_TICKS, str(WEIGHTS / "edge"), str(KITTI),
+                             "000000", "000003", "000006"], check=False, capture_output=True, text=True,
+                            timeout=300, cwd=Path(__file__).resolve().parents[1])
+    assert result.returncode == 0, result.stderr
+    workers, ticks = map(int, result.stdout.split()[-2:])
+    if workers == 0:
+        pytest.skip("NumPy's OpenBLAS runs no worker thread here (one core, or OPENBLAS_NUM_THREADS=1)")
+    assert ticks <= 2, f"OpenBLAS's worker threads used {ticks} clock ticks during 6 frames"
