@@ -2,29 +2,46 @@
 
     python benchmarks/load.py --models DIR [--clients 8] [--duration 20 | --requests N] [--json OUT] [--plot OUT.png]
     python benchmarks/load.py --url http://127.0.0.1:8000 [...]
+    python benchmarks/load.py --url http://BOX:8000 --rate 10 --clients 4 --send-beams 16 [...]
 
 Without ``--url`` it starts ``python -m service`` itself on 127.0.0.1 (a free
 port; ``--workers``, ``--queue-size``, ``--sessions``, ``--intra-op-threads``,
-``--mirror-tta`` passed on) and stops it at the end. ``--clients`` threads send the frames of
-a KITTI folder (``--data``, default tests/data/kitti/training; ``--frame`` for
-one) in turn until ``--duration`` seconds or ``--requests`` requests in total;
-a client that gets a 503 waits ``--backoff-s`` before its next request. With
-more clients than the server's workers + queue, some requests are refused with
-503 by design. ``--bad-every N`` makes every Nth request a broken one (a
-truncated scan, a cut-off PNG, a calibration without P2, a misspelt query
-parameter), which must be answered 4xx, never 5xx: the service checks each of
-them before the frame takes a place in its queue, so not even a full queue
-answers them 503. Well-formed and broken requests each take the frames in turn.
+``--mirror-tta`` passed on; its log to ``--log``) and stops it at the end. The
+frames of a KITTI folder (``--data``, default tests/data/kitti/training;
+``--frame`` for one) are sent in turn until ``--duration`` seconds or
+``--requests`` requests in total.
 
-Reports: throughput (answered 200 per second), p50/p99 latency of the 200s
-and of everything, counts per status, the server's per-stage timings (from
-the answers), and the server's resident memory (``process_resident_memory_bytes``
-from /metrics) when ready, after 3 × clients warm-up requests sent at full
+Closed loop (the default): ``--clients`` threads each send their next request
+when the previous one is answered; a client that gets a 503 waits
+``--backoff-s`` first. With more clients than the server's workers + queue,
+some requests are refused with 503 by design. A slower server thus gets fewer
+requests. Open loop (``--rate HZ``): requests are due at fixed intervals, 1/HZ
+apart in all (a sensor's frame rate), with at most ``--clients`` in flight; a
+request due while all of them are busy is sent as soon as one frees and counted
+late, and its latency, like every one's, runs from its due time, so waiting
+shows; one still unsent when ``--duration`` ends is counted unsent.
+
+The scans are sent as stored (KITTI's 64 lines) and thinned on the server
+(``--emulate-beams``, default 16) unless ``--send-beams N`` thins them here,
+once before the run, and sends N-line scans as an N-line sensor would.
+
+``--bad-every N`` makes every Nth request a broken one (a truncated scan, a
+cut-off PNG, a calibration without P2, a misspelt query parameter), which must
+be answered 4xx, never 5xx: the service checks each of them before the frame
+takes a place in its queue, so not even a full queue answers them 503.
+Well-formed and broken requests each take the frames in turn.
+
+Reports: throughput (answered 200 per second), p50/p99 latency (p90 too in the
+JSON and the open loop) of the 200s and of everything, counts per status, the
+server's per-stage timings (from the answers), the load generator's own CPU
+time (it may share the server's cores), the server's resident memory
+(``process_resident_memory_bytes`` from /metrics) when ready, after 3 × clients warm-up requests sent at full
 concurrency (every worker thread has run), and at the end. For long runs
 (soak tests) it also samples memory and open file descriptors every second,
 fits the memory's trend (MB per hour, over the run after its first tenth) and
 lists throughput, latency and memory per tenth of the run; ``--plot`` draws
-the latency histogram beside latency and memory over time.
+the latency histogram beside latency and memory over time. The machine it names
+is the load generator's: the server's too only when started here.
 """
 
 from __future__ import annotations
@@ -32,12 +49,15 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import math
 import os
 import platform
+import queue
 import re
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections import Counter
@@ -57,6 +77,7 @@ except ImportError:  # the runtime install (make setup) leaves the test tools ou
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.cli import (
     check_figure,
     check_output,
@@ -69,18 +90,21 @@ from pipeline.cpu import cpu_label
 from pipeline.cpu import describe as describe_cpu
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids
+from pipeline.kitti import POINT_BYTES, read_velodyne, write_velodyne
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO / "tests" / "data" / "kitti" / "training"
 DEFAULT_MODELS = REPO / "weights" / "edge"
 # The broken requests of --bad-every, each made from a real frame; the service must answer each 4xx.
 BROKEN_KINDS = ("points-truncated", "image-cut-off", "calib-without-P2", "query-misspelt")
+DEFAULT_LOG = Path("outputs/load_service.log")  # relative to the working directory, as it always was
 
 
 @dataclass
 class Sample:
-    """One request: when it started (s since the run began), its latency (ms), status (or error name), and
-    which upload it was (a frame id, or one of BROKEN_KINDS)."""
+    """One request: when it started (s since the run began; in the open loop, when it was due), its latency (ms,
+    in the open loop from its due time), status (or error name), which upload it was (a frame id, or one of
+    BROKEN_KINDS) and the points it carried. Open loop only: how long after its due time it went out."""
 
     start_s: float
     latency_ms: float
@@ -88,6 +112,8 @@ class Sample:
     upload: str = ""
     broken: bool = False
     timings_ms: dict[str, float] | None = None
+    points: int = 0
+    lag_ms: float = 0.0
 
 
 @dataclass
@@ -112,10 +138,22 @@ class LoadResult:
     trend: dict = field(default_factory=dict)  # memory slope, file descriptors, latency first vs last tenth
     windows: list[dict] = field(default_factory=list)  # per tenth of the run: throughput, p50, memory
     server: dict = field(default_factory=dict)
-    machine: dict = field(default_factory=dict)
+    mode: str = "closed-loop"  # or "open-loop" (--rate)
+    latency_from: str = "send"  # "schedule" in the open loop: each request's latency counts from its due time
+    open_loop: dict = field(default_factory=dict)  # --rate: requested vs achieved rate, late and unsent requests
+    thinning: dict = field(default_factory=dict)  # where the scans were thinned (client, server, none), points sent
+    # The machine load.py runs on. It is the server's too only when load.py started the service
+    # (client_shares_server_machine True); with --url the server's machine is not known here (None).
+    client_machine: dict = field(default_factory=dict)
+    server_machine: dict | None = None
+    client_shares_server_machine: bool | None = None
+    client_cpu_s: float = 0.0  # the load generator's own CPU seconds (all its threads) over the measured run
+    client_cpu_cores: float = 0.0  # client_cpu_s / the run's wall time: cores it kept busy on average
+    service_log: str | None = None  # the started service's log (--log)
 
 
 def free_port() -> int:
+    """A loopback port free now (the service binds it a moment later)."""
     with socket.socket() as sock:
         sock.bind(("127.0.0.1", 0))
         return sock.getsockname()[1]
@@ -129,7 +167,10 @@ def started_service(models: Path, server_args: list[str], log_path: Path, timeou
     env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
     with open(log_path, "w") as log:
         process = subprocess.Popen(
-            [sys.executable, "-m", "service", "--models", str(models), "--port", str(port), *server_args],
+            # Resolved here: the service runs in the checkout, and a relative --models names a folder under the
+            # caller's working directory (where main checked it).
+            [sys.executable, "-m", "service", "--models", str(Path(models).resolve()), "--port", str(port),
+             *server_args],
             cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
         )
     try:
@@ -175,11 +216,12 @@ def server_rss_mb(url: str, headers: dict[str, str]) -> float:
 
 
 def _percentiles(values: list[float]) -> dict[str, float]:
+    """p50, p90, p99, mean and max (NaN for none)."""
     if not values:
-        return {"p50": float("nan"), "p99": float("nan"), "mean": float("nan"), "max": float("nan")}
+        return {key: float("nan") for key in ("p50", "p90", "p99", "mean", "max")}
     array = np.asarray(values)
-    return {"p50": float(np.percentile(array, 50)), "p99": float(np.percentile(array, 99)),
-            "mean": float(array.mean()), "max": float(array.max())}
+    return {"p50": float(np.percentile(array, 50)), "p90": float(np.percentile(array, 90)),
+            "p99": float(np.percentile(array, 99)), "mean": float(array.mean()), "max": float(array.max())}
 
 
 @dataclass(frozen=True)
@@ -191,12 +233,19 @@ class Upload:
     params: dict
     broken: bool = False
 
+    @property
+    def points(self) -> int:
+        """Points in the scan sent (whole 16-byte rows)."""
+        return len(self.files["points"][1]) // POINT_BYTES
 
-def frame_upload(data: Path, frame: str, params: dict) -> Upload:
-    """The image, scan and calibration of one KITTI frame, as the service's multipart fields."""
+
+def frame_upload(data: Path, frame: str, params: dict, scans: Path | None = None) -> Upload:
+    """The image, scan and calibration of one KITTI frame, as the service's multipart fields; the scan from
+    ``scans`` (a folder of FRAME.bin) when given, else from ``data``/velodyne."""
+    scan = (scans if scans is not None else data / "velodyne") / f"{frame}.bin"
     files = {
         "image": (f"{frame}.png", (data / "image_2" / f"{frame}.png").read_bytes(), "image/png"),
-        "points": (f"{frame}.bin", (data / "velodyne" / f"{frame}.bin").read_bytes(), "application/octet-stream"),
+        "points": (f"{frame}.bin", scan.read_bytes(), "application/octet-stream"),
         "calib": (f"{frame}.txt", (data / "calib" / f"{frame}.txt").read_bytes(), "text/plain"),
     }
     return Upload(frame, files, params)
@@ -228,9 +277,10 @@ class RequestSource:
     shared count, a ``bad_every`` dividing the number of frames (5 with the five bundled ones) broke the same
     frames every time, and those were never sent intact."""
 
-    def __init__(self, data: Path, frames: list[str], params: dict, total: int | None, bad_every: int = 0) -> None:
+    def __init__(self, data: Path, frames: list[str], params: dict, total: int | None, bad_every: int = 0,
+                 scans: Path | None = None) -> None:
         self.data, self.frames, self.params = data, frames, params
-        self.bad_every = bad_every
+        self.bad_every, self.scans = bad_every, scans
         self._left = total
         self._count = 0
         self._turns = {False: 0, True: 0}  # requests sent so far: well-formed, broken
@@ -248,30 +298,34 @@ class RequestSource:
             turn = self._turns[broken]
             self._turns[broken] += 1
         # Read per request (the page cache holds them): a folder of hundreds of frames is not held in memory.
-        good = frame_upload(self.data, self.frames[turn % len(self.frames)], self.params)
+        good = frame_upload(self.data, self.frames[turn % len(self.frames)], self.params, self.scans)
         if broken:
             return broken_upload(good, BROKEN_KINDS[turn % len(BROKEN_KINDS)])
         return good
+
+
+def _post(client: httpx.Client, url: str, upload: Upload) -> tuple[str, dict[str, float] | None]:
+    """Send one request: its status (or the transport error's name) and, for a 200, the server's stage timings."""
+    try:
+        response = client.post(f"{url}/v1/detect", files=upload.files, params=upload.params)
+    except httpx.HTTPError as exc:
+        return f"error:{type(exc).__name__}", None
+    return str(response.status_code), response.json()["timings_ms"] if response.status_code == 200 else None
 
 
 def _client_loop(
     url: str, source: RequestSource, headers: dict, stop: threading.Event, backoff_s: float, origin: float,
     samples: list[Sample], lock: threading.Lock,
 ) -> None:
+    """One closed-loop client: the next request when the previous one is answered (after a 503, ``backoff_s``)."""
     with httpx.Client(timeout=120, headers=headers) as client:
         while not stop.is_set() and (upload := source.take()) is not None:
             tic = time.perf_counter()
-            timings = None
-            try:
-                response = client.post(f"{url}/v1/detect", files=upload.files, params=upload.params)
-                status = str(response.status_code)
-                if response.status_code == 200:
-                    timings = response.json()["timings_ms"]
-            except httpx.HTTPError as exc:
-                status = f"error:{type(exc).__name__}"
+            status, timings = _post(client, url, upload)
             toc = time.perf_counter()
             with lock:
-                samples.append(Sample(tic - origin, (toc - tic) * 1e3, status, upload.name, upload.broken, timings))
+                samples.append(Sample(tic - origin, (toc - tic) * 1e3, status, upload.name, upload.broken, timings,
+                                      upload.points))
             if status == "503":
                 stop.wait(backoff_s)
 
@@ -298,6 +352,111 @@ def drive(
     for thread in threads:
         thread.join()
     return samples, time.perf_counter() - origin
+
+
+@dataclass
+class Schedule:
+    """What the open loop's dispatcher did: requests due in the run, sent, sent late (every slot busy at their
+    due time), never sent (still waiting for a slot when the run ended), and the sending window (s)."""
+
+    due: int = 0
+    sent: int = 0
+    late: int = 0
+    unsent: int = 0
+    window_s: float = 0.0
+
+
+def drive_open_loop(
+    url: str, rate_hz: float, max_in_flight: int, duration_s: float | None, source: RequestSource, headers: dict,
+) -> tuple[list[Sample], float, Schedule]:
+    """Send a request every 1/``rate_hz`` s, whatever the answers, with at most ``max_in_flight`` unanswered, until
+    ``duration_s`` has passed or the source is spent; samples (latency from each request's due time), wall time,
+    and the schedule kept.
+
+    A request due while every slot is busy goes out as soon as one frees (counted late), and the later ones wait
+    behind it: a sensor that queues its frames, so the latency from the due time shows the queueing (measured
+    from the send, it would hide it, as a closed loop does). One still waiting when ``duration_s`` ends is counted
+    unsent, as are the later ones due before the end."""
+    slots = threading.Semaphore(max_in_flight)
+    jobs: queue.Queue[tuple[Upload, float, float] | None] = queue.Queue()
+    samples: list[Sample] = []
+    lock = threading.Lock()
+    origin = time.perf_counter()
+
+    def sender() -> None:
+        with httpx.Client(timeout=120, headers=headers) as client:
+            while (job := jobs.get()) is not None:
+                upload, due, sent = job
+                try:
+                    status, timings = _post(client, url, upload)
+                    toc = time.perf_counter()
+                    with lock:
+                        samples.append(Sample(due - origin, (toc - due) * 1e3, status, upload.name, upload.broken,
+                                              timings, upload.points, (sent - due) * 1e3))
+                finally:
+                    slots.release()  # after the sample, so a finished run has every sample; always, or the run hangs
+
+    threads = [threading.Thread(target=sender, daemon=True) for _ in range(max_in_flight)]
+    for thread in threads:
+        thread.start()
+    end = origin + duration_s if duration_s is not None else math.inf
+    schedule = Schedule()
+    waited_until = -math.inf  # when the dispatcher last got a slot it had to wait for
+    last_sent = origin
+    index = 0
+    spent = False
+    while (due := origin + index / rate_hz) < end:
+        upload = source.take()  # read before its due time: the file read is not the request's latency
+        if upload is None:
+            spent = True
+            break
+        schedule.due += 1
+        index += 1
+        now = time.perf_counter()
+        if now < due:
+            time.sleep(due - now)
+        if slots.acquire(blocking=False):
+            # Behind schedule only because the dispatcher was still waiting for a slot at this one's due time.
+            late = due < waited_until
+        else:
+            late = True
+            left = max(0.0, end - time.perf_counter()) if duration_s is not None else None  # None: as long as it takes
+            if not slots.acquire(timeout=left):
+                schedule.unsent += 1  # the run ended with every slot still busy
+                break
+            waited_until = time.perf_counter()
+        last_sent = time.perf_counter()
+        schedule.sent += 1
+        schedule.late += late
+        jobs.put((upload, due, last_sent))
+    # Requests due before the end that the dispatcher never reached: counted, not silently left out.
+    while not spent and duration_s is not None and origin + index / rate_hz < end:
+        schedule.due += 1
+        schedule.unsent += 1
+        index += 1
+    for _ in threads:
+        jobs.put(None)
+    for thread in threads:
+        thread.join()
+    wall = time.perf_counter() - origin
+    scheduled_window = duration_s if duration_s is not None else schedule.due / rate_hz
+    # Late sends can stretch a --requests run past its schedule: the rate achieved is then over the longer window.
+    schedule.window_s = max(scheduled_window, last_sent - origin + 1 / rate_hz)
+    return samples, wall, schedule
+
+
+def thin_scans(data: Path, frames: list[str], beams: int, folder: Path) -> None:
+    """Write each frame's scan thinned to ``beams`` lines into ``folder`` as FRAME.bin (what an N-line sensor
+    sends); a scan that cannot be thinned (thinned already, empty, truncated) is an InputError naming
+    --send-beams."""
+    for frame in frames:
+        path = data / "velodyne" / f"{frame}.bin"
+        try:
+            points = emulate_beams(read_velodyne(path).points, beams)
+        except InputError as exc:
+            reason = str(exc).removeprefix(f"{path}: ").removeprefix("points: ")
+            raise InputError(f"--send-beams {beams}: {path}: {reason}") from None
+        write_velodyne(folder / f"{frame}.bin", points)
 
 
 class GaugeSampler:
@@ -362,8 +521,30 @@ def per_window(samples: list[Sample], rss_series: list[tuple[float, float]], wal
     return windows
 
 
-def summarise(samples: list[Sample], wall_s: float, url: str, clients: int, rss: dict[str, float],
-              gauges: GaugeSampler | None, server: dict) -> LoadResult:
+def this_machine() -> dict:
+    """The machine this process runs on, for a report."""
+    return {**describe_cpu(), "platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()}
+
+
+@dataclass
+class RunContext:
+    """What a run was, besides its samples: the mode, where the scans were thinned, who ran where, and what the
+    load generator itself cost."""
+
+    url: str
+    clients: int
+    server: dict
+    thinning: dict
+    started_here: bool
+    client_cpu_s: float
+    rate_hz: float | None = None
+    schedule: Schedule | None = None
+    service_log: str | None = None
+
+
+def summarise(samples: list[Sample], wall_s: float, rss: dict[str, float], gauges: GaugeSampler | None,
+              context: RunContext) -> LoadResult:
+    """The figures of a run from its samples."""
     good = [s for s in samples if not s.broken]
     broken = [s for s in samples if s.broken]
     ok = [s for s in good if s.status == "200"]
@@ -376,8 +557,27 @@ def summarise(samples: list[Sample], wall_s: float, url: str, clients: int, rss:
     windows = per_window(samples, rss_series, wall_s)
     tenth = max(1, len(ok) // 10)
     by_start = sorted(ok, key=lambda s: s.start_s)
+    # What the server did with the scans, from its own answers: it times an emulate_beams stage only when it thins.
+    thinning = {**context.thinning,
+                "points_sent_mean": float(np.mean([s.points for s in good])) if good else float("nan"),
+                "server_thinned_answers": sum("emulate_beams" in (s.timings_ms or {}) for s in ok)}
+    open_loop = {}
+    if context.rate_hz is not None and context.schedule is not None:
+        schedule = context.schedule
+        open_loop = {
+            "requested_rate_hz": context.rate_hz,
+            "achieved_rate_hz": schedule.sent / schedule.window_s if schedule.window_s > 0 else float("nan"),
+            "ok_rate_hz": len(ok) / schedule.window_s if schedule.window_s > 0 else float("nan"),
+            "max_in_flight": context.clients,
+            "window_s": round(schedule.window_s, 3),
+            "due": schedule.due, "sent": schedule.sent, "late_sends": schedule.late, "unsent": schedule.unsent,
+            "send_lag_ms": _percentiles([s.lag_ms for s in samples]),
+            # The same requests timed from when they went out: the difference is the wait for a slot.
+            "latency_from_send_ms": _percentiles([s.latency_ms - s.lag_ms for s in good]),
+        }
+    machine = this_machine()
     return LoadResult(
-        url=url, clients=clients, duration_s=round(wall_s, 2), requests=len(samples),
+        url=context.url, clients=context.clients, duration_s=round(wall_s, 2), requests=len(samples),
         status_counts=dict(sorted(Counter(s.status for s in good).items())),
         throughput_ok_per_s=len(ok) / wall_s, throughput_all_per_s=len(samples) / wall_s,
         latency_ms={
@@ -404,9 +604,16 @@ def summarise(samples: list[Sample], wall_s: float, url: str, clients: int, rss:
             "p50_ms_first_tenth": float(np.median([s.latency_ms for s in by_start[:tenth]])) if ok else None,
             "p50_ms_last_tenth": float(np.median([s.latency_ms for s in by_start[-tenth:]])) if ok else None,
         },
-        windows=windows, server=server,
-        machine={**describe_cpu(), "platform": platform.platform(), "cpus": os.cpu_count(),
-                 "python": platform.python_version()},
+        windows=windows, server=context.server,
+        mode="open-loop" if open_loop else "closed-loop",
+        latency_from="schedule" if open_loop else "send",
+        open_loop=open_loop, thinning=thinning,
+        client_machine=machine,
+        server_machine=machine if context.started_here else None,
+        client_shares_server_machine=True if context.started_here else None,
+        client_cpu_s=round(context.client_cpu_s, 3),
+        client_cpu_cores=context.client_cpu_s / wall_s if wall_s > 0 else float("nan"),
+        service_log=context.service_log,
     )
 
 
@@ -427,7 +634,8 @@ def plot_load(samples: list[Sample], result: LoadResult, path: Path, title: str)
                    label=[f"{k} ({len(v)})" for k, v in groups.items()])
     histogram.set_xscale("log")
     histogram.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # minor labels overlap on a log axis
-    histogram.set_xlabel("latency (ms, client side)")
+    histogram.set_xlabel("latency (ms, client side, from the due time)" if result.latency_from == "schedule"
+                         else "latency (ms, client side)")
     histogram.set_ylabel("requests")
     histogram.legend()
 
@@ -438,7 +646,8 @@ def plot_load(samples: list[Sample], result: LoadResult, path: Path, title: str)
         windows = result.windows
         timeline.plot([(w["start_s"] + w["end_s"]) / 2 for w in windows], [w["p50_ms"] for w in windows],
                       "-o", color="tab:blue", label="p50 per tenth of the run")
-    timeline.set_xlabel("seconds into the load")
+    timeline.set_xlabel("seconds into the load (due time)" if result.latency_from == "schedule"
+                        else "seconds into the load")
     timeline.set_ylabel("latency (ms)", color="tab:blue")
     timeline.legend(loc="upper left")
     if result.rss_series:
@@ -454,23 +663,71 @@ def plot_load(samples: list[Sample], result: LoadResult, path: Path, title: str)
     plt.close(figure)
 
 
+def _machine_line(result: LoadResult) -> str:
+    """Whose machine the report describes: always the load generator's; the server's only when started here."""
+    machine = result.client_machine
+    where = ("the server's too: load.py started it here, so the two share these CPUs"
+             if result.client_shares_server_machine
+             else "where load.py runs; the server's machine is not known here")
+    return f"client machine: {cpu_label(machine)}, {machine['cpus']} CPUs, {machine['platform']} ({where})"
+
+
+def _thinning_line(result: LoadResult) -> str:
+    """Which side thinned the scans, and how many points each request carried."""
+    thinning = result.thinning
+    sent = f"{thinning['points_sent_mean']:,.0f} points a scan"
+    if thinning["where"] == "client":
+        return (f"scans: thinned to {thinning['beams']} lines here before the run (--send-beams {thinning['beams']}): "
+                f"{sent} sent, of {thinning['points_stored_mean']:,.0f} stored; the server not asked to thin "
+                f"(it thinned {thinning['server_thinned_answers']} answers)")
+    if thinning["where"] == "server":
+        return (f"scans: sent as stored ({sent}), thinned to {thinning['beams']} lines by the server "
+                f"(emulate_beams={thinning['beams']}; --send-beams N thins them here instead)")
+    return f"scans: sent as stored ({sent}), not thinned"
+
+
+def _load_lines(result: LoadResult) -> list[str]:
+    """The load's shape: closed-loop clients, or the open loop's schedule and how well it was kept."""
+    if result.mode != "open-loop":
+        return [(f"{result.clients} clients, {result.requests} requests in {result.duration_s} s, "
+                 f"{result.frames_sent} distinct frame(s)")]
+    loop = result.open_loop
+    lag = loop["send_lag_ms"]
+    return [
+        (f"open loop: {loop['requested_rate_hz']:g} Hz requested, {loop['achieved_rate_hz']:.2f} Hz sent "
+         f"over {loop['window_s']:.2f} s, at most {loop['max_in_flight']} in flight; {loop['due']} due, "
+         f"{loop['sent']} sent, {loop['late_sends']} of them late (every slot busy at their due time), "
+         f"{loop['unsent']} never sent (still waiting when the run ended); {result.frames_sent} distinct frame(s), "
+         f"last answer at {result.duration_s} s"),
+        f"send lag ms (due time → sent): p50 {lag['p50']:.1f}, p99 {lag['p99']:.1f}, max {lag['max']:.1f}",
+    ]
+
+
 def format_report(result: LoadResult) -> str:
+    """The printed report."""
     lines = [
         (f"service {result.url}: {result.server.get('preset')} models, {result.server.get('workers')} worker(s), "
          f"{result.server.get('sessions')} sessions, {result.server.get('intra_op_threads')} intra-op thread(s), "
          f"queue {result.server.get('queue_size')}, {result.server.get('providers')}"
          f"{', PIXOR with mirror TTA' if result.server.get('mirror_tta') else ''}"),
-        f"machine: {cpu_label(result.machine)}, {result.machine['cpus']} CPUs, {result.machine['platform']}",
-        (f"{result.clients} clients, {result.requests} requests in {result.duration_s} s, "
-         f"{result.frames_sent} distinct frame(s)"),
+        _machine_line(result),
+        _thinning_line(result),
+        *_load_lines(result),
         (f"status counts of the real frames (the broken ones: below): {result.status_counts}" if result.broken.get("sent")
          else f"status counts: {result.status_counts}"),
         (f"throughput: {result.throughput_ok_per_s:.2f} frames/s answered 200 "
          f"({result.throughput_all_per_s:.2f} requests/s in all)"),
-        "latency ms (client side)   p50      p99      mean     max",
     ]
-    for name, stats in result.latency_ms.items():
-        lines.append(f"  {name:<24}" + "".join(f"{stats[k]:>9.1f}" for k in ("p50", "p99", "mean", "max")))
+    if result.mode == "open-loop":
+        columns = ("p50", "p90", "p99", "mean", "max")
+        lines.append("latency ms from the due time   p50      p90      p99      mean     max")
+        rows = {**result.latency_ms, "all, from the send": result.open_loop["latency_from_send_ms"]}
+    else:
+        columns = ("p50", "p99", "mean", "max")
+        lines.append("latency ms (client side)   p50      p99      mean     max")
+        rows = result.latency_ms
+    for name, stats in rows.items():
+        lines.append(f"  {name:<24}" + "".join(f"{stats[k]:>9.1f}" for k in columns))
     if result.broken.get("sent"):
         lines.append(f"broken requests: {result.broken['answered_4xx']} of {result.broken['sent']} answered 4xx; "
                      + "; ".join(f"{kind} {statuses}" for kind, statuses in result.broken["statuses"].items()))
@@ -501,7 +758,31 @@ def format_report(result: LoadResult) -> str:
         series = result.rss_series
         picks = [series[min(len(series) - 1, int(q * len(series)))] for q in (0.0, 0.25, 0.5, 0.75)] + [series[-1]]
         lines.append("server RSS MB during the load: " + ", ".join(f"{t:.0f} s {mb:.1f}" for t, mb in picks))
+    cpus = result.client_machine.get("cpus") or 1
+    lines.append(
+        f"load generator CPU: {result.client_cpu_s:.2f} s over the {result.duration_s} s run "
+        f"({result.client_cpu_cores:.2f} of a core on average, {100 * result.client_cpu_cores / cpus:.0f} % of the "
+        f"client machine's {cpus} CPUs{', which the server shares' if result.client_shares_server_machine else ''})")
+    if result.service_log:
+        lines.append(f"service log: {result.service_log}")
     return "\n".join(lines)
+
+
+def thinning_plan(send_beams: int, emulate_beams: int | None) -> tuple[int, int]:
+    """(lines the client thins to, lines the server is asked to thin to), 0 for none. ``emulate_beams`` None: the
+    server thins to 16 unless the client thins (a thinned scan is refused by the server's thinning); asking both
+    to thin is an InputError."""
+    if send_beams and emulate_beams:
+        raise InputError(f"--send-beams {send_beams} thins the scans here and --emulate-beams {emulate_beams} would "
+                         "ask the server to thin them again (it refuses a thinned scan): give one of the two")
+    if emulate_beams is None:
+        emulate_beams = 0 if send_beams else 16
+    return send_beams, emulate_beams
+
+
+def stored_points_mean(data: Path, frames: list[str]) -> float:
+    """Mean points per stored scan of the frames, from the files' sizes."""
+    return float(np.mean([(data / "velodyne" / f"{frame}.bin").stat().st_size // POINT_BYTES for frame in frames]))
 
 
 def run(
@@ -512,18 +793,26 @@ def run(
     requests: int | None = None,
     data: Path = KITTI,
     frames: list[str] | None = None,
-    emulate_beams: int | None = 16,
+    emulate_beams: int | None = None,
     bad_every: int = 0,
     token: str | None = None,
     backoff_s: float = 0.1,
     server_args: list[str] | None = None,
     plot: Path | None = None,
-    log_path: Path = Path("outputs/load_service.log"),
+    log_path: Path = DEFAULT_LOG,
+    rate_hz: float | None = None,
+    send_beams: int = 0,
 ) -> LoadResult:
-    """Drive a service (started here when ``url`` is None) and measure it."""
+    """Drive a service (started here when ``url`` is None) and measure it: closed-loop ``clients``, or with
+    ``rate_hz`` an open loop with at most ``clients`` requests in flight. ``send_beams``: thin the scans here
+    first (0: as stored); ``emulate_beams``: ask the server to (see :func:`thinning_plan`)."""
     frames = frames or frame_ids(data)
+    send_beams, emulate_beams = thinning_plan(send_beams, emulate_beams)
     params = {"emulate_beams": emulate_beams} if emulate_beams else {}
     headers = {"Authorization": f"Bearer {token}"} if token else {}
+    where = "client" if send_beams else "server" if emulate_beams else "none"
+    thinning = {"where": where, "beams": send_beams or emulate_beams or None, "send_beams": send_beams,
+                "emulate_beams": emulate_beams, "points_stored_mean": stored_points_mean(data, frames)}
 
     @contextmanager
     def target() -> Iterator[str]:
@@ -534,26 +823,48 @@ def run(
             with started_service(models, server_args or [], log_path) as started:
                 yield started
 
-    with target() as base:
-        info = httpx.get(f"{base}/v1/model", headers=headers, timeout=10).json()
-        server = {
-            "preset": info["preset"], "workers": info["workers"], "sessions": info["sessions"],
-            "queue_size": info["queue_size"], "intra_op_threads": info.get("intra_op_threads"),
-            "mirror_tta": info.get("mirror_tta", False),
-            "providers": sorted({p for ps in info["providers_in_use"].values() for p in ps}),
-        }
-        rss = {"ready": server_rss_mb(base, headers)}
-        # Warm-up at full concurrency so every worker thread exists and has made its buffers.
-        drive(base, clients, None, RequestSource(data, frames, params, 3 * clients), headers, backoff_s)
-        rss["warm"] = server_rss_mb(base, headers)
-        with GaugeSampler(base, headers) as gauges:
-            source = RequestSource(data, frames, params, requests, bad_every)
-            samples, wall = drive(base, clients, duration_s, source, headers, backoff_s)
-        rss["end"] = server_rss_mb(base, headers)
-    result = summarise(samples, wall, base, clients, rss, gauges, server)
+    # The thinned scans go to a temporary folder, read per request as the stored ones are: a folder of hundreds
+    # of frames is not held in memory. Thinned before the service starts, so a scan that cannot be thinned
+    # stops the run before anything runs.
+    with tempfile.TemporaryDirectory(prefix="load-scans-") as scratch:
+        scans = None
+        if send_beams:
+            scans = Path(scratch)
+            thin_scans(data, frames, send_beams, scans)
+        with target() as base:
+            info = httpx.get(f"{base}/v1/model", headers=headers, timeout=10).json()
+            server = {
+                "preset": info["preset"], "workers": info["workers"], "sessions": info["sessions"],
+                "queue_size": info["queue_size"], "intra_op_threads": info.get("intra_op_threads"),
+                "mirror_tta": info.get("mirror_tta", False),
+                "providers": sorted({p for ps in info["providers_in_use"].values() for p in ps}),
+            }
+            rss = {"ready": server_rss_mb(base, headers)}
+            # Warm-up at full concurrency so every worker thread exists and has made its buffers.
+            drive(base, clients, None, RequestSource(data, frames, params, 3 * clients, scans=scans), headers,
+                  backoff_s)
+            rss["warm"] = server_rss_mb(base, headers)
+            schedule = None
+            # CPU of this process alone (every thread, the gauge scrapes too; not a service started here, a child):
+            # on a shared box, what the load generator took from the server.
+            cpu_start = time.process_time()
+            with GaugeSampler(base, headers) as gauges:
+                source = RequestSource(data, frames, params, requests, bad_every, scans)
+                if rate_hz is None:
+                    samples, wall = drive(base, clients, duration_s, source, headers, backoff_s)
+                else:
+                    samples, wall, schedule = drive_open_loop(base, rate_hz, clients, duration_s, source, headers)
+            client_cpu_s = time.process_time() - cpu_start
+            rss["end"] = server_rss_mb(base, headers)
+    context = RunContext(url=base, clients=clients, server=server, thinning=thinning, started_here=url is None,
+                         client_cpu_s=client_cpu_s, rate_hz=rate_hz, schedule=schedule,
+                         service_log=str(log_path) if url is None else None)
+    result = summarise(samples, wall, rss, gauges, context)
     if plot is not None and samples:
         plot.parent.mkdir(parents=True, exist_ok=True)
-        plot_load(samples, result, plot, f"{clients} clients, {server['workers']} worker(s), "
+        load = (f"{rate_hz:g} Hz open loop, at most {clients} in flight" if rate_hz is not None
+                else f"{clients} clients")
+        plot_load(samples, result, plot, f"{load}, {server['workers']} worker(s), "
                                          f"queue {server['queue_size']}, {server['preset']} models")
     return result
 
@@ -570,25 +881,37 @@ def check_frames(data: Path, frames: list[str]) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python benchmarks/load.py",
-        description="Load-test the lowres3d detection service on loopback (deliberately over capacity): "
+        description="Load-test the lowres3d detection service on loopback (deliberately over capacity) or at --url: "
         "throughput, p50/p99 latency, status counts, server memory and file descriptors over the run "
-        "(a soak test when long), broken requests mixed in on request.",
+        "(a soak test when long), broken requests mixed in on request. Closed loop by default (each client sends "
+        "when answered); --rate HZ for an open loop at a sensor's rate. The machine it reports is the client's "
+        "(the load generator's, with its own CPU time): the server's too only when it started the service.",
     )
     parser.add_argument("--url", help="a running service (default: start one on 127.0.0.1 with --models)")
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
-    parser.add_argument("--clients", type=positive_int, default=8, help="concurrent clients (default 8)")
+    parser.add_argument("--clients", type=positive_int, default=8,
+                        help="concurrent clients (default 8); with --rate, the most requests in flight at once")
+    parser.add_argument("--rate", type=positive_float, metavar="HZ",
+                        help="open loop: a request due every 1/HZ s in all, whatever the answers (a 10 Hz sensor: 10), "
+                        "at most --clients in flight; one due while all are busy goes out late, and latency counts "
+                        "from the due time (default: closed loop)")
     bound = parser.add_mutually_exclusive_group()
     bound.add_argument("--duration", type=positive_float, help="seconds of load (default 20 unless --requests)")
     bound.add_argument("--requests", type=positive_int, help="total requests instead of a duration")
     parser.add_argument("--data", type=Path, default=KITTI,
                         help="KITTI object folder whose frames are sent in turn (default tests/data/kitti/training)")
     parser.add_argument("--frame", metavar="ID", help="send only this frame of --data")
-    parser.add_argument("--emulate-beams", "--beams", type=non_negative_int, default=16, metavar="N",
-                        help="server-side thinning of the 64-line scan (default 16; 0: off)")
+    parser.add_argument("--emulate-beams", "--beams", type=non_negative_int, metavar="N",
+                        help="ask the server to thin the 64-line scan to N lines (emulate_beams=N; default 16, or 0 "
+                        "with --send-beams; 0: off)")
+    parser.add_argument("--send-beams", type=int, choices=(0, *BEAM_COUNTS), default=0, metavar="N",
+                        help="thin the scans to N lines (32, 16, 8 or 4) here, once before the run, and send those, "
+                        "as an N-line sensor would, without asking the server to thin (default 0: as stored)")
     parser.add_argument("--bad-every", type=non_negative_int, default=0, metavar="N",
                         help="make every Nth request a broken one, which must be answered 4xx (default 0: none)")
     parser.add_argument("--token", default=os.environ.get("LOWRES3D_TOKEN"), help="bearer token (default $LOWRES3D_TOKEN)")
-    parser.add_argument("--backoff-s", type=float, default=0.1, help="a client's pause after a 503 (default 0.1)")
+    parser.add_argument("--backoff-s", type=float,
+                        help="closed loop: a client's pause after a 503 (default 0.1)")
     parser.add_argument("--workers", type=int, help="started service: inference workers")
     parser.add_argument("--queue-size", type=int, help="started service: queue size")
     parser.add_argument("--sessions", choices=["shared", "per-worker"], help="started service: session mode")
@@ -597,9 +920,17 @@ def main(argv: list[str] | None = None) -> int:
                         help="started service: PIXOR also on the mirrored BEV (python -m service --mirror-tta)")
     parser.add_argument("--json", type=Path, help="write the result as JSON here")
     parser.add_argument("--plot", type=Path, help="write a PNG here: latency histogram, latency and memory over time")
+    parser.add_argument("--log", type=Path, metavar="FILE",
+                        help=f"started service: write its log here (default {DEFAULT_LOG}, under the working directory)")
     args = parser.parse_args(argv)
-    if not args.backoff_s >= 0:
+    if args.backoff_s is not None and args.rate is not None:
+        parser.error("--backoff-s applies to the closed loop only: with --rate each request goes at its due time")
+    if args.backoff_s is not None and not args.backoff_s >= 0:
         parser.error("--backoff-s must be 0 or more")
+    try:
+        send_beams, emulate_beams = thinning_plan(args.send_beams, args.emulate_beams)
+    except InputError as exc:
+        parser.error(str(exc))
     server_args: list[str] = []
     for flag in ("workers", "queue_size", "sessions", "intra_op_threads"):
         value = getattr(args, flag)
@@ -610,6 +941,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.url and server_args:
         parser.error("--workers/--queue-size/--sessions/--intra-op-threads/--mirror-tta apply only to a service "
                      "started here")
+    if args.url and args.log is not None:
+        parser.error("--log applies only to a service started here (the one at --url logs where it was started)")
     if args.url is None and not args.models.is_dir():
         parser.error(f"--models: {args.models} is not a directory (export one with `python -m export`)")
     try:
@@ -624,15 +957,22 @@ def main(argv: list[str] | None = None) -> int:
             check_output(args.json, "--json")
         if args.plot is not None:
             check_figure(args.plot, "--plot")
+        log = DEFAULT_LOG if args.log is None else args.log
+        if args.url is None:
+            check_output(log, "--log")
     except InputError as exc:
         parser.error(str(exc))
     duration = args.duration if args.duration is not None else (None if args.requests else 20.0)
     try:
         result = run(
             url=args.url, models=args.models, clients=args.clients, duration_s=duration, requests=args.requests,
-            data=args.data, frames=frames, emulate_beams=args.emulate_beams or None, bad_every=args.bad_every,
-            token=args.token, backoff_s=args.backoff_s, server_args=server_args, plot=args.plot,
+            data=args.data, frames=frames, emulate_beams=emulate_beams, bad_every=args.bad_every, token=args.token,
+            backoff_s=0.1 if args.backoff_s is None else args.backoff_s, server_args=server_args, plot=args.plot,
+            log_path=log, rate_hz=args.rate, send_beams=send_beams,
         )
+    except InputError as exc:  # a scan --send-beams cannot thin (a thinned one already); nothing was started
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     except httpx.TransportError as exc:  # nothing listening at --url, or it went away before the load began
         where = f"--url {args.url}" if args.url else "the service started here"
         print(f"error: {where}: cannot reach the service ({exc}); start it first (python -m service) "
