@@ -53,8 +53,10 @@ from evaluation.report import (
     distance_json,
     format_difference,
     format_distance_table,
+    format_gap,
     format_spread,
     format_table,
+    gap_json,
     plot_by_distance,
     plot_car_depth,
     plot_pr_curves,
@@ -101,6 +103,7 @@ class LabelEvalConfig:
     bootstrap: int = 0  # draws of the frame bootstrap (0: none): the AP's spread over frame samples
     seed: int = 0  # of the bootstrap draws
     compare_pred_labels: Path | None = None  # another model's results on the same frames: AP differences
+    gap_to_pred_labels: Path | None = None  # a stronger model's: the share of the gap up to it that pred_labels closes
     detector: dict[str, Any] | None = None  # what made pred_labels, when this run detected (JSON "run")
 
 
@@ -124,6 +127,12 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         frame_ids = first_frames(frame_ids or ground_truth_frames(config.gt_labels), config.first_frames)
     if config.compare_pred_labels is not None and not Path(config.compare_pred_labels).is_dir():
         raise InputError(f"--compare-pred-labels: {config.compare_pred_labels}: prediction label directory not found")
+    if config.gap_to_pred_labels is not None:
+        if config.compare_pred_labels is None:
+            raise InputError("--gap-to-pred-labels: give --compare-pred-labels too (the gap runs from that model "
+                             "up to this one)")
+        if not Path(config.gap_to_pred_labels).is_dir():
+            raise InputError(f"--gap-to-pred-labels: {config.gap_to_pred_labels}: prediction label directory not found")
     labels = load_label_dirs(config.gt_labels, config.pred_labels, frame_ids, progress=config.progress,
                              missing_as_empty=config.missing_as_empty)
     if not any((d.types == config.class_name.lower()).any() for d in labels.detections):
@@ -137,7 +146,7 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
     if not result.metrics:  # detections of the class, but none a metric can use: an empty table otherwise
         raise InputError(f"{config.pred_labels}: no {config.class_name} detection carries a 2D box (left >= 0) or "
                          "a ground-plane box (x, z != -1000, w, l > 0): nothing to evaluate")
-    other, other_labels, spread = _compare_and_bootstrap(config, frame_ids, labels, result)
+    other, other_labels, upper, spread = _compare_and_bootstrap(config, frame_ids, labels, result)
     by_distance = _by_distance(config, labels)
     other_by_distance = _by_distance(config, other_labels) if other_labels is not None else {}
     if config.json_path:
@@ -150,6 +159,9 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
             document["bootstrap"] = spread_json(result, spread, other)
         if other is not None:
             document["compared_with"] = {"pred_labels": str(config.compare_pred_labels), **other.ap_table()}
+        if upper is not None:
+            document["gap_to"] = {"pred_labels": str(config.gap_to_pred_labels), **upper.ap_table()}
+            document["gap_share"] = gap_json(result, other, upper, spread)
         if config.depth_dir is not None:
             document["depth_source"] = f"{config.depth_dir} (not the depth network)"
         document["missing_predictions"] = list(labels.missing_predictions)
@@ -178,6 +190,9 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         table += "\n" + format_spread(result, spread, other, str(config.compare_pred_labels))
     elif other is not None:
         table += "\n" + format_difference(result, other, str(config.compare_pred_labels))
+    if upper is not None:
+        table += "\n" + format_gap(result, other, upper, str(config.compare_pred_labels), str(config.gap_to_pred_labels),
+                                   spread)
     if not config.ignore_small_detections:
         table = "not the devkit protocol: detections with 2D boxes under the minimum height are counted\n" + table
     if labels.missing_predictions:
@@ -237,9 +252,11 @@ def _by_distance(config: LabelEvalConfig, labels: LabelSet) -> dict[tuple[float,
 
 
 def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None, labels: LabelSet, result: KittiEvalResult
-                           ) -> tuple[KittiEvalResult | None, LabelSet | None, BootstrapResult | None]:
-    """The other model's evaluation and labels (``compare_pred_labels``), and the bootstrap of both, when asked."""
-    other = other_labels = None
+                           ) -> tuple[KittiEvalResult | None, LabelSet | None, KittiEvalResult | None,
+                                      BootstrapResult | None]:
+    """The other model's evaluation and labels (``compare_pred_labels``), the stronger one's evaluation
+    (``gap_to_pred_labels``), and the bootstrap of all on the same draws, when asked."""
+    other = other_labels = upper = upper_labels = None
     if config.compare_pred_labels is not None:
         try:
             other_labels = load_label_dirs(config.gt_labels, config.compare_pred_labels, frame_ids, progress=False,
@@ -249,15 +266,25 @@ def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None,
         other = evaluate(other_labels.ground_truth, other_labels.detections, class_name=config.class_name,
                          iou_thresholds=config.iou_thresholds,
                          ignore_small_detections=config.ignore_small_detections)
+    if config.gap_to_pred_labels is not None:
+        try:
+            upper_labels = load_label_dirs(config.gt_labels, config.gap_to_pred_labels, frame_ids, progress=False,
+                                           missing_as_empty=config.missing_as_empty)
+        except InputError as exc:
+            raise InputError(f"--gap-to-pred-labels: {exc}") from exc
+        upper = evaluate(upper_labels.ground_truth, upper_labels.detections, class_name=config.class_name,
+                         iou_thresholds=config.iou_thresholds,
+                         ignore_small_detections=config.ignore_small_detections)
     if not config.bootstrap:
-        return other, other_labels, None
-    sets = [labels.detections] + ([other_labels.detections] if other_labels is not None else [])
+        return other, other_labels, upper, None
+    compared = [(o, lab) for o, lab in ((other, other_labels), (upper, upper_labels)) if o is not None]
+    sets = [labels.detections] + [lab.detections for _, lab in compared]  # this, other, upper: index 0, 1, 2
     # BEV and 3D only: the paper's table and its 3D counterpart; each metric costs a matching pass per draw.
-    metrics = tuple(m for m in ("bev", "3d") if m in result.metrics and (other is None or m in other.metrics))
+    metrics = tuple(m for m in ("bev", "3d") if m in result.metrics and all(m in o.metrics for o, _ in compared))
     spread = bootstrap(labels.ground_truth, sets, config.bootstrap, config.seed, class_name=config.class_name,
                        iou_thresholds=config.iou_thresholds, metrics=metrics,
                        ignore_small_detections=config.ignore_small_detections, progress=config.progress)
-    return other, other_labels, spread
+    return other, other_labels, upper, spread
 
 
 def distance_edges(text: str) -> tuple[float, ...]:
@@ -316,6 +343,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--compare-pred-labels", type=Path, metavar="DIR",
         help="another model's KITTI result files on the same frames: prints this − other for every AP",
     )
+    spread.add_argument(
+        "--gap-to-pred-labels", type=Path, metavar="DIR",
+        help="with --compare-pred-labels LOW: a stronger model's result files on the same frames; prints the share "
+        "of the gap from LOW up to DIR that this closes, per BEV and 3D column (the paper's camera row between its "
+        "16- and 64-line rows), and with --bootstrap its 95%% interval over the same draws",
+    )
     detect = parser.add_argument_group("run the detector over a dataset, then evaluate")
     detect.add_argument("--data", type=Path, metavar="DIR", help="KITTI object folder (image_2, velodyne, calib, label_2)")
     detect.add_argument("--models", type=Path, metavar="DIR", help="model directory trained for --input")
@@ -352,7 +385,7 @@ _RESULT_FILES = ("gt_labels", "pred_labels", "missing_as_empty")
 _RUN = ("data", "models", "provider")
 _DETECTION = ("input", "out", "score_threshold", "mirror_tta")
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
-_AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "compare_pred_labels")
+_AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "compare_pred_labels", "gap_to_pred_labels")
 
 
 def _flag(dest: str) -> str:
@@ -408,7 +441,7 @@ def main(argv: list[str] | None = None) -> int:
         json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
         ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
         bootstrap=args.bootstrap, seed=args.seed, compare_pred_labels=args.compare_pred_labels,
-        missing_as_empty=args.missing_as_empty,
+        gap_to_pred_labels=args.gap_to_pred_labels, missing_as_empty=args.missing_as_empty,
     )
     try:
         _check_outputs(args)
@@ -428,7 +461,8 @@ def _check_outputs(args: argparse.Namespace, out: Path | None = None) -> None:
     """--json, --plots and (detect mode) --out, before any work: writable, and not over an input (a --json
     named as a label file used to replace it)."""
     inputs = {"--gt-labels": args.gt_labels, "--pred-labels": args.pred_labels,
-              "--compare-pred-labels": args.compare_pred_labels, "--split-file": args.split_file,
+              "--compare-pred-labels": args.compare_pred_labels, "--gap-to-pred-labels": args.gap_to_pred_labels,
+              "--split-file": args.split_file,
               "--depth-dir": args.depth_dir, "--data": args.data, "--models": args.models}
     for path, flag, directory in ((args.json, "--json", False), (args.plots, "--plots", True),
                                   (out, "--out", True)):
@@ -546,7 +580,8 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
             ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
             depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed,
-            compare_pred_labels=args.compare_pred_labels, missing_as_empty=bool(detection.skipped),
+            compare_pred_labels=args.compare_pred_labels, gap_to_pred_labels=args.gap_to_pred_labels,
+            missing_as_empty=bool(detection.skipped),
             detector={"data": str(args.data), "models": str(args.models), "input": args.input,
                       "score_threshold": args.score_threshold, "mirror_tta": args.mirror_tta,
                       "provider": args.provider or "best available"},

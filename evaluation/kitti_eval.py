@@ -501,6 +501,19 @@ class BootstrapResult:
         low, high = np.percentile(values, [50 * (1 - level), 50 * (1 + level)])
         return float(low), float(high)
 
+    def gap_share_interval(self, metric: str, iou_threshold: float, difficulty: str, middle: int = 0, low: int = 1,
+                           high: int = 2, level: float = 0.95) -> tuple[float, float, int]:
+        """Percentile interval of the share of the gap from set ``low`` up to set ``high`` that set ``middle``
+        closes, (AP(middle) − AP(low)) / (AP(high) − AP(low)), over the draws where high is above low; and how
+        many draws those were (a draw without a gap has no share)."""
+        middle_ap, low_ap, high_ap = (self._values(i, metric, iou_threshold, difficulty) for i in (middle, low, high))
+        gap = high_ap - low_ap
+        shares = (middle_ap - low_ap)[gap > 0] / gap[gap > 0]
+        if shares.size == 0:
+            return float("nan"), float("nan"), 0
+        lo, hi = np.percentile(shares, [50 * (1 - level), 50 * (1 + level)])
+        return float(lo), float(hi), int(shares.size)
+
     def difference_interval(self, metric: str, iou_threshold: float, difficulty: str, first: int = 0,
                             second: int = 1, level: float = 0.95) -> tuple[float, float]:
         """Percentile interval of AP(first) − AP(second) over the same draws (a paired bootstrap)."""

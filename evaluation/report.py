@@ -249,3 +249,54 @@ def spread_json(result: KittiEvalResult, spread: BootstrapResult, other: KittiEv
                                  for t in spread.iou_thresholds} for m in spread.metrics}
         out["difference_interval"] = table(lambda m, t, d: spread.difference_interval(m, t, d, 0, 1, level))
     return out
+
+
+def gap_share(middle: KittiEvalResult, low: KittiEvalResult, high: KittiEvalResult, metric: str, iou: float,
+              difficulty: str) -> float | None:
+    """The share of the gap from ``low`` up to ``high`` that ``middle`` closes (R40 AP; the paper's camera row
+    between its 16- and 64-line rows); None where ``high`` is not above ``low``."""
+    gap = high.ap(metric, iou, difficulty) - low.ap(metric, iou, difficulty)
+    return (middle.ap(metric, iou, difficulty) - low.ap(metric, iou, difficulty)) / gap if gap > 0 else None
+
+
+def _gap_metrics(middle: KittiEvalResult, low: KittiEvalResult, high: KittiEvalResult) -> list[str]:
+    return [m for m in ("bev", "3d") if m in middle.metrics and m in low.metrics and m in high.metrics]
+
+
+def format_gap(middle: KittiEvalResult, low: KittiEvalResult, high: KittiEvalResult, low_name: str, high_name: str,
+               spread: BootstrapResult | None = None, level: float = 0.95) -> str:
+    """Per column, the share of the gap from ``low`` up to ``high`` that this evaluation closes; with ``spread``
+    (sets: this, low, high) its interval over the bootstrap draws."""
+    lines = [f"share of the gap from {low_name} up to {high_name} that this closes (R40; (this − low) / (high − low))"]
+    if spread is not None:
+        lines[0] += f", with its {level:.0%} interval over the {spread.ap.shape[1]} bootstrap draws"
+    for metric in _gap_metrics(middle, low, high):
+        for iou in sorted(middle.iou_thresholds):
+            cells = []
+            for d in DIFFICULTIES:
+                share = gap_share(middle, low, high, metric, iou, d)
+                cell = f"{d} {'n/a':>5}" if share is None else f"{d} {100 * share:4.0f} %"
+                if spread is not None and metric in spread.metrics:
+                    lo, hi, _ = spread.gap_share_interval(metric, iou, d, 0, 1, 2, level)
+                    cell += f" [{100 * lo:4.0f}, {100 * hi:4.0f}]" if not np.isnan(lo) else " [ n/a ]"
+                cells.append(cell)
+            lines.append(f"  {METRIC_TITLES[metric]:<7} @{iou:<4} " + "  ".join(cells))
+    return "\n".join(lines)
+
+
+def gap_json(middle: KittiEvalResult, low: KittiEvalResult, high: KittiEvalResult,
+             spread: BootstrapResult | None = None, level: float = 0.95) -> dict[str, Any]:
+    """``{"share": {metric: {iou: [easy, moderate, hard]}}, "interval": …, "draws_used": …}`` (shares as
+    fractions, None where there is no gap; the interval only with ``spread``)."""
+    metrics = _gap_metrics(middle, low, high)
+    out: dict[str, Any] = {"share": {m: {f"{t}": [gap_share(middle, low, high, m, t, d) for d in DIFFICULTIES]
+                                         for t in middle.iou_thresholds} for m in metrics}}
+    if spread is not None:
+        intervals = {m: {f"{t}": [spread.gap_share_interval(m, t, d, 0, 1, 2, level) for d in DIFFICULTIES]
+                         for t in spread.iou_thresholds} for m in metrics if m in spread.metrics}
+        out["interval"] = {m: {t: [None if np.isnan(lo) else [lo, hi] for lo, hi, _ in cells]
+                               for t, cells in by_iou.items()} for m, by_iou in intervals.items()}
+        out["draws_used"] = {m: {t: [used for _, _, used in cells] for t, cells in by_iou.items()}
+                             for m, by_iou in intervals.items()}
+        out["level"] = level
+    return out

@@ -579,3 +579,33 @@ def test_cli_help():
     assert out.returncode == 0 and "--gt-labels" in out.stdout and "--split-file" in out.stdout
     text = " ".join(out.stdout.split())
     assert "the same as --frames" in text and "A flag of another mode is refused, not ignored" in text
+
+
+def test_gap_share_between_a_weaker_and_a_stronger_model(tmp_path: Path):
+    """--gap-to-pred-labels: the share of the gap from --compare-pred-labels up to it that --pred-labels closes
+    (the paper's camera row between its 16- and 64-line rows), with its interval over the same bootstrap draws."""
+    gt = [[obj()] for _ in range(41)]
+    sets = {"gt": gt,
+            "high": [[obj(score=0.9)] for _ in range(41)],  # every car
+            "low": [[obj(score=0.9)] if i % 2 else [] for i in range(41)],  # every other car
+            "middle": [[obj(score=0.9)] if i % 4 else [] for i in range(41)]}  # three in four
+    for folder, dets in sets.items():
+        (tmp_path / folder).mkdir()
+        for i, objects in enumerate(dets):
+            write_labels(tmp_path / folder / f"{i:06d}.txt", objects)
+    out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "middle", "--compare-pred-labels",
+               tmp_path / "low", "--gap-to-pred-labels", tmp_path / "high", "--bootstrap", "20", "--json",
+               tmp_path / "gap.json")
+    assert out.returncode == 0, out.stderr
+    assert "share of the gap from" in out.stdout
+    document = json.loads((tmp_path / "gap.json").read_text())
+    ap = {name: table["bev"]["0.7"]["R40"][1] for name, table in
+          (("middle", document["Car"]), ("low", document["compared_with"]), ("high", document["gap_to"]))}
+    assert ap["low"] < ap["middle"] < ap["high"]
+    share = document["gap_share"]["share"]["bev"]["0.7"][1]
+    assert share == (ap["middle"] - ap["low"]) / (ap["high"] - ap["low"]) and 0.3 < share < 0.7
+    low, high = document["gap_share"]["interval"]["bev"]["0.7"][1]
+    assert low <= share <= high and document["gap_share"]["draws_used"]["bev"]["0.7"][1] == 20
+    alone = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "middle", "--gap-to-pred-labels",
+                 tmp_path / "high")
+    assert alone.returncode == 2 and "--gap-to-pred-labels: give --compare-pred-labels too" in alone.stderr
