@@ -80,7 +80,7 @@ from pipeline.cli import (
     quiet_interrupt,
     write_text_file,
 )
-from pipeline.cpu import cpu_label, usable_cpus
+from pipeline.cpu import cpu_label, cpu_quota, usable_cpus
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Cancellation, Detector, RunCancelled
 from pipeline.errors import TORCH_MISSING, InputError
@@ -663,10 +663,16 @@ def versions() -> dict:
     return out
 
 
+THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
+
+
 def machine() -> dict:
     # INT8 speed (and exactness) hangs on VNNI, fp32 on AVX-512 and FMA: say which this box has.
-    return {**describe_cpu(), "cores": len(os.sched_getaffinity(0)), "system": platform.platform(),
-            "python": platform.python_version()}
+    return {**describe_cpu(), "cores": usable_cpus(), "affinity_cpus": len(os.sched_getaffinity(0)),
+            "cpu_quota": cpu_quota(), "system": platform.platform(),
+            "python": platform.python_version(),
+            # Thread counts set for NumPy's BLAS and OpenMP runtimes move the figures (docs/measurements.md, session 35).
+            "thread_environment": {name: os.environ[name] for name in THREAD_VARIABLES if name in os.environ}}
 
 
 # ----------------------------------------------------------------------------- main job
@@ -701,7 +707,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     a frame against 1 ms).
     """
     if threads > 1:  # before anything is exported or timed
-        check_workers(threads, worker_kind, len(os.sched_getaffinity(0)))
+        check_workers(threads, worker_kind, usable_cpus())
     warnings = Warnings(say=progress)
     said_once = _LoadWarnings(warnings)
     logger = logging.getLogger("pipeline.detector")
@@ -727,7 +733,7 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
          stage_threads: int | None, mirror_tta: bool, warnings: Warnings,
          score_threshold: float | None = None) -> dict:
     """:func:`run`'s measurements."""
-    cores = sorted(os.sched_getaffinity(0))
+    cores = sorted(os.sched_getaffinity(0))[: usable_cpus()]  # a container's CPU quota bounds them too
     scratch = None
     torch_networks, torch_weights = None, ""
     if compare_torch:

@@ -92,6 +92,34 @@ def int8_pairs_saturate(flags: frozenset[str] | None = None) -> bool:
     return is_x86() and not has_vnni(flags)
 
 
+CGROUP = Path("/sys/fs/cgroup")
+
+
+def cpu_quota(root: Path | None = None) -> float | None:
+    """The CPUs' worth of time a cgroup quota gives this process (``docker run --cpus 2``, a Kubernetes CPU
+    limit): 2.0 for 200 ms per 100 ms period; None without a quota (or off Linux).
+
+    The affinity mask of such a container still lists every core of the host: sized by it, ONNX Runtime
+    would start a thread per host core and the kernel throttle them all to the quota. root: the cgroup
+    file system (default :data:`CGROUP`).
+    """
+    root = CGROUP if root is None else root
+    try:  # cgroup v2: "max 100000" or "200000 100000"
+        quota, period = (root / "cpu.max").read_text().split()[:2]
+        return None if quota == "max" else int(quota) / int(period)
+    except (OSError, ValueError):
+        pass
+    try:  # cgroup v1: a quota of -1 is none
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        return quota / period if quota > 0 and period > 0 else None
+    except (OSError, ValueError):
+        return None
+
+
 def usable_cpus() -> int:
-    """The CPUs this process may run on (its affinity mask where the OS has one, else all)."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    """The CPUs this process may use: its affinity mask (where the OS has one, else all), at most its cgroup
+    quota rounded to whole CPUs (at least one)."""
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    quota = cpu_quota()
+    return cpus if quota is None else max(1, min(cpus, int(quota + 0.5)))

@@ -1,5 +1,6 @@
 """CPU features that decide whether full-range INT8 weights run exactly (pipeline/cpu.py)."""
 
+import os
 from pathlib import Path
 
 from pipeline.cpu import SPEED_FLAGS, cpu_flags, describe, has_vnni, int8_pairs_saturate, is_x86, speed_flags
@@ -37,3 +38,30 @@ def test_a_report_names_the_cpu_and_what_its_int8_does():
         info = {key.strip(): value.strip() for key, _, value in (line.partition(":") for line in first.splitlines())}
         assert report["cpu_generation"] == f"family {info['cpu family']} model {info['model']}"
     assert report["int8_pair_sums_saturate"] == int8_pairs_saturate()
+
+
+def test_a_cgroup_cpu_quota_bounds_the_usable_cpus(tmp_path, monkeypatch):
+    """A container limited to N CPUs (docker --cpus, a Kubernetes limit) still sees every host core in its
+    affinity mask; the quota in cgroup v2's cpu.max or v1's cfs files bounds what the runtime sizes its
+    threads by."""
+    from pipeline import cpu
+
+    v2 = tmp_path / "v2"
+    v2.mkdir()
+    (v2 / "cpu.max").write_text("150000 100000\n")
+    assert cpu.cpu_quota(v2) == 1.5
+    (v2 / "cpu.max").write_text("max 100000\n")
+    assert cpu.cpu_quota(v2) is None
+    v1 = tmp_path / "v1" / "cpu"
+    v1.mkdir(parents=True)
+    (v1 / "cpu.cfs_quota_us").write_text("200000\n")
+    (v1 / "cpu.cfs_period_us").write_text("100000\n")
+    assert cpu.cpu_quota(v1.parent) == 2.0
+    (v1 / "cpu.cfs_quota_us").write_text("-1\n")
+    assert cpu.cpu_quota(v1.parent) is None
+    assert cpu.cpu_quota(tmp_path / "none") is None
+    (v2 / "cpu.max").write_text("40000 100000\n")  # 0.4 of a CPU: still one thread
+    monkeypatch.setattr(cpu, "CGROUP", v2)
+    assert cpu.usable_cpus() == 1
+    (v2 / "cpu.max").write_text("max 100000\n")
+    assert cpu.usable_cpus() == len(os.sched_getaffinity(0))
