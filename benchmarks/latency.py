@@ -873,6 +873,9 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
                 report["networks"][name]["ops"] = profile
 
     report["throughput"] = None  # without --threads: no throughput run (the key is there for other tools)
+    if threads > 1 and not on_cpu:
+        warnings.add([(f"--threads {threads}: every worker runs on GPU 0 (no device id is given to a worker yet), "
+                      "so on a box with several GPUs the throughput is that of one")])
     if threads > 1:
         _step(progress, f"the throughput: 1 and {threads} {worker_kind} workers in 3 alternating rounds")
         report["throughput"] = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
