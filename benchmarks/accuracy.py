@@ -251,30 +251,28 @@ def _by_distance(config: LabelEvalConfig, labels: LabelSet) -> dict[tuple[float,
                                 ignore_small_detections=config.ignore_small_detections)
 
 
+def _other_results(config: LabelEvalConfig, frame_ids: list[str] | None, folder: Path | None,
+                   flag: str) -> tuple[KittiEvalResult | None, LabelSet | None]:
+    """Another model's result files on the same frames (``flag``'s ``folder``), evaluated; (None, None) without."""
+    if folder is None:
+        return None, None
+    try:
+        labels = load_label_dirs(config.gt_labels, folder, frame_ids, progress=False,
+                                 missing_as_empty=config.missing_as_empty)
+    except InputError as exc:
+        raise InputError(f"{flag}: {exc}") from exc
+    return evaluate(labels.ground_truth, labels.detections, class_name=config.class_name,
+                    iou_thresholds=config.iou_thresholds,
+                    ignore_small_detections=config.ignore_small_detections), labels
+
+
 def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None, labels: LabelSet, result: KittiEvalResult
                            ) -> tuple[KittiEvalResult | None, LabelSet | None, KittiEvalResult | None,
                                       BootstrapResult | None]:
     """The other model's evaluation and labels (``compare_pred_labels``), the stronger one's evaluation
     (``gap_to_pred_labels``), and the bootstrap of all on the same draws, when asked."""
-    other = other_labels = upper = upper_labels = None
-    if config.compare_pred_labels is not None:
-        try:
-            other_labels = load_label_dirs(config.gt_labels, config.compare_pred_labels, frame_ids, progress=False,
-                                           missing_as_empty=config.missing_as_empty)
-        except InputError as exc:
-            raise InputError(f"--compare-pred-labels: {exc}") from exc
-        other = evaluate(other_labels.ground_truth, other_labels.detections, class_name=config.class_name,
-                         iou_thresholds=config.iou_thresholds,
-                         ignore_small_detections=config.ignore_small_detections)
-    if config.gap_to_pred_labels is not None:
-        try:
-            upper_labels = load_label_dirs(config.gt_labels, config.gap_to_pred_labels, frame_ids, progress=False,
-                                           missing_as_empty=config.missing_as_empty)
-        except InputError as exc:
-            raise InputError(f"--gap-to-pred-labels: {exc}") from exc
-        upper = evaluate(upper_labels.ground_truth, upper_labels.detections, class_name=config.class_name,
-                         iou_thresholds=config.iou_thresholds,
-                         ignore_small_detections=config.ignore_small_detections)
+    other, other_labels = _other_results(config, frame_ids, config.compare_pred_labels, "--compare-pred-labels")
+    upper, upper_labels = _other_results(config, frame_ids, config.gap_to_pred_labels, "--gap-to-pred-labels")
     if not config.bootstrap:
         return other, other_labels, upper, None
     compared = [(o, lab) for o, lab in ((other, other_labels), (upper, upper_labels)) if o is not None]
