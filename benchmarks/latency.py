@@ -407,7 +407,7 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
             score_threshold: float | None = None, usage=None) -> None:
     """One throughput worker, a thread or a process: pin itself, load, warm up, wait for the start, run.
 
-    usage (a list for a thread, a queue for a process): gets the worker's :func:`_usage` after its frames.
+    usage (a list for a thread, a queue for a process): gets the worker's :class:`_CpuClock` reading after its frames.
 
     A thread gets the frames, a list for its errors, a :class:`Cancellation` by which the caller stops it
     (Ctrl-C: a thread still inside ONNX Runtime when the interpreter ends aborts the process) and the run's
@@ -450,7 +450,10 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
             fail(exc)
         if usage is not None:
             entry = {"worker": index, "cores": list(mine), "frames": per_worker, **clock.read()}
-            usage.append(entry) if isinstance(usage, list) else usage.put(entry)
+            if isinstance(usage, list):
+                usage.append(entry)
+            else:
+                usage.put(entry)
         done.wait()
     except threading.BrokenBarrierError:  # stopped while the others finished
         return
@@ -462,8 +465,9 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
 class _CpuClock:
     """A throughput worker's wall time and the CPU time it got, from its start.
 
-    ``cpu_share`` is that CPU time over the wall time of its cores: under 1 when something else ran on
-    them (another process on a shared machine), which no latency figure shows by itself. A process counts
+    ``cpu_share`` is that CPU time over the wall time of its cores: under 1 when the worker could not run,
+    because another process ran on its cores (a shared machine) or, for thread workers, another worker
+    held Python's interpreter lock; no latency figure shows either by itself. A process counts
     all its threads; a thread only itself, which is all its work when it has one core (ONNX Runtime then
     runs the networks on the calling thread and the Detector its stages in turn), so a thread with more
     cores gets no share.
@@ -520,7 +524,7 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
     if mode == "thread":
         start, done, errors = threading.Barrier(workers + 1), threading.Barrier(workers + 1), []
         cancels = [Cancellation() for _ in range(workers)]
-        reported: list | object = []
+        reported: list = []
         pool = [threading.Thread(target=_worker, daemon=True,
                                  args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors,
                                        mirror_tta, cancels[i], warnings, score_threshold, reported))
@@ -612,9 +616,10 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
             if got and min(got) < FULL_CORE_SHARE:
                 shared.append(len(runs) - 1)
                 if warnings is not None:
+                    lock = " or waited for Python's interpreter lock" if mode == "thread" and n > 1 else ""
                     warnings.add([(f"throughput round {r + 1}, {n} worker{'s' if n > 1 else ''}: a worker got "
-                                  f"{100 * min(got):.0f} % of its cores (something else ran on them): that "
-                                  "round's scaling is not the hardware's")])
+                                   f"{100 * min(got):.0f} % of its cores (something else ran on them{lock}): that "
+                                   "round's scaling is not the hardware's alone")])
     fps_one, fps_many = float(np.median(one)), float(np.median(many))
     return {"workers": workers, "mode": mode, "fps": fps_many, "fps_one_worker": fps_one,
             "scaling": fps_many / fps_one, "cores_per_worker": share, "rounds": rounds,
