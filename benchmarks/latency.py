@@ -80,7 +80,7 @@ from pipeline.cli import (
     quiet_interrupt,
     write_text_file,
 )
-from pipeline.cpu import cpu_label, cpu_quota, usable_cpus
+from pipeline.cpu import core_shares, cpu_label, cpu_quota, usable_cpus
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Cancellation, Detector, RunCancelled
 from pipeline.errors import TORCH_MISSING, InputError
@@ -518,8 +518,7 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
     network run, worker processes are terminated.
     """
     check_workers(workers, mode, len(cores))
-    share = len(cores) // workers
-    shares = [cores[i * share : (i + 1) * share] for i in range(workers)]
+    shares = core_shares(cores, workers)  # whole physical cores each: no worker on another's SMT siblings
     cancels: list[Cancellation | None] = [None] * workers
     if mode == "thread":
         start, done, errors = threading.Barrier(workers + 1), threading.Barrier(workers + 1), []
@@ -601,15 +600,14 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
     and said in ``warnings``: its fps measured the neighbour as well.
     """
     check_workers(workers, mode, len(cores))
-    share = len(cores) // workers
+    shares = core_shares(cores, workers)
     one, many, runs, shared = [], [], [], []
     for r in range(rounds):
         for n in ((1, workers) if r % 2 == 0 else (workers, 1)):
             usage: list[dict] = []
-            first = (r % workers) * share
             fps = run_workers(models, provider, source if mode == "process" else frames, n, per_worker, warmup,
-                              cores[first : first + share] if n == 1 else cores, mode, mirror_tta, warnings,
-                              score_threshold, usage)
+                              shares[r % workers] if n == 1 else [cpu for mine in shares for cpu in mine], mode,
+                              mirror_tta, warnings, score_threshold, usage)
             (one if n == 1 else many).append(fps)
             runs.append({"round": r, "workers": n, "fps": fps, "per_worker": usage})
             got = [u["cpu_share"] for u in usage if u["cpu_share"] is not None]
@@ -622,7 +620,7 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
                                    "round's scaling is not the hardware's alone")])
     fps_one, fps_many = float(np.median(one)), float(np.median(many))
     return {"workers": workers, "mode": mode, "fps": fps_many, "fps_one_worker": fps_one,
-            "scaling": fps_many / fps_one, "cores_per_worker": share, "rounds": rounds,
+            "scaling": fps_many / fps_one, "cores_per_worker": len(shares[0]), "rounds": rounds,
             "scaling_per_round": [m / o for m, o in zip(many, one, strict=True)],
             "runs": runs, "shared_runs": shared}
 

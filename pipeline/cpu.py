@@ -123,3 +123,35 @@ def usable_cpus() -> int:
     cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     quota = cpu_quota()
     return cpus if quota is None else max(1, min(cpus, int(quota + 0.5)))
+
+
+SYSFS_CPU = Path("/sys/devices/system/cpu")
+
+
+def physical_cores(cpus: list[int], root: Path | None = None) -> list[list[int]]:
+    """``cpus`` grouped by physical core: SMT siblings (hyper-threads) together, groups in the order of their
+    first CPU. Where the topology cannot be read, each CPU is a core of its own. root: default
+    :data:`SYSFS_CPU`."""
+    root = SYSFS_CPU if root is None else root
+    groups: dict[tuple, list[int]] = {}
+    for cpu in cpus:
+        topology = root / f"cpu{cpu}" / "topology"
+        try:
+            key: tuple = (int((topology / "physical_package_id").read_text()), int((topology / "core_id").read_text()))
+        except (OSError, ValueError):
+            key = ("cpu", cpu)
+        groups.setdefault(key, []).append(cpu)
+    return sorted(groups.values(), key=lambda group: group[0])
+
+
+def core_shares(cpus: list[int], shares: int, root: Path | None = None) -> list[list[int]]:
+    """``cpus`` cut into ``shares`` equal shares of whole physical cores, so that no two shares run on the
+    siblings of one core (Linux numbers an SMT box's siblings i and i + N, and a cut in id order gave one
+    worker the threads and the other their siblings). With fewer physical cores than shares, the CPUs are
+    cut in id order instead."""
+    cores = physical_cores(cpus, root)
+    if len(cores) < shares:
+        per = len(cpus) // shares
+        return [cpus[i * per : (i + 1) * per] for i in range(shares)]
+    per = len(cores) // shares
+    return [[cpu for core in cores[i * per : (i + 1) * per] for cpu in core] for i in range(shares)]

@@ -65,3 +65,24 @@ def test_a_cgroup_cpu_quota_bounds_the_usable_cpus(tmp_path, monkeypatch):
     assert cpu.usable_cpus() == 1
     (v2 / "cpu.max").write_text("max 100000\n")
     assert cpu.usable_cpus() == len(os.sched_getaffinity(0))
+
+
+def test_worker_shares_keep_smt_siblings_together(tmp_path):
+    """On an SMT box Linux numbers a core's two threads i and i + N: cut in id order, two workers of a 2-core,
+    4-thread box got CPUs 0, 1 and 2, 3, each worker one thread of both cores. Shares are whole cores."""
+    from pipeline.cpu import core_shares, physical_cores
+
+    for cpu, core in enumerate((0, 1, 0, 1)):  # CPUs 0 and 2 are core 0's threads, 1 and 3 core 1's
+        topology = tmp_path / f"cpu{cpu}" / "topology"
+        topology.mkdir(parents=True)
+        (topology / "physical_package_id").write_text("0\n")
+        (topology / "core_id").write_text(f"{core}\n")
+    assert physical_cores([0, 1, 2, 3], tmp_path) == [[0, 2], [1, 3]]
+    assert core_shares([0, 1, 2, 3], 2, tmp_path) == [[0, 2], [1, 3]]
+    assert core_shares([0, 1, 2, 3], 1, tmp_path) == [[0, 2, 1, 3]]
+    assert core_shares([0, 1, 2, 3], 4, tmp_path) == [[0], [1], [2], [3]]  # more shares than cores: threads
+    # No topology to read (another OS, a sandbox): each CPU a core of its own, cut in id order.
+    assert core_shares([0, 1, 2, 3], 2, tmp_path / "none") == [[0, 1], [2, 3]]
+    # This machine: every CPU in exactly one share.
+    cpus = sorted(os.sched_getaffinity(0))
+    assert sorted(cpu for share in core_shares(cpus, 1) for cpu in share) == cpus
