@@ -1083,6 +1083,10 @@ def main(argv: list[str] | None = None) -> int:
             check_figure(args.plot, "--plot")
         if args.models is None and args.preset is not None:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
+        if args.provider in ("cuda", "tensorrt") and args.warmup == 0:
+            # A GPU's first run builds its kernels (TensorRT its engine, for minutes): timed, it is the mean.
+            raise InputError(f"--warmup 0: with --provider {args.provider} the first frames build the GPU's kernels "
+                             "(TensorRT's engine takes minutes); give --warmup 1 or more")
         report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
                      args.beams, args.compare_torch, args.checkpoints, precision=args.precision,
                      baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops,

@@ -306,3 +306,11 @@ def test_a_score_threshold_outside_0_1_is_refused_at_once(tiny_models):
     result = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models),
                              "--score-threshold", "1.5"], capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 2 and "--score-threshold" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_no_warm_up_on_a_gpu_provider_is_refused_before_anything_runs(tiny_models):
+    """A GPU's first frames build its kernels (TensorRT's engine, for minutes): timed, they would be the mean."""
+    result = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--provider",
+                             "tensorrt", "--warmup", "0"], capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 2 and "--warmup 0: with --provider tensorrt" in result.stderr
+    assert "Traceback" not in result.stderr
