@@ -74,6 +74,7 @@ from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.cli import (
     check_figure,
     check_output,
+    gpu_ids,
     non_negative_int,
     positive_int,
     probability,
@@ -404,8 +405,10 @@ def _frames_on(detector: Detector, frames: list[Frame], count: int, offset: int,
 def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] | FrameSource, per_worker: int,
             warmup: int, mine: list[int], start, done, errors, mirror_tta: bool = False,
             cancel: Cancellation | None = None, warnings: Warnings | None = None,
-            score_threshold: float | None = None, usage=None) -> None:
+            score_threshold: float | None = None, usage=None, device_id: int | None = None) -> None:
     """One throughput worker, a thread or a process: pin itself, load, warm up, wait for the start, run.
+
+    device_id: the GPU its sessions run on (None: the provider's default, GPU 0).
 
     usage (a list for a thread, a queue for a process): gets the worker's :class:`_CpuClock` reading after its frames.
 
@@ -430,7 +433,7 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
             if process:
                 frames = frames.load()
             detector = Detector(models, providers=provider, intra_op_threads=len(mine), verify=False,
-                                mirror_tta=mirror_tta)
+                                mirror_tta=mirror_tta, device_id=device_id)
             if not _frames_on(detector, frames, warmup, index, cancel, warnings, score_threshold):
                 start.abort()
                 return
@@ -449,7 +452,8 @@ def _worker(index: int, models: Path, provider: str | None, frames: list[Frame] 
         except Exception as exc:  # noqa: BLE001 — reported to the caller of run_workers
             fail(exc)
         if usage is not None:
-            entry = {"worker": index, "cores": list(mine), "frames": per_worker, **clock.read()}
+            entry = {"worker": index, "cores": list(mine), "device_id": device_id, "frames": per_worker,
+                     **clock.read()}
             if isinstance(usage, list):
                 usage.append(entry)
             else:
@@ -503,8 +507,11 @@ def check_workers(workers: int, mode: str = "thread", cores: int | None = None) 
 def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameSource, workers: int,
                 per_worker: int, warmup: int, cores: list[int], mode: str = "thread", mirror_tta: bool = False,
                 warnings: Warnings | None = None, score_threshold: float | None = None,
-                usage: list | None = None) -> float:
+                usage: list | None = None, device_ids: list[int] | None = None) -> float:
     """Aggregate fps of ``workers`` workers, each pinned to its share of ``cores`` with its own sessions.
+
+    device_ids: the GPUs the workers' sessions run on, worker i on ``device_ids[i % len(device_ids)]`` (None:
+    every worker on the provider's default, GPU 0).
 
     usage: gets one dict per worker, by worker: its cores, wall time, CPU time and the share of its cores it
     got (:class:`_CpuClock`).
@@ -519,6 +526,7 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
     """
     check_workers(workers, mode, len(cores))
     shares = core_shares(cores, workers)  # whole physical cores each: no worker on another's SMT siblings
+    devices = [None if not device_ids else device_ids[i % len(device_ids)] for i in range(workers)]
     cancels: list[Cancellation | None] = [None] * workers
     if mode == "thread":
         start, done, errors = threading.Barrier(workers + 1), threading.Barrier(workers + 1), []
@@ -526,7 +534,7 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
         reported: list = []
         pool = [threading.Thread(target=_worker, daemon=True,
                                  args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors,
-                                       mirror_tta, cancels[i], warnings, score_threshold, reported))
+                                       mirror_tta, cancels[i], warnings, score_threshold, reported, devices[i]))
                 for i in range(workers)]
     elif mode == "process":
         if not isinstance(frames, FrameSource):
@@ -536,7 +544,7 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
         reported = context.Queue()
         pool = [context.Process(target=_worker, daemon=True,
                                 args=(i, models, provider, frames, per_worker, warmup, shares[i], start, done, errors,
-                                      mirror_tta, None, None, score_threshold, reported))
+                                      mirror_tta, None, None, score_threshold, reported, devices[i]))
                 for i in range(workers)]
     else:
         raise ValueError(f"workers mode {mode!r}: expected 'thread' or 'process'")
@@ -589,9 +597,12 @@ def _stop(pool: list, cancels: list[Cancellation | None], start, done) -> None:
 def run_throughput(models: Path, provider: str | None, source: FrameSource, frames: list[Frame], workers: int,
                    per_worker: int, warmup: int, cores: list[int], rounds: int = 3, mode: str = "thread",
                    mirror_tta: bool = False, warnings: Warnings | None = None,
-                   score_threshold: float | None = None) -> dict:
+                   score_threshold: float | None = None, device_ids: list[int] | None = None) -> dict:
     """One worker on its share of the cores and ``workers`` workers on all of them, in alternating rounds
     (1 N N 1 1 N), so a change of load on a shared machine touches both; medians over the rounds.
+
+    device_ids: the GPUs, worker i on ``device_ids[i % len(device_ids)]`` (:func:`run_workers`); the single
+    worker takes them in turn with the core shares.
 
     ``scaling`` is per share of cores: N workers on N shares against one worker on one share. The single
     worker takes each share in turn (round r the r-th), so a neighbour busy on one core does not touch
@@ -605,9 +616,12 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
     for r in range(rounds):
         for n in ((1, workers) if r % 2 == 0 else (workers, 1)):
             usage: list[dict] = []
+            devices = device_ids
+            if device_ids and n == 1:
+                devices = [device_ids[r % workers % len(device_ids)]]  # the GPU worker r % workers would have
             fps = run_workers(models, provider, source if mode == "process" else frames, n, per_worker, warmup,
                               shares[r % workers] if n == 1 else [cpu for mine in shares for cpu in mine], mode,
-                              mirror_tta, warnings, score_threshold, usage)
+                              mirror_tta, warnings, score_threshold, usage, devices)
             (one if n == 1 else many).append(fps)
             runs.append({"round": r, "workers": n, "fps": fps, "per_worker": usage})
             got = [u["cpu_share"] for u in usage if u["cpu_share"] is not None]
@@ -621,6 +635,7 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
     fps_one, fps_many = float(np.median(one)), float(np.median(many))
     return {"workers": workers, "mode": mode, "fps": fps_many, "fps_one_worker": fps_one,
             "scaling": fps_many / fps_one, "cores_per_worker": len(shares[0]), "rounds": rounds,
+            "device_ids": None if not device_ids else [device_ids[i % len(device_ids)] for i in range(workers)],
             "scaling_per_round": [m / o for m, o in zip(many, one, strict=True)],
             "runs": runs, "shared_runs": shared}
 
@@ -684,7 +699,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
         compare_torch: bool = False, checkpoints: Path | None = None, progress: bool = True,
         precision: str | None = None, baseline: Path | None = None, worker_kind: str = "thread",
         peak_size: int = PEAK_MATMUL, ops: bool = False, stage_threads: int | None = None,
-        mirror_tta: bool = False, score_threshold: float | None = None) -> dict:
+        mirror_tta: bool = False, score_threshold: float | None = None,
+        device_ids: list[int] | None = None) -> dict:
     """Measure everything; returns the JSON-able report (``warnings``: each distinct warning of the Detectors,
     said once on stderr as it came where ``progress``, with a line as each measurement starts).
 
@@ -708,6 +724,8 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     score_threshold: every Detector's, as :meth:`Detector.detect`'s (None: the model's, 0.5 for the shipped
     ones); the decoding's time grows with the candidates it keeps (at 0.05, the evaluation's, about 9 ms
     a frame against 1 ms).
+    device_ids: GPUs (CUDA or TensorRT): the single stream runs on the first, throughput worker i on
+    ``device_ids[i % len(device_ids)]``, as the paper ran its PX2's two GPUs as two threads (None: all on GPU 0).
     """
     if threads > 1:  # before anything is exported or timed
         check_workers(threads, worker_kind, usable_cpus())
@@ -718,7 +736,7 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     try:
         report = _run(preset, models, provider, threads, frames, warmup, data, beams, compare_torch, checkpoints,
                       progress, precision, baseline, worker_kind, peak_size, ops, stage_threads, mirror_tta, warnings,
-                      score_threshold)
+                      score_threshold, device_ids)
     finally:
         logger.removeFilter(said_once)
     report["warnings"] = list(warnings.seen)
@@ -734,7 +752,7 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
          data: Path, beams: int | None, compare_torch: bool, checkpoints: Path | None, progress: bool,
          precision: str | None, baseline: Path | None, worker_kind: str, peak_size: int, ops: bool,
          stage_threads: int | None, mirror_tta: bool, warnings: Warnings,
-         score_threshold: float | None = None) -> dict:
+         score_threshold: float | None = None, device_ids: list[int] | None = None) -> dict:
     """:func:`run`'s measurements."""
     cores = sorted(os.sched_getaffinity(0))[: usable_cpus()]  # a container's CPU quota bounds them too
     scratch = None
@@ -774,11 +792,13 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
                           reduce_range=precision == "int8")
         models = reduced
         described = f"{described}, converted to {precision}"
+    first_gpu = device_ids[0] if device_ids else None
     detector = Detector(models, providers=provider, intra_op_threads=len(cores), stage_threads=stage_threads,
-                        mirror_tta=mirror_tta)
+                        mirror_tta=mirror_tta, device_id=first_gpu)
     # Loaded now, so a bad directory is refused before minutes of timing.
     other = None if baseline is None else Detector(baseline, providers=provider, intra_op_threads=len(cores),
-                                                   stage_threads=stage_threads, mirror_tta=mirror_tta)
+                                                   stage_threads=stage_threads, mirror_tta=mirror_tta,
+                                                   device_id=first_gpu)
     if other is not None and (other.two_stage, other.trained_lines) != (detector.two_stage, detector.trained_lines):
         # The same frames would be another pipeline's input (and thinned for --models alone): no speed-up to say.
         raise InputError(f"--baseline {baseline}: {_reads(other)}, and {models} {_reads(detector)}: give a baseline "
@@ -807,6 +827,7 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     info = detector.manifest.get("precision_info") or {}
     report: dict = {"preset": preset_name, "models": described,
                     "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,
+                    "device_ids": device_ids,
                     "precision": detector.manifest.get("precision", "fp32"),
                     "quantization": {key: info[key] for key in ("weights", "reduce_range") if key in info},
                     "frames": frames, "distinct_frames": len(pool), "warmup": warmup,
@@ -877,14 +898,16 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
                 report["networks"][name]["ops"] = profile
 
     report["throughput"] = None  # without --threads: no throughput run (the key is there for other tools)
-    if threads > 1 and not on_cpu:
-        warnings.add([(f"--threads {threads}: every worker runs on GPU 0 (no device id is given to a worker yet), "
-                      "so on a box with several GPUs the throughput is that of one")])
+    gpus = sorted(set(device_ids or [0]))
+    if threads > 1 and not on_cpu and len(gpus) < threads:
+        shared_gpus = "GPU 0" if not device_ids else f"GPU{'s' if len(gpus) > 1 else ''} {', '.join(map(str, gpus))}"
+        warnings.add([(f"--threads {threads}: the workers share {shared_gpus}, so on a box with more GPUs the "
+                      "throughput is not the box's; give each its own with --device-ids (0,1 on two GPUs)")])
     if threads > 1:
         _step(progress, f"the throughput: 1 and {threads} {worker_kind} workers in 3 alternating rounds")
         report["throughput"] = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
                                               warmup, cores, mode=worker_kind, mirror_tta=mirror_tta, warnings=warnings,
-                                              score_threshold=score_threshold)
+                                              score_threshold=score_threshold, device_ids=device_ids)
         # The workers' fps against the single stream's, which had every core too: what the box gains by
         # running frames side by side rather than one frame on all cores.
         report["throughput"]["vs_single_stream"] = report["throughput"]["fps"] / report["fps"]
@@ -1042,6 +1065,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="throughput workers (default 1: no throughput run): N detectors, each pinned to its own "
                              "share of the cores, at most one per usable core; not ONNX Runtime's intra-op threads "
                              "(--threads of op_profile.py and peak.py), which here are a worker's share of the cores")
+    parser.add_argument("--device-ids", type=gpu_ids, metavar="IDS",
+                        help="GPUs for --provider cuda or tensorrt, e.g. 0,1: the single stream runs on the first, "
+                        "throughput worker i on the i-th (in turn when fewer), as the paper ran the PX2's two GPUs "
+                        "as two threads (default: every worker on GPU 0)")
     # Not --workers: every other command (service, load test, training, simulation) counts with that name.
     parser.add_argument("--worker-kind", choices=["thread", "process"], default="thread",
                         help="what a throughput worker is: a thread of this process (default, as the paper ran "
@@ -1083,6 +1110,10 @@ def main(argv: list[str] | None = None) -> int:
             check_figure(args.plot, "--plot")
         if args.models is None and args.preset is not None:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
+        if args.device_ids and args.provider not in ("cuda", "tensorrt"):
+            # Refused before minutes of timing; without --provider the best available might be the CPU anyway.
+            raise InputError(f"--device-ids {','.join(map(str, args.device_ids))}: GPU ids need --provider cuda "
+                             "or tensorrt")
         if args.provider in ("cuda", "tensorrt") and args.warmup == 0:
             # A GPU's first run builds its kernels (TensorRT its engine, for minutes): timed, it is the mean.
             raise InputError(f"--warmup 0: with --provider {args.provider} the first frames build the GPU's kernels "
@@ -1091,7 +1122,7 @@ def main(argv: list[str] | None = None) -> int:
                      args.beams, args.compare_torch, args.checkpoints, precision=args.precision,
                      baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops,
                      stage_threads=args.stage_threads, mirror_tta=args.mirror_tta,
-                     score_threshold=args.score_threshold)
+                     score_threshold=args.score_threshold, device_ids=args.device_ids)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -57,6 +57,20 @@ def probability(text: str) -> float:
     return value
 
 
+def gpu_ids(text: str) -> list[int]:
+    """GPU ids separated by commas, ``0,1`` (argparse type; the service's ``--device-ids`` too): each a whole
+    number from 0, none twice."""
+    ids = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part.isdigit():
+            raise argparse.ArgumentTypeError(f"expected GPU ids from 0 separated by commas (0,1), got {text!r}")
+        ids.append(int(part))
+    if len(set(ids)) != len(ids):
+        raise argparse.ArgumentTypeError(f"a GPU id given twice in {text!r}")
+    return ids
+
+
 def frame_rate(text: str) -> float:
     """Frames a second of a video (argparse type), 0.1 to 1000: OpenCV's MP4 writer fails outside 0.01–65535,
     and beyond those bounds no video of driving frames is meant (a frame every 10 s, or 100 times real time)."""

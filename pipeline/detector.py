@@ -57,6 +57,7 @@ PROVIDER_ALIASES = {
     "cuda": "CUDAExecutionProvider",
     "cpu": "CPUExecutionProvider",
 }
+GPU_PROVIDERS = ("TensorrtExecutionProvider", "CUDAExecutionProvider")  # those that take a device_id
 MAX_POINTS = 2_000_000  # far beyond any real scan; protects memory from absurd inputs
 # A KITTI HDL-64E scan holds about 120,000 points (the shared frames: 104,000–123,000) and its 16-line
 # emulation a quarter of that, as a VLP-16's does: a count past these says the scan is not what the
@@ -186,6 +187,30 @@ def tensorrt_options(manifest: dict, cache_root: Path) -> dict:
             "trt_fp16_enable": manifest.get("precision") == "fp16"}
 
 
+def session_providers(providers: list[str], device_id: int | None = None,
+                      trt_options: dict | None = None) -> list[str | tuple[str, dict]]:
+    """The ``providers`` argument of an ONNX Runtime session: each provider's name, with its options where
+    it has any (TensorRT's cache, a GPU's ``device_id``).
+
+    device_id: the GPU the session runs on (None: the provider's default, GPU 0), given to TensorRT and CUDA
+    alike, so that TensorRT's fallback to CUDA stays on the same GPU. An InputError when none of the providers
+    runs on a GPU: a device id would be ignored without a word.
+    """
+    if device_id is not None:
+        if device_id < 0:
+            raise InputError(f"device id {device_id}: GPU ids count from 0")
+        if not any(p in GPU_PROVIDERS for p in providers):
+            raise InputError(f"device id {device_id}: the sessions run on {', '.join(providers)}; device ids are "
+                             "for the GPU providers (--provider cuda or tensorrt)")
+    entries: list[str | tuple[str, dict]] = []
+    for provider in providers:
+        options = dict(trt_options or {}) if provider == "TensorrtExecutionProvider" else {}
+        if device_id is not None and provider in GPU_PROVIDERS:
+            options["device_id"] = device_id
+        entries.append((provider, options) if options else provider)
+    return entries
+
+
 def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
     """The ONNX Runtime session options every Detector session runs with (and the benchmarks time).
 
@@ -219,6 +244,7 @@ class Detector:
         trt_cache_dir: str | Path | None = None,
         stage_threads: int | None = None,
         mirror_tta: bool = False,
+        device_id: int | None = None,
     ) -> None:
         """stage_threads: 2 runs the stages that need no depth beside the depth net, 1 runs every stage in
         turn; None: 2 when the networks may use two or more threads (``intra_op_threads`` not 1) and the
@@ -226,7 +252,11 @@ class Detector:
 
         mirror_tta: run PIXOR a second time on the BEV mirrored left to right and average the two maps
         (test-time augmentation): PIXOR's time twice over for BEV boxes that are more often right to
-        IoU 0.7 (docs/models.md has the figures). Off by default: the paper's pipeline runs it once."""
+        IoU 0.7 (docs/models.md has the figures). Off by default: the paper's pipeline runs it once.
+
+        device_id: the GPU both sessions run on, for CUDA and TensorRT (None: GPU 0); an InputError on the CPU
+        provider. One Detector per GPU runs frames on several GPUs side by side (the service's per-worker
+        sessions, latency.py's throughput workers)."""
         self.mirror_tta = bool(mirror_tta)
         self.model_dir = Path(model_dir)
         self.manifest = load_manifest(self.model_dir)
@@ -237,11 +267,11 @@ class Detector:
         except (KeyError, TypeError, ValueError) as exc:
             raise ModelFileError(f"{self.model_dir / 'manifest.json'}: {exc}") from exc
         self.providers = resolve_providers(providers)
-        session_providers: list = list(self.providers)
+        self.device_id = device_id
+        trt_options = None
         if "TensorrtExecutionProvider" in self.providers:
             trt_options = tensorrt_options(self.manifest, Path(trt_cache_dir or self.model_dir / "trt_cache"))
-            session_providers = [("TensorrtExecutionProvider", trt_options) if p == "TensorrtExecutionProvider" else p
-                                 for p in self.providers]
+        entries = session_providers(self.providers, device_id, trt_options)
         options = session_options(intra_op_threads)
         networks = self.manifest.get("networks", {})
         if "pixor" not in networks:
@@ -251,8 +281,11 @@ class Detector:
         for name in ("depth", "pixor") if self.two_stage else ("pixor",):
             path = self.model_dir / networks[name]["file"]
             try:
-                self._sessions[name] = ort.InferenceSession(str(path), options, providers=session_providers)
+                self._sessions[name] = ort.InferenceSession(str(path), options, providers=entries)
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
+                if device_id is not None:  # the likelier cause: a GPU this box does not have
+                    raise InputError(f"device id {device_id}: ONNX Runtime cannot load {path} on it; does this "
+                                     f"box have a GPU {device_id}? ({exc})") from exc
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
         # Input names as each graph has them: a lowered PIXOR reads its BEV in channel pieces.
         self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}

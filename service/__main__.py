@@ -49,6 +49,7 @@ _OPTIONS: list[tuple[str, type, object]] = [
     ("--queue-size", int, "N"),
     ("--sessions", str, ["shared", "per-worker"]),
     ("--provider", str, ["cpu", "cuda", "tensorrt"]),
+    ("--device-ids", str, "IDS"),
     ("--intra-op-threads", int, "N"),
     ("--trt-cache-dir", Path, "DIR"),
     ("--request-timeout-s", float, "S"),

@@ -83,17 +83,19 @@ def load_runtime(settings: Settings, metrics: Metrics) -> Runtime:
     count = settings.workers if settings.sessions == "per-worker" else 1
     log.info("loading %s (%d session set(s); with TensorRT, its first load builds the engines: minutes)", models, count)
     threads = settings.resolved_intra_op_threads()
+    gpus = settings.gpu_ids()
     detectors = [
         Detector(models, providers=settings.provider, intra_op_threads=threads, trt_cache_dir=settings.trt_cache_dir,
-                 mirror_tta=settings.mirror_tta)
-        for _ in range(count)
+                 mirror_tta=settings.mirror_tta, device_id=gpus[k % len(gpus)] if gpus else None)
+        for k in range(count)
     ]
     detector = detectors[0]
     log.info(
-        "loaded %s (preset %s, %s%s) with %s on %d worker(s), %s session(s), %d intra-op thread(s), queue %d",
+        "loaded %s (preset %s, %s%s) with %s%s on %d worker(s), %s session(s), %d intra-op thread(s), queue %d",
         models, detector.preset.name, "two-stage" if detector.two_stage else "LiDAR-only",
-        ", PIXOR with mirror TTA" if detector.mirror_tta else "",
-        detector.providers_in_use, settings.workers, settings.sessions, threads, settings.queue_size,
+        ", PIXOR with mirror TTA" if detector.mirror_tta else "", detector.providers_in_use,
+        f" on GPU(s) {', '.join(str(d.device_id) for d in detectors)} (per session pair)" if gpus else "",
+        settings.workers, settings.sessions, threads, settings.queue_size,
     )
     metrics.model.info({
         "preset": detector.preset.name,

@@ -141,6 +141,10 @@ class ModelInfo(BaseModel):
     )
     default_calib: bool = Field(description="a default calibration is configured (calib is optional)")
     mirror_tta: bool = Field(description="PIXOR also runs on the mirrored BEV, maps averaged (--mirror-tta)")
+    device_ids: list[int | None] = Field(
+        description="the GPU each session pair runs on (one entry per worker with --sessions per-worker, else one); "
+        "null: the provider's default (GPU 0 on a GPU, nothing on the CPU)"
+    )
     warnings: list[str] = Field(
         default_factory=list, description="about the model's precision on this machine (INT8 this CPU may run inexactly, FP16 on the CPU)"
     )

@@ -9,13 +9,15 @@ read at import time: build ``Settings()`` in ``main`` (or a test) and pass it to
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from pipeline.cli import gpu_ids
 from pipeline.cpu import usable_cpus
 from pipeline.detector import MAX_POINTS
 from pipeline.model_files import DEFAULT_MODELS
@@ -38,6 +40,11 @@ class Settings(BaseSettings):
     )
     provider: Literal["cpu", "cuda", "tensorrt"] | None = Field(
         None, description="execution provider (default: the best available, TensorRT → CUDA → CPU)"
+    )
+    # Text as given (0,1), not a list: the environment variable then reads as the option does, with no JSON.
+    device_ids: str | None = Field(
+        None, description="GPUs for cuda or tensorrt, e.g. 0,1: with --sessions per-worker, worker i's sessions run "
+        "on the i-th (in turn when fewer); shared sessions take one id (default: GPU 0)"
     )
     intra_op_threads: int | None = Field(
         None, ge=1, le=256,
@@ -80,6 +87,35 @@ class Settings(BaseSettings):
         if isinstance(value, str) and not value.strip():
             raise PydanticCustomError("empty_path", "empty; give a path (an empty one would be the current directory)")
         return value
+
+    @field_validator("device_ids", mode="before")
+    @classmethod
+    def _device_ids_listed(cls, value: object) -> object:
+        """``0,1`` → ``"0,1"``, checked (ids from 0, none twice); also a list from code."""
+        if value is None:
+            return None
+        text = ",".join(map(str, value)) if isinstance(value, list | tuple) else str(value)
+        try:
+            return ",".join(map(str, gpu_ids(text)))
+        except argparse.ArgumentTypeError as exc:
+            raise PydanticCustomError("device_ids", str(exc)) from None
+
+    @model_validator(mode="after")
+    def _device_ids_usable(self) -> Settings:
+        """Device ids only where they can be used: a GPU provider (or the best available, checked at load) and,
+        for several GPUs, a session pair per worker."""
+        ids = self.gpu_ids()
+        if ids and self.provider == "cpu":
+            raise PydanticCustomError("device_ids_cpu", f"--device-ids {self.device_ids} with --provider cpu: GPU ids "
+                                      "are for cuda or tensorrt")
+        if ids and len(ids) > 1 and self.sessions == "shared":
+            raise PydanticCustomError("device_ids_shared", f"--device-ids {self.device_ids}: several GPUs need "
+                                      "--sessions per-worker (shared sessions run on one GPU)")
+        return self
+
+    def gpu_ids(self) -> list[int] | None:
+        """``device_ids`` as numbers (None: not given)."""
+        return None if self.device_ids is None else [int(part) for part in self.device_ids.split(",")]
 
     @field_validator("token")
     @classmethod

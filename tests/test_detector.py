@@ -23,6 +23,7 @@ from pipeline.detector import (
     provider_fallbacks,
     resolve_providers,
     session_options,
+    session_providers,
 )
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
@@ -493,6 +494,30 @@ def test_provider_resolution():
     assert resolve_providers(None)[-1] == "CPUExecutionProvider"
     with pytest.raises(InputError, match="not available"):
         resolve_providers("tensorrt")
+
+
+def test_a_gpu_device_id_goes_to_every_gpu_provider_and_only_there():
+    """TensorRT and its CUDA fallback get the same GPU (TensorRT's cache options kept); the CPU takes none."""
+    gpu = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
+    cache = {"trt_engine_cache_enable": True}
+    assert session_providers(gpu) == gpu
+    assert session_providers(gpu, None, cache) == [("TensorrtExecutionProvider", cache), *gpu[1:]]
+    assert session_providers(gpu, 1, cache) == [
+        ("TensorrtExecutionProvider", {"trt_engine_cache_enable": True, "device_id": 1}),
+        ("CUDAExecutionProvider", {"device_id": 1}), "CPUExecutionProvider"]
+    assert cache == {"trt_engine_cache_enable": True}  # the caller's options are not written into
+    assert session_providers(gpu[1:], 0) == [("CUDAExecutionProvider", {"device_id": 0}), "CPUExecutionProvider"]
+    with pytest.raises(InputError, match="device id 0: the sessions run on CPUExecutionProvider"):
+        session_providers(gpu[2:], 0)
+    with pytest.raises(InputError, match="count from 0"):
+        session_providers(gpu, -1)
+
+
+def test_a_device_id_on_the_cpu_provider_is_refused(tiny_models):
+    """A GPU id on a CPU-only build would be ignored without a word: refused, naming the id."""
+    with pytest.raises(InputError, match="device id 1: .*--provider cuda or tensorrt"):
+        Detector(tiny_models, providers="cpu", device_id=1)
+    assert Detector(tiny_models, providers="cpu").device_id is None
 
 
 def test_provider_chain_of_a_gpu_build_keeps_cuda_behind_tensorrt():

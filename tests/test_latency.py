@@ -314,3 +314,47 @@ def test_no_warm_up_on_a_gpu_provider_is_refused_before_anything_runs(tiny_model
                              "tensorrt", "--warmup", "0"], capture_output=True, text=True, timeout=120, check=False)
     assert result.returncode == 2 and "--warmup 0: with --provider tensorrt" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_throughput_workers_take_the_gpus_in_turn(tiny_models, monkeypatch):
+    """--device-ids: worker i's Detector is built for the i-th GPU, the single worker takes them in turn with the
+    core shares, and the report says which. No GPU here: a subclass of the real Detector records the id it was
+    given and loads on the CPU (the refusal of an id on the CPU is tested in test_detector.py)."""
+    import os
+
+    from benchmarks import latency
+    from pipeline.detector import Detector
+    from tests.conftest import KITTI
+
+    given = []
+
+    class RecordingGpu(Detector):
+        def __init__(self, *args, device_id=None, **kwargs):
+            given.append(device_id)
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(latency, "Detector", RecordingGpu)
+    frames = latency.load_frames(KITTI, 1, 16)
+    cores = sorted(os.sched_getaffinity(0))[:2]
+    report = latency.run_throughput(tiny_models, None, None, frames, 2, per_worker=1, warmup=0, cores=cores,
+                                    rounds=2, device_ids=[3, 5])
+    assert report["device_ids"] == [3, 5]
+    # Rounds 1 N, N 1: one worker on GPU 3, two on 3 and 5, two again, then one on GPU 5 (with the second share).
+    per_run = [sorted((u["worker"], u["device_id"]) for u in run["per_worker"]) for run in report["runs"]]
+    assert per_run == [[(0, 3)], [(0, 3), (1, 5)], [(0, 3), (1, 5)], [(0, 5)]]
+    assert sorted(given) == [3, 3, 3, 5, 5, 5]
+    given.clear()
+    assert latency.run_throughput(tiny_models, None, None, frames, 2, per_worker=1, warmup=0, cores=cores,
+                                  rounds=1)["device_ids"] is None
+    assert given == [None, None, None]
+
+
+def test_gpu_ids_are_refused_without_a_gpu_provider_or_when_malformed(tiny_models):
+    """--device-ids before minutes of timing: malformed or repeated ids by argparse, any without --provider
+    cuda or tensorrt in one line (exit 2)."""
+    for ids, message in (("0,1", "--device-ids 0,1: GPU ids need --provider cuda or tensorrt"),
+                         ("0,x", "expected GPU ids from 0 separated by commas"), ("1,1", "a GPU id given twice"),
+                         ("-1", "expected GPU ids from 0")):
+        result = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models),
+                                 f"--device-ids={ids}"], capture_output=True, text=True, timeout=120, check=False)
+        assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr, ids

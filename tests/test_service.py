@@ -920,6 +920,7 @@ def test_model_info(client: AppClient, tiny_models: Path) -> None:
     assert (info["workers"], info["sessions"], info["queue_size"]) == (2, "shared", 4)
     assert info["intra_op_threads"] == max(1, len(os.sched_getaffinity(0)) // 2)
     assert info["crop_hw"] == [352, 1216]
+    assert info["device_ids"] == [None]  # one shared session pair, on the CPU
     # The tiny models are untrained (and fp32: nothing this CPU could run inexactly).
     untrained = (f"{tiny_models}: depth and pixor have initialised (untrained) weights: the detections mean "
                  "nothing; export trained checkpoints (python -m export --checkpoints DIR)")
@@ -1073,6 +1074,28 @@ def test_settings_refuse_an_empty_token_or_path(
     assert "s3cret" not in lines[0]  # a token is never echoed
 
 
+def test_gpu_ids_from_the_command_line_or_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """--device-ids 0,1 (LOWRES3D_DEVICE_IDS=0,1: the same text, no JSON) for per-worker sessions; refused, naming
+    the option, where it could not be used: malformed, on the CPU provider, or several GPUs for shared sessions."""
+    from pydantic import ValidationError
+
+    from service.__main__ import settings_errors
+
+    assert settings_from_args(["--device-ids", "0, 1", "--sessions", "per-worker"]).gpu_ids() == [0, 1]
+    assert settings_from_args(["--device-ids", "1"]).gpu_ids() == [1]  # shared sessions: one GPU
+    assert settings_from_args([]).gpu_ids() is None
+    monkeypatch.setenv("LOWRES3D_DEVICE_IDS", "1,0")
+    assert settings_from_args(["--sessions", "per-worker", "--provider", "cuda"]).gpu_ids() == [1, 0]
+    for argv, line in (([], "--device-ids 1,0: several GPUs need --sessions per-worker"),
+                       (["--device-ids", "0", "--provider", "cpu"], ("--device-ids 0 with --provider cpu: GPU ids are "
+                        "for cuda or tensorrt")),
+                       (["--device-ids", "0,0"], "--device-ids (LOWRES3D_DEVICE_IDS) 0,0: a GPU id given twice"),
+                       (["--device-ids", "gpu0"], "--device-ids (LOWRES3D_DEVICE_IDS) gpu0: expected GPU ids from 0")):
+        with pytest.raises(ValidationError) as caught:
+            settings_from_args(argv)
+        assert any(line in error for error in settings_errors(caught.value)), (argv, settings_errors(caught.value))
+
+
 def test_unknown_lowres3d_variables_are_named_with_the_closest_setting() -> None:
     from service.__main__ import unknown_env_warnings
 
@@ -1134,6 +1157,7 @@ def test_per_worker_sessions(tiny_models: Path, frame: dict[str, bytes]) -> None
     with service(tiny_models, workers=2, sessions="per-worker") as app_client:
         runtime = app_client.app.state.runtime
         assert len(runtime.detectors) == 2 and runtime.detectors[0] is not runtime.detectors[1]
+        assert app_client.get("/v1/model").json()["device_ids"] == [None, None]
         with ThreadPoolExecutor(2) as burst:
             responses = list(burst.map(lambda _: app_client.post("/v1/detect", files=parts(frame)), range(4)))
         assert [r.status_code for r in responses] == [200] * 4

@@ -31,6 +31,7 @@ async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
         crop_hw=list(runtime.crop_hw) if runtime.crop_hw is not None else None,
         default_calib=runtime.default_calib is not None,
         mirror_tta=detector.mirror_tta,
+        device_ids=[d.device_id for d in runtime.detectors],
         warnings=detector.load_warnings,
         manifest=detector.manifest,
     )
