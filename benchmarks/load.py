@@ -86,7 +86,7 @@ from pipeline.cli import (
     positive_int,
     quiet_interrupt,
 )
-from pipeline.cpu import cpu_label
+from pipeline.cpu import cpu_label, usable_cpus
 from pipeline.cpu import describe as describe_cpu
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids
@@ -522,8 +522,10 @@ def per_window(samples: list[Sample], rss_series: list[tuple[float, float]], wal
 
 
 def this_machine() -> dict:
-    """The machine this process runs on, for a report."""
-    return {**describe_cpu(), "platform": platform.platform(), "cpus": os.cpu_count(), "python": platform.python_version()}
+    """The machine this process runs on, for a report. ``cpus``: those this process may use (its affinity and a
+    container's CPU quota: the client's share of a machine is what bounds it); ``cpus_online``: the machine's."""
+    return {**describe_cpu(), "platform": platform.platform(), "cpus": usable_cpus(), "cpus_online": os.cpu_count(),
+            "python": platform.python_version()}
 
 
 @dataclass
@@ -901,9 +903,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=KITTI,
                         help="KITTI object folder whose frames are sent in turn (default tests/data/kitti/training)")
     parser.add_argument("--frame", metavar="ID", help="send only this frame of --data")
-    parser.add_argument("--emulate-beams", "--beams", type=non_negative_int, metavar="N",
-                        help="ask the server to thin the 64-line scan to N lines (emulate_beams=N; default 16, or 0 "
-                        "with --send-beams; 0: off)")
+    parser.add_argument("--emulate-beams", "--beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help="ask the server to thin the 64-line scan to N lines (emulate_beams=N: 32, 16, 8 or 4; "
+                        "default 16, or 0 with --send-beams; 0: off)")
     parser.add_argument("--send-beams", type=int, choices=(0, *BEAM_COUNTS), default=0, metavar="N",
                         help="thin the scans to N lines (32, 16, 8 or 4) here, once before the run, and send those, "
                         "as an N-line sensor would, without asking the server to thin (default 0: as stored)")

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from pipeline.beams import emulate_beams
+from pipeline.cpu import usable_cpus
 from pipeline.kitti import read_velodyne, write_velodyne
 
 LOAD = Path(__file__).resolve().parents[1] / "benchmarks" / "load.py"
@@ -121,6 +122,8 @@ def test_url_names_the_client_machine_and_the_load_generators_cpu(tmp_path, runn
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((tmp_path / "r.json").read_text())
     assert "machine" not in report and report["client_machine"]["cpus"] >= 1
+    # The CPUs the client may use (affinity, a container's quota), beside the machine's.
+    assert report["client_machine"]["cpus"] == usable_cpus() <= report["client_machine"]["cpus_online"]
     assert report["server_machine"] is None and report["client_shares_server_machine"] is None
     lines = result.stdout.splitlines()
     assert not any(line.startswith("machine:") for line in lines)
@@ -205,6 +208,9 @@ def test_send_beams_refuses_thinned_scans_and_a_second_thinning_in_one_line(tmp_
     both = load(["--send-beams", "16", "--emulate-beams", "16", "--requests", "2"], tmp_path)
     assert both.returncode == 2 and "Traceback" not in both.stderr
     assert "error: --send-beams 16 thins the scans here and --emulate-beams 16 would ask the server" in both.stderr
+    # A line count the service cannot thin to would only come back as 422s, request after request.
+    odd = load(["--emulate-beams", "5", "--requests", "2"], tmp_path)
+    assert odd.returncode == 2 and "--emulate-beams/--beams: invalid choice: 5" in odd.stderr
 
 
 def test_log_puts_the_started_services_log_where_asked(tmp_path, tiny_models):
