@@ -25,12 +25,20 @@ from evaluation.depth_metrics import (
     moderate_cars_in_view,
 )
 from evaluation.frames import first_frames
-from pipeline.beams import emulate_beams, emulate_beams_on_depth_map
-from pipeline.calib import Calibration, depth_crop
+from pipeline.beams import emulate_beams
+from pipeline.calib import depth_crop
+from pipeline.depth_completion import (
+    check_drive_folder,
+    drive_calibration,
+    drive_frame_ids,
+    has_raw_scans,
+    is_drive_folder,
+    read_frame,
+)
 from pipeline.detector import Detector
 from pipeline.errors import InputError
-from pipeline.frame import CalibrationNotFound, frame_ids, load_frame, read_drive_calib
-from pipeline.kitti import read_depth_png, read_image, read_image_depth_png
+from pipeline.frame import frame_ids, load_frame
+from pipeline.kitti import read_depth_png, read_image_depth_png
 from pipeline.model_files import load_manifest
 from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
 from pipeline.render import render_depth_panel, write_png
@@ -119,21 +127,24 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
               depth_dir: Path | None = None, first: int | None = None) -> DepthRun:
     """Depth completion metrics on the KITTI crop, at full resolution.
 
-    Layouts: KITTI depth completion (``image_02/``, ``velodyne_raw/``,
-    ``groundtruth/`` PNGs), whose projected 64-line scan is thinned to ``beams``
-    lines through the drive's calibration (``calib_cam_to_cam.txt`` and
-    ``calib_velo_to_cam.txt`` in the folder or the one above it) and used as given
-    without one, with a warning; or a
+    Layouts: a KITTI depth-completion drive (``image_02/``, ``velodyne_raw/``,
+    ``groundtruth/`` PNGs; :mod:`pipeline.depth_completion`), whose projected 64-line
+    scan is thinned to ``beams`` lines through the drive's calibration
+    (``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in the folder or the one
+    above it): exactly with the raw scans in ``velodyne_points/``, else by each pixel's
+    elevation (with a warning), and used as given without a calibration, with a warning; or a
     KITTI object folder with dense ground truth in ``depth_2/`` (the synthetic
     scenes), whose scan is thinned to ``beams`` lines first. pictures: a folder
     for one PNG per frame (``depth_<id>.png``: camera, prediction, ground truth, error).
     first: only the first N of the frames.
     """
     data = Path(data)
-    if (data / "groundtruth").is_dir() and (data / "velodyne_raw").is_dir():
+    if is_drive_folder(data):
         layout = "depth-completion"
     elif (data / "depth_2").is_dir():
         layout = "object + depth_2"
+    elif (data / "proj_depth").is_dir() or data.name == "proj_depth":
+        check_drive_folder(data)  # KITTI's own layout: how to link a drive into the flat one
     else:
         raise InputError(
             f"--data: {data} has neither groundtruth/ + velodyne_raw/ (KITTI depth completion) "
@@ -158,23 +169,28 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             panel = render_depth_panel(crop, prediction, ground_truth)
             write_png(Path(pictures) / f"depth_{fid}.png", panel)
     if layout == "depth-completion":
-        drive_calib = _depth_completion_calib(data) if beams else None
-        if drive_calib is not None:
-            used = f"{beams}-line emulated on velodyne_raw through the drive's calibration"
-        else:
+        drive_calib = drive_calibration(data) if beams else None
+        if drive_calib is None:
             used = "velodyne_raw as given (projected 64-line scan)"
             if beams:  # the paper's figures, and the model's training, are on 16 lines
                 log.warning("--data %s: no calib_cam_to_cam.txt and calib_velo_to_cam.txt in it or above it, "
                             "so velodyne_raw goes in with all 64 lines, not thinned to %d as the model was trained "
                             "and the paper measured: put the drive's calibration files there to thin it", data, beams)
-        ids = first_frames(frames or sorted(p.stem for p in (data / "groundtruth").glob("*.png")), first)
+        elif has_raw_scans(data):
+            used = f"{beams}-line, the raw scans (velodyne_points/) thinned in scan order and matched to velodyne_raw"
+        else:
+            used = f"{beams}-line emulated on velodyne_raw by each pixel's elevation (approximate)"
+            # Measured on the shared KITTI scans: a third of the kept pixels are on other rings (pipeline/beams.py).
+            log.warning("--data %s: no velodyne_points/ with the drive's raw scans, so each pixel's beam is read "
+                        "from its elevation: the %d-line input has the density of %d lines but not their whole "
+                        "lines (about two kept pixels in three on the right rings); link the raw drive's "
+                        "velodyne_points/data there for an exact thinning", data, beams, beams)
+        beams_used = beams if drive_calib is not None else None
+        ids = first_frames(frames or drive_frame_ids(data), first)
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
-            image = read_image(data / "image_02" / f"{fid}.png")
-            sparse = read_depth_png(data / "velodyne_raw" / f"{fid}.png")
-            if drive_calib is not None:
-                sparse = emulate_beams_on_depth_map(sparse, drive_calib, beams)
-            gt = read_depth_png(data / "groundtruth" / f"{fid}.png")
-            crop_gt = _crop_ground_truth(gt, preset)
+            dc_frame = read_frame(data, fid, drive_calib, beams_used)
+            image, sparse = dc_frame.image, dc_frame.sparse
+            crop_gt = _crop_ground_truth(dc_frame.ground_truth, preset)
             if depth_dir is None:
                 rgb, sparse_view = view_from_depth_png(image, sparse, preset)
                 prediction = _to_crop_resolution(detector.run_depth_net(rgb, sparse_view), crop_gt.shape)
@@ -217,15 +233,6 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
         used = f"depth maps from {depth_dir}, not the depth network; their pixels without depth left out"
     return DepthRun(mean=mean_over_frames(list(per_frame.values())), per_frame=per_frame, layout=layout, input=used,
                     car_errors=car_errors, car_in_box=car_in_box, car_stray=car_stray)
-
-
-def _depth_completion_calib(data: Path) -> Calibration | None:
-    """The drive's calibration of a depth-completion folder (its raw-data files in it or the folder above, as
-    ``pipeline.detect --drive`` looks for them), or None when they are not there."""
-    try:
-        return read_drive_calib(data)  # files there but unreadable: an InputError naming them
-    except CalibrationNotFound:  # not there: the caller says what that means
-        return None
 
 
 def _given_pixels(prediction: np.ndarray, depth_dir: Path | None) -> np.ndarray | None:

@@ -226,9 +226,77 @@ def test_depth_completion_scan_is_thinned_to_16_lines_with_the_drives_calibratio
     (tmp_path / "calib_velo_to_cam.txt").write_text(f"R: {numbers(calib.Tr_velo_to_cam[:, :3])}\n"
                                                     f"T: {numbers(calib.Tr_velo_to_cam[:, 3])}\n")
     thinned = run_depth(data, tiny_models, progress=False)
-    assert thinned.input == "16-line emulated on velodyne_raw through the drive's calibration"
+    assert thinned.input == "16-line emulated on velodyne_raw by each pixel's elevation (approximate)"
+    assert "no velodyne_points/ with the drive's raw scans" in caplog.text
     assert 0.15 * seen[0] < seen[1] < 0.4 * seen[0]  # about a quarter of the returns
     assert thinned.mean.n_pixels == whole.mean.n_pixels and thinned.mean.mae_mm != whole.mean.mae_mm
+
+
+def _drive_from_object_frame(frame_id: str, drive: Path) -> np.ndarray:
+    """A depth-completion drive folder made of a real object frame: its image, its whole scan projected as
+    velodyne_raw and as ground truth, the scan itself in velodyne_points/ and the raw calibration files.
+    Returns the scan."""
+    frame = load_frame(KITTI, frame_id)
+    name = f"0000{frame_id}"  # a drive frame's 10 digits
+    for folder in ("image_02", "velodyne_raw", "groundtruth", "velodyne_points"):
+        (drive / folder).mkdir(parents=True)
+    shutil.copy(KITTI / "image_2" / f"{frame_id}.png", drive / "image_02" / f"{name}.png")
+    projected = sparse_depth_map(frame.points, frame.calib, frame.image_hw)
+    write_depth_png(drive / "velodyne_raw" / f"{name}.png", projected)
+    write_depth_png(drive / "groundtruth" / f"{name}.png", projected)
+    frame.points.astype(np.float32).tofile(drive / "velodyne_points" / f"{name}.bin")
+
+    def numbers(matrix: np.ndarray) -> str:
+        return " ".join(f"{v:.9e}" for v in matrix.ravel())
+
+    calib = frame.calib
+    (drive / "calib_cam_to_cam.txt").write_text(f"R_rect_00: {numbers(calib.R0_rect)}\nP_rect_02: {numbers(calib.P2)}\n")
+    (drive / "calib_velo_to_cam.txt").write_text(f"R: {numbers(calib.Tr_velo_to_cam[:, :3])}\n"
+                                                 f"T: {numbers(calib.Tr_velo_to_cam[:, 3])}\n")
+    return frame.points
+
+
+def test_depth_completion_with_raw_scans_thins_them_in_scan_order(tiny_models, tmp_path, monkeypatch, caplog):
+    """With the drive's raw scans in velodyne_points/, the net's sparse input is velodyne_raw on exactly the 16
+    rings a scan-order thinning keeps (no warning); a velodyne_raw of another size than its image is refused,
+    naming both files; KITTI's own layout gets the way to link a drive."""
+    from pipeline.beams import emulate_beams
+    from pipeline.depth_completion import drive_calibration, read_frame
+    from pipeline.detector import Detector
+    from pipeline.preprocess import view_from_depth_png
+
+    drive = tmp_path / "drive"
+    points = _drive_from_object_frame("000003", drive)
+    seen: list[np.ndarray] = []
+    real = Detector.run_depth_net
+
+    def recording(self, rgb, sparse_depth):  # the real net, its sparse input kept
+        seen.append(sparse_depth.copy())
+        return real(self, rgb, sparse_depth)
+
+    monkeypatch.setattr(Detector, "run_depth_net", recording)
+    outcome = run_depth(drive, tiny_models, progress=False)
+    assert outcome.input.startswith("16-line, the raw scans (velodyne_points/) thinned in scan order")
+    assert "velodyne_points" not in caplog.text
+    frame = load_frame(KITTI, "000003")
+    true16 = sparse_depth_map(emulate_beams(points, 16), frame.calib, frame.image_hw)
+    sparse = read_frame(drive, "0000000003", drive_calibration(drive)).sparse
+    assert np.count_nonzero((sparse > 0) & (true16 == 0)) == 0  # only pixels of the 16 kept rings ...
+    assert np.count_nonzero(sparse) >= 0.99 * np.count_nonzero(true16)  # ... and nearly all of them
+    np.testing.assert_allclose(sparse[sparse > 0], true16[sparse > 0], atol=1 / 256)  # the PNG's 1/256 m steps
+    _, expected = view_from_depth_png(frame.image, sparse, Detector(tiny_models).preset)
+    np.testing.assert_array_equal(seen[0], expected)  # what the net was given
+
+    smaller = read_depth_png(drive / "velodyne_raw" / "0000000003.png")[:-5, :-16]
+    write_depth_png(drive / "velodyne_raw" / "0000000003.png", smaller)
+    with pytest.raises(InputError, match=r"velodyne_raw/0000000003.png: a 1226×370 depth map for the 1242×375 "
+                                         r"image .*image_02/0000000003.png"):
+        run_depth(drive, tiny_models, progress=False)
+    official = tmp_path / "train" / "2011_09_26_drive_0001_sync"
+    (official / "proj_depth" / "velodyne_raw" / "image_02").mkdir(parents=True)
+    with pytest.raises(InputError, match="KITTI's depth-completion layout, one drive at a time in the flat one: "
+                                         "link one drive"):
+        run_depth(official, tiny_models, progress=False)
 
 
 def test_depth_metrics_on_object_folder_with_dense_ground_truth(tiny_models, tmp_path):
