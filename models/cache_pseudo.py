@@ -72,7 +72,7 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
     check_output(out, "--out", directory=True)
     check_not_input(out, "--out", {"--data": data, "--models": models})
     ids = _frames(Path(data), split_file)[:first]
-    detector = Detector(models, intra_op_threads=threads)
+    detector = Detector(models, intra_op_threads=threads, networks_used=("depth",))  # PIXOR is not run here
     if not detector.two_stage:
         raise InputError(f"--models: {models} has no depth network")
     out.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,9 @@ networks train on exactly what the Detector feeds them at inference.
 Depth samples: the 16-line scan projected into the depth net's view, the
 image, and the target — ``depth_2/ID.png`` (dense ground truth of the
 synthetic scenes) when present, else the full 64-line scan projected into the
-view (real KITTI object frames have no dense ground truth).
+view (real KITTI object frames have no dense ground truth). On a KITTI
+depth-completion drive (:class:`DepthCompletionDataset`) the 16 lines are thinned
+on its projected scan and the target is its semi-dense ``groundtruth``.
 
 Detector samples: the BEV tensor of the chosen input — ``lidar64`` (scan as
 stored), ``lidar16`` (thinned), ``pseudo`` (pseudo points from a cached dense
@@ -30,10 +32,11 @@ from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
 from pipeline.calib import Calibration, depth_crop, sparse_depth_map
+from pipeline.depth_completion import read_frame
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
 from pipeline.kitti import read_depth_png
-from pipeline.preprocess import depth_inputs, depth_view, view_calibration
+from pipeline.preprocess import depth_inputs, depth_view, view_calibration, view_from_depth_png
 from pipeline.presets import Preset
 from pipeline.pseudo import depth_to_points, merge_points
 from pipeline.targets import encode_targets
@@ -113,20 +116,28 @@ class DepthDataset(Dataset):
         return sample
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, ...]:
-        rgb, sparse, target, *mask = self.cache.get(index, self._load)
-        rgb = rgb.astype(np.float32)
-        if self.augment:
-            rng = np.random.default_rng((self.seed, self.epoch, index))
-            if rng.random() < 0.5:  # mirror image, input and target together
-                rgb, sparse, target = rgb[..., ::-1], sparse[..., ::-1], target[..., ::-1]
-                mask = [m[..., ::-1] for m in mask]
-            rgb = np.clip(rgb * rng.uniform(0.8, 1.2) + rng.uniform(-10, 10), 0, 255)
-        sample = (torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
-                  torch.from_numpy(np.array(sparse, np.float32)),  # copies: the cache keeps its arrays
-                  torch.from_numpy(np.array(target, np.float32)))
-        if mask:
-            sample += (torch.from_numpy(np.where(mask[0] > 0, self.car_weight, 1.0).astype(np.float32)),)
-        return sample
+        return depth_sample(self.cache.get(index, self._load), self.augment, (self.seed, self.epoch, index),
+                            self.car_weight)
+
+
+def depth_sample(item: tuple[np.ndarray, ...], augment: bool, key: tuple[int, int, int],
+                 car_weight: float = 1.0) -> tuple[torch.Tensor, ...]:
+    """A depth sample's tensors from its cached arrays (uint8 rgb, sparse, target[, car mask]): mirrored and
+    brightened when ``augment``, reproducibly per ``key`` (seed, epoch, index); the mask as loss weights."""
+    rgb, sparse, target, *mask = item
+    rgb = rgb.astype(np.float32)
+    if augment:
+        rng = np.random.default_rng(key)
+        if rng.random() < 0.5:  # mirror image, input and target together
+            rgb, sparse, target = rgb[..., ::-1], sparse[..., ::-1], target[..., ::-1]
+            mask = [m[..., ::-1] for m in mask]
+        rgb = np.clip(rgb * rng.uniform(0.8, 1.2) + rng.uniform(-10, 10), 0, 255)
+    sample = (torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
+              torch.from_numpy(np.array(sparse, np.float32)),  # copies: the cache keeps its arrays
+              torch.from_numpy(np.array(target, np.float32)))
+    if mask:
+        sample += (torch.from_numpy(np.where(mask[0] > 0, car_weight, 1.0).astype(np.float32)),)
+    return sample
 
 
 def car_pixels(frame: Frame, target: np.ndarray, preset: Preset) -> np.ndarray:
@@ -224,32 +235,36 @@ class DetectorDataset(Dataset):
 
 @dataclass
 class DepthCompletionDataset(Dataset):
-    """KITTI depth-completion layout: ``image_02/``, ``velodyne_raw/``, ``groundtruth/`` PNGs of one drive.
+    """(rgb (3,H,W), sparse (1,H,W), target (1,H,W)) float32 tensors per frame of a KITTI depth-completion drive
+    in the flat layout (:mod:`pipeline.depth_completion`: ``image_02/``, ``velodyne_raw/``, ``groundtruth/``).
 
-    The 64-line ``velodyne_raw`` map is thinned to ``beams`` lines through the
-    drive's calibration (each pixel's beam from its elevation angle), then
-    cropped and scaled like object frames; the target is ``groundtruth``.
+    The projected 64-line ``velodyne_raw`` map is thinned to ``beams`` lines through ``calib``, the drive's
+    calibration (:func:`pipeline.depth_completion.drive_calibration`; exact with the drive's raw scans in
+    ``velodyne_points/``, else by each pixel's elevation), then cropped and shrunk into the network's view as
+    the runtime does for such frames (:func:`pipeline.preprocess.view_from_depth_png`); the target is KITTI's
+    semi-dense ``groundtruth`` in that view. Samples are cached and augmented as :class:`DepthDataset`'s.
     """
 
-    root: Path
+    inputs: ClassVar[int] = 2  # leading fields that are network inputs (rgb, sparse); the rest are targets
+    data_dir: Path
     frame_ids: list[str]
     preset: Preset
-    calib: object  # pipeline.calib.Calibration of the drive
+    calib: Calibration | None  # None: only with beams None or 0 (the scan as given)
     beams: int | None = 16
+    augment: bool = False
+    seed: int = 0
+    epoch: int = 0  # set by the training loop: augmentation differs per epoch, reproducibly
+    cache: SampleCache = field(default_factory=SampleCache, repr=False)
 
     def __len__(self) -> int:
         return len(self.frame_ids)
 
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        from pipeline.beams import emulate_beams_on_depth_map
-        from pipeline.kitti import read_image
-        from pipeline.preprocess import view_from_depth_png
+    def _load(self, index: int) -> tuple[np.ndarray, ...]:
+        """uint8 rgb (3, H, W) (the view's pixels, exact), float32 sparse and target (1, H, W)."""
+        frame = read_frame(Path(self.data_dir), self.frame_ids[index], self.calib, self.beams)
+        rgb, sparse = view_from_depth_png(frame.image, frame.sparse, self.preset)
+        target = depth_view(frame.ground_truth, self.preset)[None]
+        return rgb[0].astype(np.uint8), sparse[0], target  # the view's pixels are whole numbers: uint8 is exact
 
-        fid = self.frame_ids[index]
-        image = read_image(self.root / "image_02" / f"{fid}.png")
-        sparse = read_depth_png(self.root / "velodyne_raw" / f"{fid}.png")
-        if self.beams:
-            sparse = emulate_beams_on_depth_map(sparse, self.calib, self.beams)
-        rgb, sparse_view = view_from_depth_png(image, sparse, self.preset)
-        target = depth_view(read_depth_png(self.root / "groundtruth" / f"{fid}.png"), self.preset)
-        return (torch.from_numpy(rgb[0]), torch.from_numpy(sparse_view[0]), torch.from_numpy(target[None]))
+    def __getitem__(self, index: int) -> tuple[torch.Tensor, ...]:
+        return depth_sample(self.cache.get(index, self._load), self.augment, (self.seed, self.epoch, index))

@@ -15,8 +15,9 @@ import numpy as np
 import torch
 
 from models.cache_pseudo import check_sources
+from pipeline.depth_completion import drive_calibration, is_drive_folder, raw_scan_path
 from pipeline.errors import InputError
-from pipeline.kitti import POINT_BYTES, check_image_file, read_calib, read_labels
+from pipeline.kitti import POINT_BYTES, check_image_file, read_calib, read_image_size, read_labels
 
 if TYPE_CHECKING:
     from models.train import TrainConfig, TrainResult
@@ -26,6 +27,8 @@ STATE_FILE = "state.pt"
 STATE_KEYS = ("networks", "optimizer", "scheduler", "epoch", "best", "history", "torch_rng", "numpy_rng",
               "python_rng")
 FRAME_FILES = ("velodyne/{}.bin", "image_2/{}.png", "calib/{}.txt")  # what load_frame reads of every frame
+# … and what pipeline.depth_completion.read_frame reads of a drive's (its raw scans are optional)
+DRIVE_FILES = ("image_02/{}.png", "velodyne_raw/{}.png", "groundtruth/{}.png")
 
 
 def check_out(out: Path) -> None:
@@ -155,18 +158,49 @@ def _check_frame_files(folder: Path, fid: str) -> None:
     check_image_file(folder / "image_2" / f"{fid}.png")
 
 
+def _check_drive_files(folder: Path, flag: str, ids: list[str], beams: int | None) -> None:
+    """A depth-completion drive's frames as far as they can be checked without decoding them (their three PNGs
+    whole and of one size, raw scans of whole points) and, when its scans are thinned, its calibration."""
+    if beams and drive_calibration(folder) is None:  # an unreadable file is an InputError naming it
+        raise InputError(f"{flag} {folder}: no drive calibration (calib_cam_to_cam.txt and calib_velo_to_cam.txt, "
+                         f"in it or in {folder.parent}); a depth run thins the drive's scans to {beams} lines "
+                         "through it")
+    for fid in ids:
+        paths = [folder / pattern.format(fid) for pattern in DRIVE_FILES]
+        for path in paths:
+            check_image_file(path)
+        sizes = [read_image_size(path) for path in paths]
+        for path, size in zip(paths[1:], sizes[1:], strict=True):
+            if size != sizes[0]:
+                raise InputError(f"{path}: a {size[1]}×{size[0]} depth map for the {sizes[0][1]}×{sizes[0][0]} "
+                                 f"image {paths[0]}; they must be the same size")
+        scan = raw_scan_path(folder, fid)
+        if scan is not None and (scan.stat().st_size == 0 or scan.stat().st_size % POINT_BYTES):
+            raise InputError(f"{scan}: size {scan.stat().st_size} bytes is not a whole number of {POINT_BYTES}-byte "
+                             "points (a KITTI scan is float32 rows x, y, z, reflectance)")
+
+
 def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path,
-                 val_ids: list[str]) -> None:
+                 val_ids: list[str], beams: int | None = 16) -> None:
     """Every frame file the run reads is there, before it trains: each frame's scan, image and calibration;
     its labels (``label_2/``) for the detector and joint tasks, whose targets and AP come from them. Depth
     runs need no labels (the target is ``depth_2/ID.png`` when present, else the frame's own 64-line scan)
-    unless ``--car-weight`` weighs the labelled cars' pixels."""
+    unless ``--car-weight`` weighs the labelled cars' pixels.
+
+    A depth-completion drive (:func:`pipeline.depth_completion.is_drive_folder`) has each frame's
+    ``image_02``, ``velodyne_raw`` and ``groundtruth`` PNGs checked instead, and its calibration, which
+    thinning its scans to ``beams`` lines (training's 16) needs; it has no labels to train ``--car-weight`` on."""
     labels = config.task in ("detector", "joint") or config.car_weight != 1.0
     needs = f"a {config.task} run" + (" with --car-weight" if config.task == "depth" else "")
     val_flag = "--val-data" if config.val_data is not None else "--data"
     for folder, ids, flag, split in ((train_dir, train_ids, "--data", ("--train-split", config.train_split)),
                                      (val_dir, val_ids, val_flag, ("--val-split", config.val_split))):
-        for pattern in FRAME_FILES:
+        drive = is_drive_folder(folder)
+        # --car-weight weighs the training frames' loss alone: a drive may still validate such a run
+        if drive and labels and (config.task != "depth" or ids is train_ids):
+            raise InputError(f"{flag} {folder}: a depth-completion drive, which has no labelled cars; {needs} needs "
+                             "the ground-truth boxes of an object folder (label_2/)")
+        for pattern in DRIVE_FILES if drive else FRAME_FILES:
             missing = _missing(folder, pattern, ids)
             if missing is None:
                 continue
@@ -174,6 +208,9 @@ def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val
             if split[1] is not None:  # the ids come from a split file: name it
                 raise InputError(f"{split[0]} {split[1]}: frame {frame}{more} is not in {folder} (no {path})")
             raise InputError(f"{flag} {folder}: frame {frame}{more} has no {path}")
+        if drive:
+            _check_drive_files(folder, flag, ids, beams)
+            continue
         for fid in ids:  # what a file's size and ends tell, so that a broken one fails now, not an epoch in
             _check_frame_files(folder, fid)
         if labels:

@@ -2,7 +2,11 @@
 
 * depth — the paper's recipe by default: batch 4, Adam lr 1e-4 halved every 5
   epochs, 10 epochs, MSE on pixels with ground truth; input = 16-line sparse
-  depth + image.
+  depth + image. ``--data`` / ``--val-data`` may also be KITTI depth-completion
+  drives in the flat layout of pipeline/depth_completion.py (``image_02/``,
+  ``velodyne_raw/``, ``groundtruth/``, the drive's calibration in it or above;
+  split files list its frame ids): 16 lines thinned through that calibration,
+  KITTI's semi-dense ground truth as the target.
 * detector — PIXOR from scratch: Adam, batch 8, lr 1e-3 halved when the
   validation loss stops falling; ``--input lidar64|lidar16|pseudo``.
 * joint — both networks fine-tuned together through a differentiable BEV
@@ -59,7 +63,14 @@ from tqdm import tqdm
 from models import build_depth_net, build_pixor
 from models.allocator import keep_freed_memory
 from models.checkpoint import CHECKPOINT_FILES, save_checkpoint
-from models.data import DETECTOR_INPUTS, DepthDataset, DetectorDataset, car_boxes, frame_points
+from models.data import (
+    DETECTOR_INPUTS,
+    DepthCompletionDataset,
+    DepthDataset,
+    DetectorDataset,
+    car_boxes,
+    frame_points,
+)
 from models.devices import (
     COMPILE_MIN_STEPS,
     CPU,
@@ -90,6 +101,13 @@ from models.start_weights import (
 )
 from models.validation import validate_depth, validate_detector
 from pipeline.cli import interrupted, non_negative_int, positive_float, positive_int
+from pipeline.depth_completion import (
+    FLAT_LAYOUT_HINT,
+    check_drive_folder,
+    drive_calibration,
+    drive_frame_ids,
+    is_drive_folder,
+)
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.preprocess import depth_inputs
@@ -208,11 +226,65 @@ def check_flags_apply(config: TrainConfig) -> None:
 
 
 # ----------------------------------------------------------------------------- data
+def check_layout(task: str, folder: Path, flag: str, split: Path | None) -> None:
+    """``folder`` is a KITTI object folder, or (depth runs only) a depth-completion drive in the flat layout
+    (:func:`pipeline.depth_completion.is_drive_folder`); KITTI's own ``proj_depth`` layout gets the way to link a
+    drive into the flat one. With a split file a folder lacking its frames' files is named by :func:`check_frames`."""
+    if is_drive_folder(folder):
+        if task != "depth":
+            raise InputError(f"{flag} {folder}: a depth-completion drive (velodyne_raw/, groundtruth/), which only a "
+                             f"depth run trains on; a {task} run needs a KITTI object folder (velodyne/, label_2/)")
+        return
+    if (folder / "velodyne").is_dir():
+        return
+    if task == "depth":
+        try:
+            check_drive_folder(folder, flag)
+        except InputError as exc:
+            if FLAT_LAYOUT_HINT in str(exc):  # KITTI's layout: how to link one drive, whether or not a split is given
+                raise
+    if split is None:
+        also = " nor a depth-completion drive (no velodyne_raw/ and groundtruth/ inside)" if task == "depth" else ""
+        raise InputError(f"{flag} {folder}: not a KITTI object folder (no velodyne/ inside){also}")
+
+
+def folder_frame_ids(folder: Path, split: Path | None) -> list[str]:
+    """The split file's ids, else every frame of the folder: an object folder's scans, a drive's ground truths."""
+    if split is None and is_drive_folder(folder):
+        return drive_frame_ids(folder)
+    return frame_ids(folder, split)
+
+
+def warn_overlap(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path,
+                 val_ids: list[str]) -> None:
+    """One warning when frames of one folder are both trained and validated on (of those the run uses, after
+    --max-*-frames): their validation figures, which pick the run's best epoch, then flatter the net. Refused it
+    is not (a smoke test may mean it); validating on the very training frames, for want of --val-data or
+    --val-split, has its own warning, as before."""
+    if config.val_data is None and config.val_split is None:
+        log.warning("no --val-data or --val-split: validating on the training frames")
+        return
+    if train_dir.resolve() != val_dir.resolve():
+        return
+    trained = set(train_ids)
+    shared = [fid for fid in val_ids if fid in trained]
+    if not shared:
+        return
+    validated = (f"--val-split {config.val_split}" if config.val_split is not None
+                 else f"--val-data {val_dir} (every frame)")
+    training = (f"--train-split {config.train_split}" if config.train_split is not None
+                else f"every frame of --data {train_dir}, for want of --train-split")
+    log.warning("%s: %d of its %d validation frames (%s among them) are training frames too (%s): their "
+                "validation figures flatter the net; give a --train-split without them", validated, len(shared),
+                len(val_ids), shared[0], training)
+
+
 def split_ids(config: TrainConfig) -> tuple[Path, list[str], Path, list[str]]:
     """(train dir, train ids, val dir, val ids) from folders and optional split files.
 
     Every frame listed (before ``--max-train-frames`` / ``--max-val-frames`` take the first N) is checked
-    to be there (:func:`check_frames`), so a bad split fails now, not an epoch in.
+    to be there (:func:`check_frames`), so a bad split fails now, not an epoch in. A folder is a KITTI
+    object folder or, for depth runs, a depth-completion drive (:func:`check_layout`).
     """
     for flag, folder, split in (("--data", config.data, config.train_split),
                                 ("--val-data", config.val_data, config.val_split)):
@@ -220,21 +292,28 @@ def split_ids(config: TrainConfig) -> tuple[Path, list[str], Path, list[str]]:
             continue
         if not Path(folder).is_dir():
             raise InputError(f"{flag} {folder}: no such folder")
-        if split is None and not (Path(folder) / "velodyne").is_dir():
-            raise InputError(f"{flag} {folder}: not a KITTI object folder (no velodyne/ inside)")
-    train_ids = frame_ids(config.data, config.train_split)
-    val_dir = config.val_data or config.data
-    if config.val_data is None and config.val_split is None:
-        log.warning("no --val-data or --val-split: validating on the training frames")
-    val_ids = frame_ids(val_dir, config.val_split)
-    check_frames(config, Path(config.data), train_ids, Path(val_dir), val_ids)
+        check_layout(config.task, Path(folder), flag, split)
+    train_dir, val_dir = Path(config.data), Path(config.val_data or config.data)
+    train_ids = folder_frame_ids(train_dir, config.train_split)
+    val_ids = folder_frame_ids(val_dir, config.val_split)
+    check_frames(config, train_dir, train_ids, val_dir, val_ids)
     if config.max_train_frames:
         train_ids = train_ids[: config.max_train_frames]
     if config.max_val_frames:
         val_ids = val_ids[: config.max_val_frames]
     if not train_ids or not val_ids:
         raise InputError(f"--data: no frames to train on in {config.data} or to validate on in {val_dir}")
-    return Path(config.data), train_ids, Path(val_dir), val_ids
+    warn_overlap(config, train_dir, train_ids, val_dir, val_ids)
+    return train_dir, train_ids, val_dir, val_ids
+
+
+def depth_dataset(folder: Path, ids: list[str], preset: Preset, augment: bool = False, seed: int = 0,
+                  car_weight: float = 1.0) -> DepthDataset | DepthCompletionDataset:
+    """A depth run's frames of ``folder``: an object folder's, or a depth-completion drive's (thinned to 16 lines
+    through the drive's calibration, which :func:`check_frames` found; --car-weight is refused on a drive)."""
+    if is_drive_folder(folder):
+        return DepthCompletionDataset(folder, ids, preset, drive_calibration(folder), augment=augment, seed=seed)
+    return DepthDataset(folder, ids, preset, augment=augment, seed=seed, car_weight=car_weight)
 
 
 def stack_in_layout(samples: list[tuple[torch.Tensor, ...]], inputs: int = 0,
@@ -343,9 +422,9 @@ def run(config: TrainConfig) -> TrainResult:
         raise InputError(f"--out: cannot create {out} ({exc.strerror or exc})") from None
 
     if config.task == "depth":
-        train_set = DepthDataset(train_dir, train_ids, preset, augment=not config.quick, seed=config.seed,
-                                 car_weight=config.car_weight)
-        val_set = DepthDataset(val_dir, val_ids, preset)
+        train_set = depth_dataset(train_dir, train_ids, preset, augment=not config.quick, seed=config.seed,
+                                  car_weight=config.car_weight)
+        val_set = depth_dataset(val_dir, val_ids, preset)
     elif config.task == "detector":
         train_set = DetectorDataset(train_dir, train_ids, preset, config.input_mode, config.pseudo_dir,
                                     augment=not config.quick, seed=config.seed)
@@ -525,8 +604,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n\n")[0],
                                      epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("task", choices=TASKS)
-    parser.add_argument("--data", type=Path, required=True, help="KITTI-layout training folder")
-    parser.add_argument("--val-data", type=Path, help="KITTI-layout validation folder (default: --data + --val-split)")
+    parser.add_argument("--data", type=Path, required=True,
+                        help="KITTI object training folder; depth: or a depth-completion drive (flat layout)")
+    parser.add_argument("--val-data", type=Path, help="validation folder of either kind (default: --data + --val-split)")
     parser.add_argument("--train-split", type=Path, help="training frame ids, one per line (default: all of --data)")
     parser.add_argument("--val-split", type=Path, help="validation frame ids, one per line")
     parser.add_argument("--preset", default="edge", help="model preset (default edge)")

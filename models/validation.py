@@ -14,7 +14,14 @@ from torch.utils.data import DataLoader
 from evaluation.depth_metrics import car_box_shares, car_shares_by_band, moderate_cars_in_view
 from evaluation.kitti_eval import evaluate
 from evaluation.labels import LabelArrays
-from models.data import DepthDataset, cached_pseudo_depth, car_boxes, detector_points, frame_points
+from models.data import (
+    DepthCompletionDataset,
+    DepthDataset,
+    cached_pseudo_depth,
+    car_boxes,
+    detector_points,
+    frame_points,
+)
 from models.devices import CPU
 from models.joint import joint_depth
 from models.losses import pixor_loss
@@ -29,7 +36,8 @@ from pipeline.targets import encode_targets
 
 
 @torch.no_grad()
-def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU, loss: str = "mse") -> dict:
+def validate_depth(net, dataset: DepthDataset | DepthCompletionDataset, device: torch.device = CPU,
+                   loss: str = "mse") -> dict:
     """RMSE and MAE (mm) of the validation frames; val_loss is the training loss (MSE in m², or L1 in m).
 
     On labelled object frames also ``car_in_box_<band>``: per distance band, the mean over the moderate
@@ -43,6 +51,7 @@ def validate_depth(net, dataset: DepthDataset, device: torch.device = CPU, loss:
     per_frame_rmse = []
     shares: list[tuple[float, float]] = []
     strays: list[tuple[float, float]] = []
+    # Object folders may have labels; a depth-completion drive has none (its figures are RMSE and MAE alone).
     labelled = isinstance(dataset, DepthDataset) and (Path(dataset.data_dir) / "label_2").is_dir()
     index = 0
     for rgb, sparse, target, *_ in DataLoader(dataset, batch_size=2):

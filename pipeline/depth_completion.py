@@ -90,8 +90,8 @@ def read_frame(folder: Path, frame_id: str, calib: Calibration | None, beams: in
     """One frame of a drive folder, its scan thinned to ``beams`` lines (None or 0: as given, all 64).
 
     Thinning needs ``calib``; with the frame's raw scan in ``velodyne_points/`` it is exact, otherwise each
-    pixel's beam comes from its elevation angle. Maps whose size differs from the image's are refused, naming
-    both files.
+    pixel's beam comes from its elevation angle (a drive with ``velodyne_points/`` must have every frame's
+    scan). Maps whose size differs from the image's are refused, naming both files.
     """
     folder = Path(folder)
     image_path = folder / "image_02" / f"{frame_id}.png"
@@ -110,6 +110,9 @@ def read_frame(folder: Path, frame_id: str, calib: Calibration | None, beams: in
             raise InputError(f"{folder}: thinning its scans to {beams} lines needs the drive's calibration "
                              "(calib_cam_to_cam.txt and calib_velo_to_cam.txt in it or the folder above)")
         scan_path = raw_scan_path(folder, frame_id)
+        if scan_path is None and has_raw_scans(folder):  # one frame approximate among exact ones, unsaid: refused
+            raise InputError(f"{folder / 'velodyne_points'}: no raw scan of frame {frame_id} ({frame_id}.bin), "
+                             "while the drive's other frames are thinned from theirs")
         scan = read_velodyne(scan_path).points if scan_path is not None else None
         sparse = emulate_beams_on_depth_map(sparse, calib, beams, scan=scan,
                                             source=f"{folder / 'velodyne_raw' / f'{frame_id}.png'} and {scan_path}")

@@ -245,6 +245,7 @@ class Detector:
         stage_threads: int | None = None,
         mirror_tta: bool = False,
         device_id: int | None = None,
+        networks_used: tuple[str, ...] = ("depth", "pixor"),
     ) -> None:
         """stage_threads: 2 runs the stages that need no depth beside the depth net, 1 runs every stage in
         turn; None: 2 when the networks may use two or more threads (``intra_op_threads`` not 1) and the
@@ -256,8 +257,12 @@ class Detector:
 
         device_id: the GPU both sessions run on, for CUDA and TensorRT (None: GPU 0); an InputError on the CPU
         provider. One Detector per GPU runs frames on several GPUs side by side (the service's per-worker
-        sessions, latency.py's throughput workers)."""
+        sessions, latency.py's throughput workers).
+
+        networks_used: the networks the caller runs, whose untrained weights are warned of (``models.cache_pseudo``
+        runs the depth net alone; a depth-only export's initialised PIXOR is no concern of it)."""
         self.mirror_tta = bool(mirror_tta)
+        self.networks_used = tuple(networks_used)
         self.model_dir = Path(model_dir)
         self.manifest = load_manifest(self.model_dir)
         if verify:
@@ -353,11 +358,13 @@ class Detector:
     def _untrained(self) -> str | None:
         """A warning when a network was exported without trained weights (``python -m export`` without its
         checkpoint, as for latency measurements): it runs, and its boxes mean nothing."""
-        untrained = [name for name, entry in self.manifest["networks"].items() if entry.get("weights") != "trained"]
+        untrained = [name for name, entry in self.manifest["networks"].items()
+                     if entry.get("weights") != "trained" and name in self.networks_used]
         if not untrained:
             return None
+        outputs = "detections" if "pixor" in self.networks_used else "depth maps"
         return (f"{self.model_dir}: {' and '.join(untrained)} {'has' if len(untrained) == 1 else 'have'} initialised "
-                "(untrained) weights: the detections mean nothing; export trained checkpoints "
+                f"(untrained) weights: the {outputs} mean nothing; export trained checkpoints "
                 "(python -m export --checkpoints DIR)")
 
     def _saturating_int8(self) -> str | None:
@@ -512,6 +519,10 @@ class Detector:
             points = emulate_beams(points, emulate_to_beams)
             timings["emulate_beams"] = (time.perf_counter() - tic) * 1e3
             warnings.append(f"emulated {emulate_to_beams} beams: kept {points.shape[0]} of {before} points")
+            # The emulation is NumPy, not interrupted (about 0.5 s for a scan of a million points): a frame
+            # cancelled meanwhile stops here rather than going on to the depth net's inputs.
+            if cancel is not None and cancel.cancelled:
+                raise RunCancelled("the frame was cancelled during its beam emulation; stopped after it")
 
         mismatch = self._line_count_mismatch(points.shape[0])
         if mismatch:

@@ -3,6 +3,7 @@
 import json
 import shutil
 import signal
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -28,6 +29,35 @@ def kitti_dir() -> Path:
 @pytest.fixture(scope="session")
 def depth_completion_dir() -> Path:
     return DATA / "depth_completion"
+
+
+@pytest.fixture
+def make_drive(depth_completion_dir: Path, tmp_path: Path) -> Callable[..., Path]:
+    """Makes depth-completion drives in the flat layout (pipeline/depth_completion.py) under ``tmp_path``: copies of
+    the real sample frame under the ids asked for, in ``date/NAME`` beside the drive's raw calibration files
+    (``calib_cam_to_cam.txt``, ``calib_velo_to_cam.txt``, written from kitti/training/calib/000003.txt, the same
+    recording day's), or with ``calib=False`` in ``nocalib/NAME`` without them."""
+    from pipeline.kitti import read_calib
+
+    def numbers(matrix) -> str:
+        return " ".join(f"{v:.9e}" for v in matrix.ravel())
+
+    calib = read_calib(KITTI / "calib" / "000003.txt")
+    date = tmp_path / "date"
+    date.mkdir()
+    (date / "calib_cam_to_cam.txt").write_text(f"R_rect_00: {numbers(calib.R0_rect)}\nP_rect_02: {numbers(calib.P2)}\n")
+    (date / "calib_velo_to_cam.txt").write_text(f"R: {numbers(calib.Tr_velo_to_cam[:, :3])}\n"
+                                                f"T: {numbers(calib.Tr_velo_to_cam[:, 3])}\n")
+
+    def make(name: str = "drive", frame_ids: tuple[str, ...] = ("0000000005",), calib: bool = True) -> Path:
+        drive = (date if calib else tmp_path / "nocalib") / name
+        for folder in ("image_02", "velodyne_raw", "groundtruth"):
+            (drive / folder).mkdir(parents=True)
+            for frame_id in frame_ids:
+                shutil.copy(depth_completion_dir / folder / "0000000005.png", drive / folder / f"{frame_id}.png")
+        return drive
+
+    return make
 
 
 @pytest.fixture(scope="session")

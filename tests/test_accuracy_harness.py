@@ -287,6 +287,10 @@ def test_depth_completion_with_raw_scans_thins_them_in_scan_order(tiny_models, t
     _, expected = view_from_depth_png(frame.image, sparse, Detector(tiny_models).preset)
     np.testing.assert_array_equal(seen[0], expected)  # what the net was given
 
+    (drive / "velodyne_points" / "0000000003.bin").rename(drive / "0000000003.bin")
+    with pytest.raises(InputError, match=r"velodyne_points: no raw scan of frame 0000000003 \(0000000003.bin\)"):
+        run_depth(drive, tiny_models, progress=False)
+    (drive / "0000000003.bin").rename(drive / "velodyne_points" / "0000000003.bin")
     smaller = read_depth_png(drive / "velodyne_raw" / "0000000003.png")[:-5, :-16]
     write_depth_png(drive / "velodyne_raw" / "0000000003.png", smaller)
     with pytest.raises(InputError, match=r"velodyne_raw/0000000003.png: a 1226×370 depth map for the 1242×375 "

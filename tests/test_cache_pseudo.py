@@ -116,3 +116,33 @@ def test_ctrl_c_keeps_the_finished_maps_and_the_rerun_resumes(tiny_models: Path,
     recorded = set(recorded_sources(out))
     assert recorded <= {name.removesuffix(".png") for name in maps} and len(recorded) >= len(maps) - 1
     assert run(data, tiny_models, out, progress=False) == frames - len(recorded)
+
+
+def test_a_depth_only_export_is_not_warned_of_for_its_unused_pixor(tiny_models: Path, kitti_dir: Path, tmp_path: Path,
+                                                                   caplog: pytest.LogCaptureFixture) -> None:
+    """Caching runs the depth net alone: a model directory whose depth net is trained and whose PIXOR is not
+    (``python -m export --checkpoints`` of a depth run's folder) gets no warning about PIXOR here, while the
+    Detector that detect and the service load still warns of it; an untrained depth net is still warned of."""
+    import json
+    import logging
+    import shutil
+
+    from pipeline.detector import Detector
+
+    models = tmp_path / "depth_only"
+    shutil.copytree(tiny_models, models)
+    manifest = json.loads((models / "manifest.json").read_text())  # as export writes a depth.pt-only folder's
+    manifest["networks"]["depth"].update(weights="trained", training={"checkpoint": "depth.pt"})
+    manifest["weights"] = "partially trained: depth trained, pixor initialised (untrained)"
+    (models / "manifest.json").write_text(json.dumps(manifest))
+    with caplog.at_level(logging.WARNING, logger="pipeline.detector"):
+        assert run(kitti_dir, models, tmp_path / "pseudo", progress=False, first=1) == 1
+        assert not [r for r in caplog.records if "initialised (untrained)" in r.getMessage()]
+        assert Detector(models).load_warnings == [(f"{models}: pixor has initialised (untrained) weights: the "
+                                                   "detections mean nothing; export trained checkpoints "
+                                                   "(python -m export --checkpoints DIR)")]
+        caplog.clear()
+        assert run(kitti_dir, tiny_models, tmp_path / "untrained", progress=False, first=1) == 1
+    assert [r.getMessage() for r in caplog.records] == [(f"{tiny_models}: depth has initialised (untrained) weights: "
+                                                         "the depth maps mean nothing; export trained checkpoints "
+                                                         "(python -m export --checkpoints DIR)")]

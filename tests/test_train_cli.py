@@ -4,12 +4,15 @@
 Every run here is the tiny preset on one real KITTI frame for one epoch.
 """
 
+import json
+import logging
 import math
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from models.train import TrainConfig, main, run
@@ -377,3 +380,150 @@ def test_the_readme_training_commands_take_their_flags(monkeypatch, capsys):
         with pytest.raises(Checked):
             main(argv)
         assert capsys.readouterr().err == "", argv
+
+
+# ----------------------------------------------------------------------------- KITTI depth completion
+DRIVE_RUN = ["--preset", "tiny", "--epochs", "1", "--batch-size", "1", "--compile", "off"]
+
+
+def test_depth_run_trains_and_validates_on_depth_completion_drives(make_drive, tmp_path, caplog):
+    """``models.train depth --data DRIVE --val-data DRIVE2``: trained on the drive's frames (16 lines thinned through
+    its calibration in the date folder above), validated on the other's ground truth; split files list a drive's
+    frame ids. The figures are RMSE and MAE over the ground truth's pixels in the view (a drive has no labels)."""
+    from models.checkpoint import load_checkpoint
+    from pipeline.kitti import read_depth_png
+    from pipeline.preprocess import depth_view
+    from pipeline.presets import get_preset
+
+    drive = make_drive("train", ("0000000005", "0000000006"))
+    other = make_drive("val", ("0000000007",))
+    out = tmp_path / "run"
+    assert main(["depth", "--data", str(drive), "--val-data", str(other), "--out", str(out), *DRIVE_RUN]) == 0
+    record = json.loads((out / "log.jsonl").read_text().splitlines()[-1])
+    truth = depth_view(read_depth_png(other / "groundtruth" / "0000000007.png"), get_preset("tiny"))
+    assert record["pixels"] == np.count_nonzero(truth) > 0
+    assert math.isfinite(record["rmse_mm"]) and math.isfinite(record["train_loss"])
+    assert not [key for key in record if key.startswith("car_")]
+    metadata = load_checkpoint(out / "depth.pt").metadata
+    assert (metadata["data"], metadata["train_frames"], metadata["val_frames"]) == (str(drive), 2, 1)
+    train, val = tmp_path / "train.txt", tmp_path / "val.txt"
+    train.write_text("0000000005\n")
+    val.write_text("0000000006\n")
+    with caplog.at_level(logging.WARNING, logger="models.train"):
+        assert main(["depth", "--data", str(drive), "--train-split", str(train), "--val-split", str(val),
+                     "--out", str(tmp_path / "split_run"), *DRIVE_RUN]) == 0
+    assert not [r for r in caplog.records if r.name == "models.train"]  # distinct frames: nothing to warn of
+    metadata = load_checkpoint(tmp_path / "split_run" / "depth.pt").metadata
+    assert (metadata["train_frames"], metadata["val_frames"]) == (1, 1)
+    # Object frames trained with --car-weight (their labels) may be validated on a drive, which has none.
+    one = tmp_path / "one.txt"
+    one.write_text(f"{FRAME}\n")
+    assert main(["depth", "--data", str(KITTI), "--train-split", str(one), "--val-data", str(other), "--car-weight",
+                 "5", "--out", str(tmp_path / "mixed"), *DRIVE_RUN]) == 0
+    assert json.loads((tmp_path / "mixed" / "log.jsonl").read_text())["pixels"] == record["pixels"]
+
+
+@pytest.mark.parametrize("case", ["kitti layout", "neither", "no calibration", "missing scan", "split frame",
+                                  "smaller ground truth", "broken image", "detector", "car weight"])
+def test_a_drive_a_run_cannot_train_on_is_refused_by_name(make_drive, tmp_path, capsys, case):
+    """KITTI's own layout gets the way to link a drive; a drive without its calibration (training thins its scans
+    to 16 lines through it), a frame without a file, of maps of another size, or a broken PNG, a task needing
+    labels: each one line naming the folder or file, before --out is made."""
+    from pipeline.depth_completion import FLAT_LAYOUT_HINT
+    from pipeline.kitti import read_depth_png, write_depth_png
+
+    drive = make_drive("drive", ("0000000005", "0000000006"), calib=case != "no calibration")
+    data, task, extra = drive, "depth", []
+    frame = "0000000006"
+    if case == "kitti layout":  # train/DRIVE/proj_depth/{velodyne_raw,groundtruth}/image_02/ as KITTI ships it
+        data = tmp_path / "train" / "2011_09_26_drive_0001_sync"
+        for name in ("velodyne_raw", "groundtruth"):
+            (data / "proj_depth" / name / "image_02").mkdir(parents=True)
+        says = f"--data {data}: KITTI's depth-completion layout, one drive at a time in the flat one: {FLAT_LAYOUT_HINT}"
+    elif case == "neither":
+        data = drive / "image_02"
+        says = (f"--data {data}: not a KITTI object folder (no velodyne/ inside) nor a depth-completion drive "
+                "(no velodyne_raw/ and groundtruth/ inside)")
+    elif case == "no calibration":
+        says = (f"--data {drive}: no drive calibration (calib_cam_to_cam.txt and calib_velo_to_cam.txt, in it or in "
+                f"{drive.parent}); a depth run thins the drive's scans to 16 lines through it")
+    elif case == "missing scan":
+        (drive / "velodyne_raw" / f"{frame}.png").unlink()
+        says = f"--data {drive}: frame {frame} has no {drive / 'velodyne_raw' / f'{frame}.png'}"
+    elif case == "split frame":
+        split = tmp_path / "val.txt"
+        split.write_text("0000000009\n")
+        extra = ["--val-split", str(split)]
+        says = f"--val-split {split}: frame 0000000009 is not in {drive} (no {drive / 'image_02' / '0000000009.png'})"
+    elif case == "smaller ground truth":
+        truth = drive / "groundtruth" / f"{frame}.png"
+        write_depth_png(truth, read_depth_png(truth)[::2, ::2])
+        says = (f"{truth}: a 621×188 depth map for the 1242×375 image {drive / 'image_02' / f'{frame}.png'}; they "
+                "must be the same size")
+    elif case == "broken image":
+        image = drive / "image_02" / f"{frame}.png"
+        image.write_bytes(image.read_bytes()[:2000])
+        says = f"{image}: PNG cut off before its end"
+    elif case == "detector":
+        task = "detector"
+        says = (f"--data {drive}: a depth-completion drive (velodyne_raw/, groundtruth/), which only a depth run "
+                "trains on; a detector run needs a KITTI object folder (velodyne/, label_2/)")
+    else:
+        extra = ["--car-weight", "5"]
+        says = (f"--data {drive}: a depth-completion drive, which has no labelled cars; a depth run with --car-weight "
+                "needs the ground-truth boxes of an object folder (label_2/)")
+    out = tmp_path / "run"
+    said = refused([task, "--data", str(data), "--out", str(out), *DRIVE_RUN, *extra], capsys)
+    assert said.startswith(f"error: {says}"), said
+    assert not out.exists()
+
+
+# ----------------------------------------------------------------------------- validation frames among the training ones
+def _object_folder(folder: Path, frames: tuple[str, ...]) -> Path:
+    """A KITTI object folder of ``frames``, each file a link to the real sample's."""
+    for sub, suffix in (("velodyne", ".bin"), ("image_2", ".png"), ("calib", ".txt"), ("label_2", ".txt")):
+        (folder / sub).mkdir(parents=True)
+        for fid in frames:
+            (folder / sub / f"{fid}{suffix}").symlink_to(KITTI / sub / f"{fid}{suffix}")
+    return folder
+
+
+def _warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name == "models.train" and r.levelno == logging.WARNING]
+
+
+def test_validation_frames_that_are_trained_on_are_warned_of(tmp_path, caplog):
+    """--val-split without --train-split trains on every frame, the validation ones too; a --train-split that
+    overlaps --val-split (or --val-data the same folder): one warning naming how many and one of them. The run
+    goes on (nothing is refused); other folders' frames of the same ids are other frames."""
+    from models.train import split_ids
+
+    data = _object_folder(tmp_path / "data", ("000003", "000006"))
+    val, train, apart = tmp_path / "val.txt", tmp_path / "train.txt", tmp_path / "apart.txt"
+    val.write_text("000006\n")
+    train.write_text("000003\n000006\n")
+    apart.write_text("000003\n")
+    tail = "their validation figures flatter the net; give a --train-split without them"
+    with caplog.at_level(logging.WARNING, logger="models.train"):
+        assert main(["detector", "--data", str(data), "--val-split", str(val), "--out", str(tmp_path / "run"),
+                     *DRIVE_RUN]) == 0
+    assert _warnings(caplog) == [(f"--val-split {val}: 1 of its 1 validation frames (000006 among them) are training "
+                                  f"frames too (every frame of --data {data}, for want of --train-split): {tail}")]
+
+    def warned(**flags) -> list[str]:
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="models.train"):
+            split_ids(TrainConfig(task="detector", data=data, preset="tiny", out=tmp_path / "unused", **flags))
+        return _warnings(caplog)
+
+    assert warned(train_split=train, val_split=val) == [
+        (f"--val-split {val}: 1 of its 1 validation frames (000006 among them) are training frames too "
+         f"(--train-split {train}): {tail}")]
+    same = tmp_path / "data" / ".." / "data"  # the same folder spelt otherwise
+    assert warned(train_split=val, val_data=same) == [
+        (f"--val-data {same} (every frame): 1 of its 2 validation frames (000006 among them) are training frames "
+         f"too (--train-split {val}): {tail}")]
+    assert warned(train_split=apart, val_split=val) == []
+    other = _object_folder(tmp_path / "other", ("000003", "000006"))
+    assert warned(val_data=other) == []
+    assert warned() == ["no --val-data or --val-split: validating on the training frames"]  # as before, alone

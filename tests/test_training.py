@@ -158,6 +158,42 @@ def test_depth_completion_layout_emulates_16_lines(depth_completion_dir):
     assert 0 < int((sparse > 0).sum()) < int((target > 0).sum())
 
 
+def test_depth_completion_samples_are_depth_samples_of_the_drives_frames(make_drive):
+    """A drive's samples come as DepthDataset's do (uint8 view pixels cached, inputs = 2, mirrored with the
+    input when augmented): the 16 lines thinned through the drive's own calibration, KITTI's ground truth as the
+    target in the network's view. Without a calibration thinning is refused by name, not an AttributeError."""
+    from pipeline.depth_completion import drive_calibration, read_frame
+    from pipeline.errors import InputError
+    from pipeline.preprocess import depth_view, view_from_depth_png
+
+    preset = PRESETS["tiny"]
+    drive = make_drive(frame_ids=("0000000005", "0000000006"))
+    calib = drive_calibration(drive)
+    plain = DepthCompletionDataset(drive, ["0000000005", "0000000006"], preset, calib)
+    assert DepthCompletionDataset.inputs == 2
+    rgb, sparse, target = plain[0]
+    frame = read_frame(drive, "0000000005", calib, 16)
+    view_rgb, view_sparse = view_from_depth_png(frame.image, frame.sparse, preset)
+    assert torch.equal(rgb, torch.from_numpy(view_rgb[0])) and torch.equal(sparse, torch.from_numpy(view_sparse[0]))
+    assert torch.equal(target, torch.from_numpy(depth_view(frame.ground_truth, preset)[None]))
+    assert 0 < int((sparse > 0).sum()) < int((target > 0).sum())
+    assert plain.cache.items[0][0].dtype == np.uint8
+    augmented = DepthCompletionDataset(drive, plain.frame_ids, preset, calib, augment=True)
+    mirrored = []
+    for epoch in range(6):  # the mirror is drawn per epoch and frame
+        augmented.epoch = epoch
+        rgb_a, sparse_a, target_a = augmented[0]
+        flipped = torch.equal(sparse_a, sparse.flip(-1))
+        assert flipped or torch.equal(sparse_a, sparse)
+        assert torch.equal(target_a, target.flip(-1) if flipped else target) and not torch.equal(rgb_a, rgb)
+        mirrored.append(flipped)
+    assert any(mirrored) and not all(mirrored)
+    with pytest.raises(InputError, match=r"thinning its scans to 16 lines needs the drive's calibration"):
+        DepthCompletionDataset(drive, ["0000000005"], preset, None)[0]
+    whole = DepthCompletionDataset(drive, ["0000000005"], preset, None, beams=None)[0][1]  # as given: no calibration
+    assert int((whole > 0).sum()) > 2 * int((sparse > 0).sum())
+
+
 def test_soft_occupancy_forward_is_the_hard_grid_and_has_gradient():
     grid = PRESETS["edge"].bev
     points = read_velodyne(KITTI / "velodyne" / "000006.bin").points
