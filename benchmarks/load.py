@@ -27,8 +27,9 @@ once before the run, and sends N-line scans as an N-line sensor would.
 
 ``--bad-every N`` makes every Nth request a broken one (a truncated scan, a
 cut-off PNG, a calibration without P2, a misspelt query parameter), which must
-be answered 4xx, never 5xx: the service checks each of them before the frame
-takes a place in its queue, so not even a full queue answers them 503.
+be answered 4xx, or 503 when the queue is full: the service takes a frame's
+place before it reads the upload (so that a burst of uploads cannot hold more
+memory than its queue), and checks the upload once it has one; never another 5xx.
 Well-formed and broken requests each take the frames in turn.
 
 Reports: throughput (answered 200 per second), p50/p99 latency (p90 too in the
@@ -910,7 +911,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="thin the scans to N lines (32, 16, 8 or 4) here, once before the run, and send those, "
                         "as an N-line sensor would, without asking the server to thin (default 0: as stored)")
     parser.add_argument("--bad-every", type=non_negative_int, default=0, metavar="N",
-                        help="make every Nth request a broken one, which must be answered 4xx (default 0: none)")
+                        help="make every Nth request a broken one, which must be answered 4xx (503 when the queue is full) "
+                        "(default 0: none)")
     parser.add_argument("--token", default=os.environ.get("LOWRES3D_TOKEN"), help="bearer token (default $LOWRES3D_TOKEN)")
     parser.add_argument("--backoff-s", type=float,
                         help="closed loop: a client's pause after a 503 (default 0.1)")

@@ -83,8 +83,9 @@ class Cancellation:
 
     ONNX Runtime checks its run options' terminate flag between the nodes of a graph, so a network run
     already under way ends within about one node's time rather than running to its end; a run not yet
-    started does not start. The stages between the networks take a few milliseconds and are not
-    interrupted. One per frame: the flag stays set.
+    started does not start. The NumPy stages are not interrupted: those between the networks take a few
+    milliseconds, the beam emulation before them up to about 0.5 s for a million-point scan, after which
+    the flag is checked. One per frame: the flag stays set.
     """
 
     def __init__(self) -> None:

@@ -7,20 +7,44 @@ Every option is also an environment variable (``--queue-size`` ↔
 is no setting (a typo) gets a warning. The address is bound first (not yet
 listened on), then the models are loaded and their sha256 checked: an address
 in use, a missing or corrupted model file stops the start with one line naming
-the option or the file (exit status 2), before any warm-up. SIGTERM or Ctrl-C
-while the models load stop the start there; once serving, they stop accepting
-connections and let in-flight requests finish (up to ``--shutdown-timeout-s``);
-those still running then are answered 503 ``shutting_down`` (service/middleware.py).
+the option or the file (exit status 2), before any warm-up. SIGTERM and Ctrl-C
+are handled from the first milliseconds, before the imports: one that comes
+while the service starts or its models load stops the start there; once
+serving, they stop accepting connections and let in-flight requests finish (up
+to ``--shutdown-timeout-s``); those still running then are answered 503
+``shutting_down`` (service/middleware.py). Ctrl-C then ends with one line
+(``interrupted: …``) and exit status 130, SIGTERM by the signal itself.
 """
 
 from __future__ import annotations
 
+import signal
+
+_pending_signals: list[int] = []  # SIGTERM/SIGINT noted while nothing else handled them, first first
+
+
+def _note_signal(signum: int, _frame: object) -> None:
+    """Note a SIGTERM or SIGINT; main() acts on it at its next step (before the models load, or at exit)."""
+    _pending_signals.append(signum)
+
+
+def note_signals() -> None:
+    """From now on a SIGTERM or SIGINT is noted rather than lost (the first process of a container ignores a
+    signal it has no handler for) or turned into a KeyboardInterrupt traceback (Python's own SIGINT handler)."""
+    for signum in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(signum, _note_signal)
+
+
+if __name__ == "__main__":
+    # First of all: the imports below take most of a second, and a stop sent meanwhile must not be lost.
+    note_signals()
+
+# The imports come after the handlers on purpose (see above).
 import argparse
 import difflib
 import errno
 import logging
 import os
-import signal
 import socket
 import sys
 from collections.abc import Iterator, Mapping
@@ -30,6 +54,7 @@ from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
+from pipeline.cli import interrupted
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError, default_models_hint
 from service.settings import ENV_PREFIX, Settings
@@ -53,6 +78,7 @@ _OPTIONS: list[tuple[str, type, object]] = [
     ("--intra-op-threads", int, "N"),
     ("--trt-cache-dir", Path, "DIR"),
     ("--request-timeout-s", float, "S"),
+    ("--receive-timeout-s", float, "S"),
     ("--max-body-bytes", int, "BYTES"),
     ("--max-points", int, "N"),
     ("--max-image-pixels", int, "N"),
@@ -158,7 +184,8 @@ def bind_listeners(host: str, port: int) -> list[socket.socket]:
     listens on them, connections are refused.
     """
     try:
-        infos = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+        # The host as given: None ("" too) would mean every interface, which Settings refuses to take silently.
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except (OSError, UnicodeError) as exc:  # UnicodeError: a name IDNA cannot encode (an empty label: "a..b")
         reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
         raise AddressError(f"--host {host} ({ENV_PREFIX}HOST): cannot resolve it ({reason})") from None
@@ -189,14 +216,16 @@ class StoppedBeforeServing(BaseException):
     """SIGTERM or SIGINT came before uvicorn took the signals over. A BaseException, as KeyboardInterrupt is:
     the model loading's own ``except Exception`` (a graph ONNX Runtime cannot load) must not take it."""
 
-    def __init__(self, signum: int) -> None:
+    def __init__(self, signum: int, during: str = "loading the models") -> None:
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+        self.during = during  # what the start was doing, for the log line
 
 
 @contextmanager
 def stop_on_signals_until_serving() -> Iterator[None]:
-    """Until uvicorn installs its own handlers, SIGTERM and SIGINT raise :class:`StoppedBeforeServing`.
+    """Until uvicorn installs its own handlers, SIGTERM and SIGINT raise :class:`StoppedBeforeServing`; one
+    noted since the start (:func:`note_signals`) raises it on entry.
 
     Python has no SIGTERM handler of its own, and the first process of a container (no init) ignores a
     signal it has no handler for: a ``docker stop`` or a rollout while the models loaded (TensorRT builds its
@@ -207,30 +236,40 @@ def stop_on_signals_until_serving() -> Iterator[None]:
 
     previous = {signum: signal.signal(signum, stop) for signum in (signal.SIGTERM, signal.SIGINT)}
     try:
+        if _pending_signals:  # noted during the imports or the bind: the models are not even loaded
+            raise StoppedBeforeServing(_pending_signals.pop(0), "starting, before the models loaded")
         yield
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler)
 
 
-def stopped_before_serving(signum: int) -> int:
+def ended_by_signal(signum: int) -> int:
     """End the process as the signal would have, after the clean-up: by the signal itself (uvicorn does so
     after a shutdown too), or, where it is ignored (the first process of a container), 128 + its number."""
-    if signum == signal.SIGINT:
-        return 130
     signal.signal(signum, signal.SIG_DFL)
     signal.raise_signal(signum)
     return 128 + signum
+
+
+def stopped_before_serving(signum: int) -> int:
+    """The exit status of a start stopped by ``signum``: 130 for SIGINT (Ctrl-C), else :func:`ended_by_signal`."""
+    return 130 if signum == signal.SIGINT else ended_by_signal(signum)
 
 
 def uvicorn_config(settings: Settings, app: FastAPI) -> uvicorn.Config:
     """uvicorn's configuration for the service."""
     import uvicorn
 
+    from service.protocol import protocol_class
+
     return uvicorn.Config(
         app,
         host=settings.host,
         port=settings.port,
+        # h11 with a deadline on each request's head and the connection limit (service/protocol.py).
+        http=protocol_class(settings.receive_timeout_s, settings.connection_limit()),
+        ws="none",  # no WebSocket route: an Upgrade request is answered as plain HTTP
         log_level=settings.log_level,
         # A float: uvicorn waits in asyncio.timeout(), which takes fractions (int() made 0.9 s no grace at all).
         timeout_graceful_shutdown=settings.shutdown_timeout_s,  # type: ignore[arg-type]  # annotated int there
@@ -242,12 +281,13 @@ def uvicorn_config(settings: Settings, app: FastAPI) -> uvicorn.Config:
 
 def main(argv: list[str] | None = None) -> int:
     """Parse options, bind the address, load and check the models, serve until SIGTERM/SIGINT; the exit status."""
+    note_signals()  # (again: for a caller other than python -m service)
     import uvicorn
 
     from service.app import create_app
     from service.memory import limit_malloc_arenas
     from service.metrics import Metrics
-    from service.middleware import CancelledRequestLogFilter
+    from service.middleware import install_log_filters
     from service.runtime import load_runtime
 
     class Server(uvicorn.Server):
@@ -264,6 +304,13 @@ def main(argv: list[str] | None = None) -> int:
                 logging.getLogger("uvicorn.error").info("Uvicorn running on http://%s:%d (Press CTRL+C to quit)",
                                                         shown, bound_port)
 
+        async def on_tick(self, counter: int) -> bool:
+            # A signal noted between the models' load and uvicorn's own handlers: uvicorn's shutdown, as if
+            # uvicorn had caught it (it re-raises it at the end, noted again for main()).
+            while _pending_signals:
+                self.handle_exit(_pending_signals.pop(0), None)
+            return await super().on_tick(counter)
+
     try:
         settings = settings_from_args(argv)
     except ValidationError as exc:
@@ -271,7 +318,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"python -m service: {line}", file=sys.stderr)
         return 2
     logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    logging.getLogger("uvicorn.error").addFilter(CancelledRequestLogFilter())
+    install_log_filters()  # no traceback for a cancelled request; what clients cause at will at DEBUG
     for line in unknown_env_warnings(os.environ):
         log.warning(line)
     try:
@@ -295,9 +342,16 @@ def main(argv: list[str] | None = None) -> int:
     except StoppedBeforeServing as stopped:
         for sock in sockets:
             sock.close()
-        log.info("%s before serving: stopped while loading the models; not started", stopped)
+        log.info("%s before serving: stopped while %s; not started", stopped, stopped.during)
         return stopped_before_serving(stopped.signum)
     server.run(sockets=sockets)  # uvicorn's own signal handlers from here on
+    # uvicorn re-raises the signal that stopped it once its handlers are gone: noted here, ended on here.
+    if _pending_signals:
+        signum = _pending_signals[0]
+        if signum == signal.SIGINT:  # Ctrl-C: one line and 130, as every command of the project
+            return interrupted("the service has stopped; the requests in flight were let finish first "
+                               "(up to --shutdown-timeout-s)")
+        return ended_by_signal(signum)
     return 0 if server.started else 3
 
 

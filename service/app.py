@@ -19,7 +19,14 @@ from fastapi import Depends, FastAPI
 from service.deps import require_token
 from service.errors import install_error_handlers
 from service.metrics import Metrics
-from service.middleware import BodyLimitMiddleware, RequestContextMiddleware, RequestsInFlight
+from service.middleware import (
+    AdmissionMiddleware,
+    AuthMiddleware,
+    BodyLimitMiddleware,
+    ConnectionLimitMiddleware,
+    RequestContextMiddleware,
+    RequestsInFlight,
+)
 from service.routes import detect, health, model
 from service.routes import metrics as metrics_route
 from service.runtime import Runtime, load_runtime
@@ -80,8 +87,9 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     app.state.metrics = metrics
     app.state.runtime = None
     install_error_handlers(app)
-    # /v1/* needs the bearer token when one is configured (and only then does the schema declare it);
-    # probes and metrics stay open for orchestrators and scrapers.
+    # /v1/* needs the bearer token when one is configured (and only then does the schema declare it):
+    # AuthMiddleware checks it before the body is read, the dependency declares it in the schema (and checks
+    # again); probes and metrics stay open for orchestrators and scrapers.
     auth = [Depends(require_token)] if settings.token is not None else []
     protected, open_to_all = (detect.router, model.router), (health.router, metrics_route.router)
     for router in protected:
@@ -94,8 +102,18 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
         [route.path for router in (*protected, *open_to_all) for route in router.routes]
         + [path for route in app.routes if isinstance(path := getattr(route, "path", None), str)]  # FastAPI's own
     )
-    # Added last = outermost: the request context wraps the body limit so 413s are counted and carry an id.
-    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes)
+    open_paths = frozenset(route.path for router in open_to_all for route in router.routes)
+    detect_paths = frozenset(route.path for route in detect.router.routes)
+    # Added last = outermost. The request context wraps everything, so that every answer is counted and carries
+    # an id; inside it, each layer answers before the body is read when it can: the connection limit (503), the
+    # token (401), a declared size over the limit (413), no place in the pool (503). The pool's place is taken
+    # last, for a request nothing else refused.
+    app.add_middleware(AdmissionMiddleware, runtime=lambda: app.state.runtime, detect_paths=detect_paths)
+    app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes,
+                       receive_timeout_s=settings.receive_timeout_s)
+    if settings.token is not None:
+        app.add_middleware(AuthMiddleware, token=settings.token)
+    app.add_middleware(ConnectionLimitMiddleware, open_paths=open_paths)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths, in_flight=in_flight)
     _schema_follows_the_model(app)
     return app

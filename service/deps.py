@@ -14,6 +14,8 @@ from fastapi import Depends, Request
 from fastapi.dependencies.models import Dependant
 from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.security.utils import get_authorization_scheme_param
+from pydantic import SecretStr
 
 from service.errors import ServiceError, request_id_of
 from service.metrics import Metrics
@@ -36,6 +38,15 @@ def get_metrics(request: Request) -> Metrics:
     return request.app.state.metrics
 
 
+def not_ready_reason(runtime: Runtime | None) -> str | None:
+    """Why the runtime cannot take a frame yet (the message of the 503 ``not_ready``); None once it can."""
+    if runtime is None:
+        return "models are still loading"
+    if not runtime.ready.is_set():
+        return runtime.warm_up_error or "models are warming up"
+    return None
+
+
 def get_runtime(request: Request) -> Runtime:
     """The loaded runtime; 503 while it is still loading."""
     runtime: Runtime | None = getattr(request.app.state, "runtime", None)
@@ -46,9 +57,9 @@ def get_runtime(request: Request) -> Runtime:
 
 def get_ready_runtime(runtime: Annotated[Runtime, Depends(get_runtime)]) -> Runtime:
     """The runtime once warmed up; 503 before."""
-    if not runtime.ready.is_set():
-        message = runtime.warm_up_error or "models are warming up"
-        raise ServiceError(503, "not_ready", message, {"Retry-After": "1"})
+    reason = not_ready_reason(runtime)
+    if reason is not None:
+        raise ServiceError(503, "not_ready", reason, {"Retry-After": "1"})
     return runtime
 
 
@@ -64,24 +75,33 @@ ReadyRuntimeDep = Annotated[Runtime, Depends(get_ready_runtime)]
 RequestIdDep = Annotated[str, Depends(get_request_id)]
 
 
+UNAUTHORIZED_MESSAGE = "Authorization: a valid bearer token is required"
+WWW_AUTHENTICATE = 'Bearer realm="lowres3d"'
+
+
+def token_accepted(token: SecretStr, authorization: str | None) -> bool:
+    """Whether an ``Authorization`` header value is ``Bearer <token>`` (the scheme in any case, as HTTPBearer
+    reads it). The comparison is constant-time (hmac.compare_digest) so response timing does not reveal how
+    much of a guess was right."""
+    scheme, credentials = get_authorization_scheme_param(authorization)
+    given = credentials.encode() if scheme.lower() == "bearer" else b""
+    return bool(given) and hmac.compare_digest(given, token.get_secret_value().encode())
+
+
 def require_token(
     settings: SettingsDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> None:
     """401 unless the request carries ``Authorization: Bearer <token>`` (when a token is configured).
 
-    The comparison is constant-time (hmac.compare_digest) so response timing
-    does not reveal how much of a guess was right.
+    service.middleware.AuthMiddleware checks the same before the body is read; this dependency declares the
+    scheme in the OpenAPI schema and checks again for an app served without that middleware.
     """
     if settings.token is None:
         return
-    expected = settings.token.get_secret_value().encode()
-    given = credentials.credentials.encode() if credentials is not None else b""
-    if credentials is None or not hmac.compare_digest(given, expected):
-        raise ServiceError(
-            401, "unauthorized", "Authorization: a valid bearer token is required",
-            {"WWW-Authenticate": 'Bearer realm="lowres3d"'},
-        )
+    header = f"{credentials.scheme} {credentials.credentials}" if credentials is not None else None
+    if not token_accepted(settings.token, header):
+        raise ServiceError(401, "unauthorized", UNAUTHORIZED_MESSAGE, {"WWW-Authenticate": WWW_AUTHENTICATE})
 
 
 def require_multipart(request: Request) -> None:
@@ -94,7 +114,13 @@ def require_multipart(request: Request) -> None:
             f"Content-Type: expected multipart/form-data with parts image, points (and calib), got {shown}",
         )
     # Recorded by service.middleware.BodyLimitMiddleware as the body arrived.
-    if (request.scope.get("state") or {}).get("multipart_complete") is False:
+    body = (request.scope.get("state") or {}).get("multipart_body")
+    if body == "empty":
+        raise ServiceError(
+            400, "bad_request",
+            "request body: empty (0 bytes); send multipart/form-data with the parts image, points (and calib)",
+        )
+    if body == "cut_off":
         raise ServiceError(
             400, "bad_request",
             "request body: the multipart body ended before its closing boundary (a cut-off upload?); "

@@ -1,6 +1,7 @@
 """Prometheus metrics of one app instance (its own registry: several apps in one process do not mix).
 
-Exposed at ``GET /metrics``: request counts by route, method and status;
+Exposed at ``GET /metrics``: request counts by route, method and status (each label from a fixed set:
+the service's routes or "unmatched", HTTP's methods or "other"; 499 for a client that left before its answer);
 request latency per route; per-stage latency of the detector; inference queue
 depth, in-flight frames and frames stopped on a worker; HTTP requests in flight; readiness; and the
 process collector's memory and CPU (``process_resident_memory_bytes``, Linux).
@@ -46,7 +47,8 @@ class Metrics:
             ["stage"], buckets=LATENCY_BUCKETS, registry=self.registry,
         )
         self.queue_depth = Gauge(
-            "lowres3d_inference_queue_depth", "frames admitted and waiting for a worker", registry=self.registry
+            "lowres3d_inference_queue_depth", "frames admitted and waiting for a worker (their uploads still "
+            "arriving included)", registry=self.registry
         )
         self.in_flight = Gauge(
             "lowres3d_inference_in_flight", "frames being processed by a worker", registry=self.registry

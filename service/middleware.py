@@ -1,24 +1,37 @@
-"""Pure ASGI middleware: request ids, metrics and the last-resort 500; the request body limit (413).
+"""Pure ASGI middleware, outermost first: request context, connection limit, token, body limit, admission.
 
 :class:`RequestContextMiddleware` is the outermost layer: it gives each request
 an id (``X-Request-ID``, echoed in every answer and error), counts and times
-it, and turns any unhandled exception into a 500 that carries only the request
-id while the trace goes to the log. A request cancelled because uvicorn's
-graceful shutdown (``--shutdown-timeout-s``) ran out is answered 503
-``shutting_down`` instead, when its answer has not begun, and the cancellation goes
-on (:class:`CancelledRequestLogFilter` keeps uvicorn from logging it as a crash).
-:class:`BodyLimitMiddleware` counts body
-bytes as they arrive, so a client that sends no Content-Length (chunked) is
-cut off as soon as it passes the limit, and answers 413 itself. While counting it
-also notes whether a multipart body ended with its close delimiter
-(``scope["state"]["multipart_complete"]``), which the multipart parser does not
-check: :func:`service.deps.require_multipart` answers 400 for a cut-off upload.
+it (the method and route labels from fixed sets, so no client can grow the
+metrics), logs one line per answer that is not 2xx, and turns any unhandled
+exception into a 500 that carries only the request id while the trace goes to
+the log. A request whose client closed the connection before its answer is
+counted (and logged) as 499. A request cancelled because uvicorn's graceful
+shutdown (``--shutdown-timeout-s``) ran out is answered 503 ``shutting_down``
+instead, when its answer has not begun, and the cancellation goes on
+(:class:`CancelledRequestLogFilter` keeps uvicorn from logging it as a crash).
+
+The layers inside answer before a byte of the body is read whenever they can:
+:class:`ConnectionLimitMiddleware` answers 503 to a request service/protocol.py
+found over the connection limit (probes and ``/metrics`` excepted);
+:class:`AuthMiddleware` answers 401 on ``/v1/*`` without the token;
+:class:`BodyLimitMiddleware` answers 413 on a Content-Length over the limit, else
+counts body bytes as they arrive (so a chunked upload is cut off as soon as it
+passes the limit), and answers 408 for a body not received within
+``--receive-timeout-s``. While counting it also notes whether a multipart/form-data
+body was empty or ended without its close delimiter
+(``scope["state"]["multipart_body"]``), which the multipart parser does not
+check: :func:`service.deps.require_multipart` answers 400 for those.
+:class:`AdmissionMiddleware` takes the frame's place in the inference pool before
+its upload is read, and answers 503 when there is none (or the models are not
+ready), so the uploads held at once are bounded by workers + queue.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import re
 import time
@@ -26,8 +39,14 @@ import uuid
 from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
+from pydantic import SecretStr
+
+from service.deps import UNAUTHORIZED_MESSAGE, WWW_AUTHENTICATE, not_ready_reason, token_accepted
 from service.errors import error_bytes
 from service.metrics import Metrics
+from service.pool import PoolClosed, PoolFull
+from service.protocol import OVER_CONNECTION_LIMIT
+from service.runtime import Runtime
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +58,10 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 _SAFE_REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
 _BOUNDARY = re.compile(r'boundary="?([^";]+)"?', re.IGNORECASE)
-_TAIL_BYTES = 4096  # room for the close delimiter plus any CRLF/epilogue a client adds after it
+# The method label's values: HTTP's methods (RFC 9110, and PATCH); any other token a client sends is "other".
+_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"})
+CLIENT_CLOSED = 499  # nginx's "client closed request": the client left before its answer
+_ERROR_CODE_BYTES = 64 * 1024  # an error body read for its code in the log line (error bodies are small)
 
 
 def _multipart_close(scope: Scope) -> bytes | None:
@@ -56,6 +78,25 @@ def _header(scope: Scope, name: bytes) -> str | None:
         if key.lower() == name:
             return value.decode("latin-1")
     return None
+
+
+def _has_body(scope: Scope) -> bool:
+    """Whether the request announces a body (a Content-Length above 0, or chunked)."""
+    length = _header(scope, b"content-length")
+    return _header(scope, b"transfer-encoding") is not None or (length is not None and length.strip() not in ("", "0"))
+
+
+def _close_if_body(scope: Scope) -> list[tuple[bytes, bytes]]:
+    """``Connection: close`` for an answer given before the request's body was read: the server would
+    otherwise read (and drop) all of it to keep the connection."""
+    return [(b"connection", b"close")] if _has_body(scope) else []
+
+
+def method_label(scope: Scope) -> str:
+    """The request's method for metrics and the log: one of HTTP's methods, or "other" (a method token is any
+    string a client likes, up to kilobytes: each would be a series of its own)."""
+    method = scope.get("method", "")
+    return method if method in _METHODS else "other"
 
 
 def _route_label(scope: Scope, route_paths: frozenset[str]) -> str:
@@ -90,6 +131,38 @@ class CancelledRequestLogFilter(logging.Filter):
         return not (cancelled and str(record.msg).startswith("Exception in ASGI application"))
 
 
+class ClientNoiseLogFilter(logging.Filter):
+    """Turns the library warnings any client can cause at will into DEBUG records.
+
+    uvicorn warns once per malformed request ("Invalid HTTP request received.") and twice per ``Upgrade``
+    request, python-multipart once per malformed body: a bad client could fill the log with them. The
+    service answers each of these requests (uvicorn's 400, the service's own 400 with its one line), so at
+    info level they are dropped; ``--log-level debug`` shows them. Add it to ``uvicorn.error`` and to
+    python-multipart's logger (:func:`install_log_filters`).
+    """
+
+    _UVICORN = ("Invalid HTTP request received", "Unsupported upgrade request", "No supported WebSocket library")
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        noise = record.name.startswith(("python_multipart", "multipart")) or (
+            record.name == "uvicorn.error" and str(record.msg).startswith(self._UVICORN))
+        if not noise or record.levelno < logging.WARNING:
+            return True
+        record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+        return logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
+
+
+def install_log_filters() -> None:
+    """Attach the service's filters to uvicorn's and python-multipart's loggers (a logger's filters see only
+    its own records, so each logger that writes them gets one)."""
+    uvicorn_error = logging.getLogger("uvicorn.error")
+    uvicorn_error.addFilter(CancelledRequestLogFilter())
+    uvicorn_error.addFilter(ClientNoiseLogFilter())
+    # python-multipart's module logger; "multipart.multipart" before it was renamed (0.0.13).
+    for name in ("python_multipart.multipart", "multipart.multipart"):
+        logging.getLogger(name).addFilter(ClientNoiseLogFilter())
+
+
 class RequestsInFlight:
     """How many HTTP requests :class:`RequestContextMiddleware` is handling.
 
@@ -110,8 +183,9 @@ class RequestsInFlight:
 
 
 class RequestContextMiddleware:
-    """Request id, request metrics, a JSON 500 (trace logged, never returned) for unhandled errors, and a JSON
-    503 for requests cancelled by the server's shutdown."""
+    """Request id, request metrics, one log line per answer that is not 2xx, a JSON 500 (trace logged, never
+    returned) for unhandled errors, a JSON 503 for requests cancelled by the server's shutdown, and 499 in the
+    metrics for a request whose client left before its answer."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics, route_paths: frozenset[str] = frozenset(),
                  in_flight: RequestsInFlight | None = None) -> None:
@@ -127,30 +201,46 @@ class RequestContextMiddleware:
         incoming = _header(scope, b"x-request-id")
         request_id = incoming if incoming and _SAFE_REQUEST_ID.match(incoming) else uuid.uuid4().hex
         scope.setdefault("state", {})["request_id"] = request_id
+        method = method_label(scope)
         status = 500
         started = False
+        client_gone = False  # the server said the client disconnected before the answer began
+        logged = False  # a line naming the request id is in the log already
+        code: str | None = None  # an error answer's code, for the log line
+
+        async def receive_watched() -> Message:
+            nonlocal client_gone
+            message = await receive()
+            if message["type"] == "http.disconnect" and not started:
+                client_gone = True
+            return message
 
         async def send_with_id(message: Message) -> None:
-            nonlocal status, started
+            nonlocal status, started, code
             if message["type"] == "http.response.start":
                 status = message["status"]
                 started = True
                 message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
+            elif status >= 400 and code is None and len(message.get("body", b"")) <= _ERROR_CODE_BYTES:
+                with contextlib.suppress(ValueError, TypeError, AttributeError, KeyError):
+                    code = str(json.loads(message.get("body", b""))["error"]["code"])
             await send(message)
 
         self.metrics.http_in_flight.inc()
         self.in_flight.count += 1
         tic = time.perf_counter()
         try:
-            await self.app(scope, receive, send_with_id)
+            await self.app(scope, receive_watched, send_with_id)
         except asyncio.CancelledError:
             # uvicorn cancels the requests still running when --shutdown-timeout-s runs out (and answers a plain
             # 500 itself): answer in the service's format while the connection is still open, then let the
             # cancellation go on. A frame already on a worker is stopped there; one still queued never runs.
+            logged = True
+            route = _route_label(scope, self.route_paths)
             if not started:
                 status = 503
                 log.warning("request %s (%s %s) cut off by the shutdown: answered 503 shutting_down",
-                            request_id, scope.get("method"), scope.get("path"))
+                            request_id, method, route)
                 # Best effort: the client may be gone, and nothing may replace the cancellation below.
                 with contextlib.suppress(Exception):
                     await send_error(
@@ -160,11 +250,12 @@ class RequestContextMiddleware:
                                      (b"connection", b"close")],
                     )
             else:  # the answer had begun: the client sees the connection close before the end of the body
-                log.warning("request %s (%s %s) cut off by the shutdown during its answer",
-                            request_id, scope.get("method"), scope.get("path"))
+                log.warning("request %s (%s %s) cut off by the shutdown during its answer", request_id, method, route)
             raise
         except Exception:
-            log.exception("internal error on %s %s (request id %s)", scope.get("method"), scope.get("path"), request_id)
+            log.exception("internal error on %s %s (request id %s)", method, _route_label(scope, self.route_paths),
+                          request_id)
+            logged = True
             status = 500
             if not started:
                 await send_error(
@@ -175,22 +266,74 @@ class RequestContextMiddleware:
         finally:
             self.metrics.http_in_flight.dec()
             self.in_flight.count -= 1
+            elapsed_s = time.perf_counter() - tic
             label = _route_label(scope, self.route_paths)
-            self.metrics.requests.labels(route=label, method=scope.get("method", ""), status=str(status)).inc()
-            self.metrics.request_latency.labels(route=label).observe(time.perf_counter() - tic)
+            if client_gone:  # whatever the app answered went nowhere
+                status, code = CLIENT_CLOSED, None
+            self.metrics.requests.labels(route=label, method=method, status=str(status)).inc()
+            self.metrics.request_latency.labels(route=label).observe(elapsed_s)
+            if not 200 <= status < 300 and not logged:
+                # One line per answer that is not 2xx, so that a client's request id can be found in the log.
+                what = "client disconnected before its answer" if client_gone else "answered"
+                log.info("request %s: %s %s %s %d%s in %.0f ms", request_id, method, label, what, status,
+                         f" {code}" if code else "", elapsed_s * 1e3)
+
+
+class ConnectionLimitMiddleware:
+    """503 ``overloaded`` for a request service/protocol.py marked as over the connection limit, before its body
+    is read; the probes and ``/metrics`` are answered still (an orchestrator must not take overload for death)."""
+
+    def __init__(self, app: ASGIApp, open_paths: frozenset[str]) -> None:
+        self.app = app
+        self.open_paths = open_paths
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        state = scope.get("state") or {}
+        limit = state.get(OVER_CONNECTION_LIMIT)
+        if scope["type"] != "http" or limit is None or scope.get("path") in self.open_paths:
+            await self.app(scope, receive, send)
+            return
+        await send_error(send, 503, "overloaded", f"connections: more than the limit of {limit} open; retry later",
+                         state.get("request_id"), [(b"retry-after", b"1"), (b"connection", b"close")])
+
+
+class AuthMiddleware:
+    """401 on ``/v1/*`` without ``Authorization: Bearer <token>``, before the body is read (the route's own
+    check would come after FastAPI has read and parsed the whole upload). Probes, metrics and the schema stay
+    open."""
+
+    def __init__(self, app: ASGIApp, token: SecretStr) -> None:
+        self.app = app
+        self.token = token
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        path = scope.get("path", "")
+        protected = scope["type"] == "http" and (path == "/v1" or path.startswith("/v1/"))
+        if protected and not token_accepted(self.token, _header(scope, b"authorization")):
+            request_id = (scope.get("state") or {}).get("request_id")
+            await send_error(send, 401, "unauthorized", UNAUTHORIZED_MESSAGE, request_id,
+                             [(b"www-authenticate", WWW_AUTHENTICATE.encode()), *_close_if_body(scope)])
+            return
+        await self.app(scope, receive, send)
 
 
 class BodyLimitMiddleware:
-    """413 for bodies over ``max_bytes``: by Content-Length up front, else by counting received bytes.
+    """413 for bodies over ``max_bytes``: by Content-Length up front, else by counting received bytes; 408 for a
+    body not received within ``receive_timeout_s`` of the request's start.
 
-    Also records whether a multipart/form-data body arrived whole (its close delimiter at the end)."""
+    Also records whether a multipart/form-data body was empty, or arrived without its close delimiter."""
 
-    def __init__(self, app: ASGIApp, max_bytes: int) -> None:
+    def __init__(self, app: ASGIApp, max_bytes: int, receive_timeout_s: float = 30.0) -> None:
         self.app = app
         self.max_bytes = max_bytes
+        self.receive_timeout_s = receive_timeout_s
 
-    def _message(self) -> str:
-        return f"request body: larger than the limit of {self.max_bytes} bytes"
+    def _too_large(self) -> tuple[int, str, str]:
+        return 413, "body_too_large", f"request body: larger than the limit of {self.max_bytes} bytes"
+
+    def _too_slow(self) -> tuple[int, str, str]:
+        return 408, "request_timeout", (f"request body: not received within {self.receive_timeout_s:g} s "
+                                        "(--receive-timeout-s); the connection is closed")
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -200,41 +343,57 @@ class BodyLimitMiddleware:
         connection_close = [(b"connection", b"close")]
         declared = _header(scope, b"content-length")
         if declared is not None and declared.strip().isdigit() and int(declared) > self.max_bytes:
-            await send_error(send, 413, "body_too_large", self._message(), request_id, connection_close)
+            await send_error(send, 413, *self._too_large()[1:], request_id, connection_close)
             return
 
         received = 0
-        exceeded = False
+        body_done = False
+        refusal: tuple[int, str, str] | None = None  # the 413 or 408 that replaces the app's answer
         app_started = False
+        deadline = time.monotonic() + self.receive_timeout_s
         # python-multipart (and so Starlette) silently drops a part that the body ends in the middle of
         # (its finalize() does not check for the close delimiter): a cut-off upload would lose its last
-        # part, and with --default-calib a lost calib would silently become the server's. Keep the tail
-        # of the body and record whether the close delimiter arrived (service.deps.require_multipart).
+        # part, and with --default-calib a lost calib would silently become the server's. Look for the close
+        # delimiter (CRLF--BOUNDARY--) in the whole stream: a boundary never occurs inside a part, so its first
+        # occurrence is the end, and anything after it (an epilogue, RFC 2046) is harmless.
         close = _multipart_close(scope)
-        tail = b""
+        needle = b"\r\n" + close if close is not None else b""
+        carry = b"\r\n"  # as if a CRLF came before the body: a close delimiter at its very start counts too
+        closed = False
 
         async def counting_receive() -> Message:
-            nonlocal received, exceeded, tail
-            if exceeded:
+            nonlocal received, body_done, refusal, carry, closed
+            if refusal is not None:
                 return {"type": "http.disconnect"}
-            message = await receive()
+            if body_done:  # after the body only the end of the connection can come: no deadline
+                return await receive()
+            try:
+                message = await asyncio.wait_for(receive(), max(0.0, deadline - time.monotonic()))
+            # Both names: asyncio.TimeoutError is no builtin TimeoutError on Python 3.10 (the Jetson image).
+            except (TimeoutError, asyncio.TimeoutError):  # noqa: UP041
+                refusal = self._too_slow()  # the app sees a client disconnect and stops reading
+                return {"type": "http.disconnect"}
             if message["type"] == "http.request":
                 chunk = message.get("body", b"")
                 received += len(chunk)
                 if received > self.max_bytes:
-                    exceeded = True  # the app sees a client disconnect and stops reading
+                    refusal = self._too_large()
                     return {"type": "http.disconnect"}
-                if close is not None:
-                    tail = (tail + chunk)[-_TAIL_BYTES:]
-                    if not message.get("more_body", False):
-                        complete = tail.startswith(close) or (b"\r\n" + close) in tail
-                        scope.setdefault("state", {})["multipart_complete"] = complete
+                if close is not None and not closed:
+                    window = carry + chunk
+                    closed = needle in window
+                    carry = window[-(len(needle) - 1):]
+                if not message.get("more_body", False):
+                    body_done = True
+                    if close is not None:
+                        ending = "empty" if received == 0 else "whole" if closed else "cut_off"
+                        scope.setdefault("state", {})["multipart_body"] = ending
             return message
 
         async def guarded_send(message: Message) -> None:
             nonlocal app_started
-            if exceeded and not app_started:
-                return  # the app's answer to the "disconnect" is replaced by the 413 below
+            if refusal is not None and not app_started:
+                return  # the app's answer to the "disconnect" is replaced by the 413 or 408 below
             if message["type"] == "http.response.start":
                 app_started = True
             await send(message)
@@ -242,7 +401,53 @@ class BodyLimitMiddleware:
         try:
             await self.app(scope, counting_receive, guarded_send)
         except Exception:
-            if not exceeded or app_started:
+            if refusal is None or app_started:
                 raise
-        if exceeded and not app_started:
-            await send_error(send, 413, "body_too_large", self._message(), request_id, connection_close)
+        if refusal is not None and not app_started:
+            await send_error(send, refusal[0], *refusal[1:], request_id, connection_close)
+
+
+class AdmissionMiddleware:
+    """Takes a frame's place in the inference pool before its upload is read (``scope["state"]["reservation"]``,
+    handed to the pool by the route), and gives it back when the request ends.
+
+    Without a place (every worker busy and the queue full, the service shutting down) or before the models are
+    ready, the request is answered 503 at once, with Retry-After and the connection closed, so no more uploads
+    than the pool has places are held at once. Only the detection routes (``detect_paths``) take a place.
+    """
+
+    def __init__(self, app: ASGIApp, runtime: Callable[[], Runtime | None], detect_paths: frozenset[str]) -> None:
+        self.app = app
+        self.runtime = runtime
+        self.detect_paths = detect_paths
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http" or scope.get("method") != "POST" or scope.get("path") not in self.detect_paths:
+            await self.app(scope, receive, send)
+            return
+        state = scope.setdefault("state", {})
+        request_id = state.get("request_id")
+        close = [(b"connection", b"close")]
+        runtime = self.runtime()
+        reason = not_ready_reason(runtime)
+        if reason is not None:
+            await send_error(send, 503, "not_ready", reason, request_id, [(b"retry-after", b"1"), *close])
+            return
+        assert runtime is not None  # not_ready_reason said so
+        pool = runtime.pool
+        try:
+            reservation = pool.reserve()
+        except PoolFull as exc:
+            await send_error(send, 503, "overloaded",
+                             f"inference queue: full ({pool.capacity} frames admitted); retry later", request_id,
+                             [(b"retry-after", str(exc.retry_after_s).encode()), *close])
+            return
+        except PoolClosed:
+            await send_error(send, 503, "shutting_down", "the service is shutting down", request_id,
+                             [(b"retry-after", b"1"), *close])
+            return
+        state["reservation"] = reservation
+        try:
+            await self.app(scope, receive, send)
+        finally:
+            reservation.release()  # a no-op when the frame's job took the place over

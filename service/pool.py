@@ -8,7 +8,11 @@ unbounded backlog. A job that misses its deadline raises :class:`PoolTimeout`
 told to stop (its :class:`~pipeline.detector.Cancellation`: ONNX Runtime ends
 the network run at its next node) and keeps its slot until it has, so the
 bound on concurrent work always holds. A request cancelled while its job runs
-(the service's shutdown grace ran out) stops its job the same way.
+(the service's shutdown grace ran out, or its client left) stops its job the same way.
+
+A request takes its place with :meth:`InferencePool.reserve` before its upload is read
+(service.middleware.AdmissionMiddleware), so that a full pool refuses it before a byte of
+the body is held: the uploads held at once are bounded by ``workers + queue_size``.
 
 Sessions: ``detectors`` holds either one Detector shared by every worker
 (ONNX Runtime sessions are thread-safe) or one per worker thread.
@@ -52,6 +56,30 @@ class PoolTimeout(Exception):
 
 class PoolClosed(Exception):
     """The pool is shutting down and takes no new jobs."""
+
+
+class Reservation:
+    """A place in the pool taken before the frame is known (its upload still to be read).
+
+    :meth:`InferencePool.run` hands it to the frame's job, whose end frees it; a request that ends before
+    (a 4xx, a client gone, a deadline) frees it with :meth:`release`.
+    """
+
+    def __init__(self, pool: InferencePool) -> None:
+        self._pool = pool
+        self._held = True  # False once released or handed to a job
+
+    def take(self) -> None:
+        """Hand the place to a job (its end frees it); RuntimeError if it was already given up."""
+        if not self._held:
+            raise RuntimeError("the pool reservation was already released or used")
+        self._held = False
+
+    def release(self) -> None:
+        """Give the place back unless a job took it; safe to call more than once."""
+        if self._held:
+            self._held = False
+            self._pool._release(None)
 
 
 @dataclass(frozen=True)
@@ -99,18 +127,19 @@ class InferencePool:
         self._metrics.in_flight.set(self._running)
 
     def _run(self, job: Callable[[Detector, Cancellation], T], cancel: Cancellation,
-             admitted_at: float) -> JobResult[T]:
+             admitted_at: float, request_id: str | None) -> JobResult[T]:
         started = time.perf_counter()
         with self._lock:
             self._running += 1
             self._update_gauges()
         try:
             return JobResult(job(self._local.detector, cancel), (started - admitted_at) * 1e3)
-        except RunCancelled:
+        except RunCancelled as exc:
             self._metrics.stopped.inc()
-            log.info("a frame nobody waits for (its deadline passed, or the shutdown's) stopped after %.0f ms "
-                     "on its worker",
-                     (time.perf_counter() - started) * 1e3)
+            # The request id ties this line to the request's own (its 504, its client gone, the shutdown's 503).
+            log.info("request %s: its frame stopped on its worker after %.0f ms, nobody waiting for it any more "
+                     "(deadline passed, client gone or shutdown): %s",
+                     request_id or "-", (time.perf_counter() - started) * 1e3, exc)
             raise
         finally:
             elapsed = time.perf_counter() - started
@@ -119,7 +148,7 @@ class InferencePool:
                 self._mean_job_s = elapsed if self._mean_job_s == 0 else 0.8 * self._mean_job_s + 0.2 * elapsed
                 self._update_gauges()
 
-    def _release(self, _: Future) -> None:
+    def _release(self, _: Future | None) -> None:
         with self._lock:
             self._admitted -= 1
             self._update_gauges()
@@ -137,9 +166,8 @@ class InferencePool:
             estimate = self._mean_job_s * self._admitted / self.workers
         return max(1, math.ceil(estimate))
 
-    async def run(self, job: Callable[[Detector, Cancellation], T], timeout_s: float) -> JobResult[T]:
-        """Run ``job`` on a worker; PoolFull at once when over capacity, PoolTimeout after ``timeout_s``
-        (the job stopped: it never starts, or its frame is cancelled)."""
+    def _admit(self) -> None:
+        """Take a place: PoolClosed when shutting down, PoolFull (counted) when every place is taken."""
         with self._lock:
             if self._closed:
                 raise PoolClosed("the service is shutting down")
@@ -150,11 +178,28 @@ class InferencePool:
         if full:
             self._metrics.rejected.labels(reason="queue_full").inc()
             raise PoolFull(self.retry_after_s())
+
+    def reserve(self) -> Reservation:
+        """A place for a frame whose upload is still to be read: PoolFull or PoolClosed at once when there is none."""
+        self._admit()
+        return Reservation(self)
+
+    async def run(self, job: Callable[[Detector, Cancellation], T], timeout_s: float,
+                  reservation: Reservation | None = None, request_id: str | None = None) -> JobResult[T]:
+        """Run ``job`` on a worker; PoolFull at once when over capacity, PoolTimeout after ``timeout_s``
+        (the job stopped: it never starts, or its frame is cancelled).
+
+        reservation: the place :meth:`reserve` took for this frame (no admission then); request_id: names
+        the request in the log line of a frame stopped on its worker."""
+        if reservation is None:
+            self._admit()
+        else:
+            reservation.take()
         cancel = Cancellation()
         try:
-            future = self._executor.submit(self._run, job, cancel, time.perf_counter())
+            future = self._executor.submit(self._run, job, cancel, time.perf_counter(), request_id)
         except RuntimeError:  # the executor was shut down between the check and the submit
-            self._release(Future())
+            self._release(None)
             raise PoolClosed("the service is shutting down") from None
         future.add_done_callback(self._release)
         try:

@@ -23,6 +23,8 @@ from pipeline.detector import MAX_POINTS
 from pipeline.model_files import DEFAULT_MODELS
 
 ENV_PREFIX = "LOWRES3D_"
+# Connections beyond workers + queue: the probes, a metrics scrape, /v1/model, and clients being told 503.
+CONNECTION_HEADROOM = 16
 
 
 class Settings(BaseSettings):
@@ -54,6 +56,10 @@ class Settings(BaseSettings):
         None, description="TensorRT engine cache (a volume in the container; default: MODELS/trt_cache)"
     )
     request_timeout_s: float = Field(30.0, gt=0, le=3600, description="per-request deadline, queue wait included; beyond: 504")
+    receive_timeout_s: float = Field(
+        30.0, gt=0, le=3600, description="how long a client may take to send a request's head, and then its body; "
+        "beyond: 408 and the connection closed"
+    )
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest request body; beyond: 413")
     max_points: int = Field(1_000_000, ge=1, le=MAX_POINTS, description="most points a scan may have; beyond: 422")
     max_image_pixels: int = Field(
@@ -86,6 +92,17 @@ class Settings(BaseSettings):
         """Refuse an empty path: ``LOWRES3D_MODELS=`` left blank would become Path(""), the current directory."""
         if isinstance(value, str) and not value.strip():
             raise PydanticCustomError("empty_path", "empty; give a path (an empty one would be the current directory)")
+        return value
+
+    @field_validator("host", mode="before")
+    @classmethod
+    def _host_not_empty(cls, value: object) -> object:
+        """Refuse an empty host: ``LOWRES3D_HOST=`` left blank would listen on every interface (0.0.0.0 and ::)."""
+        if isinstance(value, str) and not value.strip():
+            raise PydanticCustomError(
+                "empty_host", "empty; give an address (an empty one would listen on every interface: give "
+                "0.0.0.0 for that)"
+            )
         return value
 
     @field_validator("device_ids", mode="before")
@@ -133,6 +150,11 @@ class Settings(BaseSettings):
                 "token_whitespace", "starts or ends with whitespace, which an Authorization header cannot carry"
             )
         return token
+
+    def connection_limit(self) -> int:
+        """Connections (and requests in progress) served at once: the pool's places plus headroom for probes;
+        a request beyond is answered 503 before its body is read (service/protocol.py)."""
+        return self.workers + self.queue_size + CONNECTION_HEADROOM
 
     def resolved_intra_op_threads(self) -> int:
         """The configured intra-op threads, or the usable CPUs divided among the workers (docs/service.md)."""

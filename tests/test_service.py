@@ -13,6 +13,7 @@ import hashlib
 import json
 import logging
 import os
+import re
 import struct
 import threading
 import time
@@ -452,6 +453,35 @@ def test_cut_off_multipart_body_is_400_not_the_default_calibration(tiny_models: 
             **whole.json(), "request_id": ANY, "timings_ms": ANY}
 
 
+def test_an_epilogue_after_the_close_delimiter_is_harmless_and_an_empty_body_says_so(
+    client: AppClient, frame: dict[str, bytes]
+) -> None:
+    """RFC 2046 allows an epilogue after the close delimiter, of any length: the frame is answered as without
+    it, also when the delimiter arrives split over chunks. An empty body is named as such, not as a cut-off
+    upload."""
+    body, headers = _multipart_body(frame, frame["calib"])
+    params = {"score_threshold": 0.0}
+    whole = client.post("/v1/detect", params=params, content=body, headers=headers)
+    assert whole.status_code == 200, whole.text
+    epilogue = b"\r\n" + b"an epilogue, ignored by every reader\r\n" * 400  # 15 kB
+
+    async def split() -> AsyncIterator[bytes]:  # the close delimiter (--boundary--\r\n) over three chunks
+        yield body[:-12]
+        yield body[-12:-5]
+        yield body[-5:] + epilogue[:1000]
+        yield epilogue[1000:]
+
+    for content in (body + epilogue, split()):
+        padded = client.post("/v1/detect", params=params, content=content, headers=headers)
+        assert padded.status_code == 200, padded.text
+        assert padded.json()["detections"] == whole.json()["detections"]
+    empty = assert_error(client.post("/v1/detect", content=b"", headers=headers), 400, "bad_request",
+                         "request body: empty (0 bytes)", "image, points")
+    assert "closing boundary" not in empty["message"]
+    assert_error(client.post("/v1/detect", content=body[:-100], headers=headers), 400, "bad_request",
+                 "ended before its closing boundary")
+
+
 @pytest.mark.parametrize(
     ("send", "words"),
     [({"files": {"calibration": ("c.txt", b"P2: 1", "text/plain")}}, ("calibration: unknown part (did you mean calib?)",
@@ -547,12 +577,36 @@ def test_bearer_token(tiny_models: Path, frame: dict[str, bytes]) -> None:
             assert_error(app_client.get("/v1/model", headers=headers), 401, "unauthorized")
         good = {"Authorization": "Bearer s3cret-token"}
         assert app_client.post("/v1/detect", files=parts(frame), headers=good).status_code == 200
+        assert app_client.get("/v1/model", headers={"Authorization": "bearer s3cret-token"}).status_code == 200
         assert app_client.get("/v1/model", headers=good).status_code == 200
         security = app_client.get("/openapi.json").json()["paths"]["/v1/detect"]["post"]["security"]
         assert security == [{"HTTPBearer": []}]
         # Probes and metrics stay open for orchestrators and scrapers.
         for route in ("/healthz", "/readyz", "/v2/health/live", "/v2/health/ready", "/metrics"):
             assert app_client.get(route).status_code == 200
+
+
+def test_the_token_is_checked_before_the_upload_is_read(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    """Without the token a detection request is answered 401 before a byte of its body is pulled (the
+    connection then closed, rather than the rest of the upload read and dropped), so an unauthenticated
+    client cannot make the service read and parse uploads; with it, the same upload is read and answered."""
+    body, headers = _multipart_body(frame, frame["calib"])
+    with service(tiny_models, token="s3cret-token") as app_client:
+        for route in ("/v1/detect", "/v1/detect/bev.png", "/v1/detect/camera.png"):
+            for authorization in ({}, {"Authorization": "Bearer wrong"}):
+                upload = CountedUpload(body)
+                response = app_client.post(route, content=upload, headers={**headers, **authorization})
+                assert_error(response, 401, "unauthorized", "Authorization: a valid bearer token is required")
+                assert upload.pulled == 0, route  # not a byte of the upload was read
+                assert response.headers["www-authenticate"] == 'Bearer realm="lowres3d"'
+                assert response.headers["connection"] == "close"
+        upload = CountedUpload(body)
+        answered = app_client.post("/v1/detect", content=upload,
+                                   headers={**headers, "Authorization": "Bearer s3cret-token"})
+        assert answered.status_code == 200 and upload.pulled == len(body)
+        # Refused before routing, and still counted under the route asked for.
+        assert 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status="401"} 2.0' in (
+            app_client.get("/metrics").text)
 
 
 # --------------------------------------------------------------------------- load and faults
@@ -580,11 +634,25 @@ def _without_p2(calib: bytes) -> bytes:
     return b"\n".join(line for line in calib.splitlines() if not line.startswith(b"P2:"))
 
 
-def test_a_request_that_cannot_succeed_is_422_even_when_the_queue_is_full(
-    tiny_models: Path, frame: dict[str, bytes]
-) -> None:
-    """The checks that need no decoding run before a frame takes a place in the queue: a full queue answers
-    a broken request 422, never 503 "retry later", which it never would succeed on."""
+class CountedUpload:
+    """A request body for httpx that records how many of its bytes the server has pulled."""
+
+    def __init__(self, body: bytes, chunk: int = 65536) -> None:
+        self.body, self.chunk, self.pulled = body, chunk, 0
+
+    async def __aiter__(self) -> AsyncIterator[bytes]:
+        for start in range(0, len(self.body), self.chunk):
+            piece = self.body[start : start + self.chunk]
+            self.pulled += len(piece)
+            yield piece
+
+
+def test_a_full_pool_refuses_a_frame_before_reading_its_upload(tiny_models: Path, frame: dict[str, bytes]) -> None:
+    """The frame's place is taken before its upload is read: with every place taken a request is answered 503
+    overloaded (Retry-After, connection closed) before a byte of its body is pulled, so no more uploads than
+    workers + queue are held at once (a broken one too: it cannot be told apart unread). Once there is room, the
+    checks that need no decoding still answer a broken frame 422 before it waits for a worker."""
+    body, headers = _multipart_body(frame, frame["calib"])
     with service(tiny_models, workers=1, queue_size=0) as app_client:
         pool = app_client.app.state.runtime.pool
         release = threading.Event()
@@ -594,23 +662,34 @@ def test_a_request_that_cannot_succeed_is_422_even_when_the_queue_is_full(
             while pool.depth != (0, 1):  # the only place is taken
                 assert time.monotonic() < deadline
                 time.sleep(0.01)
-            assert_error(app_client.post("/v1/detect", files=parts(frame)), 503, "overloaded")
-            broken = {
-                "calib": ({"calib": None}, ("calib: required", "no default calibration")),
-                "calib without P2": ({"calib": _without_p2(frame["calib"])}, ("calib", "P2")),
-                "cut-off PNG": ({"image": frame["image"][: len(frame["image"]) // 2]}, ("image", "PNG cut off")),
-                "cut-off JPEG": ({"image": _jpeg(frame["image"])[:-5000]}, ("image", "JPEG cut off")),
-                "scan size": ({"points": frame["points"][:-6]}, ("points", "multiple of 16")),
-                "empty image": ({"image": b""}, ("image", "empty")),
-                "missing image": ({"image": None}, ("image: required",)),
-            }
-            for case, (replace, words) in broken.items():
-                response = app_client.post("/v1/detect", files=parts(frame, **replace))
-                assert response.status_code == 422, (case, response.text)
-                assert_error(response, 422, "invalid_input", *words)
+            upload = CountedUpload(body)
+            response = app_client.post("/v1/detect", content=upload, headers=headers)
+            assert_error(response, 503, "overloaded", "inference queue: full (1 frames admitted)")
+            assert upload.pulled == 0  # not a byte of the upload was read
+            assert int(response.headers["retry-after"]) >= 1 and response.headers["connection"] == "close"
+            assert_error(app_client.post("/v1/detect", files=parts(frame, calib=None)), 503, "overloaded")
         finally:
             release.set()
             held.result(30)
+        broken = {
+            "calib": ({"calib": None}, ("calib: required", "no default calibration")),
+            "calib without P2": ({"calib": _without_p2(frame["calib"])}, ("calib", "P2")),
+            "cut-off PNG": ({"image": frame["image"][: len(frame["image"]) // 2]}, ("image", "PNG cut off")),
+            "cut-off JPEG": ({"image": _jpeg(frame["image"])[:-5000]}, ("image", "JPEG cut off")),
+            "scan size": ({"points": frame["points"][:-6]}, ("points", "multiple of 16")),
+            "empty image": ({"image": b""}, ("image", "empty")),
+            "missing image": ({"image": None}, ("image: required",)),
+        }
+        for case, (replace, words) in broken.items():
+            response = app_client.post("/v1/detect", files=parts(frame, **replace))
+            assert response.status_code == 422, (case, response.text)
+            assert_error(response, 422, "invalid_input", *words)
+        upload = CountedUpload(body)
+        assert app_client.post("/v1/detect", content=upload, headers=headers).status_code == 200
+        assert upload.pulled == len(body)
+        metrics = app_client.get("/metrics").text
+        assert "lowres3d_inference_queue_depth 0.0" in metrics and "lowres3d_inference_in_flight 0.0" in metrics
+        assert pool.depth == (0, 0)  # every place given back: the refused, the broken and the answered
 
 
 def test_pool_deadline_is_a_timeout_with_python_310s_timeout_class(
@@ -757,6 +836,48 @@ def test_request_timeout_is_504(tiny_models: Path, frame: dict[str, bytes]) -> N
     with service(tiny_models, request_timeout_s=0.001) as app_client:
         assert_error(app_client.post("/v1/detect", files=parts(frame)), 504, "timeout", "0.001 s")
         assert 'lowres3d_inference_rejected_total{reason="timeout"} 1.0' in app_client.get("/metrics").text
+
+
+def test_a_frame_past_its_deadline_stops_after_its_beam_emulation_and_the_log_names_its_request(
+    tiny_models: Path, frame: dict[str, bytes], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Thinning a scan of 880k points to 16 lines takes about half a second of NumPy that cannot be
+    interrupted: a frame whose deadline passes meanwhile stops right after it (not at the depth net, a stage
+    later). Both log lines of the request name its id: the 504's, and the worker's about the frame it stopped."""
+    big = frame["points"] * 8
+    with service(tiny_models, workers=1, request_timeout_s=0.2) as app_client:
+        with caplog.at_level(logging.INFO, logger="service"):
+            response = app_client.post("/v1/detect", params={"emulate_beams": 16}, files=parts(frame, points=big),
+                                       headers={"X-Request-ID": "late-1"})
+            assert_error(response, 504, "timeout", "0.2 s")
+            pool = app_client.app.state.runtime.pool
+            deadline = time.monotonic() + 20
+            while pool.depth != (0, 0):  # the frame keeps its worker until it has stopped
+                assert time.monotonic() < deadline
+                time.sleep(0.01)
+        assert 'lowres3d_inference_stopped_total 1.0' in app_client.get("/metrics").text
+    lines = [record.getMessage() for record in caplog.records]
+    assert any(line.startswith("request late-1: POST /v1/detect answered 504 timeout in ") for line in lines), lines
+    (stopped,) = [line for line in lines if line.startswith("request late-1: its frame stopped on its worker")]
+    assert stopped.endswith("the frame was cancelled during its beam emulation; stopped after it"), stopped
+
+
+def test_metric_labels_take_no_value_from_the_client(client: AppClient) -> None:
+    """A method token is whatever a client sends (kilobytes of it): each used to be a series of its own in
+    /metrics, which grew without end. The method label is one of HTTP's methods or "other", the route label
+    a route of the service or "unmatched"."""
+    for i in range(20):
+        assert client.request(f"M{i:04d}" + "X" * 4000, "/healthz").status_code == 405
+    assert client.get("/" + "p" * 5000).status_code == 404
+    assert client.request("PATCH", "/healthz").status_code == 405
+    text = client.get("/metrics").text
+    assert "XXXX" not in text and "M0000" not in text and "ppppp" not in text
+    series = [line for line in text.splitlines() if line.startswith("lowres3d_http_requests_total{")]
+    other = [float(line.rsplit(" ", 1)[1]) for line in series if 'method="other"' in line]
+    assert sum(other) == 20.0, series
+    assert any('method="PATCH"' in line for line in series)
+    methods = {re.search(r'method="([^"]*)"', line).group(1) for line in series}  # type: ignore[union-attr]
+    assert methods <= {"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH", "other"}
 
 
 def test_internal_error_answers_only_a_request_id(
@@ -1053,14 +1174,18 @@ def test_every_setting_is_a_cli_option_and_an_env_var(monkeypatch: pytest.Monkey
      ([], {"LOWRES3D_TOKEN": " s3cret "}, "--token (LOWRES3D_TOKEN): starts or ends with whitespace"),
      (["--models", ""], {}, "--models (LOWRES3D_MODELS): empty; give a path"),
      ([], {"LOWRES3D_MODELS": ""}, "--models (LOWRES3D_MODELS): empty; give a path"),
-     ([], {"LOWRES3D_DEFAULT_CALIB": " "}, "--default-calib (LOWRES3D_DEFAULT_CALIB): empty; give a path")],
+     ([], {"LOWRES3D_DEFAULT_CALIB": " "}, "--default-calib (LOWRES3D_DEFAULT_CALIB): empty; give a path"),
+     (["--host", ""], {}, ("--host (LOWRES3D_HOST): empty; give an address (an empty one would listen on every "
+                           "interface")),
+     ([], {"LOWRES3D_HOST": " "}, "--host (LOWRES3D_HOST): empty; give an address")],
     ids=["empty --token", "empty LOWRES3D_TOKEN", "token with spaces", "empty --models", "empty LOWRES3D_MODELS",
-         "blank LOWRES3D_DEFAULT_CALIB"],
+         "blank LOWRES3D_DEFAULT_CALIB", "empty --host", "blank LOWRES3D_HOST"],
 )
 def test_settings_refuse_an_empty_token_or_path(
     monkeypatch: pytest.MonkeyPatch, argv: list[str], env: dict[str, str], line: str
 ) -> None:
-    """An empty token would lock every /v1 route with 401; an empty path would be the current directory."""
+    """An empty token would lock every /v1 route with 401; an empty path would be the current directory; an
+    empty host would listen on every interface (0.0.0.0 and ::)."""
     from pydantic import ValidationError
 
     from service.__main__ import settings_errors

@@ -11,6 +11,7 @@ killed in teardown.
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -180,6 +181,203 @@ def test_cut_off_upload_over_http(server: Server, frame: dict[str, bytes]) -> No
         assert_error(cut, 400, "bad_request", "ended before its closing boundary")
 
 
+def _raw_request(server: Server, head: str, body: bytes = b"") -> socket.socket:
+    """A connection to the server that has sent ``head`` (CRLF line ends added) and ``body``, and no more."""
+    host, port = server.url.removeprefix("http://").split(":")
+    sock = socket.create_connection((host, int(port)), timeout=10)
+    sock.sendall(head.replace("\n", "\r\n").encode("latin-1") + body)
+    return sock
+
+
+def _answer(sock: socket.socket, timeout_s: float) -> tuple[int | None, dict[str, str], bytes, bool]:
+    """What the server sent on ``sock`` until it closed it or ``timeout_s`` passed: (status or None, headers,
+    body, whether it closed the connection)."""
+    sock.settimeout(timeout_s)
+    data, closed = b"", False
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            chunk = sock.recv(65536)
+            if not chunk:
+                closed = True
+                break
+            data += chunk
+    except (TimeoutError, ConnectionResetError):
+        pass
+    head, _, body = data.partition(b"\r\n\r\n")
+    lines = head.decode("latin-1").split("\r\n")
+    status = int(lines[0].split()[1]) if data else None
+    headers = {name.lower(): value for name, _, value in (line.partition(": ") for line in lines[1:]) if value}
+    return status, headers, body, closed
+
+
+def test_request_log_names_each_refused_request_and_not_the_noise_clients_cause(
+    server: Server, frame: dict[str, bytes]  # noqa: F811
+) -> None:
+    """At info level every answer that is not 2xx has one log line with its request id, status and error code;
+    what any client can make the libraries warn about (a malformed request, an Upgrade, a malformed multipart
+    body) is not in the log at all, where a bad client used to flood it."""
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        assert client.get("/no-such-route", headers={"X-Request-ID": "log-404"}).status_code == 404
+        typo = client.post("/v1/detect?emulate_beam=16", files=parts(frame), headers={"X-Request-ID": "log-422"})
+        assert typo.status_code == 422
+        boundary = "b0undary"
+        broken = client.post("/v1/detect", headers={"X-Request-ID": "log-400",
+                                                    "content-type": f"multipart/form-data; boundary={boundary}"},
+                             content=f"--{boundary}\r\nBad Header: x\r\n\r\ndata\r\n--{boundary}--\r\n".encode())
+        assert broken.status_code == 400
+        assert client.get("/healthz", headers={"X-Request-ID": "log-200"}).status_code == 200
+    upgrade = ("GET /healthz HTTP/1.1\nHost: x\nConnection: Upgrade\nUpgrade: websocket\n"
+               "Sec-WebSocket-Version: 13\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\n\n")
+    for head in ("GARBAGE\n\n", upgrade):
+        with _raw_request(server, head) as sock:
+            assert _answer(sock, 5)[0] in (400, 200)
+    time.sleep(0.2)
+    log = server.log()
+    assert re.search(r"INFO service.middleware: request log-404: GET unmatched answered 404 not_found in \d+ ms", log)
+    assert "request log-422: POST /v1/detect answered 422 invalid_input in " in log
+    assert "request log-400: POST /v1/detect answered 400 bad_request in " in log
+    assert "log-200" not in log  # a 2xx has no line of its own at info level
+    for noise in ("Invalid HTTP request received", "Unsupported upgrade request", "WebSocket library",
+                  "python_multipart", "Found invalid character"):
+        assert noise not in log, noise
+
+
+# --------------------------------------------------------------------------- a guarded server
+GUARD_TOKEN = "guard-token"
+RECEIVE_TIMEOUT_S = 2.0
+AUTH = f"Authorization: Bearer {GUARD_TOKEN}\n"
+
+
+@pytest.fixture(scope="module")
+def guarded(tiny_models: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:  # noqa: F811
+    """A server with a token, one worker and a queue of one (two places), and a receive timeout of 2 s: its
+    connection limit is 1 + 1 + 16 = 18."""
+    log_path = tmp_path_factory.mktemp("guarded") / "service.log"
+    args = ("--workers", "1", "--queue-size", "1", "--receive-timeout-s", str(RECEIVE_TIMEOUT_S),
+            "--token", GUARD_TOKEN, "--max-body-bytes", "40000000")
+    with running_service(tiny_models, log_path, *args) as running:
+        yield running
+
+
+def _metric(server: Server, line_start: str) -> float:
+    """The value of the first /metrics sample line starting with ``line_start`` (0 when there is none)."""
+    for line in httpx.get(f"{server.url}/metrics", timeout=5).text.splitlines():
+        if line.startswith(line_start):
+            return float(line.rsplit(" ", 1)[1])
+    return 0.0
+
+
+def _wait_for(condition: object, what: str, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():  # type: ignore[operator]
+        assert time.monotonic() < deadline, what
+        time.sleep(0.01)
+
+
+def test_a_stalled_request_head_is_answered_408_and_its_connection_closed(guarded: Server) -> None:
+    """A client that sends half a request head, or nothing, no longer holds its connection for ever: after
+    --receive-timeout-s the first is answered 408 request_timeout (JSON) and each is closed."""
+    half = _raw_request(guarded, "POST /v1/detect HTTP/1.1\nHost: x\n")
+    silent = _raw_request(guarded, "")
+    tic = time.monotonic()
+    with half, silent:
+        status, headers, body, closed = _answer(half, RECEIVE_TIMEOUT_S + 5)
+        took = time.monotonic() - tic
+        assert (status, closed) == (408, True), (status, body)
+        error = json.loads(body)["error"]
+        assert error["code"] == "request_timeout" and "request head: not received within 2 s" in error["message"]
+        assert headers["x-request-id"] == error["request_id"] and headers["connection"] == "close"
+        assert RECEIVE_TIMEOUT_S - 0.2 < took < RECEIVE_TIMEOUT_S + 3, took
+        assert _answer(silent, 3) == (None, {}, b"", True)  # nothing asked, nothing answered: closed
+    assert f"request {error['request_id']}: its head from 127.0.0.1:" in guarded.log()
+
+
+def test_the_pool_refuses_before_the_body_and_a_stalled_body_is_408(
+    guarded: Server, frame: dict[str, bytes]  # noqa: F811
+) -> None:
+    """Each upload takes its place in the pool before its body is read: with both places held by uploads that
+    stall, a third request is answered 503 overloaded without sending a byte of its 10 MB; the stalled ones
+    are answered 408 after --receive-timeout-s and give their places back, and the next frame is answered."""
+    head = ("POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\n"
+            f"Content-Length: 10000000\n{AUTH}\n")
+    part = b'--b\r\nContent-Disposition: form-data; name="points"; filename="p.bin"\r\n\r\n' + b"\0" * 1000
+    stalled = [_raw_request(guarded, head, part) for _ in range(2)]
+    try:
+        _wait_for(lambda: _metric(guarded, "lowres3d_inference_queue_depth") == 2.0, "the uploads took no place")
+        with _raw_request(guarded, head) as third:
+            status, headers, body, closed = _answer(third, 5)
+        assert (status, closed) == (503, True), body
+        assert json.loads(body)["error"]["code"] == "overloaded" and int(headers["retry-after"]) >= 1
+        for sock in stalled:
+            status, _, body, closed = _answer(sock, RECEIVE_TIMEOUT_S + 5)
+            assert (status, closed) == (408, True), body
+            assert "request body: not received within 2 s" in json.loads(body)["error"]["message"]
+    finally:
+        for sock in stalled:
+            sock.close()
+    _wait_for(lambda: _metric(guarded, "lowres3d_inference_queue_depth") == 0.0, "the places were not given back")
+    response = httpx.post(f"{guarded.url}/v1/detect", files=parts(frame), timeout=30,
+                          headers={"Authorization": f"Bearer {GUARD_TOKEN}"})
+    assert response.status_code == 200, response.text
+
+
+def test_without_the_token_the_answer_comes_before_the_body(guarded: Server) -> None:
+    """A 30 MB upload without the token is answered 401 at once, not after the server has read and parsed it."""
+    head = "POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\nContent-Length: 30000000\n\n"
+    with _raw_request(guarded, head, b"--b\r\n") as sock:
+        status, headers, body, closed = _answer(sock, 5)
+    assert (status, closed) == (401, True), body
+    assert json.loads(body)["error"]["code"] == "unauthorized"
+    assert headers["www-authenticate"] == 'Bearer realm="lowres3d"'
+
+
+def test_connections_over_the_limit_are_refused_but_probes_answered(guarded: Server) -> None:
+    """With as many connections open as the limit (workers + queue + 16 = 18), a request is answered 503
+    overloaded before its body is read, and its connection closed; the probes and /metrics are still answered.
+    Once connections close, requests are served again."""
+    idle = [_raw_request(guarded, "") for _ in range(18)]
+    try:
+        head = f"POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\n{AUTH}"
+        with _raw_request(guarded, head + "Content-Length: 5000000\n\n") as sock:
+            status, headers, body, closed = _answer(sock, 5)
+        assert (status, closed) == (503, True), body
+        error = json.loads(body)["error"]
+        assert error["code"] == "overloaded" and "connections: more than the limit of 18 open" in error["message"]
+        assert headers["retry-after"] == "1"
+        for path in ("/healthz", "/readyz", "/metrics"):
+            assert httpx.get(f"{guarded.url}{path}", timeout=5).status_code == 200, path
+        model = httpx.get(f"{guarded.url}/v1/model", timeout=5, headers={"Authorization": f"Bearer {GUARD_TOKEN}"})
+        assert model.status_code == 503
+    finally:
+        for sock in idle:
+            sock.close()
+    _wait_for(lambda: httpx.get(f"{guarded.url}/v1/model", timeout=5,
+                                headers={"Authorization": f"Bearer {GUARD_TOKEN}"}).status_code == 200,
+              "requests were not served again")
+
+
+def test_a_client_that_leaves_stops_its_frame_and_counts_499(guarded: Server, frame: dict[str, bytes]) -> None:  # noqa: F811
+    """A client that closes its connection while its frame runs (thinning 880k points, half a second) stops
+    the frame on its worker; the request is counted 499, not 200."""
+    request = httpx.Request("POST", f"{guarded.url}/v1/detect?emulate_beams=16",
+                            files=parts(frame, points=frame["points"] * 8))
+    body = request.read()
+    head = (f"POST /v1/detect?emulate_beams=16 HTTP/1.1\nHost: x\nContent-Type: {request.headers['content-type']}\n"
+            f"Content-Length: {len(body)}\n{AUTH}X-Request-ID: leaves-1\n\n")
+    counted = 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status='
+    stopped, answered = _metric(guarded, "lowres3d_inference_stopped_total"), _metric(guarded, counted + '"200"}')
+    with _raw_request(guarded, head, body):
+        _wait_for(lambda: _metric(guarded, "lowres3d_inference_in_flight") == 1.0, "the frame did not start")
+    _wait_for(lambda: _metric(guarded, "lowres3d_inference_stopped_total") == stopped + 1, "the frame was not stopped")
+    _wait_for(lambda: _metric(guarded, "lowres3d_inference_in_flight") == 0.0, "the worker was not freed")
+    assert _metric(guarded, counted + '"499"}') == 1.0
+    assert _metric(guarded, counted + '"200"}') == answered
+    log = guarded.log()
+    assert "request leaves-1: POST /v1/detect client disconnected before its answer 499" in log
+    assert "request leaves-1: its frame stopped on its worker" in log
+
+
 # --------------------------------------------------------------------------- schemathesis
 FUZZ_EXAMPLES = 12  # per operation and generation mode: 8 operations × 2 modes × 12 ≈ 200 requests
 
@@ -306,6 +504,63 @@ def test_a_stop_while_the_models_load_ends_the_start(tmp_path: Path, signum: int
     assert code == (130 if signum == signal.SIGINT else -signal.SIGTERM), log
     assert f"{signal.Signals(signum).name} before serving: stopped while loading the models; not started" in log
     assert "Uvicorn running" not in log and "Traceback" not in log
+
+
+def test_ctrl_c_on_a_serving_service_ends_in_one_line_and_status_130(
+    tiny_models: Path, tmp_path: Path  # noqa: F811
+) -> None:
+    """Ctrl-C on a ready service: the graceful shutdown, then one line saying so and exit status 130, as every
+    command of the project promises; it used to end in a CancelledError → KeyboardInterrupt traceback (−2)."""
+    with running_service(tiny_models, tmp_path / "service.log") as running:
+        running.process.send_signal(signal.SIGINT)
+        code = running.process.wait(30)
+        log = running.log()
+    assert code == 130, log
+    assert log.strip().splitlines()[-1] == ("interrupted: the service has stopped; the requests in flight were let "
+                                            "finish first (up to --shutdown-timeout-s)"), log
+    assert "inference pool stopped" in log and "Traceback" not in log and "KeyboardInterrupt" not in log
+
+
+def _catches(pid: int, signum: int) -> bool:
+    """Whether process ``pid`` has a handler of its own for ``signum`` (Linux: SigCgt in /proc/PID/status)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    caught = int(re.search(r"^SigCgt:\s+([0-9a-f]+)$", status, re.MULTILINE).group(1), 16)  # type: ignore[union-attr]
+    return bool(caught >> (signum - 1) & 1)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_sigterm_right_after_the_start_stops_it_even_as_a_containers_first_process(
+    tiny_models: Path, tmp_path: Path  # noqa: F811
+) -> None:
+    """The first process of a container (no init) ignores a signal it has no handler for, as does a process
+    started with SIGTERM ignored (how it is emulated here). The service's handler is in place before its imports
+    (most of a second: a SIGTERM in them was lost, and the service went on to serve): before ONNX Runtime is
+    even loaded. A SIGTERM then stops the start promptly, without serving."""
+    log_path = tmp_path / "service.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
+    with open(log_path, "w") as log_file:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "service", "--models", str(tiny_models), "--port", str(free_port())],
+            cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT,
+            preexec_fn=lambda: signal.signal(signal.SIGTERM, signal.SIG_IGN),  # noqa: PLW1509 - before exec
+        )
+    try:
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not _catches(process.pid, signal.SIGTERM):
+            assert process.poll() is None and time.monotonic() < deadline, log_path.read_text()
+            time.sleep(0.001)
+        loaded = "onnxruntime" in Path(f"/proc/{process.pid}/maps").read_text()
+        sent = time.monotonic()
+        process.send_signal(signal.SIGTERM)
+        code = process.wait(15)
+        took = time.monotonic() - sent
+    finally:
+        _stop(process)
+    log = log_path.read_text()
+    assert not loaded, "SIGTERM was handled only once ONNX Runtime was loaded, late in the start"
+    assert code == -signal.SIGTERM and took < 10, (code, took, log)
+    assert "SIGTERM before serving: stopped while starting, before the models loaded; not started" in log, log
+    assert "loading" not in log and "Uvicorn running" not in log and "Traceback" not in log
 
 
 def test_sigterm_during_a_long_warm_up_stops_promptly(tmp_path: Path) -> None:
@@ -435,13 +690,15 @@ def test_an_unusable_address_stops_the_start_before_the_models_load(
     ("args", "env", "message"),
     [(("--token", ""), {}, "--token (LOWRES3D_TOKEN): empty; give a token"),
      ((), {"LOWRES3D_TOKEN": ""}, "--token (LOWRES3D_TOKEN): empty; give a token"),
-     ((), {"LOWRES3D_MODELS": ""}, "--models (LOWRES3D_MODELS): empty; give a path")],
-    ids=["--token ''", "LOWRES3D_TOKEN=", "LOWRES3D_MODELS="],
+     ((), {"LOWRES3D_MODELS": ""}, "--models (LOWRES3D_MODELS): empty; give a path"),
+     ((), {"LOWRES3D_HOST": ""}, "--host (LOWRES3D_HOST): empty; give an address (an empty one would listen on")],
+    ids=["--token ''", "LOWRES3D_TOKEN=", "LOWRES3D_MODELS=", "LOWRES3D_HOST="],
 )
 def test_an_empty_token_or_model_directory_is_refused_at_start(
     tiny_models: Path, args: tuple[str, ...], env: dict[str, str], message: str  # noqa: F811
 ) -> None:
-    """An empty token would lock every /v1 route with 401; an empty model directory would be the current one."""
+    """An empty token would lock every /v1 route with 401; an empty model directory would be the current one; an
+    empty host would listen on every interface (0.0.0.0 and ::)."""
     code, output = _start_fails(None if "LOWRES3D_MODELS" in env else tiny_models, *args, env=env)
     assert code == 2, output
     lines = output.strip().splitlines()

@@ -3,27 +3,30 @@
 
 All three take multipart/form-data parts ``image``, ``points`` and optionally
 ``calib`` (and ``image`` too for a LiDAR-only model, unless the answer is about
-the camera: ``format=kitti``, ``camera.png``). The checks that need no decoding
-run on the event loop before the frame is queued; decoding, detection and
-rendering run on the inference pool.
+the camera: ``format=kitti``, ``camera.png``). The frame's place in the inference
+pool was taken before its upload was read (service.middleware.AdmissionMiddleware);
+the checks that need no decoding run on the event loop before the frame is queued;
+decoding, detection and rendering run on the inference pool. A client that closes
+the connection while its frame waits or runs stops the frame (counted 499).
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from enum import Enum
-from typing import Annotated
+from typing import Annotated, Any, TypeVar
 
 import cv2
-from fastapi import APIRouter, Depends, File, Query, UploadFile
+from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
 from fastapi.responses import PlainTextResponse, Response
 
 from pipeline.boxes import BOX_FIELDS, bev_corners, in_camera_view
 from pipeline.calib import Calibration
-from pipeline.detector import Cancellation, Detections, Detector
+from pipeline.detector import Cancellation, Detections, Detector, RunCancelled
 from pipeline.kitti import format_label
 from pipeline.render import render_bev, render_camera
 from service.deps import (
@@ -38,11 +41,13 @@ from service.deps import (
 from service.errors import ServiceError
 from service.inputs import DecodedFrame, FrameUpload, check_upload, decode_frame
 from service.metrics import Metrics
-from service.pool import JobResult, PoolClosed, PoolFull, PoolTimeout
+from service.pool import JobResult, PoolClosed, PoolFull, PoolTimeout, Reservation
 from service.routes.responses import error_responses
 from service.runtime import Runtime
 from service.schemas import BeamCount, Box, Detection, DetectResponse, ModelRef, NonFinitePolicy, OutputFormat
 from service.settings import Settings
+
+T = TypeVar("T")
 
 # Every route here takes query options: a misspelt one is a 422, not a silently ignored default.
 router = APIRouter(prefix="/v1", tags=["detect"], dependencies=[Depends(reject_unknown_query)])
@@ -119,6 +124,8 @@ def _detect_job(
         tic = time.perf_counter()
         frame = decode_frame(upload, calib, options.nonfinite)
         parse_ms = (time.perf_counter() - tic) * 1e3
+        if cancel.cancelled:  # decoding a large upload takes a while: nobody may wait for the frame any more
+            raise RunCancelled("the frame was cancelled while its parts were decoded")
         detections = detector.detect(
             frame.image, frame.points, frame.calib, options.score_threshold, options.emulate_beams,
             keep_points=picture is Picture.bev, cancel=cancel,
@@ -152,20 +159,50 @@ def _camera_use(runtime: Runtime, answer: str | None) -> str | None:
     return answer
 
 
+async def _until_disconnected(receive: Callable[[], Awaitable[Any]]) -> None:
+    """Return once the client has closed the connection. Only once the body has been read: what the server
+    has to say then is that the connection ended (or, from a test client, that the answer is complete)."""
+    while (await receive())["type"] != "http.disconnect":
+        pass
+
+
+async def _unless_the_client_leaves(work: Awaitable[T], request: Request) -> T:
+    """``work``'s result, or ServiceError 499 when the client closes the connection first: ``work`` is then
+    cancelled, which stops the frame (never started if queued, stopped at its next stage if on a worker)."""
+    task = asyncio.ensure_future(work)
+    watcher = asyncio.ensure_future(_until_disconnected(request.receive))
+    try:
+        await asyncio.wait({task, watcher}, return_when=asyncio.FIRST_COMPLETED)
+    except asyncio.CancelledError:  # the request itself is cancelled (the shutdown's grace ran out): its frame too
+        task.cancel()
+        watcher.cancel()
+        raise
+    if task.done() or watcher.exception() is not None:  # done, or no word on the connection: the frame decides
+        watcher.cancel()
+        return await task
+    task.cancel()
+    await asyncio.wait({task})  # the frame's place given back; our own cancellation still propagates
+    raise ServiceError(499, "client_disconnected", "the client closed the connection before its answer")
+
+
 async def _run_frame(
-    runtime: Runtime, settings: Settings, metrics: Metrics, upload: FrameUpload, options: FrameOptions,
-    picture: Picture | None, needs_camera: str | None = None,
+    request: Request, runtime: Runtime, settings: Settings, metrics: Metrics, upload: FrameUpload,
+    options: FrameOptions, picture: Picture | None, needs_camera: str | None = None,
 ) -> FrameResult:
-    """Check, queue and run one frame; pool conditions become 503/504 answers.
+    """Check, queue and run one frame; pool conditions become 503/504 answers, a client gone a 499.
 
     needs_camera: what of the answer needs the image and a calibration even from a LiDAR-only model."""
-    # Before the queue: a request that can never succeed gets its 4xx even while the queue is full.
+    # Before the queue: a request that can never succeed gets its 4xx without waiting for a worker.
     calib = check_upload(upload, settings.max_points, settings.max_image_pixels, runtime.crop_hw,
                          runtime.default_calib, _camera_use(runtime, needs_camera))
     job = _detect_job(upload, options, calib, picture)
+    state = request.scope.get("state") or {}
+    # The place AdmissionMiddleware took before the upload was read (None: an app served without it).
+    reservation: Reservation | None = state.get("reservation")
     started = time.perf_counter()
     try:
-        outcome: JobResult[FrameResult] = await runtime.pool.run(job, settings.request_timeout_s)
+        outcome: JobResult[FrameResult] = await _unless_the_client_leaves(
+            runtime.pool.run(job, settings.request_timeout_s, reservation, state.get("request_id")), request)
     except PoolFull as exc:
         raise ServiceError(
             503, "overloaded", f"inference queue: full ({runtime.pool.capacity} frames admitted); retry later",
@@ -223,7 +260,7 @@ _WARNINGS_HEADER = {"X-Warnings": {
 }}
 
 # The detection routes answer the same errors (documented for clients and the OpenAPI fuzz test).
-DETECT_ERRORS = error_responses(400, 401, 413, 415, 422, 500, 503, 504)
+DETECT_ERRORS = error_responses(400, 401, 408, 413, 415, 422, 500, 503, 504)
 
 
 def _picture_responses(description: str) -> dict:
@@ -232,11 +269,12 @@ def _picture_responses(description: str) -> dict:
             **DETECT_ERRORS}
 
 
-async def _picture_answer(runtime: Runtime, settings: Settings, metrics: Metrics, options: FrameOptions,
-                          upload: FrameUpload, picture: Picture) -> Response:
+async def _picture_answer(request: Request, runtime: Runtime, settings: Settings, metrics: Metrics,
+                          options: FrameOptions, upload: FrameUpload, picture: Picture) -> Response:
     """Detect on an uploaded frame and answer ``picture`` as PNG, the frame's warnings in X-Warnings."""
     needs = "the camera picture draws the boxes on the image" if picture is Picture.camera else None
-    result = await _run_frame(runtime, settings, metrics, upload, options, picture=picture, needs_camera=needs)
+    result = await _run_frame(request, runtime, settings, metrics, upload, options, picture=picture,
+                              needs_camera=needs)
     assert result.png is not None
     return Response(result.png, media_type="image/png", headers=_warning_headers(result))
 
@@ -256,6 +294,7 @@ async def _picture_answer(runtime: Runtime, settings: Settings, metrics: Metrics
     },
 )
 async def detect(
+    request: Request,
     runtime: ReadyRuntimeDep,
     settings: SettingsDep,
     metrics: MetricsDep,
@@ -284,7 +323,7 @@ async def detect(
     upload = await _read_upload(image, points, calib)
     kitti = output_format is OutputFormat.kitti
     needs = "format=kitti gives the boxes the camera sees, in its image" if kitti else None
-    result = await _run_frame(runtime, settings, metrics, upload, options, picture=None, needs_camera=needs)
+    result = await _run_frame(request, runtime, settings, metrics, upload, options, picture=None, needs_camera=needs)
     if kitti:
         frame = result.frame
         assert frame.calib is not None and frame.image_hw is not None  # check_upload refused a frame without
@@ -301,6 +340,7 @@ async def detect(
     responses=_picture_responses("BEV picture: points, detected boxes and scores"),
 )
 async def detect_bev_png(
+    request: Request,
     runtime: ReadyRuntimeDep,
     settings: SettingsDep,
     metrics: MetricsDep,
@@ -311,8 +351,8 @@ async def detect_bev_png(
     calib: CalibPart = None,
 ) -> Response:
     """The same inputs as `/v1/detect`; the answer is a PNG (x forward points up)."""
-    return await _picture_answer(runtime, settings, metrics, options, await _read_upload(image, points, calib),
-                                 Picture.bev)
+    return await _picture_answer(request, runtime, settings, metrics, options,
+                                 await _read_upload(image, points, calib), Picture.bev)
 
 
 @router.post(
@@ -323,6 +363,7 @@ async def detect_bev_png(
     responses=_picture_responses("the uploaded image with each box the camera sees as a wireframe and its score"),
 )
 async def detect_camera_png(
+    request: Request,
     runtime: ReadyRuntimeDep,
     settings: SettingsDep,
     metrics: MetricsDep,
@@ -333,5 +374,5 @@ async def detect_camera_png(
     calib: CalibPart = None,
 ) -> Response:
     """The same inputs as `/v1/detect`; the answer is the image as PNG with the boxes of `format=kitti` drawn."""
-    return await _picture_answer(runtime, settings, metrics, options, await _read_upload(image, points, calib),
-                                 Picture.camera)
+    return await _picture_answer(request, runtime, settings, metrics, options,
+                                 await _read_upload(image, points, calib), Picture.camera)

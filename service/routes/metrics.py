@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+
 from fastapi import APIRouter
 from fastapi.responses import Response
 
@@ -19,4 +21,5 @@ router = APIRouter(tags=["metrics"])
 async def metrics(metrics: MetricsDep) -> Response:
     """Request counts by route and status, latency histograms per route and per stage, queue depth,
     in-flight frames and requests, readiness, process memory (`process_resident_memory_bytes`)."""
-    return Response(metrics.render(), media_type=metrics.content_type)
+    # On a worker thread: the text grows with the series, and the event loop must keep answering meanwhile.
+    return Response(await asyncio.to_thread(metrics.render), media_type=metrics.content_type)

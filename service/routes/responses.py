@@ -9,11 +9,13 @@ from service.schemas import ErrorResponse
 _DESCRIPTIONS = {
     400: "the multipart body itself is malformed (boundary, part headers) and cannot be parsed",
     401: "a token is configured and the request has no valid `Authorization: Bearer` header",
+    408: "the request body did not arrive within the receive timeout (the connection is closed)",
     413: "the request body is larger than the configured limit",
     415: "the body is not multipart/form-data, or the image is not PNG/JPEG",
     422: "an input is invalid; the message names the field or part",
     500: "internal error; the answer carries only a request id, the log has the trace",
-    503: "the inference queue is full, the models are not ready, or the service is shutting down (see Retry-After)",
+    503: "the inference queue is full (refused before the body is read), too many connections are open, the models "
+         "are not ready, or the service is shutting down (see Retry-After)",
     504: "the frame did not finish within the request timeout",
 }
 
