@@ -67,8 +67,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.op_profile import GPU_PROFILER_HINT, profile_network
 from benchmarks.op_profile import describe as describe_ops
-from benchmarks.op_profile import profile_network
 from benchmarks.peak import PeakResult, measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.cli import (
@@ -809,10 +809,11 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     preset_name = detector.preset.name
     if preset and preset != preset_name:
         raise InputError(f"--preset {preset}: {models} holds {preset_name} models (leave --preset out with --models)")
-    if ops and any(p[0] == "TensorrtExecutionProvider" for p in detector.providers_in_use.values()):
-        # Refused before minutes of timing: TensorRT runs each graph as one engine, with no operators to time.
-        raise InputError("--ops: TensorRT runs each graph as one engine of its own; ONNX Runtime's profiler times "
-                         "operators on the CPU and CUDA providers (profile a TensorRT engine with nsys)")
+    if ops and any(p[0] != "CPUExecutionProvider" for p in detector.providers_in_use.values()):
+        # Refused before minutes of timing: on CUDA the profiler's kernel times are the launches', not the GPU's
+        # work; TensorRT runs each graph as one engine, with no operators to time.
+        raise InputError(f"--ops: ONNX Runtime's profiler times the operators of the CPU provider only (on a GPU "
+                         f"its kernel times are the launches'; TensorRT runs an engine of its own); {GPU_PROFILER_HINT}")
     if compare_torch and torch_networks is None:
         # The PyTorch twin of a model directory is built for that directory's preset and networks, before
         # any timing, so a mismatch is refused at once instead of after minutes of measurements.
@@ -899,6 +900,10 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
 
     report["throughput"] = None  # without --threads: no throughput run (the key is there for other tools)
     gpus = sorted(set(device_ids or [0]))
+    if device_ids and len(device_ids) > threads:
+        unused = ", ".join(map(str, device_ids[threads:]))
+        warnings.add([(f"--device-ids {','.join(map(str, device_ids))}: GPU {unused} not used (--threads {threads}: "
+                      f"the single stream runs on GPU {device_ids[0]}, throughput worker i on the i-th id)")])
     if threads > 1 and not on_cpu and len(gpus) < threads:
         shared_gpus = "GPU 0" if not device_ids else f"GPU{'s' if len(gpus) > 1 else ''} {', '.join(map(str, gpus))}"
         warnings.add([(f"--threads {threads}: the workers share {shared_gpus}, so on a box with more GPUs the "

@@ -30,7 +30,10 @@ from pipeline.graph_inputs import feeds_for
 
 # Operators whose multiply–accumulates export/flops.py counts, as the profiler names their kernels.
 COMPUTE_SUFFIXES = ("Conv", "ConvTranspose", "MatMul", "Gemm", "MatMulInteger")
-PROFILED_PROVIDERS = ("CPUExecutionProvider", "CUDAExecutionProvider")
+# The CPU alone: on CUDA the profiler's kernel times are those of the launches, not of the GPU's work, which
+# runs later (a CUPTI build of ONNX Runtime would be needed); TensorRT runs a graph as an engine of its own.
+PROFILED_PROVIDERS = ("CPUExecutionProvider",)
+GPU_PROFILER_HINT = "profile a GPU with NVIDIA Nsight Systems (nsys profile python …)"
 
 
 @dataclass
@@ -101,8 +104,9 @@ def profile_events(model: Path, providers: list[str], threads: int, feeds: dict[
                    runs: int = 20, warmup: int = 3) -> list[dict]:
     """The profiler's events of ``warmup + runs`` runs of one network in a session like the Detector's."""
     if providers[0] not in PROFILED_PROVIDERS:
-        raise ValueError(f"{providers[0]} runs the graph as its own engine; ONNX Runtime's profiler times "
-                         f"operators on {' and '.join(PROFILED_PROVIDERS)} only")
+        raise ValueError(f"{providers[0]}: ONNX Runtime's profiler times the operators of the CPU provider only (on "
+                         f"a GPU its kernel times are the launches'; TensorRT runs an engine of its own); "
+                         f"{GPU_PROFILER_HINT}")
     with tempfile.TemporaryDirectory(prefix="lowres3d-ops-") as scratch:
         options = session_options(threads)
         options.enable_profiling = True
@@ -189,9 +193,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
     parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
     parser.add_argument("--frame", help="frame id in --data (default: its first)")
-    parser.add_argument("--provider", choices=["cpu", "cuda"],
-                        help="execution provider (default: the best available; TensorRT runs a graph as an engine of "
-                        "its own, which ONNX Runtime's profiler does not see into)")
+    parser.add_argument("--provider", choices=["cpu"], default="cpu",
+                        help="execution provider: the CPU only (on CUDA ONNX Runtime's profiler times the kernels' "
+                        f"launches, not the GPU's work, and TensorRT runs an engine of its own; {GPU_PROFILER_HINT})")
     parser.add_argument("--beams", "--emulate-beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
                         help="thin the scan to N lines first (16, the default; 0: keep), as benchmarks/latency.py")
     parser.add_argument("--threads", type=positive_int, default=2,

@@ -24,6 +24,7 @@ service is shutting down) through a :class:`Cancellation`.
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import threading
 import time
@@ -168,16 +169,35 @@ def provider_fallbacks(wanted: str, in_use: dict[str, list[str]]) -> dict[str, s
     return {name: providers[0] for name, providers in in_use.items() if providers and providers[0] != wanted}
 
 
+def tensorrt_version() -> int | None:
+    """The TensorRT library's version number as the library gives it (10.9.0 → 100900), None without one.
+
+    Read from libnvinfer itself (``getInferLibVersion``), as ONNX Runtime's provider loads it: no Python
+    package of TensorRT is needed, and the number is that of the library the engines are built with."""
+    for name in ("libnvinfer.so.10", "libnvinfer.so.8", "libnvinfer.so"):
+        try:
+            library = ctypes.CDLL(name)
+        except OSError:
+            continue
+        return int(library.getInferLibVersion())
+    return None
+
+
 def tensorrt_options(manifest: dict, cache_root: Path) -> dict:
     """ONNX Runtime's TensorRT provider options for a model directory with this manifest.
 
     Building TensorRT engines takes minutes, so they are cached (a volume in the container), in a folder
     of their own per model: named by the ONNX files' sha256s, since ONNX Runtime does not notice new
-    weights under an old file name and would run the stale engine. An FP16 directory asks TensorRT for
-    FP16 kernels too (its builder flag), which its fp16 tensors alone do not choose."""
+    weights under an old file name and would run the stale engine; and by the versions of ONNX Runtime
+    and of the TensorRT library, since ONNX Runtime's engine names tell TensorRT releases apart by major
+    and minor version only, and an engine from another patch release fails to deserialize (an image
+    rebuilt with a new TENSORRT_VERSION, or a JetPack update, over a kept volume). An FP16 directory asks
+    TensorRT for FP16 kernels too (its builder flag), which its fp16 tensors alone do not choose."""
     files = manifest.get("files", {})
     key = "-".join(files[name]["sha256"][:12] for name in sorted(files))
-    cache = Path(cache_root) / f"{manifest.get('preset', 'model')}-{manifest.get('precision', 'fp32')}-{key}"
+    versions = f"ort{ort.__version__}-trt{tensorrt_version() or 'none'}"
+    cache = (Path(cache_root)
+             / f"{manifest.get('preset', 'model')}-{manifest.get('precision', 'fp32')}-{key}-{versions}")
     try:
         cache.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -210,6 +230,16 @@ def session_providers(providers: list[str], device_id: int | None = None,
             options["device_id"] = device_id
         entries.append((provider, options) if options else provider)
     return entries
+
+
+def gpu_session_error(path: Path, provider: str, device_id: int | None, trt_options: dict | None,
+                      exc: Exception) -> str:
+    """The message for a session that a GPU provider failed to create, with what to check."""
+    where = f"{provider} on GPU {device_id if device_id is not None else 0}"
+    checks = [f"does this box have a GPU {device_id}?" if device_id is not None else "is the GPU visible (nvidia-smi)?"]
+    if trt_options:  # an engine built by another TensorRT fails to deserialize
+        checks.append(f"after a TensorRT or driver change, remove the engine cache {trt_options['trt_engine_cache_path']}")
+    return f"{path}: ONNX Runtime could not create its session with {where} ({exc}); {'; '.join(checks)}"
 
 
 def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
@@ -287,11 +317,15 @@ class Detector:
         for name in ("depth", "pixor") if self.two_stage else ("pixor",):
             path = self.model_dir / networks[name]["file"]
             try:
-                self._sessions[name] = ort.InferenceSession(str(path), options, providers=entries)
+                # No fallback: on an error ONNX Runtime's Python layer would retry on CUDA and the CPU without
+                # the provider options (the device id, TensorRT's cache): a worker given GPU 1 would run on
+                # GPU 0, a failing GPU session on the CPU, with a printout only; later, a run that fails on the
+                # GPU would rebuild the session there for good. A GPU that fails says so instead.
+                self._sessions[name] = ort.InferenceSession(str(path), options, providers=entries, enable_fallback=0)
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
-                if device_id is not None:  # the likelier cause: a GPU this box does not have
-                    raise InputError(f"device id {device_id}: ONNX Runtime cannot load {path} on it; does this "
-                                     f"box have a GPU {device_id}? ({exc})") from exc
+                gpu = next((p for p in self.providers if p in GPU_PROVIDERS), None)
+                if gpu is not None:  # the file's sha256 was checked: the likelier cause is the GPU side
+                    raise InputError(gpu_session_error(path, gpu, device_id, trt_options, exc)) from exc
                 raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
         # Input names as each graph has them: a lowered PIXOR reads its BEV in channel pieces.
         self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}

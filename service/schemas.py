@@ -124,6 +124,14 @@ class Health(BaseModel):
     ready: bool | None = Field(None, description="models loaded and warmed up")
 
 
+class SessionPair(BaseModel):
+    """One Detector's sessions: where they run, and what loading them warned of."""
+
+    device_id: int | None = Field(description="its GPU (--device-ids); null: the provider's default, GPU 0 on a GPU")
+    providers_in_use: dict[str, list[str]] = Field(description="per network, after ONNX Runtime's own fallback")
+    warnings: list[str] = Field(default_factory=list, description="what loading this pair warned of")
+
+
 class ModelInfo(BaseModel):
     """The loaded model directory: its manifest and the execution providers actually in use."""
 
@@ -141,11 +149,12 @@ class ModelInfo(BaseModel):
     )
     default_calib: bool = Field(description="a default calibration is configured (calib is optional)")
     mirror_tta: bool = Field(description="PIXOR also runs on the mirrored BEV, maps averaged (--mirror-tta)")
-    device_ids: list[int | None] = Field(
-        description="the GPU each session pair runs on (one entry per worker with --sessions per-worker, else one); "
-        "null: the provider's default (GPU 0 on a GPU, nothing on the CPU)"
+    session_pairs: list[SessionPair] = Field(
+        description="each session pair (one per worker with --sessions per-worker, else one): its GPU and the "
+        "providers it runs on; providers_in_use above is the first pair's"
     )
     warnings: list[str] = Field(
-        default_factory=list, description="about the model's precision on this machine (INT8 this CPU may run inexactly, FP16 on the CPU)"
+        default_factory=list, description="from loading any session pair: untrained weights, a provider that did "
+        "not load, the model's precision on this machine (INT8 this CPU may run inexactly, FP16 on the CPU)"
     )
     manifest: dict = Field(description="manifest.json of the model directory")

@@ -128,6 +128,9 @@ class Settings(BaseSettings):
         if ids and len(ids) > 1 and self.sessions == "shared":
             raise PydanticCustomError("device_ids_shared", f"--device-ids {self.device_ids}: several GPUs need "
                                       "--sessions per-worker (shared sessions run on one GPU)")
+        if ids and len(ids) > self.workers:  # a GPU no worker would use, unsaid
+            raise PydanticCustomError("device_ids_unused", f"--device-ids {self.device_ids}: {len(ids)} GPUs for "
+                                      f"{self.workers} worker(s); give each worker one (--workers {len(ids)})")
         return self
 
     def gpu_ids(self) -> list[int] | None:

@@ -513,6 +513,23 @@ def test_a_gpu_device_id_goes_to_every_gpu_provider_and_only_there():
         session_providers(gpu, -1)
 
 
+def test_sessions_never_fall_back_to_other_devices_behind_the_callers_back(tiny_models):
+    """ONNX Runtime's Python layer retries a session whose GPU provider failed on CUDA and the CPU without the
+    provider options (the device id, TensorRT's cache), and rebuilds one whose GPU run failed: both are off.
+    (No GPU here: the sessions' own flag is what can be read; the message a GPU failure gets is checked below.)"""
+    from pipeline.detector import gpu_session_error
+
+    detector = Detector(tiny_models, providers="cpu")
+    assert [session._enable_fallback for session in detector._sessions.values()] == [False, False]
+    error = RuntimeError("[ONNXRuntimeError] : 1 : FAIL : Invalid device ID 1")
+    assert gpu_session_error(Path("m/depth.onnx"), "CUDAExecutionProvider", 1, None, error) == (
+        "m/depth.onnx: ONNX Runtime could not create its session with CUDAExecutionProvider on GPU 1 "
+        "([ONNXRuntimeError] : 1 : FAIL : Invalid device ID 1); does this box have a GPU 1?")
+    text = gpu_session_error(Path("m/pixor.onnx"), "TensorrtExecutionProvider", None,
+                             {"trt_engine_cache_path": "/var/cache/x"}, RuntimeError("could not deserialize engine"))
+    assert "TensorrtExecutionProvider on GPU 0" in text and "remove the engine cache /var/cache/x" in text
+
+
 def test_a_device_id_on_the_cpu_provider_is_refused(tiny_models):
     """A GPU id on a CPU-only build would be ignored without a word: refused, naming the id."""
     with pytest.raises(InputError, match="device id 1: .*--provider cuda or tensorrt"):
@@ -990,6 +1007,8 @@ def test_tensorrt_engines_are_cached_per_model_and_fp16_asks_for_fp16(tmp_path):
     import copy
     import json
 
+    import onnxruntime
+
     from pipeline.detector import tensorrt_options
 
     fp32 = json.loads((Path(__file__).resolve().parents[1] / "weights" / "edge" / "manifest.json").read_text())
@@ -997,6 +1016,8 @@ def test_tensorrt_engines_are_cached_per_model_and_fp16_asks_for_fp16(tmp_path):
     cache = Path(options["trt_engine_cache_path"])
     assert cache.is_dir() and cache.parent == tmp_path / "cache" and options["trt_timing_cache_path"] == str(cache)
     assert cache.name.startswith("edge-split-near35-fp32-") and options["trt_fp16_enable"] is False
+    # Another ONNX Runtime or TensorRT release builds its own engines (no TensorRT library here).
+    assert cache.name.endswith(f"-ort{onnxruntime.__version__}-trtnone")
     retrained = copy.deepcopy(fp32)
     retrained["files"]["pixor.onnx"]["sha256"] = "0" * 64
     assert tensorrt_options(retrained, tmp_path / "cache")["trt_engine_cache_path"] != str(cache)

@@ -73,6 +73,13 @@ def test_operator_names_counted_as_compute():
     assert not any(is_compute(op) for op in ("Transpose", "ReorderInput", "DepthToSpace", "QuantizeLinear"))
 
 
-def test_an_engine_provider_is_refused_before_a_session_is_made(tmp_path):
-    with pytest.raises(ValueError, match="TensorrtExecutionProvider runs the graph as its own engine"):
-        profile_network(tmp_path / "absent.onnx", ["TensorrtExecutionProvider", "CPUExecutionProvider"], 1, {})
+def test_a_gpu_provider_is_refused_before_a_session_is_made(tmp_path, capsys):
+    """On CUDA the profiler's kernel times are the launches' (the GPU runs them later), and TensorRT runs an
+    engine of its own: only the CPU provider is profiled, and the refusal points to nsys."""
+    for provider in ("TensorrtExecutionProvider", "CUDAExecutionProvider"):
+        with pytest.raises(ValueError, match=f"{provider}: ONNX Runtime's profiler times the operators of the CPU "
+                                             "provider only .* Nsight Systems"):
+            profile_network(tmp_path / "absent.onnx", [provider, "CPUExecutionProvider"], 1, {})
+    with pytest.raises(SystemExit):
+        main(["--provider", "cuda"])
+    assert "invalid choice: 'cuda'" in capsys.readouterr().err

@@ -1041,11 +1041,13 @@ def test_model_info(client: AppClient, tiny_models: Path) -> None:
     assert (info["workers"], info["sessions"], info["queue_size"]) == (2, "shared", 4)
     assert info["intra_op_threads"] == max(1, len(os.sched_getaffinity(0)) // 2)
     assert info["crop_hw"] == [352, 1216]
-    assert info["device_ids"] == [None]  # one shared session pair, on the CPU
     # The tiny models are untrained (and fp32: nothing this CPU could run inexactly).
     untrained = (f"{tiny_models}: depth and pixor have initialised (untrained) weights: the detections mean "
                  "nothing; export trained checkpoints (python -m export --checkpoints DIR)")
     assert info["warnings"] == [untrained]
+    # One shared session pair, on the CPU, with the load's warnings.
+    assert info["session_pairs"] == [{"device_id": None, "providers_in_use": info["providers_in_use"],
+                                      "warnings": [untrained]}]
 
 
 def test_lidar_only_model_needs_the_scan_alone(tiny_models: Path, frame: dict[str, bytes], tmp_path: Path) -> None:
@@ -1215,6 +1217,7 @@ def test_gpu_ids_from_the_command_line_or_the_environment(monkeypatch: pytest.Mo
                        (["--device-ids", "0", "--provider", "cpu"], ("--device-ids 0 with --provider cpu: GPU ids are "
                         "for cuda or tensorrt")),
                        (["--device-ids", "0,0"], "--device-ids (LOWRES3D_DEVICE_IDS) 0,0: a GPU id given twice"),
+                       (["--workers", "1", "--sessions", "per-worker"], "--device-ids 1,0: 2 GPUs for 1 worker(s)"),
                        (["--device-ids", "gpu0"], "--device-ids (LOWRES3D_DEVICE_IDS) gpu0: expected GPU ids from 0")):
         with pytest.raises(ValidationError) as caught:
             settings_from_args(argv)
@@ -1282,7 +1285,9 @@ def test_per_worker_sessions(tiny_models: Path, frame: dict[str, bytes]) -> None
     with service(tiny_models, workers=2, sessions="per-worker") as app_client:
         runtime = app_client.app.state.runtime
         assert len(runtime.detectors) == 2 and runtime.detectors[0] is not runtime.detectors[1]
-        assert app_client.get("/v1/model").json()["device_ids"] == [None, None]
+        pairs = app_client.get("/v1/model").json()["session_pairs"]
+        assert [(pair["device_id"], pair["providers_in_use"]["pixor"]) for pair in pairs] == [
+            (None, ["CPUExecutionProvider"])] * 2  # each worker's own pair, each said
         with ThreadPoolExecutor(2) as burst:
             responses = list(burst.map(lambda _: app_client.post("/v1/detect", files=parts(frame)), range(4)))
         assert [r.status_code for r in responses] == [200] * 4

@@ -6,7 +6,7 @@ from fastapi import APIRouter
 
 from service.deps import RuntimeDep, SettingsDep
 from service.routes.responses import error_responses
-from service.schemas import ModelInfo
+from service.schemas import ModelInfo, SessionPair
 
 router = APIRouter(tags=["model"])
 
@@ -31,7 +31,9 @@ async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
         crop_hw=list(runtime.crop_hw) if runtime.crop_hw is not None else None,
         default_calib=runtime.default_calib is not None,
         mirror_tta=detector.mirror_tta,
-        device_ids=[d.device_id for d in runtime.detectors],
-        warnings=detector.load_warnings,
+        session_pairs=[SessionPair(device_id=d.device_id, providers_in_use=d.providers_in_use, warnings=d.load_warnings)
+                       for d in runtime.detectors],
+        # Every pair's, once each: a second worker's GPU that fell back must not hide behind the first's.
+        warnings=list(dict.fromkeys(w for d in runtime.detectors for w in d.load_warnings)),
         manifest=detector.manifest,
     )
