@@ -9,15 +9,19 @@ weights can saturate (pipeline/cpu.py); with 7 bits the INT8 networks compute
 the same on every CPU. The shipped ``weights/edge-int8`` is converted so.
 
 FP16 converts weights and activations and keeps float32 inputs and outputs,
-so the runtime feeds the same tensors. INT8 quantizes statically in QDQ
-format with unsigned 8-bit activations and signed per-channel weights (on
-this AVX-512 VNNI CPU signed activations gave no speed-up at all), calibrated
-on real frames run through the FP32 Detector: each network sees exactly the
-tensors inference gives it (``Detector.network_inputs``), PIXOR the BEV with the
+so the runtime feeds the same tensors. It first runs the FP32 graph on the
+first frames and keeps in FP32 the nodes writing or reading a tensor FP16
+cannot hold there (beyond ±65504, or a divisor below its normal range: the
+edge depth net's prefill reciprocal is 1e6 where the map is empty), and it
+fails when a tensor stored in FP16 would still overflow (export/fp16.py).
+INT8 quantizes statically in QDQ format with unsigned 8-bit activations and
+signed per-channel weights (on this AVX-512 VNNI CPU signed activations gave no
+speed-up at all), calibrated on real frames run through the FP32 Detector:
+each network sees exactly the tensors inference gives it (``Detector.network_inputs``), PIXOR the BEV with the
 FP32 depth net's pseudo points. The depth net's ranges are the extremes over the
 calibration frames, PIXOR's moving averages of the per-frame extremes. The
-manifest records the precision, the calibration and each network's deviation
-from FP32 on the first calibration frames.
+manifest records the precision, the calibration, the nodes FP16 keeps in FP32
+and why, and each network's deviation from FP32 on the first calibration frames.
 """
 
 from __future__ import annotations
@@ -33,6 +37,14 @@ import onnx
 from tqdm import tqdm
 
 from export.directory import check_destination, staged
+from export.fp16 import (
+    check_fp16_storage,
+    drop_fp16_round_trips,
+    fp16_ranges,
+    fp16_unsafe_nodes,
+    name_nodes,
+    sort_topologically,
+)
 from export.manifest import graph_inputs, package_versions
 from export.rewrite import (
     boundary_nodes,
@@ -120,12 +132,26 @@ class _Reader:
         return None if feed is None else {k: v.astype(np.float32) for k, v in feed.items()}
 
 
-def to_fp16(source: Path, target: Path) -> None:
-    """FP16 weights and activations, float32 inputs and outputs."""
+def to_fp16(source: Path, target: Path, feeds: list[dict]) -> dict:
+    """FP16 weights and activations, float32 inputs and outputs; the nodes whose tensors FP16 cannot hold on
+    ``feeds`` stay FP32 (export/fp16.py). Returns what was done.
+
+    FP16RangeError when a tensor the result holds in float16 would still overflow on ``feeds``."""
     from onnxruntime.transformers.float16 import convert_float_to_float16
 
-    model = convert_float_to_float16(onnx.load(str(source)), keep_io_types=True)
-    onnx.save(model, str(target))
+    model = onnx.load(str(source))
+    name_nodes(model)  # the converter keeps nodes FP32 by name
+    ranges = fp16_ranges(model, feeds)
+    kept_fp32 = fp16_unsafe_nodes(model, ranges)
+    # The converter edits the graph it is given: give it a copy, the FP32 graph names what each tensor holds.
+    converted = convert_float_to_float16(onnx.ModelProto.FromString(model.SerializeToString()),
+                                         keep_io_types=True, node_block_list=list(kept_fp32))
+    round_trips = drop_fp16_round_trips(converted)
+    sort_topologically(converted.graph)
+    largest, value = check_fp16_storage(model, converted, ranges, str(source))
+    onnx.save(converted, str(target))
+    return {"fp32_nodes": kept_fp32, "fp16_round_trips_removed": round_trips,
+            "largest_fp16_value": {"tensor": largest, "value": value}}
 
 
 def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = True, output_convs: int = 1,
@@ -249,11 +275,11 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
 def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feeds: dict, precision: str,
              calibration_data: Path, reduce_range: bool = False, source: str | None = None) -> None:
     """Convert the networks of the copy ``out`` in place and write its manifest (see :func:`convert_precision`)."""
-    int8_info: dict[str, dict] = {}
+    graph_info: dict[str, dict] = {}
     for name, frames in feeds.items():
         path = out / manifest["networks"][name]["file"]
         if precision == "fp16":
-            to_fp16(fp32_dir / path.name, path)
+            graph_info[name] = to_fp16(fp32_dir / path.name, path, frames)
         else:
             # The depth net's inputs span 0–255 and 0–85 m; PIXOR's BEV is 0/1 occupancy: uint8 holds it.
             # The depth net's last decoder stage stays fp32 too (output_convs 2): with the prefill its output
@@ -266,9 +292,11 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
             # and 1.7 with the extremes (84.1). Until then calibration voxelized the merged cloud, which
             # leaves the split grid's pseudo channels empty; on those inputs the extremes had lost 1.1 and
             # the averages 3.4 (docs/measurements.md, sessions 25 and 34).
-            int8_info[name] = to_int8(fp32_dir / path.name, path, frames, inputs_fp32=name == "depth",
-                                      output_convs=2 if name == "depth" else 1, moving_average=name == "pixor",
-                                      reduce_range=reduce_range)
+            graph_info[name] = to_int8(fp32_dir / path.name, path, frames, inputs_fp32=name == "depth",
+                                       output_convs=2 if name == "depth" else 1, moving_average=name == "pixor",
+                                       reduce_range=reduce_range)
+        # What is written must be a valid graph (the FP16 converter once left its Casts out of order).
+        onnx.checker.check_model(str(path), full_check=True)
         manifest["files"][path.name] = {"sha256": sha256_file(path), "bytes": path.stat().st_size}
         manifest["networks"][name]["graph_inputs"] = graph_inputs(path)  # INT8 reads the BEV whole again
     manifest["precision"] = precision
@@ -284,9 +312,10 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
         **({"calibration_data": str(calibration_data), "calibration_frames": len(next(iter(feeds.values()))),
             "activations": "uint8", "weights": "int8 per channel" + (", 7-bit range" if reduce_range else ""),
             "reduce_range": reduce_range, "format": "QDQ",
-            "calibration": {name: info["calibration"] for name, info in int8_info.items()},
-            "graph": int8_info} if precision == "int8"
-           else {"io": "float32 (keep_io_types)"}),
+            "calibration": {name: info["calibration"] for name, info in graph_info.items()},
+            "graph": graph_info} if precision == "int8"
+           # fp32_nodes: what FP16 cannot hold on the deviation frames stays FP32, each node with why.
+           else {"io": "float32 (keep_io_types)", "graph": graph_info}),
         "deviation_from_fp32": deviation(fp32_dir, out, feeds),
         "deviation_data": str(calibration_data),
         "deviation_frames": min(DEVIATION_FRAMES, len(next(iter(feeds.values())))),

@@ -38,7 +38,9 @@
    element; the edge depth net's prefill has six of them on full-resolution maps
    (0.53 ms each with its Greater, against 0.07 ms as a·float(c) + b·float(¬c)).
    :func:`where_as_arithmetic` rewrites those whose two branches are provably
-   finite: exact (x·1 = x, x·0 = ±0).
+   finite: exact (x·1 = x, x·0 = ±0). Finite in FP32, that is: the prefill's
+   1/clip(x, 1e-6) is 1e6 where the map is empty, ±∞ in FP16, and ∞·0 is NaN;
+   the FP16 conversion keeps such nodes in FP32 (export/fp16.py).
 6. Parallel convolutions merged. The depth net's early fusion concatenates
    ``Relu(Conv(depth))`` and ``Relu(Conv(image))``: ONNX Runtime reordered both
    outputs from its blocked layout to NCHW for the Concat and back for the next

@@ -12,7 +12,7 @@ from pipeline.cpu import int8_pairs_saturate
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
-from pipeline.graph_inputs import session_feeds
+from pipeline.graph_inputs import feeds_for, session_feeds
 from pipeline.model_files import ModelFileError, verify_sha256
 from tests.conftest import KITTI
 
@@ -28,6 +28,8 @@ def frame():
 def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     out = tmp_path / precision
     manifest = convert_precision(tiny_models, out, precision, KITTI, calibration_frames=3)
+    for name in ("depth.onnx", "pixor.onnx"):  # valid graphs, nodes in topological order (as export/lower.py checks)
+        onnx.checker.check_model(str(out / name), full_check=True)
     assert manifest["precision"] == precision
     assert json.loads((out / "manifest.json").read_text())["precision"] == precision
     verify_sha256(out, manifest)
@@ -449,3 +451,114 @@ def test_a_conversion_copies_the_model_files_alone_and_not_into_its_source(tiny_
     with pytest.raises(ModelFileError, match=r"lies inside the model directory"):
         convert_precision(source, source / "fp16", "fp16", KITTI, calibration_frames=2)
     assert not (source / "fp16").exists() and (source / "trt_cache" / "engine.bin").exists()
+
+
+@pytest.fixture(scope="module", params=["tiny", "edge"])
+def fp16_directory(request, tmp_path_factory):
+    """(FP32 directory, its FP16 conversion): the tiny models and the shipped edge weights (converted elsewhere)."""
+    fp32 = request.getfixturevalue("tiny_models") if request.param == "tiny" else SHIPPED_EDGE
+    out = tmp_path_factory.mktemp(f"fp16-{request.param}") / "fp16"
+    convert_precision(fp32, out, "fp16", KITTI)
+    return fp32, out
+
+
+def _elem_types(model: onnx.ModelProto) -> dict[str, int]:
+    graph = onnx.shape_inference.infer_shapes(model).graph
+    types = {v.name: v.type.tensor_type.elem_type for v in [*graph.value_info, *graph.input, *graph.output]}
+    return types | {init.name: init.data_type for init in graph.initializer}
+
+
+def test_no_tensor_held_in_fp16_overflows_on_real_frames(fp16_directory):
+    """Every tensor the FP16 graphs hold in float16 stays within ±65504 on the bundled frames. ONNX Runtime's CPU
+    provider runs most FP16 nodes in FP32, but a tensor asked for as an output it stores as float16, as a GPU
+    does. The edge depth net's prefill reciprocal, 1e6 where the prefilled map is empty, was one: ±inf, and
+    inf · 0 = NaN in GPU FP16 arithmetic, over the whole depth map."""
+    import onnxruntime as ort
+
+    fp32, out = fp16_directory
+    for name, samples in calibration_feeds(fp32, KITTI, 5, calibrating=False).items():
+        model = onnx.load(str(out / f"{name}.onnx"))
+        types = _elem_types(model)
+        held = [t for node in model.graph.node for t in node.output if types.get(t) == onnx.TensorProto.FLOAT16]
+        assert len(held) > 50  # FP16 it is
+        model.graph.output.extend(onnx.helper.make_tensor_value_info(t, onnx.TensorProto.FLOAT16, None) for t in held)
+        session = ort.InferenceSession(model.SerializeToString(), providers=["CPUExecutionProvider"])
+        for feed in samples:
+            values = session.run(held, feeds_for(session, {k: v.astype(np.float32) for k, v in feed.items()}))
+            beyond = {t: float(np.abs(v.astype(np.float32)).max()) for t, v in zip(held, values, strict=True)
+                      if not (np.abs(v) <= 65504).all()}  # NaN fails too
+            assert not beyond, f"{name}: float16 tensors beyond ±65504 or NaN: {beyond}"
+
+
+def test_fp16_keeps_the_prefill_reciprocal_in_fp32(fp16_directory):
+    """The depth net's second prefill reciprocal, 1/clip(x, 1e-6) of the prefilled inverse depth, its divisor's
+    Clip and its reader stay FP32 and read each other's FP32 tensors; the manifest says why. The first one,
+    of measured depths clipped at 1 mm (at most 1000), stays FP16: the values decide, not the op type."""
+    _, out = fp16_directory
+    model = onnx.load(str(out / "depth.onnx"))
+    types, nodes = _elem_types(model), {node.name: node for node in model.graph.node}
+    reciprocal = nodes["node_reciprocal_1"]
+    assert types[reciprocal.input[0]] == types[reciprocal.output[0]] == onnx.TensorProto.FLOAT
+    assert types[nodes["node_reciprocal"].output[0]] == onnx.TensorProto.FLOAT16
+    # No Cast to FP16 and back between them: the 1e6 never passes through float16.
+    clip = next(node for node in model.graph.node if reciprocal.input[0] in node.output)
+    (reader,) = [node for node in model.graph.node if reciprocal.output[0] in node.input]
+    assert (clip.name, reader.op_type) == ("node_clamp_1", "Mul")
+    info = json.loads((out / "manifest.json").read_text())["precision_info"]["graph"]
+    kept = info["depth"]["fp32_nodes"]
+    assert kept.keys() == {clip.name, reciprocal.name, reader.name}
+    assert "writes reciprocal_1: " in kept["node_reciprocal_1"]
+    assert "values beyond FP16's ±65504 (|x| up to 1e+06)" in kept["node_reciprocal_1"]
+    assert "(|x| down to 1e-06), and node_reciprocal_1 divides by it" in kept["node_clamp_1"]
+    assert info["pixor"]["fp32_nodes"] == {}
+    assert all(0 < network["largest_fp16_value"]["value"] <= 65504 for network in info.values())
+
+
+def test_a_conversion_that_would_overflow_fp16_fails_naming_the_node(tiny_models, tmp_path, monkeypatch):
+    """Should a graph hold in FP16 a tensor that FP16 cannot hold (here: nothing kept FP32 on the tiny depth net),
+    the conversion stops with an error naming the node and writes nothing."""
+    import export.precision
+    from export.fp16 import FP16RangeError
+
+    monkeypatch.setattr(export.precision, "fp16_unsafe_nodes", lambda model, ranges: {})
+    out = tmp_path / "fp16"
+    with pytest.raises(FP16RangeError, match=r"depth\.onnx: FP16 cannot hold .* node node_reciprocal_1 writes "
+                       r"reciprocal_1 in FP16: \d+ values beyond FP16's ±65504 \(\|x\| up to 1e\+06\)"):
+        convert_precision(tiny_models, out, "fp16", KITTI, calibration_frames=2)
+    assert not out.exists()
+
+
+def test_what_fp16_cannot_hold_stays_fp32_from_node_to_node_and_to_the_output(tmp_path):
+    """r = 1/clip(x, 1e-6) (1e6 where x = 0), a graph output also read by a Mul, beside an FP16 Relu branch.
+    The nodes writing or reading r, and the Clip whose output r divides by, stay FP32, unnamed ones too; between
+    them and to the output r stays FP32 (the converter's Casts to FP16 and back are gone), exact as in FP32."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    from export.precision import to_fp16
+
+    value = helper.make_tensor_value_info
+    graph = helper.make_graph(
+        [helper.make_node("Clip", ["x", "low"], ["c"]), helper.make_node("Reciprocal", ["c"], ["r"], name="inverse"),
+         helper.make_node("Mul", ["r", "x"], ["rx"], name="masked"), helper.make_node("Relu", ["x"], ["z"], name="relu")],
+        "g", [value("x", TensorProto.FLOAT, [1, 1, 4, 4])],
+        [value(name, TensorProto.FLOAT, [1, 1, 4, 4]) for name in ("r", "rx", "z")],
+        [numpy_helper.from_array(np.array(1e-6, np.float32), "low")])
+    source, target = tmp_path / "fp32.onnx", tmp_path / "fp16.onnx"
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)]), str(source))
+    steps = np.arange(16, dtype=np.float32).reshape(1, 1, 4, 4)
+    x = np.where(steps % 3 == 0, 0.0, steps * 0.5).astype(np.float32)  # zeros: r = 1e6 there
+    info = to_fp16(source, target, [{"x": x}])
+    assert info["fp32_nodes"].keys() == {"Clip_0", "inverse", "masked"}
+    assert info["fp16_round_trips_removed"] >= 3  # x into Clip and Mul, r into Mul and to the output
+    model = onnx.load(str(target))
+    onnx.checker.check_model(model, full_check=True)
+    types = _elem_types(model)
+    assert {types[t] for n in model.graph.node if n.name in info["fp32_nodes"] for t in [*n.input, *n.output]} == {
+        TensorProto.FLOAT}
+    assert types[next(n for n in model.graph.node if n.name == "relu").output[0]] == TensorProto.FLOAT16
+    expected, converted = (ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]).run(None, {"x": x})
+                           for p in (source, target))
+    for a, b in zip(expected, converted[:2], strict=False):  # r and rx: exact; z went through FP16
+        np.testing.assert_array_equal(b, a)
+    assert expected[0].max() == np.float32(1e6)
