@@ -866,12 +866,14 @@ def test_metric_labels_take_no_value_from_the_client(client: AppClient) -> None:
     """A method token is whatever a client sends (kilobytes of it): each used to be a series of its own in
     /metrics, which grew without end. The method label is one of HTTP's methods or "other", the route label
     a route of the service or "unmatched"."""
-    for i in range(20):
-        assert client.request(f"M{i:04d}" + "X" * 4000, "/healthz").status_code == 405
-    assert client.get("/" + "p" * 5000).status_code == 404
+    methods_sent = [f"M{i:04d}" + "X" * 4000 for i in range(20)]
+    for method in methods_sent:
+        assert client.request(method, "/healthz").status_code == 405
+    path_sent = "/" + "p" * 5000
+    assert client.get(path_sent).status_code == 404
     assert client.request("PATCH", "/healthz").status_code == 405
     text = client.get("/metrics").text
-    assert "XXXX" not in text and "M0000" not in text and "ppppp" not in text
+    assert not any(method[:100] in text for method in methods_sent) and path_sent[:100] not in text
     series = [line for line in text.splitlines() if line.startswith("lowres3d_http_requests_total{")]
     other = [float(line.rsplit(" ", 1)[1]) for line in series if 'method="other"' in line]
     assert sum(other) == 20.0, series
