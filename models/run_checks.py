@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from models.cache_pseudo import check_sources
-from pipeline.depth_completion import drive_calibration, is_drive_folder, raw_scan_path
+from pipeline.depth_completion import check_map_size, drive_calibration, is_drive_folder, raw_scan_path
 from pipeline.errors import InputError
 from pipeline.kitti import POINT_BYTES, check_image_file, read_calib, read_image_size, read_labels
 
@@ -171,9 +171,7 @@ def _check_drive_files(folder: Path, flag: str, ids: list[str], beams: int | Non
             check_image_file(path)
         sizes = [read_image_size(path) for path in paths]
         for path, size in zip(paths[1:], sizes[1:], strict=True):
-            if size != sizes[0]:
-                raise InputError(f"{path}: a {size[1]}×{size[0]} depth map for the {sizes[0][1]}×{sizes[0][0]} "
-                                 f"image {paths[0]}; they must be the same size")
+            check_map_size(path, size, paths[0], sizes[0])
         scan = raw_scan_path(folder, fid)
         if scan is not None and (scan.stat().st_size == 0 or scan.stat().st_size % POINT_BYTES):
             raise InputError(f"{scan}: size {scan.stat().st_size} bytes is not a whole number of {POINT_BYTES}-byte "

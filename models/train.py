@@ -102,11 +102,10 @@ from models.start_weights import (
 from models.validation import validate_depth, validate_detector
 from pipeline.cli import interrupted, non_negative_int, positive_float, positive_int
 from pipeline.depth_completion import (
-    FLAT_LAYOUT_HINT,
-    check_drive_folder,
     drive_calibration,
     drive_frame_ids,
     is_drive_folder,
+    refuse_kitti_layout,
 )
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
@@ -237,12 +236,8 @@ def check_layout(task: str, folder: Path, flag: str, split: Path | None) -> None
         return
     if (folder / "velodyne").is_dir():
         return
-    if task == "depth":
-        try:
-            check_drive_folder(folder, flag)
-        except InputError as exc:
-            if FLAT_LAYOUT_HINT in str(exc):  # KITTI's layout: how to link one drive, whether or not a split is given
-                raise
+    if task == "depth":  # KITTI's layout: how to link one drive, whether or not a split is given
+        refuse_kitti_layout(folder, flag)
     if split is None:
         also = " nor a depth-completion drive (no velodyne_raw/ and groundtruth/ inside)" if task == "depth" else ""
         raise InputError(f"{flag} {folder}: not a KITTI object folder (no velodyne/ inside){also}")

@@ -47,15 +47,27 @@ def is_drive_folder(folder: Path) -> bool:
     return (Path(folder) / "velodyne_raw").is_dir() and (Path(folder) / "groundtruth").is_dir()
 
 
-def check_drive_folder(folder: Path, flag: str = "--data") -> None:
-    """An InputError unless ``folder`` is a drive in the flat layout; KITTI's own layout gets the way to link it."""
+def refuse_kitti_layout(folder: Path, flag: str = "--data") -> None:
+    """An InputError with the way to link one drive into the flat layout when ``folder`` is in KITTI's own."""
     folder = Path(folder)
-    if is_drive_folder(folder):
-        return
     if (folder / "proj_depth").is_dir() or folder.name == "proj_depth" or (folder / "train").is_dir():
         raise InputError(f"{flag} {folder}: KITTI's depth-completion layout, one drive at a time in the flat one: "
                          f"{FLAT_LAYOUT_HINT}")
+
+
+def check_drive_folder(folder: Path, flag: str = "--data") -> None:
+    """An InputError unless ``folder`` is a drive in the flat layout; KITTI's own layout gets the way to link it."""
+    if is_drive_folder(folder):
+        return
+    refuse_kitti_layout(folder, flag)
     raise InputError(f"{flag} {folder}: not a depth-completion drive (no velodyne_raw/ and groundtruth/ inside)")
+
+
+def check_map_size(path: Path, map_hw: tuple[int, int], image_path: Path, image_hw: tuple[int, int]) -> None:
+    """An InputError naming both files when a depth map's (H, W) is not its image's."""
+    if tuple(map_hw) != tuple(image_hw):
+        raise InputError(f"{path}: a {map_hw[1]}×{map_hw[0]} depth map for the {image_hw[1]}×{image_hw[0]} image "
+                         f"{image_path}; they must be the same size")
 
 
 def drive_frame_ids(folder: Path) -> list[str]:
@@ -100,9 +112,7 @@ def read_frame(folder: Path, frame_id: str, calib: Calibration | None, beams: in
     for name in ("velodyne_raw", "groundtruth"):
         path = folder / name / f"{frame_id}.png"
         depth = read_depth_png(path)
-        if depth.shape != image.shape[:2]:
-            raise InputError(f"{path}: a {depth.shape[1]}×{depth.shape[0]} depth map for the "
-                             f"{image.shape[1]}×{image.shape[0]} image {image_path}; they must be the same size")
+        check_map_size(path, depth.shape, image_path, image.shape[:2])
         maps[name] = depth
     sparse = maps["velodyne_raw"]
     if beams:
