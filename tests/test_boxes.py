@@ -28,7 +28,8 @@ def test_label_box_label_roundtrip(frame_id):
     objects = [o for o in frame.labels if o.type != "DontCare"]
     boxes = labels_to_boxes(objects, frame.calib)
     back = boxes_to_objects(boxes, frame.calib, frame.image_hw, scores=np.ones(len(boxes)))
-    for original, again in zip(objects, back):
+    assert len(objects) > 0 and len(back) == len(objects)
+    for original, again in zip(objects, back, strict=True):
         np.testing.assert_allclose(again.location, original.location, atol=1e-9)
         np.testing.assert_allclose(again.dimensions, original.dimensions, atol=1e-12)
         assert np.cos(again.rotation_y - original.rotation_y) == pytest.approx(1.0, abs=1e-12)
@@ -42,7 +43,11 @@ def test_corners_layout():
     corners = bev_corners(box)[0]
     np.testing.assert_allclose(corners, [[9, 4], [9, 0], [11, 0], [11, 4]], atol=1e-12)
     c3 = box_corners_3d(box)[0]
-    np.testing.assert_allclose(c3[:4, 2], -1.75) and np.testing.assert_allclose(c3[4:, 2], -0.25)
+    # Bottom ring at z − h/2 = −1.75, top ring at z + h/2 = −0.25, both over the same BEV corners.
+    np.testing.assert_allclose(c3[:4, 2], -1.75)
+    np.testing.assert_allclose(c3[4:, 2], -0.25)
+    np.testing.assert_allclose(c3[:4, :2], corners, atol=1e-12)
+    np.testing.assert_allclose(c3[4:, :2], corners, atol=1e-12)
 
 
 def random_boxes(rng, n):

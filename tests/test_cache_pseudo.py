@@ -8,6 +8,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from models.cache_pseudo import main, recorded_sources, run
@@ -32,9 +33,19 @@ def _main(args: list[str], capsys: pytest.CaptureFixture) -> tuple[int, str]:
 
 
 def test_caches_every_frame_and_resumes(tiny_models: Path, kitti_dir: Path, tmp_path: Path) -> None:
+    """Each map is the depth net's dense depth of the frame's 64-line scan thinned to 16 lines, as the runtime's
+    Detector computes it (to the PNG's 1/256 m steps)."""
+    from pipeline.beams import emulate_beams
+    from pipeline.detector import Detector
+    from pipeline.frame import load_frame
+
     out = tmp_path / "pseudo"
     assert run(kitti_dir, tiny_models, out, progress=False) == 5
-    assert read_depth_png(out / "000006.png").max() > 0
+    frame = load_frame(kitti_dir, "000006", with_labels=False)
+    expected, _ = Detector(tiny_models).dense_depth(frame.image, emulate_beams(frame.points, 16), frame.calib)
+    cached = read_depth_png(out / "000006.png")
+    assert cached.shape == expected.shape and cached.max() > 0
+    np.testing.assert_allclose(cached, expected, rtol=0, atol=1 / 512 + 1e-6)
     assert run(kitti_dir, tiny_models, out, progress=False) == 0  # all cached: nothing recomputed
 
 

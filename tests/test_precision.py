@@ -2,6 +2,7 @@
 
 import json
 import logging
+import re
 
 import numpy as np
 import onnx
@@ -141,7 +142,7 @@ def test_conversions_that_would_lose_or_break_something_are_refused(tiny_models,
     # A conversion that fails (no calibration frames here) leaves the earlier --out as it was.
     empty = tmp_path / "empty"
     empty.mkdir()
-    with pytest.raises((ValueError, ModelFileError)):
+    with pytest.raises(InputError, match=re.escape(f"--calibration-data {empty}: not a KITTI object folder")):
         convert_precision(tiny_models, int8, "int8", empty, calibration_frames=2)
     assert {p.name: p.read_bytes() for p in int8.iterdir()} == before
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no staging copy left behind

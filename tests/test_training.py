@@ -475,14 +475,64 @@ def test_device_choice_is_checked():
             resolve_device("cuda")
 
 
+# Run in a fresh interpreter (the thresholds are the process's own), with models/allocator.py loaded by path so
+# that torch, whose import allocates on its own, stays out. glibc's mallinfo2 reports the bytes held in mmapped
+# blocks (hblkhd) and in the heap (arena): a 64 MB buffer is mmapped, and the heap trimmed once it is freed, unless
+# the thresholds are raised above it.
+_MALLOC_THRESHOLDS = r"""
+import ctypes, importlib.util, sys
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                     "fsmblks", "uordblks", "fordblks", "keepcost")]
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = MallInfo2
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, [ctypes.c_size_t]
+libc.free.argtypes = [ctypes.c_void_p]
+applied = None
+if sys.argv[2] == "keep":
+    spec = importlib.util.spec_from_file_location("allocator", sys.argv[1])
+    allocator = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(allocator)
+    applied = allocator.keep_freed_memory()
+before = libc.mallinfo2()
+buffer = libc.malloc(64 << 20)
+ctypes.memset(buffer, 1, 64 << 20)
+held = libc.mallinfo2()
+libc.free(buffer)
+after = libc.mallinfo2()
+print(applied, held.hblkhd - before.hblkhd, held.arena - before.arena, held.arena - after.arena)
+"""
+
+
 def test_training_keeps_freed_memory_on_glibc():
-    """models.train fixes glibc's mmap/trim thresholds (a PIXOR epoch 16 % shorter here); elsewhere a no-op."""
+    """models.train fixes glibc's mmap/trim thresholds (a PIXOR epoch 16 % shorter here); elsewhere a no-op.
+    With them a 64 MB buffer comes from the heap, not a fresh mmap, and freeing it leaves the heap as large."""
     import platform
+    import subprocess
+    import sys
+    from pathlib import Path
 
-    from models.allocator import keep_freed_memory
+    if not (platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"):
+        from models.allocator import keep_freed_memory
 
-    expected = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
-    assert keep_freed_memory() is expected
+        assert keep_freed_memory() is False
+        return
+    allocator = Path(__file__).resolve().parents[1] / "models" / "allocator.py"
+
+    def buffer_accounting(mode: str) -> tuple[str, int, int, int]:
+        done = subprocess.run([sys.executable, "-c", _MALLOC_THRESHOLDS, str(allocator), mode], capture_output=True,
+                              text=True, timeout=60, check=True)
+        applied, mmapped, heap_grew, trimmed = done.stdout.split()
+        return applied, int(mmapped), int(heap_grew), int(trimmed)
+
+    size = 64 << 20
+    applied, mmapped, heap_grew, trimmed = buffer_accounting("keep")
+    assert applied == "True"
+    assert mmapped < size <= heap_grew  # served from the heap
+    assert trimmed < size // 2  # and kept there once freed
+    # Without the thresholds the same buffer is mmapped and unmapped: the test can fail.
+    applied, mmapped, heap_grew, _ = buffer_accounting("plain")
+    assert applied == "None" and mmapped >= size and heap_grew < size
 
 
 def test_sample_cache_gives_the_samples_a_fresh_load_gives():
