@@ -15,10 +15,12 @@ ARG JETSON_BASE=nvcr.io/nvidia/l4t-jetpack:r36.4.0
 
 # --------------------------------------------------------------------------- CPU (x86-64, arm64)
 FROM ${CPU_BASE} AS runtime-cpu
+# The versions the tests ran on (requirements/constraints.txt): an image built later ships the same ones.
 COPY requirements/service-cpu.txt /tmp/requirements.txt
+COPY requirements/constraints.txt /tmp/constraints.txt
 RUN python -m venv /opt/venv \
-    && /opt/venv/bin/pip install --no-cache-dir -r /tmp/requirements.txt \
-    && rm /tmp/requirements.txt
+    && /opt/venv/bin/pip install --no-cache-dir -r /tmp/requirements.txt -c /tmp/constraints.txt \
+    && rm /tmp/requirements.txt /tmp/constraints.txt
 
 # --------------------------------------------------------------------------- NVIDIA GPU (x86-64)
 FROM ${GPU_BASE} AS runtime-gpu
@@ -36,14 +38,17 @@ RUN apt-get update \
        "libnvonnxparsers10=${TENSORRT_VERSION}" \
     && rm -rf /var/lib/apt/lists/*
 COPY requirements/service-gpu.txt /tmp/requirements.txt
+COPY requirements/constraints.txt /tmp/constraints.txt
 RUN python3 -m venv /opt/venv \
     && /opt/venv/bin/pip install --no-cache-dir "onnxruntime-gpu==${ORT_GPU_VERSION}" -r /tmp/requirements.txt \
-    && rm /tmp/requirements.txt
+       -c /tmp/constraints.txt \
+    && rm /tmp/requirements.txt /tmp/constraints.txt
 
 # --------------------------------------------------------------------------- NVIDIA Jetson (JetPack 6)
 FROM ${JETSON_BASE} AS runtime-jetson
 # JetPack 6 ships Python 3.10 with CUDA 12.6 and TensorRT 10; its onnxruntime-gpu wheels come from the
-# Jetson AI Lab index (PyPI has no CUDA builds for aarch64).
+# Jetson AI Lab index (PyPI has no CUDA builds for aarch64). requirements/constraints.txt is not used here:
+# some of its versions need Python 3.11 (NumPy 2.3 and later), so this image takes the newest that run on 3.10.
 ARG JETSON_INDEX=https://pypi.jetson-ai-lab.io/jp6/cu126
 ARG ORT_GPU_VERSION=1.23.0
 # hadolint ignore=DL3008

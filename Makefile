@@ -3,20 +3,23 @@ PYTHON ?= python3.11
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test setup setup-dev lint clean
+.PHONY: demo test setup setup-dev lint lock clean
+
+# The versions the tests run on (requirements/lock.py): every install takes them.
+CONSTRAINTS := requirements/constraints.txt
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 # Runtime only (no torch): what the detector and the service need.
-$(VENV)/.runtime: pyproject.toml | $(BIN)/python
-	$(BIN)/pip install --quiet -e .
+$(VENV)/.runtime: pyproject.toml $(CONSTRAINTS) | $(BIN)/python
+	$(BIN)/pip install --quiet -e . -c $(CONSTRAINTS)
 	touch $@
 
 # Everything: runtime + training/export (torch pinned to the CPU build) + test tools.
-$(VENV)/.dev: pyproject.toml | $(BIN)/python
-	$(BIN)/pip install --quiet -e '.[train,dev]'
+$(VENV)/.dev: pyproject.toml $(CONSTRAINTS) | $(BIN)/python
+	$(BIN)/pip install --quiet -e '.[train,dev]' -c $(CONSTRAINTS)
 	touch $@ $(VENV)/.runtime
 
 setup: $(VENV)/.runtime
@@ -31,7 +34,11 @@ test: $(VENV)/.dev
 	$(BIN)/python -m pytest -q -n 2 --dist loadfile
 
 lint: $(VENV)/.dev
-	$(BIN)/ruff check pipeline service models export evaluation simulation benchmarks tests
+	$(BIN)/ruff check pipeline service models export evaluation simulation benchmarks requirements tests
+
+# After moving a dependency in the dev environment: pin what is installed now, then run make test.
+lock: $(VENV)/.dev
+	$(BIN)/python requirements/lock.py
 
 clean:
 	rm -rf $(VENV) outputs

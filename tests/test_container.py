@@ -259,17 +259,34 @@ def test_runtime_parses_as_python_310():
 @pytest.mark.parametrize("requirements, arch, python", [
     ("service-cpu.txt", "x86_64", "3.11"),
     ("service-cpu.txt", "aarch64", "3.11"),
-    ("service-gpu.txt", "x86_64", "3.12"),
+    ("service-gpu.txt", "x86_64", "3.12"),  # Ubuntu 24.04's Python
 ])
 def test_requirements_resolve(tmp_path, requirements, arch, python):
+    """Each image's pip install, as its stage runs it: the CPU and GPU images with the locked versions (and
+    the GPU image with its pinned onnxruntime-gpu), the Jetson image without (its Python 3.10)."""
     platforms = [f"manylinux_2_{v}_{arch}" for v in (28, 27, 17)] + [f"manylinux2014_{arch}"]
     command = [sys.executable, "-m", "pip", "install", "--dry-run", "--quiet", "--ignore-installed",
                "--target", str(tmp_path), "--only-binary=:all:", "--python-version", python,
                "-r", str(REQUIREMENTS / requirements)]
+    if requirements != "service-jetson.txt":
+        command += ["-c", str(REQUIREMENTS / "constraints.txt")]
+    if requirements == "service-gpu.txt":
+        command.append(f"onnxruntime-gpu=={build_args('runtime-gpu')['ORT_GPU_VERSION']}")
     for platform in platforms:
         command += ["--platform", platform]
     result = subprocess.run(command, capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+def test_cpu_and_gpu_images_install_the_locked_versions():
+    """The CPU and GPU stages copy requirements/constraints.txt and give it to pip (-c), so an image built
+    later installs the versions the tests ran on (tests/test_lock.py); the Jetson stage cannot (Python 3.10)."""
+    for name in ("runtime-cpu", "runtime-gpu"):
+        rows = stage(name)
+        assert ("COPY", "requirements/constraints.txt /tmp/constraints.txt") in rows, name
+        installs = [rest for keyword, rest in rows if keyword == "RUN" and "pip install" in rest]
+        assert len(installs) == 1 and "-c /tmp/constraints.txt" in installs[0], name
+    assert not any("constraints" in rest for _, rest in stage("runtime-jetson"))
 
 
 def test_jetson_requirements_resolve_for_python_310(tmp_path):
