@@ -63,6 +63,7 @@ from evaluation.report import (
     spread_json,
     to_json,
 )
+from pipeline.beams import BEAM_COUNTS
 from pipeline.cli import (
     check_not_input,
     check_output,
@@ -360,6 +361,10 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")
     detect.add_argument("--mirror-tta", action="store_true",
                         help="PIXOR also on the BEV mirrored left to right, maps averaged (pipeline.detect --mirror-tta)")
+    detect.add_argument("--emulate-beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help="thin the scans to N lines first (16, 32, 8, 4; 0: keep them as stored, as a 16-line "
+                        "sensor's own scans need); default: the --input row's, 16 for lidar16 and lidar16+camera "
+                        "(thinning KITTI's 64-line scans), none for lidar64; as in pipeline.detect and latency.py")
     detect.add_argument(
         "--depth-dir", type=Path, metavar="DIR",
         help="with --input lidar16+camera or --depth: dense depth PNGs of the full camera image (KITTI depth "
@@ -381,7 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
 # Flags (by dest) that only some modes read; main refuses them in the others.
 _RESULT_FILES = ("gt_labels", "pred_labels", "missing_as_empty")
 _RUN = ("data", "models", "provider")
-_DETECTION = ("input", "out", "score_threshold", "mirror_tta")
+_DETECTION = ("input", "out", "score_threshold", "mirror_tta", "emulate_beams")
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
 _AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "compare_pred_labels", "gap_to_pred_labels")
 
@@ -571,7 +576,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             frames = first_frames(ground_truth_frames(args.data / "label_2", frames), first)
         detection = run_detection(args.data, args.models, args.input, out, frames, args.provider,
                                   progress=not args.no_progress, score_threshold=args.score_threshold,
-                                  depth_dir=args.depth_dir, mirror_tta=args.mirror_tta)
+                                  depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, beams=args.emulate_beams)
         predictions = detection.results
         outcome = run(LabelEvalConfig(
             gt_labels=args.data / "label_2", pred_labels=predictions, split_file=split_file, first_frames=first,
@@ -582,6 +587,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             missing_as_empty=bool(detection.skipped),
             detector={"data": str(args.data), "models": str(args.models), "input": args.input,
                       "score_threshold": args.score_threshold, "mirror_tta": args.mirror_tta,
+                      **({} if args.emulate_beams is None else {"emulate_beams": args.emulate_beams}),
                       "provider": args.provider or "best available"},
         ))
     except (InputError, ModelFileError) as exc:

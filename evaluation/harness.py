@@ -38,7 +38,7 @@ from pipeline.depth_completion import (
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
-from pipeline.kitti import read_depth_png, read_image_depth_png
+from pipeline.kitti import read_depth_png, read_image_depth_png, read_velodyne
 from pipeline.model_files import load_manifest
 from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
 from pipeline.render import render_depth_panel, write_png
@@ -62,8 +62,11 @@ class DetectionRun:
 def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: list[str] | None = None,
                   provider: str | None = None, progress: bool = True,
                   score_threshold: float = DEFAULT_SCORE_THRESHOLD, depth_dir: Path | None = None,
-                  mirror_tta: bool = False) -> DetectionRun:
+                  mirror_tta: bool = False, beams: int | None = None) -> DetectionRun:
     """Detect on every frame and write KITTI result files.
+
+    beams: the line count the scans are thinned to; None: the input row's (16 for the lidar16 rows, the scans as
+    stored for lidar64), 0: the scans as stored (a 16-line sensor's own scans, which cannot be thinned again).
 
     A frame whose files are unusable is skipped (named on stderr) and has no result file, not even one
     from an earlier run into ``out``: the evaluation counts its cars as missed, and the caller says so.
@@ -89,10 +92,29 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
                          f"not {input_mode}: give --input {trained_on}, or the model directory trained for {input_mode}")
     if depth_dir is not None and not wants_camera:
         raise InputError(f"--depth-dir: only the camera pipeline uses depth (--input lidar16+camera, not {input_mode})")
-    result = detect(models, out, data=data, frames=frames, emulate_beams=INPUTS[input_mode], provider=provider,
+    emulate = INPUTS[input_mode] if beams is None else (beams or None)
+    if emulate:
+        _check_thinnable(data, frames, emulate)
+    result = detect(models, out, data=data, frames=frames, emulate_beams=emulate, provider=provider,
                     pictures=False, progress=progress, score_threshold=score_threshold, depth_dir=depth_dir,
                     mirror_tta=mirror_tta)
     return DetectionRun(out / "data" if result.result_files else out, result.skipped)
+
+
+def _check_thinnable(data: Path, frames: list[str] | None, beams: int) -> None:
+    """InputError, before any model runs, when the first frame's scan cannot be thinned to ``beams`` lines: a
+    16-line sensor's scans would otherwise be skipped one by one, and the table would count every car missed."""
+    ids = frames or frame_ids(data)
+    if not ids:
+        return  # no frame: pipeline.detect says so
+    path = Path(data) / "velodyne" / f"{ids[0]}.bin"
+    if not path.is_file():
+        return  # pipeline.detect names the missing scan
+    try:
+        emulate_beams(read_velodyne(path).points, beams)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}; to evaluate scans of a {beams}-line sensor as they are, give "
+                         "--emulate-beams 0") from None
 
 
 @dataclass(frozen=True)

@@ -182,12 +182,17 @@ class CropWindow:
         return image[self.top : self.top + self.height, self.left : self.left + self.width]
 
 
+# What a camera with smaller images must do: the networks read the KITTI crop's pixels at KITTI's scale.
+SMALL_IMAGE_HINT = ("; upscale the image until it covers the crop and P2 with it "
+                    "(pipeline.preprocess.scale_calibration; README, 'Your own vehicle')")
+
+
 def depth_crop(image_hw: tuple[int, int], height: int = 352, width: int = 1216) -> CropWindow:
     """The KITTI depth-completion crop: the bottom ``height`` rows, the centre ``width`` columns."""
     img_h, img_w = int(image_hw[0]), int(image_hw[1])
     if img_h < height or img_w < width:
         raise InputError(
-            f"image: {img_w}×{img_h} pixels is smaller than the model's {width}×{height} crop"
+            f"image: {img_w}×{img_h} pixels is smaller than the model's {width}×{height} crop{SMALL_IMAGE_HINT}"
         )
     return CropWindow(top=img_h - height, left=(img_w - width) // 2, height=height, width=width)
 

@@ -39,7 +39,16 @@ from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration, check_calibration
-from pipeline.checks import calibration_mismatch, check_image, check_options, image_hw_of
+from pipeline.checks import (
+    beam_pattern_mismatch,
+    calibration_mismatch,
+    check_image,
+    check_options,
+    image_hw_of,
+    reflectance_mismatch,
+    road_level_mismatch,
+    view_mismatch,
+)
 from pipeline.cpu import int8_pairs_saturate, usable_cpus
 from pipeline.errors import InputError
 from pipeline.graph_inputs import session_feeds, whole_shapes
@@ -450,9 +459,23 @@ class Detector:
         height, width = self.preset.depth.input_hw  # the depth map's size, given or from the net
         bin_rays(view_calib, height, width, self.preset.pseudo_limits[2], self.preset.bev)
 
-    def _without_depth(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration) -> dict[str, float]:
-        """The stages of a frame that need no depth: the view's rays (built once per calibration) and the real
-        points' half of the voxelization. Returns what each took."""
+    def rig_mismatches(self, points: np.ndarray, image_hw: tuple[int, int] | None = None,
+                       view_calib: Calibration | None = None) -> list[str]:
+        """Warnings for a rig unlike the training one (README, "Your own vehicle"): the scan's beams' elevations,
+        the road's height and the reflectance's scale, and with ``view_calib`` (the camera pipeline) a depth-net
+        crop that lies below the cars ahead. Such a frame still gets boxes, fewer and worse ones."""
+        decode = self.preset.decode
+        found = [beam_pattern_mismatch(points), road_level_mismatch(points, decode.ground_z),
+                 reflectance_mismatch(points)]
+        if view_calib is not None and image_hw is not None:
+            found.append(view_mismatch(image_hw, view_calib, self.preset.crop_hw, decode.ground_z, decode.car_height,
+                                       self.preset.depth.max_depth))
+        return [warning for warning in found if warning]
+
+    def _without_depth(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration,
+                       image_hw: tuple[int, int]) -> tuple[dict[str, float], list[str]]:
+        """The stages of a frame that need no depth: the view's rays (built once per calibration), the real
+        points' half of the voxelization and the rig's checks. Returns what each took, and the checks' warnings."""
         timings = {}
         tic = time.perf_counter()
         self._ray_table(view_calib)
@@ -460,7 +483,10 @@ class Detector:
         tic = time.perf_counter()
         voxelizer.add_points(points)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
-        return timings
+        tic = time.perf_counter()
+        warnings = self.rig_mismatches(points, image_hw, view_calib)
+        timings["rig_checks"] = (time.perf_counter() - tic) * 1e3
+        return timings, warnings
 
     # ------------------------------------------------------------------ stages
     def dense_depth(self, image: np.ndarray, points: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
@@ -576,10 +602,14 @@ class Detector:
                 given, view_calib = self._given_depth(depth, image, calib)
             timings["prepare"] = (time.perf_counter() - tic) * 1e3
             # With a second core, the stages that need no depth run beside the depth net, which has room for
-            # them (an edge frame's path 1.6 ms shorter on two cores: docs/measurements.md, session 28).
+            # them (an edge frame's path 1.6 ms shorter on two cores: docs/measurements.md, session 28), and
+            # so do the rig's checks (about 0.2 ms, off the frame's path there).
             beside: Future | None = None
             if self.stage_threads > 1:
-                beside = self._stage_thread().submit(self._without_depth, voxelizer, points, view_calib)
+                beside = self._stage_thread().submit(self._without_depth, voxelizer, points, view_calib,
+                                                     image.shape[:2])
+            else:
+                warnings += self.rig_mismatches(points, image.shape[:2], view_calib)
             if depth is None:
                 tic = time.perf_counter()
                 try:
@@ -598,7 +628,8 @@ class Detector:
             # apart: a vehicle, with one calibration, builds them once; every synthetic frame has its own.
             tic = time.perf_counter()
             if beside is not None:
-                overlapped = beside.result()  # the wait for them is the stage's time on the frame's path
+                overlapped, rig_warnings = beside.result()  # the wait for them is the stage's time on the frame's path
+                warnings += rig_warnings
             else:
                 self._ray_table(view_calib)
             timings["ray_table"] = (time.perf_counter() - tic) * 1e3
@@ -610,6 +641,7 @@ class Detector:
             if depth is not None:
                 raise InputError("depth: this model has no depth network to replace (a LiDAR-only model directory)")
             pseudo = beside = None
+            warnings += self.rig_mismatches(points)
 
         tic = time.perf_counter()
         if beside is None:
@@ -701,8 +733,16 @@ class Detector:
         # 0–255 intensities would read as a wall of bright returns (about 100 made-up cars at score 1).
         low, high = float(points[:, 3].min()), float(points[:, 3].max())
         if low < 0.0 or high > 1.0 + REFLECTANCE_SLACK:
+            if low < 0.0 or high > 65535.0:  # no intensity scale: the rows are misread (5 or 6 values each?)
+                hint = ("no sensor's intensities: are the scan's rows 4 float32 values? A scan with a ring or time "
+                        "column (5 or 6 values a row) reads as shifted rows; keep x, y, z and the intensity: "
+                        "np.fromfile(path, np.float32).reshape(-1, 5)[:, :4]")
+            elif high > 255.0:
+                hint = "divide the intensities by their full scale, 65535 for 16-bit ones"
+            else:
+                hint = "divide 0–255 intensities by 255"
             raise InputError(f"points: reflectance (the 4th column) must lie in [0, 1], KITTI's scale; this scan's "
-                             f"lies in [{low:.4g}, {high:.4g}] (divide 0–255 intensities by 255)")
+                             f"lies in [{low:.4g}, {high:.4g}] ({hint})")
         return points.astype(np.float32, copy=False)
 
     def warm_up(self, runs: int = 1, cancel: Cancellation | None = None) -> None:

@@ -92,15 +92,30 @@ def frame_ids(data_dir: str | Path, split_file: str | Path | None = None) -> lis
     return sorted(p.stem for p in velodyne.glob("*.bin"))
 
 
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # KITTI's PNG first; a camera recorder's JPEGs read as well
+
+
+def frame_image_path(data_dir: str | Path, frame_id: str) -> Path:
+    """``image_2/ID.png``, else the frame's JPEG (``.jpg``, ``.jpeg``) when only that exists; an InputError
+    naming what was looked for when there is none."""
+    folder = Path(data_dir) / "image_2"
+    for suffix in IMAGE_SUFFIXES:
+        path = folder / f"{frame_id}{suffix}"
+        if path.is_file():
+            return path
+    raise InputError(f"{folder / (frame_id + '.png')}: no image for frame {frame_id} (nor {frame_id}.jpg or "
+                     f"{frame_id}.jpeg)")
+
+
 def load_frame(data_dir: str | Path, frame_id: str, with_labels: bool = True, with_image: bool = True) -> Frame:
-    """Load ``image_2/ID.png``, ``velodyne/ID.bin``, ``calib/ID.txt`` (and ``label_2/ID.txt`` if present).
+    """Load ``image_2/ID.png`` (or ``.jpg``), ``velodyne/ID.bin``, ``calib/ID.txt`` (and ``label_2/ID.txt`` if present).
 
     ``with_image=False`` reads only the image's size (LiDAR-side training samples need no pixels).
     """
     data_dir = Path(data_dir)
     scan = read_velodyne(data_dir / "velodyne" / f"{frame_id}.bin")
     label_path = data_dir / "label_2" / f"{frame_id}.txt"
-    image_path = data_dir / "image_2" / f"{frame_id}.png"
+    image_path = frame_image_path(data_dir, frame_id)
     return Frame(
         frame_id=frame_id,
         image=read_image(image_path) if with_image else None,

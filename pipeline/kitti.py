@@ -47,7 +47,7 @@ def parse_velodyne(data: bytes, source: str = "<points>") -> Scan:
     if len(data) % POINT_BYTES != 0:
         raise InputError(
             f"{source}: size {len(data)} bytes is not a multiple of {POINT_BYTES} "
-            "(a KITTI scan is float32 rows x, y, z, reflectance)"
+            f"(a KITTI scan is float32 rows x, y, z, reflectance){wider_rows_hint(len(data))}"
         )
     points = np.frombuffer(data, dtype="<f4").reshape(-1, 4)
     finite = np.isfinite(points)
@@ -58,6 +58,17 @@ def parse_velodyne(data: bytes, source: str = "<points>") -> Scan:
     finite_rows = finite.view(np.uint32)[:, 0] == 0x01010101
     return Scan(points=points[finite_rows], dropped_nonfinite=int(points.shape[0] - np.count_nonzero(finite_rows)),
                 source=source)
+
+
+def wider_rows_hint(size: int) -> str:
+    """For a scan of ``size`` bytes that KITTI's 4 columns do not fit: which 5- or 6-column rows would (a driver's
+    ring and time columns), with the way to keep the first four; "" when neither fits."""
+    columns = [n for n in (5, 6) if size % (4 * n) == 0]
+    if not columns:
+        return ""
+    n = columns[0]
+    return (f"; it is a whole number of {' or '.join(map(str, columns))}-column rows: a scan with a ring or time "
+            f"column? Keep x, y, z and the intensity: np.fromfile(path, np.float32).reshape(-1, {n})[:, :4]")
 
 
 def read_velodyne(path: str | Path) -> Scan:
@@ -103,12 +114,16 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
         except ValueError as exc:
             raise InputError(f"{source}, line {line_no}: {key} has a non-numeric value ({exc})") from exc
         shape = shapes[key]
-        if numbers.size != shape[0] * shape[1]:
-            raise InputError(
-                f"{source}, line {line_no}: {key} needs {shape[0] * shape[1]} numbers, got {numbers.size}"
-            )
         if not np.isfinite(numbers).all():
             raise InputError(f"{source}, line {line_no}: {key} has a non-finite value")
+        if numbers.size == 16 and key in HOMOGENEOUS_KEYS:
+            values[key] = _from_homogeneous(numbers.reshape(4, 4), shape, f"{source}, line {line_no}: {key}")
+            continue
+        if numbers.size != shape[0] * shape[1]:
+            also = " (or 16: the 4×4 homogeneous form)" if key in HOMOGENEOUS_KEYS else ""
+            raise InputError(
+                f"{source}, line {line_no}: {key} needs {shape[0] * shape[1]} numbers{also}, got {numbers.size}"
+            )
         values[key] = numbers.reshape(shape)
     missing = [k for k in shapes if k not in values]
     if missing:
@@ -116,8 +131,27 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
     return values
 
 
+# Calibration tools other than KITTI's often write the rigid transforms as 4×4 homogeneous matrices.
+HOMOGENEOUS_KEYS = ("R0_rect", "Tr_velo_to_cam")
+
+
+def _from_homogeneous(matrix: np.ndarray, shape: tuple[int, int], where: str) -> np.ndarray:
+    """The ``shape`` block of a 4×4 homogeneous matrix, whose last row must be 0 0 0 1 (and, for a 3×3 rotation,
+    its last column 0 0 0): anything else is a projective matrix the KITTI key cannot hold, refused, not cut."""
+    padding_ok = np.allclose(matrix[3], (0.0, 0.0, 0.0, 1.0), rtol=0.0, atol=1e-9)
+    if shape == (3, 3):
+        padding_ok = padding_ok and np.allclose(matrix[:3, 3], 0.0, rtol=0.0, atol=1e-9)
+    if not padding_ok:
+        what = "last row 0 0 0 1" if shape == (3, 4) else "last row 0 0 0 1 and last column 0 0 0"
+        raise InputError(f"{where}: 16 numbers, a 4×4 matrix, but not a homogeneous one ({what}); give "
+                         f"the {shape[0]}×{shape[1]} block, {shape[0] * shape[1]} numbers")
+    return matrix[: shape[0], : shape[1]].copy()
+
+
 def parse_calib(text: str, source: str = "<calib>") -> Calibration:
-    """Parse a KITTI object ``calib/*.txt`` (keys P2, R0_rect, Tr_velo_to_cam are required)."""
+    """Parse a KITTI object ``calib/*.txt`` (keys P2, R0_rect, Tr_velo_to_cam are required; others are skipped).
+
+    R0_rect and Tr_velo_to_cam may also be given as 4×4 homogeneous matrices (16 numbers, last row 0 0 0 1)."""
     values = _calib_values(text, source, CALIBRATION_SHAPES)
     return check_calibration(Calibration(P2=values["P2"], R0_rect=values["R0_rect"],
                                          Tr_velo_to_cam=values["Tr_velo_to_cam"]), source)

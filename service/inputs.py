@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.calib import Calibration
+from pipeline.calib import SMALL_IMAGE_HINT, Calibration
 from pipeline.errors import InputError
 from pipeline.kitti import (
     PNG_SIGNATURE,
@@ -119,7 +119,8 @@ def _check_image(data: bytes, max_image_pixels: int, crop_hw: tuple[int, int] | 
         raise InputError(f"image: {width}×{height} pixels is more than the limit of {max_image_pixels} pixels")
     if crop_hw is not None and (height < crop_hw[0] or width < crop_hw[1]):
         crop_h, crop_w = crop_hw
-        raise InputError(f"image: {width}×{height} pixels is smaller than the model's {crop_w}×{crop_h} crop")
+        raise InputError(f"image: {width}×{height} pixels is smaller than the model's {crop_w}×{crop_h} crop"
+                         f"{SMALL_IMAGE_HINT}")
     check_image_end(data, "image")  # as decode_image checks it, here before the queue
 
 

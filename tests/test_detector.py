@@ -141,14 +141,15 @@ def test_a_cancelled_frame_stops_in_onnx_runtime_and_leaves_the_thread_sound(tin
 
 
 def test_stage_thread_changes_nothing_but_the_timings(tiny_models, frame, tmp_path):
-    """With a stage thread the calibration's rays and the real points' half of the BEV are made beside the
-    depth net (``overlapped_ms``) and the boxes are those of the stages in turn, frame after frame, on the
-    shared grid and the split one; LiDAR-only models have nothing to overlap."""
+    """With a stage thread the calibration's rays, the real points' half of the BEV and the rig's checks are made
+    beside the depth net (``overlapped_ms``) and the boxes and warnings are those of the stages in turn, frame
+    after frame, on the shared grid and the split one; LiDAR-only models have nothing to overlap."""
     from export.exporter import ExportConfig, run
 
     run(ExportConfig(preset="tiny-split", out=tmp_path / "split", parity=False))
     lidar16 = emulate_beams(frame.points, 16)
-    scans = [lidar16, lidar16[::3], frame.points[::4]]
+    dark = np.column_stack([lidar16[:, :3], np.zeros(len(lidar16), np.float32)])  # a rig check's warning
+    scans = [lidar16, lidar16[::3], frame.points[::4], dark]
     for models in (tiny_models, tmp_path / "split"):
         in_turn, beside = Detector(models, stage_threads=1), Detector(models, stage_threads=2)
         assert (in_turn.stage_threads, beside.stage_threads) == (1, 2)
@@ -158,7 +159,9 @@ def test_stage_thread_changes_nothing_but_the_timings(tiny_models, frame, tmp_pa
             np.testing.assert_array_equal(a.boxes, b.boxes)
             np.testing.assert_array_equal(a.scores, b.scores)
             np.testing.assert_array_equal(in_turn._voxelizer()._out, beside._voxelizer()._out)
-            assert a.overlapped_ms == {} and set(b.overlapped_ms) == {"ray_table", "voxelize"}
+            assert a.overlapped_ms == {} and set(b.overlapped_ms) == {"ray_table", "voxelize", "rig_checks"}
+            assert a.warnings == b.warnings  # the rig's checks, beside the depth net or in turn
+            assert any("reflectance is on another scale" in w for w in b.warnings) == (points is dark)
             assert set(b.timings_ms) == STAGES
             assert b.timings_ms["total"] >= sum(v for k, v in b.timings_ms.items() if k != "total") * 0.99
     # One thread per worker (the service's default on two cores, the throughput workers): stages in turn.
