@@ -961,8 +961,10 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     return report
 
 
-def plot(report: dict, path: Path) -> None:
-    """Latency distribution per stage (box plots), end to end last."""
+def latency_figure(report: dict):
+    """The figure of :func:`plot` (not saved): a box plot per stage, read top to bottom in the printed
+    report's order, end to end last, each box's p50 written beside it; the title names the model, its
+    precision and input, the frames and the machine."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -975,11 +977,29 @@ def plot(report: dict, path: Path) -> None:
     data = list(samples["stages"].values()) + list(beside.values()) + [samples["end_to_end"]]
     fig, ax = plt.subplots(figsize=(8, 4 + 0.3 * len(beside)))
     ax.boxplot(data, orientation="horizontal", tick_labels=names, showfliers=True)
+    ax.invert_yaxis()  # the first stage on top, as the printed report lists them
     ax.set_xscale("log")
-    ax.set_xlabel("ms (log scale)")
-    ax.set_title(f"lowres3d {report['preset']} latency per stage, {report['frames']} frames, "
-                 f"{report['machine']['cores']} cores")
+    ax.set_xlabel("latency per frame (ms, log scale)")
+    right = max(float(np.max(d)) for d in data if len(d))
+    ax.set_xlim(right=right * 10)  # a decade of room for the p50s beside the slowest boxes
+    for row, values in enumerate(data, start=1):
+        if len(values):
+            ax.annotate(f"p50 {np.median(values):.3g} ms", (float(np.max(values)), row), xytext=(6, 0),
+                        textcoords="offset points", va="center", fontsize=7)
+    machine = report["machine"]
+    tta = ", mirror TTA" if report.get("mirror_tta") else ""
+    ax.set_title(f"lowres3d {report['preset']} ({report['precision']}{tta}), {report['input']}: latency per stage\n"
+                 f"{report['frames']} frames after {report['warmup']} warm-up, {cpu_label(machine)}, "
+                 f"{machine['cores']} cores", fontsize=10)
     fig.tight_layout()
+    return fig
+
+
+def plot(report: dict, path: Path) -> None:
+    """Latency distribution per stage (box plots), end to end last, as a picture file."""
+    import matplotlib.pyplot as plt
+
+    fig = latency_figure(report)
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -1105,7 +1125,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="keep detections from this score, in every Detector timed (default: the model's, 0.5 "
                         "for the shipped ones; the evaluation's 0.05 keeps 500 candidates for NMS: a slower decoding)")
     parser.add_argument("--json", type=Path, help="write the report as JSON")
-    parser.add_argument("--plot", type=Path, help="write the latency distribution per stage as PNG")
+    parser.add_argument("--plot", type=Path, help="write the latency distribution per stage (box plots, log-scaled ms) as a picture: .png, .jpg, .pdf or .svg by the name (needs matplotlib)")
     args = parser.parse_args(argv)
     try:
         # Checked first: a report that cannot be written is lost after minutes of timing.
@@ -1143,6 +1163,7 @@ def main(argv: list[str] | None = None) -> int:
             write_text_file(args.json, json.dumps({k: v for k, v in report.items() if k != "_samples"}, indent=2))
         if args.plot:
             plot(report, args.plot)
+            print(f"plot: {args.plot}")
     except OSError as exc:
         print(f"error: cannot write {exc.filename or ''} ({exc.strerror or exc})", file=sys.stderr)
         return 2

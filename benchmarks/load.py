@@ -620,9 +620,25 @@ def summarise(samples: list[Sample], wall_s: float, rss: dict[str, float], gauge
     )
 
 
-def plot_load(samples: list[Sample], result: LoadResult, path: Path, title: str) -> None:
-    """Left: latency histogram per status, log-scaled x. Right: each answered frame's latency and the
-    server's memory over the run (PNG)."""
+def status_colour(key: str) -> str:
+    """The histogram's colour of a status (``bad …``: a broken request's), the same in every run whatever
+    other statuses it has: the 200s blue as the latency line beside them, refusals orange, broken requests
+    rightly refused green, server errors red."""
+    if key.startswith("bad "):
+        return "tab:olive" if key == "bad 503" else "tab:green"
+    if key == "200":
+        return "tab:blue"
+    if key == "503":
+        return "tab:orange"
+    if key == "408":
+        return "tab:purple"
+    if key.startswith("4"):
+        return "tab:brown"
+    return "tab:red"  # another 5xx, or a broken connection ("error …")
+
+
+def load_figure(samples: list[Sample], result: LoadResult, title: str):
+    """The figure of :func:`plot_load` (not saved)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -633,19 +649,21 @@ def plot_load(samples: list[Sample], result: LoadResult, path: Path, title: str)
     all_ms = [s.latency_ms for s in samples]
     bins = np.geomspace(max(min(all_ms), 0.1), max(all_ms) * 1.05, 40)
     figure, (histogram, timeline) = plt.subplots(1, 2, figsize=(13, 4.5), dpi=100)
-    histogram.hist(list(groups.values()), bins=bins, stacked=True,
+    histogram.hist(list(groups.values()), bins=bins, stacked=True, color=[status_colour(k) for k in groups],
                    label=[f"{k} ({len(v)})" for k, v in groups.items()])
     histogram.set_xscale("log")
     histogram.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # minor labels overlap on a log axis
     histogram.set_xlabel("latency (ms, client side, from the due time)" if result.latency_from == "schedule"
                          else "latency (ms, client side)")
     histogram.set_ylabel("requests")
-    histogram.legend()
+    histogram.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # counts, not 17.5 requests
+    histogram.legend(title="status (requests)", fontsize=8, title_fontsize=8)
 
     ok = sorted((s.start_s, s.latency_ms) for s in samples if s.status == "200" and not s.broken)
     if ok:
         start, ms = np.asarray(ok).T
-        timeline.plot(start, ms, ".", markersize=2, alpha=0.3, color="tab:blue", label="a 200's latency")
+        # Faint enough that thousands do not hide the p50 line, large enough that a short run's few are seen.
+        timeline.plot(start, ms, ".", markersize=3, alpha=0.5, color="tab:blue", label="a 200's latency")
         windows = result.windows
         timeline.plot([(w["start_s"] + w["end_s"]) / 2 for w in windows], [w["p50_ms"] for w in windows],
                       "-o", color="tab:blue", label="p50 per tenth of the run")
@@ -662,6 +680,15 @@ def plot_load(samples: list[Sample], result: LoadResult, path: Path, title: str)
         memory.set_ylim(low - max(10.0, 0.1 * low), high + max(10.0, 0.1 * high))
     figure.suptitle(title)
     figure.tight_layout()
+    return figure
+
+
+def plot_load(samples: list[Sample], result: LoadResult, path: Path, title: str) -> None:
+    """Left: latency histogram per status, log-scaled x. Right: each answered frame's latency and the
+    server's memory over the run (a picture file)."""
+    import matplotlib.pyplot as plt
+
+    figure = load_figure(samples, result, title)
     figure.savefig(path)
     plt.close(figure)
 
@@ -868,7 +895,8 @@ def run(
         load = (f"{rate_hz:g} Hz open loop, at most {clients} in flight" if rate_hz is not None
                 else f"{clients} clients")
         plot_load(samples, result, plot, f"{load}, {server['workers']} worker(s), "
-                                         f"queue {server['queue_size']}, {server['preset']} models")
+                                         f"queue {server['queue_size']}, {server['preset']} models: "
+                                         f"{len(samples)} requests in {wall:.0f} s")
     return result
 
 

@@ -112,6 +112,19 @@ def tables(sim: list[FrameFiles], real: list[FrameFiles]) -> str:
     return "\n".join(lines)
 
 
+PROJECTION_MAX_DEPTH_M = 80.0  # the depth pictures' range (pipeline.render.render_depth)
+
+
+def depth_colour_map():
+    """pipeline.render's depth colours (near warm, far blue, 0–80 m) as a matplotlib colour map, so the
+    projected LiDAR reads as the depth maps of the other tools."""
+    from matplotlib.colors import ListedColormap
+
+    from pipeline.render import depth_colours
+
+    return ListedColormap(depth_colours(PROJECTION_MAX_DEPTH_M)[:, ::-1] / 255.0, name="lowres3d_depth")
+
+
 def figure(rows: list[tuple[str, FrameFiles]], path: Path) -> None:
     """Image, LiDAR projection on the image (colour = depth), and BEV with car boxes, one row per frame."""
     import matplotlib
@@ -119,8 +132,22 @@ def figure(rows: list[tuple[str, FrameFiles]], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(rows), 3, figsize=(22, 3.6 * len(rows)),
-                             gridspec_kw={"width_ratios": [1242 / 375, 1242 / 375, 0.9]})
+    fig = figure_of(rows)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+
+
+def figure_of(rows: list[tuple[str, FrameFiles]]):
+    """The figure of :func:`figure` (not saved): the projection coloured by depth and the BEV by height, each
+    with its colour bar; the BEV's axes in metres, forward up."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(rows), 3, figsize=(24, 4.8 * len(rows)), layout="constrained",
+                             gridspec_kw={"width_ratios": [1242 / 375, 1242 / 375, 1.15]})
     for (title, f), ax in zip(rows, np.atleast_2d(axes)):
         h, w = f.image.shape[:2]
         ax[0].imshow(f.image)
@@ -128,25 +155,27 @@ def figure(rows: list[tuple[str, FrameFiles]], path: Path) -> None:
         uv, depth = f.calib.velo_to_image(f.points[:, :3])
         ok = (depth > 1) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
         ax[1].imshow((f.image * 0.35).astype(np.uint8))
-        ax[1].scatter(uv[ok, 0], uv[ok, 1], c=np.minimum(depth[ok], 60), s=0.3, cmap="turbo")
+        projected = ax[1].scatter(uv[ok, 0], uv[ok, 1], c=depth[ok], s=0.3, cmap=depth_colour_map(), vmin=0,
+                                  vmax=PROJECTION_MAX_DEPTH_M)
+        fig.colorbar(projected, ax=ax[1], orientation="horizontal", shrink=0.5, aspect=40, pad=0.02,
+                     label="depth (m), as the depth maps of the other tools")
         ax[1].set_title(f"{title}: 64-line LiDAR projected")
         keep = (f.points[:, 0] > -5) & (f.points[:, 0] < 70) & (np.abs(f.points[:, 1]) < 40)
-        ax[2].scatter(-f.points[keep, 1], f.points[keep, 0], s=0.1, c=f.points[keep, 2], cmap="viridis",
-                      vmin=-2, vmax=1)
+        heights = ax[2].scatter(-f.points[keep, 1], f.points[keep, 0], s=0.1, c=f.points[keep, 2], cmap="viridis",
+                                vmin=-2, vmax=1)
+        fig.colorbar(heights, ax=ax[2], shrink=0.8, pad=0.02, label="height z (m)")
         cars = [o for o in f.objects if o.type in ("Car", "Van")]
         for corners in box_corners_3d(labels_to_boxes(cars, f.calib))[:, :4, :2] if cars else []:
             loop = np.vstack([corners, corners[:1]])
-            ax[2].plot(-loop[:, 1], loop[:, 0], "r-", lw=0.8)
+            ax[2].plot(-loop[:, 1], loop[:, 0], "-", color="tab:red", lw=1.0)
         ax[2].set_xlim(-40, 40)
         ax[2].set_ylim(-5, 70)
         ax[2].set_aspect("equal")
-        ax[2].set_title(f"{title}: BEV, cars red")
+        ax[2].set(xlabel="right of the sensor (m)", ylabel="ahead of the sensor (m)")
+        ax[2].set_title(f"{title}: BEV, labelled cars red")
         for a in ax[:2]:
             a.axis("off")
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
+    return fig
 
 
 def check_folder(folder: Path, flag: str) -> None:

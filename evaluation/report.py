@@ -76,7 +76,45 @@ def _save(fig, path: str | Path) -> Path:
     return path
 
 
-def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
+# One colour per (metric, overlap threshold) in every plot, so BEV @0.7 is the same line in the PR curves and
+# in AP by distance: a hue per metric, the strict threshold dark and the loose one light.
+SERIES_COLOURS = {("bev", 0.7): "tab:blue", ("bev", 0.5): "tab:cyan", ("3d", 0.7): "tab:red",
+                  ("3d", 0.5): "tab:orange", ("bbox", 0.7): "tab:green", ("bbox", 0.5): "tab:olive"}
+METRIC_ORDER = ("bev", "3d", "bbox")  # as the table: BEV first
+
+
+def series_colour(metric: str, iou: float) -> str:
+    """The line colour of (metric, overlap threshold) in every plot; grey for a threshold outside the
+    protocol's two."""
+    return SERIES_COLOURS.get((metric, round(float(iou), 2)), "tab:gray")
+
+
+def _series(result: KittiEvalResult) -> list[tuple[str, float]]:
+    """(metric, threshold) in the table's order: BEV, 3D, 2D; the looser threshold first."""
+    return [(m, iou) for m in sorted(result.metrics, key=METRIC_ORDER.index) for iou in sorted(result.iou_thresholds)]
+
+
+def pr_figure(result: KittiEvalResult, difficulty: str, source: str | None = None):
+    """The figure of one difficulty's precision-recall curves (not saved): a line per (metric, threshold) in
+    its colour of :data:`SERIES_COLOURS`, the title naming the class, difficulty, frames and ``source`` (the
+    model or result files, when the caller knows it)."""
+    plt = _pyplot()
+    recall = np.arange(N_SAMPLE_PTS) / (N_SAMPLE_PTS - 1)
+    fig, ax = plt.subplots(figsize=(6.6, 3.6))
+    for metric, iou in _series(result):
+        curve = result.curve(metric, iou, difficulty)
+        ax.plot(recall, curve.precision, color=series_colour(metric, iou),
+                label=f"{METRIC_TITLES[metric]} @{iou} (AP$_{{40}}$ {curve.ap_r40:.1f})")
+    title = f"{result.class_name} precision-recall, {difficulty}, {result.n_frames} frames"
+    ax.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="recall", ylabel="precision (interpolated)",
+           title=title + (f"\n{source}" if source else ""))
+    ax.grid(alpha=0.3)
+    if result.metrics:  # beside the axes: inside, it covers the curves of a run with low recall
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="metric @IoU", title_fontsize=7)
+    return fig
+
+
+def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path, source: str | None = None) -> list[Path]:
     """One PNG per difficulty: interpolated precision against the 41 sampled recall points.
 
     Every (metric, overlap threshold) is a line, like the devkit's plots and the
@@ -85,22 +123,9 @@ def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path) -> list[Path]:
     plt = _pyplot()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    recall = np.arange(N_SAMPLE_PTS) / (N_SAMPLE_PTS - 1)
     paths = []
     for difficulty in DIFFICULTIES:
-        fig, ax = plt.subplots(figsize=(6.6, 3.6))
-        for metric in result.metrics:
-            for iou in result.iou_thresholds:
-                curve = result.curve(metric, iou, difficulty)
-                ax.plot(
-                    recall, curve.precision,
-                    label=f"{METRIC_TITLES[metric]} @{iou} (AP$_{{40}}$ {curve.ap_r40:.1f})",
-                )
-        ax.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="Recall", ylabel="Precision",
-               title=f"{result.class_name}, {difficulty}")
-        ax.grid(alpha=0.3)
-        if result.metrics:  # beside the axes: inside, it covers the curves of a run with low recall
-            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+        fig = pr_figure(result, difficulty, source)
         fig.tight_layout()
         path = out_dir / f"pr_{result.class_name.lower()}_{difficulty}.png"
         fig.savefig(path, dpi=120, bbox_inches="tight")
@@ -152,30 +177,38 @@ def distance_json(bands: dict[tuple[float, float], KittiEvalResult]) -> list[dic
     return out
 
 
-def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: str | Path,
-                     other: dict[tuple[float, float], KittiEvalResult] | None = None,
-                     names: tuple[str, str] = ("this", "other")) -> Path:
-    """One PNG: moderate AP (R40) against distance band, a line per (metric, overlap threshold);
-    ``other`` (another model on the same bands) in dashed lines of the same colours."""
+def by_distance_figure(bands: dict[tuple[float, float], KittiEvalResult],
+                       other: dict[tuple[float, float], KittiEvalResult] | None = None,
+                       names: tuple[str, str] = ("this", "other"), source: str | None = None):
+    """The figure of :func:`plot_by_distance` (not saved)."""
     plt = _pyplot()
     first = next(iter(bands.values()))
     cars = [r.curve(first.metrics[0], first.iou_thresholds[0], "moderate").n_ground_truth for r in bands.values()]
     labels = [f"{low:g}–{high:g}\n{n} cars" for (low, high), n in zip(bands, cars)]
     fig, ax = plt.subplots(figsize=(7.6 if other else 6.6, 3.6))
-    for metric in [m for m in ("bev", "3d") if m in first.metrics]:
-        for iou in sorted(first.iou_thresholds):
-            suffix = f" ({names[0]})" if other else ""
-            # A band without cars has no AP: NaN leaves a gap in the line, not a point at 0.
-            (line,) = ax.plot(labels, [band_ap(r, metric, iou) for r in bands.values()], marker="o",
-                              label=f"{METRIC_TITLES[metric]} @{iou}{suffix}")
-            if other and metric in next(iter(other.values())).metrics:
-                ax.plot(labels, [band_ap(r, metric, iou) for r in other.values()], marker="s", linestyle="--",
-                        color=line.get_color(), label=f"{METRIC_TITLES[metric]} @{iou} ({names[1]})")
+    for metric, iou in [(m, t) for m, t in _series(first) if m in ("bev", "3d")]:
+        suffix = f" ({names[0]})" if other else ""
+        # A band without cars has no AP: NaN leaves a gap in the line, not a point at 0.
+        ax.plot(labels, [band_ap(r, metric, iou) for r in bands.values()], marker="o",
+                color=series_colour(metric, iou), label=f"{METRIC_TITLES[metric]} @{iou}{suffix}")
+        if other and metric in next(iter(other.values())).metrics:
+            ax.plot(labels, [band_ap(r, metric, iou) for r in other.values()], marker="s", linestyle="--",
+                    color=series_colour(metric, iou), label=f"{METRIC_TITLES[metric]} @{iou} ({names[1]})")
+    title = f"{first.class_name} AP by distance, {first.n_frames} frames"
     ax.set(ylim=(0, 102), xlabel="distance band (m, camera depth of the box centre)", ylabel="AP$_{40}$ (%), moderate",
-           title=f"{first.class_name} AP by distance")
+           title=title + (f"\n{source}" if source else ""))
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0))  # beside the axes, not over the lines
-    return _save(fig, path)
+    # Beside the axes, not over the lines.
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="metric @IoU", title_fontsize=7)
+    return fig
+
+
+def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: str | Path,
+                     other: dict[tuple[float, float], KittiEvalResult] | None = None,
+                     names: tuple[str, str] = ("this", "other"), source: str | None = None) -> Path:
+    """One PNG: moderate AP (R40) against distance band, a line per (metric, overlap threshold) in the PR
+    curves' colours; ``other`` (another model on the same bands) in dashed lines of the same colours."""
+    return _save(by_distance_figure(bands, other, names, source), path)
 
 
 def plot_car_depth(car_errors: list[tuple[float, float]], car_in_box: list[tuple[float, float]],

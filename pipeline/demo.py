@@ -30,10 +30,20 @@ from pipeline.frame import load_frame
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import get_preset
-from pipeline.render import render_bev, render_depth, write_png
+from pipeline.render import depth_colours, draw_colour_scale, draw_label, render_bev, render_depth, write_png
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_DIR = ROOT / "tests" / "data" / "kitti" / "training"
+
+
+def sparse_depth_picture(rgb: np.ndarray, sparse_depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
+    """The depth net's view of the camera above the sparse depth it gets from the 16-line scan (each return
+    grown to 3 × 3 pixels to be seen), each labelled, the depth with its colour bar."""
+    view = cv2.cvtColor(rgb[0].transpose(1, 2, 0).astype(np.uint8), cv2.COLOR_RGB2BGR)
+    sparse = render_depth(cv2.dilate(sparse_depth[0, 0], np.ones((3, 3), np.uint8)), max_depth)
+    draw_colour_scale(sparse, depth_colours(max_depth), 0.0, max_depth, "m", length=120)
+    return np.vstack([draw_label(view, "camera, the depth net's view"),
+                      draw_label(sparse, "sparse depth, 16 lines (black: none)")])
 
 
 def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
@@ -49,18 +59,20 @@ def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
     elapsed = (time.perf_counter() - tic) * 1e3
     cars = labels_to_boxes([o for o in (frame.labels or []) if o.type == "Car"], frame.calib)
     out.mkdir(parents=True, exist_ok=True)
-    write_png(out / f"{frame_id}_bev_64.png", render_bev(frame.points, preset.bev, gt_boxes=cars))
-    write_png(out / f"{frame_id}_bev_16.png", render_bev(lidar16, preset.bev, gt_boxes=cars))
-    sparse = render_depth(cv2.dilate(inputs.sparse_depth[0, 0], np.ones((3, 3), np.uint8)))
-    view = cv2.cvtColor(inputs.rgb[0].transpose(1, 2, 0).astype(np.uint8), cv2.COLOR_RGB2BGR)
-    write_png(out / f"{frame_id}_sparse_depth_16.png", np.vstack([view, sparse]))
+    pictures = []
+    for lines, points in ((64, frame.points), (16, lidar16)):
+        title = f"KITTI {frame_id}: {'the 64-line scan' if lines == 64 else 'the scan thinned to 16 lines'}"
+        pictures.append(out / f"{frame_id}_bev_{lines}.png")
+        write_png(pictures[-1], render_bev(points, preset.bev, gt_boxes=cars, title=title, legend=True))
+    pictures.append(out / f"{frame_id}_sparse_depth_16.png")
+    write_png(pictures[-1], sparse_depth_picture(inputs.rgb, inputs.sparse_depth))
     return {
         "frame": frame_id, "mode": "core (no model directory)", "points_64": int(frame.points.shape[0]),
         "rings_found": rings.n_rings, "points_16": int(lidar16.shape[0]),
         "kept_fraction": round(lidar16.shape[0] / frame.points.shape[0], 4),
         "sparse_depth_pixels": int(np.count_nonzero(inputs.sparse_depth)),
         "occupied_voxels_64": int(np.count_nonzero(bev64[:-1])), "occupied_voxels_16": int(np.count_nonzero(bev16[:-1])),
-        "labelled_cars": len(cars), "core_ms": round(elapsed, 1), "pictures": str(out),
+        "labelled_cars": len(cars), "core_ms": round(elapsed, 1), "pictures": [str(p) for p in pictures],
     }
 
 
@@ -85,7 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__.split("\n\n")[0])
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
     parser.add_argument("--frame", default="000006", help="bundled KITTI frame: 000000, 000001, 000003, 000004, 000006")
-    parser.add_argument("--out", type=Path, default=Path("outputs/demo"), help="output folder (default outputs/demo)")
+    parser.add_argument("--out", type=Path, default=Path("outputs/demo"),
+                        help="output folder (default outputs/demo): the KITTI result file in OUT/data, the PNG pictures "
+                        "in OUT/bev and OUT/camera (without a model directory: OUT/<frame>_*.png of each step)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if not SAMPLE_DIR.is_dir():  # `pip install .` (not -e) leaves tests/data and weights/ behind

@@ -264,9 +264,12 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
             labels = _labels_for_picture(frames_of.labels, fid) if frames_of.labels is not None else None
             if labels:
                 gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
-            bev = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt)
+            title = picture_title(frame.frame_id, detector.model_dir, emulate_beams)
+            bev = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt,
+                             title=title, legend=True)
             seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)  # the result file's boxes
-            camera = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt)
+            camera = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
+                                   title=title, legend=True)
             for kind, picture in (("bev", bev), ("camera", camera)):
                 (out / kind).mkdir(parents=True, exist_ok=True)
                 path = out / kind / f"{frame.frame_id}.png"
@@ -274,11 +277,17 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
                 images.append(path)
             if video is not None:  # the camera view drawn again at the video's size, so its scores stay readable
                 small = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
-                                      scale=camera_scale_in_stack(frame.image_hw, bev))
+                                      scale=camera_scale_in_stack(frame.image_hw, bev), legend=True)
                 video.add(_captioned(stack_views(small, bev), frame.frame_id, len(objects)))
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
     return DetectResult(list(ids), results, images, means, count, skipped)
+
+
+def picture_title(frame_id: str, models: Path, emulate_beams: int | None) -> str:
+    """What a picture shows, for its key: the frame, the model directory and whether its scan was thinned."""
+    thinned = f", scan thinned to {emulate_beams} lines" if emulate_beams else ""
+    return f"frame {frame_id}, model {Path(models).name}{thinned}"
 
 
 def _captioned(picture: np.ndarray, frame_id: str, cars: int) -> np.ndarray:

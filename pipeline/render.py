@@ -28,6 +28,59 @@ def _to_pixels(xy: np.ndarray, grid: BevGrid, scale: float) -> np.ndarray:
     return np.stack([col, row], axis=-1)
 
 
+# Text of the keys and labels drawn on the pictures: OpenCV's plain font at a size that stays readable.
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+KEY_SCALE = 0.45
+RING_LABEL_BGR = (170, 170, 170)  # bright enough on black to read, dimmer than the points and boxes
+RING_BGR = (70, 70, 70)
+RING_STEP_M = 10
+
+
+def fit_text(text: str, width: int, scale: float = KEY_SCALE) -> str:
+    """``text`` cut (with "...") to fit ``width`` pixels at ``scale``: a long model path must not run off the
+    picture."""
+    if cv2.getTextSize(text, FONT, scale, 1)[0][0] <= width:
+        return text
+    while len(text) > 1 and cv2.getTextSize(text + "...", FONT, scale, 1)[0][0] > width:
+        text = text[:-1]
+    return text + "..."
+
+
+def draw_key(picture: np.ndarray, rows: list[tuple[str, tuple[int, int, int] | None]],
+             corner: str = "top-left") -> tuple[int, int, int, int]:
+    """A key in a corner of the picture (in place): one row per (text, colour), a short line of the colour
+    before the text (no line: a title row), white text on a black box so it reads on any background.
+    Returns the box as (left, top, right, bottom)."""
+    line_h, swatch, pad = 18, 22, 6
+    room = picture.shape[1] - 2 * pad - swatch - 6
+    rows = [(fit_text(text, room), colour) for text, colour in rows]
+    width = max(cv2.getTextSize(text, FONT, KEY_SCALE, 1)[0][0] + (swatch + 6 if colour else 0)
+                for text, colour in rows) + 2 * pad
+    height = line_h * len(rows) + pad
+    left = 0 if corner == "top-left" else max(picture.shape[1] - width, 0)
+    cv2.rectangle(picture, (left, 0), (left + width, height), (0, 0, 0), thickness=-1)
+    for i, (text, colour) in enumerate(rows):
+        baseline = pad + line_h * i + 11
+        x = left + pad
+        if colour is not None:
+            cv2.line(picture, (x, baseline - 4), (x + swatch, baseline - 4), colour, 2, cv2.LINE_AA)
+            x += swatch + 6
+        cv2.putText(picture, text, (x, baseline), FONT, KEY_SCALE, (255, 255, 255), 1, cv2.LINE_AA)
+    return left, 0, left + width, height
+
+
+def _ring_label_at(radius_px: int, origin: tuple[int, int], size: tuple[int, int], text: str) -> tuple[int, int]:
+    """Where a range ring's label goes: just right of where the ring leaves the picture (its bottom edge, or
+    its right edge for a ring wider than the picture), away from the lane ahead where the cars are."""
+    width, height = size
+    (text_w, text_h), _ = cv2.getTextSize(text, FONT, 0.4, 1)
+    if origin[0] + radius_px + text_w + 4 < width:
+        return origin[0] + radius_px + 3, min(origin[1], height) - 4
+    across = width - 1 - origin[0]
+    row = origin[1] - int(np.sqrt(max(radius_px**2 - across**2, 0)))
+    return width - text_w - 3, row + text_h + 5
+
+
 def render_bev(
     points: np.ndarray,
     grid: BevGrid,
@@ -35,9 +88,15 @@ def render_bev(
     scores: np.ndarray | None = None,
     gt_boxes: np.ndarray | None = None,
     metres_per_pixel: float = 0.1,
+    title: str | None = None,
+    legend: bool = False,
 ) -> np.ndarray:
-    """BGR uint8 picture of the BEV grid: points (brighter where denser), ground truth in red,
-    predictions in green with their scores."""
+    """BGR uint8 picture of the BEV grid, forward (x) up, left (y) left, the sensor a white triangle at the
+    bottom centre: points (brighter where denser), range rings every 10 m labelled where they leave the
+    picture, ground truth in red, predictions in green with their scores.
+
+    legend: a key in the top-left corner (``title`` first, then what each colour is and which way is ahead)
+    for pictures people look at; off for a picture compared pixel by pixel."""
     width = round((grid.y_max - grid.y_min) / metres_per_pixel)
     height = round((grid.x_max - grid.x_min) / metres_per_pixel)
     density = np.zeros(height * width, np.float32)
@@ -46,12 +105,19 @@ def render_bev(
     density += np.bincount(pix[ok, 1] * width + pix[ok, 0], minlength=height * width)
     grey = (np.clip(np.log1p(density) / np.log(20.0), 0, 1) * 255).astype(np.uint8).reshape(height, width)
     canvas = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
-    # Range rings every 10 m help reading distances.
+    # Range rings every 10 m help reading distances; their labels sit off the lane ahead, where boxes are.
     origin = tuple(int(v) for v in _to_pixels(np.array([0.0, 0.0]), grid, metres_per_pixel))
-    for r in range(10, int(grid.x_max) + 1, 10):
-        cv2.circle(canvas, origin, int(r / metres_per_pixel), (70, 70, 70), 1, cv2.LINE_AA)
-        cv2.putText(canvas, f"{r} m", (origin[0] + 4, origin[1] - int(r / metres_per_pixel) - 4),
-                    cv2.FONT_HERSHEY_SIMPLEX, 0.4, (110, 110, 110), 1, cv2.LINE_AA)
+    farthest = float(np.hypot(max(grid.x_max, -grid.x_min), max(grid.y_max, -grid.y_min)))
+    for r in range(RING_STEP_M, int(farthest) + 1, RING_STEP_M):
+        radius = int(r / metres_per_pixel)
+        cv2.circle(canvas, origin, radius, RING_BGR, 1, cv2.LINE_AA)
+        at = _ring_label_at(radius, origin, (width, height), f"{r} m")
+        if 0 <= at[1] - 10 and at[1] < height:
+            cv2.putText(canvas, f"{r} m", at, FONT, 0.4, RING_LABEL_BGR, 1, cv2.LINE_AA)
+    # The sensor: a triangle pointing ahead, so the picture says which way is forward without the key.
+    tip = (origin[0], min(origin[1], height) - 14)
+    cv2.fillPoly(canvas, [np.array([tip, (tip[0] - 6, tip[1] + 12), (tip[0] + 6, tip[1] + 12)], np.int32)],
+                 (255, 255, 255), cv2.LINE_AA)
     for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
         if drawn is None or len(drawn) == 0:
             continue
@@ -68,8 +134,21 @@ def render_bev(
             cv2.line(canvas, tuple(centre[i]), tuple(front[i]), colour, 2, cv2.LINE_AA)
             if with_score and scores is not None:
                 cv2.putText(canvas, f"{scores[i]:.2f}", tuple(corners[i, 0] + [4, -4]),
-                            cv2.FONT_HERSHEY_SIMPLEX, 0.45, colour, 1, cv2.LINE_AA)
+                            FONT, 0.45, colour, 1, cv2.LINE_AA)
+    if legend:
+        draw_key(canvas, bev_key_rows(title, boxes is not None, gt_boxes is not None))
     return canvas
+
+
+def bev_key_rows(title: str | None, predictions: bool, ground_truth: bool) -> list[tuple[str, tuple[int, int, int] | None]]:
+    """The rows of a BEV picture's key: its title, what the colours drawn are, and how to read the view."""
+    rows: list[tuple[str, tuple[int, int, int] | None]] = [(title, None)] if title else []
+    if predictions:
+        rows.append(("detection (score)", PREDICTION_BGR))
+    if ground_truth:
+        rows.append(("ground truth", GROUND_TRUTH_BGR))
+    rows.append((f"bird's-eye view: forward up, rings every {RING_STEP_M} m", None))
+    return rows
 
 
 def render_camera(
@@ -79,6 +158,8 @@ def render_camera(
     scores: np.ndarray | None = None,
     gt_boxes: np.ndarray | None = None,
     scale: float = 1.0,
+    title: str | None = None,
+    legend: bool = False,
 ) -> np.ndarray:
     """BGR uint8 picture of the camera image (RGB in) with the 3D boxes drawn as wireframes, the front face
     crossed: ground truth in red, predictions in green with their scores (kept inside the picture). An edge
@@ -87,7 +168,8 @@ def render_camera(
     out (the BEV picture shows every box).
 
     scale: the image is resized by it first and the boxes drawn on the result, so lines and scores keep
-    their size in pixels (a video's frame: :func:`camera_scale_in_stack`)."""
+    their size in pixels (a video's frame: :func:`camera_scale_in_stack`). legend: a key in the top-right
+    corner (``title`` first, then what each colour is), clear of a video's caption at the top left."""
     if scale != 1.0:
         size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
@@ -119,6 +201,11 @@ def render_camera(
                 # On a dark box: thin green text alone is lost on foliage and on a green car.
                 cv2.rectangle(canvas, (at[0] - 2, at[1] - text_h - 3), (at[0] + text_w + 2, at[1] + 3), (0, 0, 0), -1)
                 cv2.putText(canvas, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
+    if legend:
+        rows: list[tuple[str, tuple[int, int, int] | None]] = [(title, None)] if title else []
+        rows += [("detection (score)", PREDICTION_BGR)] if boxes is not None else []
+        rows += [("ground truth", GROUND_TRUTH_BGR)] if gt_boxes is not None else []
+        draw_key(canvas, rows, corner="top-right")
     return canvas
 
 
@@ -158,21 +245,61 @@ def render_depth(depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
     return colour
 
 
+def draw_colour_scale(picture: np.ndarray, colours: np.ndarray, low: float, high: float, unit: str,
+                      length: int = 200) -> tuple[int, int, int, int]:
+    """A colour bar in the picture's top-right corner (in place): ``colours`` (N × 3 BGR, ``low`` to ``high``
+    from left to right) with its two ends labelled, on a black box. Returns the bar's own pixels as (left,
+    top, right, bottom), so a test can read its colours back."""
+    pad, bar_h = 6, 10
+    low_text, high_text = f"{low:g}", f"{high:g} {unit}"
+    (low_w, text_h), _ = cv2.getTextSize(low_text, FONT, KEY_SCALE, 1)
+    high_w = cv2.getTextSize(high_text, FONT, KEY_SCALE, 1)[0][0]
+    length = max(min(length, picture.shape[1] - low_w - high_w - 6 * pad), 8)
+    box_w = low_w + length + high_w + 4 * pad
+    left = max(picture.shape[1] - box_w, 0)
+    cv2.rectangle(picture, (left, 0), (left + box_w, bar_h + 2 * pad), (0, 0, 0), thickness=-1)
+    bar_left, bar_top = left + low_w + 2 * pad, pad
+    index = np.linspace(0, len(colours) - 1, length).round().astype(int)
+    picture[bar_top:bar_top + bar_h, bar_left:bar_left + length] = colours[index][None]
+    baseline = bar_top + (bar_h + text_h) // 2
+    cv2.putText(picture, low_text, (left + pad, baseline), FONT, KEY_SCALE, (255, 255, 255), 1, cv2.LINE_AA)
+    cv2.putText(picture, high_text, (bar_left + length + pad, baseline), FONT, KEY_SCALE, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    return bar_left, bar_top, bar_left + length, bar_top + bar_h
+
+
+def depth_colours(max_depth: float = 80.0, n: int = 256) -> np.ndarray:
+    """(n, 3) BGR: :func:`render_depth`'s colours from 0 m to ``max_depth``, for its colour bar."""
+    return render_depth(np.linspace(1e-3, max_depth, n)[None], max_depth)[0]
+
+
+def error_colours(n: int = 256) -> np.ndarray:
+    """(n, 3) BGR: the error map's colours from no error to the most it shows."""
+    return cv2.applyColorMap(np.linspace(0, 255, n).astype(np.uint8)[None], cv2.COLORMAP_INFERNO)[0]
+
+
 def render_depth_panel(image: np.ndarray, prediction: np.ndarray, ground_truth: np.ndarray,
                        max_depth: float = 80.0, max_error: float = 5.0) -> np.ndarray:
     """BGR uint8 picture of one depth-completion frame, stacked top to bottom: the camera crop (RGB),
     the predicted depth, the ground truth (black: none) and the absolute error where there is ground
-    truth (0 m dark to ``max_error`` bright), all at the ground truth's resolution, each labelled."""
+    truth (0 m dark to ``max_error`` bright), all at the ground truth's resolution, each labelled, each map
+    with its colour bar in the top-right corner."""
     height, width = ground_truth.shape
     camera = cv2.cvtColor(cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2BGR)
     known = ground_truth > 0
     error = np.where(known, np.abs(prediction - ground_truth), 0.0)
     error_map = cv2.applyColorMap((255 * np.clip(error / max_error, 0, 1)).astype(np.uint8), cv2.COLORMAP_INFERNO)
     error_map[~known] = 0
-    rows = [(camera, "camera"), (render_depth(prediction, max_depth), f"predicted depth (0-{max_depth:.0f} m)"),
-            (render_depth(ground_truth, max_depth), f"ground truth (0-{max_depth:.0f} m, black: none)"),
-            (error_map, f"absolute error where ground truth exists (0-{max_error:.0f} m)")]
-    return np.vstack([draw_label(row, label) for row, label in rows])
+    depth_scale = (depth_colours(max_depth), 0.0, max_depth, "m")
+    rows = [(camera, "camera", None),
+            (render_depth(prediction, max_depth), f"predicted depth (0-{max_depth:.0f} m)", depth_scale),
+            (render_depth(ground_truth, max_depth), f"ground truth (0-{max_depth:.0f} m, black: none)", depth_scale),
+            (error_map, f"absolute error where ground truth exists (0-{max_error:.0f} m)",
+             (error_colours(), 0.0, max_error, "m")),]
+    for row, _, scale in rows:
+        if scale is not None:
+            draw_colour_scale(row, *scale)
+    return np.vstack([draw_label(row, label) for row, label, _ in rows])
 
 
 def write_png(path: str | Path, picture: np.ndarray) -> None:

@@ -136,7 +136,8 @@ def _detect_job(
             tic = time.perf_counter()
             if picture is Picture.bev:
                 assert detections.points is not None  # keep_points=True: the points PIXOR saw
-                bgr = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores)
+                bgr = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores,
+                                 legend=True)  # what the colours are and which way is ahead
             else:  # the boxes of format=kitti: those whose centre the camera sees
                 assert frame.image is not None and frame.calib is not None and frame.image_hw is not None  # checked
                 seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)
