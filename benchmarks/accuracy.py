@@ -106,6 +106,7 @@ class LabelEvalConfig:
     compare_pred_labels: Path | None = None  # another model's results on the same frames: AP differences
     gap_to_pred_labels: Path | None = None  # a stronger model's: the share of the gap up to it that pred_labels closes
     detector: dict[str, Any] | None = None  # what made pred_labels, when this run detected (JSON "run")
+    source: str | None = None  # what the plots are of, in their titles (default: the two label directories)
 
 
 @dataclass(frozen=True)
@@ -177,11 +178,12 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
     plot_paths: tuple[Path, ...] = ()
     if config.plots_dir:
         with _writing(config.plots_dir, "--plots"):
-            plot_paths = tuple(plot_pr_curves(result, config.plots_dir))
+            source = config.source or f"{config.pred_labels} against {config.gt_labels}"
+            plot_paths = tuple(plot_pr_curves(result, config.plots_dir, source))
             if by_distance:
                 names = (_short_name(config.pred_labels), _short_name(config.compare_pred_labels))
                 plot_paths += (plot_by_distance(by_distance, config.plots_dir / "ap_by_distance.png",
-                                                other_by_distance, names),)
+                                                other_by_distance, names, source),)
     table = format_table(result)
     if by_distance:
         table += "\n" + format_distance_table(by_distance)
@@ -378,7 +380,9 @@ def build_parser() -> argparse.ArgumentParser:
     output = parser.add_argument_group("output")
     output.add_argument("--json", type=Path, metavar="OUT", help="write every figure as JSON (AP in percent)")
     output.add_argument("--plots", type=Path, metavar="DIR",
-                        help="write precision-recall PNGs per difficulty (with --depth: a picture per frame)")
+                        help="write PNGs: precision-recall curves per difficulty (pr_*.png) and, with --by-distance, "
+                        "ap_by_distance.png; with --depth a picture per frame (depth_<id>.png: camera, prediction, "
+                        "ground truth, error) and car_depth.png")
     output.add_argument("--no-progress", action="store_true", help="no progress bars")
     return parser
 
@@ -453,11 +457,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     print(outcome.table)
+    _print_written(outcome)
+    return 0
+
+
+def _print_written(outcome: LabelEvalRun) -> None:
+    """Where the JSON and the plots went, a line each."""
     if outcome.json_path:
         print(f"JSON: {outcome.json_path}")
     for path in outcome.plot_paths:
         print(f"plot: {path}")
-    return 0
 
 
 def _check_outputs(args: argparse.Namespace, out: Path | None = None) -> None:
@@ -589,6 +598,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                       "score_threshold": args.score_threshold, "mirror_tta": args.mirror_tta,
                       **({} if args.emulate_beams is None else {"emulate_beams": args.emulate_beams}),
                       "provider": args.provider or "best available"},
+            source=f"{args.models} ({args.input}) on {args.data}",
         ))
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -597,6 +607,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
     source += ", PIXOR with mirror test-time augmentation" if args.mirror_tta else ""
     print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames{source}), results in {predictions}")
     print(outcome.table)
+    _print_written(outcome)
     if detection.skipped:  # the table is then not the model's score on this data: say so, and fail
         print(f"error: {skipped_summary(list(detection.skipped), 'frame')}; the table counts their cars as missed",
               file=sys.stderr)

@@ -188,7 +188,8 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             crop = depth_crop(image.shape[:2], *preset.crop_hw).apply(image)
             # Shown to 80 m whatever range the preset's pseudo points keep (35 m for the shipped model), so the
             # far ground truth is not clipped to the colour of the range's end.
-            panel = render_depth_panel(crop, prediction, ground_truth)
+            source = f"depth from {Path(depth_dir).name}" if depth_dir is not None else f"model {Path(models).name}"
+            panel = render_depth_panel(crop, prediction, ground_truth, title=f"frame {fid}, {source}")
             write_png(Path(pictures) / f"depth_{fid}.png", panel)
     if layout == "depth-completion":
         drive_calib = drive_calibration(data) if beams else None

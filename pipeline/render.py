@@ -279,11 +279,12 @@ def error_colours(n: int = 256) -> np.ndarray:
 
 
 def render_depth_panel(image: np.ndarray, prediction: np.ndarray, ground_truth: np.ndarray,
-                       max_depth: float = 80.0, max_error: float = 5.0) -> np.ndarray:
+                       max_depth: float = 80.0, max_error: float = 5.0, title: str | None = None) -> np.ndarray:
     """BGR uint8 picture of one depth-completion frame, stacked top to bottom: the camera crop (RGB),
     the predicted depth, the ground truth (black: none) and the absolute error where there is ground
     truth (0 m dark to ``max_error`` bright), all at the ground truth's resolution, each labelled, each map
-    with its colour bar in the top-right corner."""
+    with its colour bar in the top-right corner. title: what the frame is (its id, the model), before the
+    camera row's label."""
     height, width = ground_truth.shape
     camera = cv2.cvtColor(cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2BGR)
     known = ground_truth > 0
@@ -291,7 +292,7 @@ def render_depth_panel(image: np.ndarray, prediction: np.ndarray, ground_truth: 
     error_map = cv2.applyColorMap((255 * np.clip(error / max_error, 0, 1)).astype(np.uint8), cv2.COLORMAP_INFERNO)
     error_map[~known] = 0
     depth_scale = (depth_colours(max_depth), 0.0, max_depth, "m")
-    rows = [(camera, "camera", None),
+    rows = [(camera, f"{title}: camera" if title else "camera", None),
             (render_depth(prediction, max_depth), f"predicted depth (0-{max_depth:.0f} m)", depth_scale),
             (render_depth(ground_truth, max_depth), f"ground truth (0-{max_depth:.0f} m, black: none)", depth_scale),
             (error_map, f"absolute error where ground truth exists (0-{max_error:.0f} m)",

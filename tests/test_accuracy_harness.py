@@ -63,11 +63,16 @@ def test_detection_run_with_depth_from_files_and_distance_bands(tiny_models, tmp
         [sys.executable, str(ACCURACY), "--data", str(KITTI), "--models", str(tiny_models),
          "--input", "lidar16+camera", "--depth-dir", str(depth_dir), "--by-distance", "0,30,80",
          "--score-threshold", "0.0", "--out", str(tmp_path / "run"), "--json", str(tmp_path / "ap.json"),
-         "--no-progress"],
+         "--plots", str(tmp_path / "plots"), "--no-progress"],
         capture_output=True, text=True, timeout=600, check=False,
     )
     assert result.returncode == 0, result.stderr
     assert f"depth from {depth_dir} instead of the depth network" in result.stdout
+    # Where the JSON and each picture went, as the result-files mode says it.
+    written = [line for line in result.stdout.splitlines() if line.startswith(("JSON: ", "plot: "))]
+    assert written == [f"JSON: {tmp_path / 'ap.json'}",
+                       *(f"plot: {tmp_path / 'plots' / f'pr_car_{d}.png'}" for d in ("easy", "moderate", "hard")),
+                       f"plot: {tmp_path / 'plots' / 'ap_by_distance.png'}"]
     document = json.loads((tmp_path / "ap.json").read_text())
     assert document["depth_source"].startswith(str(depth_dir))
     assert [band["range_m"] for band in document["by_distance"]] == [[0, 30], [30, 80]]
@@ -518,3 +523,49 @@ def test_depth_mode_with_depth_dir_names_a_missing_folder_or_a_map_of_another_si
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert (f"{tmp_path / 'small' / '000006.png'}: a 20×10 depth map for a {image_hw[1]}×{image_hw[0]} image; "
             "it must cover the whole image") in result.stderr
+
+
+def test_a_detection_runs_plots_name_the_model_input_and_data(tiny_models, tmp_path, monkeypatch, capsys):
+    """The PR curves and the distance plot of a detection run carry what was run in their titles (the result
+    folder's name alone says nothing of the model)."""
+    import inspect
+
+    from benchmarks import accuracy
+
+    sources = []
+
+    def recording(real):
+        """The real plot function, recording the ``source`` it was given."""
+        def plot(*args, **kwargs):
+            sources.append(inspect.signature(real).bind(*args, **kwargs).arguments.get("source"))
+            return real(*args, **kwargs)
+        return plot
+
+    monkeypatch.setattr(accuracy, "plot_pr_curves", recording(accuracy.plot_pr_curves))
+    monkeypatch.setattr(accuracy, "plot_by_distance", recording(accuracy.plot_by_distance))
+    code = accuracy.main(["--data", str(KITTI), "--models", str(tiny_models), "--input", "lidar16+camera",
+                          "--score-threshold", "0.0", "--frames", "2", "--by-distance", "0,80",
+                          "--out", str(tmp_path / "run"), "--plots", str(tmp_path / "plots"), "--no-progress"])
+    assert code == 0, capsys.readouterr().err
+    assert sources == [f"{tiny_models} (lidar16+camera) on {KITTI}"] * 2
+
+
+def test_depth_pictures_name_their_frame_and_model(tiny_models, tmp_path, monkeypatch):
+    """Each depth_<id>.png says in its picture which frame and which model (or which maps) it shows."""
+    from evaluation import harness
+
+    titles = []
+    real = harness.render_depth_panel
+    monkeypatch.setattr(harness, "render_depth_panel",
+                        lambda *args, **kwargs: (titles.append(kwargs.get("title")), real(*args, **kwargs))[1])
+    data = tmp_path / "data"
+    for sub in ("image_2", "velodyne", "calib"):
+        shutil.copytree(KITTI / sub, data / sub)
+    (data / "depth_2").mkdir()
+    frame = load_frame(KITTI, "000006")
+    write_depth_png(data / "depth_2" / "000006.png", sparse_depth_map(frame.points, frame.calib, frame.image_hw))
+    run_depth(data, tiny_models, frames=["000006"], progress=False, pictures=tmp_path / "p")
+    run_depth(data, tiny_models, frames=["000006"], progress=False, pictures=tmp_path / "q", depth_dir=data / "depth_2")
+    assert titles == [f"frame 000006, model {tiny_models.name}", "frame 000006, depth from depth_2"]
+    assert cv2.imread(str(tmp_path / "p" / "depth_000006.png")) is not None
+

@@ -108,6 +108,18 @@ def test_depth_panel_maps_carry_their_colour_bars():
     assert not (panel[:24, width // 2:] == far).all(axis=2).any()  # the camera row has none
 
 
+def test_depth_panel_title_goes_into_the_camera_rows_label_only():
+    """A title (the frame and the model) lengthens the camera row's label; the maps' rows stay as they were."""
+    height, width = 120, 600
+    truth = np.full((height, width), 30.0, np.float32)
+    camera = np.zeros((height, width, 3), np.uint8)
+    plain = render_depth_panel(camera, truth, truth)
+    titled = render_depth_panel(camera, truth, truth, title="frame 000006, model edge")
+    np.testing.assert_array_equal(titled[height:], plain[height:])
+    drawn = [np.flatnonzero((panel[:height] > 0).any(axis=(0, 2))).max() for panel in (plain, titled)]
+    assert drawn[1] > drawn[0] + 50  # the label reaches further right
+
+
 def test_colour_bar_runs_from_low_to_high_as_the_depth_picture_colours():
     picture = np.zeros((40, 400, 3), np.uint8)
     left, top, right, bottom = draw_colour_scale(picture, depth_colours(80.0), 0.0, 80.0, "m")
