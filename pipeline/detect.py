@@ -1,6 +1,6 @@
 """Run the detector on one frame, a KITTI-layout folder or a KITTI raw drive; write KITTI results and pictures.
 
-    python -m pipeline.detect --models DIR --data DIR [--frame ID] --out DIR
+    python -m pipeline.detect --models DIR --data DIR [--frame ID | --split-file F] --out DIR
     python -m pipeline.detect --models DIR --drive DATE/DATE_drive_NNNN_sync --out DIR [--video OUT.mp4]
     python -m pipeline.detect --models DIR --image F --points F --calib F --out DIR
 
@@ -19,8 +19,10 @@ On a folder or a drive, a frame whose files cannot be used (a truncated scan, a 
 image or calibration) is reported with its file and skipped, and the run goes
 on: one bad file in thousands costs that frame, not the rest of the run. The
 command then exits 1 and lists the skipped frames; a ``--frame`` with no scan
-is refused before any model is loaded. A skipped frame's result file and
-picture from an earlier run into the same folder are removed, so that
+is refused before any model is loaded, as is an id of a ``--split-file`` (ImageSets' ``val.txt``
+or ``test.txt``) without one. On a whole folder, an image without its scan is a skipped frame too:
+it has no result file, and KITTI's server refuses a submission with a file missing. A skipped
+frame's result file and picture from an earlier run into the same folder are removed, so that
 ``OUT/data`` never passes an old result off as this run's.
 """
 
@@ -43,12 +45,14 @@ from pipeline.cli import check_output, frame_rate, interrupted, probability, ski
 from pipeline.errors import InputError
 from pipeline.frame import (
     DRIVE_SCANS,
+    IMAGE_SUFFIXES,
     Frame,
     drive_frame_ids,
     frame_ids,
     load_drive_frame,
     load_frame,
     read_drive_calib,
+    read_split_file,
 )
 from pipeline.kitti import (
     read_calib,
@@ -121,9 +125,10 @@ def run(
     drive: Path | None = None,
     video: Path | None = None,
     video_fps: float = VIDEO_FPS,
+    split_file: Path | None = None,
 ) -> DetectResult:
-    """Detect on a folder (``data`` + optional ``frames``), a KITTI raw drive (``drive`` + optional ``frames``)
-    or one set of files; write the outputs.
+    """Detect on a folder (``data`` + optional ``frames`` or ``split_file``), a KITTI raw drive (``drive`` + the
+    same) or one set of files; write the outputs.
 
     depth_dir: ``<id>.png`` dense depth maps of the camera image (KITTI depth PNGs) used instead of the
     depth network, named by frame id (by the scan's file name for one set of files). mirror_tta: PIXOR also
@@ -132,7 +137,7 @@ def run(
     """
     from pipeline.detector import Detector
 
-    frames_of = frame_source(data, drive, frames, image, points, calib)  # checked before any model loads
+    frames_of = frame_source(data, drive, frames, image, points, calib, split_file)  # before any model loads
     if video is not None and not pictures:
         raise InputError("--video is made of the pictures: leave out --no-pictures")
     if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
@@ -177,22 +182,30 @@ class FrameSource:
 
 
 def frame_source(data: Path | None, drive: Path | None, frames: list[str] | None, image: Path | None,
-                 points: Path | None, calib: Path | None) -> FrameSource:
+                 points: Path | None, calib: Path | None, split_file: Path | None = None) -> FrameSource:
     """The frames a run detects on: a KITTI object folder (``data``), a raw drive (``drive``), each with
-    optional ``frames`` ids, or one set of files. The folder, the ids and a drive's calibration (or the one
-    frame's files) are read and checked here, before any model loads."""
+    optional ``frames`` ids or a ``split_file`` of them, or one set of files. The folder, the ids and a drive's
+    calibration (or the one frame's files) are read and checked here, before any model loads."""
     files_given = image is not None or points is not None or calib is not None
     if (data is not None) + (drive is not None) + files_given > 1:
         raise InputError("give one of --data DIR, --drive DIR, or --image, --points and --calib, not two of them")
-    if frames and data is None and drive is None:
-        raise InputError("--frame chooses frames of --data DIR or --drive DIR; with --image/--points/--calib there "
-                         "is one frame")
+    chooser = "--split-file" if split_file is not None else "--frame"
+    if (frames or split_file is not None) and data is None and drive is None:
+        raise InputError(f"{chooser} chooses frames of --data DIR or --drive DIR; with --image/--points/--calib "
+                         "there is one frame")
+    if split_file is not None:
+        if frames:
+            raise InputError("give --frame ID or --split-file F, not both")
+        frames = read_split_file(split_file)
     if data is not None:
-        ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames")
+        ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames", split_file)
+        if not frames:  # every frame: one whose image has no scan would otherwise get no result file, unsaid
+            ids = sorted({*ids, *_image_ids(Path(data))})
         return FrameSource(ids, lambda fid: load_frame(data, fid, with_labels=False),  # labels: read for pictures
                            lambda fid: f"{data}, frame {fid}", labels=Path(data))
     if drive is not None:
-        ids = _chosen_frames(drive_frame_ids(drive), frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames")
+        ids = _chosen_frames(drive_frame_ids(drive), frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames",
+                             split_file)
         drive_calib = read_drive_calib(drive)
         return FrameSource(ids, lambda fid: load_drive_frame(drive, fid, drive_calib), lambda fid: f"{drive}, frame {fid}")
     if image is not None and points is not None and calib is not None:
@@ -310,10 +323,17 @@ def _remove_earlier_outputs(out: Path, fid: str) -> list[str]:
     return removed
 
 
-def _chosen_frames(scans: list[str], frames: list[str] | None, scan_dir: Path, none: str) -> list[str]:
+def _image_ids(data: Path) -> set[str]:
+    """The frame ids of an object folder's images (``image_2/ID.png``, or a JPEG)."""
+    folder = data / "image_2"
+    return {p.stem for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES} if folder.is_dir() else set()
+
+
+def _chosen_frames(scans: list[str], frames: list[str] | None, scan_dir: Path, none: str,
+                   split_file: Path | None = None) -> list[str]:
     """The ids to run on, in order: every scan of a folder or drive (``scans``, from ``scan_dir``), or the
-    --frame ids, each of which must have a scan. A plain number stands for the scan it names with its
-    zeros (``5`` → ``000005`` in an object folder, ``0000000005`` in a drive)."""
+    --frame ids (those of ``split_file`` when given), each of which must have a scan. A plain number stands
+    for the scan it names with its zeros (``5`` → ``000005`` in an object folder, ``0000000005`` in a drive)."""
     if not frames:
         if not scans:
             raise InputError(f"{none} (no .bin scans in {scan_dir})")
@@ -327,8 +347,12 @@ def _chosen_frames(scans: list[str], frames: list[str] | None, scan_dir: Path, n
     # A misspelt id is a mistake in the command, not a bad file: refuse it rather than skip it.
     unknown = [fid for fid in frames if fid not in present]
     if unknown:
+        scan = scan_dir / (unknown[0] + ".bin")
+        if split_file is not None:  # a frame of test.txt without its scan: its result file could not be made
+            more = f" (and {len(unknown) - 1} more of its frames without one)" if len(unknown) > 1 else ""
+            raise InputError(f"--split-file {split_file}: frame {unknown[0]} has no scan {scan}{more}")
         more = f" (and {len(unknown) - 1} more --frame without one)" if len(unknown) > 1 else ""
-        raise InputError(f"--frame {unknown[0]}: no scan {scan_dir / (unknown[0] + '.bin')}{more}")
+        raise InputError(f"--frame {unknown[0]}: no scan {scan}{more}")
     return sorted(frames)
 
 
@@ -377,6 +401,9 @@ def main(argv: list[str] | None = None) -> int:
                         "folder above it (or in it)")
     parser.add_argument("--frame", action="append", dest="frames", metavar="ID",
                         help="frame id of --data or --drive, or its number (5 for 000005; repeatable; default all)")
+    parser.add_argument("--split-file", type=Path, metavar="F",
+                        help="the frame ids of --data or --drive to run on, one per line (ImageSets' val.txt or "
+                        "test.txt); each must have a scan")
     parser.add_argument("--image", type=Path, help="camera image (PNG/JPEG), with --points and --calib")
     parser.add_argument("--points", type=Path, help="velodyne .bin scan")
     parser.add_argument("--calib", type=Path, help="KITTI calib .txt")
@@ -432,7 +459,7 @@ def _run_and_report(args: argparse.Namespace) -> int:
             args.models, args.out, args.data, args.frames, args.image, args.points, args.calib,
             args.emulate_beams, args.score_threshold, args.provider, not args.no_pictures,
             depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, drive=args.drive, video=args.video,
-            video_fps=args.video_fps or VIDEO_FPS,
+            video_fps=args.video_fps or VIDEO_FPS, split_file=args.split_file,
         )
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -458,6 +485,10 @@ def _run_and_report(args: argparse.Namespace) -> int:
               "a second)")
     if result.skipped:
         print(f"error: {skipped_summary(list(result.skipped), 'frame', len(result.frame_ids))}", file=sys.stderr)
+        if args.data is not None:  # the folder is a KITTI object split: its result files are what gets zipped
+            print(f"error: {args.out / 'data'} has no result file for the {len(result.skipped)} skipped frame(s): "
+                  "KITTI's evaluation server refuses a submission with a file missing, as benchmarks/accuracy.py "
+                  "does without --missing-as-empty; mend their files and run them again (--frame ID)", file=sys.stderr)
         return 1
     return 0
 
