@@ -407,8 +407,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--image", type=Path, help="camera image (PNG/JPEG), with --points and --calib")
     parser.add_argument("--points", type=Path, help="velodyne .bin scan")
     parser.add_argument("--calib", type=Path, help="KITTI calib .txt")
-    parser.add_argument("--emulate-beams", type=int, metavar="N", choices=BEAM_COUNTS,
-                        help=f"thin a 64-line scan to N lines first ({', '.join(map(str, BEAM_COUNTS))})")
+    parser.add_argument("--emulate-beams", type=int, metavar="N", choices=(0, *BEAM_COUNTS),
+                        help=f"thin a 64-line scan to N lines first ({', '.join(map(str, BEAM_COUNTS))}; 0, the "
+                        "default: the scans as stored, as a 16-line sensor's own; the flag of accuracy.py and "
+                        "latency.py)")
     parser.add_argument("--score-threshold", type=probability,
                         help="minimum score (default: the model's, 0.5 for the shipped ones); for result files "
                         "to evaluate give 0.05: AP needs the low-score detections")

@@ -676,6 +676,13 @@ def test_detect_command_on_awkward_folders(tiny_models, tmp_path):
     assert "label_2/000006.txt, line 1" in done.stderr and "no ground truth" in done.stderr
     assert "dropped rows with NaN or infinite values (7 rows)" in done.stderr
     assert (tmp_path / "o2" / "data" / "000006.txt").exists() and (tmp_path / "o2" / "bev" / "000006.png").exists()
+    # --emulate-beams 0 keeps a 16-line sensor's scans as stored, as in accuracy.py, latency.py and load.py.
+    done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(data),
+                           "--score-threshold", "0.0", "--emulate-beams", "0", "--no-pictures",
+                           "--out", str(tmp_path / "o0")], capture_output=True, text=True, timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    kept = (tmp_path / "o0" / "data" / "000006.txt").read_text()
+    assert kept and kept == (tmp_path / "o2" / "data" / "000006.txt").read_text()
     # A scan the Detector refuses is named by its frame.
     (data / "velodyne" / "000006.bin").write_bytes(np.zeros((0, 4), np.float32).tobytes())
     done = subprocess.run([sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models), "--data", str(data),
