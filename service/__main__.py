@@ -43,6 +43,7 @@ if __name__ == "__main__":
 import argparse
 import difflib
 import errno
+import ipaddress
 import logging
 import os
 import socket
@@ -156,6 +157,19 @@ def unknown_env_warnings(environ: Mapping[str, str]) -> list[str]:
                 else f"the settings are {', '.join(ENV_PREFIX + field for field in fields)}")
         lines.append(f"environment variable {name}: not a setting, ignored ({hint})")
     return lines
+
+
+def exposure_warning(addresses: list[str], port: int, token_set: bool) -> str | None:
+    """A warning when the service listens on an address other machines reach and no token guards ``/v1/*``
+    (the container's default: ``LOWRES3D_HOST=0.0.0.0``, no token), else None. ``addresses``: where the
+    sockets are bound (an IPv6 zone, ``%eth0``, is ignored)."""
+    exposed = [address for address in addresses
+               if not ipaddress.ip_address(address.split("%", 1)[0]).is_loopback]
+    if token_set or not exposed:
+        return None
+    return (f"listening on {', '.join(exposed)} port {port} without a token: any client that reaches it can send "
+            f"frames to /v1/detect and read /v1/model; set {ENV_PREFIX}TOKEN (clients then send Authorization: "
+            "Bearer …), or listen on 127.0.0.1")
 
 
 class AddressError(Exception):
@@ -326,6 +340,9 @@ def main(argv: list[str] | None = None) -> int:
     except AddressError as exc:
         log.error("cannot start: %s", exc)
         return 2
+    if warning := exposure_warning([sock.getsockname()[0] for sock in sockets], sockets[0].getsockname()[1],
+                                   settings.token is not None):
+        log.warning(warning)
     limit_malloc_arenas()  # before the worker threads exist (service/memory.py: the memory of a long run)
     metrics = Metrics()
     try:

@@ -5,16 +5,23 @@ place in the inference queue, so a request that can never succeed is answered
 4xx even when the queue is full, never 503 "retry": it looks at sizes and
 headers (empty or missing parts, a scan size that is not a multiple of 16 bytes,
 too many points, an image that is not PNG/JPEG, has too many pixels or is
-smaller than the crop, all read from its header before any decoding, and a PNG
-cut off before its end) and parses the calibration (a few lines of text).
+smaller than the crop, all read from its header before any decoding, a PNG
+cut off before its end, a JPEG of more scans than any camera writes) and parses
+the calibration (a few lines of text).
 :func:`decode_frame` does the real decoding on an inference worker: a fault
-found only there (a corrupt image body, a scan without finite points) is
-answered 422 once the frame has a place, 503 like any frame while the queue is full.
+found only there (a corrupt image body, a PNG whose image data inflates past its
+size, a scan without finite points) is answered 422 once the frame has a place,
+503 like any frame while the queue is full.
+
+The image checks bound what decoding one upload can cost, as the pixel limit bounds its memory: the
+decoders' time grows with a JPEG's scans and with a PNG's compressed data, not only with its pixels
+(:func:`_check_jpeg_scans`, :func:`png_for_decoding`).
 """
 
 from __future__ import annotations
 
 import struct
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,6 +29,7 @@ import numpy as np
 from pipeline.calib import SMALL_IMAGE_HINT, Calibration
 from pipeline.errors import InputError
 from pipeline.kitti import (
+    JPEG_SCAN,
     PNG_SIGNATURE,
     POINT_BYTES,
     check_image_end,
@@ -39,6 +47,18 @@ _JPEG_NO_LENGTH = {0x01, *range(0xD0, 0xD9)}  # TEM, RST0-7, SOI
 # A KITTI calib.txt is about 1 kB (a raw drive's cam_to_cam about 5 kB). The calibration is parsed on the
 # event loop, so its size is bounded: a 30 MB "calibration" would hold every other request up.
 MAX_CALIB_BYTES = 64 * 1024
+# Each scan of a progressive JPEG is a pass over every block of the image, and an almost empty one takes 12 bytes:
+# a crafted JPEG of a million scans held a worker for tens of seconds past any deadline (libjpeg-turbo's
+# LJT-01-003; decoding cannot be interrupted). Cameras write 1 scan (baseline), progressive encoders about 10.
+MAX_JPEG_SCANS = 100
+# The chunks whose bytes make a PNG's pixels; OpenCV ignores the others (text, colour profiles, animation frames).
+PNG_PIXEL_CHUNKS = frozenset({b"IHDR", b"PLTE", b"tRNS", b"IDAT", b"IEND"})
+# A large PNG has a few thousand IDAT chunks; the walk over them is Python, so their number is bounded.
+MAX_PNG_CHUNKS = 100_000
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}  # colour type → samples per pixel
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+_INFLATE_STEP = 1 << 16  # bytes inflated at a time while counting a PNG's image data
+PNG_IEND_CHUNK = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # length 0, type, CRC
 
 
 @dataclass(frozen=True)
@@ -122,6 +142,121 @@ def _check_image(data: bytes, max_image_pixels: int, crop_hw: tuple[int, int] | 
         raise InputError(f"image: {width}×{height} pixels is smaller than the model's {crop_w}×{crop_h} crop"
                          f"{SMALL_IMAGE_HINT}")
     check_image_end(data, "image")  # as decode_image checks it, here before the queue
+    if data.startswith(JPEG_SIGNATURE):
+        _check_jpeg_scans(data)
+
+
+def _check_jpeg_scans(data: bytes) -> None:
+    """InputError for a JPEG of more than :data:`MAX_JPEG_SCANS` scans. Counting the start-of-scan markers misses
+    none, as entropy-coded data never holds the bytes FF DA (an FF there is followed by 00 or a restart marker);
+    metadata may add a few (an EXIF thumbnail's own scans), far from the limit."""
+    scans = data.count(JPEG_SCAN)
+    if scans > MAX_JPEG_SCANS:
+        raise InputError(f"image: a JPEG of {scans} scans is more than the limit of {MAX_JPEG_SCANS} (a camera's "
+                         "JPEG has 1, a progressive one about 10)")
+
+
+def _png_image_bytes(ihdr: bytes) -> int:
+    """The bytes a PNG's image data inflates to, from its IHDR fields: each row (of each Adam7 pass when
+    interlaced) a filter byte and its packed samples. An unknown colour type counts 4 samples (libpng refuses it)."""
+    width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", ihdr)
+    bits = _PNG_CHANNELS.get(colour, 4) * depth
+    passes = _ADAM7 if interlace else ((0, 0, 1, 1),)
+    total = 0
+    for x0, y0, dx, dy in passes:
+        columns, rows = (width - x0 + dx - 1) // dx, (height - y0 + dy - 1) // dy
+        if columns > 0 and rows > 0:
+            total += rows * (1 + (columns * bits + 7) // 8)
+    return total
+
+
+def _inflate_at_most(parts: list[memoryview], limit: int) -> bytes:
+    """The zlib stream split over ``parts``, inflated; InputError when it inflates to more than ``limit`` bytes
+    (found a step past ``limit`` at most, so the cost is bounded by the image's own size) or is not zlib."""
+    inflater = zlib.decompressobj()
+    pieces: list[bytes] = []
+    total = 0
+    try:
+        for part in parts:
+            # In slices: the input a step leaves is copied (unconsumed_tail), so it is kept small.
+            for start in range(0, len(part), _INFLATE_STEP):
+                rest: bytes | memoryview = part[start : start + _INFLATE_STEP]
+                while rest and not inflater.eof:
+                    pieces.append(inflater.decompress(rest, _INFLATE_STEP))
+                    total += len(pieces[-1])
+                    if total > limit:
+                        raise InputError("image: the PNG's image data inflates to more than its header's size "
+                                         "(a decompression bomb?)")
+                    rest = inflater.unconsumed_tail
+        pieces.append(inflater.flush())  # what a last step left in zlib (input exhausted: little)
+    except zlib.error as exc:
+        raise InputError(f"image: not a readable PNG image (its image data: {exc})") from None
+    if total + len(pieces[-1]) > limit:
+        raise InputError("image: the PNG's image data inflates to more than its header's size (a decompression bomb?)")
+    return b"".join(pieces)
+
+
+def _stored_idat_chunk(raw: bytes) -> list[bytes | memoryview]:
+    """An IDAT chunk (length, type, data, CRC: as pieces to join) holding ``raw`` as a zlib stream of stored
+    blocks: inflating it is a copy, so the decoder does not inflate the image data a second time."""
+    view, step = memoryview(raw), 0xFFFF  # a stored block holds at most 65,535 bytes
+    data: list[bytes | memoryview] = [b"\x78\x01"]  # zlib header: deflate, 32 kB window, no dictionary
+    for start in range(0, max(len(raw), 1), step):
+        block = view[start : start + step]
+        last = start + step >= len(raw)
+        data += [struct.pack("<BHH", last, len(block), len(block) ^ 0xFFFF), block]
+    data.append(struct.pack(">I", zlib.adler32(raw)))
+    crc = zlib.crc32(b"IDAT")
+    for piece in data:
+        crc = zlib.crc32(piece, crc)
+    return [struct.pack(">I", sum(len(piece) for piece in data)), b"IDAT", *data, struct.pack(">I", crc)]
+
+
+def png_for_decoding(data: bytes) -> bytes:
+    """The PNG ``data`` with only the chunks that make its pixels (:data:`PNG_PIXEL_CHUNKS`); InputError for one
+    whose image data inflates to more than its IHDR's size, or that is not a sequence of chunks up to IEND.
+
+    libpng inflates every byte of IDAT data, also what comes after the last row (a megabyte of zlib holds a
+    gigabyte of zeros: seconds of a worker, which decoding cannot be stopped in), and inflates the compressed
+    ancillary chunks (zTXt, iTXt, iCCP) too. It also writes a line to stderr, past the service's log filters,
+    for every ancillary chunk it finds fault with: thousands of tiny bad chunks made as many log lines from one
+    upload. OpenCV's pixels do not depend on those chunks, so they are dropped here. Bytes after IEND are ignored,
+    as decoders do. The image data, inflated here to count it, goes to the decoder in stored (uncompressed)
+    blocks, so it is inflated once: a KITTI image's decoding took 9.4 ms as sent, 10.7 ms with this (an
+    inflation only to count took 6.7 ms more).
+    """
+    if data[12:16] != b"IHDR" or int.from_bytes(data[8:12], "big") != 13:
+        raise InputError("image: corrupt PNG (no IHDR header)")
+    view = memoryview(data)
+    kept: list[bytes | memoryview] = [view[:8]]  # the signature, IHDR and PLTE / tRNS: the chunks before the data
+    idat: list[memoryview] = []
+    transparency = False
+    pos = len(PNG_SIGNATURE)
+    for _ in range(MAX_PNG_CHUNKS):
+        if pos + 12 > len(data):
+            raise InputError("image: not a readable PNG image (it ends inside a chunk, before IEND)")
+        length = int.from_bytes(data[pos : pos + 4], "big")
+        kind = data[pos + 4 : pos + 8]
+        end = pos + 12 + length
+        if end > len(data):
+            raise InputError(f"image: not a readable PNG image (a chunk of {length} bytes runs past its end)")
+        if kind == b"IDAT":
+            idat.append(view[pos + 8 : end - 4])
+        elif kind in PNG_PIXEL_CHUNKS:
+            # tRNS once, before the image data: libpng warns of each duplicate or misplaced one, as of others.
+            if kind != b"IEND" and not (kind == b"tRNS" and (transparency or idat)):
+                kept.append(view[pos:end])
+            transparency = transparency or kind == b"tRNS"
+        elif not kind[0] & 0x20:  # a critical chunk (upper-case first letter) no decoder may skip
+            raise InputError(f"image: not a readable PNG image (unknown critical chunk "
+                             f"{kind.decode('ascii', 'backslashreplace')!r})")
+        pos = end
+        if kind == b"IEND":
+            break
+    else:
+        raise InputError(f"image: a PNG of more than {MAX_PNG_CHUNKS} chunks is more than any encoder writes")
+    raw = _inflate_at_most(idat, _png_image_bytes(data[16:29]))
+    return b"".join([*kept, *_stored_idat_chunk(raw), PNG_IEND_CHUNK])
 
 
 def _check_points(data: bytes, max_points: int) -> None:
@@ -201,5 +336,8 @@ def decode_frame(upload: FrameUpload, calib: Calibration | None, policy: NonFini
 
     calib: what :func:`check_upload` returned."""
     points, warnings = decode_points(upload.points, policy)
-    image = decode_image(upload.image, "image") if upload.image is not None else None
+    image = None
+    if upload.image is not None:
+        data = png_for_decoding(upload.image) if upload.image.startswith(PNG_SIGNATURE) else upload.image
+        image = decode_image(data, "image")
     return DecodedFrame(image=image, points=points, calib=calib, warnings=warnings)
