@@ -11,10 +11,11 @@ import numpy as np
 import pytest
 
 from pipeline.kitti import read_image_size, read_labels
+from simulation.run import RunConfig
+from simulation.run import run as simulate
 
 ROOT = Path(__file__).resolve().parent.parent
 KITTI = ROOT / "tests" / "data" / "kitti" / "training"
-SIM = ROOT / "data" / "sim" / "val"
 MODELS = ROOT / "weights" / "edge"
 
 
@@ -26,17 +27,27 @@ def _copy_frame(source: Path, fid: str, testing: Path, new: str) -> None:
 
 
 @pytest.fixture(scope="module")
-def testing(tmp_path_factory) -> Path:
+def sim(tmp_path_factory) -> Path:
+    """Frames 0, 3 and 9 of the synthetic validation set (seed 2, as data/sim/val: a frame depends only on the
+    seed and its index), made here since data/ is not in the repository."""
+    out = tmp_path_factory.mktemp("sim")
+    for index in (0, 3, 9):
+        simulate(RunConfig(out=out, frames=1, seed=2, start=index, split="val", progress=False))
+    return out
+
+
+@pytest.fixture(scope="module")
+def testing(sim, tmp_path_factory) -> Path:
     """A KITTI ``testing/`` folder (no label_2): a real frame, a synthetic one whose nearest car reaches out of the
     image on the right, one whose scan has points behind the vehicle alone (no car at the default threshold), one
     with a broken image, and one whose scan is missing (an incomplete download)."""
     testing = tmp_path_factory.mktemp("kitti") / "testing"
     _copy_frame(KITTI, "000006", testing, "000000")
-    _copy_frame(SIM, "000000", testing, "000001")
-    _copy_frame(SIM, "000009", testing, "000002")
+    _copy_frame(sim, "000000", testing, "000001")
+    _copy_frame(sim, "000009", testing, "000002")
     scan = np.fromfile(testing / "velodyne" / "000002.bin", np.float32).reshape(-1, 4)
     scan[scan[:, 0] < -5].tofile(testing / "velodyne" / "000002.bin")
-    _copy_frame(SIM, "000003", testing, "000003")
+    _copy_frame(sim, "000003", testing, "000003")
     (testing / "image_2" / "000003.png").write_bytes(b"not an image")
     _copy_frame(KITTI, "000003", testing, "000004")
     (testing / "velodyne" / "000004.bin").unlink()
@@ -112,13 +123,13 @@ def test_a_split_file_chooses_the_frames_and_refuses_an_id_without_a_scan(testin
     assert both.returncode == 2 and "not both" in both.stderr
 
 
-def test_the_projects_evaluator_reads_the_result_files(run, tmp_path):
+def test_the_projects_evaluator_reads_the_result_files(run, sim, tmp_path):
     """benchmarks/accuracy.py, the devkit's protocol, takes the files as they are (the frames with one)."""
     _, out = run
     gt = tmp_path / "label_2"
     gt.mkdir()
     shutil.copy(KITTI / "label_2" / "000006.txt", gt / "000000.txt")
-    shutil.copy(SIM / "label_2" / "000000.txt", gt / "000001.txt")
+    shutil.copy(sim / "label_2" / "000000.txt", gt / "000001.txt")
     (gt / "000002.txt").write_text("")
     done = subprocess.run([sys.executable, "benchmarks/accuracy.py", "--gt-labels", str(gt), "--pred-labels",
                            str(out / "data"), "--no-progress"], capture_output=True, text=True, timeout=120,
