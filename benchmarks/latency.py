@@ -819,8 +819,8 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
         # any timing, so a mismatch is refused at once instead of after minutes of measurements.
         torch_networks, torch_weights = torch_twin(detector, checkpoints)
     trained_on = (detector.manifest["networks"]["pixor"].get("training") or {}).get("input")
-    if beams is None:  # the model's own: a 64-line model's scans as they are (KITTI's have 64), else 16 lines
-        beams = None if detector.trained_lines == 64 else 16
+    if beams is None:  # the model's own: a 64-line model's scans as they are (KITTI's have 64), else its lines (16)
+        beams = None if detector.trained_lines == 64 else (detector.trained_lines or 16)
     source = FrameSource(data, max(frames, warmup), beams or None)
     pool = source.load()
 

@@ -25,7 +25,7 @@ from evaluation.depth_metrics import (
     moderate_cars_in_view,
 )
 from evaluation.frames import first_frames
-from pipeline.beams import emulate_beams
+from pipeline.beams import check_thinnable, emulate_beams
 from pipeline.calib import depth_crop
 from pipeline.depth_completion import (
     check_drive_folder,
@@ -38,7 +38,7 @@ from pipeline.depth_completion import (
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
-from pipeline.kitti import read_depth_png, read_image_depth_png, read_velodyne
+from pipeline.kitti import read_depth_png, read_image_depth_png
 from pipeline.model_files import load_manifest
 from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
 from pipeline.render import render_depth_panel, write_png
@@ -94,27 +94,11 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
         raise InputError(f"--depth-dir: only the camera pipeline uses depth (--input lidar16+camera, not {input_mode})")
     emulate = INPUTS[input_mode] if beams is None else (beams or None)
     if emulate:
-        _check_thinnable(data, frames, emulate)
+        check_thinnable(data, frames, emulate)
     result = detect(models, out, data=data, frames=frames, emulate_beams=emulate, provider=provider,
                     pictures=False, progress=progress, score_threshold=score_threshold, depth_dir=depth_dir,
                     mirror_tta=mirror_tta)
     return DetectionRun(out / "data" if result.result_files else out, result.skipped)
-
-
-def _check_thinnable(data: Path, frames: list[str] | None, beams: int) -> None:
-    """InputError, before any model runs, when the first frame's scan cannot be thinned to ``beams`` lines: a
-    16-line sensor's scans would otherwise be skipped one by one, and the table would count every car missed."""
-    ids = frames or frame_ids(data)
-    if not ids:
-        return  # no frame: pipeline.detect says so
-    path = Path(data) / "velodyne" / f"{ids[0]}.bin"
-    if not path.is_file():
-        return  # pipeline.detect names the missing scan
-    try:
-        emulate_beams(read_velodyne(path).points, beams)
-    except InputError as exc:
-        raise InputError(f"{path}: {exc}; to evaluate scans of a {beams}-line sensor as they are, give "
-                         "--emulate-beams 0") from None
 
 
 @dataclass(frozen=True)

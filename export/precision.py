@@ -91,8 +91,8 @@ def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool =
     the pipeline's users do with 64-line data; 0: the scans as stored (a 16-line sensor's own recordings).
     calibrating: INT8 (warns when the frames are few); FP16 only measures its deviation on them."""
     detector = Detector(model_dir)
-    if beams is None:
-        beams = 0 if detector.trained_lines == 64 else 16
+    if beams is None:  # a model trained with --emulate-beams 8 calibrates on 8-line scans
+        beams = 0 if detector.trained_lines == 64 else (detector.trained_lines or 16)
     ids = calibration_frame_ids(data, frames)
     if calibrating and len(ids) < FEWEST_CALIBRATION_FRAMES:
         log.warning("warning: INT8 calibrated on %d frame(s) of %s: ranges from so few frames may clip real ones; "

@@ -3,7 +3,9 @@
     python -m models.cache_pseudo --data DIR --models DIR --out PSEUDO_DIR [--split-file F | --frames N]
 
 Runs ``depth.onnx`` through the runtime Detector — exactly the depth maps
-inference produces — on each frame's 16-line scan, and writes them as KITTI
+inference produces — on each frame's 16-line scan (the stored scan thinned
+to ``--emulate-beams`` lines, 16 by default; 0 takes it as stored, as a
+16-line sensor's own scans need), and writes them as KITTI
 depth PNGs (the network's view, metres × 256) named by frame id. Frames already
 cached are skipped, so an interrupted run resumes; ``cache.json`` records the
 depth net's sha256 and the line count the maps were made with, and a run with another
@@ -23,7 +25,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.beams import BEAM_COUNTS, check_thinnable, emulate_beams
 from pipeline.cli import check_not_input, check_output, interrupted, list_or_count, unwritable
 from pipeline.detector import Detector
 from pipeline.errors import InputError
@@ -50,6 +52,16 @@ def recorded_sources(cache: Path) -> dict[str, list[int]]:
     return held.get("frames", {}) if isinstance(held, dict) else {}
 
 
+def recorded_beams(cache: Path) -> int | None:
+    """The --emulate-beams ``cache``'s maps were made with (0: the scans as stored; None: no record)."""
+    try:
+        held = json.loads((cache / RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    beams = held.get("beams") if isinstance(held, dict) else None
+    return beams if isinstance(beams, int) else None
+
+
 def check_sources(cache: Path, flag: str, data: Path, data_flag: str, ids: list[str], hint: str = "") -> None:
     """InputError naming the first of ``ids`` whose cached map was made from other files than ``data``'s."""
     made_from = recorded_sources(cache)
@@ -65,13 +77,18 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
         progress: bool = True, threads: int | None = None, first: int | None = None) -> int:
     """Write one depth PNG per frame into ``out``; returns how many were computed (not skipped).
 
-    Every input is checked before ``out`` is made or any map computed. threads: ONNX Runtime's
-    intra-op threads (None: one per core). first: only the first N frames (of the split file, or in id order).
+    Every input is checked before ``out`` is made or any map computed. beams: the lines each scan is thinned to
+    (0: as stored, a 16-line sensor's own). threads: ONNX Runtime's intra-op threads (None: one per core).
+    first: only the first N frames (of the split file, or in id order).
     """
     out = Path(out)
     check_output(out, "--out", directory=True)
     check_not_input(out, "--out", {"--data": data, "--models": models})
     ids = _frames(Path(data), split_file)[:first]
+    if beams not in (0, *BEAM_COUNTS):  # argparse's choices, for library callers
+        raise InputError(f"--emulate-beams: {beams} is not one of 0, {', '.join(map(str, BEAM_COUNTS))}")
+    if beams:  # a 16-line sensor's scans: one line naming the first, not an error without a file name
+        check_thinnable(Path(data), ids, beams, "cache the depth of")
     detector = Detector(models, intra_op_threads=threads, networks_used=("depth",))  # PIXOR is not run here
     if not detector.two_stage:
         raise InputError(f"--models: {models} has no depth network")
@@ -88,7 +105,8 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
         if target.exists() and made_from.get(fid) == sources:
             continue  # a map without its sources recorded (a run stopped between the two) is made again
         frame = load_frame(data, fid, with_labels=False)
-        depth, _ = detector.dense_depth(frame.image, emulate_beams(frame.points, beams), frame.calib)
+        points = emulate_beams(frame.points, beams) if beams else frame.points
+        depth, _ = detector.dense_depth(frame.image, points, frame.calib)
         partial = target.with_suffix(".tmp.png")
         try:  # written whole, then renamed: an interrupted run leaves no truncated map to skip next time
             write_depth_png(partial, depth)
@@ -143,7 +161,7 @@ def _check_record(out: Path, wanted: dict) -> None:
         if not isinstance(held, dict) or {key: held.get(key) for key in wanted} != wanted:
             held = held if isinstance(held, dict) else {}
             raise InputError(f"--out {out}: holds depth maps of another depth net or line count ({record}: "
-                             f"{held.get('preset')}, {held.get('beams')} lines); give another --out")
+                             f"{held.get('preset')}, --emulate-beams {held.get('beams')}); give another --out")
         return
     _write_record(out, {**wanted, "frames": {}})
 
@@ -163,9 +181,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split-file", "--frames", dest="frames", type=list_or_count, metavar="LIST|N",
                         help="frame ids, one per line (default: all); or N: the first N frames in id order, as "
                         "--frames N of the other commands")
-    parser.add_argument("--beams", "--emulate-beams", dest="beams", type=int, default=16, choices=BEAM_COUNTS,
+    parser.add_argument("--emulate-beams", "--beams", dest="beams", type=int, default=16, choices=(0, *BEAM_COUNTS),
                         metavar="N",
-                        help="lines the 64-line scan is thinned to (default 16; 32, 8, 4)")
+                        help="lines the 64-line scan is thinned to (default 16; 32, 8, 4); 0: the scans as stored "
+                        "(a 16-line sensor's own), as models.train --emulate-beams 0")
     args = parser.parse_args(argv)
     try:
         split_file, first = (args.frames, None) if not isinstance(args.frames, int) else (None, args.frames)

@@ -14,6 +14,10 @@ Detector samples: the BEV tensor of the chosen input — ``lidar64`` (scan as
 stored), ``lidar16`` (thinned), ``pseudo`` (pseudo points from a cached dense
 depth map in ``PSEUDO_DIR/ID.png`` plus the 16 real lines) — and PIXOR targets
 of the Car labels.
+
+Every "16-line" scan here is the stored scan thinned to ``beams`` lines (16 by
+default, ``models.train --emulate-beams``); ``beams`` 0 or None takes the scans
+as stored: a 16-line sensor's own, which cannot be thinned again.
 """
 
 from __future__ import annotations
@@ -72,7 +76,7 @@ class SampleCache:
 
 
 def frame_points(frame: Frame, beams: int | None) -> np.ndarray:
-    """The scan as the sensor under test would give it."""
+    """The scan as the sensor under test would give it: thinned to ``beams`` lines (None or 0: as stored)."""
     return emulate_beams(frame.points, beams) if beams else frame.points
 
 
@@ -93,7 +97,7 @@ class DepthDataset(Dataset):
     data_dir: Path
     frame_ids: list[str]
     preset: Preset
-    beams: int | None = 16
+    beams: int | None = 16  # the lines the scan is thinned to (None or 0: as stored, a 16-line sensor's own)
     augment: bool = False
     seed: int = 0
     epoch: int = 0  # set by the training loop: augmentation differs per epoch, reproducibly
@@ -162,18 +166,19 @@ def car_boxes(frame: Frame) -> np.ndarray:
 
 
 def detector_points(frame: Frame, preset: Preset, input_mode: str,
-                    pseudo_dir: Path | None) -> np.ndarray:
+                    pseudo_dir: Path | None, beams: int | None = 16) -> np.ndarray:
     """The point cloud PIXOR sees for ``input_mode``: pseudo points first (``pseudo``), then the scan."""
-    pseudo, real = detector_clouds(frame, preset, input_mode, pseudo_dir)
+    pseudo, real = detector_clouds(frame, preset, input_mode, pseudo_dir, beams)
     return real if pseudo is None else merge_points(pseudo, real)
 
 
-def detector_clouds(frame: Frame, preset: Preset, input_mode: str,
-                    pseudo_dir: Path | None) -> tuple[np.ndarray | None, np.ndarray]:
-    """The (M, 4) pseudo points (``pseudo`` only, else None) and the (N, 4) scan PIXOR sees for ``input_mode``."""
+def detector_clouds(frame: Frame, preset: Preset, input_mode: str, pseudo_dir: Path | None,
+                    beams: int | None = 16) -> tuple[np.ndarray | None, np.ndarray]:
+    """The (M, 4) pseudo points (``pseudo`` only, else None) and the (N, 4) scan PIXOR sees for ``input_mode``;
+    ``lidar16`` and ``pseudo`` thin it to ``beams`` lines (None or 0: as stored)."""
     if input_mode == "lidar64":
         return None, frame.points
-    lidar16 = emulate_beams(frame.points, 16)
+    lidar16 = frame_points(frame, beams)
     if input_mode == "lidar16":
         return None, lidar16
     if input_mode != "pseudo":
@@ -200,6 +205,7 @@ class DetectorDataset(Dataset):
     preset: Preset
     input_mode: str = "lidar16"
     pseudo_dir: Path | None = None
+    beams: int | None = 16  # lidar16 and pseudo: the lines the scan is thinned to (None or 0: as stored)
     augment: bool = False
     seed: int = 0
     epoch: int = 0  # set by the training loop: augmentation differs per epoch, reproducibly
@@ -211,7 +217,7 @@ class DetectorDataset(Dataset):
     def _load(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The (M, 4) pseudo points (M = 0 without), the (N, 4) scan PIXOR sees, and the (K, 7) car boxes."""
         frame = load_frame(self.data_dir, self.frame_ids[index], with_image=False)  # PIXOR sees no pixels
-        pseudo, real = detector_clouds(frame, self.preset, self.input_mode, self.pseudo_dir)
+        pseudo, real = detector_clouds(frame, self.preset, self.input_mode, self.pseudo_dir, self.beams)
         return (np.zeros((0, 4), np.float32) if pseudo is None else pseudo), real, car_boxes(frame)
 
     def __getitem__(self, index: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

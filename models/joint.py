@@ -17,9 +17,11 @@ from pipeline.preprocess import depth_inputs
 from pipeline.presets import Preset, lidar_only
 
 
-def joint_depth(depth_net, frame, preset: Preset, device: torch.device = CPU) -> tuple[np.ndarray, Calibration]:
-    """The (torch) depth net's dense depth of a frame's 16-line scan, and its view's calibration (validation)."""
-    inputs = depth_inputs(frame.image, frame_points(frame, 16), frame.calib, preset)
+def joint_depth(depth_net, frame, preset: Preset, device: torch.device = CPU,
+                beams: int | None = 16) -> tuple[np.ndarray, Calibration]:
+    """The (torch) depth net's dense depth of a frame's scan thinned to ``beams`` lines (None or 0: as stored),
+    and its view's calibration (validation)."""
+    inputs = depth_inputs(frame.image, frame_points(frame, beams), frame.calib, preset)
     depth = depth_net(torch.from_numpy(inputs.rgb).to(device), torch.from_numpy(inputs.sparse_depth).to(device))
     return depth[0, 0].cpu().numpy(), inputs.calib
 

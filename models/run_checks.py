@@ -14,7 +14,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
-from models.cache_pseudo import check_sources
+from models.cache_pseudo import check_sources, recorded_beams
+from pipeline.beams import check_thinnable
 from pipeline.depth_completion import check_map_size, drive_calibration, is_drive_folder, raw_scan_path
 from pipeline.errors import InputError
 from pipeline.kitti import POINT_BYTES, check_image_file, read_calib, read_image_size, read_labels
@@ -26,6 +27,8 @@ log = logging.getLogger(__name__)
 STATE_FILE = "state.pt"
 STATE_KEYS = ("networks", "optimizer", "scheduler", "epoch", "best", "history", "torch_rng", "numpy_rng",
               "python_rng")
+# Settings a run's state has recorded only since they existed, with the value every run had before.
+RECORDED_SINCE = {"emulate_beams": 16}
 FRAME_FILES = ("velodyne/{}.bin", "image_2/{}.png", "calib/{}.txt")  # what load_frame reads of every frame
 # … and what pipeline.depth_completion.read_frame reads of a drive's (its raw scans are optional)
 DRIVE_FILES = ("image_02/{}.png", "velodyne_raw/{}.png", "groundtruth/{}.png")
@@ -89,11 +92,11 @@ def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
                  ("--seed", "seed"), ("--depth-loss", "depth_loss"), ("--car-weight", "car_weight"),
                  ("--freeze-bn", "freeze_bn"), ("--quick", "quick"), ("--pseudo-dir", "pseudo_dir"),
                  ("--val-pseudo-dir", "val_pseudo_dir"), ("--depth-checkpoint", "depth_checkpoint"),
-                 ("--pixor-checkpoint", "pixor_checkpoint")]
+                 ("--pixor-checkpoint", "pixor_checkpoint"), ("--emulate-beams", "emulate_beams")]
     for flag, key in compared:
-        if key not in recorded:
+        if key not in recorded and key not in RECORDED_SINCE:
             continue
-        wanted, started = getattr(config, key), recorded[key]
+        wanted, started = getattr(config, key), recorded.get(key, RECORDED_SINCE.get(key))
         if isinstance(wanted, (list, tuple)) or isinstance(started, (list, tuple)):
             wanted, started = tuple(wanted or ()), tuple(started or ())
         elif key.endswith(("data", "split", "dir", "checkpoint")):  # the same file, however it is spelt
@@ -226,6 +229,30 @@ def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val
                     read_labels(folder / "label_2" / f"{fid}.txt")
 
 
+def thins_scans(config: TrainConfig) -> bool:
+    """Whether the run reads "16-line" scans, thinned as --emulate-beams says: all but a detector's lidar64."""
+    return not (config.task == "detector" and config.input_mode == "lidar64")
+
+
+def emulated_lines(config: TrainConfig) -> int | None:
+    """The lines the run thins its scans to; None when it reads them as stored (--emulate-beams 0, --input lidar64)."""
+    return (config.emulate_beams or None) if thins_scans(config) else None
+
+
+def check_thinnable_scans(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path,
+                          val_ids: list[str]) -> None:
+    """The first training and validation scans thin to --emulate-beams lines: a 16-line sensor's scans, left at
+    the default 16, are refused now in one line naming the scan and the flag (--emulate-beams 0), not by the
+    first batch's emulate_beams error without a file name. A drive's maps are thinned through its calibration,
+    which read_frame checks."""
+    beams = emulated_lines(config)
+    if beams is None:
+        return
+    for folder, first in dict.fromkeys(((train_dir, train_ids[0]), (val_dir, val_ids[0]))):  # each pair once
+        if not is_drive_folder(folder):
+            check_thinnable(folder, [first], beams, "train on")
+
+
 def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str]) -> None:
     """``--input pseudo``: the cached dense depth map of every frame the run trains and validates on."""
     if config.task == "detector" and config.input_mode == "pseudo":
@@ -245,3 +272,8 @@ def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[s
                 frame, path, more = missing
                 raise InputError(f"{flag} {folder}: no cached depth map of frame {frame}{more} ({path})")
             check_sources(Path(folder), flag, Path(data), data_flag, ids, also)
+            made_with = recorded_beams(Path(folder))
+            if made_with is not None and made_with != config.emulate_beams:  # the depth of other scans than the run's
+                raise InputError(f"{flag} {folder}: its maps were made with --emulate-beams {made_with} (cache.json), "
+                                 f"this run thins its scans with --emulate-beams {config.emulate_beams}; cache them "
+                                 f"with python -m models.cache_pseudo --emulate-beams {config.emulate_beams}")

@@ -12,6 +12,14 @@
 * joint — both networks fine-tuned together through a differentiable BEV
   occupancy (models/soft_bev.py); starts from the two trained checkpoints.
 
+``--emulate-beams N`` (32, 16, 8, 4; default 16) is the line count every
+"16-line" scan of the run is thinned to from the stored one: the depth net's
+input, PIXOR's ``lidar16`` and ``pseudo`` scans, the joint task's, in training
+and validation alike; ``--emulate-beams 0`` takes the scans as stored, a 16-line
+sensor's own (they cannot be thinned again: left at 16 on such scans, the run is
+refused before it starts, naming the first scan). It is recorded in the run's
+state and checkpoints, so ``--resume`` keeps it and export carries it.
+
 ``--depth-checkpoint`` / ``--pixor-checkpoint`` also start a depth or detector
 run from trained weights: a checkpoint, or the ``depth.onnx`` / ``pixor.onnx``
 of an exported model directory (its batch norms come folded into the
@@ -90,8 +98,11 @@ from models.run_checks import (
     check_out,
     check_pseudo_maps,
     check_resumable,
+    check_thinnable_scans,
+    emulated_lines,
     load_state,
     restore_state,
+    thins_scans,
 )
 from models.start_weights import (
     freeze_batch_norms,
@@ -100,6 +111,7 @@ from models.start_weights import (
     start_training_metadata,
 )
 from models.validation import validate_depth, validate_detector
+from pipeline.beams import BEAM_COUNTS
 from pipeline.cli import interrupted, non_negative_int, positive_float, positive_int
 from pipeline.depth_completion import (
     drive_calibration,
@@ -130,6 +142,9 @@ class TrainConfig:
     train_split: Path | None = None
     val_split: Path | None = None
     input_mode: str = "lidar16"  # detector: lidar64 | lidar16 | pseudo
+    # The lines the stored scans are thinned to (pipeline.beams.BEAM_COUNTS) wherever the run reads a "16-line"
+    # scan; 0: as stored, a 16-line sensor's own (emulate_beams refuses to thin those again).
+    emulate_beams: int = 16
     pseudo_dir: Path | None = None  # detector --input pseudo: cached dense depth PNGs of the training frames
     val_pseudo_dir: Path | None = None  # … of the validation frames (default: pseudo_dir, one folder for both)
     depth_checkpoint: Path | None = None  # joint (and pseudo caching): trained depth.pt; depth: weights to start from
@@ -212,6 +227,8 @@ def check_flags_apply(config: TrainConfig) -> None:
          "a detector run trains PIXOR alone"),
         ("--pixor-checkpoint", config.pixor_checkpoint is not None and config.task == "depth",
          "a depth run trains the depth net alone"),
+        ("--emulate-beams", config.emulate_beams != TrainConfig.emulate_beams and not thins_scans(config),
+         "--input lidar64 reads the scans as stored"),
         ("--depth-loss", config.depth_loss != TrainConfig.depth_loss and config.task == "detector",
          "a detector run has no depth loss"),
         ("--car-weight", config.car_weight != TrainConfig.car_weight and config.task != "depth",
@@ -291,7 +308,7 @@ def split_ids(config: TrainConfig) -> tuple[Path, list[str], Path, list[str]]:
     train_dir, val_dir = Path(config.data), Path(config.val_data or config.data)
     train_ids = folder_frame_ids(train_dir, config.train_split)
     val_ids = folder_frame_ids(val_dir, config.val_split)
-    check_frames(config, train_dir, train_ids, val_dir, val_ids)
+    check_frames(config, train_dir, train_ids, val_dir, val_ids, emulated_lines(config))
     if config.max_train_frames:
         train_ids = train_ids[: config.max_train_frames]
     if config.max_val_frames:
@@ -303,12 +320,14 @@ def split_ids(config: TrainConfig) -> tuple[Path, list[str], Path, list[str]]:
 
 
 def depth_dataset(folder: Path, ids: list[str], preset: Preset, augment: bool = False, seed: int = 0,
-                  car_weight: float = 1.0) -> DepthDataset | DepthCompletionDataset:
-    """A depth run's frames of ``folder``: an object folder's, or a depth-completion drive's (thinned to 16 lines
-    through the drive's calibration, which :func:`check_frames` found; --car-weight is refused on a drive)."""
+                  car_weight: float = 1.0, beams: int | None = 16) -> DepthDataset | DepthCompletionDataset:
+    """A depth run's frames of ``folder``, their scans thinned to ``beams`` lines (None or 0: as stored): an object
+    folder's, or a depth-completion drive's (thinned through the drive's calibration, which :func:`check_frames`
+    found; --car-weight is refused on a drive)."""
     if is_drive_folder(folder):
-        return DepthCompletionDataset(folder, ids, preset, drive_calibration(folder), augment=augment, seed=seed)
-    return DepthDataset(folder, ids, preset, augment=augment, seed=seed, car_weight=car_weight)
+        return DepthCompletionDataset(folder, ids, preset, drive_calibration(folder) if beams else None, beams=beams,
+                                      augment=augment, seed=seed)
+    return DepthDataset(folder, ids, preset, beams=beams, augment=augment, seed=seed, car_weight=car_weight)
 
 
 def stack_in_layout(samples: list[tuple[torch.Tensor, ...]], inputs: int = 0,
@@ -349,6 +368,9 @@ def run(config: TrainConfig) -> TrainResult:
         raise InputError(f"task: {config.task!r} is not one of {', '.join(TASKS)}")
     if config.task == "detector" and config.input_mode not in DETECTOR_INPUTS:
         raise InputError(f"--input: {config.input_mode!r} is not one of {', '.join(DETECTOR_INPUTS)}")
+    if config.emulate_beams not in (0, *BEAM_COUNTS):  # argparse's choices, for library callers
+        raise InputError(f"--emulate-beams: {config.emulate_beams} is not one of 0, "
+                         f"{', '.join(map(str, BEAM_COUNTS))}")
     check_flags_apply(config)
     config = recipe(config)
     keep_freed_memory()  # a PIXOR epoch 16 % shorter: no mmap/munmap of the step's buffers (models/allocator.py)
@@ -380,6 +402,7 @@ def run(config: TrainConfig) -> TrainResult:
     if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
     train_dir, train_ids, val_dir, val_ids = split_ids(config)
+    check_thinnable_scans(config, train_dir, train_ids, val_dir, val_ids)
     check_pseudo_maps(config, train_ids, val_ids)
     if state is not None and state["epoch"] >= config.epochs:  # nothing to train: the run stays as it is
         checkpoints = {name: out / f"{name}.pt" for name in state["networks"] if (out / f"{name}.pt").exists()}
@@ -416,12 +439,16 @@ def run(config: TrainConfig) -> TrainResult:
     except OSError as exc:
         raise InputError(f"--out: cannot create {out} ({exc.strerror or exc})") from None
 
+    beams = emulated_lines(config)
+    if thins_scans(config):  # which scans the run learns from, said once at its start
+        log.info("scans: %s (--emulate-beams %d)", f"thinned to {beams} lines" if beams else "as stored",
+                 config.emulate_beams)
     if config.task == "depth":
         train_set = depth_dataset(train_dir, train_ids, preset, augment=not config.quick, seed=config.seed,
-                                  car_weight=config.car_weight)
-        val_set = depth_dataset(val_dir, val_ids, preset)
+                                  car_weight=config.car_weight, beams=beams)
+        val_set = depth_dataset(val_dir, val_ids, preset, beams=beams)
     elif config.task == "detector":
-        train_set = DetectorDataset(train_dir, train_ids, preset, config.input_mode, config.pseudo_dir,
+        train_set = DetectorDataset(train_dir, train_ids, preset, config.input_mode, config.pseudo_dir, beams,
                                     augment=not config.quick, seed=config.seed)
     # The training forward passes, compiled or not; validation calls the networks themselves (eager).
     forward = {"depth": networks["depth"].forward} if "depth" in networks else {}
@@ -445,6 +472,8 @@ def run(config: TrainConfig) -> TrainResult:
                      "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
                                 "optimizer": "Adam", "seed": config.seed, "precision": config.precision,
                                 "compiled": compiled}}
+    if thins_scans(config):  # the lines its scans were thinned to (0: as stored); a lidar64 run reads them as stored
+        metadata_base["emulate_beams"] = config.emulate_beams
     if config.task in ("depth", "joint"):
         metadata_base["recipe"]["depth_loss"] = config.depth_loss
     if config.train_only:
@@ -481,7 +510,7 @@ def run(config: TrainConfig) -> TrainResult:
                 total = 0.0
                 for index in batch:
                     loss = joint_step(networks, preset, train_dir, train_ids[index], config.precision, device, layout,
-                                      config.depth_loss)
+                                      config.depth_loss, beams)
                     (loss / len(batch)).backward()
                     total += loss.item() / len(batch)
                 optimizer.step()
@@ -521,7 +550,7 @@ def run(config: TrainConfig) -> TrainResult:
         else:
             metrics = validate_detector(networks["pixor"], preset, val_dir, val_ids, config.input_mode,
                                         config.val_pseudo_dir or config.pseudo_dir,
-                                        networks.get("depth") if config.task == "joint" else None, device)
+                                        networks.get("depth") if config.task == "joint" else None, device, beams)
         if config.task == "detector":
             scheduler.step(metrics["val_loss"])
         else:
@@ -563,12 +592,13 @@ def selection_criterion(task: str, metrics: dict) -> float:
 
 def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str, precision: str = "fp32",
                device: torch.device = CPU, layout: torch.memory_format = torch.contiguous_format,
-               depth_loss: str = "mse") -> torch.Tensor:
-    """Loss of one frame through depth net → soft BEV → PIXOR (+ the depth loss)."""
+               depth_loss: str = "mse", beams: int | None = 16) -> torch.Tensor:
+    """Loss of one frame through depth net → soft BEV → PIXOR (+ the depth loss); its scan thinned to ``beams``
+    lines (None or 0: as stored)."""
     from models.data import depth_target
 
     frame = load_frame(data_dir, frame_id)
-    lidar16 = frame_points(frame, 16)
+    lidar16 = frame_points(frame, beams)
     inputs = depth_inputs(frame.image, lidar16, frame.calib, preset)
     with autocast(precision, device):
         depth = networks["depth"](torch.from_numpy(inputs.rgb).to(device).contiguous(memory_format=layout),
@@ -608,6 +638,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, help="run directory (log.jsonl, state.pt, depth.pt/pixor.pt)")
     parser.add_argument("--input", dest="input_mode", default="lidar16", choices=DETECTOR_INPUTS,
                         help="detector input (default lidar16)")
+    parser.add_argument("--emulate-beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help=f"thin the stored scans to N lines ({', '.join(map(str, BEAM_COUNTS))}; default 16) for "
+                        "the depth net and PIXOR's lidar16 and pseudo inputs; 0: train on them as stored (a 16-line "
+                        "sensor's own scans need it)")
     parser.add_argument("--pseudo-dir", type=Path, help="cached dense depth PNGs for --input pseudo (training frames)")
     parser.add_argument("--val-pseudo-dir", type=Path, help="… of the validation frames (default: --pseudo-dir)")
     parser.add_argument("--depth-checkpoint", type=Path,

@@ -97,8 +97,10 @@ def _car_shares(dataset: DepthDataset, index: int, prediction: np.ndarray, targe
 
 @torch.no_grad()
 def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], input_mode: str,
-                      pseudo_dir: Path | None, depth_net=None, device: torch.device = CPU) -> dict:
-    """Validation loss and KITTI BEV AP (moderate, R40) of PIXOR on the validation frames.
+                      pseudo_dir: Path | None, depth_net=None, device: torch.device = CPU,
+                      beams: int | None = 16) -> dict:
+    """Validation loss and KITTI BEV AP (moderate, R40) of PIXOR on the validation frames, their scans thinned to
+    ``beams`` lines as the run's training frames are (None or 0: as stored; ``lidar64`` reads them as stored).
 
     The camera rows go through the Detector's own path (pseudo bins, then the voxelizer, whose height
     occupancy leaves out the pseudo points on depth edges), so the AP that picks a run's best epoch is
@@ -113,14 +115,14 @@ def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], inp
     for fid in ids:
         frame = load_frame(data_dir, fid, with_image=depth_net is not None)  # only joint runs the camera net
         if depth_net is not None or input_mode == "pseudo":
-            depth, view_calib = (joint_depth(depth_net, frame, preset, device) if depth_net is not None
+            depth, view_calib = (joint_depth(depth_net, frame, preset, device, beams) if depth_net is not None
                                  else cached_pseudo_depth(pseudo_dir, frame, preset))
             pseudo = pseudo_bins(depth, view_calib, preset.bev, *preset.pseudo_limits,
                                  max_jump=preset.decode.height_max_jump)
-            bev = voxelizer(frame_points(frame, 16), pseudo)
+            bev = voxelizer(frame_points(frame, beams), pseudo)
         else:
             pseudo = None
-            bev = voxelizer(detector_points(frame, preset, input_mode, pseudo_dir))
+            bev = voxelizer(detector_points(frame, preset, input_mode, pseudo_dir, beams))
         targets = encode_targets(car_boxes(frame), preset.bev, preset.pixor.output_stride, preset.decode)
         logits, regression = (t.cpu() for t in pixor.forward_logits(torch.from_numpy(bev)[None].to(device)))
         losses.append(float(pixor_loss(logits, regression, torch.from_numpy(targets.score)[None, None],

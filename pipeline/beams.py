@@ -204,6 +204,27 @@ def emulate_beams(points: np.ndarray, beams: int = 16, mode: str = "stride") -> 
     return points[np.isin(rings.ring, keep_rings)]
 
 
+def check_thinnable(data: Path, frames: list[str] | None, beams: int, purpose: str = "evaluate") -> None:
+    """InputError, before any model runs or trains, when the first frame's scan in ``data`` (of ``frames``, else
+    of the folder) cannot be thinned to ``beams`` lines: a 16-line sensor's scans would otherwise fail or be
+    skipped one by one. It names the file and says to give ``--emulate-beams 0``, to ``purpose`` them as stored
+    (benchmarks/accuracy.py evaluates, models.train trains on, models.cache_pseudo caches)."""
+    from pipeline.frame import frame_ids
+    from pipeline.kitti import read_velodyne
+
+    ids = frames or frame_ids(data)
+    if not ids:
+        return  # no frame: the command says so
+    path = Path(data) / "velodyne" / f"{ids[0]}.bin"
+    if not path.is_file():
+        return  # the command names the missing scan
+    try:
+        emulate_beams(read_velodyne(path).points, beams)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}; to {purpose} scans of a {beams}-line sensor as they are, give "
+                         "--emulate-beams 0") from None
+
+
 def beam_gaps(points: np.ndarray) -> int:
     """How many gaps of over _GAP_DEG lie between the sorted elevations of a scan's returns beyond _GAP_RANGE_M,
     within their 5th to 95th percentile: none for a 64-line scan's beams a third to half a degree apart, several

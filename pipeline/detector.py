@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import onnxruntime as ort
 
-from pipeline.beams import emulate_beams
+from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration, check_calibration
@@ -82,6 +82,18 @@ FEWEST_IN_GRID_SHARE = 0.01
 # left-right mirror of the BEV flips.
 MIRRORED_TARGETS = [1, 3]
 REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 written by another tool
+
+
+def trained_lines(training: dict) -> int | None:
+    """The line count of the scans a PIXOR learned from, by its manifest's training record: 64 for ``lidar64``;
+    for ``lidar16`` and ``pseudo`` the lines ``models.train --emulate-beams`` thinned them to, 16 when it took
+    them as stored (0: a 16-line sensor's own scans) or did not record it (runs before the flag); None without
+    a recorded input."""
+    lines = SCAN_LINES_BY_INPUT.get(training.get("input"))
+    emulated = training.get("emulate_beams")
+    if lines == 16 and emulated in BEAM_COUNTS:
+        return emulated
+    return lines
 
 
 class RunCancelled(Exception):
@@ -352,8 +364,7 @@ class Detector:
                                                      self._fp16_on_cpu()) if w]
         for warning in self.load_warnings:
             log.warning(warning)
-        trained_on = (networks["pixor"].get("training") or {}).get("input")
-        self.trained_lines: int | None = SCAN_LINES_BY_INPUT.get(trained_on)  # None: not recorded
+        self.trained_lines: int | None = trained_lines(networks["pixor"].get("training") or {})  # None: not recorded
 
     def _check_shapes(self) -> None:
         """The manifest's preset gives the input shapes the graphs were exported with (a hand-edited preset
