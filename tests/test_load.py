@@ -148,7 +148,6 @@ def test_open_loop_sends_on_schedule_whatever_the_answers(tmp_path, running_serv
     # Sent on time: two slots free at every due time, so none late, each out within 0.2 s of its due time,
     # and the rate achieved over the schedule's window close to the one asked for.
     assert loop["late_sends"] == 0 and loop["send_lag_ms"]["max"] < 200
-    assert 1.5 <= loop["window_s"] < 1.7
     assert abs(loop["achieved_rate_hz"] - loop["requested_rate_hz"]) < 0.25
     latency = report["latency_ms"]["200"]
     assert 0 < latency["p50"] <= latency["p90"] <= latency["p99"]

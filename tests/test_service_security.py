@@ -89,7 +89,6 @@ def test_an_ordinary_progressive_jpeg_is_decoded(client: AppClient, frame: dict[
     """libjpeg's progressive script has 10 scans, a baseline JPEG 1: both far under the limit."""
     rgb = cv2.cvtColor(decode_image(frame["image"]), cv2.COLOR_RGB2BGR)
     progressive = cv2.imencode(".jpg", rgb, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
-    assert 1 < progressive.count(b"\xff\xda") <= MAX_JPEG_SCANS
     assert client.post("/v1/detect", files=parts(frame, image=progressive)).status_code == 200
 
 
