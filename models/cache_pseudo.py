@@ -43,22 +43,23 @@ def source_sizes(data: Path, fid: str) -> list[int]:
     return [(data / folder / f"{fid}{ext}").stat().st_size for folder, ext in FRAME_FILES]
 
 
-def recorded_sources(cache: Path) -> dict[str, list[int]]:
-    """The source sizes ``cache``'s record holds per frame ({} for a folder without one, or an older record)."""
+def _read_record(cache: Path) -> dict:
+    """``cache``'s record ({} for a folder without one, or one that is not a JSON object)."""
     try:
         held = json.loads((cache / RECORD).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
-    return held.get("frames", {}) if isinstance(held, dict) else {}
+    return held if isinstance(held, dict) else {}
+
+
+def recorded_sources(cache: Path) -> dict[str, list[int]]:
+    """The source sizes ``cache``'s record holds per frame ({} for a folder without one, or an older record)."""
+    return _read_record(cache).get("frames", {})
 
 
 def recorded_beams(cache: Path) -> int | None:
     """The --emulate-beams ``cache``'s maps were made with (0: the scans as stored; None: no record)."""
-    try:
-        held = json.loads((cache / RECORD).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    beams = held.get("beams") if isinstance(held, dict) else None
+    beams = _read_record(cache).get("beams")
     return beams if isinstance(beams, int) else None
 
 

@@ -140,15 +140,20 @@ def render_bev(
     return canvas
 
 
-def bev_key_rows(title: str | None, predictions: bool, ground_truth: bool) -> list[tuple[str, tuple[int, int, int] | None]]:
-    """The rows of a BEV picture's key: its title, what the colours drawn are, and how to read the view."""
+def key_rows(title: str | None, predictions: bool, ground_truth: bool) -> list[tuple[str, tuple[int, int, int] | None]]:
+    """The rows of a picture's key: its title, then what the colours drawn are."""
     rows: list[tuple[str, tuple[int, int, int] | None]] = [(title, None)] if title else []
     if predictions:
         rows.append(("detection (score)", PREDICTION_BGR))
     if ground_truth:
         rows.append(("ground truth", GROUND_TRUTH_BGR))
-    rows.append((f"bird's-eye view: forward up, rings every {RING_STEP_M} m", None))
     return rows
+
+
+def bev_key_rows(title: str | None, predictions: bool, ground_truth: bool) -> list[tuple[str, tuple[int, int, int] | None]]:
+    """The rows of a BEV picture's key: :func:`key_rows` and how to read the view."""
+    return [*key_rows(title, predictions, ground_truth),
+            (f"bird's-eye view: forward up, rings every {RING_STEP_M} m", None)]
 
 
 def render_camera(
@@ -202,10 +207,7 @@ def render_camera(
                 cv2.rectangle(canvas, (at[0] - 2, at[1] - text_h - 3), (at[0] + text_w + 2, at[1] + 3), (0, 0, 0), -1)
                 cv2.putText(canvas, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
     if legend:
-        rows: list[tuple[str, tuple[int, int, int] | None]] = [(title, None)] if title else []
-        rows += [("detection (score)", PREDICTION_BGR)] if boxes is not None else []
-        rows += [("ground truth", GROUND_TRUTH_BGR)] if gt_boxes is not None else []
-        draw_key(canvas, rows, corner="top-right")
+        draw_key(canvas, key_rows(title, boxes is not None, gt_boxes is not None), corner="top-right")
     return canvas
 
 
