@@ -88,8 +88,8 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
     ids = _frames(Path(data), split_file)[:first]
     if beams not in (0, *BEAM_COUNTS):  # argparse's choices, for library callers
         raise InputError(f"--emulate-beams: {beams} is not one of 0, {', '.join(map(str, BEAM_COUNTS))}")
-    if beams:  # a 16-line sensor's scans: one line naming the first, not an error without a file name
-        check_thinnable(Path(data), ids, beams, "cache the depth of")
+    # A 16-line sensor's scans to thin, or 64-line ones as stored: one line naming the first, before any map.
+    check_thinnable(Path(data), ids, beams, "cache the depth of")
     detector = Detector(models, intra_op_threads=threads, networks_used=("depth",))  # PIXOR is not run here
     if not detector.two_stage:
         raise InputError(f"--models: {models} has no depth network")

@@ -243,14 +243,14 @@ def check_thinnable_scans(config: TrainConfig, train_dir: Path, train_ids: list[
                           val_ids: list[str]) -> None:
     """The first training and validation scans thin to --emulate-beams lines: a 16-line sensor's scans, left at
     the default 16, are refused now in one line naming the scan and the flag (--emulate-beams 0), not by the
-    first batch's emulate_beams error without a file name. A drive's maps are thinned through its calibration,
-    which read_frame checks."""
-    beams = emulated_lines(config)
-    if beams is None:
+    first batch's emulate_beams error without a file name. With --emulate-beams 0 they must not have 64 lines,
+    or the run would learn from 64 as if from 16 and its manifest say 16. A drive's maps are thinned through its
+    calibration, which read_frame checks."""
+    if not thins_scans(config):
         return
     for folder, first in dict.fromkeys(((train_dir, train_ids[0]), (val_dir, val_ids[0]))):  # each pair once
         if not is_drive_folder(folder):
-            check_thinnable(folder, [first], beams, "train on")
+            check_thinnable(folder, [first], config.emulate_beams, "train on")
 
 
 def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str]) -> None:

@@ -208,7 +208,10 @@ def check_thinnable(data: Path, frames: list[str] | None, beams: int, purpose: s
     """InputError, before any model runs or trains, when the first frame's scan in ``data`` (of ``frames``, else
     of the folder) cannot be thinned to ``beams`` lines: a 16-line sensor's scans would otherwise fail or be
     skipped one by one. It names the file and says to give ``--emulate-beams 0``, to ``purpose`` them as stored
-    (benchmarks/accuracy.py evaluates, models.train trains on, models.cache_pseudo caches)."""
+    (benchmarks/accuracy.py evaluates, models.train trains on, models.cache_pseudo caches).
+
+    ``beams`` 0 (scans taken as stored, a 16-line sensor's own): InputError when the first scan has 64 lines,
+    which a run would learn from as if a 16-line sensor's, and its manifest record so."""
     from pipeline.frame import frame_ids
     from pipeline.kitti import read_velodyne
 
@@ -219,10 +222,15 @@ def check_thinnable(data: Path, frames: list[str] | None, beams: int, purpose: s
     if not path.is_file():
         return  # the command names the missing scan
     try:
-        emulate_beams(read_velodyne(path).points, beams)
+        emulate_beams(read_velodyne(path).points, beams or 16)
     except InputError as exc:
-        raise InputError(f"{path}: {exc}; to {purpose} scans of a {beams}-line sensor as they are, give "
-                         "--emulate-beams 0") from None
+        if beams:
+            raise InputError(f"{path}: {exc}; to {purpose} scans of a {beams}-line sensor as they are, give "
+                             "--emulate-beams 0") from None
+        return  # not a 64-line scan: a sensor's own, as --emulate-beams 0 says
+    if not beams:
+        raise InputError(f"{path}: the scan has 64 lines, and --emulate-beams 0 would {purpose} it as stored, as a "
+                         "16-line sensor's; give --emulate-beams 16 to thin such scans")
 
 
 def beam_gaps(points: np.ndarray) -> int:

@@ -180,13 +180,27 @@ def test_cache_pseudo_caches_the_depth_of_the_stored_scan(sensor16, tiny_models,
     expected, _ = Detector(tiny_models).dense_depth(frame.image, frame.points, frame.calib)
     np.testing.assert_allclose(read_depth_png(out / "000006.png"), expected, rtol=0, atol=1 / 512 + 1e-6)
     assert json.loads((out / "cache.json").read_text())["beams"] == 0
-    # On a 64-line folder 0 keeps all 64 lines: another map than the 16-line one.
+    # On a 64-line folder 0 would cache the depth of all 64 lines as a 16-line sensor's: refused by name.
     full = tmp_path / "full"
-    assert cache_main(["--data", str(KITTI), "--models", str(tiny_models), "--out", str(full), "--frames", "1",
-                       "--emulate-beams", "0"]) == 0
-    kitti = load_frame(KITTI, "000000", with_labels=False)
-    expected, _ = Detector(tiny_models).dense_depth(kitti.image, kitti.points, kitti.calib)
-    np.testing.assert_allclose(read_depth_png(full / "000000.png"), expected, rtol=0, atol=1 / 512 + 1e-6)
+    capsys.readouterr()  # the run's progress bars
+    says = _error(["--data", str(KITTI), "--models", str(tiny_models), "--out", str(full), "--frames", "1",
+                   "--emulate-beams", "0"], capsys, cache_main)
+    assert says == (f"error: {KITTI / 'velodyne' / '000000.bin'}: the scan has 64 lines, and --emulate-beams 0 would "
+                    "cache the depth of it as stored, as a 16-line sensor's; give --emulate-beams 16 to thin such "
+                    "scans")
+    assert not full.exists()
+
+
+@pytest.mark.parametrize(("task", "extra"), [("detector", ["--input", "lidar16"]), ("depth", [])])
+def test_the_flag_refuses_64_line_scans(tmp_path, capsys, task, extra):
+    """--emulate-beams 0 on a 64-line folder would train on 64 lines while the manifest says 16 (the detector's
+    line-count warnings then point the wrong way): refused before any training, naming the first scan."""
+    out = tmp_path / "run"
+    says = _error(_train(task, KITTI, out, "--emulate-beams", "0", *extra), capsys)
+    first = min(p.stem for p in (KITTI / "velodyne").glob("*.bin"))
+    assert says.startswith(f"error: {KITTI / 'velodyne' / f'{first}.bin'}: the scan has 64 lines, and "
+                           "--emulate-beams 0 would train on it as stored")
+    assert not out.exists()
 
 
 def test_a_pseudo_run_trains_on_maps_cached_with_its_own_line_count(sensor16, tiny_models, tmp_path, capsys):
@@ -206,7 +220,7 @@ def test_a_pseudo_run_trains_on_maps_cached_with_its_own_line_count(sensor16, ti
     kitti_maps = tmp_path / "kitti_pseudo"
     cache_pseudo(KITTI, tiny_models, kitti_maps, split_file=split, progress=False)  # 16 lines
     says = _error(_train("detector", KITTI, tmp_path / "other", "--train-split", str(split), "--val-split", str(split),
-                         "--input", "pseudo", "--pseudo-dir", str(kitti_maps), "--emulate-beams", "0"), capsys)
+                         "--input", "pseudo", "--pseudo-dir", str(kitti_maps), "--emulate-beams", "8"), capsys)
     assert f"--pseudo-dir {kitti_maps}: its maps were made with --emulate-beams 16 (cache.json)" in says
 
 
