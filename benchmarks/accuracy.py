@@ -40,7 +40,14 @@ from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
-from evaluation.frames import LabelSet, first_frames, ground_truth_frames, load_label_dirs, read_split_file
+from evaluation.frames import (
+    LabelSet,
+    check_ground_truth,
+    first_frames,
+    ground_truth_frames,
+    load_label_dirs,
+    read_split_file,
+)
 from evaluation.kitti_eval import (
     DEFAULT_IOU_THRESHOLDS,
     BootstrapResult,
@@ -491,7 +498,7 @@ def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, 
         raise InputError(f"--data {args.data}: directory not found")
     if not (args.data / "label_2").is_dir():
         raise InputError(f"--data {args.data}: no label_2/ (the ground truth to evaluate the detections against)")
-    ground_truth_frames(args.data / "label_2", frames)
+    scored = ground_truth_frames(args.data / "label_2", frames)
     if frames is None and first is None:  # every scan is run and every label scored: each needs the other
         scans = frame_ids(args.data)
         unlabelled = [fid for fid in scans if not (args.data / "label_2" / f"{fid}.txt").is_file()]
@@ -506,6 +513,8 @@ def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, 
             raise InputError(f"--data {args.data}: label_2/{unscanned[0]}.txt{more} has no scan "
                              f"(velodyne/{unscanned[0]}.bin), so its cars would count as missed; give --split-file or "
                              "--frames to leave it out")
+    # Parsed now, not after the detector's run: one broken label file would otherwise cost the whole table.
+    check_ground_truth(args.data / "label_2", scored[:first], progress=not args.no_progress)
     if args.depth_dir is not None and not args.depth_dir.is_dir():
         raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
     if args.compare_pred_labels is not None:

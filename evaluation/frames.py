@@ -71,6 +71,20 @@ def ground_truth_frames(gt_dir: str | Path, frame_ids: Sequence[str] | None = No
     return list(frame_ids)
 
 
+def check_ground_truth(gt_dir: str | Path, frame_ids: Sequence[str], progress: bool = False) -> None:
+    """Parse the ground-truth label file of every frame in ``frame_ids``; the first unusable one is an InputError
+    naming its line and field. For a run that detects before it evaluates: a broken label file is otherwise
+    found only after the detector has been over every frame (tens of minutes on KITTI's val split), and the
+    run ends without its table. About 0.1 ms a file."""
+    gt_dir = Path(gt_dir)
+    for frame_id in tqdm(frame_ids, desc="check labels", disable=not progress):
+        try:
+            read_labels(gt_dir / f"{frame_id}.txt")
+        except InputError as exc:
+            raise InputError(f"{exc}; mend the ground truth, or give --split-file or --frames to leave frame "
+                             f"{frame_id} out") from exc
+
+
 def load_label_dirs(
     gt_dir: str | Path,
     pred_dir: str | Path,

@@ -199,6 +199,7 @@ def frame_source(data: Path | None, drive: Path | None, frames: list[str] | None
         frames = read_split_file(split_file)
     if data is not None:
         ids = _chosen_frames(frame_ids(data), frames, Path(data) / "velodyne", f"{data}: no frames", split_file)
+        _check_frame_folders(Path(data))
         if not frames:  # every frame: one whose image has no scan would otherwise get no result file, unsaid
             ids = sorted({*ids, *_image_ids(Path(data))})
         return FrameSource(ids, lambda fid: load_frame(data, fid, with_labels=False),  # labels: read for pictures
@@ -215,6 +216,19 @@ def frame_source(data: Path | None, drive: Path | None, frames: list[str] | None
         return FrameSource([frame.frame_id], lambda fid: frame, lambda fid: files, single=True)
     raise InputError("give --data DIR or --drive DIR (and optionally --frame), or all of --image, --points and "
                      "--calib")
+
+
+# An object folder's folders besides velodyne/ (frame_ids checks that one) that every frame reads from.
+FRAME_FOLDERS = {"image_2": "the camera images", "calib": "the calibrations"}
+
+
+def _check_frame_folders(data: Path) -> None:
+    """An InputError for an object folder without image_2/ or calib/: a wrong --data, said once before any model
+    loads, rather than every frame skipped in turn with its own line."""
+    for folder, holds in FRAME_FOLDERS.items():
+        if not (data / folder).is_dir():
+            raise InputError(f"{data}: no {folder}/ ({holds}) inside; a KITTI object folder holds image_2/, "
+                             "velodyne/ and calib/")
 
 
 def _warn_of_earlier_outputs(out: Path, ids: list[str], pictures: bool) -> None:

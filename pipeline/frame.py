@@ -17,6 +17,7 @@ from pipeline.kitti import (
     read_image_size,
     read_labels,
     read_raw_calib,
+    read_text_file,
     read_velodyne,
 )
 
@@ -57,10 +58,7 @@ class Frame:
 def read_split_file(path: str | Path) -> list[str]:
     """Frame ids, one per line (e.g. ``000123``), as in the ImageSets ``val.txt`` of Qian/Chen et al."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read split file ({exc})") from exc
+    text = read_text_file(path, "split file")
     ids: list[str] = []
     first_line: dict[str, int] = {}
     for line_no, line in enumerate(text.splitlines(), start=1):

@@ -9,8 +9,10 @@ are :class:`~pipeline.errors.InputError` naming the source and the problem.
 
 from __future__ import annotations
 
+import codecs
 import math
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,8 +44,23 @@ class Scan:
     source: str = ""
 
 
+# Printable ASCII and the whitespace of text lines: what no scan's first points are made of alone.
+_TEXT_BYTES = bytes(range(0x20, 0x7F)) + b"\t\n\r"
+
+
+def _looks_like_text(data: bytes) -> bool:
+    """Whether a scan's first 64 bytes (4 points) are all text: an error page a download saved under the scan's
+    name, or points written as text. A real scan's 16 float32 values all landing on printable bytes has a
+    chance of about 1e-20 (each reflectance in [0, 1] has a byte 0x00 or above 0x7f in most values)."""
+    head = data[:64]
+    return len(head) >= POINT_BYTES and not head.translate(None, _TEXT_BYTES)
+
+
 def parse_velodyne(data: bytes, source: str = "<points>") -> Scan:
     """Decode a KITTI velodyne ``.bin`` payload; drop and count non-finite rows."""
+    if _looks_like_text(data):  # else read as floats: a size or reflectance error that hides what the file is
+        raise InputError(f"{source}: holds text ({data[:40].decode('ascii')!r}…), not a scan's float32 rows: a "
+                         "download that saved an error page, or a scan written as text?")
     if len(data) % POINT_BYTES != 0:
         raise InputError(
             f"{source}: size {len(data)} bytes is not a multiple of {POINT_BYTES} "
@@ -89,6 +106,33 @@ def write_velodyne(path: str | Path, points: np.ndarray) -> None:
     Path(path).write_bytes(np.ascontiguousarray(points, dtype="<f4").tobytes())
 
 
+# --------------------------------------------------------------------------- text files
+UTF16_BOMS = (codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)  # what Windows PowerShell's `>` starts its files with
+
+
+def read_text_file(path: str | Path, what: str, encoding: str = "ascii") -> str:
+    """The text of a KITTI text file, ``what`` naming it in errors ("labels", "calibration", "split file").
+
+    A UTF-8 byte-order mark, which Windows editors write, is dropped (it would stick to the first field); a
+    UTF-16 file and a byte ``encoding`` cannot hold are InputErrors naming the file and the line, rather than
+    the codec's "position 0" of the whole file."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read {what} ({exc.strerror or exc})") from exc
+    if data.startswith(UTF16_BOMS):
+        raise InputError(f"{path}: UTF-16 text (as Windows PowerShell's '>' writes it); save the {what} as "
+                         f"{encoding.upper()} text")
+    data = data.removeprefix(codecs.BOM_UTF8)
+    try:
+        return data.decode(encoding)
+    except UnicodeDecodeError as exc:
+        line = data.count(b"\n", 0, exc.start) + 1
+        raise InputError(f"{path}, line {line}: byte 0x{data[exc.start]:02x} is not {encoding.upper()} text; save "
+                         f"the {what} as {encoding.upper()}, as KITTI's own files are") from None
+
+
 # --------------------------------------------------------------------------- calibration
 def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
                   every_line_a_key: bool = True) -> dict[str, np.ndarray]:
@@ -104,9 +148,12 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
         key = key.strip()
         if not sep:
             if every_line_a_key:
-                raise InputError(f"{source}, line {line_no}: expected 'KEY: numbers', got {line[:60]!r}")
+                hint = _layout_hint({*seen, line.split()[0]}, shapes)
+                raise InputError(f"{source}, line {line_no}: expected 'KEY: numbers', got {line[:60]!r}{hint}")
             continue
-        _refuse_repeated_key(key, line_no, seen, source)
+        if key in seen:
+            _refuse_repeated_key(key, line_no, seen, source, _layout_hint(seen, shapes))
+        seen[key] = line_no
         if key not in shapes:
             continue  # keys not needed: P0, P1, P3, Tr_imu_to_velo; the raw files' other cameras, calib_time …
         try:
@@ -127,8 +174,34 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
         values[key] = numbers.reshape(shape)
     missing = [k for k in shapes if k not in values]
     if missing:
-        raise InputError(f"{source}: missing calibration key(s) {', '.join(missing)}")
+        raise InputError(f"{source}: missing calibration key(s) {', '.join(missing)}{_layout_hint(seen, shapes)}")
     return values
+
+
+# The keys that tell KITTI's calibration layouts apart, each with what to do with a file of it where another
+# layout is read: a raw drive's calib_cam_to_cam.txt copied into an object folder's calib/ is otherwise only
+# "missing P2, R0_rect, Tr_velo_to_cam".
+CALIB_LAYOUTS = (
+    (("P2", "R0_rect", "Tr_velo_to_cam"), "a KITTI object calib/ID.txt (P2, R0_rect, Tr_velo_to_cam)",
+     "an object folder's frames are read with --data"),
+    (("P_rect_02", "R_rect_00"), "KITTI raw's calib_cam_to_cam.txt (P_rect_02, R_rect_00)",
+     "a raw drive is read with --drive, which takes its calib_cam_to_cam.txt and calib_velo_to_cam.txt together"),
+    (("R", "T"), "KITTI raw's calib_velo_to_cam.txt (R, T)",
+     "a raw drive is read with --drive, which takes its calib_cam_to_cam.txt and calib_velo_to_cam.txt together"),
+    (("R_rect", "Tr_velo_cam"), "a KITTI tracking calib (R_rect, Tr_velo_cam, without colons)",
+     "write them as the object layout's 'R0_rect:' and 'Tr_velo_to_cam:'"),
+)
+
+
+def _layout_hint(keys: Iterable[str], shapes: dict[str, tuple[int, int]]) -> str:
+    """For an error in a calibration file: '; the file is <its layout>, not <the one read>: <what to do>' when
+    ``keys`` (those read so far) are another KITTI layout's than ``shapes``'; "" otherwise. Error paths only."""
+    keys = set(keys)
+    wanted = next((desc for names, desc, _ in CALIB_LAYOUTS if set(names) <= set(shapes)), "")
+    for names, desc, advice in CALIB_LAYOUTS:
+        if desc != wanted and keys & (set(names) - set(shapes)):  # P2 alone is no sign: tracking files have it
+            return f"; the file is {desc}, not {wanted}: {advice}"
+    return ""
 
 
 # Calibration tools other than KITTI's often write the rigid transforms as 4×4 homogeneous matrices.
@@ -157,21 +230,17 @@ def parse_calib(text: str, source: str = "<calib>") -> Calibration:
                                          Tr_velo_to_cam=values["Tr_velo_to_cam"]), source)
 
 
-def _refuse_repeated_key(key: str, line_no: int, seen: dict[str, int], source: object) -> None:
-    """Note where ``key`` is given; a key given twice is refused: which of the two values is meant cannot be
-    known, and taking either silently projects every point with a matrix the file may not mean."""
-    if key in seen:
-        raise InputError(f"{source}, line {line_no}: {key} given twice (first on line {seen[key]})")
-    seen[key] = line_no
+def _refuse_repeated_key(key: str, line_no: int, seen: dict[str, int], source: object, hint: str = "") -> None:
+    """Refuse ``key`` given again on ``line_no`` (``seen``: where each key was first given): which of the two
+    values is meant cannot be known, and taking either silently projects every point with a matrix the file
+    may not mean. ``hint``: the file's layout, when it is not the one read (two raw files joined into one)."""
+    raise InputError(f"{source}, line {line_no}: {key} given twice (first on line {seen[key]}){hint}")
 
 
 def _calib_text(path: Path) -> str:
-    """A calibration file's text; 'utf-8-sig' drops the byte-order mark a Windows editor writes (it would
-    stick to the first key)."""
-    try:
-        return path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read calibration ({exc})") from exc
+    """A calibration file's text (its byte-order mark dropped); UTF-8, not ASCII, as the raw files'
+    ``calib_time`` may be written in another locale's month names."""
+    return read_text_file(path, "calibration", "utf-8")
 
 
 def read_calib(path: str | Path) -> Calibration:
@@ -257,6 +326,15 @@ def _label_number(text: str, position: int, source: str, line_no: int) -> float:
     return value
 
 
+def _tracking_hint(fields: list[str]) -> str:
+    """For a line of the wrong length: the hint that it is a KITTI tracking label, whose lines start with the
+    frame number and track id (-1 for DontCare) before the object's 15 or 16 fields; "" otherwise."""
+    if len(fields) in (17, 18) and fields[0].isdigit() and fields[1].lstrip("-").isdigit():
+        return (f" (a KITTI tracking label line? Frame {fields[0]}, track {fields[1]} come before the type "
+                f"{fields[2]!r}: the object layout keeps the fields from the type on, one file per frame)")
+    return ""
+
+
 def parse_labels(text: str, source: str = "<labels>", needs_score: bool = False) -> list[Object3D]:
     """Parse KITTI label lines; 15 fields (ground truth) or 16 (result with score).
 
@@ -270,6 +348,7 @@ def parse_labels(text: str, source: str = "<labels>", needs_score: bool = False)
         if len(fields) not in (15, 16):
             raise InputError(
                 f"{source}, line {line_no}: expected 15 fields (16 with a score), got {len(fields)}"
+                f"{_tracking_hint(fields)}"
             )
         if needs_score and len(fields) == 15:
             raise InputError(f"{source}, line {line_no}: {fields[0]} has 15 fields; a result line needs a 16th, the score")
@@ -291,10 +370,7 @@ RESULT_DECIMALS = 4  # of a result line's alpha, size, location and rotation (fo
 def read_labels(path: str | Path, needs_score: bool = False) -> list[Object3D]:
     """Read a KITTI ``label_2`` (or result) file; needs_score as :func:`parse_labels`."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="ascii")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: cannot read labels ({exc})") from exc
+    text = read_text_file(path, "labels")
     return parse_labels(text, str(path), needs_score)
 
 
@@ -328,6 +404,9 @@ DEPTH_SCALE = 256.0  # KITTI depth PNG: uint16, metres × 256, 0 = no measuremen
 
 def decode_depth_png(data: bytes, source: str = "<depth>") -> np.ndarray:
     """Decode a KITTI depth PNG into float32 metres (0 where there is no measurement)."""
+    if not data:  # OpenCV asserts on an empty buffer: a traceback, not a skipped frame
+        raise InputError(f"{source}: empty depth PNG")
+    check_image_end(data, source)  # a cut-off map: named so, and libpng kept quiet
     raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise InputError(f"{source}: not a readable PNG")
