@@ -36,9 +36,9 @@ from pipeline.depth_completion import (
     read_frame,
 )
 from pipeline.detector import Detector
-from pipeline.errors import InputError
+from pipeline.errors import InputError, in_frame
 from pipeline.frame import frame_ids, load_frame
-from pipeline.kitti import read_depth_png, read_image_depth_png
+from pipeline.kitti import read_image_depth_png
 from pipeline.model_files import load_manifest
 from pipeline.preprocess import depth_view, view_calibration, view_from_depth_png
 from pipeline.render import render_depth_panel, write_png
@@ -199,8 +199,9 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
             image, sparse = dc_frame.image, dc_frame.sparse
             crop_gt = _crop_ground_truth(dc_frame.ground_truth, preset)
             if depth_dir is None:
-                rgb, sparse_view = view_from_depth_png(image, sparse, preset)
-                prediction = _to_crop_resolution(detector.run_depth_net(rgb, sparse_view), crop_gt.shape)
+                with in_frame(f"{data}, frame {fid}"):
+                    rgb, sparse_view = view_from_depth_png(image, sparse, preset)
+                    prediction = _to_crop_resolution(detector.run_depth_net(rgb, sparse_view), crop_gt.shape)
             else:
                 prediction = _crop_ground_truth(read_image_depth_png(depth_dir / f"{fid}.png", image.shape[:2]), preset)
             per_frame[fid] = depth_metrics(prediction, crop_gt, _given_pixels(prediction, depth_dir))
@@ -211,11 +212,13 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
         labelled = (data / "label_2").is_dir()
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             frame = load_frame(data, fid, with_labels=labelled)
-            points = emulate_beams(frame.points, beams) if beams else frame.points
-            gt = read_depth_png(data / "depth_2" / f"{fid}.png")
+            with in_frame(f"{data}, frame {fid}"):
+                points = emulate_beams(frame.points, beams) if beams else frame.points
+            gt = read_image_depth_png(data / "depth_2" / f"{fid}.png", frame.image_hw)
             crop_gt = _crop_ground_truth(gt, preset)
             if depth_dir is None:
-                view_depth, view_calib = detector.dense_depth(frame.image, points, frame.calib)
+                with in_frame(f"{data}, frame {fid}"):
+                    view_depth, view_calib = detector.dense_depth(frame.image, points, frame.calib)
                 prediction = _to_crop_resolution(view_depth, crop_gt.shape)
             else:  # the pipeline's view of a given map, as `detect --depth-dir` makes it
                 given = read_image_depth_png(depth_dir / f"{fid}.png", frame.image_hw)

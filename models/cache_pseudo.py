@@ -28,7 +28,7 @@ from tqdm import tqdm
 from pipeline.beams import BEAM_COUNTS, check_thinnable, emulate_beams
 from pipeline.cli import check_not_input, check_output, interrupted, list_or_count, unwritable
 from pipeline.detector import Detector
-from pipeline.errors import InputError
+from pipeline.errors import InputError, in_frame
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import write_depth_png
 from pipeline.model_files import ModelFileError
@@ -106,8 +106,9 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
         if target.exists() and made_from.get(fid) == sources:
             continue  # a map without its sources recorded (a run stopped between the two) is made again
         frame = load_frame(data, fid, with_labels=False)
-        points = emulate_beams(frame.points, beams) if beams else frame.points
-        depth, _ = detector.dense_depth(frame.image, points, frame.calib)
+        with in_frame(f"{data}, frame {fid}"):
+            points = emulate_beams(frame.points, beams) if beams else frame.points
+            depth, _ = detector.dense_depth(frame.image, points, frame.calib)
         partial = target.with_suffix(".tmp.png")
         try:  # written whole, then renamed: an interrupted run leaves no truncated map to skip next time
             write_depth_png(partial, depth)

@@ -2,11 +2,12 @@
 
 With a model directory (the shipped ``weights/edge`` by default) it runs the
 full two-stage detector on the frame's scan thinned to 16 lines and writes the
-KITTI result file, the BEV picture and the camera view. Without one it runs the frame-processing
-core alone — 16-line emulation, the depth-net view and its sparse depth, the
-BEV tensor — and writes pictures of each step.
+KITTI result file, the BEV picture and the camera view. With ``--core`` (or
+when the default directory is missing) it runs the frame-processing core alone
+— 16-line emulation, the depth-net view and its sparse depth, the BEV tensor —
+and writes pictures of each step.
 
-    python -m pipeline.demo [--models DIR] [--frame 000006] [--out outputs/demo]
+    python -m pipeline.demo [--models DIR | --core] [--frame 000006] [--out outputs/demo]
 """
 
 from __future__ import annotations
@@ -77,8 +78,8 @@ def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
 
 
 def run(models: Path | None, frame_id: str, out: Path) -> dict:
-    """Detector on the bundled frame when a model directory exists, else the core alone."""
-    if models is None or not (models / "manifest.json").exists():
+    """The detector of the model directory ``models`` on the bundled frame; None: the core alone."""
+    if models is None:
         return run_core(frame_id, out)
     from pipeline.detect import run as detect
 
@@ -92,14 +93,33 @@ def run(models: Path | None, frame_id: str, out: Path) -> dict:
     }
 
 
+def _models(args: argparse.Namespace) -> Path | None:
+    """The model directory to run, None for the core alone: a --models that is not a model directory is an
+    error (a mistyped path would otherwise run the core and exit 0, its summary's "mode" the only sign)."""
+    if args.core:
+        return None
+    if args.models is None:  # the shipped weights, else the core (a checkout without them)
+        if (DEFAULT_MODELS / "manifest.json").is_file():
+            return DEFAULT_MODELS
+        print(f"no model directory at {DEFAULT_MODELS}: running the frame-processing core alone", file=sys.stderr)
+        return None
+    if not (args.models / "manifest.json").is_file():
+        raise InputError(f"--models {args.models}: no manifest.json, so not a model directory (python -m export "
+                         "writes one); --core runs the frame-processing core alone")
+    return args.models
+
+
 @quiet_interrupt("the pictures and result files written so far stay in --out")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument("--models", type=Path, help=f"model directory (default {DEFAULT_MODELS})")
+    which.add_argument("--core", action="store_true",
+                       help="run the frame-processing core alone, without a model (pictures of each step)")
     parser.add_argument("--frame", default="000006", help="bundled KITTI frame: 000000, 000001, 000003, 000004, 000006")
     parser.add_argument("--out", type=Path, default=Path("outputs/demo"),
                         help="output folder (default outputs/demo): the KITTI result file in OUT/data, the PNG pictures "
-                        "in OUT/bev and OUT/camera (without a model directory: OUT/<frame>_*.png of each step)")
+                        "in OUT/bev and OUT/camera (with --core: OUT/<frame>_*.png of each step)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if not SAMPLE_DIR.is_dir():  # `pip install .` (not -e) leaves tests/data and weights/ behind
@@ -107,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
               "or pip install -e .); for your own frames use python -m pipeline.detect --models DIR", file=sys.stderr)
         return 2
     try:
-        summary = run(args.models, args.frame, args.out)
+        summary = run(_models(args), args.frame, args.out)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -1,5 +1,8 @@
 """Errors a user can act on: each names the file or field and what is wrong with it."""
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 
 class InputError(ValueError):
     """A bad input file, array or request field.
@@ -8,6 +11,16 @@ class InputError(ValueError):
     argument name) and the problem, so that a CLI can print it and a service
     can answer it as a 4xx without a traceback.
     """
+
+
+@contextmanager
+def in_frame(where: str) -> Iterator[None]:
+    """Prefix an InputError raised inside with ``where`` (a folder and frame): the Detector and emulate_beams
+    name only the field ("points: …"), which in a run over thousands of frames says nothing of which one."""
+    try:
+        yield
+    except InputError as exc:
+        raise InputError(f"{where}: {exc}") from exc
 
 
 # The runtime install (`make demo`, `pip install -e .`) has no torch; the commands that need it say so.

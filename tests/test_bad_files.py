@@ -222,3 +222,32 @@ def test_accuracy_reads_the_ground_truth_before_the_detector_runs(tiny_models, t
                 "--input", "lidar16+camera", "--out", tmp_path / "run", "--no-progress", "--frames", "1")
     assert done.returncode == 0, done.stderr
     assert "Car AP" in done.stdout
+
+
+# --------------------------------------------------------------------------- the frame in a per-frame error
+def test_cache_pseudo_names_the_frame_the_detector_refused(tiny_models, tmp_path):
+    """The Detector names only the field ("image: …"); over thousands of frames the run must say which one."""
+    import cv2
+
+    from models.cache_pseudo import run as cache_pseudo
+
+    data = _object_folder(tmp_path / "kitti")
+    small = data / "image_2" / "000006.png"
+    cv2.imwrite(str(small), cv2.imread(str(small))[::2, ::2])
+    with pytest.raises(InputError, match=rf"^{data}, frame 000006: image: "):
+        cache_pseudo(data, tiny_models, tmp_path / "maps", progress=False)
+    assert (tmp_path / "maps" / "000003.png").is_file()  # the frames before it are kept
+
+
+def test_accuracy_depth_refuses_a_ground_truth_map_of_another_size(tiny_models, tmp_path):
+    """A depth_2 map not of the image's size was cropped as if it were, and then reported as the image's fault."""
+    from evaluation.harness import run_depth
+    from simulation.run import RunConfig
+    from simulation.run import run as simulate
+
+    data = tmp_path / "sim"
+    simulate(RunConfig(out=data, frames=1, seed=2, split="val", progress=False))
+    truth = data / "depth_2" / "000000.png"
+    write_depth_png(truth, read_depth_png(truth)[::2, ::2])
+    with pytest.raises(InputError, match=rf"^{truth}: a 621×188 depth map for a 1242×375 image; it must cover"):
+        run_depth(data, tiny_models, progress=False)

@@ -1,5 +1,6 @@
 """Every command answers --help, and a count of zero is refused by the flag, in one line, before any work."""
 
+import json
 import os
 import re
 import shutil
@@ -174,3 +175,20 @@ def test_ctrl_c_ends_a_command_with_one_line(name, args, where, says, tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 130 and len(err) == 1 and err[0].startswith("interrupted: "), err
     assert says.format(tmp=tmp_path) in err[0]
+
+
+def test_the_demo_refuses_a_models_folder_that_is_not_one(tmp_path, capsys):
+    """A mistyped --models ran the core alone and exited 0, its summary's "mode" the only sign; --core asks for
+    the core by name."""
+    from pipeline.demo import main
+
+    typo = tmp_path / "weigths" / "edge"
+    assert main(["--models", str(typo), "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err == (f"error: --models {typo}: no manifest.json, so not a model directory (python "
+                                       "-m export writes one); --core runs the frame-processing core alone\n")
+    assert not (tmp_path / "o").exists()
+    assert main(["--core", "--frame", "000003", "--out", str(tmp_path / "o")]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["mode"] == "core (no model directory)"
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [
+        "000003_bev_16.png", "000003_bev_64.png", "000003_sparse_depth_16.png"]
