@@ -4,7 +4,7 @@
     python benchmarks/sim_report.py --sim DIR --frames 100 --figure docs/img/sim_vs_kitti.jpg
 
 Prints markdown tables (paste into docs/simulation.md). Without --sim it first generates --frames
-frames (seed --seed) into a temporary folder, about 2 s a frame, and deletes them afterwards.
+frames (seed --seed) into a temporary folder, about 1 s a frame, and deletes them afterwards.
 The figure needs matplotlib (the dev extras: make setup-dev).
 """
 

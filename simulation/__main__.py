@@ -4,12 +4,42 @@ from __future__ import annotations
 
 import argparse
 import logging
+import signal
 import statistics
 import sys
+import threading
+from collections.abc import Iterator
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from pathlib import Path
+from types import FrameType
 
 from pipeline.cli import interrupted, non_negative_int, positive_int
 from simulation.run import RunConfig, run
+
+TERMINATED_STATUS = 143  # 128 + SIGTERM: what a shell reports for a command that `kill` or `timeout` stopped
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised where the run is, so it stops as Ctrl-C does (the finished frames listed)."""
+
+
+def _raise_terminated(signum: int, frame: FrameType | None) -> None:
+    raise Terminated
+
+
+@contextmanager
+def _sigterm_stops_like_ctrl_c() -> Iterator[None]:
+    """A build server's stop (`timeout`, `kill`, a CI job's cancel) sends SIGTERM, which by default ends the
+    process at once: no split list for the frames finished, and a traceback-less exit status -15."""
+    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -17,35 +47,49 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m simulation",
         description="Generate synthetic driving frames in the KITTI object layout: image_2/*.png, "
         "velodyne/*.bin (64-line), calib/*.txt, label_2/*.txt and depth_2/*.png (dense depth, "
-        "metres × 256), plus ImageSets/<split>.txt. Frame i depends only on (seed, i).",
+        "metres × 256), plus ImageSets/<split>.txt. Frame i depends only on (seed, i). Each file appears "
+        "whole or not at all; rerun the same command to resume a stopped run.",
     )
     parser.add_argument("--out", type=Path, required=True, help="output folder (KITTI 'training/' equivalent)")
     parser.add_argument("--frames", type=positive_int, required=True, help="number of frames to write")
-    parser.add_argument("--seed", type=non_negative_int, required=True, help="run seed; use disjoint seeds for train and val")
+    parser.add_argument("--seed", type=non_negative_int, required=True,
+                        help="run seed; use disjoint seeds (or disjoint --start ranges) for train and val")
     parser.add_argument("--start", type=non_negative_int, default=0, help="first frame index / file id (default 0)")
     parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
     parser.add_argument("--split", default="train", help="name of the ImageSets list file (default train)")
+    parser.add_argument("--imagesets", type=Path, default=None, metavar="DIR",
+                        help="folder of the split list (default OUT/ImageSets); with --out ROOT/training or "
+                        "ROOT/testing give ROOT/ImageSets, where OpenPCDet and mmdetection3d read it")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
+    resume = f"the frames finished are in {args.out}; rerun the same command to resume"
     try:
-        result = run(RunConfig(out=args.out, frames=args.frames, seed=args.seed, start=args.start,
-                               workers=args.workers, split=args.split, progress=not args.no_progress))
+        with _sigterm_stops_like_ctrl_c():
+            result = run(RunConfig(out=args.out, frames=args.frames, seed=args.seed, start=args.start,
+                                   workers=args.workers, split=args.split, progress=not args.no_progress,
+                                   imagesets=args.imagesets))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # each frame's files are whole (depth_2 last, renamed into place)
-        return interrupted(f"the frames finished are in {args.out}; rerun the same command to resume")
+    except Terminated:
+        print(f"terminated: {resume}", file=sys.stderr)
+        return TERMINATED_STATUS
+    except KeyboardInterrupt:  # each frame's files are whole (renamed into place, depth_2 last)
+        return interrupted(resume)
+    except BrokenProcessPool:  # the OOM killer or a `kill -9` took a worker: its frame is not on disk
+        print(f"error: a worker process ended abruptly (killed, or out of memory?); {resume}", file=sys.stderr)
+        return 2
     except OSError as exc:  # --out cannot be written (no permission, a full disk)
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"error: --out {args.out}: {where}{exc.strerror or exc}", file=sys.stderr)
         return 2
     if not result.seconds_per_frame:
-        print(f"all {len(result.ids)} frames were already in {result.out} ({result.list_file.name} rewritten)")
+        print(f"all {len(result.ids)} frames were already in {result.out} ({result.list_file} rewritten)")
         return 0
     median = statistics.median(result.seconds_per_frame)
     print(f"wrote {len(result.seconds_per_frame)} of {len(result.ids)} frames to {result.out} "
-          f"({result.list_file.name}); median {median:.2f} s/frame per worker")
+          f"({result.list_file}); median {median:.2f} s/frame per worker")
     return 0
 
 

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import shutil
 import signal
 import tempfile
 import time
@@ -12,7 +15,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from simulation.frame import SUBDIRS, frame_name, generate_frame, write_frame
+from simulation.frame import FRAME_FILES, SUBDIRS, frame_name, generate_frame, scratch_prefix, write_frame
 
 log = logging.getLogger(__name__)
 
@@ -22,8 +25,11 @@ class RunConfig:
     """A generation run: frames ``start … start+frames-1`` of seed ``seed`` into ``out``.
 
     Frame i is a function of (seed, i) only, so workers and chunking never change
-    the bytes. Use disjoint seeds for train and validation. ``split`` names the
-    list file ``out/ImageSets/<split>.txt`` of the frame ids written.
+    the bytes. Use disjoint seeds (or disjoint frame ranges of one seed) for train
+    and validation. ``split`` names the list file ``<imagesets>/<split>.txt`` of the
+    frame ids written; ``imagesets`` defaults to ``out/ImageSets``. Where ``out`` is
+    a KITTI root's ``training`` or ``testing`` folder, give the root's ``ImageSets``
+    (where OpenPCDet and mmdetection3d read the split lists).
     """
 
     out: Path
@@ -33,6 +39,13 @@ class RunConfig:
     workers: int = 1
     split: str = "train"
     progress: bool = True
+    imagesets: Path | None = None
+
+    @property
+    def list_file(self) -> Path:
+        """The split list this run adds its frame ids to."""
+        folder = Path(self.imagesets) if self.imagesets is not None else Path(self.out) / "ImageSets"
+        return folder / f"{self.split}.txt"
 
 
 @dataclass
@@ -45,15 +58,15 @@ class RunResult:
     seconds_per_frame: list[float] = field(default_factory=list)
 
 
-# A frame's files, in the order write_frame writes them.
-FRAME_FILES = (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt"), ("depth_2", ".png"))
 MAX_FRAMES = 1_000_000  # ids 000000 … 999999
 
 
 def _leave_ctrl_c_to_the_parent() -> None:
-    """A worker process ignores Ctrl-C, which reaches every process of the terminal's group: the parent says
-    it once, stops handing out frames, and the frames being made finish whole."""
+    """A worker process ignores Ctrl-C, which reaches every process of the terminal's group, and SIGTERM, which
+    a service manager sends to every process of the job: the parent says it once, stops handing out frames, and
+    the frames being made finish whole (a worker whose parent is gone ends at its next frame)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
 def _make(seed: int, index: int, out: Path) -> float:
@@ -64,9 +77,8 @@ def _make(seed: int, index: int, out: Path) -> float:
 
 
 def _complete(out: Path, index: int) -> bool:
-    """All five files of a frame exist, so an interrupted run can resume: depth_2 is written last, and whole
-    or not at all (pipeline.kitti.write_depth_png renames it into place), so a frame killed mid-write is
-    made again."""
+    """All five files of a frame exist, so an interrupted run can resume: each file is renamed into place
+    whole, depth_2 last (write_frame), so a frame killed mid-write is made again."""
     name = frame_name(index)
     return all((out / sub / f"{name}{ext}").exists() for sub, ext in FRAME_FILES)
 
@@ -92,8 +104,8 @@ def _not_written_with_seed(out: Path, seed: int, index: int) -> Path | None:
     return None
 
 
-def run(config: RunConfig) -> RunResult:
-    """Generate and write the frames; returns what was written."""
+def _check(config: RunConfig) -> None:
+    """Refuse bad options with a one-line ValueError, before any folder is made."""
     if config.frames < 1:
         raise ValueError(f"--frames: need at least 1 frame, got {config.frames}")
     if config.workers < 1:
@@ -108,13 +120,27 @@ def run(config: RunConfig) -> RunResult:
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out}: exists and is not a directory")
-    for sub in SUBDIRS:
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    all_indices = list(range(config.start, config.start + config.frames))
-    indices = [i for i in all_indices if not _complete(out, i)]
-    # The first frame already there whole, the first of those to make that has files already (a KITTI
-    # folder has all but depth_2), and the folder's first frame outside this run's range (another run's, which
-    # --start extends): each must be this seed's, or the run would mix or overwrite data sets.
+    lists = config.list_file.parent
+    if lists.exists() and not lists.is_dir():
+        raise ValueError(f"--imagesets {lists}: exists and is not a directory")
+    if config.list_file.is_dir():
+        raise ValueError(f"--split: {config.list_file} is a directory")
+
+
+def _remove_scratch(out: Path, indices: list[int]) -> None:
+    """Remove the scratch folders that a killed run left for these frames (only these: another run may be
+    making other frames of the folder)."""
+    prefixes = tuple(scratch_prefix(i) for i in indices)
+    for left in out.iterdir():
+        if left.name.startswith(prefixes) and left.is_dir():
+            shutil.rmtree(left, ignore_errors=True)
+
+
+def _refuse_another_seeds_folder(out: Path, seed: int, all_indices: list[int], indices: list[int]) -> None:
+    """ValueError unless the frames already in ``out`` are this seed's, checked on three: the first frame of
+    the run already there whole, the first of those to make that has files already (a KITTI folder has all but
+    depth_2), and the folder's first frame outside this run's range (another run's, which --start extends).
+    Otherwise the run would mix or overwrite data sets."""
     todo = set(indices)
     whole = next((i for i in all_indices if i not in todo), None)
     begun = next((i for i in indices if any((out / sub / f"{frame_name(i)}{ext}").is_file()
@@ -123,17 +149,36 @@ def run(config: RunConfig) -> RunResult:
     elsewhere = next((i for i in sorted(int(p.stem) for p in (out / "calib").glob("*.txt") if p.stem.isdigit())
                       if i not in in_range), None)
     for present in (whole, begun, elsewhere):
-        foreign = _not_written_with_seed(out, config.seed, present) if present is not None else None
+        foreign = _not_written_with_seed(out, seed, present) if present is not None else None
         if foreign is not None:
-            raise ValueError(f"{out}: frame {frame_name(present)} there is not the one seed {config.seed} makes "
+            raise ValueError(f"{out}: frame {frame_name(present)} there is not the one seed {seed} makes "
                              f"({foreign} differs); resume with the seed that wrote the folder, or give another --out "
                              "(a folder of real KITTI frames is never written over)")
-    if whole is not None:
+
+
+def run(config: RunConfig) -> RunResult:
+    """Generate and write the frames; returns what was written."""
+    _check(config)
+    out = Path(config.out)
+    for sub in SUBDIRS:
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    all_indices = list(range(config.start, config.start + config.frames))
+    indices = [i for i in all_indices if not _complete(out, i)]
+    _refuse_another_seeds_folder(out, config.seed, all_indices, indices)
+    try:  # now, not after the frames: a list folder that cannot be made would waste the run
+        config.list_file.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"--imagesets {config.list_file.parent}: cannot create it ({exc.strerror or exc})") from exc
+    _remove_scratch(out, indices)
+    if len(indices) < len(all_indices):
         log.info("resuming: %d of %d frames already written", len(all_indices) - len(indices), len(all_indices))
     log.info("writing %d frames (seed %d) to %s with %d worker(s)", len(indices), config.seed, out, config.workers)
     bar = tqdm(total=len(indices), unit="frame", desc="simulating", disable=not config.progress)
     times: list[float] = []
-    list_file = out / "ImageSets" / f"{config.split}.txt"
+    list_file = config.list_file
+    if config.imagesets is None and out.name in ("training", "testing"):
+        log.info("the split list goes to %s; OpenPCDet and mmdetection3d read %s (--imagesets)", list_file,
+                 out.parent / "ImageSets" / list_file.name)
     try:
         if config.workers == 1:
             for i in indices:
@@ -144,8 +189,11 @@ def run(config: RunConfig) -> RunResult:
                 for seconds in pool.map(_make, [config.seed] * len(indices), indices, [out] * len(indices)):
                     times.append(seconds)
                     bar.update()
-    except KeyboardInterrupt:  # the frames finished are usable as they are: list them (the rerun lists the rest)
-        _extend_list(list_file, [frame_name(i) for i in all_indices if _complete(out, i)])
+    except BaseException:  # Ctrl-C, SIGTERM, a full disk: the frames finished are usable as they are, list them
+        # The disk that stopped the run may refuse the list too: the first error is the one to tell, and the
+        # rerun lists every frame.
+        with contextlib.suppress(OSError):
+            _extend_list(list_file, [frame_name(i) for i in all_indices if _complete(out, i)])
         raise
     finally:
         bar.close()
@@ -155,7 +203,14 @@ def run(config: RunConfig) -> RunResult:
 
 
 def _extend_list(list_file: Path, ids: list[str]) -> None:
-    """Add ``ids`` to a split list: a run that adds frames (--start) never drops the ids an earlier run listed."""
+    """Add ``ids`` to a split list: a run that adds frames (--start) never drops the ids an earlier run listed.
+
+    The list is replaced whole (written beside it, then renamed), so a reader never sees it cut short."""
     list_file.parent.mkdir(parents=True, exist_ok=True)
     listed = list_file.read_text(encoding="ascii").split() if list_file.exists() else []
-    list_file.write_text("".join(f"{i}\n" for i in sorted(set(listed) | set(ids))), encoding="ascii")
+    partial = list_file.with_name(f".{list_file.name}.{os.getpid()}.part")
+    try:
+        partial.write_text("".join(f"{i}\n" for i in sorted(set(listed) | set(ids))), encoding="ascii")
+        os.replace(partial, list_file)
+    finally:
+        partial.unlink(missing_ok=True)
