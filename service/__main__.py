@@ -88,6 +88,7 @@ _OPTIONS: list[tuple[str, type, object]] = [
     ("--mirror-tta", bool, None),
     ("--warmup-runs", int, "N"),
     ("--shutdown-timeout-s", float, "S"),
+    ("--cors-origins", str, "ORIGINS"),
     ("--log-level", str, ["debug", "info", "warning", "error"]),
 ]
 

@@ -16,7 +16,7 @@ from typing import Any
 
 from fastapi import Depends, FastAPI
 
-from service.deps import require_token
+from service.deps import bearer_scheme, require_token
 from service.errors import install_error_handlers
 from service.metrics import Metrics
 from service.middleware import (
@@ -24,9 +24,11 @@ from service.middleware import (
     AuthMiddleware,
     BodyLimitMiddleware,
     ConnectionLimitMiddleware,
+    CORSMiddleware,
     RequestContextMiddleware,
     RequestsInFlight,
 )
+from service.openapi import install_schema, operation_id
 from service.routes import detect, health, model
 from service.routes import metrics as metrics_route
 from service.runtime import Runtime, load_runtime
@@ -46,10 +48,11 @@ Send a frame as multipart/form-data to `POST /v1/detect`: `image` (PNG/JPEG), `p
 (KITTI velodyne `.bin`) and `calib` (KITTI `calib.txt`, optional when the server has a
 default). A LiDAR-only model (`two_stage` false in `GET /v1/model`) needs `points` alone,
 and the image and a calibration only for `format=kitti` and the camera picture. Boxes come
-back in the LiDAR frame (x forward, y left, z up).
+back in the LiDAR frame (KITTI's velodyne frame: x forward, y left, z up; metres, radians).
 
-Every error is JSON `{"error": {"code", "message", "request_id"}}`; the message names the
-field at fault. A full queue answers 503 with `Retry-After`.
+Every error is JSON `{"error": {"code", "message", "request_id"}}`: `code` is stable, the
+message names the field at fault. Every answer carries `X-Request-ID` (send your own to
+correlate). A full queue answers 503 with `Retry-After` (the service sheds load with 503).
 """
 
 
@@ -82,6 +85,7 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
         version="0.1.0",
         description=DESCRIPTION,
         lifespan=lifespan,
+        generate_unique_id_function=operation_id,
     )
     app.state.settings = settings
     app.state.metrics = metrics
@@ -103,9 +107,12 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
         + [path for route in app.routes if isinstance(path := getattr(route, "path", None), str)]  # FastAPI's own
     )
     open_paths = frozenset(route.path for router in open_to_all for route in router.routes)
+    app.state.route_methods = route_methods([route for router in (*protected, *open_to_all) for route in router.routes]
+                                            + list(app.routes))
     detect_paths = frozenset(route.path for route in detect.router.routes)
-    # Added last = outermost. The request context wraps everything, so that every answer is counted and carries
-    # an id; inside it, each layer answers before the body is read when it can: the connection limit (503), the
+    # Added last = outermost. The request context wraps everything (but CORS, when configured: a 500 must carry
+    # its headers too, or a browser's script cannot read it), so that every answer is counted and carries an id;
+    # inside it, each layer answers before the body is read when it can: the connection limit (503), the
     # token (401), a declared size over the limit (413), no place in the pool (503). The pool's place is taken
     # last, for a request nothing else refused.
     app.add_middleware(AdmissionMiddleware, runtime=lambda: app.state.runtime, detect_paths=detect_paths)
@@ -115,47 +122,23 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
         app.add_middleware(AuthMiddleware, token=settings.token)
     app.add_middleware(ConnectionLimitMiddleware, open_paths=open_paths)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths, in_flight=in_flight)
-    _schema_follows_the_model(app)
+    if settings.cors_origins:  # off by default: only a dashboard in a browser on another origin needs it
+        app.add_middleware(CORSMiddleware, origins=settings.cors_origin_list())
+
+    def camera_model() -> bool:
+        """Whether the model needs the image; True before it loads (the shipped models are camera models)."""
+        loaded: Runtime | None = app.state.runtime
+        return loaded is None or loaded.detector.two_stage
+
+    install_schema(app, bearer_scheme(), camera_model)
     return app
 
 
-def _schema_follows_the_model(app: FastAPI) -> None:
-    """Make ``/openapi.json`` mark the detection routes' ``image`` part required for a camera model.
-
-    The routes declare it optional, as a LiDAR-only model takes a frame without it, so the schema (generated
-    once by FastAPI, and before the models load when the lifespan loads them) is adjusted to the loaded model
-    each time it is served: required unless the model is LiDAR-only.
-    """
-    generate = app.openapi
-
-    def openapi() -> dict[str, Any]:
-        schema = generate()
-        runtime: Runtime | None = app.state.runtime
-        camera = runtime is None or runtime.detector.two_stage  # the shipped models are camera models
-        for path, operations in schema.get("paths", {}).items():
-            if not path.startswith("/v1/detect"):
-                continue
-            content = operations.get("post", {}).get("requestBody", {}).get("content", {})
-            ref = content.get("multipart/form-data", {}).get("schema", {}).get("$ref", "")
-            body = schema.get("components", {}).get("schemas", {}).get(ref.rsplit("/", 1)[-1])
-            if body is not None and "image" in body.get("properties", {}):
-                _set_image_required(body, camera)
-        return schema
-
-    app.openapi = openapi  # type: ignore[method-assign]
-
-
-def _set_image_required(body: dict[str, Any], required: bool) -> None:
-    """The ``image`` property of a multipart body schema: a required file, or an optional one (file or null)."""
-    image = body["properties"]["image"]
-    if "anyOf" in image:
-        file_schema = next(branch for branch in image.pop("anyOf") if branch.get("type") != "null")
-    else:
-        file_schema = {key: image.pop(key) for key in list(image) if key not in ("title", "description")}
-    names = [name for name in body.get("required", []) if name != "image"]
-    if required:
-        image.update(file_schema)
-        body["required"] = ["image", *names]
-    else:
-        image["anyOf"] = [file_schema, {"type": "null"}]
-        body["required"] = names
+def route_methods(routes: list[Any]) -> dict[str, frozenset[str]]:
+    """Each route path with the methods all its routes answer (a probe's GET and HEAD are two routes)."""
+    methods: dict[str, set[str]] = {}
+    for route in routes:
+        path, answered = getattr(route, "path", None), getattr(route, "methods", None)
+        if isinstance(path, str) and answered:
+            methods.setdefault(path, set()).update(answered)
+    return {path: frozenset(answered) for path, answered in methods.items()}

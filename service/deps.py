@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import difflib
 import hmac
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import Depends, Request
 from fastapi.dependencies.models import Dependant
@@ -26,6 +26,11 @@ _bearer = HTTPBearer(
     auto_error=False,
     description="Required on /v1/* when the server has a token configured (LOWRES3D_TOKEN).",
 )
+
+
+def bearer_scheme() -> dict[str, Any]:
+    """The bearer scheme as the OpenAPI document declares it (``components.securitySchemes``)."""
+    return _bearer.model.model_dump(mode="json", by_alias=True, exclude_none=True)
 
 
 def get_settings(request: Request) -> Settings:

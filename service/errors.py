@@ -96,10 +96,41 @@ async def _validation_error(request: Request, exc: Exception) -> JSONResponse:
     return error_response(422, "invalid_input", validation_message(exc.errors()), request)
 
 
+_SHOWN_CHARS = 200  # of a client's path or method echoed in a message: the log and the client need no more
+
+
+def allowed_methods(request: Request, exc: StarletteHTTPException) -> list[str]:
+    """The methods the routes at this request's path answer, for a 405's ``Allow``.
+
+    From ``app.state.route_methods`` (service.app: every route is a fixed path), as the framework names only
+    the first route it found: a probe served for GET and HEAD by two routes answered ``Allow: HEAD`` to a POST.
+    """
+    methods = getattr(request.app.state, "route_methods", {}).get(request.scope.get("path"))
+    if methods:
+        return sorted(methods)
+    return [m.strip() for m in (exc.headers or {}).get("Allow", "").split(",") if m.strip()]
+
+
+def _http_message(request: Request, exc: StarletteHTTPException, allow: list[str]) -> str:
+    """What the framework's own HTTP errors say, naming what was at fault (Starlette says "Not Found")."""
+    asked = f"{request.method[:_SHOWN_CHARS]} {request.url.path[:_SHOWN_CHARS]}"
+    if exc.status_code == 404:
+        return f"{asked}: no such route (the API is under /v1; /openapi.json lists every route)"
+    if exc.status_code == 405:
+        return f"{asked}: method not allowed; this route answers {', '.join(allow)}"
+    if exc.status_code == 400:  # FastAPI and Starlette raise it only when the body cannot be parsed
+        return f"request body: not parsable as multipart/form-data ({exc.detail})"
+    return str(exc.detail)
+
+
 async def _http_error(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     code = _HTTP_CODES.get(exc.status_code, f"http_{exc.status_code}")
-    return error_response(exc.status_code, code, str(exc.detail), request, exc.headers)
+    headers = dict(exc.headers or {})
+    allow = allowed_methods(request, exc) if exc.status_code == 405 else []
+    if allow:
+        headers["Allow"] = ", ".join(allow)
+    return error_response(exc.status_code, code, _http_message(request, exc, allow), request, headers)
 
 
 def install_error_handlers(app: FastAPI) -> None:

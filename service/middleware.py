@@ -25,6 +25,9 @@ check: :func:`service.deps.require_multipart` answers 400 for those.
 :class:`AdmissionMiddleware` takes the frame's place in the inference pool before
 its upload is read, and answers 503 when there is none (or the models are not
 ready), so the uploads held at once are bounded by workers + queue.
+
+With ``--cors-origins``, :class:`CORSMiddleware` is outermost of all: every answer a browser's script gets,
+a 500 included, carries the CORS headers; it answers a preflight itself (no request id, not counted).
 """
 
 from __future__ import annotations
@@ -40,6 +43,8 @@ from collections.abc import Awaitable, Callable, MutableMapping
 from typing import Any
 
 from pydantic import SecretStr
+from starlette.datastructures import Headers
+from starlette.middleware.cors import CORSMiddleware as StarletteCORSMiddleware
 
 from service.deps import UNAUTHORIZED_MESSAGE, WWW_AUTHENTICATE, not_ready_reason, token_accepted
 from service.errors import error_bytes
@@ -451,3 +456,52 @@ class AdmissionMiddleware:
             await self.app(scope, receive, send)
         finally:
             reservation.release()  # a no-op when the frame's job took the place over
+
+
+# What a dashboard's script may send and read across origins, beyond CORS's safelisted headers.
+CORS_METHODS = ("GET", "HEAD", "POST")
+CORS_REQUEST_HEADERS = ("Authorization", "X-Request-ID")
+CORS_EXPOSED_HEADERS = ("X-Request-ID", "X-Warnings", "Retry-After", "WWW-Authenticate")
+
+
+class CORSMiddleware(StarletteCORSMiddleware):
+    """Starlette's CORS for the ``--cors-origins``, the methods and headers of the service; a refused preflight is
+    answered in the service's error shape (Starlette answers it in plain text)."""
+
+    def __init__(self, app: ASGIApp, origins: list[str]) -> None:
+        super().__init__(app, allow_origins=origins, allow_methods=CORS_METHODS, allow_headers=CORS_REQUEST_HEADERS,
+                         expose_headers=CORS_EXPOSED_HEADERS)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":  # the lifespan: it has no headers
+            await self.app(scope, receive, send)
+            return
+        headers = Headers(scope=scope)
+        preflight = (scope["method"] == "OPTIONS" and "origin" in headers
+                     and "access-control-request-method" in headers)
+        if not preflight:
+            await super().__call__(scope, receive, send)
+            return
+        response = self.preflight_response(request_headers=headers)
+        if response.status_code == 200:
+            await response(scope, receive, send)
+            return
+        incoming = headers.get("x-request-id")
+        request_id = incoming if incoming and _SAFE_REQUEST_ID.match(incoming) else uuid.uuid4().hex
+        # Starlette's text: "Disallowed CORS origin, method, headers" (those at fault).
+        failures = bytes(response.body).decode().removeprefix("Disallowed CORS ").split(", ")
+        kept = [(key, value) for key, value in response.raw_headers if key not in (b"content-type", b"content-length")]
+        await send_error(send, 400, "bad_request", self._refusal(headers, failures), request_id,
+                         [*kept, (b"x-request-id", request_id.encode())])
+
+    def _refusal(self, headers: Headers, failures: list[str]) -> str:
+        """Why the preflight was refused, each clause naming its header and what the service allows."""
+        clauses = {
+            "origin": f"Origin: {headers['origin'][:200]} is not one of --cors-origins",
+            "method": f"Access-Control-Request-Method: {headers['access-control-request-method'][:20]} is not one "
+                      f"of {', '.join(CORS_METHODS)}",
+            "headers": "Access-Control-Request-Headers: only "
+                       f"{', '.join(CORS_REQUEST_HEADERS)} and the CORS-safelisted headers may be sent",
+            "private-network": "Access-Control-Request-Private-Network: not allowed",
+        }
+        return "CORS preflight refused: " + "; ".join(clauses.get(failure, failure) for failure in failures)

@@ -12,6 +12,9 @@ A request that arrives while more connections are open (or more requests in prog
 ``limit_concurrency`` would answer it in plain text): service.middleware.ConnectionLimitMiddleware
 answers it 503 ``overloaded`` in the service's format before its body is read, the probes and
 ``/metrics`` excepted.
+
+A request h11 cannot parse (a malformed request line or header) is answered 400 ``bad_request`` in the
+service's JSON error shape with an ``X-Request-ID``, where uvicorn answers it in plain text.
 """
 
 from __future__ import annotations
@@ -21,12 +24,15 @@ import logging
 import uuid
 from typing import Any
 
+import h11
 from uvicorn.protocols.http.h11_impl import H11Protocol
 
 from service.errors import error_bytes
 
 log = logging.getLogger(__name__)
 
+MALFORMED_REQUEST_MESSAGE = ("request: not valid HTTP/1.1 (a malformed request line or header, or a body framing h11 "
+                             "cannot read); the connection is closed")
 OVER_CONNECTION_LIMIT = "over_connection_limit"  # the scope["state"] key the protocol sets
 
 
@@ -60,6 +66,18 @@ def protocol_class(receive_timeout_s: float, connection_limit: int) -> type[H11P
         def connection_lost(self, exc: Exception | None) -> None:
             self._cancel_head_deadline()
             super().connection_lost(exc)
+
+        def send_400_response(self, msg: str) -> None:
+            """uvicorn's answer to a request h11 cannot parse, in the service's error shape (uvicorn's is plain
+            text, which a client's error handling would not parse)."""
+            request_id = uuid.uuid4().hex
+            body = error_bytes("bad_request", MALFORMED_REQUEST_MESSAGE, request_id)
+            headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
+                       (b"x-request-id", request_id.encode()), (b"connection", b"close")]
+            for event in (h11.Response(status_code=400, headers=headers, reason=b"Bad Request"), h11.Data(data=body),
+                          h11.EndOfMessage()):
+                self.transport.write(self.conn.send(event))
+            self.transport.close()
 
         def _cancel_head_deadline(self) -> None:
             if self._head_timer is not None:

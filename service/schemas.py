@@ -32,33 +32,37 @@ class NonFinitePolicy(str, Enum):
 
 
 class Box(BaseModel):
-    """A 3D box in the LiDAR frame (x forward, y left, z up; metres, radians)."""
+    """A 3D box in the LiDAR frame: KITTI's velodyne frame (x forward, y left, z up, origin at the sensor;
+    metres, radians), not KITTI's camera frame, whose labels give the bottom centre and ``rotation_y``."""
 
-    x: float = Field(description="centre, forward")
-    y: float = Field(description="centre, left")
-    z: float = Field(description="centre, up")
-    l: float = Field(description="length (along the heading)")
-    w: float = Field(description="width")
-    h: float = Field(description="height")
-    yaw: float = Field(description="heading about z, radians; KITTI rotation_y = -yaw - π/2")
+    x: float = Field(description="centre, forward of the LiDAR (metres)")
+    y: float = Field(description="centre, left of the LiDAR (metres)")
+    z: float = Field(description="centre (not the bottom), above the LiDAR (metres; the road is near -1.73)")
+    l: float = Field(description="length along the heading (metres)")
+    w: float = Field(description="width (metres)")
+    h: float = Field(description="height (metres)")
+    yaw: float = Field(description="heading about z from the x axis towards y (radians); KITTI rotation_y = -yaw - π/2")
 
 
 class Detection(BaseModel):
     """One detected object."""
 
-    label: str = Field(examples=["Car"])
-    score: float = Field(ge=0.0, le=1.0)
+    label: str = Field(description="object class; the models detect cars only", examples=["Car"])
+    score: float = Field(ge=0.0, le=1.0, description="confidence in [0, 1]; the answer holds those at or above "
+                         "`score_threshold`, best first")
     box: Box
     bev_corners: list[Annotated[list[float], Field(min_length=2, max_length=2)]] = Field(
-        min_length=4, max_length=4, description="[x, y] of the four BEV corners, counter-clockwise from front-left"
+        min_length=4, max_length=4,
+        description="the box seen from above: [x, y] of its four corners in the LiDAR frame (metres; not pixels "
+        "of the BEV picture), counter-clockwise from front-left: front-left, rear-left, rear-right, front-right",
     )
 
 
 class ModelRef(BaseModel):
     """Which models answered."""
 
-    preset: str = Field(examples=["edge"])
-    sha256: dict[str, str] = Field(description="sha256 of each model file")
+    preset: str = Field(description="the model preset (manifest.json)", examples=["edge"])
+    sha256: dict[str, str] = Field(description="sha256 (hex) of each model file, by file name")
 
 
 _DETECT_EXAMPLE = {
@@ -85,21 +89,47 @@ class DetectResponse(BaseModel):
 
     model_config = ConfigDict(json_schema_extra={"examples": [_DETECT_EXAMPLE]})
 
-    detections: list[Detection]
+    detections: list[Detection] = Field(description="best score first; empty when no car is found")
     timings_ms: dict[str, float] = Field(
-        description="per stage; `total` is the server time from entering the queue to the result"
+        description="milliseconds per stage (`queue_wait`, `parse_inputs`, `emulate_beams`, `prepare`, `depth_net`, "
+        "`ray_table`, `pseudo_points`, `voxelize`, `pixor`, `decode`, ...: the stages present vary with the model "
+        "and options); `total` is the server time from entering the queue to the result"
     )
     model: ModelRef
-    warnings: list[str] = Field(description="what was dropped or adjusted on the way")
-    request_id: str
+    warnings: list[str] = Field(description="what was dropped or adjusted on the way, and inputs unlike the "
+                                "training data (the boxes are then fewer or worse, not wrong)")
+    request_id: str = Field(description="this request's id, as in the X-Request-ID header")
+
+
+# Every code an error answer can carry, by status (docs/service.md has when each is answered).
+ERROR_CODES: dict[int, tuple[str, ...]] = {
+    400: ("bad_request",),
+    401: ("unauthorized",),
+    404: ("not_found",),
+    405: ("method_not_allowed",),
+    408: ("request_timeout",),
+    413: ("body_too_large",),
+    415: ("unsupported_media_type",),
+    422: ("invalid_input",),
+    500: ("internal_error",),
+    503: ("overloaded", "not_ready", "shutting_down"),
+    504: ("timeout",),
+}
 
 
 class ErrorDetail(BaseModel):
     """What went wrong; ``message`` names the field or part at fault."""
 
-    code: str = Field(examples=["invalid_input"])
-    message: str = Field(examples=["points: size 100 bytes is not a multiple of 16"])
-    request_id: str | None = Field(None, description="quote it when reporting a problem")
+    code: str = Field(
+        description="stable and machine-readable, for a client's logic: "
+        + "; ".join(f"{status}: {', '.join(codes)}" for status, codes in ERROR_CODES.items())
+        + ". A code added later keeps its status's meaning: handle an unknown one by the HTTP status",
+        examples=["invalid_input"],
+    )
+    message: str = Field(description="for people: starts with the field, part, header or option at fault",
+                         examples=["points: size 100 bytes is not a multiple of 16"])
+    request_id: str = Field(description="this request's id, as in the X-Request-ID header; quote it when reporting "
+                            "a problem (the server log names it)")
 
 
 class ErrorResponse(BaseModel):

@@ -10,6 +10,7 @@ read at import time: build ``Settings()`` in ``main`` (or a test) and pass it to
 from __future__ import annotations
 
 import argparse
+import re
 from pathlib import Path
 from typing import Literal
 
@@ -25,6 +26,8 @@ from pipeline.model_files import DEFAULT_MODELS
 ENV_PREFIX = "LOWRES3D_"
 # Connections beyond workers + queue: the probes, a metrics scrape, /v1/model, and clients being told 503.
 CONNECTION_HEADROOM = 16
+# An origin as a browser sends it in the Origin header: scheme://host[:port], no path, no trailing slash.
+_ORIGIN = re.compile(r"^https?://[^/\s?#]+$")
 
 
 class Settings(BaseSettings):
@@ -84,6 +87,11 @@ class Settings(BaseSettings):
         25.0, gt=0, description="on SIGTERM, how long in-flight requests may take to finish (seconds, fractions "
         "too); those still running then are answered 503. Keep it below the orchestrator's kill grace"
     )
+    # Text as given (a comma-separated list), as device_ids: the environment variable reads as the option does.
+    cors_origins: str | None = Field(
+        None, description="browser origins allowed to call the service and read its answers (CORS), comma-separated, "
+        "e.g. http://localhost:5173 for a dashboard served there; * for any (default: none, CORS off)"
+    )
     log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="logging level")
 
     @field_validator("models", "trt_cache_dir", "default_calib", mode="before")
@@ -116,6 +124,23 @@ class Settings(BaseSettings):
             return ",".join(map(str, gpu_ids(text)))
         except argparse.ArgumentTypeError as exc:
             raise PydanticCustomError("device_ids", str(exc)) from None
+
+    @field_validator("cors_origins", mode="before")
+    @classmethod
+    def _cors_origins_listed(cls, value: object) -> object:
+        """``http://a:5173, https://b`` → ``"http://a:5173,https://b"``, each an origin as browsers send it."""
+        if value is None:
+            return None
+        origins = [origin.strip() for origin in str(value).split(",")]
+        if not any(origins):
+            raise PydanticCustomError("empty_cors", "empty; give origins (http://host:port), or leave it unset for "
+                                      "no CORS")
+        for origin in origins:
+            if origin != "*" and not _ORIGIN.match(origin):
+                raise PydanticCustomError(
+                    "cors_origin", f"{origin!r} is no origin: give scheme://host[:port] as the browser's address bar "
+                    "shows it, without a path or a trailing slash (or * for any)")
+        return ",".join(origins)
 
     @model_validator(mode="after")
     def _device_ids_usable(self) -> Settings:
@@ -153,6 +178,10 @@ class Settings(BaseSettings):
                 "token_whitespace", "starts or ends with whitespace, which an Authorization header cannot carry"
             )
         return token
+
+    def cors_origin_list(self) -> list[str]:
+        """The origins CORS allows (empty: CORS off)."""
+        return self.cors_origins.split(",") if self.cors_origins else []
 
     def connection_limit(self) -> int:
         """Connections (and requests in progress) served at once: the pool's places plus headroom for probes;

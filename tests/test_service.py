@@ -34,6 +34,7 @@ import pytest
 from pipeline.boxes import bev_corners, in_camera_view
 from pipeline.detector import Cancellation
 from pipeline.kitti import parse_calib, parse_labels
+from pipeline.render import draw_key, key_rows
 from service.__main__ import _OPTIONS, settings_from_args
 from service.app import create_app
 from service.metrics import Metrics
@@ -210,7 +211,8 @@ def test_bev_png(client: AppClient, frame: dict[str, bytes]) -> None:
 
 def test_camera_png_draws_the_boxes_of_the_kitti_answer(client: AppClient, frame: dict[str, bytes]) -> None:
     """camera.png: the uploaded image with the boxes format=kitti answers (those the camera sees) as wireframes:
-    each box's projected 2D extent (the KITTI line's bbox) holds green, and no green is outside them."""
+    each box's projected 2D extent (the KITTI line's bbox) holds green, and no green is outside them but the
+    key's swatch (top right, as pipeline.render draws it)."""
     params = {"score_threshold": 0.0}
     response = client.post("/v1/detect/camera.png", params=params, files=parts(frame))
     assert response.status_code == 200 and response.headers["content-type"] == "image/png"
@@ -221,7 +223,12 @@ def test_camera_png_draws_the_boxes_of_the_kitti_answer(client: AppClient, frame
                            "response")
     green = (picture == (60, 220, 60)).all(axis=2) & ~(image == (60, 220, 60)).all(axis=2)
     assert objects and green.any()
-    covered = np.zeros_like(green)
+    # The key: where draw_key puts the service's rows on a picture of this size; its swatch is the one green
+    # allowed outside the boxes.
+    left, top, right, bottom = draw_key(np.zeros_like(picture), key_rows(None, True, False), corner="top-right")
+    key = np.zeros_like(green)
+    key[top:bottom + 1, left:right + 1] = True
+    covered = key.copy()
     for obj in objects:
         left, top, right, bottom = (round(v) for v in obj.bbox)
         assert green[top:bottom + 1, left:right + 1].any()
@@ -1123,14 +1130,14 @@ def test_openapi_documents_the_contract(client: AppClient) -> None:
     body_ref = detect["requestBody"]["content"]["multipart/form-data"]["schema"]["$ref"].rsplit("/", 1)[1]
     body = schema["components"]["schemas"][body_ref]
     assert set(body["required"]) == {"image", "points"} and "calib" in body["properties"]
-    params = {p["name"]: p for p in detect["parameters"]}
+    params = {p["name"]: p for p in detect["parameters"] if p["in"] == "query"}
     assert set(params) == {"score_threshold", "emulate_beams", "nonfinite", "format"}
     assert params["score_threshold"]["schema"]["anyOf"][0]["maximum"] == 1.0
     assert schema["components"]["schemas"]["DetectResponse"]["examples"]
     assert schema["components"]["schemas"]["ErrorResponse"]["examples"]
     for picture in ("bev.png", "camera.png"):
         assert "image/png" in schema["paths"][f"/v1/detect/{picture}"]["post"]["responses"]["200"]["content"]
-    assert "security" not in detect  # no token configured: the schema asks for none
+    assert detect["security"] == [{}, {"HTTPBearer": []}]  # no token configured: optional
     # The headers that come with a status are declared with it, on every route that declares the status.
     for path, method in (("/v1/detect", "post"), ("/v1/detect/bev.png", "post"), ("/v1/model", "get"),
                          ("/readyz", "get"), ("/v2/health/ready", "get")):

@@ -141,7 +141,8 @@ def _detect_job(
             else:  # the boxes of format=kitti: those whose centre the camera sees
                 assert frame.image is not None and frame.calib is not None and frame.image_hw is not None  # checked
                 seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)
-                bgr = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen])
+                bgr = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen],
+                                    legend=True)  # what the green wireframes and numbers are, as on the BEV
             ok, encoded = cv2.imencode(".png", bgr)
             if not ok:
                 raise RuntimeError(f"PNG encoding of the {picture.value} picture failed")
@@ -264,9 +265,22 @@ _WARNINGS_HEADER = {"X-Warnings": {
 DETECT_ERRORS = error_responses(400, 401, 408, 413, 415, 422, 500, 503, 504)
 
 
+# The PNG as a binary string: a bare `image/png: {}` made code generators' methods return nothing at all.
+_PNG_SCHEMA = {"type": "string", "format": "binary", "contentMediaType": "image/png"}
+
+# What each multipart part is (FastAPI's schema calls every file application/octet-stream): the Content-Type a
+# generated client sends with it. The service reads the bytes whatever the part's Content-Type says.
+_FRAME_PARTS = {"requestBody": {"content": {"multipart/form-data": {"encoding": {
+    "image": {"contentType": "image/png, image/jpeg"},
+    "points": {"contentType": "application/octet-stream"},
+    "calib": {"contentType": "text/plain"},
+}}}}}
+
+
 def _picture_responses(description: str) -> dict:
     """The OpenAPI answers of a route answering a PNG picture."""
-    return {200: {"description": description, "content": {"image/png": {}}, "headers": _WARNINGS_HEADER},
+    return {200: {"description": description, "content": {"image/png": {"schema": _PNG_SCHEMA}},
+                  "headers": _WARNINGS_HEADER},
             **DETECT_ERRORS}
 
 
@@ -285,10 +299,14 @@ async def _picture_answer(request: Request, runtime: Runtime, settings: Settings
     summary="Detect cars in one frame",
     response_model=DetectResponse,
     dependencies=[Depends(require_multipart), Depends(check_parts)],
+    openapi_extra=_FRAME_PARTS,
     responses={
         200: {
-            "description": "detections (JSON), or KITTI result lines with `format=kitti`",
-            "content": {"text/plain": {"schema": {"type": "string"}, "example": _KITTI_EXAMPLE}},
+            "description": "detections (JSON), or KITTI result lines with `format=kitti` (`text/plain`: the query "
+                           "parameter chooses, the `Accept` header does not)",
+            "content": {"text/plain": {"schema": {"type": "string", "description": "one KITTI label_2 line per "
+                                                  "box the camera sees, with the score as a 16th value"},
+                                       "example": _KITTI_EXAMPLE}},
             "headers": _WARNINGS_HEADER,
         },
         **DETECT_ERRORS,
@@ -337,8 +355,9 @@ async def detect(
     "/detect/bev.png",
     summary="Detect cars and answer the bird's-eye-view picture",
     dependencies=[Depends(require_multipart), Depends(check_parts)],
+    openapi_extra=_FRAME_PARTS,
     response_class=Response,
-    responses=_picture_responses("BEV picture: points, detected boxes and scores"),
+    responses=_picture_responses("BEV picture: points, detected boxes and scores, a key in the top-left corner"),
 )
 async def detect_bev_png(
     request: Request,
@@ -360,8 +379,10 @@ async def detect_bev_png(
     "/detect/camera.png",
     summary="Detect cars and answer the camera image with the boxes drawn",
     dependencies=[Depends(require_multipart), Depends(check_parts)],
+    openapi_extra=_FRAME_PARTS,
     response_class=Response,
-    responses=_picture_responses("the uploaded image with each box the camera sees as a wireframe and its score"),
+    responses=_picture_responses("the uploaded image with each box the camera sees as a wireframe and its score, "
+                                  "a key in the top-right corner"),
 )
 async def detect_camera_png(
     request: Request,

@@ -8,6 +8,7 @@ from fastapi import APIRouter
 from fastapi.responses import Response
 
 from service.deps import MetricsDep
+from service.routes.responses import error_responses
 
 router = APIRouter(tags=["metrics"])
 
@@ -16,7 +17,9 @@ router = APIRouter(tags=["metrics"])
     "/metrics",
     summary="Prometheus metrics",
     response_class=Response,
-    responses={200: {"description": "Prometheus text exposition format", "content": {"text/plain": {}}}},
+    responses={200: {"description": "Prometheus text exposition format",
+                     "content": {"text/plain": {"schema": {"type": "string"}}}},
+               **error_responses(408, 500)},
 )
 async def metrics(metrics: MetricsDep) -> Response:
     """Request counts by route and status, latency histograms per route and per stage, queue depth,

@@ -14,7 +14,7 @@ router = APIRouter(tags=["model"])
 @router.get(
     "/v1/model",
     summary="The loaded model directory",
-    responses=error_responses(401, 503),
+    responses=error_responses(401, 408, 500, 503),
 )
 async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
     """Manifest, preset, sha256 of each file and the execution providers each network actually runs on."""
