@@ -13,6 +13,7 @@ from pathlib import Path
 
 import onnx
 
+from export.port_spec import port_spec
 from export.rewrite import value_shape
 from pipeline.model_files import MANIFEST_NAME, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import Preset
@@ -97,6 +98,8 @@ def build_manifest(
                      for name, entry in networks.items()},
         "bev_grid": {**asdict(grid), "shape": list(grid.shape), "nx": grid.nx, "ny": grid.ny, "nz": grid.nz},
         "normalisation": normalisation,
+        # Every constant and rule of the NumPy stages, for a port to another runtime (docs/models.md, "Porting").
+        "port": port_spec(preset),
         "files": {
             entry.file: {"sha256": sha256_file(directory / entry.file), "bytes": (directory / entry.file).stat().st_size}
             for entry in networks.values()
