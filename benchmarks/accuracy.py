@@ -72,12 +72,17 @@ from evaluation.report import (
 )
 from pipeline.beams import BEAM_COUNTS
 from pipeline.cli import (
+    HelpFormatter,
+    add_no_progress,
     check_not_input,
     check_output,
+    examples,
     list_or_count,
+    non_negative_int,
     positive_int,
     probability,
     quiet_interrupt,
+    show_progress,
     skipped_summary,
 )
 from pipeline.errors import InputError
@@ -309,12 +314,18 @@ def distance_edges(text: str) -> tuple[float, ...]:
 def build_parser() -> argparse.ArgumentParser:
     """Command-line flags; each mode is a flag group."""
     parser = argparse.ArgumentParser(
+        prog="python benchmarks/accuracy.py",
         description="KITTI object evaluation (official devkit protocol): Car BEV / 3D / 2D-box AP, "
         "R40 and R11, easy / moderate / hard.",
         epilog="Modes: --gt-labels/--pred-labels (result files), --data/--models/--input (run the detector, "
         "then evaluate against DATA/label_2), --depth --data/--models (depth completion). --split-file and "
         "--frames are the same flag and choose the frames in every mode. A flag of another mode is refused, "
-        "not ignored (e.g. --gt-labels with --data). Inputs and output paths are checked before any work.",
+        "not ignored (e.g. --gt-labels with --data). Inputs and output paths are checked before any work.\n\n"
+        + examples("python benchmarks/accuracy.py --gt-labels data/kitti/training/label_2 --pred-labels "
+                   "outputs/val/data --split-file data/kitti/ImageSets/val.txt",
+                   "python benchmarks/accuracy.py --data data/sim/val --models weights/edge --input "
+                   "lidar16+camera --out outputs/accuracy/edge"),
+        formatter_class=HelpFormatter,
     )
     labels = parser.add_argument_group("evaluate result files")
     labels.add_argument("--gt-labels", type=Path, metavar="DIR", help="KITTI label_2 directory (ground truth)")
@@ -346,7 +357,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="N frame-bootstrap draws (e.g. 200; about 0.6 s each per model on 300 frames): each BEV and 3D AP "
         "with its 95%% interval, and with --compare-pred-labels the paired interval of the difference",
     )
-    spread.add_argument("--seed", type=int, default=0, help="seed of the bootstrap draws (default 0)")
+    spread.add_argument("--seed", type=non_negative_int, default=0, help="seed of the bootstrap draws (default 0)")
     spread.add_argument(
         "--compare-pred-labels", type=Path, metavar="DIR",
         help="another model's KITTI result files on the same frames: prints this − other for every AP",
@@ -365,7 +376,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="frame ids to run and evaluate, one per line, as --split-file (default all); or N: "
                         "the first N frames in id order, as --frames N of the other commands")
     detect.add_argument("--out", type=Path, metavar="DIR", help="run folder: result files go to DIR/data (default outputs/accuracy/INPUT, + written _: outputs/accuracy/lidar16_camera)")
-    detect.add_argument("--score-threshold", type=probability, default=0.05,
+    detect.add_argument("--score-threshold", type=probability, default=0.05, metavar="SCORE",
                         help="keep detections above this score (default 0.05: AP needs the whole curve)")
     detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")
     detect.add_argument("--mirror-tta", action="store_true",
@@ -385,12 +396,12 @@ def build_parser() -> argparse.ArgumentParser:
     depth.add_argument("--depth", action="store_true",
                        help="depth metrics with --data (KITTI depth-completion layout, or an object folder with depth_2/)")
     output = parser.add_argument_group("output")
-    output.add_argument("--json", type=Path, metavar="OUT", help="write every figure as JSON (AP in percent)")
+    output.add_argument("--json", type=Path, metavar="FILE", help="write every figure as JSON (AP in percent)")
     output.add_argument("--plots", type=Path, metavar="DIR",
                         help="write PNGs: precision-recall curves per difficulty (pr_*.png) and, with --by-distance, "
                         "ap_by_distance.png; with --depth a picture per frame (depth_<id>.png: camera, prediction, "
                         "ground truth, error) and car_depth.png")
-    output.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_no_progress(output)
     return parser
 
 
@@ -452,7 +463,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give --gt-labels DIR and --pred-labels DIR, or --data DIR --models DIR --input …, or --depth")
     config = LabelEvalConfig(
         gt_labels=args.gt_labels, pred_labels=args.pred_labels, split_file=split_file, first_frames=first,
-        json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
+        json_path=args.json, plots_dir=args.plots, progress=show_progress(args.no_progress),
         ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
         bootstrap=args.bootstrap, seed=args.seed, compare_pred_labels=args.compare_pred_labels,
         gap_to_pred_labels=args.gap_to_pred_labels, missing_as_empty=args.missing_as_empty,
@@ -514,7 +525,7 @@ def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, 
                              f"(velodyne/{unscanned[0]}.bin), so its cars would count as missed; give --split-file or "
                              "--frames to leave it out")
     # Parsed now, not after the detector's run: one broken label file would otherwise cost the whole table.
-    check_ground_truth(args.data / "label_2", scored[:first], progress=not args.no_progress)
+    check_ground_truth(args.data / "label_2", scored[:first], progress=show_progress(args.no_progress))
     if args.depth_dir is not None and not args.depth_dir.is_dir():
         raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
     if args.compare_pred_labels is not None:
@@ -543,7 +554,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
         if args.depth:
             if args.depth_dir is not None and not args.depth_dir.is_dir():
                 raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
-            outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=not args.no_progress,
+            outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=show_progress(args.no_progress),
                                 pictures=args.plots, depth_dir=args.depth_dir, first=first)
             m = outcome.mean
             print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
@@ -593,12 +604,12 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
         if first is not None:  # the first N ground-truth frames: the ones the evaluation below takes
             frames = first_frames(ground_truth_frames(args.data / "label_2", frames), first)
         detection = run_detection(args.data, args.models, args.input, out, frames, args.provider,
-                                  progress=not args.no_progress, score_threshold=args.score_threshold,
+                                  progress=show_progress(args.no_progress), score_threshold=args.score_threshold,
                                   depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, beams=args.emulate_beams)
         predictions = detection.results
         outcome = run(LabelEvalConfig(
             gt_labels=args.data / "label_2", pred_labels=predictions, split_file=split_file, first_frames=first,
-            json_path=args.json, plots_dir=args.plots, progress=not args.no_progress,
+            json_path=args.json, plots_dir=args.plots, progress=show_progress(args.no_progress),
             ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
             depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed,
             compare_pred_labels=args.compare_pred_labels, gap_to_pred_labels=args.gap_to_pred_labels,

@@ -46,10 +46,21 @@ try:  # the filled scan comes from the depth net's own prefill module, in PyTorc
 except ModuleNotFoundError as exc:
     if exc.name != "torch":
         raise
-    raise SystemExit(TORCH_MISSING) from exc
+    from pipeline.cli import missing_extra
+
+    raise missing_extra(TORCH_MISSING) from exc
 from pipeline.beams import emulate_beams
 from pipeline.calib import depth_crop
-from pipeline.cli import check_output, positive_int, quiet_interrupt, unwritable
+from pipeline.cli import (
+    HelpFormatter,
+    add_no_progress,
+    check_output,
+    examples,
+    positive_int,
+    quiet_interrupt,
+    show_progress,
+    unwritable,
+)
 from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import read_depth_png, write_depth_png
 from pipeline.model_files import ModelFileError, load_manifest
@@ -116,26 +127,31 @@ def to_full_image(view: np.ndarray, image_hw: tuple[int, int], preset: Preset) -
 
 @quiet_interrupt("the maps written so far stay in --out")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, required=True,
+    epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
+        "python benchmarks/depth_bound.py --data data/sim/val --models weights/edge --factor 2 --out outputs/bound2")
+    parser = argparse.ArgumentParser(prog="python benchmarks/depth_bound.py", description=__doc__.split("\n\n")[0],
+                                     epilog=epilog, formatter_class=HelpFormatter)
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR",
                         help="KITTI-layout folder with the true depth in depth_2/ (the synthetic scenes)")
-    parser.add_argument("--models", type=Path, required=True,
+    parser.add_argument("--models", type=Path, required=True, metavar="DIR",
                         help="two-stage model directory (its preset gives the view and the fill)")
     parser.add_argument("--factor", type=positive_int, default=1,
                         help="correction at 1/factor of the view; must divide its height and width (default 1)")
     parser.add_argument("--upsample", choices=("bilinear", "closest"), default="bilinear",
                         help="bilinear (default, as the network), or closest: each pixel takes the one of the 3×3 "
                              "block corrections around it closest to the truth (an oracle)")
-    parser.add_argument("--frames", type=positive_int, help="only the first N frames (default: all)")
+    parser.add_argument("--frames", type=positive_int, metavar="N", help="only the first N frames (default: all)")
     parser.add_argument("--cache", action="store_true",
                         help="write OUT/<id>.png in the network's view (models.train --pseudo-dir) instead of "
                              "full-image maps")
-    parser.add_argument("--out", type=Path, required=True, help="writes OUT/depth_2/<id>.png (OUT/<id>.png with --cache)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="writes DIR/depth_2/<id>.png (DIR/<id>.png with --cache)")
+    add_no_progress(parser)
     args = parser.parse_args(argv)
     try:
         check_output(args.out, "--out", directory=True)
-        count = write_bounds(args.data, args.models, args.factor, args.out, args.frames, args.upsample, args.cache)
+        count = write_bounds(args.data, args.models, args.factor, args.out, args.frames, args.upsample, args.cache,
+                             progress=show_progress(args.no_progress))
     except (InputError, ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -185,7 +201,7 @@ def check_destination(data: Path, out: Path, cache: bool) -> Path:
 
 
 def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int | None = None,
-                 upsample: str = "bilinear", cache: bool = False) -> int:
+                 upsample: str = "bilinear", cache: bool = False, progress: bool = True) -> int:
     """Write OUT/depth_2/<id>.png (OUT/<id>.png in the network's view with ``cache``) for the first
     ``frames`` frames of ``data`` (all by default); returns how many."""
     preset = check_inputs(data, models, factor)
@@ -196,7 +212,7 @@ def write_bounds(data: Path, models: Path, factor: int, out: Path, frames: int |
         raise InputError(f"--data {data}: no frames (velodyne/ has no .bin file)")
     target = check_destination(data, out, cache)
     target.mkdir(parents=True, exist_ok=True)
-    for fid in tqdm(ids, desc="bounded depth", unit="frame"):
+    for fid in tqdm(ids, desc="bounded depth", unit="frame", disable=not progress):
         frame = load_frame(data, fid)
         truth_path = data / "depth_2" / f"{fid}.png"
         if not truth_path.exists():

@@ -25,7 +25,14 @@ import numpy as np
 from evaluation.frames import load_label_dirs
 from evaluation.kitti_eval import KittiEvalResult, evaluate
 from evaluation.report import format_table
-from pipeline.cli import check_output, positive_int, quiet_interrupt
+from pipeline.cli import (
+    HelpFormatter,
+    check_output,
+    examples,
+    non_negative_int,
+    positive_int,
+    quiet_interrupt,
+)
 from pipeline.cpu import cpu_label
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D, write_labels
@@ -126,10 +133,14 @@ def write_random_label_sets(out_dir: Path, n_frames: int, seed: int) -> tuple[Pa
 
 @quiet_interrupt("no timing was reported (--keep's label sets written so far stay)")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--frames", type=positive_int, default=3769, help="frames to generate (default: 3769)")
-    parser.add_argument("--repeats", type=positive_int, default=3, help="timed runs; the median is reported")
-    parser.add_argument("--seed", type=int, default=0)
+    parser = argparse.ArgumentParser(prog="python benchmarks/eval_speed.py", description=__doc__.split("\n\n")[0],
+                                     epilog=examples("python benchmarks/eval_speed.py --frames 3769 --repeats 3"),
+                                     formatter_class=HelpFormatter)
+    parser.add_argument("--frames", type=positive_int, default=3769, metavar="N",
+                        help="frames to generate (default 3769)")
+    parser.add_argument("--repeats", type=positive_int, default=3, metavar="N",
+                        help="timed runs; the median is reported (default 3)")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed of the random label sets (default 0)")
     parser.add_argument("--keep", type=Path, metavar="DIR",
                         help="write the label sets here and keep them (a new or empty folder)")
     args = parser.parse_args(argv)

@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import check_output, positive_int, quiet_interrupt, write_text_file
+from pipeline.cli import HelpFormatter, check_output, examples, positive_int, quiet_interrupt, write_text_file
 from pipeline.cpu import describe as describe_cpu
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
@@ -127,13 +127,18 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper",
 
 @quiet_interrupt("no report was written (--json is written at the end)")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, default=KITTI,
+    parser = argparse.ArgumentParser(prog="python benchmarks/frame_ops.py", description=__doc__.split("\n\n")[0],
+                                     epilog=examples("python benchmarks/frame_ops.py --repeats 30 --json "
+                                                     "outputs/frame_ops.json"),
+                                     formatter_class=HelpFormatter)
+    parser.add_argument("--data", type=Path, default=KITTI, metavar="DIR",
                         help="KITTI-layout folder with label_2 (default: the bundled real frames)")
-    parser.add_argument("--frame", default="000006", help="frame id in --data (default 000006)")
-    parser.add_argument("--preset", default="paper", help="preset whose grid and crop are used (default paper)")
-    parser.add_argument("--repeats", type=positive_int, default=30, help="timed calls per step (default 30)")
-    parser.add_argument("--json", type=Path, help="write the figures as JSON")
+    parser.add_argument("--frame", default="000006", metavar="ID", help="frame id in --data (default 000006)")
+    parser.add_argument("--preset", default="paper", metavar="P",
+                        help="preset whose grid and crop are used (default paper)")
+    parser.add_argument("--repeats", type=positive_int, default=30, metavar="N",
+                        help="timed calls per step (default 30)")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write the figures as JSON")
     args = parser.parse_args(argv)
     try:
         get_preset(args.preset)

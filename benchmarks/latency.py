@@ -1,7 +1,7 @@
 """Latency and throughput of the whole pipeline, measured the way the paper measured its GPUs.
 
     python benchmarks/latency.py [--preset P | --models DIR] [--provider cpu|cuda|tensorrt]
-                                 [--threads N [--worker-kind thread|process]] [--frames K] [--warmup W] [--json OUT] [--plot OUT.png]
+                                 [--threads N [--worker-kind thread|process]] [--frames K] [--warmup W] [--json FILE] [--plot FILE.png]
                                  [--compare-torch [--checkpoints DIR]] [--baseline DIR] [--ops]
                                  [--score-threshold SCORE]
 
@@ -40,7 +40,7 @@ with ``--precision int8``), as the README's figures were timed; ``--preset P`` (
 initialised weights where no checkpoints are given (the networks' time does not
 depend on the weights' values; the decoding's a little does). Scans are thinned to
 the line count the model was trained on (16 for ``weights/edge``; a 64-line
-model's are kept as stored) unless ``--beams`` says otherwise; each distinct
+model's are kept as stored) unless ``--emulate-beams`` says otherwise; each distinct
 warning of the Detector (a scan unlike the model's, initialised weights) is
 printed once. Ctrl-C stops the throughput workers (between frames, or inside a
 network run) before the command ends.
@@ -72,8 +72,10 @@ from benchmarks.op_profile import describe as describe_ops
 from benchmarks.peak import PeakResult, measure_peak
 from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.cli import (
+    HelpFormatter,
     check_figure,
     check_output,
+    examples,
     gpu_ids,
     non_negative_int,
     positive_int,
@@ -1073,12 +1075,14 @@ def print_report(report: dict) -> None:
 
 @quiet_interrupt("no report was written (--json and --plot are written at the end)")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__.split("\n\n", 1)[1])
-    parser.add_argument("--preset", help=f"export this preset (with initialised weights, or --checkpoints) and time it "
+    epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
+        "python benchmarks/latency.py --threads 2 --json outputs/latency.json --plot outputs/latency.png")
+    parser = argparse.ArgumentParser(prog="python benchmarks/latency.py", description=__doc__.split("\n\n")[0],
+                                     formatter_class=HelpFormatter, epilog=epilog)
+    parser.add_argument("--preset", metavar="P", help=f"export this preset (with initialised weights, or --checkpoints) and time it "
                                           f"instead of the shipped model (default {DEFAULT_PRESET}, the shipped "
                                           "model's; needs PyTorch); with --models it must be the directory's")
-    parser.add_argument("--models", type=Path,
+    parser.add_argument("--models", type=Path, metavar="DIR",
                         help=f"model directory (default: the shipped {SHIPPED.relative_to(ROOT)}, as the README's "
                              f"figures were timed, or {SHIPPED_INT8.relative_to(ROOT)} with --precision int8; "
                              "--preset or --checkpoints export instead)")
@@ -1098,16 +1102,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--worker-kind", choices=["thread", "process"], default="thread",
                         help="what a throughput worker is: a thread of this process (default, as the paper ran "
                              "two GPUs) or a process of its own (no interpreter lock shared)")
-    parser.add_argument("--frames", type=positive_int, default=20, help="timed frames (default 20)")
-    parser.add_argument("--warmup", type=non_negative_int, default=3, help="untimed warm-up frames (default 3)")
-    parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
-    parser.add_argument("--beams", "--emulate-beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
+    parser.add_argument("--frames", type=positive_int, default=20, metavar="N", help="timed frames (default 20)")
+    parser.add_argument("--warmup", type=non_negative_int, default=3, metavar="N",
+                        help="untimed warm-up frames (default 3)")
+    parser.add_argument("--data", type=Path, default=BUNDLED, metavar="DIR",
+                        help="KITTI-layout folder (default: the bundled frames)")
+    # --beams: its old spelling, kept for scripts (a hidden alias).
+    parser.add_argument("--emulate-beams", "--beams", dest="beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
                         help="thin scans to N lines before timing (16, 32, 8, 4; 0: keep as stored); default: the "
-                        "model's own line count (16; a 64-line LiDAR-only model's scans kept as stored); "
-                        "--emulate-beams as in pipeline.detect")
+                        "model's own line count (16; a 64-line LiDAR-only model's scans kept as stored)")
     parser.add_argument("--compare-torch", action="store_true", help="also time the PyTorch eager pipeline, in blocks alternating with ONNX Runtime")
-    parser.add_argument("--checkpoints", type=Path, help="checkpoints for --compare-torch with trained --models")
-    parser.add_argument("--baseline", type=Path,
+    parser.add_argument("--checkpoints", type=Path, metavar="DIR",
+                        help="checkpoints for --compare-torch with trained --models")
+    parser.add_argument("--baseline", type=Path, metavar="DIR",
                         help="another model directory to time in blocks alternating with --models, for the ratio")
     parser.add_argument("--peak-size", type=positive_int, default=PEAK_MATMUL, metavar="N",
                         help=f"size of the MatMul in the peak micro-benchmark (default {PEAK_MATMUL}, as every "
@@ -1124,8 +1131,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--score-threshold", type=probability, metavar="SCORE",
                         help="keep detections from this score, in every Detector timed (default: the model's, 0.5 "
                         "for the shipped ones; the evaluation's 0.05 keeps 500 candidates for NMS: a slower decoding)")
-    parser.add_argument("--json", type=Path, help="write the report as JSON")
-    parser.add_argument("--plot", type=Path, help="write the latency distribution per stage (box plots, log-scaled ms) as a picture: .png, .jpg, .pdf or .svg by the name (needs matplotlib)")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write the report as JSON")
+    parser.add_argument("--plot", type=Path, metavar="FILE", help="write the latency distribution per stage (box plots, log-scaled ms) as a picture: .png, .jpg, .pdf or .svg by the name (needs matplotlib)")
     args = parser.parse_args(argv)
     try:
         # Checked first: a report that cannot be written is lost after minutes of timing.

@@ -70,18 +70,22 @@ from typing import Self
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
 try:
     import httpx
-except ImportError:  # the runtime install (make setup) leaves the test tools out
-    sys.exit("error: benchmarks/load.py needs httpx, which the runtime install leaves out; install the dev extras "
-             "(make setup-dev) or .venv/bin/pip install 'httpx>=0.27'")
+except ImportError:  # the runtime install (make setup) leaves the test tools out: exit status 2, as in latency.py
+    from pipeline.cli import missing_extra
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    raise missing_extra("error: benchmarks/load.py needs httpx, which the runtime install leaves out; install the "
+                        "dev extras (make setup-dev) or .venv/bin/pip install 'httpx>=0.27'") from None
 
 from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.cli import (
+    HelpFormatter,
     check_figure,
     check_output,
+    examples,
     non_negative_int,
     positive_float,
     positive_int,
@@ -917,19 +921,25 @@ def main(argv: list[str] | None = None) -> int:
         "(a soak test when long), broken requests mixed in on request. Closed loop by default (each client sends "
         "when answered); --rate HZ for an open loop at a sensor's rate. The machine it reports is the client's "
         "(the load generator's, with its own CPU time): the server's too only when it started the service.",
+        epilog=examples("python benchmarks/load.py --duration 20 --json outputs/load.json --plot outputs/load.png",
+                        "python benchmarks/load.py --url http://127.0.0.1:8000 --rate 10 --duration 600 "
+                        "--bad-every 50"),
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--url", help="a running service (default: start one on 127.0.0.1 with --models)")
-    parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
-    parser.add_argument("--clients", type=positive_int, default=8,
+    parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, metavar="DIR",
+                        help=f"model directory (default {DEFAULT_MODELS})")
+    parser.add_argument("--clients", type=positive_int, default=8, metavar="N",
                         help="concurrent clients (default 8); with --rate, the most requests in flight at once")
     parser.add_argument("--rate", type=positive_float, metavar="HZ",
                         help="open loop: a request due every 1/HZ s in all, whatever the answers (a 10 Hz sensor: 10), "
                         "at most --clients in flight; one due while all are busy goes out late, and latency counts "
                         "from the due time (default: closed loop)")
     bound = parser.add_mutually_exclusive_group()
-    bound.add_argument("--duration", type=positive_float, help="seconds of load (default 20 unless --requests)")
-    bound.add_argument("--requests", type=positive_int, help="total requests instead of a duration")
-    parser.add_argument("--data", type=Path, default=KITTI,
+    bound.add_argument("--duration", type=positive_float, metavar="S",
+                       help="seconds of load (default 20 unless --requests)")
+    bound.add_argument("--requests", type=positive_int, metavar="N", help="total requests instead of a duration")
+    parser.add_argument("--data", type=Path, default=KITTI, metavar="DIR",
                         help="KITTI object folder whose frames are sent in turn (default tests/data/kitti/training)")
     parser.add_argument("--frame", metavar="ID", help="send only this frame of --data")
     parser.add_argument("--emulate-beams", "--beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
@@ -941,17 +951,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bad-every", type=non_negative_int, default=0, metavar="N",
                         help="make every Nth request a broken one, which must be answered 4xx (503 when the queue is full) "
                         "(default 0: none)")
-    parser.add_argument("--token", default=os.environ.get("LOWRES3D_TOKEN"), help="bearer token (default $LOWRES3D_TOKEN)")
-    parser.add_argument("--backoff-s", type=float,
+    parser.add_argument("--token", default=os.environ.get("LOWRES3D_TOKEN"), metavar="TOKEN",
+                        help="bearer token (default $LOWRES3D_TOKEN)")
+    parser.add_argument("--backoff-s", type=float, metavar="S",
                         help="closed loop: a client's pause after a 503 (default 0.1)")
-    parser.add_argument("--workers", type=int, help="started service: inference workers")
-    parser.add_argument("--queue-size", type=int, help="started service: queue size")
+    parser.add_argument("--workers", type=int, metavar="N", help="started service: inference workers")
+    parser.add_argument("--queue-size", type=int, metavar="N", help="started service: queue size")
     parser.add_argument("--sessions", choices=["shared", "per-worker"], help="started service: session mode")
-    parser.add_argument("--intra-op-threads", type=int, help="started service: ONNX Runtime threads per session")
+    parser.add_argument("--intra-op-threads", type=int, metavar="N",
+                        help="started service: ONNX Runtime threads per session")
     parser.add_argument("--mirror-tta", action="store_true",
                         help="started service: PIXOR also on the mirrored BEV (python -m service --mirror-tta)")
-    parser.add_argument("--json", type=Path, help="write the result as JSON here")
-    parser.add_argument("--plot", type=Path, help="write a PNG here: latency histogram, latency and memory over time")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="write the result as JSON here")
+    parser.add_argument("--plot", type=Path, metavar="FILE",
+                        help="write a picture here (.png, .jpg, .pdf or .svg; needs matplotlib): latency histogram, "
+                        "latency and memory over time")
     parser.add_argument("--log", type=Path, metavar="FILE",
                         help=f"started service: write its log here (default {DEFAULT_LOG}, under the working directory)")
     args = parser.parse_args(argv)

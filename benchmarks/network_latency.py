@@ -1,6 +1,6 @@
 """Per-network latency: ONNX Runtime vs PyTorch eager, same weights, same real KITTI input.
 
-    python -m benchmarks.network_latency --preset edge --repeats 5
+    python benchmarks/network_latency.py --preset edge --repeats 5
 
 For each preset: export both networks with :func:`export.run` (no parity pass),
 then time forward passes of each network, batch 1, fp32, on CPU, alternating
@@ -35,7 +35,15 @@ from tqdm import tqdm
 
 from export import run as export_run
 from export.inputs import kitti_inputs
-from pipeline.cli import positive_int, quiet_interrupt
+from pipeline.cli import (
+    HelpFormatter,
+    add_no_progress,
+    examples,
+    missing_extra,
+    positive_int,
+    quiet_interrupt,
+    show_progress,
+)
 from pipeline.cpu import cpu_label
 from pipeline.detector import session_options
 from pipeline.errors import TORCH_MISSING
@@ -49,7 +57,7 @@ try:
 except ModuleNotFoundError as exc:
     if exc.name != "torch":
         raise
-    raise SystemExit(TORCH_MISSING) from exc
+    raise missing_extra(TORCH_MISSING) from exc
 
 
 @dataclass
@@ -177,22 +185,25 @@ def _preset_name(text: str) -> str:
 @quiet_interrupt("no report was written")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
-        prog="python -m benchmarks.network_latency",
+        prog="python benchmarks/network_latency.py",
         description="Per-network latency, ONNX Runtime vs PyTorch eager (fp32, CPU, batch 1, same weights and input).",
+        epilog=examples("python benchmarks/network_latency.py --preset edge --preset paper --repeats 5"),
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--preset", action="append", type=_preset_name, metavar="P",
                         help=f"preset to measure, with suffixes as everywhere (edge-split-near35) (repeatable; "
                         f"default: {', '.join(sorted(PRESETS))})")
-    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs per network and runtime, after 1 warm-up")
-    parser.add_argument("--block", type=positive_int, default=5,
+    parser.add_argument("--repeats", type=positive_int, default=5, metavar="N",
+                        help="timed runs per network and runtime, after 1 warm-up (default 5)")
+    parser.add_argument("--block", type=positive_int, default=5, metavar="N",
                         help="runs of one runtime before switching to the other (default 5); each block starts "
                              "with one untimed run")
-    parser.add_argument("--threads", type=positive_int, default=None, help="PyTorch intra-op threads (default: torch's)")
+    parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
+                        help="PyTorch intra-op threads (default: torch's)")
+    add_no_progress(parser)
     args = parser.parse_args(argv)
-    if args.repeats < 1:
-        parser.error("--repeats must be at least 1")
     presets = args.preset or list(PRESETS)
-    rows = run(presets, args.repeats, args.threads, block=args.block)
+    rows = run(presets, args.repeats, args.threads, progress=show_progress(args.no_progress), block=args.block)
     print(
         f"{hardware()}; fp32, batch 1, CPUExecutionProvider (onnxruntime {ort.__version__}), "
         f"torch {torch.__version__} with {torch.get_num_threads()} threads; {args.repeats} runs after 1 warm-up, "

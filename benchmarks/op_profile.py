@@ -179,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from benchmarks.latency import BUNDLED, load_frames
     from pipeline.beams import BEAM_COUNTS, emulate_beams
-    from pipeline.cli import positive_int
+    from pipeline.cli import HelpFormatter, examples, positive_int
     from pipeline.detector import Detector
     from pipeline.errors import InputError
     from pipeline.frame import load_frame
@@ -189,19 +189,26 @@ def main(argv: list[str] | None = None) -> int:
         prog="python benchmarks/op_profile.py",
         description="Time every kernel of a model directory's networks on one real frame with ONNX Runtime's "
         "profiler (the graph it runs, after its fusions and layout changes), slowest first, with each "
-        "convolution's GFLOP/s. benchmarks/latency.py --ops gives the totals per operator type.")
-    parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
-    parser.add_argument("--data", type=Path, default=BUNDLED, help="KITTI-layout folder (default: the bundled frames)")
-    parser.add_argument("--frame", help="frame id in --data (default: its first)")
+        "convolution's GFLOP/s. benchmarks/latency.py --ops gives the totals per operator type.",
+        epilog=examples("python benchmarks/op_profile.py --models weights/edge --top 10"),
+        formatter_class=HelpFormatter)
+    parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, metavar="DIR",
+                        help=f"model directory (default {DEFAULT_MODELS})")
+    parser.add_argument("--data", type=Path, default=BUNDLED, metavar="DIR",
+                        help="KITTI-layout folder (default: the bundled frames)")
+    parser.add_argument("--frame", metavar="ID", help="frame id in --data (default: its first)")
     parser.add_argument("--provider", choices=["cpu"], default="cpu",
                         help="execution provider: the CPU only (on CUDA ONNX Runtime's profiler times the kernels' "
                         f"launches, not the GPU's work, and TensorRT runs an engine of its own; {GPU_PROFILER_HINT})")
-    parser.add_argument("--beams", "--emulate-beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
-                        help="thin the scan to N lines first (16, the default; 0: keep), as benchmarks/latency.py")
-    parser.add_argument("--threads", type=positive_int, default=2,
+    parser.add_argument("--emulate-beams", "--beams", dest="beams", type=int, default=16, choices=(0, *BEAM_COUNTS),
+                        metavar="N", help="thin the scan to N lines first (16, the default; 0: keep), as "
+                        "benchmarks/latency.py")  # --beams: its old spelling, kept for scripts (a hidden alias)
+    parser.add_argument("--threads", type=positive_int, default=2, metavar="N",
                         help="ONNX Runtime's intra-op threads (default 2; latency.py's --threads are workers)")
-    parser.add_argument("--runs", type=positive_int, default=20, help="profiled runs after 3 warm-up runs (default 20)")
-    parser.add_argument("--top", type=positive_int, default=15, help="slowest nodes shown per network (default 15)")
+    parser.add_argument("--runs", type=positive_int, default=20, metavar="N",
+                        help="profiled runs after 3 warm-up runs (default 20)")
+    parser.add_argument("--top", type=positive_int, default=15, metavar="N",
+                        help="slowest nodes shown per network (default 15)")
     args = parser.parse_args(argv)
     try:
         detector = Detector(args.models, providers=args.provider, intra_op_threads=args.threads)

@@ -94,14 +94,17 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import os
 
-    from pipeline.cli import positive_int
+    from pipeline.cli import HelpFormatter, examples, positive_int
 
     parser = argparse.ArgumentParser(prog="python benchmarks/peak.py",
                                      description="Measure ONNX Runtime's fp32 GFLOP/s on this machine: a 4096² MatMul "
-                                     "and a 256-channel 3×3 convolution (the peak benchmarks/latency.py divides by).")
-    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1,
+                                     "and a 256-channel 3×3 convolution (the peak benchmarks/latency.py divides by).",
+                                     epilog=examples("python benchmarks/peak.py --threads 2"),
+                                     formatter_class=HelpFormatter)
+    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1, metavar="N",
                         help="ONNX Runtime's intra-op threads (default: one per core; latency.py's --threads are workers)")
-    parser.add_argument("--repeats", type=positive_int, default=5, help="timed runs of each; the median counts (default 5)")
+    parser.add_argument("--repeats", type=positive_int, default=5, metavar="N",
+                        help="timed runs of each; the median counts (default 5)")
     args = parser.parse_args(argv)
     result = measure_peak(args.threads, args.repeats)
     print(f"{args.threads} thread(s): MatMul 4096² {result.matmul_gflops:.0f} GFLOP/s, 3×3 conv 256 channels "

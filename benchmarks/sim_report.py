@@ -1,11 +1,11 @@
 """Compare simulated frames with real KITTI frames: points per frame, points on cars vs distance
 (64 and 16 lines), car sizes, and a side-by-side picture (image | LiDAR projection | BEV).
 
-    python benchmarks/sim_report.py --sim DIR --frames 100 --figure docs/img/sim_vs_kitti.jpg
+    python benchmarks/sim_report.py --sim-data DIR --frames 100 --plot docs/img/sim_vs_kitti.jpg
 
-Prints markdown tables (paste into docs/simulation.md). Without --sim it first generates --frames
+Prints markdown tables (paste into docs/simulation.md). Without --sim-data it first generates --frames
 frames (seed --seed) into a temporary folder, about 1 s a frame, and deletes them afterwards.
-The figure needs matplotlib (the dev extras: make setup-dev).
+The picture needs matplotlib (the dev extras: make setup-dev).
 """
 
 from __future__ import annotations
@@ -26,7 +26,15 @@ sys.path.insert(0, str(ROOT))
 from pipeline.beams import emulate_beams
 from pipeline.boxes import box_corners_3d, labels_to_boxes, points_in_boxes
 from pipeline.calib import Calibration
-from pipeline.cli import check_figure, positive_int, quiet_interrupt
+from pipeline.cli import (
+    HelpFormatter,
+    as_given,
+    check_figure,
+    examples,
+    non_negative_int,
+    positive_int,
+    quiet_interrupt,
+)
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D, read_calib, read_image, read_labels, read_velodyne
 
@@ -55,6 +63,7 @@ class ReportConfig:
     frames: int = 20
     seed: int = 1
     figure: Path | None = None
+    progress: bool = True  # the generation's progress bar
 
 
 def load(folder: Path, limit: int | None = None) -> list[FrameFiles]:
@@ -214,7 +223,7 @@ def run(config: ReportConfig) -> str:
         from simulation import run as simulate
 
         with tempfile.TemporaryDirectory(prefix="sim_report_") as tmp:
-            simulate(RunConfig(out=Path(tmp), frames=config.frames, seed=config.seed))
+            simulate(RunConfig(out=Path(tmp), frames=config.frames, seed=config.seed, progress=config.progress))
             sim = load(Path(tmp), config.frames)
     else:
         sim = load(config.sim, config.frames)
@@ -227,22 +236,41 @@ def run(config: ReportConfig) -> str:
     return tables(sim, real)
 
 
-@quiet_interrupt("no report was written (--figure is drawn at the end)")
+# Each flag's family name (--data and --plot as in the other commands; --sim-data as models.train's --val-data),
+# then this command's old spelling of it, still accepted (a hidden alias).
+DATA, SIM_DATA, PLOT = ("--data", "--kitti"), ("--sim-data", "--sim"), ("--plot", "--figure")
+
+
+@quiet_interrupt("no report was written (--plot is drawn at the end)")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--kitti", type=Path, default=ROOT / "tests" / "data" / "kitti" / "training",
+    epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
+        "python benchmarks/sim_report.py --sim-data data/sim/val --frames 100 --plot outputs/sim_vs_kitti.png")
+    parser = argparse.ArgumentParser(prog="python benchmarks/sim_report.py", description=__doc__.split("\n\n")[0],
+                                     epilog=epilog, formatter_class=HelpFormatter)
+    parser.add_argument(*DATA, dest="kitti", type=Path, default=ROOT / "tests" / "data" / "kitti" / "training",
+                        metavar="DIR",
                         help="real KITTI folder (image_2, velodyne, calib, label_2; default: the bundled samples)")
-    parser.add_argument("--sim", type=Path, help="simulated folder; generated into a temp dir when omitted")
-    parser.add_argument("--frames", type=positive_int, default=20,
-                        help="simulated frames to use, or to generate without --sim (default 20)")
-    parser.add_argument("--seed", type=int, default=1, help="seed when generating (default 1)")
-    parser.add_argument("--figure", type=Path,
+    parser.add_argument(*SIM_DATA, dest="sim", type=Path, metavar="DIR",
+                        help="simulated folder; generated into a temp dir when omitted")
+    parser.add_argument("--frames", type=positive_int, default=20, metavar="N",
+                        help="simulated frames to use, or to generate without --sim-data (default 20)")
+    parser.add_argument("--seed", type=non_negative_int, default=1, help="seed when generating (default 1)")
+    parser.add_argument(*PLOT, dest="figure", type=Path, metavar="FILE",
                         help="write the side-by-side picture here (.png, .jpg, .pdf or .svg; needs matplotlib)")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bar while the simulated frames are generated")
     args = parser.parse_args(argv)
     try:
+        # Checked here first, so that an error names each flag as the command line spells it (check_config's
+        # messages use the old names).
+        check_folder(args.kitti, as_given(argv, *DATA))
+        if args.sim is not None:
+            check_folder(args.sim, as_given(argv, *SIM_DATA))
+        if args.figure is not None:
+            check_figure(args.figure, as_given(argv, *PLOT))
         print(run(ReportConfig(kitti=args.kitti, sim=args.sim, frames=args.frames, seed=args.seed,
-                               figure=args.figure)))
+                               # Drawn in a pipe too, as python -m simulation draws it (its own rule).
+                               figure=args.figure, progress=not args.no_progress)))
     except (ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

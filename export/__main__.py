@@ -13,7 +13,7 @@ from pathlib import Path
 from export.directory import check_destination
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
 from export.precision import REDUCE_RANGE_HELP, calibration_frame_ids
-from pipeline.cli import interrupted, positive_int, unwritable
+from pipeline.cli import interrupted, missing_extra, positive_int, unwritable
 from pipeline.errors import TORCH_MISSING
 from pipeline.model_files import ModelFileError
 from pipeline.presets import ABLATIONS, PRESETS, get_preset
@@ -24,7 +24,7 @@ try:
 except ModuleNotFoundError as exc:
     if exc.name != "torch":
         raise
-    raise SystemExit(TORCH_MISSING) from exc
+    raise missing_extra(TORCH_MISSING) from exc  # one error line, exit status 2
 
 
 def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Namespace]:

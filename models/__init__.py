@@ -4,12 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 
+from pipeline.cli import missing_extra
 from pipeline.errors import TORCH_MISSING
 
 try:
     from torch import nn
 except ModuleNotFoundError as exc:  # every `python -m models.…` command passes through here first
-    raise SystemExit(TORCH_MISSING) from exc
+    raise missing_extra(TORCH_MISSING) from exc  # one error line, exit status 2
 
 from models.depth_net import DepthCompletionNet
 from models.pixor import Pixor

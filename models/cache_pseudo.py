@@ -26,7 +26,17 @@ from pathlib import Path
 from tqdm import tqdm
 
 from pipeline.beams import BEAM_COUNTS, check_thinnable, emulate_beams
-from pipeline.cli import check_not_input, check_output, interrupted, list_or_count, unwritable
+from pipeline.cli import (
+    HelpFormatter,
+    add_no_progress,
+    check_not_input,
+    check_output,
+    examples,
+    interrupted,
+    list_or_count,
+    show_progress,
+    unwritable,
+)
 from pipeline.detector import Detector
 from pipeline.errors import InputError, in_frame
 from pipeline.frame import frame_ids, load_frame
@@ -176,21 +186,28 @@ def _write_record(out: Path, record: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m models.cache_pseudo", description=__doc__.split("\n\n")[0])
-    parser.add_argument("--data", type=Path, required=True, help="KITTI-layout folder")
-    parser.add_argument("--models", type=Path, required=True, help="model directory with depth.onnx")
-    parser.add_argument("--out", type=Path, required=True, help="folder for the depth PNGs")
-    parser.add_argument("--split-file", "--frames", dest="frames", type=list_or_count, metavar="LIST|N",
-                        help="frame ids, one per line (default: all); or N: the first N frames in id order, as "
-                        "--frames N of the other commands")
+    parser = argparse.ArgumentParser(
+        prog="python -m models.cache_pseudo", description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter,
+        epilog=examples("python -m models.cache_pseudo --data data/sim/train --models weights/edge "
+                        "--out runs/edge/pseudo-train"))
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR", help="KITTI-layout folder")
+    parser.add_argument("--models", type=Path, required=True, metavar="DIR", help="model directory with depth.onnx")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for the depth PNGs")
+    which = parser.add_mutually_exclusive_group()  # as benchmarks/accuracy.py's: the same frames either way
+    which.add_argument("--split-file", dest="frames", type=list_or_count, metavar="F",
+                       help="frame ids, one per line (default: all frames)")
+    which.add_argument("--frames", dest="frames", type=list_or_count, metavar="LIST|N",
+                       help="frame ids, one per line, as --split-file; or N: the first N frames in id order")
     parser.add_argument("--emulate-beams", "--beams", dest="beams", type=int, default=16, choices=(0, *BEAM_COUNTS),
                         metavar="N",
                         help="lines the 64-line scan is thinned to (default 16; 32, 8, 4); 0: the scans as stored "
                         "(a 16-line sensor's own), as models.train --emulate-beams 0")
+    add_no_progress(parser)
     args = parser.parse_args(argv)
     try:
         split_file, first = (args.frames, None) if not isinstance(args.frames, int) else (None, args.frames)
-        n = run(args.data, args.models, args.out, split_file, args.beams, first=first)
+        n = run(args.data, args.models, args.out, split_file, args.beams, first=first,
+                progress=show_progress(args.no_progress))
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

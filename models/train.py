@@ -112,7 +112,15 @@ from models.start_weights import (
 )
 from models.validation import validate_depth, validate_detector
 from pipeline.beams import BEAM_COUNTS
-from pipeline.cli import interrupted, non_negative_int, positive_float, positive_int
+from pipeline.cli import (
+    HelpFormatter,
+    add_no_progress,
+    examples,
+    interrupted,
+    non_negative_int,
+    positive_float,
+    positive_int,
+)
 from pipeline.depth_completion import (
     drive_calibration,
     drive_frame_ids,
@@ -626,45 +634,51 @@ def _jsonable(value):
 
 
 def main(argv: list[str] | None = None) -> int:
+    epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
+        "python -m models.train depth --data data/sim/train --val-data data/sim/val --preset edge --out runs/depth")
     parser = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n\n")[0],
-                                     epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("task", choices=TASKS)
-    parser.add_argument("--data", type=Path, required=True,
+                                     epilog=epilog, formatter_class=HelpFormatter)
+    parser.add_argument("task", choices=TASKS, help="what to train: depth, detector or joint (below)")
+    parser.add_argument("--data", type=Path, required=True, metavar="DIR",
                         help="KITTI object training folder; depth: or a depth-completion drive (flat layout)")
-    parser.add_argument("--val-data", type=Path, help="validation folder of either kind (default: --data + --val-split)")
-    parser.add_argument("--train-split", type=Path, help="training frame ids, one per line (default: all of --data)")
-    parser.add_argument("--val-split", type=Path, help="validation frame ids, one per line")
-    parser.add_argument("--preset", default="edge", help="model preset (default edge)")
-    parser.add_argument("--out", type=Path, required=True, help="run directory (log.jsonl, state.pt, depth.pt/pixor.pt)")
+    parser.add_argument("--val-data", type=Path, metavar="DIR",
+                        help="validation folder of either kind (default: --data + --val-split)")
+    parser.add_argument("--train-split", type=Path, metavar="F",
+                        help="training frame ids, one per line (default: all of --data)")
+    parser.add_argument("--val-split", type=Path, metavar="F", help="validation frame ids, one per line")
+    parser.add_argument("--preset", default="edge", metavar="P", help="model preset (default edge)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="run directory (log.jsonl, state.pt, depth.pt/pixor.pt)")
     parser.add_argument("--input", dest="input_mode", default="lidar16", choices=DETECTOR_INPUTS,
                         help="detector input (default lidar16)")
     parser.add_argument("--emulate-beams", type=int, default=16, choices=(0, *BEAM_COUNTS), metavar="N",
                         help=f"thin the stored scans to N lines ({', '.join(map(str, BEAM_COUNTS))}; default 16) for "
                         "the depth net and PIXOR's lidar16 and pseudo inputs; 0: train on them as stored (a 16-line "
                         "sensor's own scans need it)")
-    parser.add_argument("--pseudo-dir", type=Path, help="cached dense depth PNGs for --input pseudo (training frames)")
-    parser.add_argument("--val-pseudo-dir", type=Path, help="… of the validation frames (default: --pseudo-dir)")
-    parser.add_argument("--depth-checkpoint", type=Path,
+    parser.add_argument("--pseudo-dir", type=Path, metavar="DIR", help="cached dense depth PNGs for --input pseudo (training frames)")
+    parser.add_argument("--val-pseudo-dir", type=Path, metavar="DIR", help="… of the validation frames (default: --pseudo-dir)")
+    parser.add_argument("--depth-checkpoint", type=Path, metavar="FILE",
                         help="trained depth.pt (joint); depth: weights to start from (depth.pt or depth.onnx)")
-    parser.add_argument("--pixor-checkpoint", type=Path,
+    parser.add_argument("--pixor-checkpoint", type=Path, metavar="FILE",
                         help="trained pixor.pt (joint); detector: weights to start from (pixor.pt or pixor.onnx)")
     parser.add_argument("--train-only", type=lambda text: tuple(n for n in text.split(",") if n), default=(),
                         metavar="MODULES", help="train only these submodules (comma-separated, say refine); "
                                                 "the rest stays frozen as loaded")
     parser.add_argument("--freeze-bn", action="store_true",
                         help="batch-norm statistics stay as loaded (use with weights from an exported .onnx)")
-    parser.add_argument("--epochs", type=positive_int, help="default: the task's recipe")
-    parser.add_argument("--batch-size", type=positive_int, help="default: the task's recipe")
+    parser.add_argument("--epochs", type=positive_int, metavar="N", help="default: the task's recipe")
+    parser.add_argument("--batch-size", type=positive_int, metavar="N", help="default: the task's recipe")
     parser.add_argument("--lr", type=positive_float, help="default: the task's recipe")
     parser.add_argument("--depth-loss", default="mse", choices=tuple(DEPTH_LOSSES),
                         help="depth and joint: per-pixel loss on the depth map (default mse, the paper's)")
     parser.add_argument("--car-weight", type=positive_float, default=1.0,
                         help="depth: loss weight of the labelled cars' own pixels (default 1: every pixel alike)")
-    parser.add_argument("--max-train-frames", type=positive_int, help="use only the first N training frames")
-    parser.add_argument("--max-val-frames", type=positive_int, help="use only the first N validation frames")
-    parser.add_argument("--workers", type=non_negative_int, default=0, help="data-loading processes (default 0)")
-    parser.add_argument("--threads", type=positive_int, help="torch intra-op threads")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--max-train-frames", type=positive_int, metavar="N", help="use only the first N training frames")
+    parser.add_argument("--max-val-frames", type=positive_int, metavar="N", help="use only the first N validation frames")
+    parser.add_argument("--workers", type=non_negative_int, default=0, metavar="N", help="data-loading processes (default 0)")
+    parser.add_argument("--threads", type=positive_int, metavar="N", help="torch intra-op threads")
+    parser.add_argument("--seed", type=non_negative_int, default=0,
+                        help="seed of the initial weights, the augmentation and the data order (default 0)")
     parser.add_argument("--device", default="auto",
                         help="auto (default: the first CUDA GPU torch sees, else the CPU), cpu, cuda or cuda:N")
     parser.add_argument("--precision", default="auto", choices=("auto", "bf16", "fp32"),
@@ -674,9 +688,15 @@ def main(argv: list[str] | None = None) -> int:
                              f"at least {COMPILE_MIN_STEPS} steps, where a C++ compiler is found)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last epoch (its state.pt; the same flags, only --epochs may change)")
     parser.add_argument("--quick", action="store_true", help="a few frames and epochs: a smoke test")
+    add_no_progress(parser, "no progress bars (drawn into a log too: a run of hours in the background, "
+                    "nohup … > log, shows its epoch's progress there)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    config = TrainConfig(**{k: v for k, v in vars(args).items()}, strict_resume=args.resume)
+    options = vars(args)
+    # Unlike the frame-by-frame commands (show_progress: on a terminal only), a training run draws its bars into
+    # a log too: it runs for hours in the background, with one line an epoch, and writes nothing between bars.
+    progress = not options.pop("no_progress")
+    config = TrainConfig(**options, progress=progress, strict_resume=args.resume)
     try:
         result = run(config)
     except (InputError, FileNotFoundError, ValueError) as exc:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.cli import interrupted, skipped_summary
+from pipeline.cli import HelpFormatter, add_no_progress, examples, interrupted, show_progress, skipped_summary
 from pipeline.errors import InputError
 
 # HDL-64E: about +2° … −24.9°; VLP-16: −15° … +15° in 2° steps.
@@ -417,6 +417,9 @@ def main(argv: list[str] | None = None) -> int:
         prog="python -m pipeline.beams",
         description="Emulate a low-resolution LiDAR: thin every KITTI velodyne scan in SRC_DIR to N lines "
         "and write it, with the same file name, into DST_DIR (the source is never modified).",
+        epilog=examples("python -m pipeline.beams --beams 16 data/kitti/training/velodyne "
+                        "data/kitti/training/velodyne16"),
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("src_dir", type=Path, metavar="SRC_DIR", help="folder of KITTI velodyne .bin scans")
     parser.add_argument("dst_dir", type=Path, metavar="DST_DIR", help="output folder (created if needed)")
@@ -425,10 +428,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mode", choices=["stride", "vlp16"], default="stride",
                         help="stride: every k-th ring by elevation; vlp16 (with --beams 16): the rings nearest the "
                         "VLP-16's angles inside the HDL-64E's field, 9 of its 16 (-15° … +1°)")
+    add_no_progress(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
-        run = convert_folder(args.src_dir, args.dst_dir, args.beams, args.mode)
+        run = convert_folder(args.src_dir, args.dst_dir, args.beams, args.mode, show_progress(args.no_progress))
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -1,6 +1,8 @@
 """Argument types and output checks shared by the commands: numbers that must be positive are refused by
-argparse itself, output files that cannot be written before any work; and how a command says Ctrl-C
-stopped it (:func:`interrupted`, :func:`quiet_interrupt`).
+argparse itself, output files that cannot be written before any work; how a command says Ctrl-C
+stopped it (:func:`interrupted`, :func:`quiet_interrupt`); and what makes the commands one family: their
+--help (:class:`HelpFormatter`, :func:`examples`), their progress bars (:func:`add_no_progress`,
+:func:`show_progress`) and a flag's old spellings (hidden aliases, :func:`as_given`).
 
 A count of 0 is not "the default": ``--epochs 0`` used to fall through to the recipe's 30 epochs.
 """
@@ -8,11 +10,13 @@ A count of 0 is not "the default": ``--epochs 0`` used to fall through to the re
 from __future__ import annotations
 
 import argparse
+import copy
 import functools
 import importlib.util
 import os
+import re
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from pipeline.errors import InputError
@@ -184,3 +188,77 @@ def quiet_interrupt(leaves: str) -> Callable[[Main], Main]:
                 return interrupted(leaves)
         return run
     return decorate
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Every command's --help. The description and the epilog: each paragraph fitted to the terminal, but one
+    with an indented line (an example, a synopsis, a list) as written, so an example stays one command a line.
+    The options: each flag under its family name alone. A flag's later long spellings are old names kept
+    working for scripts (hidden aliases: ``add_argument("--emulate-beams", "--beams", …)``); --help leaves them
+    out, but a --X/--no-X pair keeps its --no-X."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        paragraphs = []
+        for paragraph in re.split(r"\n[ \t]*\n", text.strip("\n")):
+            lines = paragraph.splitlines()
+            if any(line[:1].isspace() for line in lines):
+                paragraphs.append("\n".join(indent + line for line in lines))
+            else:
+                paragraphs.append(super()._fill_text(paragraph, width, indent))
+        return "\n\n".join(paragraphs)
+
+    def _format_action_invocation(self, action: argparse.Action) -> str:
+        shown = shown_spellings(action)
+        if shown == action.option_strings:
+            return super()._format_action_invocation(action)
+        named = copy.copy(action)
+        named.option_strings = shown
+        return super()._format_action_invocation(named)
+
+
+def shown_spellings(action: argparse.Action) -> list[str]:
+    """The option strings --help shows for ``action``: its short ones, its first long one (the family's name)
+    and, for a --X/--no-X pair, the --no-X; the other long ones are hidden aliases."""
+    longs = [s for s in action.option_strings if s.startswith("--")]
+    pair = isinstance(action, argparse.BooleanOptionalAction)
+    negated = [s for s in longs[1:] if pair and s.startswith("--no-")]
+    return [s for s in action.option_strings if not s.startswith("--")] + longs[:1] + negated
+
+
+def examples(*commands: str) -> str:
+    """An epilog of example command lines under ``example:`` (``examples:`` for several), one a line, as
+    :class:`HelpFormatter` shows them."""
+    head = "example:" if len(commands) == 1 else "examples:"
+    return "\n".join([head, *(f"  {command}" for command in commands)])
+
+
+def as_given(argv: Sequence[str] | None, flag: str, *old: str) -> str:
+    """How the command line spelled a flag that has old spellings (``old``, hidden aliases): the last one given,
+    whose value argparse keeps, so that an error names the flag as the user wrote it; ``flag`` when none was."""
+    given = [arg.split("=", 1)[0] for arg in (sys.argv[1:] if argv is None else argv)]
+    return next((arg for arg in reversed(given) if arg in (flag, *old)), flag)
+
+
+NO_PROGRESS_HELP = "no progress bars (they are drawn only when stderr is a terminal)"
+
+
+def add_no_progress(parser: argparse.ArgumentParser | argparse._ArgumentGroup, help: str = NO_PROGRESS_HELP) -> None:
+    """The family's --no-progress flag."""
+    parser.add_argument("--no-progress", action="store_true", help=help)
+
+
+def show_progress(no_progress: bool) -> bool:
+    """Whether a command draws its progress bars: not with --no-progress, and only on a terminal. In a log or a
+    pipe a bar is carriage returns, and each line written above it (``tqdm.write``: a frame skipped, a warning)
+    came between the bar's copies and the blanks it was cleared with: read line by line, blank lines between."""
+    return not no_progress and sys.stderr.isatty()
+
+
+MISSING_EXTRA_STATUS = 2  # a package the runtime install leaves out: an input the command cannot use
+
+
+def missing_extra(message: str) -> SystemExit:
+    """What a command raises when the runtime install lacks a package it needs: ``message`` (one ``error: …``
+    line saying what to install) on stderr, then exit status 2, as for any other usage error."""
+    print(message, file=sys.stderr)
+    return SystemExit(MISSING_EXTRA_STATUS)

@@ -25,7 +25,7 @@ import numpy as np
 from pipeline.beams import emulate_beams, recover_rings
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import quiet_interrupt, unwritable
+from pipeline.cli import HelpFormatter, examples, quiet_interrupt, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError
@@ -111,13 +111,16 @@ def _models(args: argparse.Namespace) -> Path | None:
 
 @quiet_interrupt("the pictures and result files written so far stay in --out")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__.split("\n\n")[0],
+                                     epilog=examples("python -m pipeline.demo --frame 000003 --out outputs/demo"),
+                                     formatter_class=HelpFormatter)
     which = parser.add_mutually_exclusive_group()
-    which.add_argument("--models", type=Path, help=f"model directory (default {DEFAULT_MODELS})")
+    which.add_argument("--models", type=Path, metavar="DIR", help=f"model directory (default {DEFAULT_MODELS})")
     which.add_argument("--core", action="store_true",
                        help="run the frame-processing core alone, without a model (pictures of each step)")
-    parser.add_argument("--frame", default="000006", help="bundled KITTI frame: 000000, 000001, 000003, 000004, 000006")
-    parser.add_argument("--out", type=Path, default=Path("outputs/demo"),
+    parser.add_argument("--frame", default="000006", metavar="ID",
+                        help="bundled KITTI frame: 000000, 000001, 000003, 000004, 000006 (default 000006)")
+    parser.add_argument("--out", type=Path, default=Path("outputs/demo"), metavar="DIR",
                         help="output folder (default outputs/demo): the KITTI result file in OUT/data, the PNG pictures "
                         "in OUT/bev and OUT/camera (with --core: OUT/<frame>_*.png of each step)")
     args = parser.parse_args(argv)

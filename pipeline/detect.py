@@ -41,7 +41,18 @@ import numpy as np
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import in_camera_view, labels_to_boxes
-from pipeline.cli import check_output, frame_rate, interrupted, probability, skipped_summary, unwritable
+from pipeline.cli import (
+    HelpFormatter,
+    add_no_progress,
+    check_output,
+    examples,
+    frame_rate,
+    interrupted,
+    probability,
+    show_progress,
+    skipped_summary,
+    unwritable,
+)
 from pipeline.errors import InputError
 from pipeline.frame import (
     DRIVE_SCANS,
@@ -406,9 +417,15 @@ def main(argv: list[str] | None = None) -> int:
         description="Detect cars with a lowres3d model directory on KITTI-layout frames or a KITTI raw drive; "
         "write KITTI result lines (label_2 format + score) to OUT/data, BEV pictures to OUT/bev and the camera "
         "view with the boxes to OUT/camera.",
+        epilog=examples("python -m pipeline.detect --data data/kitti/training --split-file "
+                        "data/kitti/ImageSets/val.txt --emulate-beams 16 --out outputs/val",
+                        "python -m pipeline.detect --image F.png --points F.bin --calib F.txt --out outputs/one"),
+        formatter_class=HelpFormatter,
     )
-    parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, help=f"model directory (default {DEFAULT_MODELS})")
-    parser.add_argument("--data", type=Path, help="KITTI object folder with image_2/, velodyne/, calib/ (label_2/ optional)")
+    parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, metavar="DIR",
+                        help=f"model directory (default {DEFAULT_MODELS})")
+    parser.add_argument("--data", type=Path, metavar="DIR",
+                        help="KITTI object folder with image_2/, velodyne/, calib/ (label_2/ optional)")
     parser.add_argument("--drive", type=Path, metavar="DIR",
                         help="KITTI raw drive folder (DATE_drive_NNNN_sync) with image_02/data/ and "
                         "velodyne_points/data/; its calib_cam_to_cam.txt and calib_velo_to_cam.txt in the date "
@@ -418,14 +435,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--split-file", type=Path, metavar="F",
                         help="the frame ids of --data or --drive to run on, one per line (ImageSets' val.txt or "
                         "test.txt); each must have a scan")
-    parser.add_argument("--image", type=Path, help="camera image (PNG/JPEG), with --points and --calib")
-    parser.add_argument("--points", type=Path, help="velodyne .bin scan")
-    parser.add_argument("--calib", type=Path, help="KITTI calib .txt")
+    parser.add_argument("--image", type=Path, metavar="F", help="camera image (PNG/JPEG), with --points and --calib")
+    parser.add_argument("--points", type=Path, metavar="F", help="velodyne .bin scan")
+    parser.add_argument("--calib", type=Path, metavar="F", help="KITTI calib .txt")
     parser.add_argument("--emulate-beams", type=int, metavar="N", choices=(0, *BEAM_COUNTS),
                         help=f"thin a 64-line scan to N lines first ({', '.join(map(str, BEAM_COUNTS))}; 0, the "
                         "default: the scans as stored, as a 16-line sensor's own; the flag of accuracy.py and "
                         "latency.py)")
-    parser.add_argument("--score-threshold", type=probability,
+    parser.add_argument("--score-threshold", type=probability, metavar="SCORE",
                         help="minimum score (default: the model's, 0.5 for the shipped ones); for result files "
                         "to evaluate give 0.05: AP needs the low-score detections")
     parser.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider (default: best available)")
@@ -441,7 +458,8 @@ def main(argv: list[str] | None = None) -> int:
                         "one MP4 (MPEG-4 Part 2: VLC, ffmpeg and most players, not web browsers)")
     parser.add_argument("--video-fps", type=frame_rate, default=None, metavar="FPS",
                         help=f"frames a second of --video, 0.1 to 1000 (default {VIDEO_FPS:g}: KITTI's LiDAR rate)")
-    parser.add_argument("--out", type=Path, required=True, help="output folder")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    add_no_progress(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.video_fps is not None and args.video is None:
@@ -476,6 +494,7 @@ def _run_and_report(args: argparse.Namespace) -> int:
             args.emulate_beams, args.score_threshold, args.provider, not args.no_pictures,
             depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, drive=args.drive, video=args.video,
             video_fps=args.video_fps or VIDEO_FPS, split_file=args.split_file,
+            progress=show_progress(args.no_progress),
         )
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -22,6 +22,10 @@ from pathlib import Path
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # run as a script: the repository's packages
+
+from pipeline.cli import HelpFormatter, examples, quiet_interrupt, unwritable
+
 ROOT = Path(__file__).resolve().parents[1]
 CONSTRAINTS = ROOT / "requirements" / "constraints.txt"
 EXTRAS = ("train", "dev")  # what `make setup-dev` installs
@@ -97,28 +101,38 @@ def differences(pins: dict[str, str], versions: dict[str, str]) -> list[str]:
     return found
 
 
+@quiet_interrupt("--out is as it was (written only at the end)")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python requirements/lock.py", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog="python requirements/lock.py", description=__doc__.split("\n\n")[0],
+                                     epilog=examples("python requirements/lock.py --check"),
+                                     formatter_class=HelpFormatter)
     parser.add_argument("--check", action="store_true",
                         help="only compare: exit 1 naming each package installed at another version than the lock")
-    parser.add_argument("--out", type=Path, default=CONSTRAINTS,
+    parser.add_argument("--out", type=Path, default=CONSTRAINTS, metavar="FILE",
                         help=f"the constraints file (default {CONSTRAINTS.relative_to(ROOT)})")
     args = parser.parse_args(argv)
     try:
         versions = installed_closure(project_requirements())
-    except PackageNotFoundError as missing:
+    except PackageNotFoundError as missing:  # the environment, not the lock: a usage error (2), not a difference
         print(f"error: {missing.name} is not installed: run make setup-dev first", file=sys.stderr)
-        return 1
+        return 2
     if args.check:
         try:
             found = differences(read_lock(args.out), versions)
-        except (OSError, ValueError) as unreadable:
+        except OSError as exc:
+            print(f"error: --out {args.out}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
+        except ValueError as unreadable:  # names the file and the line
             print(f"error: {unreadable}", file=sys.stderr)
-            return 1
+            return 2
         for line in found:
             print(line, file=sys.stderr)
         return 1 if found else 0
-    args.out.write_text(HEADER + "\n".join(lock_lines(versions)) + "\n")
+    try:
+        args.out.write_text(HEADER + "\n".join(lock_lines(versions)) + "\n")
+    except OSError as exc:
+        print(unwritable(args.out, exc), file=sys.stderr)
+        return 2
     print(f"wrote {args.out}: {len(versions)} packages")
     return 0
 

@@ -55,7 +55,7 @@ from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
-from pipeline.cli import interrupted
+from pipeline.cli import HelpFormatter, examples, interrupted
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError, default_models_hint
 from service.settings import ENV_PREFIX, Settings
@@ -99,6 +99,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m service",
         description="lowres3d detection service: FastAPI over the ONNX Runtime detector. Every option is also "
         f"an environment variable {ENV_PREFIX}<OPTION> (e.g. {ENV_PREFIX}QUEUE_SIZE); the command line wins.",
+        epilog=examples("python -m service --models weights/edge --host 127.0.0.1 --port 8000 --workers 2"),
+        formatter_class=HelpFormatter,
     )
     fields = Settings.model_fields
     for flag, kind, meta in _OPTIONS:
@@ -360,7 +362,10 @@ def main(argv: list[str] | None = None) -> int:
     except StoppedBeforeServing as stopped:
         for sock in sockets:
             sock.close()
-        log.info("%s before serving: stopped while %s; not started", stopped, stopped.during)
+        said = f"{stopped} before serving: stopped while {stopped.during}; not started"
+        if stopped.signum == signal.SIGINT:  # Ctrl-C: one line and 130, as every command of the project
+            return interrupted(said)
+        log.info("%s", said)
         return stopped_before_serving(stopped.signum)
     server.run(sockets=sockets)  # uvicorn's own signal handlers from here on
     # uvicorn re-raises the signal that stopped it once its handlers are gone: noted here, ended on here.

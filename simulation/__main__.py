@@ -14,7 +14,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
 
-from pipeline.cli import interrupted, non_negative_int, positive_int
+from pipeline.cli import HelpFormatter, add_no_progress, examples, interrupted, non_negative_int, positive_int
 from simulation.run import RunConfig, run
 
 TERMINATED_STATUS = 143  # 128 + SIGTERM: what a shell reports for a command that `kill` or `timeout` stopped
@@ -49,18 +49,25 @@ def main(argv: list[str] | None = None) -> int:
         "velodyne/*.bin (64-line), calib/*.txt, label_2/*.txt and depth_2/*.png (dense depth, "
         "metres × 256), plus ImageSets/<split>.txt. Frame i depends only on (seed, i). Each file appears "
         "whole or not at all; rerun the same command to resume a stopped run.",
+        epilog=examples("python -m simulation --out data/sim/train --frames 3000 --seed 1 --workers 2",
+                        "python -m simulation --out data/sim/val --frames 300 --seed 2 --split val --workers 2"),
+        formatter_class=HelpFormatter,
     )
-    parser.add_argument("--out", type=Path, required=True, help="output folder (KITTI 'training/' equivalent)")
-    parser.add_argument("--frames", type=positive_int, required=True, help="number of frames to write")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="output folder (KITTI 'training/' equivalent)")
+    parser.add_argument("--frames", type=positive_int, required=True, metavar="N", help="number of frames to write")
     parser.add_argument("--seed", type=non_negative_int, required=True,
                         help="run seed; use disjoint seeds (or disjoint --start ranges) for train and val")
-    parser.add_argument("--start", type=non_negative_int, default=0, help="first frame index / file id (default 0)")
-    parser.add_argument("--workers", type=positive_int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--start", type=non_negative_int, default=0, metavar="N",
+                        help="first frame index / file id (default 0)")
+    parser.add_argument("--workers", type=positive_int, default=1, metavar="N", help="worker processes (default 1)")
     parser.add_argument("--split", default="train", help="name of the ImageSets list file (default train)")
     parser.add_argument("--imagesets", type=Path, default=None, metavar="DIR",
                         help="folder of the split list (default OUT/ImageSets); with --out ROOT/training or "
                         "ROOT/testing give ROOT/ImageSets, where OpenPCDet and mmdetection3d read it")
-    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    # Drawn into a log too (not show_progress): a run of thousands of frames goes on for hours in the background.
+    add_no_progress(parser, "hide the progress bar (drawn into a log too: a long run in the background shows its "
+                    "progress there)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     resume = f"the frames finished are in {args.out}; rerun the same command to resume"
