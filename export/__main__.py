@@ -13,7 +13,15 @@ from pathlib import Path
 from export.directory import check_destination
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
 from export.precision import REDUCE_RANGE_HELP, calibration_frame_ids
-from pipeline.cli import interrupted, missing_extra, positive_int, unwritable
+from pipeline.cli import (
+    HelpFormatter,
+    examples,
+    interrupted,
+    missing_extra,
+    non_negative_int,
+    positive_int,
+    unwritable,
+)
 from pipeline.errors import TORCH_MISSING
 from pipeline.model_files import ModelFileError
 from pipeline.presets import ABLATIONS, PRESETS, get_preset
@@ -32,28 +40,32 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
         prog="python -m export",
         description="Export a preset's depth-completion net and PIXOR to ONNX, check ONNX Runtime against "
         "PyTorch on a real KITTI frame and random inputs, and write manifest.json.",
+        epilog=examples("python -m export --preset edge-split-near35 --checkpoints runs/edge/camera --out weights/own",
+                        "python -m export --preset edge --checkpoints runs/edge/camera --precision int8 "
+                        "--calibration-data data/sim/val --out weights/own-int8"),
+        formatter_class=HelpFormatter,
     )
-    parser.add_argument("--preset", required=True, help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with "
+    parser.add_argument("--preset", required=True, metavar="P", help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with "
                         f"suffixes {', '.join(ABLATIONS)} (the shipped camera model: edge-split-near35)")
-    parser.add_argument("--out", required=True, type=Path,
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="output model directory: new, empty, or a model directory to replace (only once the new "
                         "one is written and checked)")
     parser.add_argument(
-        "--checkpoints", type=Path, default=None,
+        "--checkpoints", type=Path, default=None, metavar="DIR",
         help="directory with depth.pt and/or pixor.pt (models/checkpoint.py); default: initialised, untrained weights",
     )
     # Defaults of None: a flag given with --no-parity (or a calibration flag with fp32) is refused, not ignored.
-    parser.add_argument("--kitti-dir", "--data", dest="kitti_dir", type=Path, default=None,
+    parser.add_argument("--data", "--kitti-dir", dest="kitti_dir", type=Path, default=None, metavar="DIR",
                         help="KITTI training folder of the parity frame (default: the bundled tests/data/kitti/training)")
-    parser.add_argument("--frame", default=None, help=f"KITTI frame id for the parity check (default {DEFAULT_FRAME})")
-    parser.add_argument("--seed", type=int, default=0, help="seed for initial weights and random parity inputs (default 0)")
+    parser.add_argument("--frame", default=None, metavar="ID", help=f"KITTI frame id for the parity check (default {DEFAULT_FRAME})")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed for initial weights and random parity inputs (default 0)")
     parser.add_argument("--no-parity", action="store_true", help="skip the ONNX Runtime vs PyTorch check")
     parser.add_argument("--precision", choices=["fp32", "fp16", "int8"], default="fp32",
                         help="fp32 (default); fp16 for GPUs; int8 static QDQ quantization for CPUs")
-    parser.add_argument("--calibration-data", type=Path, default=None,
+    parser.add_argument("--calibration-data", type=Path, default=None, metavar="DIR",
                         help="fp16/int8: KITTI-layout folder whose frames calibrate int8 and measure the deviation "
                         "from fp32 (default: the bundled KITTI frames)")
-    parser.add_argument("--calibration-frames", type=positive_int, default=None,
+    parser.add_argument("--calibration-frames", type=positive_int, default=None, metavar="N",
                         help="fp16/int8: frames of --calibration-data used (default 300)")
     parser.add_argument("--reduce-range", action="store_true", help=REDUCE_RANGE_HELP)
     parser.add_argument("--networks", nargs="+", default=["depth", "pixor"], choices=["depth", "pixor"],
@@ -76,7 +88,7 @@ def _refuse_contradictions(parser: argparse.ArgumentParser, args: argparse.Names
     if args.reduce_range and args.precision != "int8":
         parser.error(f"--reduce-range: applies to --precision int8 only, not {args.precision}")
     if args.no_parity:
-        given = [flag for flag, value in (("--kitti-dir", args.kitti_dir), ("--frame", args.frame)) if value is not None]
+        given = [flag for flag, value in (("--data", args.kitti_dir), ("--frame", args.frame)) if value is not None]
         if given:
             parser.error(f"{' and '.join(given)}: only used by the parity check, which --no-parity skips")
     if args.precision == "fp32":

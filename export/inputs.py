@@ -46,12 +46,12 @@ def check_frame(kitti_dir: str | Path, frame: str) -> None:
     """Refuse a parity frame that is not in ``kitti_dir`` before any export work (InputError naming the flags)."""
     kitti_dir = Path(kitti_dir)
     if not kitti_dir.is_dir():
-        raise InputError(f"--kitti-dir {kitti_dir}: not a folder (a KITTI object training folder with image_2/, "
+        raise InputError(f"--data {kitti_dir}: not a folder (a KITTI object training folder with image_2/, "
                          "velodyne/, calib/)")
     needed = (f"image_2/{frame}.png", f"velodyne/{frame}.bin", f"calib/{frame}.txt")
     missing = [name for name in needed if not (kitti_dir / name).is_file()]
     if missing:
-        raise InputError(f"--frame {frame}: not in --kitti-dir {kitti_dir} (no {', '.join(missing)})")
+        raise InputError(f"--frame {frame}: not in --data {kitti_dir} (no {', '.join(missing)})")
 
 
 def kitti_inputs(preset: Preset, kitti_dir: str | Path = DEFAULT_KITTI_DIR, frame: str = DEFAULT_FRAME) -> NetworkInputs:

@@ -29,7 +29,7 @@ from export.directory import check_destination, staged
 from export.inputs import kitti_inputs, random_inputs
 from export.manifest import graph_inputs
 from export.rewrite import lower_for_cpu
-from pipeline.cli import interrupted
+from pipeline.cli import HelpFormatter, examples, interrupted
 from pipeline.graph_inputs import feeds_for
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import preset_from_dict
@@ -111,10 +111,13 @@ def run(models: Path, out: Path | None = None) -> LowerResult:
 
 
 def main(argv: list[str] | None = None) -> int:
+    epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
+        "python -m export.lower --models weights/own --out weights/own-relowered")
     parser = argparse.ArgumentParser(prog="python -m export.lower", description=__doc__.split("\n\n")[0],
-                                     epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--models", type=Path, required=True, help="FP32 model directory (manifest.json + ONNX files)")
-    parser.add_argument("--out", type=Path, help="output model directory (default: rewrite --models in place)")
+                                     epilog=epilog, formatter_class=HelpFormatter)
+    parser.add_argument("--models", type=Path, required=True, metavar="DIR",
+                        help="FP32 model directory (manifest.json + ONNX files)")
+    parser.add_argument("--out", type=Path, metavar="DIR", help="output model directory (default: rewrite --models in place)")
     args = parser.parse_args(argv)
     try:
         result = run(args.models, args.out)

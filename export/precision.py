@@ -332,22 +332,27 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     from export.inputs import DEFAULT_KITTI_DIR
-    from pipeline.cli import interrupted, non_negative_int, positive_int
+    from pipeline.cli import HelpFormatter, examples, interrupted, non_negative_int, positive_int
 
-    parser = argparse.ArgumentParser(prog="python -m export.precision",
-                                     description="Convert an FP32 model directory to FP16 or INT8 (QDQ).")
-    parser.add_argument("--models", type=Path, required=True, help="FP32 model directory (manifest.json + ONNX files)")
-    parser.add_argument("--precision", choices=["fp16", "int8"], required=True)
-    parser.add_argument("--out", type=Path, required=True, help="output model directory")
-    parser.add_argument("--calibration-data", type=Path, default=DEFAULT_KITTI_DIR,
+    parser = argparse.ArgumentParser(
+        prog="python -m export.precision", description="Convert an FP32 model directory to FP16 or INT8 (QDQ).",
+        epilog=examples("python -m export.precision --models weights/edge --precision int8 --calibration-data "
+                        "data/sim/val --out weights/own-int8"),
+        formatter_class=HelpFormatter)
+    parser.add_argument("--models", type=Path, required=True, metavar="DIR",
+                        help="FP32 model directory (manifest.json + ONNX files)")
+    parser.add_argument("--precision", choices=["fp16", "int8"], required=True,
+                        help="fp16 for GPUs (I/O stays float32); int8 static QDQ quantization for CPUs")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output model directory")
+    parser.add_argument("--calibration-data", type=Path, default=DEFAULT_KITTI_DIR, metavar="DIR",
                         help="KITTI-layout folder: INT8 calibrates on its frames, and both precisions measure their "
                         "deviation from fp32 there (default: the bundled real KITTI frames, as python -m export; "
                         "give a few hundred frames of your data for INT8)")
-    parser.add_argument("--calibration-frames", type=positive_int, default=300,
+    parser.add_argument("--calibration-frames", type=positive_int, default=300, metavar="N",
                         help="int8: the first N frames calibrate it (default 300; fewer than 100 get a warning); fp16 "
                         f"reads only the first {DEVIATION_FRAMES}, for its deviation from fp32")
     parser.add_argument("--reduce-range", action="store_true", help=REDUCE_RANGE_HELP)
-    parser.add_argument("--beams", "--emulate-beams", type=non_negative_int, metavar="N",
+    parser.add_argument("--emulate-beams", "--beams", dest="beams", type=non_negative_int, metavar="N",
                         help="thin the calibration scans to N lines first (default: 16 for a model not trained "
                         "on 64-line scans, as the pipeline's users do with 64-line data; 0: the scans as stored, "
                         "e.g. a 16-line sensor's own recordings)")

@@ -66,7 +66,7 @@ from models.cache_pseudo import run as cache_pseudo
 from models.schedule import Job, JobFailed, run_jobs
 from models.train import TrainConfig
 from models.train import run as train
-from pipeline.cli import check_output, interrupted, positive_float, positive_int
+from pipeline.cli import HelpFormatter, check_output, examples, interrupted, positive_float, positive_int
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError
 from pipeline.presets import PRESETS, get_preset, lidar_only
@@ -452,14 +452,18 @@ def format_table(report: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples("python -m models.reproduce --quick --out /tmp/reproduce",
+                                                           "python -m models.reproduce --out runs/edge")
     parser = argparse.ArgumentParser(prog="python -m models.reproduce", description=__doc__.split("\n\n")[0],
-                                     epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--out", type=Path, default=Path("runs/edge"), help="run folder (default runs/edge)")
-    parser.add_argument("--data", type=Path, default=Path("data/sim"), help="synthetic data folder (default data/sim)")
-    parser.add_argument("--weights", type=Path, default=None,
+                                     epilog=epilog, formatter_class=HelpFormatter)
+    parser.add_argument("--out", type=Path, default=Path("runs/edge"), metavar="DIR",
+                        help="run folder (default runs/edge)")
+    parser.add_argument("--data", type=Path, default=Path("data/sim"), metavar="DIR",
+                        help="synthetic data folder (default data/sim)")
+    parser.add_argument("--weights", type=Path, default=None, metavar="DIR",
                         help="where the model directories ship, at the end of the run (default weights; "
                         "--quick: OUT/weights)")
-    parser.add_argument("--preset", default=ReproduceConfig.preset,
+    parser.add_argument("--preset", default=ReproduceConfig.preset, metavar="P",
                         help=f"preset (default {ReproduceConfig.preset}: the edge networks, the camera PIXOR on "
                         "split pseudo channels with the pseudo points up to 35 m)")
     parser.add_argument("--sim-workers", type=positive_int, default=2, help="simulation processes (default 2)")

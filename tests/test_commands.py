@@ -21,10 +21,8 @@ MODULES = ["pipeline.detect", "pipeline.beams", "pipeline.demo", "service", "sim
            "export.golden", "requirements.lock"]
 SCRIPTS = ["latency", "accuracy", "load", "frame_ops", "eval_speed", "sim_report", "network_latency", "peak",
            "op_profile", "depth_bound"]
-# The commands of the README's table and the Makefile that this family's checks hold to; models.reproduce and
-# export.* (each with its own owner) are not held to the examples and spellings below yet.
-FAMILY = [name for name in MODULES + SCRIPTS if name not in ("models.reproduce", "export", "export.lower",
-                                                             "export.precision")]
+# The commands of the README's table and the Makefile, which this family's checks hold to: all of them.
+FAMILY = MODULES + SCRIPTS
 
 
 def _command(name: str) -> list[str]:
@@ -57,7 +55,8 @@ def test_every_command_answers_help(name):
 
 # What the runtime install (make demo: no torch, matplotlib or httpx) answers to --help: the usage, or for a
 # command that needs a package it lacks one line saying what to install, exit status 2 as any usage error.
-NEEDS_EXTRAS = {"models.train", "models.cache_pseudo", "network_latency", "depth_bound", "load"}
+NEEDS_EXTRAS = {"models.train", "models.cache_pseudo", "models.reproduce", "export", "network_latency", "depth_bound",
+                "load"}
 RUNTIME = ("import runpy, sys; [sys.modules.__setitem__(m, None) for m in ('torch', 'matplotlib', 'httpx')]; "
            "sys.argv = ['x', '--help']; ")
 
@@ -86,7 +85,7 @@ def _parser(name: str, monkeypatch: pytest.MonkeyPatch) -> argparse.ArgumentPars
 
         return build_parser()
     module = importlib.import_module(f"benchmarks.{name}" if name in SCRIPTS else
-                                     f"{name}.__main__" if name == "simulation" else name)
+                                     f"{name}.__main__" if name in ("simulation", "export") else name)
 
     def built(parser: argparse.ArgumentParser, *_: object, **__: object) -> None:
         raise _Built(parser)
@@ -305,7 +304,7 @@ def test_ctrl_c_ends_a_command_with_one_line(name, args, where, says, tmp_path, 
     import importlib
 
     module = importlib.import_module(f"benchmarks.{name}" if name in SCRIPTS else
-                                     f"{name}.__main__" if name == "simulation" else name)
+                                     f"{name}.__main__" if name in ("simulation", "export") else name)
     if where == "argparse":
         monkeypatch.setattr(argparse.ArgumentParser, "parse_args", _stop)
     else:

@@ -798,9 +798,9 @@ def test_cli_refuses_bad_inputs_in_one_line_before_exporting(tmp_path: Path, cap
     out = str(tmp_path / "out")
     cases = [
         (["--out", f"{a_file}/models"], f"--out {a_file}/models: {a_file} is a file, not a directory"),
-        (["--out", out, "--frame", "999999"], "--frame 999999: not in --kitti-dir"),
-        (["--out", out, "--kitti-dir", str(tmp_path / "kitt")], f"--kitti-dir {tmp_path / 'kitt'}: not a folder"),
-        (["--out", out, "--data", str(tmp_path / "kitt")], f"--kitti-dir {tmp_path / 'kitt'}: not a folder"),  # alias
+        (["--out", out, "--frame", "999999"], "--frame 999999: not in --data"),
+        (["--out", out, "--kitti-dir", str(tmp_path / "kitt")], f"--data {tmp_path / 'kitt'}: not a folder"),  # alias
+        (["--out", out, "--data", str(tmp_path / "kitt")], f"--data {tmp_path / 'kitt'}: not a folder"),
         (["--out", out, "--checkpoints", str(only_depth / "depth.pt")], "depth.pt: is a file; give the folder"),
         (["--out", out, "--checkpoints", str(only_depth), "--networks", "pixor"],
          "holds depth.pt but no checkpoint of --networks pixor"),
@@ -827,7 +827,7 @@ def test_a_reduced_precision_export_records_what_made_its_fp32_networks(tmp_path
 
 @pytest.mark.parametrize(("extra", "says"), [
     (["--no-parity", "--frame", "000001"], "--frame: only used by the parity check, which --no-parity skips"),
-    (["--no-parity", "--kitti-dir", "x"], "--kitti-dir: only used by the parity check"),
+    (["--no-parity", "--data", "x"], "--data: only used by the parity check"),
     (["--calibration-frames", "10"], "--calibration-frames: only used by --precision fp16 or int8, not fp32"),
     (["--networks", "depth"], "--networks: every model directory has pixor"),
 ])
