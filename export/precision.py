@@ -103,7 +103,7 @@ def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool =
         try:
             inputs = detector.network_inputs(frame.image, frame.points, frame.calib, emulate_to_beams=beams or None)
         except InputError as exc:
-            hint = "; give --beams 0 to use the scans as stored" if beams else ""
+            hint = "; give --emulate-beams 0 to use the scans as stored" if beams else ""
             raise InputError(f"--calibration-data {data}, frame {fid}: {exc}{hint}") from None
         for name, feed in inputs.items():
             # The BEV as float16 halves the memory of a few hundred frames (its values are 0/1 and heights).

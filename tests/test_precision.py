@@ -428,7 +428,7 @@ def test_calibration_of_a_16_line_recording_keeps_its_scans(tmp_path):
     (data / "velodyne").mkdir()
     for scan in sorted((KITTI / "velodyne").glob("*.bin"))[:2]:
         write_velodyne(data / "velodyne" / scan.name, emulate_beams(read_velodyne(scan).points, 16))
-    with pytest.raises(InputError, match=r"frame 000000: .*thinned already.*give --beams 0"):
+    with pytest.raises(InputError, match=r"frame 000000: .*thinned already.*give --emulate-beams 0"):
         calibration_feeds(SHIPPED_EDGE, data, 2)
     feeds = calibration_feeds(SHIPPED_EDGE, data, 2, beams=0)
     assert len(feeds["pixor"]) == len(feeds["depth"]) == 2
