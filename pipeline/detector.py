@@ -41,12 +41,15 @@ from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration, check_calibration
 from pipeline.checks import (
     beam_pattern_mismatch,
+    blocked_sector_fault,
     calibration_mismatch,
     check_image,
     check_options,
     image_hw_of,
     reflectance_mismatch,
     road_level_mismatch,
+    stuck_range_fault,
+    thin_scan_fault,
     view_mismatch,
 )
 from pipeline.cpu import int8_pairs_saturate, usable_cpus
@@ -477,11 +480,26 @@ class Detector:
         crop that lies below the cars ahead. Such a frame still gets boxes, fewer and worse ones."""
         decode = self.preset.decode
         found = [beam_pattern_mismatch(points), road_level_mismatch(points, decode.ground_z),
-                 reflectance_mismatch(points)]
-        if view_calib is not None and image_hw is not None:
-            found.append(view_mismatch(image_hw, view_calib, self.preset.crop_hw, decode.ground_z, decode.car_height,
-                                       self.preset.depth.max_depth))
+                 reflectance_mismatch(points), self._view_mismatch(image_hw, view_calib)]
         return [warning for warning in found if warning]
+
+    def _view_mismatch(self, image_hw: tuple[int, int] | None, view_calib: Calibration | None) -> str | None:
+        """:func:`view_mismatch` for the camera pipeline (None without a view)."""
+        if view_calib is None or image_hw is None:
+            return None
+        decode = self.preset.decode
+        return view_mismatch(image_hw, view_calib, self.preset.crop_hw, decode.ground_z, decode.car_height,
+                             self.preset.depth.max_depth)
+
+    def frame_checks(self, points: np.ndarray, image_hw: tuple[int, int] | None = None,
+                     view_calib: Calibration | None = None) -> list[str]:
+        """The warnings :meth:`detect` gives a frame from its scan and view (all but the voxelizer's counts):
+        a LiDAR failing at run time (README, "Sensor faults": a scan stuck at one range, a blocked sector), then
+        the rig's mismatches (:meth:`rig_mismatches`). On the stage thread where there is one."""
+        stuck = stuck_range_fault(points)
+        if stuck:  # a scan at one range has no beams, road or reflectance to compare: the rig's checks would misname it
+            return [w for w in (stuck, self._view_mismatch(image_hw, view_calib)) if w]
+        return [w for w in (blocked_sector_fault(points), *self.rig_mismatches(points, image_hw, view_calib)) if w]
 
     def _without_depth(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration,
                        image_hw: tuple[int, int]) -> tuple[dict[str, float], list[str]]:
@@ -495,7 +513,7 @@ class Detector:
         voxelizer.add_points(points)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
-        warnings = self.rig_mismatches(points, image_hw, view_calib)
+        warnings = self.frame_checks(points, image_hw, view_calib)
         timings["rig_checks"] = (time.perf_counter() - tic) * 1e3
         return timings, warnings
 
@@ -620,7 +638,7 @@ class Detector:
                 beside = self._stage_thread().submit(self._without_depth, voxelizer, points, view_calib,
                                                      image.shape[:2])
             else:
-                warnings += self.rig_mismatches(points, image.shape[:2], view_calib)
+                warnings += self.frame_checks(points, image.shape[:2], view_calib)
             if depth is None:
                 tic = time.perf_counter()
                 try:
@@ -652,7 +670,7 @@ class Detector:
             if depth is not None:
                 raise InputError("depth: this model has no depth network to replace (a LiDAR-only model directory)")
             pseudo = beside = None
-            warnings += self.rig_mismatches(points)
+            warnings += self.frame_checks(points)
 
         tic = time.perf_counter()
         if beside is None:
@@ -664,6 +682,10 @@ class Detector:
             warnings.append(f"points: almost none lie in the detection range, x {grid.x_min:g}…{grid.x_max:g} m forward, "
                             f"y {grid.y_min:g}…{grid.y_max:g} m, z {grid.z_min:g}…{grid.z_max:g} m in the velodyne frame: "
                             f"are they in metres, in that frame? ({voxelizer.points_in_grid} of {points.shape[0]} points)")
+        elif not mismatch:  # the voxelizer's count, so free; a scan of fewer lines than trained is named above
+            thin = thin_scan_fault(voxelizer.points_in_grid, self.trained_lines)
+            if thin:
+                warnings.append(thin)
         tic = time.perf_counter()
         score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]}, cancel)
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
