@@ -7,12 +7,82 @@ training one and for a LiDAR failing at run time (README, "Your own vehicle" and
 from __future__ import annotations
 
 import numbers
+from enum import StrEnum
+from typing import NamedTuple
 
 import numpy as np
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.calib import Calibration
 from pipeline.errors import InputError
+
+
+class WarningCode(StrEnum):
+    """The stable, machine-readable name of each warning (``Detections.warning_codes``, the service's
+    ``warning_codes`` and its ``lowres3d_frame_warnings_total{code}``): a warning's text carries the frame's
+    figures and may be reworded, its code does not change. A str, so it compares and serialises as its value."""
+
+    # A frame's (Detector.detect, the service's and the CLI's reading of the scan).
+    CALIBRATION_MISFIT = "calibration_misfit"
+    BEAMS_EMULATED = "beams_emulated"
+    LINE_COUNT = "line_count"
+    OUT_OF_RANGE = "out_of_range"
+    THIN_SCAN = "thin_scan"
+    BLOCKED_SECTOR = "blocked_sector"
+    STUCK_RANGE = "stuck_range"
+    BEAM_PATTERN = "beam_pattern"
+    ROAD_LEVEL = "road_level"
+    REFLECTANCE_SCALE = "reflectance_scale"
+    CAMERA_VIEW = "camera_view"
+    NONFINITE_DROPPED = "nonfinite_dropped"
+    # Loading a model directory's (Detector.load_warnings, the service's /v1/model).
+    UNTRAINED_WEIGHTS = "untrained_weights"
+    PROVIDER_FALLBACK = "provider_fallback"
+    INT8_SATURATION = "int8_saturation"
+    FP16_ON_CPU = "fp16_on_cpu"
+
+
+# What each code means, for people (the service's schema and docs/service.md list them).
+WARNING_MEANINGS: dict[WarningCode, str] = {
+    WarningCode.CALIBRATION_MISFIT: "P2's principal point lies outside the middle half of the image: a resized or "
+    "cropped image, or another camera's calibration",
+    WarningCode.BEAMS_EMULATED: "the scan was thinned to fewer lines as asked (emulate_beams); not a fault",
+    WarningCode.LINE_COUNT: "the scan's point count does not fit the line count the model was trained on",
+    WarningCode.OUT_OF_RANGE: "almost no point lies in the detection range: points in another unit or frame",
+    WarningCode.THIN_SCAN: "far fewer returns in the detection range than the training rig's: a dirty or wet "
+    "window, fog, spray, lost packets (sensor fault)",
+    WarningCode.BLOCKED_SECTOR: "a sector of azimuths ahead has no returns: a blocked or dirty window, lost "
+    "packets (sensor fault)",
+    WarningCode.STUCK_RANGE: "most returns lie at one range: a stuck or failing LiDAR (sensor fault; the boxes "
+    "mean nothing)",
+    WarningCode.BEAM_PATTERN: "the beams' elevations are not the training rig's (a VLP-16, a tilted sensor)",
+    WarningCode.ROAD_LEVEL: "the road ahead lies far from the training rig's road level (a vehicle frame, another "
+    "mounting height)",
+    WarningCode.REFLECTANCE_SCALE: "the scan's reflectance is on another scale than the training scans'",
+    WarningCode.CAMERA_VIEW: "the depth net's crop of the image lies below the cars ahead",
+    WarningCode.NONFINITE_DROPPED: "scan rows with NaN or infinite values were dropped",
+    WarningCode.UNTRAINED_WEIGHTS: "a network was exported without trained weights: its outputs mean nothing",
+    WarningCode.PROVIDER_FALLBACK: "the best execution provider offered did not load; the networks run on the next",
+    WarningCode.INT8_SATURATION: "full-range INT8 weights on a CPU whose int8 kernels can saturate",
+    WarningCode.FP16_ON_CPU: "FP16 networks run on the CPU provider, slower than FP32 there",
+}
+# The codes a frame can carry (the metric's label values), and those of loading a model directory.
+LOAD_WARNING_CODES = (WarningCode.UNTRAINED_WEIGHTS, WarningCode.PROVIDER_FALLBACK, WarningCode.INT8_SATURATION,
+                      WarningCode.FP16_ON_CPU)
+FRAME_WARNING_CODES = tuple(code for code in WarningCode if code not in LOAD_WARNING_CODES)
+
+
+class CodedWarning(NamedTuple):
+    """A warning with its code, as the Detector's checks pair them."""
+
+    code: WarningCode
+    message: str
+
+
+def coded(*found: tuple[WarningCode, str | None]) -> list[CodedWarning]:
+    """The warnings among ``(code, message or None)`` pairs, in order (a check's None: nothing to say)."""
+    return [CodedWarning(code, message) for code, message in found if message]
+
 
 # P2's principal point lies near the middle of the image it describes (KITTI: (600–610, 170–190) in 1224–1242 ×
 # 370–376); outside the middle half, the image is most likely resized or cropped after calibrating, or the

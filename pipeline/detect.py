@@ -41,6 +41,7 @@ import numpy as np
 
 from pipeline.beams import BEAM_COUNTS
 from pipeline.boxes import in_camera_view, labels_to_boxes
+from pipeline.checks import WarningCode
 from pipeline.cli import (
     HelpFormatter,
     add_no_progress,
@@ -283,10 +284,11 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
             tqdm.write(f"error: {exc} (frame {fid} skipped{also})", file=sys.stderr)
             continue
         if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
-            detections.warnings.append(f"points: dropped rows with NaN or infinite values ({frame.dropped_nonfinite} rows)")
-        for warning in detections.warnings:  # each kind once (the trailing "(…)" holds the frame's figures)
-            kind = warning.rsplit(" (", 1)[0]
-            if not warning.startswith("emulated") and kind not in warned:
+            detections.add_warning(WarningCode.NONFINITE_DROPPED,
+                                   f"points: dropped rows with NaN or infinite values ({frame.dropped_nonfinite} rows)")
+        for warning, code in zip(detections.warnings, detections.warning_codes, strict=True):
+            kind = warning.rsplit(" (", 1)[0]  # each kind once (the trailing "(…)" holds the frame's figures)
+            if code != WarningCode.BEAMS_EMULATED and kind not in warned:  # asked for: not worth a line a frame
                 warned.add(kind)
                 tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
         for stage, ms in detections.timings_ms.items():

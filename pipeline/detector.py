@@ -40,11 +40,14 @@ from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import boxes_to_objects, in_camera_view
 from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration, check_calibration
 from pipeline.checks import (
+    CodedWarning,
+    WarningCode,
     beam_pattern_mismatch,
     blocked_sector_fault,
     calibration_mismatch,
     check_image,
     check_options,
+    coded,
     image_hw_of,
     reflectance_mismatch,
     road_level_mismatch,
@@ -135,7 +138,8 @@ class Detections:
     best first. timings_ms: per stage and ``total``, as the frame spent them
     one after the other. overlapped_ms: stages run on the stage thread while a
     network ran (not part of ``total``'s sum). warnings: what was dropped or
-    adjusted on the way.
+    adjusted on the way. warning_codes: each warning's stable code
+    (pipeline.checks.WarningCode), same length and order, for alerting.
     """
 
     boxes: np.ndarray
@@ -144,7 +148,13 @@ class Detections:
     timings_ms: dict[str, float] = field(default_factory=dict)
     overlapped_ms: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    warning_codes: list[str] = field(default_factory=list)
     points: np.ndarray | None = field(default=None, repr=False)  # the points PIXOR saw (for pictures)
+
+    def add_warning(self, code: WarningCode, message: str) -> None:
+        """Append a warning and its code (the two lists stay parallel)."""
+        self.warnings.append(message)
+        self.warning_codes.append(code)
 
     def to_objects(self, calib: Calibration, image_hw: tuple[int, ...]) -> list[Object3D]:
         """KITTI result objects (label_2 format with score; :func:`pipeline.kitti.format_label` writes one as a
@@ -363,8 +373,11 @@ class Detector:
         fallback = self._check_provider_loaded(explicit=bool(providers))
         # About the weights and the precision on this machine, logged once at load (and shown by the
         # service's /v1/model).
-        self.load_warnings: list[str] = [w for w in (self._untrained(), fallback, self._saturating_int8(),
-                                                     self._fp16_on_cpu()) if w]
+        loaded = coded((WarningCode.UNTRAINED_WEIGHTS, self._untrained()), (WarningCode.PROVIDER_FALLBACK, fallback),
+                       (WarningCode.INT8_SATURATION, self._saturating_int8()),
+                       (WarningCode.FP16_ON_CPU, self._fp16_on_cpu()))
+        self.load_warnings: list[str] = [w.message for w in loaded]
+        self.load_warning_codes: list[str] = [w.code for w in loaded]  # parallel to load_warnings
         for warning in self.load_warnings:
             log.warning(warning)
         self.trained_lines: int | None = trained_lines(networks["pixor"].get("training") or {})  # None: not recorded
@@ -474,14 +487,15 @@ class Detector:
         bin_rays(view_calib, height, width, self.preset.pseudo_limits[2], self.preset.bev)
 
     def rig_mismatches(self, points: np.ndarray, image_hw: tuple[int, int] | None = None,
-                       view_calib: Calibration | None = None) -> list[str]:
-        """Warnings for a rig unlike the training one (README, "Your own vehicle"): the scan's beams' elevations,
-        the road's height and the reflectance's scale, and with ``view_calib`` (the camera pipeline) a depth-net
-        crop that lies below the cars ahead. Such a frame still gets boxes, fewer and worse ones."""
+                       view_calib: Calibration | None = None) -> list[CodedWarning]:
+        """Warnings, with their codes, for a rig unlike the training one (README, "Your own vehicle"): the scan's
+        beams' elevations, the road's height and the reflectance's scale, and with ``view_calib`` (the camera
+        pipeline) a depth-net crop that lies below the cars ahead. Such a frame still gets boxes, fewer and worse."""
         decode = self.preset.decode
-        found = [beam_pattern_mismatch(points), road_level_mismatch(points, decode.ground_z),
-                 reflectance_mismatch(points), self._view_mismatch(image_hw, view_calib)]
-        return [warning for warning in found if warning]
+        return coded((WarningCode.BEAM_PATTERN, beam_pattern_mismatch(points)),
+                     (WarningCode.ROAD_LEVEL, road_level_mismatch(points, decode.ground_z)),
+                     (WarningCode.REFLECTANCE_SCALE, reflectance_mismatch(points)),
+                     (WarningCode.CAMERA_VIEW, self._view_mismatch(image_hw, view_calib)))
 
     def _view_mismatch(self, image_hw: tuple[int, int] | None, view_calib: Calibration | None) -> str | None:
         """:func:`view_mismatch` for the camera pipeline (None without a view)."""
@@ -492,17 +506,19 @@ class Detector:
                              self.preset.depth.max_depth)
 
     def frame_checks(self, points: np.ndarray, image_hw: tuple[int, int] | None = None,
-                     view_calib: Calibration | None = None) -> list[str]:
-        """The warnings :meth:`detect` gives a frame from its scan and view (all but the voxelizer's counts):
-        a LiDAR failing at run time (README, "Sensor faults": a scan stuck at one range, a blocked sector), then
+                     view_calib: Calibration | None = None) -> list[CodedWarning]:
+        """The warnings, with their codes, :meth:`detect` gives a frame from its scan and view (all but the
+        voxelizer's counts): a LiDAR failing at run time (README, "Sensor faults": a scan stuck at one range, a blocked sector), then
         the rig's mismatches (:meth:`rig_mismatches`). On the stage thread where there is one."""
         stuck = stuck_range_fault(points)
         if stuck:  # a scan at one range has no beams, road or reflectance to compare: the rig's checks would misname it
-            return [w for w in (stuck, self._view_mismatch(image_hw, view_calib)) if w]
-        return [w for w in (blocked_sector_fault(points), *self.rig_mismatches(points, image_hw, view_calib)) if w]
+            return coded((WarningCode.STUCK_RANGE, stuck),
+                         (WarningCode.CAMERA_VIEW, self._view_mismatch(image_hw, view_calib)))
+        return [*coded((WarningCode.BLOCKED_SECTOR, blocked_sector_fault(points))),
+                *self.rig_mismatches(points, image_hw, view_calib)]
 
     def _without_depth(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration,
-                       image_hw: tuple[int, int]) -> tuple[dict[str, float], list[str]]:
+                       image_hw: tuple[int, int]) -> tuple[dict[str, float], list[CodedWarning]]:
         """The stages of a frame that need no depth: the view's rays (built once per calibration), the real
         points' half of the voxelization and the rig's checks. Returns what each took, and the checks' warnings."""
         timings = {}
@@ -590,7 +606,7 @@ class Detector:
         to stop the frame (RunCancelled).
         """
         timings: dict[str, float] = {}
-        warnings: list[str] = []
+        warnings: list[CodedWarning] = []  # split into Detections' two parallel lists at the end
         start = time.perf_counter()
         check_options(score_threshold, emulate_to_beams)
         points = self._check_points(points)
@@ -600,23 +616,22 @@ class Detector:
             calib = check_calibration(calib, "calib")
             if image is not None:
                 misfit = calibration_mismatch(image.shape[:2], calib)
-                if misfit:
-                    warnings.append(misfit)
+                warnings += coded((WarningCode.CALIBRATION_MISFIT, misfit))
 
         if emulate_to_beams:  # None or 0: the scan as given
             tic = time.perf_counter()
             before = points.shape[0]
             points = emulate_beams(points, emulate_to_beams)
             timings["emulate_beams"] = (time.perf_counter() - tic) * 1e3
-            warnings.append(f"emulated {emulate_to_beams} beams: kept {points.shape[0]} of {before} points")
+            warnings.append(CodedWarning(WarningCode.BEAMS_EMULATED,
+                                         f"emulated {emulate_to_beams} beams: kept {points.shape[0]} of {before} points"))
             # The emulation is NumPy, not interrupted (about 0.5 s for a scan of a million points): a frame
             # cancelled meanwhile stops here rather than going on to the depth net's inputs.
             if cancel is not None and cancel.cancelled:
                 raise RunCancelled("the frame was cancelled during its beam emulation; stopped after it")
 
         mismatch = self._line_count_mismatch(points.shape[0])
-        if mismatch:
-            warnings.append(mismatch)
+        warnings += coded((WarningCode.LINE_COUNT, mismatch))
 
         voxelizer = self._voxelizer()
         overlapped: dict[str, float] = {}
@@ -679,13 +694,12 @@ class Detector:
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
         if voxelizer.points_in_grid < FEWEST_IN_GRID_SHARE * points.shape[0]:
             grid = self.preset.bev
-            warnings.append(f"points: almost none lie in the detection range, x {grid.x_min:g}…{grid.x_max:g} m forward, "
-                            f"y {grid.y_min:g}…{grid.y_max:g} m, z {grid.z_min:g}…{grid.z_max:g} m in the velodyne frame: "
-                            f"are they in metres, in that frame? ({voxelizer.points_in_grid} of {points.shape[0]} points)")
+            warnings.append(CodedWarning(WarningCode.OUT_OF_RANGE,
+                f"points: almost none lie in the detection range, x {grid.x_min:g}…{grid.x_max:g} m forward, "
+                f"y {grid.y_min:g}…{grid.y_max:g} m, z {grid.z_min:g}…{grid.z_max:g} m in the velodyne frame: "
+                f"are they in metres, in that frame? ({voxelizer.points_in_grid} of {points.shape[0]} points)"))
         elif not mismatch:  # the voxelizer's count, so free; a scan of fewer lines than trained is named above
-            thin = thin_scan_fault(voxelizer.points_in_grid, self.trained_lines)
-            if thin:
-                warnings.append(thin)
+            warnings += coded((WarningCode.THIN_SCAN, thin_scan_fault(voxelizer.points_in_grid, self.trained_lines)))
         tic = time.perf_counter()
         score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]}, cancel)
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
@@ -699,8 +713,8 @@ class Detector:
         cloud = None
         if keep_points:
             cloud = points if pseudo is None else merge_points(depth_to_points(dense, view_calib, *limits), points)
-        return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped, warnings=warnings,
-                          points=cloud)
+        return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped,
+                          warnings=[w.message for w in warnings], warning_codes=[w.code for w in warnings], points=cloud)
 
     def _with_mirror(self, voxelizer: BevVoxelizer, score: np.ndarray, regression: np.ndarray,
                      timings: dict[str, float], cancel: Cancellation | None = None) -> tuple[np.ndarray, np.ndarray]:

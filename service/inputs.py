@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.calib import SMALL_IMAGE_HINT, Calibration
+from pipeline.checks import CodedWarning, WarningCode
 from pipeline.errors import InputError
 from pipeline.kitti import (
     JPEG_SCAN,
@@ -80,6 +81,7 @@ class DecodedFrame:
     points: np.ndarray
     calib: Calibration | None
     warnings: list[str] = field(default_factory=list)
+    warning_codes: list[str] = field(default_factory=list)  # parallel to warnings (pipeline.checks.WarningCode)
 
     @property
     def image_hw(self) -> tuple[int, int] | None:
@@ -315,17 +317,19 @@ def decode_calib(data: bytes) -> Calibration:
     return parse_calib(text, "calib")
 
 
-def decode_points(data: bytes, policy: NonFinitePolicy) -> tuple[np.ndarray, list[str]]:
-    """Scan bytes → finite float32 (N, 4) points and warnings; rows with NaN/Inf dropped or rejected."""
+def decode_points(data: bytes, policy: NonFinitePolicy) -> tuple[np.ndarray, list[CodedWarning]]:
+    """Scan bytes → finite float32 (N, 4) points and warnings with their codes; rows with NaN/Inf dropped or
+    rejected."""
     scan = parse_velodyne(data, "points")
-    warnings: list[str] = []
+    warnings: list[CodedWarning] = []
     if scan.dropped_nonfinite:
         if policy is NonFinitePolicy.reject:
             raise InputError(
                 f"points: {scan.dropped_nonfinite} rows have NaN or infinite values "
                 "(nonfinite=reject; send nonfinite=drop to have them dropped)"
             )
-        warnings.append(f"points: dropped {scan.dropped_nonfinite} rows with NaN or infinite values")
+        warnings.append(CodedWarning(WarningCode.NONFINITE_DROPPED,
+                                     f"points: dropped {scan.dropped_nonfinite} rows with NaN or infinite values"))
     if scan.points.shape[0] == 0:
         raise InputError("points: the scan has no finite points")
     return scan.points, warnings
@@ -340,4 +344,5 @@ def decode_frame(upload: FrameUpload, calib: Calibration | None, policy: NonFini
     if upload.image is not None:
         data = png_for_decoding(upload.image) if upload.image.startswith(PNG_SIGNATURE) else upload.image
         image = decode_image(data, "image")
-    return DecodedFrame(image=image, points=points, calib=calib, warnings=warnings)
+    return DecodedFrame(image=image, points=points, calib=calib, warnings=[w.message for w in warnings],
+                        warning_codes=[w.code for w in warnings])

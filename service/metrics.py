@@ -3,11 +3,14 @@
 Exposed at ``GET /metrics``: request counts by route, method and status (each label from a fixed set:
 the service's routes or "unmatched", HTTP's methods or "other"; 499 for a client that left before its answer);
 request latency per route; per-stage latency of the detector; inference queue
-depth, in-flight frames and frames stopped on a worker; HTTP requests in flight; readiness; and the
+depth, in-flight frames and frames stopped on a worker; the warnings frames were answered with, by code
+(one of pipeline.checks.FRAME_WARNING_CODES or "other"); HTTP requests in flight; readiness; and the
 process collector's memory and CPU (``process_resident_memory_bytes``, Linux).
 """
 
 from __future__ import annotations
+
+from collections.abc import Iterable
 
 from prometheus_client import (
     CONTENT_TYPE_LATEST,
@@ -19,6 +22,11 @@ from prometheus_client import (
     ProcessCollector,
     generate_latest,
 )
+
+from pipeline.checks import FRAME_WARNING_CODES
+
+# The label of a warning code the service does not know (none is made today): the series stay bounded.
+OTHER_WARNING_CODE = "other"
 
 # Seconds: from a fast stage of a tiny model (~0.1 ms) to a paper-size frame on a CPU (~10 s).
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
@@ -60,6 +68,13 @@ class Metrics:
             "lowres3d_inference_stopped", "frames stopped on their worker after their deadline or their request's end",
             registry=self.registry,
         )
+        self.frame_warnings = Counter(
+            "lowres3d_frame_warnings", "warnings the answered frames carried, by code (a sensor fault, a rig unlike "
+            "the training one, input dropped or adjusted)", ["code"], registry=self.registry
+        )
+        self._warning_codes = frozenset(FRAME_WARNING_CODES)
+        for code in (*FRAME_WARNING_CODES, OTHER_WARNING_CODE):  # every series from the start, at 0: rate() has a base
+            self.frame_warnings.labels(code=code)
         self.ready = Gauge("lowres3d_ready", "1 when models are loaded and warmed up", registry=self.registry)
         self.model = Info("lowres3d_model", "the loaded model directory", registry=self.registry)
 
@@ -67,6 +82,11 @@ class Metrics:
         """Record one frame's per-stage timings (milliseconds)."""
         for stage, ms in timings_ms.items():
             self.stage_latency.labels(stage=stage).observe(ms / 1000.0)
+
+    def count_warnings(self, codes: Iterable[str]) -> None:
+        """Count one frame's warning codes (an unknown one as OTHER_WARNING_CODE)."""
+        for code in codes:
+            self.frame_warnings.labels(code=code if code in self._warning_codes else OTHER_WARNING_CODE).inc()
 
     def render(self) -> bytes:
         """The Prometheus text exposition of every metric."""

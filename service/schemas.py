@@ -7,6 +7,13 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from pipeline.checks import FRAME_WARNING_CODES, LOAD_WARNING_CODES, WARNING_MEANINGS, WarningCode
+
+
+def _code_list(codes: tuple[WarningCode, ...]) -> str:
+    """``code`` — what it means; … for a field's description."""
+    return "; ".join(f"`{code}` — {WARNING_MEANINGS[code]}" for code in codes)
+
 
 class OutputFormat(str, Enum):
     """How ``POST /v1/detect`` answers."""
@@ -80,6 +87,7 @@ _DETECT_EXAMPLE = {
     },
     "model": {"preset": "edge", "sha256": {"depth.onnx": "3f1c…", "pixor.onnx": "9a0b…"}},
     "warnings": ["points: dropped 3 rows with NaN or infinite values"],
+    "warning_codes": ["nonfinite_dropped"],
     "request_id": "5f0c8e7a9b2d4c1e8f3a6b7c9d0e1f2a",
 }
 
@@ -98,6 +106,11 @@ class DetectResponse(BaseModel):
     model: ModelRef
     warnings: list[str] = Field(description="what was dropped or adjusted on the way, and inputs unlike the "
                                 "training data (the boxes are then fewer or worse, not wrong)")
+    warning_codes: list[str] = Field(
+        description="each warning's stable, machine-readable code, in the same order as `warnings` (whose text "
+        "carries the frame's figures): alert on these. " + _code_list(FRAME_WARNING_CODES) + ". A code added later "
+        "is a new warning: treat an unknown one as a warning"
+    )
     request_id: str = Field(description="this request's id, as in the X-Request-ID header")
 
 
@@ -186,5 +199,9 @@ class ModelInfo(BaseModel):
     warnings: list[str] = Field(
         default_factory=list, description="from loading any session pair: untrained weights, a provider that did "
         "not load, the model's precision on this machine (INT8 this CPU may run inexactly, FP16 on the CPU)"
+    )
+    warning_codes: list[str] = Field(
+        default_factory=list, description="each of `warnings`' stable code, in the same order: "
+        + _code_list(LOAD_WARNING_CODES)
     )
     manifest: dict = Field(description="manifest.json of the model directory")

@@ -114,6 +114,16 @@ class FrameResult:
     timings_ms: dict[str, float]
     png: bytes | None = None
 
+    @property
+    def warnings(self) -> list[str]:
+        """The frame's warnings: its decoding's, then the Detector's."""
+        return self.frame.warnings + self.detections.warnings
+
+    @property
+    def warning_codes(self) -> list[str]:
+        """Each warning's code, parallel to :attr:`warnings`."""
+        return self.frame.warning_codes + self.detections.warning_codes
+
 
 def _detect_job(
     upload: FrameUpload, options: FrameOptions, calib: Calibration | None, picture: Picture | None
@@ -219,6 +229,7 @@ async def _run_frame(
         "queue_wait": outcome.queue_wait_ms, **result.timings_ms, "total": (time.perf_counter() - started) * 1e3
     }
     metrics.observe_stages(result.timings_ms)
+    metrics.count_warnings(result.warning_codes)
     return result
 
 
@@ -244,22 +255,33 @@ def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> Dete
         ],
         timings_ms={k: round(v, 3) for k, v in result.timings_ms.items()},
         model=ModelRef(preset=runtime.detector.preset.name, sha256=runtime.detector.sha256),
-        warnings=result.frame.warnings + detections.warnings,
+        warnings=result.warnings,
+        warning_codes=result.warning_codes,
         request_id=request_id,
     )
 
 
 def _warning_headers(result: FrameResult) -> dict[str, str]:
-    """The warnings of a frame as a header, for the answers whose body has no room for them (KITTI
-    lines, the PNG): JSON-encoded ASCII, absent when there are none."""
-    warnings = result.frame.warnings + result.detections.warnings
-    return {"X-Warnings": json.dumps(warnings)} if warnings else {}
+    """The warnings of a frame and their codes as headers, for the answers whose body has no room for them
+    (KITTI lines, the PNG): JSON-encoded ASCII, absent when there are none."""
+    warnings = result.warnings
+    if not warnings:
+        return {}
+    return {"X-Warnings": json.dumps(warnings), "X-Warning-Codes": json.dumps(result.warning_codes)}
 
 
-_WARNINGS_HEADER = {"X-Warnings": {
-    "description": "with `format=kitti` and on the pictures: the frame's warnings as a JSON list (absent when none)",
-    "schema": {"type": "string"},
-}}
+_WARNINGS_HEADER = {
+    "X-Warnings": {
+        "description": "with `format=kitti` and on the pictures: the frame's warnings as a JSON list (absent when "
+        "none)",
+        "schema": {"type": "string"},
+    },
+    "X-Warning-Codes": {
+        "description": "with X-Warnings: each warning's stable code (`warning_codes` of the JSON answer), a JSON list "
+        "in the same order",
+        "schema": {"type": "string"},
+    },
+}
 
 # The detection routes answer the same errors (documented for clients and the OpenAPI fuzz test).
 DETECT_ERRORS = error_responses(400, 401, 408, 413, 415, 422, 500, 503, 504)

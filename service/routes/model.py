@@ -19,6 +19,9 @@ router = APIRouter(tags=["model"])
 async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
     """Manifest, preset, sha256 of each file and the execution providers each network actually runs on."""
     detector = runtime.detector
+    # Every pair's, once each: a second worker's GPU that fell back must not hide behind the first's.
+    loaded = list(dict.fromkeys((code, warning) for d in runtime.detectors
+                                for code, warning in zip(d.load_warning_codes, d.load_warnings, strict=True)))
     return ModelInfo(
         preset=detector.preset.name,
         sha256=detector.sha256,
@@ -33,7 +36,7 @@ async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
         mirror_tta=detector.mirror_tta,
         session_pairs=[SessionPair(device_id=d.device_id, providers_in_use=d.providers_in_use, warnings=d.load_warnings)
                        for d in runtime.detectors],
-        # Every pair's, once each: a second worker's GPU that fell back must not hide behind the first's.
-        warnings=list(dict.fromkeys(w for d in runtime.detectors for w in d.load_warnings)),
+        warnings=[warning for _, warning in loaded],
+        warning_codes=[code for code, _ in loaded],
         manifest=detector.manifest,
     )
