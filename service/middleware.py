@@ -461,7 +461,7 @@ class AdmissionMiddleware:
 # What a dashboard's script may send and read across origins, beyond CORS's safelisted headers.
 CORS_METHODS = ("GET", "HEAD", "POST")
 CORS_REQUEST_HEADERS = ("Authorization", "X-Request-ID")
-CORS_EXPOSED_HEADERS = ("X-Request-ID", "X-Warnings", "Retry-After", "WWW-Authenticate")
+CORS_EXPOSED_HEADERS = ("X-Request-ID", "X-Warnings", "X-Warning-Codes", "Retry-After", "WWW-Authenticate")
 
 
 class CORSMiddleware(StarletteCORSMiddleware):

@@ -262,7 +262,7 @@ def test_cors_is_off_by_default_and_serves_the_configured_origins(
         for answer in answers:
             assert answer.headers["access-control-allow-origin"] == DASHBOARD, answer.status_code
             exposed = {h.strip().lower() for h in answer.headers["access-control-expose-headers"].split(",")}
-            assert {"x-request-id", "x-warnings", "retry-after"} <= exposed
+            assert {"x-request-id", "x-warnings", "x-warning-codes", "retry-after"} <= exposed
         refused = browser.options("/v1/detect", headers={**preflight, "Origin": "http://elsewhere"})
         assert_error(refused, 400, "bad_request", "CORS preflight", "Origin: http://elsewhere", "--cors-origins")
         assert "access-control-allow-origin" not in refused.headers
