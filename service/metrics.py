@@ -4,8 +4,8 @@ Exposed at ``GET /metrics``: request counts by route, method and status (each la
 the service's routes or "unmatched", HTTP's methods or "other"; 499 for a client that left before its answer);
 request latency per route; per-stage latency of the detector; inference queue
 depth, in-flight frames and frames stopped on a worker; the warnings frames were answered with, by code
-(one of pipeline.checks.FRAME_WARNING_CODES or "other"); HTTP requests in flight; readiness; and the
-process collector's memory and CPU (``process_resident_memory_bytes``, Linux).
+(one of pipeline.checks.FRAME_WARNING_CODES or "other"), and those the loaded models carry (LOAD_WARNING_CODES);
+HTTP requests in flight; readiness; and the process collector's memory and CPU (``process_resident_memory_bytes``, Linux).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from prometheus_client import (
     generate_latest,
 )
 
-from pipeline.checks import FRAME_WARNING_CODES
+from pipeline.checks import FRAME_WARNING_CODES, LOAD_WARNING_CODES
 
 # The label of a warning code the service does not know (none is made today): the series stay bounded.
 OTHER_WARNING_CODE = "other"
@@ -75,6 +75,15 @@ class Metrics:
         self._warning_codes = frozenset(FRAME_WARNING_CODES)
         for code in (*FRAME_WARNING_CODES, OTHER_WARNING_CODE):  # every series from the start, at 0: rate() has a base
             self.frame_warnings.labels(code=code)
+        # A model loaded with a warning (untrained weights, a provider that fell back to the CPU …) answers every
+        # frame as if it were fine: 1 per code the loaded session pairs carry, every code's series at 0 before.
+        self.model_warnings = Gauge(
+            "lowres3d_model_warnings", "1 for each warning code the loaded models carry (untrained weights, a "
+            "provider that did not load, INT8 weights this CPU could saturate, FP16 on the CPU)", ["code"],
+            registry=self.registry,
+        )
+        for code in LOAD_WARNING_CODES:
+            self.model_warnings.labels(code=code).set(0)
         self.ready = Gauge("lowres3d_ready", "1 when models are loaded and warmed up", registry=self.registry)
         self.model = Info("lowres3d_model", "the loaded model directory", registry=self.registry)
 
@@ -87,6 +96,12 @@ class Metrics:
         """Count one frame's warning codes (an unknown one as OTHER_WARNING_CODE)."""
         for code in codes:
             self.frame_warnings.labels(code=code if code in self._warning_codes else OTHER_WARNING_CODE).inc()
+
+    def set_model_warnings(self, codes: Iterable[str]) -> None:
+        """The loaded models' warning codes: 1 for those given, 0 for the other known ones."""
+        present = set(codes)
+        for code in LOAD_WARNING_CODES:
+            self.model_warnings.labels(code=code).set(1 if code in present else 0)
 
     def render(self) -> bytes:
         """The Prometheus text exposition of every metric."""

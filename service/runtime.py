@@ -104,5 +104,6 @@ def load_runtime(settings: Settings, metrics: Metrics) -> Runtime:
         "providers": ",".join(sorted({p for ps in detector.providers_in_use.values() for p in ps})),
         **{f"sha256_{name.replace('.', '_')}": digest for name, digest in detector.sha256.items()},
     })
+    metrics.set_model_warnings(code for d in detectors for code in d.load_warning_codes)
     pool = InferencePool(detectors, settings.workers, settings.queue_size, metrics)
     return Runtime(detectors=detectors, pool=pool, default_calib=default_calib)

@@ -165,6 +165,11 @@ def test_load_warnings_carry_their_codes(tiny_models, client_of):
     assert "untrained" in detector.load_warnings[0]
     info = client_of.get("/v1/model").json()
     assert info["warning_codes"] == ["untrained_weights"] and len(info["warnings"]) == 1
+    # /metrics too, for an alert on a vehicle that loaded the wrong models: 1 for the code, 0 for the others.
+    gauges = dict(re.findall(r'^lowres3d_model_warnings{code="(\w+)"} (\S+)$', client_of.get("/metrics").text,
+                             re.MULTILINE))
+    assert gauges == {"untrained_weights": "1.0", "provider_fallback": "0.0", "int8_saturation": "0.0",
+                      "fp16_on_cpu": "0.0"}
 
 
 # --------------------------------------------------------------------------- the service
