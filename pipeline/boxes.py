@@ -8,6 +8,8 @@ KITTI labels give the bottom centre in the rectified camera frame and
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from pipeline.calib import Calibration
@@ -156,3 +158,36 @@ def points_in_boxes(points: np.ndarray, boxes: np.ndarray) -> np.ndarray:
         & (np.abs(across) <= boxes[:, 4] / 2)
         & (np.abs(rel[..., 2]) <= boxes[:, 5] / 2)
     )
+
+
+@dataclass(frozen=True)
+class BoxRecord:
+    """One box by name, in the LiDAR frame (x forward, y left, z up, metres): the centre (z is the box's middle,
+    not its bottom), the size along, across and up its heading, and the heading ``yaw`` about +z from +x,
+    counter-clockwise, in radians."""
+
+    x: float
+    y: float
+    z: float
+    length: float
+    width: float
+    height: float
+    yaw: float
+    score: float
+    label: str = "Car"
+
+    @property
+    def quaternion_xyzw(self) -> tuple[float, float, float, float]:
+        """The heading as a unit quaternion (x, y, z, w): a rotation by ``yaw`` about +z, as ROS's
+        ``geometry_msgs/Quaternion`` takes it (the box's size then goes x: length, y: width, z: height)."""
+        return (0.0, 0.0, float(np.sin(self.yaw / 2)), float(np.cos(self.yaw / 2)))
+
+
+def box_records(boxes: np.ndarray, scores: np.ndarray, label: str = "Car") -> list[BoxRecord]:
+    """(K, 7) boxes and their (K,) scores → one :class:`BoxRecord` each, in the same order."""
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    scores = np.asarray(scores, np.float64).reshape(-1)
+    if len(scores) != len(boxes):
+        raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
+    return [BoxRecord(*(float(v) for v in box), score=float(score), label=label)
+            for box, score in zip(boxes, scores, strict=True)]

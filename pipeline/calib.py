@@ -97,6 +97,22 @@ class Calibration:
         """Back-project pixels with depth into (N, 3) velodyne points."""
         return self.rect_to_velo(self.image_to_rect(u, v, depth))
 
+    @classmethod
+    def from_matrices(cls, P2: object, R0_rect: object, Tr_velo_to_cam: object,
+                      source: str = "calib") -> Calibration:
+        """A checked calibration from matrices in code, e.g. a ROS node's: ``P2`` the rectified camera's
+        projection (``CameraInfo.p``), ``R0_rect`` its rectifying rotation (``CameraInfo.r``; the identity for
+        an unrectified camera) and ``Tr_velo_to_cam`` the LiDAR → camera transform, into the camera's optical
+        frame (x right, y down, z forward: TF's ``*_optical_frame``, not the camera body's x-forward frame).
+
+        Each may be a nested or flat sequence in row order (``CameraInfo``'s 12 and 9 numbers); ``R0_rect`` and
+        ``Tr_velo_to_cam`` also as 4×4 homogeneous matrices. Copied to float64; else an InputError naming
+        ``source`` and the matrix, with :func:`check_calibration`'s checks (finite, invertible)."""
+        given = {"P2": P2, "R0_rect": R0_rect, "Tr_velo_to_cam": Tr_velo_to_cam}
+        matrices = {key: _matrix_of(value, CALIBRATION_SHAPES[key], f"{source}: {key}", homogeneous=key != "P2")
+                    for key, value in given.items()}
+        return check_calibration(cls(**matrices), source)
+
     def shifted(self, left: float, top: float) -> Calibration:
         """Calibration of an image cropped at (left, top): P2 ← T·P2 with T a pixel translation.
 
@@ -116,6 +132,29 @@ def _describe(value: object) -> str:
     if isinstance(value, np.ndarray):
         return f"a {value.dtype} array of shape {value.shape}"
     return f"a {type(value).__name__}"
+
+
+def _matrix_of(value: object, shape: tuple[int, int], where: str, homogeneous: bool) -> np.ndarray:
+    """``value`` as a float64 ``shape`` matrix: given so, flat in row order, or (``homogeneous``: a rigid
+    transform's block) as a 4×4 homogeneous matrix; else an InputError naming ``where``."""
+    try:
+        matrix = np.array(value, dtype=np.float64)  # a copy: a caller's (or a message's) buffer may change later
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: expected a {shape[0]}×{shape[1]} matrix of numbers, got {_describe(value)}") from None
+    rows, cols = shape
+    if matrix.shape in ((rows * cols,), shape):
+        return matrix.reshape(shape)
+    if homogeneous and matrix.shape in ((16,), (4, 4)):
+        matrix = matrix.reshape(4, 4)
+        # Anything but 0 0 0 1 below (and, for a rotation, 0 0 0 beside) is a matrix the block cannot hold.
+        padding = matrix[3] if cols == 4 else np.r_[matrix[3], matrix[:3, 3]]
+        if not np.allclose(padding, np.eye(4)[3] if cols == 4 else np.r_[np.eye(4)[3], 0, 0, 0], rtol=0.0, atol=1e-9):
+            corner = "last row 0 0 0 1" + ("" if cols == 4 else " and last column 0 0 0")
+            raise InputError(f"{where}: a 4×4 matrix, but not a homogeneous one ({corner})")
+        return matrix[:rows, :cols].copy()
+    also = " or a 4×4 homogeneous one" if homogeneous else ""
+    raise InputError(f"{where}: expected a {rows}×{cols} matrix (or {rows * cols} numbers in row order){also}, got "
+                     f"{_describe(matrix)}")
 
 
 def check_calibration(calib: object, source: str = "calib") -> Calibration:

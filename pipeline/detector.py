@@ -31,13 +31,14 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Self
 
 import numpy as np
 import onnxruntime as ort
 
 from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
-from pipeline.boxes import boxes_to_objects, in_camera_view
+from pipeline.boxes import BoxRecord, box_records, boxes_to_objects, in_camera_view
 from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration, check_calibration
 from pipeline.checks import (
     CodedWarning,
@@ -134,7 +135,10 @@ class Cancellation:
 class Detections:
     """Boxes of one frame.
 
-    boxes: float64 (K, 7) ``x, y, z, l, w, h, yaw`` in the LiDAR frame; scores (K,),
+    boxes: float64 (K, 7) ``x, y, z, l, w, h, yaw`` in the LiDAR frame (x forward, y left, z up, metres):
+    x, y, z the box's centre (z its middle, not its bottom: a KITTI label's location is the bottom), l along
+    the heading, w across it, h up; yaw the heading in radians about +z from +x, counter-clockwise (0: along
+    x, π/2: along y), in (−π, π]. :meth:`as_records` gives them by name with a quaternion. scores (K,),
     best first. timings_ms: per stage and ``total``, as the frame spent them
     one after the other. overlapped_ms: stages run on the stage thread while a
     network ran (not part of ``total``'s sum). warnings: what was dropped or
@@ -163,6 +167,11 @@ class Detections:
         image_hw = image_hw_of(image_hw)
         seen = in_camera_view(self.boxes, calib, image_hw)
         return boxes_to_objects(self.boxes[seen], calib, image_hw, self.scores[seen], self.label)
+
+    def as_records(self) -> list[BoxRecord]:
+        """Each box by name, best first: centre, size, yaw, its quaternion and score (e.g. one
+        ``vision_msgs/Detection3D`` each, in the LiDAR's frame)."""
+        return box_records(self.boxes, self.scores, self.label)
 
 
 def resolve_providers(requested: str | list[str] | None = None, available: list[str] | None = None) -> list[str]:
@@ -298,7 +307,13 @@ def session_options(intra_op_threads: int | None = None) -> ort.SessionOptions:
 
 
 class Detector:
-    """Loads a model directory (checking its sha256s) and detects cars in frames."""
+    """Loads a model directory (checking its sha256s) and detects cars in frames.
+
+    Threads: each ONNX Runtime session has a pool of ``intra_op_threads`` − 1 threads (default one per core;
+    they spin only inside a run), and with ``stage_threads`` 2 each thread that calls :meth:`detect` gets one
+    stage thread. :meth:`close` (or ``with Detector(...) as detector:``) releases the sessions and stops the
+    stage threads at once, rather than when the last reference goes.
+    """
 
     def __init__(
         self,
@@ -365,6 +380,9 @@ class Detector:
         self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}
         self._check_shapes()
         self._local = threading.local()
+        self._closing = threading.Lock()  # guards the stage threads' list against close() on another thread
+        self._stage_executors: list[ThreadPoolExecutor] = []
+        self._closed = False
         if stage_threads is None:
             stage_threads = 2 if intra_op_threads != 1 and usable_cpus() >= 2 else 1
         if stage_threads not in (1, 2):
@@ -478,8 +496,38 @@ class Detector:
         """The calling thread's stage thread (one each, like the BEV buffer its work writes)."""
         executor = getattr(self._local, "stage_thread", None)
         if executor is None:
-            executor = self._local.stage_thread = ThreadPoolExecutor(1, thread_name_prefix="lowres3d-stages")
+            with self._closing:  # close() must see every stage thread, made on whichever thread called detect
+                self._check_open()
+                executor = ThreadPoolExecutor(1, thread_name_prefix="lowres3d-stages")
+                self._stage_executors.append(executor)
+            self._local.stage_thread = executor
         return executor
+
+    # ------------------------------------------------------------------ lifecycle
+    def close(self) -> None:
+        """Release the ONNX Runtime sessions (and their thread pools) and stop every stage thread; safe to
+        call twice. For a node that rebuilds its Detector (a parameter change): without it they go only when
+        the last reference to the Detector does. Call it after the frames in flight: their stage work ends
+        first, a later network run raises RuntimeError, as :meth:`detect` does from then on."""
+        with self._closing:
+            self._closed = True
+            executors, self._stage_executors = self._stage_executors, []
+            self._sessions = {}  # a run in flight holds its own reference to its session
+        for executor in executors:
+            executor.shutdown(wait=True)
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise self._closed_error()
+
+    def _closed_error(self) -> RuntimeError:
+        return RuntimeError(f"Detector({str(self.model_dir)!r}) was closed; make a new one")
 
     def _ray_table(self, view_calib: Calibration) -> None:
         """The view's rays in BEV bin units, built on a calibration's first frame and cached (pipeline/pseudo.py)."""
@@ -570,10 +618,13 @@ class Detector:
         if recorded is not None:  # network_inputs: copies, as the voxelizer reuses its buffer; mirror TTA's 2nd run not
             recorded.setdefault(network, {name: np.array(array, copy=True) for name, array in arrays.items()})
         feeds = session_feeds(self._input_names[network], arrays)
+        session = self._sessions.get(network)
+        if session is None:  # every network of the directory is loaded: only close() removes them
+            raise self._closed_error()
         if cancel is None:
-            return self._sessions[network].run(outputs, feeds)
+            return session.run(outputs, feeds)
         try:
-            return self._sessions[network].run(outputs, feeds, cancel.run_options)
+            return session.run(outputs, feeds, cancel.run_options)
         except Exception:
             if cancel.cancelled:
                 raise RunCancelled(f"the frame was cancelled in or before its {network} network run") from None
@@ -608,6 +659,7 @@ class Detector:
         timings: dict[str, float] = {}
         warnings: list[CodedWarning] = []  # split into Detections' two parallel lists at the end
         start = time.perf_counter()
+        self._check_open()
         check_options(score_threshold, emulate_to_beams)
         points = self._check_points(points)
         if image is not None:
@@ -768,6 +820,10 @@ class Detector:
                              "of rows of different lengths") from None
         if points.dtype.kind not in "fiu":  # np.isfinite fails on strings, drops a complex part, passes booleans
             raise InputError(f"points: expected real numbers (float32 x, y, z, reflectance), got {points.dtype} values")
+        if points.ndim == 2 and points.shape[1] == 3:  # a driver's cloud without an intensity field
+            raise InputError(f"points: expected shape (N, 4) x, y, z, reflectance; got {points.shape}, no "
+                             "reflectance column: add the sensor's intensities scaled to [0, 1] (README, 'Your own "
+                             "vehicle'; all zero runs, with a warning and fewer boxes)")
         if points.ndim != 2 or points.shape[1] != 4:
             raise InputError(f"points: expected shape (N, 4) x, y, z, reflectance; got {points.shape}")
         if points.shape[0] == 0:
