@@ -145,16 +145,25 @@ def _matrix_of(value: object, shape: tuple[int, int], where: str, homogeneous: b
     if matrix.shape in ((rows * cols,), shape):
         return matrix.reshape(shape)
     if homogeneous and matrix.shape in ((16,), (4, 4)):
-        matrix = matrix.reshape(4, 4)
-        # Anything but 0 0 0 1 below (and, for a rotation, 0 0 0 beside) is a matrix the block cannot hold.
-        padding = matrix[3] if cols == 4 else np.r_[matrix[3], matrix[:3, 3]]
-        if not np.allclose(padding, np.eye(4)[3] if cols == 4 else np.r_[np.eye(4)[3], 0, 0, 0], rtol=0.0, atol=1e-9):
-            corner = "last row 0 0 0 1" + ("" if cols == 4 else " and last column 0 0 0")
-            raise InputError(f"{where}: a 4×4 matrix, but not a homogeneous one ({corner})")
-        return matrix[:rows, :cols].copy()
+        return homogeneous_block(matrix.reshape(4, 4), shape, where)
     also = " or a 4×4 homogeneous one" if homogeneous else ""
     raise InputError(f"{where}: expected a {rows}×{cols} matrix (or {rows * cols} numbers in row order){also}, got "
                      f"{_describe(matrix)}")
+
+
+def homogeneous_block(matrix: np.ndarray, shape: tuple[int, int], where: str) -> np.ndarray:
+    """The ``shape`` block (3×4 or 3×3) of a 4×4 homogeneous matrix, whose last row must be 0 0 0 1 (and, for a
+    3×3 rotation, its last column 0 0 0): anything else is a projective matrix the block cannot hold, refused
+    with an InputError naming ``where``, not cut."""
+    rows, cols = shape
+    padding_ok = np.allclose(matrix[3], (0.0, 0.0, 0.0, 1.0), rtol=0.0, atol=1e-9)
+    if cols == 3:
+        padding_ok = padding_ok and np.allclose(matrix[:3, 3], 0.0, rtol=0.0, atol=1e-9)
+    if not padding_ok:
+        corner = "last row 0 0 0 1" + ("" if cols == 4 else " and last column 0 0 0")
+        raise InputError(f"{where}: a 4×4 matrix, but not a homogeneous one ({corner}); give the {rows}×{cols} "
+                         f"block, {rows * cols} numbers")
+    return matrix[:rows, :cols].copy()
 
 
 def check_calibration(calib: object, source: str = "calib") -> Calibration:

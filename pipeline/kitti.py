@@ -19,7 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.calib import CALIBRATION_SHAPES, Calibration, check_calibration
+from pipeline.calib import CALIBRATION_SHAPES, Calibration, check_calibration, homogeneous_block
 from pipeline.errors import InputError
 
 POINT_BYTES = 16  # float32 x, y, z, reflectance
@@ -164,7 +164,7 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
         if not np.isfinite(numbers).all():
             raise InputError(f"{source}, line {line_no}: {key} has a non-finite value")
         if numbers.size == 16 and key in HOMOGENEOUS_KEYS:
-            values[key] = _from_homogeneous(numbers.reshape(4, 4), shape, f"{source}, line {line_no}: {key}")
+            values[key] = homogeneous_block(numbers.reshape(4, 4), shape, f"{source}, line {line_no}: {key}")
             continue
         if numbers.size != shape[0] * shape[1]:
             also = " (or 16: the 4×4 homogeneous form)" if key in HOMOGENEOUS_KEYS else ""
@@ -206,19 +206,6 @@ def _layout_hint(keys: Iterable[str], shapes: dict[str, tuple[int, int]]) -> str
 
 # Calibration tools other than KITTI's often write the rigid transforms as 4×4 homogeneous matrices.
 HOMOGENEOUS_KEYS = ("R0_rect", "Tr_velo_to_cam")
-
-
-def _from_homogeneous(matrix: np.ndarray, shape: tuple[int, int], where: str) -> np.ndarray:
-    """The ``shape`` block of a 4×4 homogeneous matrix, whose last row must be 0 0 0 1 (and, for a 3×3 rotation,
-    its last column 0 0 0): anything else is a projective matrix the KITTI key cannot hold, refused, not cut."""
-    padding_ok = np.allclose(matrix[3], (0.0, 0.0, 0.0, 1.0), rtol=0.0, atol=1e-9)
-    if shape == (3, 3):
-        padding_ok = padding_ok and np.allclose(matrix[:3, 3], 0.0, rtol=0.0, atol=1e-9)
-    if not padding_ok:
-        what = "last row 0 0 0 1" if shape == (3, 4) else "last row 0 0 0 1 and last column 0 0 0"
-        raise InputError(f"{where}: 16 numbers, a 4×4 matrix, but not a homogeneous one ({what}); give "
-                         f"the {shape[0]}×{shape[1]} block, {shape[0] * shape[1]} numbers")
-    return matrix[: shape[0], : shape[1]].copy()
 
 
 def parse_calib(text: str, source: str = "<calib>") -> Calibration:

@@ -1,7 +1,8 @@
 """The Detector as a ROS 2 node embeds it: teardown, calibration from matrices, inputs from messages, named
 boxes, several callback threads, and the annotations a type checker reads (weights/edge, the KITTI samples)."""
 
-import os
+import subprocess
+import sys
 import tomllib
 from concurrent.futures import ThreadPoolExecutor
 from importlib.resources import files
@@ -36,25 +37,46 @@ def lidar16(frame: Frame) -> np.ndarray:
     return emulate_beams(frame.points, 16)
 
 
-def thread_count() -> int:
+# Run in a fresh interpreter: in the test process, the threads of other tests' Detectors end whenever the
+# garbage collector reaches them, and would move the count between the two readings.
+CLOSE_SCRIPT = """
+import os, sys
+from concurrent.futures import ThreadPoolExecutor
+from pipeline.beams import emulate_beams
+from pipeline.detector import Detector
+from pipeline.frame import load_frame
+
+def thread_count():
     return len(os.listdir("/proc/self/task"))  # every thread of this process, ONNX Runtime's pools too
+
+frame = load_frame(sys.argv[1], "000006")
+points = emulate_beams(frame.points, 16)
+with ThreadPoolExecutor(1) as callbacks:  # the node's executor thread, which outlives the Detector
+    callbacks.submit(lambda: None).result()
+    before = thread_count()
+    detector = Detector(sys.argv[2], stage_threads=2)
+    callbacks.submit(detector.detect, frame.image, points, frame.calib).result()
+    loaded = thread_count()
+    detector.close()
+    print(before, loaded, thread_count())
+"""
 
 
 def test_close_stops_every_thread_the_detector_started_while_the_node_still_holds_it(frames):
     """A node rebuilding its Detector on a parameter change: the sessions' pools and the stage threads made for
     its callback thread go at close(), not whenever the last reference does; a frame after it says so."""
+    done = subprocess.run([sys.executable, "-c", CLOSE_SCRIPT, str(KITTI), str(EDGE)], capture_output=True, text=True,
+                          timeout=120, check=False, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-2000:]
+    before, loaded, after = map(int, done.stdout.split())
+    assert loaded > before  # the stage thread at least
+    assert after == before
     frame = frames["000006"]
-    with ThreadPoolExecutor(1) as callbacks:  # the node's executor thread, which outlives the Detector
-        callbacks.submit(lambda: None).result()
-        before = thread_count()
-        detector = Detector(EDGE, stage_threads=2)
-        callbacks.submit(detector.detect, frame.image, lidar16(frame), frame.calib).result()
-        assert thread_count() > before  # the stage thread at least
-        detector.close()
-        assert thread_count() == before
-        detector.close()  # twice is harmless
-        with pytest.raises(RuntimeError, match="was closed"):
-            callbacks.submit(detector.detect, frame.image, lidar16(frame), frame.calib).result()
+    detector = Detector(EDGE, stage_threads=2)
+    detector.close()
+    detector.close()  # twice is harmless
+    with pytest.raises(RuntimeError, match="was closed"):
+        detector.detect(frame.image, lidar16(frame), frame.calib)
     with Detector(EDGE) as scoped:
         scoped.detect(frame.image, lidar16(frame), frame.calib)
     with pytest.raises(RuntimeError, match="was closed"):

@@ -190,7 +190,7 @@ def test_a_calibration_with_4x4_transforms_and_p2_alone_is_read():
         np.testing.assert_allclose(getattr(calib, key), getattr(kitti, key), rtol=1e-12)
     lines = _calib_lines(kitti, homogeneous=True)
     lines[2] = lines[2].rsplit(" ", 4)[0] + " 0 0 1 1"  # a projective last row
-    with pytest.raises(InputError, match=r"^rig.txt, line 3: Tr_velo_to_cam: 16 numbers, a 4×4 matrix, but not a "
+    with pytest.raises(InputError, match=r"^rig.txt, line 3: Tr_velo_to_cam: a 4×4 matrix, but not a "
                                          r"homogeneous one \(last row 0 0 0 1\); give the 3×4 block, 12 numbers$"):
         parse_calib("\n".join(lines), "rig.txt")
     with pytest.raises(InputError, match=r"line 3: Tr_velo_to_cam needs 12 numbers \(or 16: the 4×4 homogeneous "
