@@ -52,7 +52,10 @@ def thread_count():
 frame = load_frame(sys.argv[1], "000006")
 points = emulate_beams(frame.points, 16)
 with ThreadPoolExecutor(1) as callbacks:  # the node's executor thread, which outlives the Detector
-    callbacks.submit(lambda: None).result()
+    # A first Detector's frame starts what stays with the process whatever the Detector does (OpenCV's worker
+    # pool, say): counted before, so that the second Detector's own threads are what close() must end.
+    with Detector(sys.argv[2], stage_threads=2) as first:
+        callbacks.submit(first.detect, frame.image, points, frame.calib).result()
     before = thread_count()
     detector = Detector(sys.argv[2], stage_threads=2)
     callbacks.submit(detector.detect, frame.image, points, frame.calib).result()
