@@ -62,6 +62,13 @@ Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 _SAFE_REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+
+
+def request_id_of(incoming: str | None) -> str:
+    """The client's own request id when it is safe to log and echo, else a new one."""
+    return incoming if incoming and _SAFE_REQUEST_ID.match(incoming) else uuid.uuid4().hex
+
+
 _BOUNDARY = re.compile(r'boundary="?([^";]+)"?', re.IGNORECASE)
 # The method label's values: HTTP's methods (RFC 9110, and PATCH); any other token a client sends is "other".
 _METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"})
@@ -203,8 +210,7 @@ class RequestContextMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        incoming = _header(scope, b"x-request-id")
-        request_id = incoming if incoming and _SAFE_REQUEST_ID.match(incoming) else uuid.uuid4().hex
+        request_id = request_id_of(_header(scope, b"x-request-id"))
         scope.setdefault("state", {})["request_id"] = request_id
         method = method_label(scope)
         status = 500
@@ -486,8 +492,7 @@ class CORSMiddleware(StarletteCORSMiddleware):
         if response.status_code == 200:
             await response(scope, receive, send)
             return
-        incoming = headers.get("x-request-id")
-        request_id = incoming if incoming and _SAFE_REQUEST_ID.match(incoming) else uuid.uuid4().hex
+        request_id = request_id_of(headers.get("x-request-id"))
         # Starlette's text: "Disallowed CORS origin, method, headers" (those at fault).
         failures = bytes(response.body).decode().removeprefix("Disallowed CORS ").split(", ")
         kept = [(key, value) for key, value in response.raw_headers if key not in (b"content-type", b"content-length")]
