@@ -7,7 +7,7 @@ training one and for a LiDAR failing at run time (README, "Your own vehicle" and
 from __future__ import annotations
 
 import numbers
-from enum import StrEnum
+from enum import Enum
 from typing import NamedTuple
 
 import numpy as np
@@ -17,10 +17,17 @@ from pipeline.calib import Calibration
 from pipeline.errors import InputError
 
 
-class WarningCode(StrEnum):
+class WarningCode(str, Enum):
     """The stable, machine-readable name of each warning (``Detections.warning_codes``, the service's
     ``warning_codes`` and its ``lowres3d_frame_warnings_total{code}``): a warning's text carries the frame's
-    figures and may be reworded, its code does not change. A str, so it compares and serialises as its value."""
+    figures and may be reworded, its code does not change. A str, so it compares and serialises as its value.
+
+    Not enum.StrEnum, which is Python 3.11's: the Jetson image runs JetPack 6's Python 3.10."""
+
+    def __str__(self) -> str:  # as StrEnum: the value, not "WarningCode.NAME" (also in f-strings, below)
+        return self.value
+
+    __format__ = str.__format__
 
     # A frame's (Detector.detect, the service's and the CLI's reading of the scan).
     CALIBRATION_MISFIT = "calibration_misfit"

@@ -31,7 +31,6 @@ import time
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Self
 
 import numpy as np
 import onnxruntime as ort
@@ -516,7 +515,7 @@ class Detector:
         for executor in executors:
             executor.shutdown(wait=True)
 
-    def __enter__(self) -> Self:
+    def __enter__(self) -> Detector:  # noqa: PYI034 (typing.Self is Python 3.11; the Jetson image runs 3.10)
         return self
 
     def __exit__(self, *exc_info: object) -> None:

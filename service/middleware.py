@@ -381,7 +381,7 @@ class BodyLimitMiddleware:
             try:
                 message = await asyncio.wait_for(receive(), max(0.0, deadline - time.monotonic()))
             # Both names: asyncio.TimeoutError is no builtin TimeoutError on Python 3.10 (the Jetson image).
-            except (TimeoutError, asyncio.TimeoutError):  # noqa: UP041
+            except (TimeoutError, asyncio.TimeoutError):
                 refusal = self._too_slow()  # the app sees a client disconnect and stops reading
                 return {"type": "http.disconnect"}
             if message["type"] == "http.request":

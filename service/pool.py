@@ -206,8 +206,7 @@ class InferencePool:
             return await asyncio.wait_for(asyncio.wrap_future(future), timeout_s)
         # Both names: on Python 3.10 (the Jetson image) asyncio.wait_for raises asyncio.TimeoutError, a class of
         # its own there (the builtin only from 3.11 on); catching the builtin alone made a deadline a 500.
-        # (ruff, set for 3.11, calls the second name redundant.)
-        except (TimeoutError, asyncio.TimeoutError):  # noqa: UP041
+        except (TimeoutError, asyncio.TimeoutError):
             self._stop(future, cancel)
             self._metrics.rejected.labels(reason="timeout").inc()
             raise PoolTimeout(f"the frame took longer than {timeout_s:g} s") from None

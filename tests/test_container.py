@@ -256,6 +256,16 @@ def test_runtime_parses_as_python_310():
             ast.parse(path.read_text(), filename=str(path), feature_version=(3, 10))
 
 
+def test_runtime_uses_nothing_of_the_standard_library_newer_than_python_310():
+    """Syntax is not all: ``typing.Self`` or ``enum.StrEnum`` parse on 3.10 and fail there at import, so the
+    Jetson image's service would not start. vermin knows in which version each standard-library name came."""
+    result = subprocess.run(
+        [str(Path(sys.executable).with_name("vermin")), "--target=3.10-", "--violations", "--eval-annotations", "--no-tips",
+         "--no-parse-comments", str(ROOT / "pipeline"), str(ROOT / "service")],
+        capture_output=True, text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-1000:]
+
+
 @pytest.mark.parametrize("requirements, arch, python", [
     ("service-cpu.txt", "x86_64", "3.11"),
     ("service-cpu.txt", "aarch64", "3.11"),
