@@ -1,6 +1,6 @@
 """Re-apply the current CPU lowering to an existing FP32 model directory, without its checkpoints.
 
-    python -m export.lower --models DIR [--out DIR]
+    python -m export.lower --models DIR [--out DIR] [--data DIR --frame ID]
 
 The exporter lowers every graph it traces (``export.rewrite.lower_for_cpu``),
 but a directory exported before a rewrite existed keeps its older graphs, and
@@ -26,7 +26,7 @@ import onnx
 import onnxruntime as ort
 
 from export.directory import check_destination, staged
-from export.inputs import kitti_inputs, random_inputs
+from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR, check_frame, kitti_inputs, random_inputs
 from export.manifest import graph_inputs
 from export.rewrite import lower_for_cpu
 from pipeline.cli import HelpFormatter, examples, interrupted
@@ -47,22 +47,26 @@ class LowerResult:
     written: bool = True  # False: rewritten in place with nothing to rewrite, so left as it was
 
 
-def run(models: Path, out: Path | None = None) -> LowerResult:
+def run(models: Path, out: Path | None = None, data: Path = DEFAULT_KITTI_DIR,
+        frame: str = DEFAULT_FRAME) -> LowerResult:
     """Lower the graphs of ``models`` into ``out`` (default: in place); returns what changed.
 
-    Raises ModelFileError for a directory that is not an intact FP32 model directory (or an ``out``
+    The real frame of the check is ``frame`` of the KITTI object folder ``data`` (default: the bundled
+    tests/data frame, which only a source checkout has). Raises InputError when that frame is missing,
+    ModelFileError for a directory that is not an intact FP32 model directory (or an ``out``
     that holds something else), and ValueError when ONNX Runtime's outputs of a lowered graph differ
     from the original past :data:`TOLERANCE`; nothing is written then.
     """
     models = Path(models)
     out = models if out is None else Path(out)
+    check_frame(data, frame)  # before any model work; names --data/--frame
     manifest = load_manifest(models)
     verify_sha256(models, manifest)
     if manifest.get("precision", "fp32") != "fp32":
         raise ModelFileError(f"{models / MANIFEST_NAME}: precision {manifest['precision']}; lower the FP32 "
                              "directory and convert it again (python -m export.precision)")
     preset = preset_from_dict(manifest["preset_config"])
-    samples = [kitti_inputs(preset), random_inputs(preset, seed=1)]
+    samples = [kitti_inputs(preset, data, frame), random_inputs(preset, seed=1)]
     sources: dict[str, onnx.ModelProto] = {}
     lowered: dict[str, onnx.ModelProto] = {}
     rewrites: dict[str, dict[str, int]] = {}
@@ -118,9 +122,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--models", type=Path, required=True, metavar="DIR",
                         help="FP32 model directory (manifest.json + ONNX files)")
     parser.add_argument("--out", type=Path, metavar="DIR", help="output model directory (default: rewrite --models in place)")
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="KITTI object folder (image_2/, velodyne/, calib/) of the real frame the new graphs are "
+                        "checked on (default: the bundled tests/data/kitti/training of a source checkout)")
+    parser.add_argument("--frame", default=DEFAULT_FRAME, metavar="ID", help=f"frame id of --data (default {DEFAULT_FRAME})")
     args = parser.parse_args(argv)
+    if args.data is None and not DEFAULT_KITTI_DIR.is_dir():  # installed from a wheel: tests/data stayed behind
+        print(f"error: the bundled check frames ({DEFAULT_KITTI_DIR}) exist only in a source checkout; give a "
+              "KITTI object folder with --data DIR (and --frame ID)", file=sys.stderr)
+        return 2
     try:
-        result = run(args.models, args.out)
+        result = run(args.models, args.out, args.data or DEFAULT_KITTI_DIR, args.frame)
     except (ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
