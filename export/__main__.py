@@ -20,6 +20,7 @@ from pipeline.cli import (
     missing_extra,
     non_negative_int,
     positive_int,
+    show_progress,
     unwritable,
 )
 from pipeline.errors import TORCH_MISSING
@@ -78,7 +79,7 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
         parser.error(f"--preset: {exc}")
     return ExportConfig(
         preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir or DEFAULT_KITTI_DIR,
-        frame=args.frame or DEFAULT_FRAME, seed=args.seed, parity=not args.no_parity, progress=True,
+        frame=args.frame or DEFAULT_FRAME, seed=args.seed, parity=not args.no_parity, progress=show_progress(False),
         networks=tuple(dict.fromkeys(args.networks)),
     ), args
 
@@ -104,6 +105,8 @@ def _refuse_contradictions(parser: argparse.ArgumentParser, args: argparse.Names
 
 def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    for chatty in ("onnx_ir", "onnxscript"):  # torch.onnx's passes log each rewrite at INFO: ~20 lines an export
+        logging.getLogger(chatty).setLevel(logging.WARNING)
     config, args = parse_args(argv)
     try:
         return export(config, args)
@@ -151,7 +154,7 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
             made_by = (f"not kept: python -m export --preset {config.preset} --networks {' '.join(config.networks)}"
                        + (f" --checkpoints {config.checkpoints}" if config.checkpoints else " (initialised)"))
             manifest = convert_precision(Path(fp32_dir), config.out, args.precision, args.calibration_data,
-                                         args.calibration_frames, progress=True, reduce_range=args.reduce_range,
+                                         args.calibration_frames, progress=show_progress(False), reduce_range=args.reduce_range,
                                          source=made_by)
         result = replace(result, directory=config.out, manifest=manifest)
         print(f"{args.precision}: deviation from fp32 {manifest['precision_info']['deviation_from_fp32']}")

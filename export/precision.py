@@ -60,10 +60,16 @@ from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.graph_inputs import feeds_for
-from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
+from pipeline.model_files import (
+    MANIFEST_NAME,
+    PRECISIONS,
+    ModelFileError,
+    load_manifest,
+    sha256_file,
+    verify_sha256,
+)
 
 log = logging.getLogger(__name__)
-PRECISIONS = ("fp32", "fp16", "int8")
 REDUCE_RANGE_HELP = ("int8: weights in 7 bits, the same outputs on x86 CPUs without VNNI as with it (full 8-bit "
                      "weights can saturate ONNX Runtime's 16-bit sums of product pairs there: pipeline/cpu.py)")
 
@@ -332,7 +338,14 @@ def main(argv: list[str] | None = None) -> int:
     import sys
 
     from export.inputs import DEFAULT_KITTI_DIR
-    from pipeline.cli import HelpFormatter, examples, interrupted, non_negative_int, positive_int
+    from pipeline.cli import (
+        HelpFormatter,
+        examples,
+        interrupted,
+        non_negative_int,
+        positive_int,
+        show_progress,
+    )
 
     parser = argparse.ArgumentParser(
         prog="python -m export.precision", description="Convert an FP32 model directory to FP16 or INT8 (QDQ).",
@@ -360,7 +373,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
         manifest = convert_precision(args.models, args.out, args.precision, args.calibration_data,
-                                     args.calibration_frames, progress=True, reduce_range=args.reduce_range,
+                                     args.calibration_frames, progress=show_progress(False), reduce_range=args.reduce_range,
                                      beams=args.beams)
     except (InputError, ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -22,6 +22,7 @@ check against ONNX Runtime, which :func:`benchmarks.latency.torch_twin` runs.
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -210,28 +211,43 @@ def checkpoints_from_model_dir(models: str | Path, out: str | Path) -> dict[str,
     return written
 
 
-def main(argv: list[str] | None = None) -> int:
-    import argparse
-    import sys
+def build_parser() -> argparse.ArgumentParser:
+    """The command line of ``python -m models.onnx_weights``."""
+    from pipeline.cli import HelpFormatter, examples
 
     parser = argparse.ArgumentParser(
-        prog="python -m models.onnx_weights",
-        description="Turn a model directory's ONNX files back into training checkpoints (depth.pt, pixor.pt).")
-    parser.add_argument("--models", type=Path, required=True, help="model directory (manifest.json and ONNX files)")
-    parser.add_argument("--out", type=Path, required=True, help="checkpoint directory to write")
-    args = parser.parse_args(argv)
-    from pipeline.cli import check_output
+        prog="python -m models.onnx_weights", formatter_class=HelpFormatter,
+        description="Turn a model directory's ONNX files back into training checkpoints (depth.pt, pixor.pt).",
+        epilog=examples("python -m models.onnx_weights --models weights/edge --out runs/own/camera"))
+    parser.add_argument("--models", type=Path, required=True, metavar="DIR",
+                        help="model directory (manifest.json and ONNX files)")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="checkpoint directory to write")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    import sys
+
+    from pipeline.cli import check_output, quiet_interrupt
     from pipeline.errors import InputError
     from pipeline.model_files import ModelFileError
 
-    try:
-        check_output(args.out, "--out", directory=True)
-        written = checkpoints_from_model_dir(args.models, args.out)
-    except (InputError, OSError, ValueError, KeyError, ModelFileError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print("wrote " + ", ".join(str(path) for path in written.values()))
-    return 0
+    @quiet_interrupt("--out holds what was written before it (a checkpoint is written whole or not at all)")
+    def run(args: argparse.Namespace) -> int:
+        try:
+            check_output(args.out, "--out", directory=True)  # its message names --out
+        except InputError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        try:
+            written = checkpoints_from_model_dir(args.models, args.out)
+        except (InputError, OSError, ValueError, KeyError, ModelFileError) as exc:
+            print(f"error: --models: {exc}", file=sys.stderr)
+            return 2
+        print("wrote " + ", ".join(str(path) for path in written.values()))
+        return 0
+
+    return run(build_parser().parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO / "tests" / "data" / "kitti" / "training"
 MODULES = ["pipeline.detect", "pipeline.beams", "pipeline.demo", "service", "simulation", "models.train",
            "models.reproduce", "models.cache_pseudo", "export", "export.lower", "export.precision",
-           "export.golden", "requirements.lock"]
+           "export.golden", "requirements.lock", "models.onnx_weights"]
 SCRIPTS = ["latency", "accuracy", "load", "frame_ops", "eval_speed", "sim_report", "network_latency", "peak",
            "op_profile", "depth_bound"]
 # The commands of the README's table and the Makefile, which this family's checks hold to: all of them.
@@ -56,7 +56,7 @@ def test_every_command_answers_help(name):
 # What the runtime install (make demo: no torch, matplotlib or httpx) answers to --help: the usage, or for a
 # command that needs a package it lacks one line saying what to install, exit status 2 as any usage error.
 NEEDS_EXTRAS = {"models.train", "models.cache_pseudo", "models.reproduce", "export", "network_latency", "depth_bound",
-                "load"}
+                "load", "models.onnx_weights"}
 RUNTIME = ("import runpy, sys; [sys.modules.__setitem__(m, None) for m in ('torch', 'matplotlib', 'httpx')]; "
            "sys.argv = ['x', '--help']; ")
 
@@ -290,6 +290,8 @@ INTERRUPTIONS = [
     ("export.precision", ["--models", "weights/edge", "--precision", "int8", "--out", "{tmp}/int8"],
      "convert_precision", "--out {tmp}/int8 is as it was (nothing written)"),
     ("export.lower", ["--models", "weights/edge", "--out", "{tmp}/low"], "run", "{tmp}/low is as it was"),
+    ("models.onnx_weights", ["--models", "weights/edge", "--out", "{tmp}/ckpt"], "checkpoints_from_model_dir",
+     "--out holds what was written before it"),
     ("pipeline.demo", [], "argparse", "the pictures and result files written so far stay in --out"),
     ("requirements.lock", [], "argparse", "--out is as it was"),
     *[(name, [], "argparse", "") for name in SCRIPTS],
@@ -368,3 +370,20 @@ def test_the_lock_says_what_the_environment_lacks_with_status_2(failure, says, t
     assert lock.main(["--check", "--out", str(tmp_path / "none.txt")]) == 2
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and err[0].startswith(says.format(tmp=tmp_path)), err
+
+
+def test_lower_outside_a_checkout_asks_for_a_frame(tmp_path):
+    """An installed wheel leaves tests/data behind: export.lower takes its check frame from --data then."""
+    site = tmp_path / "site-packages"
+    for package in ("pipeline", "export"):
+        shutil.copytree(REPO / package, site / package, ignore=shutil.ignore_patterns("__pycache__"))
+    command = [sys.executable, "-m", "export.lower", "--models", str(REPO / "weights" / "edge")]
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    refused = subprocess.run([*command, "--out", str(tmp_path / "a")], cwd=tmp_path, env=env, capture_output=True,
+                             text=True, timeout=120, check=False)
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr
+    assert "exist only in a source checkout; give a KITTI object folder with --data DIR" in refused.stderr
+    done = subprocess.run([*command, "--out", str(tmp_path / "b"), "--data", str(KITTI)], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=300, check=False)
+    assert done.returncode == 0, done.stderr
+    assert (tmp_path / "b" / "manifest.json").is_file()
