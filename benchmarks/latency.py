@@ -88,14 +88,14 @@ from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Cancellation, Detector, RunCancelled
 from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import Frame, frame_ids, load_frame
-from pipeline.model_files import ModelFileError, load_manifest
+from pipeline.model_files import DEFAULT_MODELS, ModelFileError, load_manifest
 from pipeline.presets import get_preset
 
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "tests" / "data" / "kitti" / "training"
 # What runs without --models: the shipped model (the README's latency figures are of it), and its INT8 twin.
-SHIPPED = ROOT / "weights" / "edge"
-SHIPPED_INT8 = ROOT / "weights" / "edge-int8"
+SHIPPED = DEFAULT_MODELS
+SHIPPED_INT8 = SHIPPED.with_name("edge-int8")
 DEFAULT_PRESET = "edge-split-near35"  # the shipped model's preset (weights/edge/manifest.json): --preset's default
 PEAK_MATMUL = 4096  # the peak micro-benchmark's MatMul: N × N by N × N
 # The stages that are network runs (pixor_mirror: PIXOR's second run, with --mirror-tta); the rest of a frame's

@@ -96,10 +96,10 @@ from pipeline.cpu import describe as describe_cpu
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids
 from pipeline.kitti import POINT_BYTES, read_velodyne, write_velodyne
+from pipeline.model_files import DEFAULT_MODELS
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO / "tests" / "data" / "kitti" / "training"
-DEFAULT_MODELS = REPO / "weights" / "edge"
 # The broken requests of --bad-every, each made from a real frame; the service must answer each 4xx.
 BROKEN_KINDS = ("points-truncated", "image-cut-off", "calib-without-P2", "query-misspelt")
 DEFAULT_LOG = Path("outputs/load_service.log")  # relative to the working directory, as it always was

@@ -289,7 +289,7 @@ class BevVoxelizer:
 
     def height_voxels(self) -> np.ndarray:
         """The occupancy box heights read this frame as a bool (nz, ny, nx) array (a pass over the grid: for
-        tests; the frame path reads ``height_occupancy`` under its boxes only)."""
+        tests and export.golden's reference arrays; the frame path reads ``height_occupancy`` under its boxes only)."""
         return self.height_occupancy[: self.grid.nz] == self.height_mark
 
     def _write_reflectance(self, counted: np.ndarray) -> None:

@@ -13,7 +13,7 @@ import codecs
 import math
 import os
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -293,7 +293,6 @@ class Object3D:
     location: tuple[float, float, float]
     rotation_y: float
     score: float | None = None
-    extra: dict = field(default_factory=dict, repr=False)
 
 
 # The fields of a label_2 line after the type, as the KITTI devkit's readme names them (16th: a result's score).

@@ -36,7 +36,8 @@ SCRATCH_PREFIX = ".partial-"  # + frame id + "-": hidden, so KITTI readers and g
 
 @dataclass
 class Frame:
-    """Everything generated for one frame; ``scene`` and ``render`` are kept for tests and reports.
+    """Everything generated for one frame; ``scene`` and ``render`` are written to no file: they are kept for
+    callers of :func:`generate_frame` that check the labels against the scene (the tests; docs/simulation.md).
 
     points: float32 (N, 4) ring-ordered scan. image: uint8 (375, 1242, 3) RGB.
     depth: float32 (375, 1242) metres, 0 = none.
