@@ -134,6 +134,8 @@ def _load_weights(checkpoints: dict[str, Path], preset: Preset, models: dict[str
 @contextmanager
 def _step(bar: tqdm, label: str) -> Iterator[None]:
     bar.set_description(label)
+    if bar.disable:  # no bar in a pipe or a log (pipeline.cli.show_progress): a line per step there instead
+        log.info("%s …", label)
     yield
     bar.update(1)
 
