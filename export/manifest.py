@@ -15,10 +15,12 @@ import onnx
 
 from export.port_spec import port_spec
 from export.rewrite import value_shape
-from pipeline.model_files import MANIFEST_NAME, load_manifest, sha256_file, verify_sha256
+
+# FORMAT ("lowres3d-models/N") is the runtime's (pipeline/model_files.py): the version written is the newest the
+# runtime of the same release reads. Raise it there when a field added here changes how the models must run.
+from pipeline.model_files import FORMAT, MANIFEST_NAME, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import Preset
 
-FORMAT = "lowres3d-models/1"
 UNTRAINED = "initialised (untrained)"
 
 

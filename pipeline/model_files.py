@@ -1,18 +1,32 @@
 """Model directories: where the shipped one is (``DEFAULT_MODELS``), reading ``manifest.json`` and checking
-each file's sha256.
+each file's sha256, and what identifies a loaded model (:class:`ModelIdentity`).
 
-Imports only json, hashlib and pathlib so the runtime (and the service
-container, which has no torch) can refuse a corrupted or swapped model file
-before ONNX Runtime ever parses it.
+Imports only the standard library so the runtime (and the service container,
+which has no torch) can refuse a corrupted or swapped model file before ONNX
+Runtime ever parses it.
+
+The manifest's ``format`` is ``lowres3d-models/N``. A runtime reads every version
+from :data:`OLDEST_FORMAT_VERSION` to :data:`FORMAT_VERSION` and refuses a newer one
+with one line naming both. Fields a runtime does not know are ignored: an exporter
+adds fields without a new version, and raises the version only when a runtime that
+ignored what it adds would run the model differently (a new preset field, a new
+input, a new meaning of an old field).
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import re
+from dataclasses import dataclass
 from pathlib import Path
 
 MANIFEST_NAME = "manifest.json"
+FORMAT_NAME = "lowres3d-models"
+FORMAT_VERSION = 1  # what python -m export writes and the newest this runtime reads
+OLDEST_FORMAT_VERSION = 1  # every manifest ever exported says lowres3d-models/1
+FORMAT = f"{FORMAT_NAME}/{FORMAT_VERSION}"
+PRECISIONS = ("fp32", "fp16", "int8")
 # The shipped detector, in the source tree: `pip install .` (not -e) leaves weights/ behind.
 DEFAULT_MODELS = Path(__file__).resolve().parents[1] / "weights" / "edge"
 
@@ -51,6 +65,12 @@ def sha256_file(path: str | Path) -> str:
 
 def load_manifest(directory: str | Path) -> dict:
     """Parse ``directory/manifest.json``; ModelFileError if it is missing or not a manifest."""
+    return load_manifest_with_digest(directory)[0]
+
+
+def load_manifest_with_digest(directory: str | Path) -> tuple[dict, str]:
+    """:func:`load_manifest` and the hex sha256 of the very bytes it parsed (the model's id: no second read
+    that a copy in progress could change between)."""
     path = Path(directory) / MANIFEST_NAME
     try:
         # is_dir() and exists() raise for some errors too: no permission on a parent folder, a name too long.
@@ -60,17 +80,40 @@ def load_manifest(directory: str | Path) -> dict:
     except OSError as exc:
         raise ModelFileError(f"{directory}: cannot open the model directory ({_reason(exc)})") from exc
     try:
-        manifest = json.loads(path.read_text(encoding="utf-8"))
+        data = path.read_bytes()
+        manifest = json.loads(data.decode("utf-8"))
     except FileNotFoundError:
         raise ModelFileError(f"{path}: no manifest; export the models with `python -m export`") from None
     except OSError as exc:
         raise ModelFileError(f"{path}: unreadable manifest ({_reason(exc)})") from exc
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ModelFileError(f"{path}: unreadable manifest ({exc})") from exc
-    if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict) or not manifest["files"]:
+    if not isinstance(manifest, dict):
+        raise ModelFileError(f"{path}: manifest has no 'files' table with sha256 checksums")
+    manifest_format(manifest, path)  # first: a newer format's tables may differ from those checked below
+    if not isinstance(manifest.get("files"), dict) or not manifest["files"]:
         raise ModelFileError(f"{path}: manifest has no 'files' table with sha256 checksums")
     _check_tables(manifest, path)
-    return manifest
+    return manifest, hashlib.sha256(data).hexdigest()
+
+
+def manifest_format(manifest: dict, path: Path | str = MANIFEST_NAME) -> int:
+    """The manifest's format version; ModelFileError for a format this runtime cannot read.
+
+    A manifest without ``format`` (none was ever exported so: a hand-made one) is read as version 1."""
+    given = manifest.get("format", f"{FORMAT_NAME}/1")
+    match = re.fullmatch(rf"{re.escape(FORMAT_NAME)}/([0-9]+)", given) if isinstance(given, str) else None
+    if match is None:
+        raise ModelFileError(f"{path}: format {given!r:.60} is not a lowres3d model manifest (expected {FORMAT})")
+    version = int(match.group(1))
+    if version > FORMAT_VERSION:
+        raise ModelFileError(
+            f"{path}: format {FORMAT_NAME}/{version} is newer than this lowres3d reads ({FORMAT}); update lowres3d "
+            "on this machine, or export the models with the version it runs")
+    if version < OLDEST_FORMAT_VERSION:
+        raise ModelFileError(f"{path}: format {FORMAT_NAME}/{version} is older than this lowres3d reads "
+                             f"({FORMAT_NAME}/{OLDEST_FORMAT_VERSION} to {FORMAT}); export the models again")
+    return version
 
 
 def _check_tables(manifest: dict, path: Path) -> None:
@@ -79,6 +122,8 @@ def _check_tables(manifest: dict, path: Path) -> None:
     for name, entry in manifest["files"].items():
         if not isinstance(entry, dict) or not isinstance(entry.get("sha256"), str):
             raise ModelFileError(f"{path}: files.{name}: expected {{\"sha256\": \"<hex>\"}}, got {entry!r:.60}")
+        if Path(name).name != name or name in ("", ".", ".."):  # a path would check a file outside the directory
+            raise ModelFileError(f"{path}: files.{name}: a file name in the model directory, not a path")
     networks = manifest.get("networks", {})
     if not isinstance(networks, dict):
         raise ModelFileError(f"{path}: networks: expected a table of networks, got {networks!r:.60}")
@@ -87,8 +132,13 @@ def _check_tables(manifest: dict, path: Path) -> None:
             raise ModelFileError(f"{path}: networks.{name}: expected a table with its \"file\", got {entry!r:.60}")
         if not isinstance(entry.get("training") or {}, dict):
             raise ModelFileError(f"{path}: networks.{name}.training: expected a table, got {entry['training']!r:.60}")
+        if entry["file"] not in manifest["files"]:  # it would be loaded without its sha256 checked
+            raise ModelFileError(f"{path}: networks.{name}.file: {entry['file']!r:.60} has no sha256 in 'files'")
     if not isinstance(manifest.get("preset_config"), dict):
         raise ModelFileError(f"{path}: preset_config: missing or not a table")
+    precision = manifest.get("precision", "fp32")
+    if precision not in PRECISIONS:
+        raise ModelFileError(f"{path}: precision: {precision!r:.60} is none of {', '.join(PRECISIONS)}")
 
 
 def verify_sha256(directory: str | Path, manifest: dict) -> None:
@@ -111,8 +161,58 @@ def verify_sha256(directory: str | Path, manifest: dict) -> None:
         if not is_file:
             raise ModelFileError(f"{path}: model file listed in the manifest is missing")
         actual = sha256_file(path)
-        if actual != expected:
-            raise ModelFileError(
-                f"{path}: sha256 mismatch (manifest {expected[:12]}…, file {actual[:12]}…): "
-                "the file is corrupted or was replaced; re-export the model directory"
-            )
+        if actual == expected:
+            continue
+        try:
+            size, listed = path.stat().st_size, entry.get("bytes")
+        except OSError:  # removed since it was read: the mismatch is what there is to say
+            size, listed = None, None
+        if isinstance(listed, int) and size != listed:  # a cut-off copy: the likeliest cause, said as such
+            raise ModelFileError(f"{path}: sha256 mismatch: {size} bytes, where the manifest lists {listed} (a copy cut "
+                                 "off or still in progress, or another model's file); copy the whole model directory "
+                                 "again")
+        raise ModelFileError(
+            f"{path}: sha256 mismatch (manifest {expected[:12]}…, file {actual[:12]}…): "
+            "the file is corrupted or was replaced; re-export the model directory"
+        )
+
+
+@dataclass(frozen=True)
+class ModelIdentity:
+    """Which model a process runs, as a fleet tells its vehicles apart: the manifest's sha256 (``id``: it lists
+    every file's sha256 and the preset, so equal ids are equal models), the directory it was loaded from, and the
+    manifest's fields an operator reads at a glance."""
+
+    id: str  # hex sha256 of manifest.json's bytes
+    directory: str  # the model directory's own name, after symbolic links (a "current" link names its target)
+    path: str  # its absolute path, after symbolic links
+    format: int
+    preset: str
+    precision: str  # fp32, fp16 or int8
+    weights: str  # "trained", "initialised (untrained)" or which network is trained
+    sha256: dict[str, str]  # each file's, by name
+    training_data: dict[str, str | None]  # each network's training data as its training record names it (None: unrecorded)
+
+    @property
+    def short_id(self) -> str:
+        """The id's first 12 hex digits, for log lines."""
+        return self.id[:12]
+
+    def summary(self) -> str:
+        """One line for a log: directory, id, preset, precision, files."""
+        files = ", ".join(f"{name} {digest[:12]}" for name, digest in self.sha256.items())
+        return (f"model {self.directory} (id {self.short_id}, manifest {FORMAT_NAME}/{self.format}, preset "
+                f"{self.preset}, {self.precision}, {self.weights}; {files})")
+
+
+def model_identity(directory: str | Path, manifest: dict, manifest_sha256: str) -> ModelIdentity:
+    """The identity of the model ``manifest`` (checked by :func:`load_manifest`) describes in ``directory``."""
+    resolved = Path(directory).resolve()
+    training = {name: (entry.get("training") or {}).get("data") for name, entry in manifest["networks"].items()}
+    return ModelIdentity(
+        id=manifest_sha256, directory=resolved.name, path=str(resolved), format=manifest_format(manifest),
+        preset=str(manifest["preset_config"].get("name", manifest.get("preset"))),  # the preset that runs
+        precision=manifest.get("precision", "fp32"), weights=str(manifest.get("weights", "unrecorded")),
+        sha256={name: entry["sha256"] for name, entry in manifest["files"].items()},
+        training_data={name: str(data) if data is not None else None for name, data in training.items()},
+    )

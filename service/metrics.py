@@ -5,7 +5,8 @@ the service's routes or "unmatched", HTTP's methods or "other"; 499 for a client
 request latency per route; per-stage latency of the detector; inference queue
 depth, in-flight frames and frames stopped on a worker; the warnings frames were answered with, by code
 (one of pipeline.checks.FRAME_WARNING_CODES or "other"), and those the loaded models carry (LOAD_WARNING_CODES);
-HTTP requests in flight; readiness; and the process collector's memory and CPU (``process_resident_memory_bytes``, Linux).
+HTTP requests in flight; readiness; which model is loaded (``lowres3d_model_info``); and the process
+collector's memory and CPU (``process_resident_memory_bytes``, Linux).
 """
 
 from __future__ import annotations
@@ -85,7 +86,10 @@ class Metrics:
         for code in LOAD_WARNING_CODES:
             self.model_warnings.labels(code=code).set(0)
         self.ready = Gauge("lowres3d_ready", "1 when models are loaded and warmed up", registry=self.registry)
-        self.model = Info("lowres3d_model", "the loaded model directory", registry=self.registry)
+        # Labels, one series: id (manifest.json's sha256), directory, preset, precision, format, weights,
+        # training_data, two_stage, mirror_tta, providers, sha256_<file> (service/runtime.py sets them).
+        self.model = Info("lowres3d_model", "the loaded model: id (sha256 of its manifest.json), directory, preset, "
+                          "precision and each file's sha256", registry=self.registry)
 
     def observe_stages(self, timings_ms: dict[str, float]) -> None:
         """Record one frame's per-stage timings (milliseconds)."""

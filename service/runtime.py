@@ -1,9 +1,16 @@
-"""What the service holds while it runs: the Detector(s), the inference pool, the default calibration.
+"""What the service holds while it runs: the Detector(s), the inference pool, the default calibration, and the
+identity of the model it serves.
 
 :func:`load_runtime` checks everything a start needs and fails with a message
 naming the file: a missing model directory, a model file whose sha256 differs
-from the manifest (:class:`pipeline.model_files.ModelFileError`), an
-unavailable execution provider, an unreadable default calibration.
+from the manifest (:class:`pipeline.model_files.ModelFileError`), a directory
+that changed while it loaded (a copy in progress), an unavailable execution
+provider, an unreadable default calibration.
+
+The sessions hold the networks in memory: files replaced under a running service
+change nothing until it restarts. The model directory is followed through its
+symbolic links once, at the start: every worker loads the same directory even when a
+``current`` link is switched meanwhile, and /v1/model names the directory it points to.
 """
 
 from __future__ import annotations
@@ -11,11 +18,18 @@ from __future__ import annotations
 import logging
 import threading
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from pipeline.calib import Calibration
 from pipeline.detector import Cancellation, Detector
 from pipeline.kitti import read_calib
-from pipeline.model_files import ModelFileError
+from pipeline.model_files import (
+    ModelFileError,
+    ModelIdentity,
+    load_manifest_with_digest,
+    model_identity,
+    verify_sha256,
+)
 from service.metrics import Metrics
 from service.pool import InferencePool
 from service.settings import Settings
@@ -30,6 +44,7 @@ class Runtime:
     detectors: list[Detector]
     pool: InferencePool
     default_calib: Calibration | None
+    identity: ModelIdentity
     ready: threading.Event = field(default_factory=threading.Event)
     stopping: Cancellation = field(default_factory=Cancellation)  # cancelled on shutdown: the warm-up ends early
     warm_up_error: str | None = None
@@ -66,44 +81,74 @@ class Runtime:
 def load_runtime(settings: Settings, metrics: Metrics) -> Runtime:
     """Load the model directory (sha256 checked) once, or once per worker, and build the pool.
 
-    Raises ModelFileError for a missing or corrupted model directory and
-    pipeline.errors.InputError for a bad provider or default calibration.
+    Raises ModelFileError for a missing or corrupted model directory, or one that changed while it loaded,
+    and pipeline.errors.InputError for a bad provider or default calibration.
     """
     models = settings.models
-    try:
-        found = models.is_dir()
-    except OSError as exc:  # a name too long, no permission on a parent folder
-        raise ModelFileError(f"{models}: cannot open the model directory ({exc.strerror or exc})") from exc
-    if not found:
-        raise ModelFileError(
-            f"{models}: model directory not found; pass --models DIR (or LOWRES3D_MODELS) pointing to a "
-            "directory written by `python -m export`"
-        )
+    directory = model_directory(models)
     default_calib = read_calib(settings.default_calib) if settings.default_calib is not None else None
     count = settings.workers if settings.sessions == "per-worker" else 1
-    log.info("loading %s (%d session set(s); with TensorRT, its first load builds the engines: minutes)", models, count)
+    shown = str(models) if directory == models else f"{models} (→ {directory})"
+    log.info("loading %s (%d session set(s); with TensorRT, its first load builds the engines: minutes)", shown, count)
     threads = settings.resolved_intra_op_threads()
     gpus = settings.gpu_ids()
     detectors = [
-        Detector(models, providers=settings.provider, intra_op_threads=threads, trt_cache_dir=settings.trt_cache_dir,
+        Detector(directory, providers=settings.provider, intra_op_threads=threads, trt_cache_dir=settings.trt_cache_dir,
                  mirror_tta=settings.mirror_tta, device_id=gpus[k % len(gpus)] if gpus else None)
         for k in range(count)
     ]
     detector = detectors[0]
+    identity = loaded_identity(directory, detectors)
     log.info(
-        "loaded %s (preset %s, %s%s) with %s%s on %d worker(s), %s session(s), %d intra-op thread(s), queue %d",
-        models, detector.preset.name, "two-stage" if detector.two_stage else "LiDAR-only",
+        "loaded %s: %s, %s%s, with %s%s on %d worker(s), %s session(s), %d intra-op thread(s), queue %d",
+        shown, identity.summary(), "two-stage" if detector.two_stage else "LiDAR-only",
         ", PIXOR with mirror TTA" if detector.mirror_tta else "", detector.providers_in_use,
         f" on GPU(s) {', '.join(str(d.device_id) for d in detectors)} (per session pair)" if gpus else "",
         settings.workers, settings.sessions, threads, settings.queue_size,
     )
     metrics.model.info({
-        "preset": detector.preset.name,
+        "id": identity.id,
+        "directory": identity.directory,
+        "preset": identity.preset,
+        "precision": identity.precision,
+        "format": str(identity.format),
+        "weights": identity.weights,
+        "training_data": ",".join(sorted({d for d in identity.training_data.values() if d})) or "unrecorded",
         "two_stage": str(detector.two_stage).lower(),
         "mirror_tta": str(detector.mirror_tta).lower(),
         "providers": ",".join(sorted({p for ps in detector.providers_in_use.values() for p in ps})),
-        **{f"sha256_{name.replace('.', '_')}": digest for name, digest in detector.sha256.items()},
+        **{f"sha256_{name.replace('.', '_')}": digest for name, digest in identity.sha256.items()},
     })
     metrics.set_model_warnings(code for d in detectors for code in d.load_warning_codes)
     pool = InferencePool(detectors, settings.workers, settings.queue_size, metrics)
-    return Runtime(detectors=detectors, pool=pool, default_calib=default_calib)
+    return Runtime(detectors=detectors, pool=pool, default_calib=default_calib, identity=identity)
+
+
+def model_directory(models: Path) -> Path:
+    """``--models`` with its symbolic links followed, as given when it has none (read once: a rollout switching a
+    link while the service starts cannot give two workers two models); ModelFileError when it is no directory."""
+    try:
+        resolved = models.resolve()
+        directory = models if resolved == models.absolute() else resolved
+        found = directory.is_dir()
+    except (OSError, RuntimeError) as exc:  # a name too long, no permission on a parent folder, a link loop
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else exc
+        raise ModelFileError(f"{models}: cannot open the model directory ({reason})") from exc
+    if not found:
+        raise ModelFileError(
+            f"{models}: model directory not found; pass --models DIR (or LOWRES3D_MODELS) pointing to a "
+            "directory written by `python -m export`"
+        )
+    return directory
+
+
+def loaded_identity(directory: Path, detectors: list[Detector]) -> ModelIdentity:
+    """The identity of the model the sessions hold, after checking that the directory still holds it: a copy
+    into the directory while the service started (its manifest or a file replaced between the Detector's sha256
+    check and ONNX Runtime's read) is refused rather than served under the wrong identity."""
+    manifest, digest = load_manifest_with_digest(directory)
+    if any(d.manifest != manifest for d in detectors):
+        raise ModelFileError(f"{directory}: the model directory changed while the service loaded it (a copy in "
+                             "progress?); copy a model into a new directory, then point --models at it")
+    verify_sha256(directory, manifest)
+    return model_identity(directory, manifest, digest)

@@ -66,10 +66,26 @@ class Detection(BaseModel):
 
 
 class ModelRef(BaseModel):
-    """Which models answered."""
+    """Which models answered (the same as the X-Model-* headers of every detection answer)."""
 
-    preset: str = Field(description="the model preset (manifest.json)", examples=["edge"])
+    id: str = Field(description="sha256 (hex) of the model directory's manifest.json, which lists every file's "
+                    "sha256: equal ids, equal models (header X-Model-ID)",
+                    examples=["9c1f3e0a5b7d2c4e6f8a0b1c3d5e7f9a1b3c5d7e9f0a2b4c6d8e0f1a3b5c7d9e"])
+    directory: str = Field(description="the model directory's own name, after symbolic links (header "
+                           "X-Model-Directory, percent-encoded)", examples=["edge"])
+    preset: str = Field(description="the model preset (manifest.json; header X-Model-Preset)", examples=["edge"])
+    precision: str = Field(description="`fp32`, `fp16` or `int8` (header X-Model-Precision)", examples=["fp32"])
     sha256: dict[str, str] = Field(description="sha256 (hex) of each model file, by file name")
+
+
+class ModelIdentityInfo(ModelRef):
+    """Which model the service runs: what each detection answer's `model` says, and the rest of its identity."""
+
+    path: str = Field(description="the model directory's absolute path, after symbolic links")
+    format: int = Field(description="the manifest's format version (`lowres3d-models/N`)", examples=[1])
+    weights: str = Field(description="`trained`, or which network is not", examples=["trained"])
+    training_data: dict[str, str | None] = Field(
+        description="each network's training data as its training record names it (null: not recorded)")
 
 
 _DETECT_EXAMPLE = {
@@ -85,7 +101,8 @@ _DETECT_EXAMPLE = {
         "queue_wait": 0.1, "parse_inputs": 9.8, "prepare": 4.1, "depth_net": 180.2, "ray_table": 0.01, "pseudo_points": 2.0,
         "voxelize": 3.1, "pixor": 95.4, "decode": 0.9, "total": 296.0,
     },
-    "model": {"preset": "edge", "sha256": {"depth.onnx": "3f1c…", "pixor.onnx": "9a0b…"}},
+    "model": {"id": "9c1f…", "directory": "edge", "preset": "edge-split-near35", "precision": "fp32",
+              "sha256": {"depth.onnx": "3f1c…", "pixor.onnx": "9a0b…"}},
     "warnings": ["points: dropped 3 rows with NaN or infinite values"],
     "warning_codes": ["nonfinite_dropped"],
     "request_id": "5f0c8e7a9b2d4c1e8f3a6b7c9d0e1f2a",
@@ -176,8 +193,11 @@ class SessionPair(BaseModel):
 
 
 class ModelInfo(BaseModel):
-    """The loaded model directory: its manifest and the execution providers actually in use."""
+    """The loaded model directory: its identity, its manifest and the execution providers actually in use."""
 
+    identity: ModelIdentityInfo = Field(description="which model runs: the same id, directory, preset and "
+                                        "precision as each detection answer's `model` and X-Model-* headers and "
+                                        "`lowres3d_model_info` in /metrics")
     preset: str
     sha256: dict[str, str]
     providers_in_use: dict[str, list[str]] = Field(description="per network, after ONNX Runtime's own fallback")

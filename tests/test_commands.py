@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO / "tests" / "data" / "kitti" / "training"
 MODULES = ["pipeline.detect", "pipeline.beams", "pipeline.demo", "service", "simulation", "models.train",
            "models.reproduce", "models.cache_pseudo", "export", "export.lower", "export.precision",
-           "export.golden", "requirements.lock", "models.onnx_weights"]
+           "export.golden", "requirements.lock", "models.onnx_weights", "pipeline.check_models"]
 SCRIPTS = ["latency", "accuracy", "load", "frame_ops", "eval_speed", "sim_report", "network_latency", "peak",
            "op_profile", "depth_bound"]
 # The commands of the README's table and the Makefile, which this family's checks hold to: all of them.
@@ -292,6 +292,7 @@ INTERRUPTIONS = [
     ("export.lower", ["--models", "weights/edge", "--out", "{tmp}/low"], "run", "{tmp}/low is as it was"),
     ("models.onnx_weights", ["--models", "weights/edge", "--out", "{tmp}/ckpt"], "checkpoints_from_model_dir",
      "--out holds what was written before it"),
+    ("pipeline.check_models", ["--models", "weights/edge-lidar16"], "run", "the model directory is as it was"),
     ("pipeline.demo", [], "argparse", "the pictures and result files written so far stay in --out"),
     ("requirements.lock", [], "argparse", "--out is as it was"),
     *[(name, [], "argparse", "") for name in SCRIPTS],

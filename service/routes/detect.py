@@ -19,6 +19,7 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Annotated, Any, TypeVar
+from urllib.parse import quote
 
 import cv2
 from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
@@ -28,6 +29,7 @@ from pipeline.boxes import BOX_FIELDS, bev_corners, in_camera_view
 from pipeline.calib import Calibration
 from pipeline.detector import Cancellation, Detections, Detector, RunCancelled
 from pipeline.kitti import format_label
+from pipeline.model_files import ModelIdentity
 from pipeline.render import render_bev, render_camera
 from service.deps import (
     MetricsDep,
@@ -254,7 +256,8 @@ def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> Dete
             for i, (box, score) in enumerate(zip(detections.boxes, detections.scores, strict=True))
         ],
         timings_ms={k: round(v, 3) for k, v in result.timings_ms.items()},
-        model=ModelRef(preset=runtime.detector.preset.name, sha256=runtime.detector.sha256),
+        model=ModelRef(id=runtime.identity.id, directory=runtime.identity.directory, preset=runtime.identity.preset,
+                       precision=runtime.identity.precision, sha256=runtime.identity.sha256),
         warnings=result.warnings,
         warning_codes=result.warning_codes,
         request_id=request_id,
@@ -268,6 +271,23 @@ def _warning_headers(result: FrameResult) -> dict[str, str]:
     if not warnings:
         return {}
     return {"X-Warnings": json.dumps(warnings), "X-Warning-Codes": json.dumps(result.warning_codes)}
+
+
+def model_headers(identity: ModelIdentity) -> dict[str, str]:
+    """Which model answered, on every detection answer (a fleet's proxy or dashboard reads headers, whatever
+    the body's format): ASCII, the directory's name percent-encoded."""
+    return {"X-Model-ID": identity.id, "X-Model-Directory": quote(identity.directory, safe=""),
+            "X-Model-Preset": quote(identity.preset, safe=""), "X-Model-Precision": identity.precision}
+
+
+_MODEL_HEADERS = {
+    "X-Model-ID": {"description": "sha256 (hex) of the model directory's manifest.json: equal ids, equal models "
+                   "(`model.id`; `id` in `lowres3d_model_info`)", "required": True, "schema": {"type": "string"}},
+    "X-Model-Directory": {"description": "the model directory's own name after symbolic links, percent-encoded",
+                          "required": True, "schema": {"type": "string"}},
+    "X-Model-Preset": {"description": "the model's preset", "required": True, "schema": {"type": "string"}},
+    "X-Model-Precision": {"description": "`fp32`, `fp16` or `int8`", "required": True, "schema": {"type": "string"}},
+}
 
 
 _WARNINGS_HEADER = {
@@ -302,7 +322,7 @@ _FRAME_PARTS = {"requestBody": {"content": {"multipart/form-data": {"encoding": 
 def _picture_responses(description: str) -> dict:
     """The OpenAPI answers of a route answering a PNG picture."""
     return {200: {"description": description, "content": {"image/png": {"schema": _PNG_SCHEMA}},
-                  "headers": _WARNINGS_HEADER},
+                  "headers": {**_WARNINGS_HEADER, **_MODEL_HEADERS}},
             **DETECT_ERRORS}
 
 
@@ -313,7 +333,8 @@ async def _picture_answer(request: Request, runtime: Runtime, settings: Settings
     result = await _run_frame(request, runtime, settings, metrics, upload, options, picture=picture,
                               needs_camera=needs)
     assert result.png is not None
-    return Response(result.png, media_type="image/png", headers=_warning_headers(result))
+    return Response(result.png, media_type="image/png",
+                    headers={**model_headers(runtime.identity), **_warning_headers(result)})
 
 
 @router.post(
@@ -329,13 +350,14 @@ async def _picture_answer(request: Request, runtime: Runtime, settings: Settings
             "content": {"text/plain": {"schema": {"type": "string", "description": "one KITTI label_2 line per "
                                                   "box the camera sees, with the score as a 16th value"},
                                        "example": _KITTI_EXAMPLE}},
-            "headers": _WARNINGS_HEADER,
+            "headers": {**_WARNINGS_HEADER, **_MODEL_HEADERS},
         },
         **DETECT_ERRORS,
     },
 )
 async def detect(
     request: Request,
+    response: Response,
     runtime: ReadyRuntimeDep,
     settings: SettingsDep,
     metrics: MetricsDep,
@@ -369,7 +391,9 @@ async def detect(
         frame = result.frame
         assert frame.calib is not None and frame.image_hw is not None  # check_upload refused a frame without
         objects = result.detections.to_objects(frame.calib, frame.image_hw)
-        return PlainTextResponse("".join(format_label(o) + "\n" for o in objects), headers=_warning_headers(result))
+        return PlainTextResponse("".join(format_label(o) + "\n" for o in objects),
+                                 headers={**model_headers(runtime.identity), **_warning_headers(result)})
+    response.headers.update(model_headers(runtime.identity))  # FastAPI copies them onto the JSON answer
     return _to_response(result, runtime, request_id)
 
 

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from dataclasses import asdict
+
 from fastapi import APIRouter
 
 from service.deps import RuntimeDep, SettingsDep
 from service.routes.responses import error_responses
-from service.schemas import ModelInfo, SessionPair
+from service.schemas import ModelIdentityInfo, ModelInfo, SessionPair
 
 router = APIRouter(tags=["model"])
 
@@ -17,12 +19,14 @@ router = APIRouter(tags=["model"])
     responses=error_responses(401, 408, 500, 503),
 )
 async def model_info(runtime: RuntimeDep, settings: SettingsDep) -> ModelInfo:
-    """Manifest, preset, sha256 of each file and the execution providers each network actually runs on."""
+    """Identity (manifest sha256, directory, preset, precision), manifest, sha256 of each file and the execution
+    providers each network actually runs on."""
     detector = runtime.detector
     # Every pair's, once each: a second worker's GPU that fell back must not hide behind the first's.
     loaded = list(dict.fromkeys((code, warning) for d in runtime.detectors
                                 for code, warning in zip(d.load_warning_codes, d.load_warnings, strict=True)))
     return ModelInfo(
+        identity=ModelIdentityInfo(**asdict(runtime.identity)),
         preset=detector.preset.name,
         sha256=detector.sha256,
         providers_in_use=detector.providers_in_use,

@@ -1,0 +1,300 @@
+"""Check a model directory before it ships to vehicles: one PASS/FAIL line per check, and an exit status.
+
+examples:
+  python -m pipeline.check_models --models /srv/lowres3d/edge-v7
+  python -m pipeline.check_models --models /srv/lowres3d/edge-v7 --provider tensorrt --json check.json
+
+The checks, in order (each needs the ones before it; those after a failure are reported as skipped):
+
+  manifest  manifest.json reads: a format this lowres3d reads, the tables the runtime needs, a usable preset,
+            trained weights (--allow-untrained for a latency-only export)
+  files     every file it lists is there, of its listed size and sha256 (each bad file named)
+  sessions  ONNX Runtime loads each graph on --provider (the provider really used, no silent fallback), and the
+            graphs' input shapes are those of the manifest's preset
+  frame     one real frame runs: each network's raw outputs finite and of the preset's shapes, the scores in
+            [0, 1], the boxes finite
+
+The frame is KITTI 000006 of the source checkout's tests/data (its 64-line scan thinned to the model's own line
+count), or --data DIR --frame ID. The last line gives the model's id, the sha256 of its manifest.json: what the
+service reports in /v1/model, in each answer's X-Model-ID header and in lowres3d_model_info. Exit status 0 when
+every check passes, 1 when one fails, 2 for an unusable command line (no such --models folder, a frame that
+cannot be read, an unwritable --json). Runs on the runtime install: ONNX Runtime, no torch.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.cli import HelpFormatter, check_output, examples, quiet_interrupt, write_text_file
+from pipeline.detector import Detector, resolve_providers
+from pipeline.errors import InputError
+from pipeline.frame import Frame, load_frame
+from pipeline.model_files import (
+    MANIFEST_NAME,
+    ModelFileError,
+    ModelIdentity,
+    load_manifest_with_digest,
+    model_identity,
+    verify_sha256,
+)
+from pipeline.presets import Preset, preset_from_dict
+
+SAMPLE_DIR = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
+SAMPLE_FRAME = "000006"
+CHECKS = ("manifest", "files", "sessions", "frame")
+
+
+class CheckFailed(Exception):
+    """A check found the directory unfit to ship; the message says why."""
+
+
+@dataclass(frozen=True)
+class CheckConfig:
+    """What to check and how."""
+
+    models: Path
+    provider: str | None = None  # cpu, cuda or tensorrt; None: the best this ONNX Runtime offers
+    data: Path | None = None  # a KITTI object folder; None: the checkout's bundled frames
+    frame: str = SAMPLE_FRAME
+    emulate_beams: int | None = None  # None: the model's own line count; 0: the scan as stored
+    allow_untrained: bool = False
+
+
+@dataclass
+class Check:
+    """One check's outcome: ``status`` is pass, fail or skip."""
+
+    name: str
+    status: str
+    detail: str
+    warnings: list[str] = field(default_factory=list)
+
+
+@dataclass
+class CheckReport:
+    """Every check's outcome, and the model's identity once its manifest and files checked out."""
+
+    models: str
+    checks: list[Check]
+    identity: ModelIdentity | None = None
+
+    @property
+    def passed(self) -> bool:
+        return all(check.status == "pass" for check in self.checks)
+
+    def to_dict(self) -> dict:
+        return {"models": self.models, "passed": self.passed,
+                "identity": asdict(self.identity) if self.identity is not None else None,
+                "checks": [asdict(check) for check in self.checks]}
+
+
+def check_manifest(models: Path, allow_untrained: bool) -> tuple[dict, str, Preset]:
+    """The manifest, its sha256 and its preset; CheckFailed naming the field at fault."""
+    try:
+        manifest, digest = load_manifest_with_digest(models)
+        preset = preset_from_dict(manifest["preset_config"])
+    except (ModelFileError, ValueError) as exc:
+        raise CheckFailed(str(exc)) from exc
+    if "pixor" not in manifest.get("networks", {}):
+        raise CheckFailed(f"{models / MANIFEST_NAME}: no 'pixor' network listed")
+    untrained = [name for name, entry in manifest["networks"].items() if entry.get("weights") != "trained"]
+    if untrained and not allow_untrained:
+        raise CheckFailed(f"{models / MANIFEST_NAME}: {', '.join(untrained)}: exported without trained weights (their "
+                          "boxes mean nothing); export trained checkpoints, or --allow-untrained for a latency test")
+    return manifest, digest, preset
+
+
+def check_files(models: Path, manifest: dict) -> list[str]:
+    """Each listed file's size and sha256, every bad one named (not the first only); the directory's files the
+    manifest does not list, as notes (a stale file is never loaded, but says the copy was not a clean one)."""
+    problems = []
+    for name, entry in manifest["files"].items():
+        try:
+            verify_sha256(models, {"files": {name: entry}})
+        except ModelFileError as exc:
+            problems.append(str(exc))
+    if problems:
+        raise CheckFailed("; ".join(problems))
+    listed = {MANIFEST_NAME, "trt_cache", *manifest["files"]}
+    return [f"{models / name}: not listed in the manifest (never loaded)"
+            for name in sorted(p.name for p in models.iterdir()) if name not in listed]
+
+
+def scan_lines(detector: Detector, emulate: int | None) -> int | None:
+    """The lines the bundled 64-line scan is thinned to: ``--emulate-beams`` (0: as stored), else the model's own."""
+    if emulate is not None:
+        return emulate or None
+    return None if detector.trained_lines == 64 else (detector.trained_lines or 16)
+
+
+def _finite(name: str, array: np.ndarray, shape: tuple[int, ...] | None = None) -> None:
+    """CheckFailed when ``array`` holds NaN or infinity, or is not of ``shape``."""
+    if shape is not None and tuple(array.shape) != shape:
+        raise CheckFailed(f"{name}: shape {list(array.shape)}, where the preset gives {list(shape)}")
+    bad = int(np.count_nonzero(~np.isfinite(array)))
+    if bad:
+        raise CheckFailed(f"{name}: {bad} of {array.size} values are NaN or infinite")
+
+
+def check_frame(detector: Detector, frame: Frame, beams: int | None) -> str:
+    """Run one frame: each network's raw outputs, then the boxes; CheckFailed naming the output at fault."""
+    points = emulate_beams(frame.points, beams) if beams else frame.points
+    inputs = detector.network_inputs(frame.image, points, frame.calib)  # what detect() feeds each network
+    preset = detector.preset
+    if detector.two_stage:
+        depth = detector.run_depth_net(inputs["depth"]["rgb"], inputs["depth"]["sparse_depth"])
+        _finite("depth.onnx output depth", depth, tuple(preset.depth.input_hw))
+    stride = preset.pixor.output_stride
+    maps = (preset.bev.ny // stride, preset.bev.nx // stride)
+    # The raw maps: a NaN score is never above the threshold, so the boxes alone would pass as "no car".
+    score, regression = detector._run("pixor", ["score", "regression"], inputs["pixor"])
+    _finite("pixor.onnx output score", score, (1, 1, *maps))
+    _finite("pixor.onnx output regression", regression, (1, 6, *maps))
+    if score.min() < 0 or score.max() > 1:
+        raise CheckFailed(f"pixor.onnx output score: values from {score.min():.3g} to {score.max():.3g}, not in [0, 1]")
+    tic = time.perf_counter()
+    result = detector.detect(frame.image, points, frame.calib)
+    elapsed = (time.perf_counter() - tic) * 1e3
+    _finite("boxes", result.boxes)
+    _finite("scores", result.scores)
+    lines = f"thinned to {beams} lines" if beams else "as stored"
+    return (f"frame {frame.frame_id} (scan {lines}): {len(result.scores)} car(s), every output finite, "
+            f"{elapsed:.0f} ms")
+
+
+def read_frame(config: CheckConfig) -> Frame:
+    """The frame to run; InputError when it cannot be read (the bundled one exists only in a source checkout)."""
+    data = config.data if config.data is not None else SAMPLE_DIR
+    if config.data is None and not data.is_dir():
+        raise InputError(f"--data: the bundled frames ({data}) exist only in a source checkout; give --data DIR "
+                         "--frame ID (a KITTI object folder)")
+    return load_frame(data, config.frame, with_labels=False)
+
+
+def run(config: CheckConfig) -> CheckReport:
+    """Every check on ``config.models``, stopping at the first that fails (the rest reported as skipped).
+
+    InputError for what is not the directory's fault: no such folder, a frame that cannot be read, a provider
+    this ONNX Runtime build does not offer."""
+    models = Path(config.models)
+    if not models.is_dir():
+        raise InputError(f"--models {models}: {'not a folder' if models.exists() else 'no such folder'}")
+    frame = read_frame(config)  # before the checks: a bad --data is the command line's fault
+    resolve_providers(config.provider)  # so is a provider this ONNX Runtime build does not offer at all
+    report = CheckReport(models=str(models), checks=[])
+    detector: Detector | None = None
+
+    def step(name: str) -> Check:
+        report.checks.append(Check(name, "fail", ""))
+        return report.checks[-1]
+
+    try:
+        check = step("manifest")
+        manifest, digest, preset = check_manifest(models, config.allow_untrained)
+        training = sorted({str((e.get("training") or {}).get("data") or "unrecorded data")
+                           for e in manifest["networks"].values()})
+        check.status, check.detail = "pass", (f"{manifest.get('format', 'lowres3d-models/1')}, preset {preset.name}, "
+                                              f"{manifest.get('precision', 'fp32')}, weights "
+                                              f"{manifest.get('weights', 'unrecorded')}, trained on "
+                                              f"{', '.join(training)}")
+        check = step("files")
+        check.warnings = check_files(models, manifest)
+        check.status = "pass"
+        check.detail = ", ".join(f"{name} {entry['sha256'][:12]}…" for name, entry in manifest["files"].items())
+        check.detail += ": sizes and sha256s as listed"
+        report.identity = model_identity(models, manifest, digest)
+        check = step("sessions")
+        try:
+            detector = Detector(models, providers=config.provider)
+        except (ModelFileError, InputError) as exc:
+            raise CheckFailed(str(exc)) from exc
+        if detector.manifest != manifest:
+            raise CheckFailed(f"{models}: the manifest changed during the check (a copy in progress?)")
+        check.warnings = list(detector.load_warnings)
+        check.status = "pass"
+        check.detail = (", ".join(f"{name} on {providers[0]}" for name, providers in detector.providers_in_use.items())
+                        + f"; graph inputs match preset {preset.name}")
+        check = step("frame")
+        try:
+            check.detail = check_frame(detector, frame, scan_lines(detector, config.emulate_beams))
+        except CheckFailed:
+            raise
+        except Exception as exc:  # an input error, or ONNX Runtime failing at its first run: a FAIL, not a traceback
+            raise CheckFailed(f"the frame did not run ({type(exc).__name__}: {exc})") from exc
+        check.status = "pass"
+    except CheckFailed as exc:
+        report.checks[-1].detail = str(exc)
+    finally:
+        if detector is not None:
+            detector.close()
+    done = {check.name for check in report.checks}
+    report.checks += [Check(name, "skip", "an earlier check failed") for name in CHECKS if name not in done]
+    return report
+
+
+def render(report: CheckReport) -> str:
+    """The report as the command prints it: a line per check, its warnings under it, then the verdict."""
+    lines = [f"{check.status.upper():4} {check.name:8} {check.detail}" + "".join(
+        f"\n     warning: {warning}" for warning in check.warnings) for check in report.checks]
+    if report.passed:
+        assert report.identity is not None
+        lines.append(f"passed: {report.models} is fit to ship; model id {report.identity.id}")
+    else:
+        failed = next(check for check in report.checks if check.status == "fail")
+        lines.append(f"failed: {report.models}: the {failed.name} check; do not ship it")
+    return "\n".join(lines)
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    description = "\n\n".join(part for part in __doc__.split("\n\n") if not part.startswith("examples:"))
+    parser = argparse.ArgumentParser(prog="python -m pipeline.check_models", description=description,
+                                     formatter_class=HelpFormatter, epilog=examples(
+                                         "python -m pipeline.check_models --models /srv/lowres3d/edge-v7",
+                                         "python -m pipeline.check_models --models DIR --provider tensorrt "
+                                         "--json check.json"))
+    parser.add_argument("--models", type=Path, required=True, metavar="DIR", help="the model directory to check")
+    parser.add_argument("--provider", choices=("cpu", "cuda", "tensorrt"),
+                        help="the execution provider the vehicles run (default: the best this ONNX Runtime offers)")
+    parser.add_argument("--data", type=Path, metavar="DIR",
+                        help="a KITTI object folder to take the frame from (default: the checkout's tests/data)")
+    parser.add_argument("--frame", default=SAMPLE_FRAME, metavar="ID", help=f"its frame id (default {SAMPLE_FRAME})")
+    parser.add_argument("--emulate-beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help="thin the scan to N lines first, 0 to run it as stored (default: the model's own line "
+                             "count, for a 64-line scan)")
+    parser.add_argument("--allow-untrained", action="store_true",
+                        help="pass a directory exported without trained weights (latency tests; never a vehicle)")
+    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the report as JSON")
+    return parser.parse_args(argv)
+
+
+@quiet_interrupt("nothing was written; the model directory is as it was")
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    try:
+        if args.json is not None:
+            check_output(args.json, "--json")
+        report = run(CheckConfig(models=args.models, provider=args.provider, data=args.data, frame=args.frame,
+                                 emulate_beams=args.emulate_beams, allow_untrained=args.allow_untrained))
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(render(report))
+    if args.json is not None:
+        try:
+            write_text_file(args.json, json.dumps(report.to_dict(), indent=2) + "\n")
+        except OSError as exc:
+            print(f"error: --json {args.json}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
+    return 0 if report.passed else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
