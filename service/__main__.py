@@ -14,6 +14,8 @@ serving, they stop accepting connections and let in-flight requests finish (up
 to ``--shutdown-timeout-s``); those still running then are answered 503
 ``shutting_down`` (service/middleware.py). Ctrl-C then ends with one line
 (``interrupted: …``) and exit status 130, SIGTERM by the signal itself.
+Every line written, from the first to that last one, is in ``--log-format``
+(text, or one JSON object per line: service/logs.py), refused settings included.
 """
 
 from __future__ import annotations
@@ -55,9 +57,10 @@ from typing import TYPE_CHECKING
 
 from pydantic import ValidationError
 
-from pipeline.cli import HelpFormatter, examples, interrupted
+from pipeline.cli import INTERRUPTED_STATUS, HelpFormatter, examples, interrupted
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError, default_models_hint
+from service.logs import configure_logging, requested_log_format
 from service.settings import ENV_PREFIX, Settings
 
 if TYPE_CHECKING:
@@ -90,6 +93,7 @@ _OPTIONS: list[tuple[str, type, object]] = [
     ("--shutdown-timeout-s", float, "S"),
     ("--cors-origins", str, "ORIGINS"),
     ("--log-level", str, ["debug", "info", "warning", "error"]),
+    ("--log-format", str, ["text", "json"]),
 ]
 
 
@@ -140,6 +144,28 @@ def settings_errors(exc: ValidationError) -> list[str]:
         given = f" {value}" if shown else ""
         lines.append(f"{named}{given}: {error['msg'][:1].lower()}{error['msg'][1:]}")
     return lines
+
+
+def refuse_settings(exc: ValidationError, log_format: str) -> int:
+    """Say why the settings were refused, one line each, and return exit status 2: ``python -m service: …`` as
+    text, or as JSON records when the JSON log was asked for (a log shipper parses every line of the start)."""
+    if log_format == "json":
+        configure_logging("error", "json")
+        for line in settings_errors(exc):
+            log.error("cannot start: %s", line)
+    else:
+        for line in settings_errors(exc):
+            print(f"python -m service: {line}", file=sys.stderr)
+    return 2
+
+
+def interrupted_line(leaves: str, log_format: str) -> int:
+    """Ctrl-C's one line (``interrupted: …``) and its exit status, 130; a record in the JSON log, as the lines
+    before it."""
+    if log_format != "json":
+        return interrupted(leaves)
+    log.info("interrupted: %s", leaves)
+    return INTERRUPTED_STATUS
 
 
 def unknown_env_warnings(environ: Mapping[str, str]) -> list[str]:
@@ -287,12 +313,12 @@ def uvicorn_config(settings: Settings, app: FastAPI) -> uvicorn.Config:
         # h11 with a deadline on each request's head and the connection limit (service/protocol.py).
         http=protocol_class(settings.receive_timeout_s, settings.connection_limit()),
         ws="none",  # no WebSocket route: an Upgrade request is answered as plain HTTP
-        log_level=settings.log_level,
+        log_level=settings.log_level,  # uvicorn's loggers: the same level as the service's
         # A float: uvicorn waits in asyncio.timeout(), which takes fractions (int() made 0.9 s no grace at all).
         timeout_graceful_shutdown=settings.shutdown_timeout_s,  # type: ignore[arg-type]  # annotated int there
-        access_log=settings.log_level == "debug",
+        access_log=False,  # the service writes its own access line per request (service/middleware.py)
         server_header=False,
-        log_config=None,  # keep the logging configured in main()
+        log_config=None,  # keep the logging configured in main() (its format; uvicorn's would colour a terminal)
     )
 
 
@@ -328,13 +354,12 @@ def main(argv: list[str] | None = None) -> int:
                 self.handle_exit(_pending_signals.pop(0), None)
             return await super().on_tick(counter)
 
+    options = vars(build_parser().parse_args(argv))
     try:
-        settings = settings_from_args(argv)
+        settings = Settings(**options)
     except ValidationError as exc:
-        for line in settings_errors(exc):
-            print(f"python -m service: {line}", file=sys.stderr)
-        return 2
-    logging.basicConfig(level=settings.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        return refuse_settings(exc, requested_log_format(options, os.environ))
+    configure_logging(settings.log_level, settings.log_format)
     install_log_filters()  # no traceback for a cancelled request; what clients cause at will at DEBUG
     for line in unknown_env_warnings(os.environ):
         log.warning(line)
@@ -364,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
             sock.close()
         said = f"{stopped} before serving: stopped while {stopped.during}; not started"
         if stopped.signum == signal.SIGINT:  # Ctrl-C: one line and 130, as every command of the project
-            return interrupted(said)
+            return interrupted_line(said, settings.log_format)
         log.info("%s", said)
         return stopped_before_serving(stopped.signum)
     server.run(sockets=sockets)  # uvicorn's own signal handlers from here on
@@ -372,8 +397,8 @@ def main(argv: list[str] | None = None) -> int:
     if _pending_signals:
         signum = _pending_signals[0]
         if signum == signal.SIGINT:  # Ctrl-C: one line and 130, as every command of the project
-            return interrupted("the service has stopped; the requests in flight were let finish first "
-                               "(up to --shutdown-timeout-s)")
+            return interrupted_line("the service has stopped; the requests in flight were let finish first "
+                                    "(up to --shutdown-timeout-s)", settings.log_format)
         return ended_by_signal(signum)
     return 0 if server.started else 3
 

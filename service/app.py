@@ -121,7 +121,8 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     if settings.token is not None:
         app.add_middleware(AuthMiddleware, token=settings.token)
     app.add_middleware(ConnectionLimitMiddleware, open_paths=open_paths)
-    app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths, in_flight=in_flight)
+    app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths, in_flight=in_flight,
+                       model_id=lambda: served_model_id(app), quiet_paths=open_paths)
     if settings.cors_origins:  # off by default: only a dashboard in a browser on another origin needs it
         app.add_middleware(CORSMiddleware, origins=settings.cors_origin_list())
 
@@ -132,6 +133,12 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
 
     install_schema(app, bearer_scheme(), camera_model)
     return app
+
+
+def served_model_id(app: FastAPI) -> str | None:
+    """The id of the model the app serves (its manifest's sha256), None before it is loaded."""
+    loaded: Runtime | None = app.state.runtime
+    return loaded.identity.id if loaded is not None else None
 
 
 def route_methods(routes: list[Any]) -> dict[str, frozenset[str]]:

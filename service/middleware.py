@@ -3,7 +3,8 @@
 :class:`RequestContextMiddleware` is the outermost layer: it gives each request
 an id (``X-Request-ID``, echoed in every answer and error), counts and times
 it (the method and route labels from fixed sets, so no client can grow the
-metrics), logs one line per answer that is not 2xx, and turns any unhandled
+metrics), writes one access line per request (logger ``service.access``: the
+fields of :data:`service.logs.ACCESS_FIELDS`), and turns any unhandled
 exception into a 500 that carries only the request id while the trace goes to
 the log. A request whose client closed the connection before its answer is
 counted (and logged) as 499. A request cancelled because uvicorn's graceful
@@ -48,12 +49,14 @@ from starlette.middleware.cors import CORSMiddleware as StarletteCORSMiddleware
 
 from service.deps import UNAUTHORIZED_MESSAGE, WWW_AUTHENTICATE, not_ready_reason, token_accepted
 from service.errors import error_bytes
+from service.logs import REQUEST_ID
 from service.metrics import Metrics
 from service.pool import PoolClosed, PoolFull
 from service.protocol import OVER_CONNECTION_LIMIT
 from service.runtime import Runtime
 
 log = logging.getLogger(__name__)
+access_log = logging.getLogger("service.access")
 
 Scope = MutableMapping[str, Any]
 Message = MutableMapping[str, Any]
@@ -74,6 +77,8 @@ _BOUNDARY = re.compile(r'boundary="?([^";]+)"?', re.IGNORECASE)
 _METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"})
 CLIENT_CLOSED = 499  # nginx's "client closed request": the client left before its answer
 _ERROR_CODE_BYTES = 64 * 1024  # an error body read for its code in the log line (error bodies are small)
+_SHOWN_PATH_CHARS = 200  # of a request's target in its access line: a client may send kilobytes of it
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 
 
 def _multipart_close(scope: Scope) -> bytes | None:
@@ -120,6 +125,47 @@ def _route_label(scope: Scope, route_paths: frozenset[str]) -> str:
     return route or "unmatched"
 
 
+def request_target(scope: Scope) -> str:
+    """The path and query the client sent, for its access line: as received (percent-escapes kept, so a
+    ``%0A`` cannot start a line of its own), control characters escaped, at most 200 characters."""
+    raw = scope.get("raw_path")
+    path = raw.decode("ascii", "backslashreplace") if isinstance(raw, bytes) else str(scope.get("path", ""))
+    query = scope.get("query_string", b"")
+    if query:
+        path += "?" + query.decode("ascii", "backslashreplace")
+    path = _CONTROL.sub(lambda match: f"\\x{ord(match.group()):02x}", path)
+    return path if len(path) <= _SHOWN_PATH_CHARS else path[:_SHOWN_PATH_CHARS] + "..."
+
+
+def client_address(scope: Scope) -> str | None:
+    """``host:port`` of the peer (``[::1]:port`` for IPv6), None when the server does not say."""
+    client = scope.get("client")
+    if not client:
+        return None
+    host, port = client[0], client[1]
+    return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+
+
+def access_level(status: int, quiet: bool) -> int:
+    """The level of a request's access line: ERROR for a 500 (a bug), WARNING for the service's other 5xx
+    (overloaded, not ready, shutting down, past its deadline), INFO for the rest (a client's mistake is not the
+    service's error); DEBUG for the probes' and /metrics' (``quiet``: every few seconds from each scraper)."""
+    if status == 500:
+        return logging.ERROR
+    if quiet:
+        return logging.DEBUG
+    return logging.WARNING if status >= 500 else logging.INFO
+
+
+def warning_codes_of(state: MutableMapping[str, Any], header: str | None) -> list[str]:
+    """The frame's warning codes: those the route noted (``state["warning_codes"]``), else X-Warning-Codes."""
+    codes = state.get("warning_codes")
+    if codes is None and header:
+        with contextlib.suppress(ValueError):
+            codes = json.loads(header)
+    return [str(code) for code in codes] if isinstance(codes, list) else []
+
+
 async def send_error(send: Send, status: int, code: str, message: str, request_id: str | None,
                      extra_headers: list[tuple[bytes, bytes]] | None = None) -> None:
     """Answer an error from middleware (no Response object available)."""
@@ -164,12 +210,24 @@ class ClientNoiseLogFilter(logging.Filter):
         return logging.getLogger(record.name).isEnabledFor(logging.DEBUG)
 
 
+class ShutdownGraceLogFilter(logging.Filter):
+    """uvicorn's "Cancel N running task(s), timeout graceful shutdown exceeded" as a WARNING, not an ERROR: it is
+    what ``--shutdown-timeout-s`` is for, and each request it cuts off is answered 503 with a line of its own.
+    Add it to the ``uvicorn.error`` logger."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno == logging.ERROR and str(record.msg).startswith("Cancel %s running task(s)"):
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+        return True
+
+
 def install_log_filters() -> None:
     """Attach the service's filters to uvicorn's and python-multipart's loggers (a logger's filters see only
     its own records, so each logger that writes them gets one)."""
     uvicorn_error = logging.getLogger("uvicorn.error")
     uvicorn_error.addFilter(CancelledRequestLogFilter())
     uvicorn_error.addFilter(ClientNoiseLogFilter())
+    uvicorn_error.addFilter(ShutdownGraceLogFilter())
     # python-multipart's module logger; "multipart.multipart" before it was renamed (0.0.13).
     for name in ("python_multipart.multipart", "multipart.multipart"):
         logging.getLogger(name).addFilter(ClientNoiseLogFilter())
@@ -195,16 +253,22 @@ class RequestsInFlight:
 
 
 class RequestContextMiddleware:
-    """Request id, request metrics, one log line per answer that is not 2xx, a JSON 500 (trace logged, never
-    returned) for unhandled errors, a JSON 503 for requests cancelled by the server's shutdown, and 499 in the
-    metrics for a request whose client left before its answer."""
+    """Request id, request metrics, one access line per request, a JSON 500 (trace logged, never returned) for
+    unhandled errors, a JSON 503 for requests cancelled by the server's shutdown, and 499 in the metrics and
+    the log for a request whose client left before its answer.
+
+    ``model_id``: the id of the model served (None before it is loaded), on every access line. ``quiet_paths``:
+    routes whose access lines are DEBUG (the probes, ``/metrics``), so that they do not fill the log."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics, route_paths: frozenset[str] = frozenset(),
-                 in_flight: RequestsInFlight | None = None) -> None:
+                 in_flight: RequestsInFlight | None = None, model_id: Callable[[], str | None] | None = None,
+                 quiet_paths: frozenset[str] = frozenset()) -> None:
         self.app = app
         self.metrics = metrics
         self.route_paths = route_paths
         self.in_flight = in_flight or RequestsInFlight()
+        self.model_id = model_id or (lambda: None)
+        self.quiet_paths = quiet_paths
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -216,8 +280,9 @@ class RequestContextMiddleware:
         status = 500
         started = False
         client_gone = False  # the server said the client disconnected before the answer began
-        logged = False  # a line naming the request id is in the log already
         code: str | None = None  # an error answer's code, for the log line
+        answer_headers: dict[bytes, bytes] = {}  # the answer's, for the access line (X-Model-ID, X-Warning-Codes)
+        context = REQUEST_ID.set(request_id)  # lines logged during this request on the loop name it
 
         async def receive_watched() -> Message:
             nonlocal client_gone
@@ -231,6 +296,8 @@ class RequestContextMiddleware:
             if message["type"] == "http.response.start":
                 status = message["status"]
                 started = True
+                answer_headers.update((bytes(key).lower(), bytes(value)) for key, value in message.get("headers", [])
+                                      if bytes(key).lower() in (b"x-model-id", b"x-warning-codes"))
                 message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
             elif status >= 400 and code is None and len(message.get("body", b"")) <= _ERROR_CODE_BYTES:
                 with contextlib.suppress(ValueError, TypeError, AttributeError, KeyError):
@@ -246,10 +313,9 @@ class RequestContextMiddleware:
             # uvicorn cancels the requests still running when --shutdown-timeout-s runs out (and answers a plain
             # 500 itself): answer in the service's format while the connection is still open, then let the
             # cancellation go on. A frame already on a worker is stopped there; one still queued never runs.
-            logged = True
             route = _route_label(scope, self.route_paths)
             if not started:
-                status = 503
+                status, code = 503, "shutting_down"
                 log.warning("request %s (%s %s) cut off by the shutdown: answered 503 shutting_down",
                             request_id, method, route)
                 # Best effort: the client may be gone, and nothing may replace the cancellation below.
@@ -266,8 +332,7 @@ class RequestContextMiddleware:
         except Exception:
             log.exception("internal error on %s %s (request id %s)", method, _route_label(scope, self.route_paths),
                           request_id)
-            logged = True
-            status = 500
+            status, code = 500, "internal_error"
             if not started:
                 await send_error(
                     send, 500, "internal_error",
@@ -283,11 +348,35 @@ class RequestContextMiddleware:
                 status, code = CLIENT_CLOSED, None
             self.metrics.requests.labels(route=label, method=method, status=str(status)).inc()
             self.metrics.request_latency.labels(route=label).observe(elapsed_s)
-            if not 200 <= status < 300 and not logged:
-                # One line per answer that is not 2xx, so that a client's request id can be found in the log.
-                what = "client disconnected before its answer" if client_gone else "answered"
-                log.info("request %s: %s %s %s %d%s in %.0f ms", request_id, method, label, what, status,
-                         f" {code}" if code else "", elapsed_s * 1e3)
+            level = access_level(status, scope.get("path") in self.quiet_paths)
+            if access_log.isEnabledFor(level):
+                self._log_access(level, scope, request_id, method, label, status, code, client_gone, elapsed_s,
+                                 answer_headers)
+            REQUEST_ID.reset(context)
+
+    def _log_access(self, level: int, scope: Scope, request_id: str, method: str, route: str, status: int,
+                    code: str | None, client_gone: bool, elapsed_s: float, headers: dict[bytes, bytes]) -> None:
+        """The request's access line: a sentence for people, the fields (``extra``) for the JSON format."""
+        client = client_address(scope)
+        target = request_target(scope)
+        header_model = headers.get(b"x-model-id")
+        model_id = self.model_id() or (header_model.decode("latin-1") if header_model else None)
+        header_codes = headers.get(b"x-warning-codes")
+        warning_codes = warning_codes_of(scope.get("state") or {},
+                                         header_codes.decode("latin-1") if header_codes else None)
+        what = "client disconnected before its answer" if client_gone else "answered"
+        details = [f"client {client or 'unknown'}"]
+        if route == "unmatched":  # the route label says nothing of what was asked
+            details.append(f"path {target}")
+        if header_model:  # a model answered: which one (the JSON field has it on every line)
+            details.append(f"model {header_model.decode('latin-1')[:12]}")
+        if warning_codes:
+            details.append(f"warnings {','.join(warning_codes)}")
+        fields = {"request_id": request_id, "method": method, "path": target, "route": route, "status": status,
+                  "error_code": code, "duration_ms": round(elapsed_s * 1e3, 1), "client": client,
+                  "model_id": model_id, "warning_codes": warning_codes}
+        access_log.log(level, "request %s: %s %s %s %d%s in %.0f ms (%s)", request_id, method, route, what, status,
+                       f" {code}" if code else "", elapsed_s * 1e3, "; ".join(details), extra=fields)
 
 
 class ConnectionLimitMiddleware:
@@ -467,7 +556,8 @@ class AdmissionMiddleware:
 # What a dashboard's script may send and read across origins, beyond CORS's safelisted headers.
 CORS_METHODS = ("GET", "HEAD", "POST")
 CORS_REQUEST_HEADERS = ("Authorization", "X-Request-ID")
-CORS_EXPOSED_HEADERS = ("X-Request-ID", "X-Warnings", "X-Warning-Codes", "Retry-After", "WWW-Authenticate")
+CORS_EXPOSED_HEADERS = ("X-Request-ID", "X-Warnings", "X-Warning-Codes", "X-Model-ID", "X-Model-Directory",
+                        "X-Model-Preset", "X-Model-Precision", "Retry-After", "WWW-Authenticate")
 
 
 class CORSMiddleware(StarletteCORSMiddleware):

@@ -139,7 +139,7 @@ class InferencePool:
             # The request id ties this line to the request's own (its 504, its client gone, the shutdown's 503).
             log.info("request %s: its frame stopped on its worker after %.0f ms, nobody waiting for it any more "
                      "(deadline passed, client gone or shutdown): %s",
-                     request_id or "-", (time.perf_counter() - started) * 1e3, exc)
+                     request_id or "-", (time.perf_counter() - started) * 1e3, exc, extra={"request_id": request_id})
             raise
         finally:
             elapsed = time.perf_counter() - started

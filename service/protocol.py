@@ -107,7 +107,7 @@ def protocol_class(receive_timeout_s: float, connection_limit: int) -> type[H11P
                 self.transport.write(head.encode("latin-1") + body)
                 client = f"{self.client[0]}:{self.client[1]}" if self.client else "a client"
                 log.info("request %s: its head from %s was not received within %g s: answered 408, connection "
-                         "closed", request_id, client, receive_timeout_s)
+                         "closed", request_id, client, receive_timeout_s, extra={"request_id": request_id})
             self.transport.close()
 
     return ServiceH11Protocol

@@ -92,7 +92,14 @@ class Settings(BaseSettings):
         None, description="browser origins allowed to call the service and read its answers (CORS), comma-separated, "
         "e.g. http://localhost:5173 for a dashboard served there; * for any (default: none, CORS off)"
     )
-    log_level: Literal["debug", "info", "warning", "error"] = Field("info", description="logging level")
+    log_level: Literal["debug", "info", "warning", "error"] = Field(
+        "info", description="the lowest level logged, by the service, uvicorn and the libraries alike; debug adds "
+        "the probes' and /metrics' access lines"
+    )
+    log_format: Literal["text", "json"] = Field(
+        "text", description="text lines, or one JSON object per line for a log shipper (timestamp, level, logger, "
+        "message, request_id; docs/service.md)"
+    )
 
     @field_validator("models", "trt_cache_dir", "default_calib", mode="before")
     @classmethod

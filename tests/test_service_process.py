@@ -234,10 +234,10 @@ def test_request_log_names_each_refused_request_and_not_the_noise_clients_cause(
             assert _answer(sock, 5)[0] in (400, 200)
     time.sleep(0.2)
     log = server.log()
-    assert re.search(r"INFO service.middleware: request log-404: GET unmatched answered 404 not_found in \d+ ms", log)
+    assert re.search(r"INFO service.access: request log-404: GET unmatched answered 404 not_found in \d+ ms", log)
     assert "request log-422: POST /v1/detect answered 422 invalid_input in " in log
     assert "request log-400: POST /v1/detect answered 400 bad_request in " in log
-    assert "log-200" not in log  # a 2xx has no line of its own at info level
+    assert "log-200" not in log  # a probe's access line is DEBUG
     for noise in ("Invalid HTTP request received", "Unsupported upgrade request", "WebSocket library",
                   "python_multipart", "Found invalid character"):
         assert noise not in log, noise
@@ -430,8 +430,8 @@ def test_sigterm_lets_in_flight_requests_finish(
 
 
 def _log_time(log: str, text: str) -> float:
-    """Seconds (since midnight) of the first log line holding ``text`` (the format of service/__main__.py)."""
-    match = re.search(rf"^\S+ (\d+):(\d+):(\d+),(\d+) .*{re.escape(text)}", log, re.MULTILINE)
+    """Seconds (since midnight, UTC) of the first log line holding ``text`` (the text format of service/logs.py)."""
+    match = re.search(rf"^\d{{4}}-\d\d-\d\dT(\d+):(\d+):(\d+)\.(\d+)Z .*{re.escape(text)}", log, re.MULTILINE)
     assert match, f"no log line with {text!r}:\n{log}"
     hours, minutes, seconds, millis = (int(group) for group in match.groups())
     return hours * 3600 + minutes * 60 + seconds + millis / 1000

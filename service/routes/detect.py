@@ -232,6 +232,7 @@ async def _run_frame(
     }
     metrics.observe_stages(result.timings_ms)
     metrics.count_warnings(result.warning_codes)
+    state["warning_codes"] = result.warning_codes  # the request's access line (service/middleware.py)
     return result
 
 
