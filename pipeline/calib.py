@@ -125,6 +125,12 @@ class Calibration:
 
 # --------------------------------------------------------------------------- checks
 CALIBRATION_SHAPES = {"P2": (3, 4), "R0_rect": (3, 3), "Tr_velo_to_cam": (3, 4)}
+# Bounds far outside any real rig's calibration, within which the projections cannot overflow (with points
+# bounded as the Detector bounds them): a value's magnitude (P2's focal lengths and offsets are 1e2–1e6 even in
+# millimetres, the rotations' at most 1), and each 3×3 block's smallest singular value (KITTI's P2 0.76, a
+# rotation's 1). A P2 scaled by 1e300, or a rotation by 1e-300, passed the rank test and overflowed later.
+MAX_CALIBRATION_VALUE = 1e9
+MIN_SINGULAR_VALUE = 1e-6
 
 
 def _describe(value: object) -> str:
@@ -138,9 +144,15 @@ def _matrix_of(value: object, shape: tuple[int, int], where: str, homogeneous: b
     """``value`` as a float64 ``shape`` matrix: given so, flat in row order, or (``homogeneous``: a rigid
     transform's block) as a 4×4 homogeneous matrix; else an InputError naming ``where``."""
     try:
-        matrix = np.array(value, dtype=np.float64)  # a copy: a caller's (or a message's) buffer may change later
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: expected a {shape[0]}×{shape[1]} matrix of numbers, got {_describe(value)}") from None
+        given = np.asarray(value)
+    except (TypeError, ValueError):  # ragged nested sequences
+        given = None
+    # Real numbers only: a cast to float64 would take strings of digits and dates, drop a complex part (with a
+    # warning) and raise OverflowError on a Python int beyond float64 (which NumPy holds as an object).
+    if given is None or given.dtype.kind not in "fiu":
+        raise InputError(f"{where}: expected a {shape[0]}×{shape[1]} matrix of numbers, got {_describe(value)}")
+    with np.errstate(over="ignore"):  # a long double beyond float64's range: infinite, refused by check_calibration
+        matrix = np.array(given, dtype=np.float64)  # a copy: a caller's (or a message's) buffer may change later
     rows, cols = shape
     if matrix.shape in ((rows * cols,), shape):
         return matrix.reshape(shape)
@@ -168,24 +180,35 @@ def homogeneous_block(matrix: np.ndarray, shape: tuple[int, int], where: str) ->
 
 def check_calibration(calib: object, source: str = "calib") -> Calibration:
     """``calib`` if it is a :class:`Calibration` of real, finite matrices of its shapes whose 3×3 blocks can be
-    inverted, as back-projection needs; else an InputError naming ``source`` and the matrix (a singular or
-    NaN matrix would otherwise fail deep inside the pipeline, or give boxes that vanish later). About 65 µs:
-    the detector checks every frame's."""
+    inverted, as back-projection needs, and whose values lie within a real rig's bounds; else an InputError
+    naming ``source`` and the matrix (a singular, NaN or absurdly scaled matrix would otherwise fail deep
+    inside the pipeline, overflow, or give boxes that vanish later). A copy in float64 when a matrix is of
+    another real dtype. About 65 µs: the detector checks every frame's."""
     if not isinstance(calib, Calibration):
         raise InputError(f"{source}: expected a pipeline.calib.Calibration (pipeline.kitti.read_calib or parse_calib "
                          f"makes one), got {_describe(calib)}")
-    p2, r0, tr = matrices = (calib.P2, calib.R0_rect, calib.Tr_velo_to_cam)
+    matrices = (calib.P2, calib.R0_rect, calib.Tr_velo_to_cam)
     for (key, shape), matrix in zip(CALIBRATION_SHAPES.items(), matrices, strict=True):
         if not isinstance(matrix, np.ndarray) or matrix.shape != shape or matrix.dtype.kind not in "fiu":
             raise InputError(f"{source}: {key} must be a {shape[0]}×{shape[1]} array of real numbers, "
                              f"got {_describe(matrix)}")
+    if any(matrix.dtype != np.float64 for matrix in matrices):  # float32, ints, long double: as parse_calib's
+        with np.errstate(over="ignore"):  # a long double beyond float64's range: infinite, refused below
+            calib = Calibration(*(matrix.astype(np.float64) for matrix in matrices))
+        matrices = (calib.P2, calib.R0_rect, calib.Tr_velo_to_cam)
+    p2, r0, tr = matrices
     for key, matrix in zip(CALIBRATION_SHAPES, matrices, strict=True):
         if not np.isfinite(matrix).all():
             raise InputError(f"{source}: {key} has a non-finite value (NaN or infinity)")
-    # One stacked call: matrix_rank's own tolerance, in about a third of the time of three calls.
-    ranks = np.linalg.matrix_rank(np.stack([p2[:, :3], r0, tr[:, :3]]))
-    for key, rank in zip(CALIBRATION_SHAPES, ranks, strict=True):
-        if rank < 3:
+        largest = float(np.abs(matrix).max())
+        if largest > MAX_CALIBRATION_VALUE:
+            raise InputError(f"{source}: {key} has a value of magnitude {largest:.3g}, beyond any camera's or rig's "
+                             f"calibration (at most {MAX_CALIBRATION_VALUE:g}): a damaged file?")
+    # One stacked call (matrix_rank's own tolerance, and the absolute floor), in about a third of the time of three.
+    singular = np.linalg.svd(np.stack([p2[:, :3], r0, tr[:, :3]]), compute_uv=False)
+    tolerance = singular[:, 0] * 3 * np.finfo(np.float64).eps
+    for key, values, tol in zip(CALIBRATION_SHAPES, singular, tolerance, strict=True):
+        if values[-1] <= max(tol, MIN_SINGULAR_VALUE):
             raise InputError(f"{source}: {key} is singular (its 3×3 block cannot be inverted): not a camera calibration")
     return calib
 

@@ -88,6 +88,11 @@ FEWEST_IN_GRID_SHARE = 0.01
 # left-right mirror of the BEV flips.
 MIRRORED_TARGETS = [1, 3]
 REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 written by another tool
+# The largest coordinate a scan may hold, in metres: a LiDAR's returns lie within a few hundred (a scan in
+# millimetres, 1,000 times that, is still taken and gets the out-of-range warning). Beyond it a value is
+# garbage, and the float32 stages (squared ranges, projections) would overflow on it: a float64 1e300 even
+# became infinite in the cast to float32.
+MAX_COORDINATE = 1e6
 
 
 def trained_lines(training: dict) -> int | None:
@@ -794,12 +799,20 @@ class Detector:
 
     def _given_depth(self, depth: np.ndarray, image: np.ndarray, calib: Calibration) -> tuple[np.ndarray, Calibration]:
         """A caller's dense depth map of the whole image, checked, in the depth net's view, and that view's calibration."""
-        depth = np.asarray(depth)
+        try:
+            depth = np.asarray(depth)
+        except (TypeError, ValueError):  # ragged nested lists
+            raise InputError(f"depth: expected an (H, W) array of metres, got a {type(depth).__name__} of rows of "
+                             "different lengths") from None
         if depth.shape != image.shape[:2]:
             raise InputError(f"depth: a {depth.shape} map for a {image.shape[:2]} image; it must cover the whole image")
-        if not np.issubdtype(depth.dtype, np.number) or not np.isfinite(depth).all() or (depth < 0).any():
-            raise InputError("depth: expected finite depths in metres, 0 where there is none")
-        return depth_view(depth, self.preset), view_calibration(image.shape[:2], calib, self.preset)
+        if depth.dtype.kind not in "fiu":  # OpenCV's resize takes none of complex, bool, object, long double
+            raise InputError(f"depth: expected real depths in metres, got {depth.dtype} values")
+        with np.errstate(over="ignore"):  # a float64 beyond float32's range becomes infinite: refused below
+            metres = depth.astype(np.float32)
+        if not np.isfinite(metres).all() or (metres < 0).any():
+            raise InputError("depth: expected finite depths in metres (float32's range), 0 where there is none")
+        return depth_view(metres, self.preset), view_calibration(image.shape[:2], calib, self.preset)
 
     def _line_count_mismatch(self, count: int) -> str | None:
         """A warning when a scan's point count is far from that of the line count the model was trained on."""
@@ -829,7 +842,10 @@ class Detector:
             raise InputError("points: the scan has no points")
         if points.shape[0] > MAX_POINTS:
             raise InputError(f"points: {points.shape[0]} points is more than the limit of {MAX_POINTS}")
-        if not np.isfinite(points).all():
+        # The extremes of all values, in their own dtype: as fast as np.isfinite(points).all(), and a NaN (it
+        # propagates) or an infinity among them is found as well; then they bound the coordinates.
+        lowest, highest = points.min(), points.max()
+        if not (np.isfinite(lowest) and np.isfinite(highest)):
             raise InputError("points: NaN or infinite values (drop them first: pipeline.kitti.parse_velodyne does)")
         # The BEV averages reflectance into a channel PIXOR learned on KITTI's [0, 1] scale: a driver's
         # 0–255 intensities would read as a wall of bright returns (about 100 made-up cars at score 1).
@@ -845,6 +861,13 @@ class Detector:
                 hint = "divide 0–255 intensities by 255"
             raise InputError(f"points: reflectance (the 4th column) must lie in [0, 1], KITTI's scale; this scan's "
                              f"lies in [{low:.4g}, {high:.4g}] ({hint})")
+        # Compared as Python floats (a float16 would overflow taking the bound; a long double beyond float64's range
+        # becomes infinite), printed in the points' own dtype (such a long double in full, not as inf).
+        if float(lowest) < -MAX_COORDINATE or float(highest) > MAX_COORDINATE:  # the reflectance is in [0, 1]
+            extreme = lowest if float(lowest) < -MAX_COORDINATE else highest
+            shown = np.format_float_scientific(extreme, 3, trim="-") if points.dtype.kind == "f" else str(extreme)
+            raise InputError(f"points: a coordinate of {shown} m, beyond any LiDAR's range (at most "
+                             f"{MAX_COORDINATE:g} m in magnitude is taken): garbage values, or rows misread?")
         return points.astype(np.float32, copy=False)
 
     def warm_up(self, runs: int = 1, cancel: Cancellation | None = None) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import codecs
 import math
 import os
+import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,10 @@ POINT_BYTES = 16  # float32 x, y, z, reflectance
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"  # the first 8 bytes of every PNG file
 JPEG_START, JPEG_SCAN, JPEG_END = b"\xff\xd8", b"\xff\xda", b"\xff\xd9"  # start of image, of a scan, end of image
 IMAGE_TAIL_BYTES = 4096  # where check_image_file looks for an image's end
+# The most pixels a camera image or depth map read from a file may have, by its header (an 8K frame has 33
+# million): a corrupted size field would otherwise be taken at face value, and a 3 KB JPEG whose frame header
+# says 30,000 × 30,000 decoded into 2.7 GB of grey in 14 s. (The service has its own, lower, --max-image-pixels.)
+MAX_IMAGE_PIXELS = 1 << 26
 
 
 # --------------------------------------------------------------------------- velodyne
@@ -52,14 +57,14 @@ def _looks_like_text(data: bytes) -> bool:
     """Whether a scan's first 64 bytes (4 points) are all text: an error page a download saved under the scan's
     name, or points written as text. A real scan's 16 float32 values all landing on printable bytes has a
     chance of about 1e-20 (each reflectance in [0, 1] has a byte 0x00 or above 0x7f in most values)."""
-    head = data[:64]
+    head = bytes(data[:64])  # bytes of a bytearray or memoryview too: only bytes has translate's deletion
     return len(head) >= POINT_BYTES and not head.translate(None, _TEXT_BYTES)
 
 
 def parse_velodyne(data: bytes, source: str = "<points>") -> Scan:
     """Decode a KITTI velodyne ``.bin`` payload; drop and count non-finite rows."""
     if _looks_like_text(data):  # else read as floats: a size or reflectance error that hides what the file is
-        raise InputError(f"{source}: holds text ({data[:40].decode('ascii')!r}…), not a scan's float32 rows: a "
+        raise InputError(f"{source}: holds text ({bytes(data[:40]).decode('ascii')!r}…), not a scan's float32 rows: a "
                          "download that saved an error page, or a scan written as text?")
     if len(data) % POINT_BYTES != 0:
         raise InputError(
@@ -392,8 +397,11 @@ def decode_depth_png(data: bytes, source: str = "<depth>") -> np.ndarray:
     """Decode a KITTI depth PNG into float32 metres (0 where there is no measurement)."""
     if not data:  # OpenCV asserts on an empty buffer: a traceback, not a skipped frame
         raise InputError(f"{source}: empty depth PNG")
+    if bytes(data[:8]) != PNG_SIGNATURE:  # OpenCV would decode any format it knows (TIFF, EXR …)
+        raise InputError(f"{source}: not a PNG (a KITTI depth map is a 16-bit PNG)")
+    check_header_size(data, source)
     check_image_end(data, source)  # a cut-off map: named so, and libpng kept quiet
-    raw = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    raw = _imdecode(data, cv2.IMREAD_UNCHANGED, source)
     if raw is None:
         raise InputError(f"{source}: not a readable PNG")
     if raw.dtype != np.uint16 or raw.ndim != 2:
@@ -455,6 +463,64 @@ def check_image_end(data: bytes, source: str) -> None:
                          "after its last scan)")
 
 
+# JPEG markers: SOF0–SOF15 (a frame header, whose height and width follow its length and precision) but DHT,
+# JPG and DAC, which share their range; and those without a length field (TEM, RST0–7, SOI).
+JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+JPEG_BARE_MARKERS = frozenset({0x01, *range(0xD0, 0xD9)})
+# Segments (and fill bytes) walked to a JPEG's frame header: a camera's has a few, with an ICC profile and EXIF
+# a few dozen. A walk one byte at a time through megabytes of fill bytes would take seconds.
+MOST_JPEG_HEADER_STEPS = 1000
+
+
+def _jpeg_header_hw(data: bytes, source: str) -> tuple[int, int] | None:
+    """(rows, columns) from a JPEG's frame header, found by walking its segments; None without one before
+    the first scan (the decoder then refuses the file). An InputError naming ``source`` when it is not within
+    MOST_JPEG_HEADER_STEPS steps (each moves on by at least one byte): its size could not be checked."""
+    at = 2
+    for _ in range(MOST_JPEG_HEADER_STEPS):
+        if at + 4 > len(data) or data[at] != 0xFF:
+            return None
+        marker = data[at + 1]
+        if marker == 0xFF or marker in JPEG_BARE_MARKERS:  # a fill byte, or a marker without a length
+            at += 1 if marker == 0xFF else 2
+            continue
+        length = int.from_bytes(data[at + 2 : at + 4], "big")
+        if marker in JPEG_FRAME_MARKERS and at + 9 <= len(data):
+            return int.from_bytes(data[at + 5 : at + 7], "big"), int.from_bytes(data[at + 7 : at + 9], "big")
+        if marker == 0xDA or length < 2:  # a scan before any frame header, or a broken segment
+            return None
+        at += 2 + length
+    raise InputError(f"{source}: not a readable JPEG (no frame header in its first {MOST_JPEG_HEADER_STEPS} "
+                     "segments)")
+
+
+def image_header_hw(data: bytes, source: str) -> tuple[int, int] | None:
+    """(rows, columns) as a PNG's IHDR chunk or a JPEG's frame header gives them, without decoding; None for
+    a JPEG without a frame header and for other formats. An InputError naming ``source`` for a PNG header
+    that is cut off or fails its CRC (a damaged size must not be believed)."""
+    if data[:8] == PNG_SIGNATURE:
+        ihdr = bytes(data[12:33])  # chunk type, 13 bytes of fields, CRC
+        if len(ihdr) < 21 or ihdr[:4] != b"IHDR" or zlib.crc32(ihdr[:17]) != int.from_bytes(ihdr[17:], "big"):
+            raise InputError(f"{source}: PNG header damaged (its IHDR chunk is missing, cut off or fails its CRC)")
+        return int.from_bytes(ihdr[8:12], "big"), int.from_bytes(ihdr[4:8], "big")
+    if data[:2] == JPEG_START:
+        return _jpeg_header_hw(data, source)
+    return None
+
+
+def check_header_size(data: bytes, source: str) -> tuple[int, int] | None:
+    """:func:`image_header_hw`, refused with an InputError naming ``source`` when a side is 0 or the pixels are
+    more than MAX_IMAGE_PIXELS: checked before decoding, which would allocate what the header says."""
+    hw = image_header_hw(data, source)
+    if hw is None:
+        return None
+    rows, columns = hw
+    if rows == 0 or columns == 0 or rows * columns > MAX_IMAGE_PIXELS:
+        limit = "no pixels" if rows == 0 or columns == 0 else f"more than the limit of {MAX_IMAGE_PIXELS:,}"
+        raise InputError(f"{source}: its header says {columns}×{rows} pixels, {limit}: a damaged header?")
+    return hw
+
+
 def check_image_file(path: str | Path) -> None:
     """InputError for an image file that is empty, neither PNG nor JPEG, or cut off before its end: what its
     first and last bytes tell without decoding it (a training run checks every frame's so before it starts)."""
@@ -476,14 +542,26 @@ def check_image_file(path: str | Path) -> None:
     check_image_end(whole, str(path))
 
 
+def _imdecode(data: bytes, flags: int, source: str) -> np.ndarray | None:
+    """cv2.imdecode, None when it cannot decode ``data``; its own errors (its pixel limit, which the header check
+    here keeps below, and the asserts of its decoders) an InputError naming ``source`` rather than a cv2.error."""
+    try:
+        return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+    except cv2.error as exc:
+        raise InputError(f"{source}: not a readable image (OpenCV refused it: {getattr(exc, 'err', '') or exc})") from None
+
+
 def decode_image(data: bytes, source: str = "<image>") -> np.ndarray:
     """Decode a PNG or JPEG into uint8 RGB (H, W, 3), its pixels as stored (an EXIF orientation is not applied)."""
     if not data:
         raise InputError(f"{source}: empty image")
+    if not bytes(data[:8]).startswith((PNG_SIGNATURE, JPEG_START)):  # OpenCV decodes any format it knows
+        raise InputError(f"{source}: not a readable PNG or JPEG image")
+    check_header_size(data, source)
     check_image_end(data, source)
     # The pixels as the sensor stored them: IMREAD_COLOR alone turns a JPEG by its EXIF Orientation tag, and
     # the calibration's P2 describes the stored pixels, not a turned picture.
-    bgr = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    bgr = _imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION, source)
     if bgr is None:
         raise InputError(f"{source}: not a readable PNG or JPEG image")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
@@ -505,12 +583,13 @@ def read_image_size(path: str | Path) -> tuple[int, int]:
     path = Path(path)
     try:
         with open(path, "rb") as handle:
-            header = handle.read(24)
+            header = handle.read(33)  # the signature, the IHDR chunk's length, type, fields and CRC
     except OSError as exc:
         raise InputError(f"{path}: cannot read image ({exc.strerror})") from exc
-    if header[:8] == PNG_SIGNATURE and header[12:16] == b"IHDR":
-        width, height = int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
-        return height, width
+    if header[:8] == PNG_SIGNATURE:
+        size = check_header_size(header, str(path))
+        if size is not None:
+            return size
     return read_image(path).shape[:2]
 
 

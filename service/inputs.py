@@ -35,6 +35,7 @@ from pipeline.kitti import (
     POINT_BYTES,
     check_image_end,
     decode_image,
+    image_header_hw,
     parse_calib,
     parse_velodyne,
 )
@@ -42,9 +43,6 @@ from service.errors import ServiceError
 from service.schemas import NonFinitePolicy
 
 JPEG_SIGNATURE = b"\xff\xd8\xff"
-# JPEG start-of-frame markers (baseline, progressive, lossless, arithmetic); C4, C8, CC are not frames.
-_JPEG_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-_JPEG_NO_LENGTH = {0x01, *range(0xD0, 0xD9)}  # TEM, RST0-7, SOI
 # A KITTI calib.txt is about 1 kB (a raw drive's cam_to_cam about 5 kB). The calibration is parsed on the
 # event loop, so its size is bounded: a 30 MB "calibration" would hold every other request up.
 MAX_CALIB_BYTES = 64 * 1024
@@ -88,47 +86,17 @@ class DecodedFrame:
         return None if self.image is None else (int(self.image.shape[0]), int(self.image.shape[1]))
 
 
-def _png_size(data: bytes) -> tuple[int, int]:
-    if len(data) < 24 or data[12:16] != b"IHDR":
-        raise InputError("image: corrupt PNG (no IHDR header)")
-    width, height = struct.unpack(">II", data[16:24])
-    return width, height
-
-
-def _jpeg_size(data: bytes) -> tuple[int, int]:
-    i = 2
-    while i + 4 <= len(data):
-        if data[i] != 0xFF:
-            break
-        marker = data[i + 1]
-        if marker == 0xFF:  # fill byte
-            i += 1
-            continue
-        if marker in _JPEG_NO_LENGTH:
-            i += 2
-            continue
-        (length,) = struct.unpack(">H", data[i + 2 : i + 4])
-        if marker in _JPEG_SOF:
-            if i + 9 > len(data):
-                break
-            height, width = struct.unpack(">HH", data[i + 5 : i + 9])
-            return width, height
-        if marker == 0xDA or length < 2:  # start of scan before a frame header, or a broken segment
-            break
-        i += 2 + length
-    raise InputError("image: corrupt JPEG (no frame header)")
-
-
 def image_size(data: bytes) -> tuple[int, int]:
     """(width, height) from a PNG or JPEG header without decoding; 415 for other formats."""
     if not data:
         raise InputError("image: the part is empty (0 bytes)")
-    if data.startswith(PNG_SIGNATURE):
-        width, height = _png_size(data)
-    elif data.startswith(JPEG_SIGNATURE):
-        width, height = _jpeg_size(data)
-    else:
+    if not data.startswith((PNG_SIGNATURE, JPEG_SIGNATURE)):
         raise ServiceError(415, "unsupported_media_type", "image: expected a PNG or JPEG image")
+    # The readers' header walk: a PNG's IHDR with its CRC checked, a JPEG's segments in a bounded number of steps.
+    hw = image_header_hw(data, "image")
+    if hw is None:  # a PNG always has its IHDR (or was refused): a JPEG without a frame header before its scan
+        raise InputError("image: corrupt JPEG (no frame header)")
+    height, width = hw
     if width == 0 or height == 0:
         raise InputError(f"image: the header says {width}×{height} pixels")
     return width, height

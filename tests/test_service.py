@@ -18,6 +18,7 @@ import struct
 import threading
 import time
 import typing
+import zlib
 from collections.abc import AsyncIterator, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -331,7 +332,9 @@ def _jpeg(png: bytes) -> bytes:
 
 
 def _png_header(width: int, height: int) -> bytes:
-    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR" + struct.pack(">II", width, height) + b"\x08\x02\x00\x00\x00"
+    """A PNG's signature and IHDR chunk (its CRC right: a damaged header is refused as such)."""
+    ihdr = b"IHDR" + struct.pack(">II", width, height) + b"\x08\x02\x00\x00\x00"
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + ihdr + struct.pack(">I", zlib.crc32(ihdr))
 
 
 BAD_PARTS = {
@@ -339,6 +342,9 @@ BAD_PARTS = {
     "corrupt png": ({"image": _png_header(1242, 375) + b"\x00" * 500}, 422, "invalid_input", ("image", "PNG cut off")),
     "no IHDR": ({"image": b"\x89PNG\r\n\x1a\n" + b"\x00" * 40}, 422, "invalid_input", ("image", "IHDR")),
     "gif image": ({"image": b"GIF89a" + b"\x00" * 100}, 415, "unsupported_media_type", ("image", "PNG or JPEG")),
+    # Fill bytes walked one at a time (up to the body limit: 32 MB of Python steps) until a bounded walk.
+    "jpeg of fill bytes": ({"image": b"\xff\xd8" + b"\xff" * 100_000}, 422, "invalid_input",
+                           ("image", "no frame header in its first 1000 segments")),
     "text image": ({"image": b"hello"}, 415, "unsupported_media_type", ("image",)),
     "decompression bomb": ({"image": _png_header(60000, 60000)}, 422, "invalid_input", ("image", "limit")),
     "scan size": ({"points": b"\x00" * 100}, 422, "invalid_input", ("points", "100 bytes", "multiple of 16")),
