@@ -87,6 +87,8 @@ from pipeline.cli import (
 )
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids
+from pipeline.model_files import load_manifest_with_digest
+from pipeline.provenance import code_version
 
 log = logging.getLogger("accuracy")
 
@@ -182,7 +184,7 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
         # What the figures are of, so a JSON file read later needs no command line beside it.
         document["run"] = {"gt_labels": str(config.gt_labels), "pred_labels": str(config.pred_labels),
                            "split_file": None if config.split_file is None else str(config.split_file),
-                           "first_frames": config.first_frames, **(config.detector or {})}
+                           "first_frames": config.first_frames, **(config.detector or {}), "code": code_version()}
         document["small_detections"] = "ignored (devkit)" if config.ignore_small_detections else "counted (diagnostic)"
         with _writing(config.json_path, "--json"):
             config.json_path.parent.mkdir(parents=True, exist_ok=True)
@@ -614,7 +616,8 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed,
             compare_pred_labels=args.compare_pred_labels, gap_to_pred_labels=args.gap_to_pred_labels,
             missing_as_empty=bool(detection.skipped),
-            detector={"data": str(args.data), "models": str(args.models), "input": args.input,
+            detector={"data": str(args.data), "models": str(args.models),
+                      "model_id": load_manifest_with_digest(args.models)[1], "input": args.input,
                       "score_threshold": args.score_threshold, "mirror_tta": args.mirror_tta,
                       **({} if args.emulate_beams is None else {"emulate_beams": args.emulate_beams}),
                       "provider": args.provider or "best available"},

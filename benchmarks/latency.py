@@ -88,8 +88,9 @@ from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Cancellation, Detector, RunCancelled
 from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import Frame, frame_ids, load_frame
-from pipeline.model_files import DEFAULT_MODELS, ModelFileError, load_manifest
+from pipeline.model_files import DEFAULT_MODELS, ModelFileError, load_manifest, load_manifest_with_digest
 from pipeline.presets import get_preset
+from pipeline.provenance import code_version
 
 ROOT = Path(__file__).resolve().parents[1]
 BUNDLED = ROOT / "tests" / "data" / "kitti" / "training"
@@ -829,6 +830,8 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     scan = f"{beams}-line scan" if beams else "scan as stored"
     info = detector.manifest.get("precision_info") or {}
     report: dict = {"preset": preset_name, "models": described,
+                    # Which model and which code were timed: the service's X-Model-ID, and the git commit.
+                    "model_id": load_manifest_with_digest(detector.model_dir)[1], "code": code_version(),
                     "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,
                     "device_ids": device_ids,
                     "precision": detector.manifest.get("precision", "fp32"),

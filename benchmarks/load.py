@@ -97,6 +97,7 @@ from pipeline.errors import InputError
 from pipeline.frame import frame_ids
 from pipeline.kitti import POINT_BYTES, read_velodyne, write_velodyne
 from pipeline.model_files import DEFAULT_MODELS
+from pipeline.provenance import code_version
 
 REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO / "tests" / "data" / "kitti" / "training"
@@ -150,6 +151,7 @@ class LoadResult:
     # The machine load.py runs on. It is the server's too only when load.py started the service
     # (client_shares_server_machine True); with --url the server's machine is not known here (None).
     client_machine: dict = field(default_factory=dict)
+    code: dict = field(default_factory=code_version)  # the lowres3d code of load.py (and of a service it started)
     server_machine: dict | None = None
     client_shares_server_machine: bool | None = None
     client_cpu_s: float = 0.0  # the load generator's own CPU seconds (all its threads) over the measured run

@@ -20,6 +20,7 @@ from export.rewrite import value_shape
 # runtime of the same release reads. Raise it there when a field added here changes how the models must run.
 from pipeline.model_files import FORMAT, MANIFEST_NAME, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import Preset
+from pipeline.provenance import code_version
 
 UNTRAINED = "initialised (untrained)"
 
@@ -107,6 +108,7 @@ def build_manifest(
             for entry in networks.values()
         },
         "versions": package_versions(),
+        "code": code_version(),  # the lowres3d code that exported it (git commit in a checkout)
         "export": export_info,
         "parity": parity,
     }

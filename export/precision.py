@@ -68,6 +68,7 @@ from pipeline.model_files import (
     sha256_file,
     verify_sha256,
 )
+from pipeline.provenance import code_version
 
 log = logging.getLogger(__name__)
 REDUCE_RANGE_HELP = ("int8: weights in 7 bits, the same outputs on x86 CPUs without VNNI as with it (full 8-bit "
@@ -309,8 +310,9 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
     # The FP32 export's parity check, CPU lowering and package versions describe the source's files, not these:
     # they move under precision_info.source, and this conversion's versions take their place.
     fp32_records = {"parity": manifest.pop("parity", None), "versions": manifest.get("versions"),
-                    "export": manifest.pop("export", None)}
+                    "code": manifest.get("code"), "export": manifest.pop("export", None)}
     manifest["versions"] = package_versions(("onnx", "onnxruntime", "numpy"))
+    manifest["code"] = code_version()
     manifest["precision_info"] = {
         # Which FP32 files this directory was converted from (their manifest's sha256s), and what that export said.
         "source": {"directory": source or str(fp32_dir),

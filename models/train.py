@@ -131,6 +131,7 @@ from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import Preset, get_preset
+from pipeline.provenance import code_version
 from pipeline.pseudo import pixel_rays
 from pipeline.targets import encode_targets
 
@@ -475,7 +476,8 @@ def run(config: TrainConfig) -> TrainResult:
         forward = {name: torch.compile(fn) for name, fn in forward.items()}
         log.info("torch.compile: %s (the first step compiles, about a minute)", ", ".join(forward))
     first_loss = last_loss = float("nan")
-    metadata_base = {"task": config.task, "preset": preset.name, "data": str(train_dir), "train_frames": len(train_ids),
+    metadata_base = {"task": config.task, "preset": preset.name, "code": code_version(), "data": str(train_dir),
+                     "train_frames": len(train_ids),
                      "val_data": str(val_dir), "val_frames": len(val_ids), "input": config.input_mode,
                      "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
                                 "optimizer": "Adam", "seed": config.seed, "precision": config.precision,

@@ -1,5 +1,6 @@
 """benchmarks/accuracy.py dataset modes: the detector over a KITTI folder, and depth metrics."""
 
+import hashlib
 import json
 import shutil
 import subprocess
@@ -15,6 +16,7 @@ from pipeline.calib import depth_crop, sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.kitti import read_depth_png, write_depth_png
+from pipeline.provenance import code_version
 from tests.conftest import FRAMES, KITTI, lidar_only_models
 
 ACCURACY = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
@@ -147,7 +149,9 @@ def test_mirror_tta_reaches_the_detector_and_says_so(tiny_models, tmp_path):
         assert json.loads((tmp_path / f"{name}.json").read_text())["run"] == {
             "gt_labels": str(KITTI / "label_2"), "pred_labels": str(tmp_path / name / "data"), "split_file": None,
             "first_frames": 2, "data": str(KITTI), "models": str(tiny_models), "input": "lidar16+camera",
-            "score_threshold": 0.0, "mirror_tta": name == "mirror", "provider": "best available"}
+            "model_id": hashlib.sha256((tiny_models / "manifest.json").read_bytes()).hexdigest(),
+            "score_threshold": 0.0, "mirror_tta": name == "mirror", "provider": "best available",
+            "code": code_version()}
     assert "PIXOR with mirror test-time augmentation" in runs["mirror"] and "test-time" not in runs["plain"]
     files = {name: sorted((tmp_path / name / "data").glob("*.txt")) for name in runs}
     assert [p.name for p in files["plain"]] == [p.name for p in files["mirror"]]

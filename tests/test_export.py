@@ -32,6 +32,7 @@ from models.checkpoint import save_checkpoint
 from pipeline.graph_inputs import session_feeds, whole_inputs, whole_shapes
 from pipeline.model_files import ModelFileError, sha256_file
 from pipeline.presets import get_preset
+from pipeline.provenance import code_version
 from tests.conftest import KITTI
 
 
@@ -593,6 +594,7 @@ def test_manifest_contents(tiny_export: ExportResult, tmp_path: Path) -> None:
     assert manifest["normalisation"]["rgb_mean"] == pytest.approx([123.675, 116.28, 103.53])
     assert manifest["normalisation"]["rgb_std"] == pytest.approx([58.395, 57.12, 57.375])
     assert set(manifest["versions"]) >= {"torch", "onnx", "onnxruntime"}
+    assert manifest["code"] == code_version()  # the checkout's commit: which code exported the files
     for name, file in (("depth", "depth.onnx"), ("pixor", "pixor.onnx")):
         entry = manifest["networks"][name]
         assert entry["file"] == file and entry["weights"] == "initialised (untrained)"

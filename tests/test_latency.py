@@ -1,5 +1,6 @@
 """benchmarks/latency.py end to end on the tiny preset: the report's keys and the plot (no timing targets)."""
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -8,6 +9,7 @@ from pathlib import Path
 import cv2
 
 from pipeline.cpu import int8_pairs_saturate, speed_flags
+from pipeline.provenance import code_version
 from tests.conftest import lidar_only_models
 
 LATENCY = Path(__file__).resolve().parents[1] / "benchmarks" / "latency.py"
@@ -73,6 +75,7 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     import onnxruntime as ort
 
     assert report["machine"]["cores"] >= 1 and report["versions"]["onnxruntime"] == ort.__version__
+    assert report["code"] == code_version()  # which code was timed (its git commit in a checkout)
     assert report["versions"]["onnxruntime_package"] == "onnxruntime"
     assert report["machine"]["int8_pair_sums_saturate"] == int8_pairs_saturate()
     assert report["machine"]["cpu_flags"] == speed_flags()
@@ -118,6 +121,8 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
     )
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((tmp_path / "b.json").read_text())
+    # Which model was timed, as the service's X-Model-ID names it: the sha256 of its manifest.json.
+    assert report["model_id"] == hashlib.sha256((tiny_models / "manifest.json").read_bytes()).hexdigest()
     base = report["baseline"]
     assert base["precision"] == "fp32" and base["end_to_end_ms"]["n"] == base["paired_end_to_end_ms"]["n"] == 8
     assert set(base["stages_ms"]) == set(report["stages_ms"])

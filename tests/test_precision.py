@@ -15,6 +15,7 @@ from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.graph_inputs import feeds_for, session_feeds
 from pipeline.model_files import ModelFileError, verify_sha256
+from pipeline.provenance import code_version
 from tests.conftest import KITTI
 
 SHIPPED_EDGE = KITTI.parents[3] / "weights" / "edge"
@@ -45,6 +46,7 @@ def test_reduced_precision_directory(tiny_models, tmp_path, frame, precision):
     assert "parity" not in manifest and "export" not in manifest
     assert (info["source"]["parity"], info["source"]["export"]) == (fp32["parity"], fp32["export"])
     assert set(manifest["versions"]) == {"onnx", "onnxruntime", "numpy"}
+    assert manifest["code"] == code_version() and info["source"]["code"] == fp32.get("code")
     assert set(info["deviation_from_fp32"]) == {"depth", "pixor"}
     if precision == "int8":
         assert info["calibration"] == {"depth": "min-max", "pixor": "min-max, moving average (0.01)"}

@@ -15,6 +15,7 @@ from pipeline.bev import voxelize_bev
 from pipeline.frame import load_frame
 from pipeline.kitti import read_calib, read_depth_png, read_velodyne
 from pipeline.presets import PRESETS
+from pipeline.provenance import code_version
 from tests.conftest import KITTI
 
 
@@ -302,8 +303,10 @@ def test_train_only_trains_the_refine_head_from_exported_weights_and_keeps_the_r
     # Only the head moved (its out conv starts at zero and its batch norms at 0 / 1 in both builds).
     assert moved and all(k.startswith("refine.") for k in moved), moved
     assert any(k.startswith("refine.out.") for k in moved) and any(k.endswith("running_mean") for k in moved)
-    recipe = load_checkpoint(result.checkpoints["depth"]).metadata["recipe"]
+    metadata = load_checkpoint(result.checkpoints["depth"]).metadata
+    recipe = metadata["recipe"]
     assert recipe["train_only"] == ["refine"] and recipe["depth_start"] == str(start)
+    assert metadata["code"] == code_version()  # which code trained it (into the manifest's training record)
 
 
 def test_freeze_bn_fine_tunes_exported_weights_and_keeps_their_statistics(small_sim, tmp_path, tiny_models):
