@@ -155,7 +155,7 @@ def check_frame(detector: Detector, frame: Frame, beams: int | None) -> str:
     stride = preset.pixor.output_stride
     maps = (preset.bev.ny // stride, preset.bev.nx // stride)
     # The raw maps: a NaN score is never above the threshold, so the boxes alone would pass as "no car".
-    score, regression = detector._run("pixor", ["score", "regression"], inputs["pixor"])
+    score, regression = detector.run_pixor(inputs["pixor"]["bev"])
     _finite("pixor.onnx output score", score, (1, 1, *maps))
     _finite("pixor.onnx output regression", regression, (1, 6, *maps))
     if score.min() < 0 or score.max() > 1:

@@ -599,6 +599,12 @@ class Detector:
         (depth,) = self._run("depth", ["depth"], {"rgb": rgb, "sparse_depth": sparse_depth})
         return depth[0, 0]
 
+    def run_pixor(self, bev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """pixor.onnx on a whole BEV tensor (1, C, H, W) → its raw maps: score (1, 1, h, w) in [0, 1] and the
+        normalised regression (1, 6, h, w), before any decoding."""
+        score, regression = self._run("pixor", ["score", "regression"], {"bev": bev})
+        return score, regression
+
     def network_inputs(self, image: np.ndarray | None, points: np.ndarray, calib: Calibration | None,
                        emulate_to_beams: int | None = None) -> dict[str, dict[str, np.ndarray]]:
         """Each network's whole input tensors for one frame: copies of exactly what :meth:`detect` feeds it.
