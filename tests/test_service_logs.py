@@ -20,7 +20,6 @@ import sys
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
@@ -29,21 +28,20 @@ import pytest
 from service.logs import ACCESS_FIELDS, JsonFormatter, TextFormatter, utc_timestamp
 from service.middleware import access_level, request_target
 from tests.test_service import frame, parts  # noqa: F401 - fixtures
+from tests.test_service_process import Server, running_service
 
 REPO = Path(__file__).resolve().parents[1]
-START_TIMEOUT_S = 30.0
 COMMON_FIELDS = ("timestamp", "level", "logger", "message", "request_id")
 UTC_ISO = re.compile(r"^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z$")
 TOKEN = "fleet-secret-7f3a"
 
 
-@dataclass
-class Service:
-    """A running ``python -m service``: its URL, its process and its output (stdout and stderr, in order)."""
+class Service(Server):
+    """A running ``python -m service`` (tests/test_service_process.py's) read as a log shipper reads its output."""
 
-    url: str
-    process: subprocess.Popen
-    output: Path
+    @property
+    def output(self) -> Path:
+        return self.log_path
 
     def lines(self) -> list[str]:
         return self.output.read_text(errors="replace").splitlines()
@@ -62,49 +60,11 @@ class Service:
         return [r for r in self.records() if r["logger"] == "service.access" and r["request_id"] == request_id]
 
 
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def _stop(process: subprocess.Popen) -> None:
-    if process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(10)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(5)
-
-
 @contextmanager
 def service(models: Path, output: Path, *args: str, env: dict[str, str] | None = None) -> Iterator[Service]:
-    """Start the service, wait until /readyz answers 200; stop it (SIGTERM, then SIGKILL) afterwards."""
-    port = _free_port()
-    environ = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")} | (env or {})
-    with open(output, "w") as out:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "service", "--models", str(models), "--port", str(port), *args],
-            cwd=REPO, env=environ, stdout=out, stderr=subprocess.STDOUT,
-        )
-    running = Service(f"http://127.0.0.1:{port}", process, output)
-    try:
-        deadline = time.monotonic() + START_TIMEOUT_S
-        while True:
-            if process.poll() is not None:
-                pytest.fail(f"the service exited with {process.returncode} during start:\n{output.read_text()}")
-            try:
-                if httpx.get(f"{running.url}/readyz", timeout=1).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail(f"the service was not ready within {START_TIMEOUT_S} s:\n{output.read_text()}")
-            time.sleep(0.1)
-        yield running
-    finally:
-        _stop(process)
+    """Start the service with ``env`` added, wait until /readyz answers 200; stop it (SIGTERM, then SIGKILL)."""
+    with running_service(models, output, *args, env=env) as server:
+        yield Service(server.url, server.process, server.log_path)
 
 
 def _hold_a_place(url: str, request_id: str) -> socket.socket:

@@ -70,10 +70,12 @@ def _stop(process: subprocess.Popen) -> None:
 
 
 @contextmanager
-def running_service(models: Path, log_path: Path, *args: str, until: str = "/readyz") -> Iterator[Server]:
-    """Start the service, wait until ``until`` answers 200, stop it (SIGTERM, then SIGKILL) afterwards."""
+def running_service(models: Path, log_path: Path, *args: str, until: str = "/readyz",
+                    env: dict[str, str] | None = None) -> Iterator[Server]:
+    """Start the service (with ``env`` added to this environment's, its LOWRES3D_* variables left out), wait
+    until ``until`` answers 200, stop it (SIGTERM, then SIGKILL) afterwards."""
     port = free_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
+    env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")} | (env or {})
     with open(log_path, "w") as log_file:
         process = subprocess.Popen(
             [sys.executable, "-m", "service", "--models", str(models), "--port", str(port), *args],
