@@ -28,6 +28,7 @@ import ctypes
 import logging
 import threading
 import time
+import weakref
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -315,8 +316,8 @@ class Detector:
 
     Threads: each ONNX Runtime session has a pool of ``intra_op_threads`` − 1 threads (default one per core;
     they spin only inside a run), and with ``stage_threads`` 2 each thread that calls :meth:`detect` gets one
-    stage thread. :meth:`close` (or ``with Detector(...) as detector:``) releases the sessions and stops the
-    stage threads at once, rather than when the last reference goes.
+    stage thread, which ends when that thread does. :meth:`close` (or ``with Detector(...) as detector:``)
+    releases the sessions and stops the stage threads at once, rather than when the last reference goes.
     """
 
     def __init__(
@@ -384,8 +385,12 @@ class Detector:
         self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}
         self._check_shapes()
         self._local = threading.local()
-        self._closing = threading.Lock()  # guards the stage threads' list against close() on another thread
-        self._stage_executors: list[ThreadPoolExecutor] = []
+        self._closing = threading.Lock()  # guards the stage threads' set against close() on another thread
+        # Held weakly: the only strong reference to a stage thread's executor is its calling thread's local state,
+        # which goes when that thread ends; the executor is then collected, and its thread, woken by that, exits.
+        # (A threading.local shuts nothing down itself: every short-lived caller, such as a thread per request,
+        # left an idle stage thread behind for the Detector's life.) close() stops those still held.
+        self._stage_executors: weakref.WeakSet[ThreadPoolExecutor] = weakref.WeakSet()
         self._closed = False
         if stage_threads is None:
             stage_threads = 2 if intra_op_threads != 1 and usable_cpus() >= 2 else 1
@@ -497,15 +502,29 @@ class Detector:
         return voxelizer
 
     def _stage_thread(self) -> ThreadPoolExecutor:
-        """The calling thread's stage thread (one each, like the BEV buffer its work writes)."""
+        """The calling thread's stage thread (one each, like the BEV buffer its work writes; both go when the
+        calling thread ends)."""
         executor = getattr(self._local, "stage_thread", None)
         if executor is None:
             with self._closing:  # close() must see every stage thread, made on whichever thread called detect
                 self._check_open()
                 executor = ThreadPoolExecutor(1, thread_name_prefix="lowres3d-stages")
-                self._stage_executors.append(executor)
+                self._stage_executors.add(executor)
             self._local.stage_thread = executor
         return executor
+
+    def _beside(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration,
+                image_hw: tuple[int, int]) -> Future:
+        """:meth:`_without_depth` submitted to the calling thread's stage thread."""
+        executor = self._stage_thread()
+        try:
+            return executor.submit(self._without_depth, voxelizer, points, view_calib, image_hw)
+        except RuntimeError:
+            # close() on another thread since this frame began has shut the executor down: say that, not the
+            # executor's "cannot schedule new futures after shutdown".
+            if self._closed:
+                raise self._closed_error() from None
+            raise
 
     # ------------------------------------------------------------------ lifecycle
     def close(self) -> None:
@@ -515,7 +534,7 @@ class Detector:
         first, a later network run raises RuntimeError, as :meth:`detect` does from then on."""
         with self._closing:
             self._closed = True
-            executors, self._stage_executors = self._stage_executors, []
+            executors, self._stage_executors = list(self._stage_executors), weakref.WeakSet()
             self._sessions = {}  # a run in flight holds its own reference to its session
         for executor in executors:
             executor.shutdown(wait=True)
@@ -712,8 +731,7 @@ class Detector:
             # so do the rig's checks (about 0.2 ms, off the frame's path there).
             beside: Future | None = None
             if self.stage_threads > 1:
-                beside = self._stage_thread().submit(self._without_depth, voxelizer, points, view_calib,
-                                                     image.shape[:2])
+                beside = self._beside(voxelizer, points, view_calib, image.shape[:2])
             else:
                 warnings += self.frame_checks(points, image.shape[:2], view_calib)
             if depth is None:

@@ -3,7 +3,8 @@
 Start-up (the lifespan): load the model directory (sha256 checked; a bad file
 stops the start), start the inference pool, then warm the networks up in the
 background; ``/readyz`` answers 503 until that is done. Shutdown: after the
-server has let in-flight requests finish, the pool drains and stops.
+server has let in-flight requests finish, the pool drains and stops, and the
+Detectors release their sessions and stage threads.
 """
 
 from __future__ import annotations
@@ -79,6 +80,8 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
             # Requests uvicorn cut off at the end of the grace answer 503 when the loop next runs them: let them.
             if not await in_flight.drained(SHUTDOWN_ANSWERS_S):
                 log.warning("%d request(s) still unanswered at exit", in_flight.count)
+            # Last, once nothing answers from the models any more (/v1/model reads their sessions' providers).
+            await asyncio.to_thread(loaded.close)
 
     app = FastAPI(
         title="lowres3d detection service",
