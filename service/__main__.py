@@ -89,6 +89,7 @@ _OPTIONS: list[tuple[str, type, object]] = [
     ("--token", str, "TOKEN"),
     ("--default-calib", Path, "FILE"),
     ("--mirror-tta", bool, None),
+    ("--max-sensor-skew-ms", float, "MS"),
     ("--warmup-runs", int, "N"),
     ("--shutdown-timeout-s", float, "S"),
     ("--cors-origins", str, "ORIGINS"),

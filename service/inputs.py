@@ -7,7 +7,8 @@ headers (empty or missing parts, a scan size that is not a multiple of 16 bytes,
 too many points, an image that is not PNG/JPEG, has too many pixels or is
 smaller than the crop, all read from its header before any decoding, a PNG
 cut off before its end, a JPEG of more scans than any camera writes) and parses
-the calibration (a few lines of text).
+the calibration (a few lines of text), and the capture times sent with the frame
+(:func:`stamp_query`, :func:`stamp_warnings`).
 :func:`decode_frame` does the real decoding on an inference worker: a fault
 found only there (a corrupt image body, a PNG whose image data inflates past its
 size, a scan without finite points) is answered 422 once the frame has a place,
@@ -20,14 +21,16 @@ decoders' time grows with a JPEG's scans and with a PNG's compressed data, not o
 
 from __future__ import annotations
 
+import re
 import struct
 import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic_core import PydanticCustomError
 
 from pipeline.calib import SMALL_IMAGE_HINT, Calibration
-from pipeline.checks import CodedWarning, WarningCode
+from pipeline.checks import STAMP_NS_MAX, CodedWarning, WarningCode, coded, sensor_skew, stamp_problem
 from pipeline.errors import InputError
 from pipeline.kitti import (
     JPEG_SCAN,
@@ -68,6 +71,67 @@ class FrameUpload:
     image: bytes | None
     points: bytes
     calib: bytes | None
+
+
+@dataclass(frozen=True)
+class FrameStamps:
+    """The capture times sent with a frame (integer nanoseconds on a clock both sensors share; None: not sent)."""
+
+    image_ns: int | None = None
+    points_ns: int | None = None
+
+    @property
+    def sent(self) -> bool:
+        return self.image_ns is not None or self.points_ns is not None
+
+    @property
+    def skew_ms(self) -> float | None:
+        """image_ns - points_ns in milliseconds (positive: the image after the scan); None unless both were sent."""
+        if self.image_ns is None or self.points_ns is None:
+            return None
+        return (self.image_ns - self.points_ns) / 1e6
+
+
+_DECIMAL_INTEGER = re.compile(r"[+-]?[0-9]+")
+_INT64_DIGITS = len(str(STAMP_NS_MAX))
+_DECIMAL_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity)",
+                             re.IGNORECASE)
+
+
+def stamp_query(value: object) -> object:
+    """A stamp query parameter's text → int, or a 422 saying what the stamp must be (pydantic names the parameter).
+
+    Only decimal digits: ``int()`` would also take ``1_000`` and surrounding spaces, pydantic ``1.0``; a float
+    (seconds most likely) or ``nan`` is refused with how to make nanoseconds of it, as for the Python API."""
+    if not isinstance(value, str):
+        return value  # from code, not a query: pydantic's own checks
+    number: object = value
+    if _DECIMAL_INTEGER.fullmatch(value):
+        if len(value.lstrip("+-0")) > _INT64_DIGITS:  # int() of thousands of digits is slow, then refused
+            raise PydanticCustomError("stamp_ns", f"{len(value)} digits is more than int64 holds: nanoseconds, not a "
+                                      "finer unit?")
+        number = int(value)
+    elif _DECIMAL_NUMBER.fullmatch(value):  # said as a float (seconds most likely); not '1_000' or ' 5'
+        number = float(value)
+    problem = stamp_problem(number)
+    if problem is not None:
+        raise PydanticCustomError("stamp_ns", problem.replace("{", "{{").replace("}", "}}"))
+    return number
+
+
+def check_stamps(stamps: FrameStamps, upload: FrameUpload) -> None:
+    """InputError for an image stamp without an image: the client pairs its frames itself, and one without its
+    image is not the frame it thinks it sent."""
+    if stamps.image_ns is not None and upload.image is None:
+        raise InputError("image_stamp_ns: sent without an image part; send the image it stamps, or leave the stamp out")
+
+
+def stamp_warnings(stamps: FrameStamps, max_skew_ms: float, camera_use: str | None) -> list[CodedWarning]:
+    """The ``sensor_skew`` warning when both stamps were sent, the image is used (``camera_use``: why, as
+    :func:`check_upload` takes it; None: the scan alone answers) and they lie more than ``max_skew_ms`` apart."""
+    if stamps.image_ns is None or stamps.points_ns is None or camera_use is None:
+        return []
+    return coded((WarningCode.SENSOR_SKEW, sensor_skew(stamps.image_ns, stamps.points_ns, max_skew_ms)))
 
 
 @dataclass

@@ -557,7 +557,8 @@ class AdmissionMiddleware:
 CORS_METHODS = ("GET", "HEAD", "POST")
 CORS_REQUEST_HEADERS = ("Authorization", "X-Request-ID")
 CORS_EXPOSED_HEADERS = ("X-Request-ID", "X-Warnings", "X-Warning-Codes", "X-Model-ID", "X-Model-Directory",
-                        "X-Model-Preset", "X-Model-Precision", "Retry-After", "WWW-Authenticate")
+                        "X-Model-Preset", "X-Model-Precision", "X-Image-Stamp-Ns", "X-Points-Stamp-Ns", "Retry-After",
+                        "WWW-Authenticate")
 
 
 class CORSMiddleware(StarletteCORSMiddleware):

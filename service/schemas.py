@@ -7,7 +7,13 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from pipeline.checks import FRAME_WARNING_CODES, LOAD_WARNING_CODES, WARNING_MEANINGS, WarningCode
+from pipeline.checks import (
+    FRAME_WARNING_CODES,
+    LOAD_WARNING_CODES,
+    STAMP_NS_MAX,
+    WARNING_MEANINGS,
+    WarningCode,
+)
 
 
 def _code_list(codes: tuple[WarningCode, ...]) -> str:
@@ -88,6 +94,26 @@ class ModelIdentityInfo(ModelRef):
         description="each network's training data as its training record names it (null: not recorded)")
 
 
+# A capture time as the query parameters take it and the answer echoes it: int64 nanoseconds (pipeline.checks).
+StampNs = Annotated[int, Field(ge=0, le=STAMP_NS_MAX, json_schema_extra={"format": "int64"})]
+STAMP_TIME_BASE = ("integer nanoseconds on a clock both sensors share, since the Unix epoch for ROS (sec * "
+                   "1000000000 + nanosec) and Python's time.time_ns()")
+
+
+class SensorStamps(BaseModel):
+    """The capture times the request sent, echoed so that an answer arriving out of order can be placed in time."""
+
+    image_ns: StampNs | None = Field(description=f"the image's capture time as sent (`image_stamp_ns`): {STAMP_TIME_BASE}; "
+                                     "null when not sent. Over 2^53: read it as a 64-bit integer, not a double",
+                                     examples=[1718000000050000000])
+    points_ns: StampNs | None = Field(description="the scan's capture time as sent (`points_stamp_ns`), the time of the "
+                                      "boxes (they are in the scan's frame); null when not sent",
+                                      examples=[1718000000000000000])
+    skew_ms: float | None = Field(description="image_ns - points_ns in milliseconds (positive: the image after the "
+                                  "scan); null unless both were sent. Beyond --max-sensor-skew-ms, with a camera "
+                                  "the warning `sensor_skew`", examples=[50.0])
+
+
 _DETECT_EXAMPLE = {
     "detections": [
         {
@@ -106,6 +132,7 @@ _DETECT_EXAMPLE = {
     "warnings": ["points: dropped 3 rows with NaN or infinite values"],
     "warning_codes": ["nonfinite_dropped"],
     "request_id": "5f0c8e7a9b2d4c1e8f3a6b7c9d0e1f2a",
+    "stamps": {"image_ns": 1718000000012000000, "points_ns": 1718000000000000000, "skew_ms": 12.0},
 }
 
 
@@ -129,6 +156,10 @@ class DetectResponse(BaseModel):
         "is a new warning: treat an unknown one as a warning"
     )
     request_id: str = Field(description="this request's id, as in the X-Request-ID header")
+    # Left out of the answer unless a stamp was sent (the route answers without unset fields): a client that sends
+    # none, as KITTI's, gets the answer it always had.
+    stamps: SensorStamps | None = Field(None, description="the capture times the request sent "
+                                        "(`image_stamp_ns`, `points_stamp_ns`), echoed; absent when it sent none")
 
 
 # Every code an error answer can carry, by status (docs/service.md has when each is answered).

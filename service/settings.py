@@ -18,6 +18,7 @@ from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from pipeline.checks import MAX_SENSOR_SKEW_MS
 from pipeline.cli import gpu_ids
 from pipeline.cpu import usable_cpus
 from pipeline.detector import MAX_POINTS
@@ -77,6 +78,11 @@ class Settings(BaseSettings):
     mirror_tta: bool = Field(
         False, description="also run PIXOR on the BEV mirrored left to right and average the maps: more boxes right "
         "to IoU 0.7, PIXOR's time twice over (docs/models.md)"
+    )
+    max_sensor_skew_ms: float = Field(
+        MAX_SENSOR_SKEW_MS, gt=0, allow_inf_nan=False, description="how far apart in time the image and the scan may be "
+        "captured (their stamps, image_stamp_ns and points_stamp_ns) before a frame is answered with the warning "
+        "sensor_skew (milliseconds)"
     )
     warmup_runs: int = Field(
         1, ge=0, le=1000, description="network runs on zero inputs before /readyz says ready, then one frame on each "

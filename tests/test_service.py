@@ -402,9 +402,9 @@ def test_non_finite_score_threshold_names_the_field(client: AppClient, frame: di
     ("route", "params", "words", "accepted"),
     [("/v1/detect", {"emulate_beam": 16, "foo": "bar"},
       ("emulate_beam: unknown query parameter (did you mean emulate_beams?)", "foo: unknown query parameter;"),
-      "format, score_threshold, emulate_beams, nonfinite"),
+      "format, score_threshold, emulate_beams, nonfinite, image_stamp_ns, points_stamp_ns"),
      ("/v1/detect/bev.png", {"format": "kitti"}, ("format: unknown query parameter",),
-      "score_threshold, emulate_beams, nonfinite")],
+      "score_threshold, emulate_beams, nonfinite, image_stamp_ns, points_stamp_ns")],
     ids=["detect typo", "bev.png has no format"],
 )
 def test_unknown_query_parameter_is_422_naming_it(
@@ -1137,7 +1137,7 @@ def test_openapi_documents_the_contract(client: AppClient) -> None:
     body = schema["components"]["schemas"][body_ref]
     assert set(body["required"]) == {"image", "points"} and "calib" in body["properties"]
     params = {p["name"]: p for p in detect["parameters"] if p["in"] == "query"}
-    assert set(params) == {"score_threshold", "emulate_beams", "nonfinite", "format"}
+    assert set(params) == {"score_threshold", "emulate_beams", "nonfinite", "format", "image_stamp_ns", "points_stamp_ns"}
     assert params["score_threshold"]["schema"]["anyOf"][0]["maximum"] == 1.0
     assert schema["components"]["schemas"]["DetectResponse"]["examples"]
     assert schema["components"]["schemas"]["ErrorResponse"]["examples"]

@@ -8,6 +8,10 @@ pool was taken before its upload was read (service.middleware.AdmissionMiddlewar
 the checks that need no decoding run on the event loop before the frame is queued;
 decoding, detection and rendering run on the inference pool. A client that closes
 the connection while its frame waits or runs stops the frame (counted 499).
+
+A client pairing an unsynchronised camera and LiDAR sends each one's capture time (query ``image_stamp_ns``,
+``points_stamp_ns``): the answer echoes them (``stamps``; X-Image-Stamp-Ns, X-Points-Stamp-Ns) and warns
+``sensor_skew`` when they lie further apart than ``--max-sensor-skew-ms``.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import asyncio
 import json
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from enum import Enum
 from typing import Annotated, Any, TypeVar
 from urllib.parse import quote
@@ -24,9 +28,11 @@ from urllib.parse import quote
 import cv2
 from fastapi import APIRouter, Depends, File, Query, Request, UploadFile
 from fastapi.responses import PlainTextResponse, Response
+from pydantic import BeforeValidator
 
 from pipeline.boxes import BOX_FIELDS, bev_corners, in_camera_view
 from pipeline.calib import Calibration
+from pipeline.checks import MAX_SENSOR_SKEW_MS, CodedWarning
 from pipeline.detector import Cancellation, Detections, Detector, RunCancelled
 from pipeline.kitti import format_label
 from pipeline.model_files import ModelIdentity
@@ -41,12 +47,32 @@ from service.deps import (
     require_multipart,
 )
 from service.errors import ServiceError
-from service.inputs import DecodedFrame, FrameUpload, check_upload, decode_frame
+from service.inputs import (
+    DecodedFrame,
+    FrameStamps,
+    FrameUpload,
+    check_stamps,
+    check_upload,
+    decode_frame,
+    stamp_query,
+    stamp_warnings,
+)
 from service.metrics import Metrics
 from service.pool import JobResult, PoolClosed, PoolFull, PoolTimeout, Reservation
 from service.routes.responses import error_responses
 from service.runtime import Runtime
-from service.schemas import BeamCount, Box, Detection, DetectResponse, ModelRef, NonFinitePolicy, OutputFormat
+from service.schemas import (
+    STAMP_TIME_BASE,
+    BeamCount,
+    Box,
+    Detection,
+    DetectResponse,
+    ModelRef,
+    NonFinitePolicy,
+    OutputFormat,
+    SensorStamps,
+    StampNs,
+)
 from service.settings import Settings
 
 T = TypeVar("T")
@@ -71,6 +97,12 @@ class FrameOptions:
     score_threshold: float | None
     emulate_beams: int | None
     nonfinite: NonFinitePolicy
+    stamps: FrameStamps
+
+
+# Query text → int64 nanoseconds, digits only (service.inputs.stamp_query says what else is wrong); the schema says
+# integer, int64.
+StampQuery = Annotated[StampNs | None, BeforeValidator(stamp_query)]
 
 
 def frame_options(
@@ -89,9 +121,21 @@ def frame_options(
         NonFinitePolicy,
         Query(description="scan rows with NaN/Inf: `drop` them (with a warning) or `reject` the request (422)"),
     ] = NonFinitePolicy.drop,
+    image_stamp_ns: Annotated[StampQuery, Query(
+        description=f"the image's capture time, {STAMP_TIME_BASE} (a float of seconds is refused); echoed in "
+        "`stamps` and X-Image-Stamp-Ns. With `points_stamp_ns`, the warning `sensor_skew` when they lie further "
+        f"apart than the server's --max-sensor-skew-ms (default {MAX_SENSOR_SKEW_MS:g}) and the image is used",
+        examples=[1718000000012000000],
+    )] = None,
+    points_stamp_ns: Annotated[StampQuery, Query(
+        description="the scan's capture time, on the image's clock and in its unit (nanoseconds), best the moment "
+        "the LiDAR swept the camera's view: the time of the boxes; echoed in `stamps` and X-Points-Stamp-Ns",
+        examples=[1718000000000000000],
+    )] = None,
 ) -> FrameOptions:
     """Collect the query options."""
-    return FrameOptions(score_threshold, int(emulate_beams) if emulate_beams is not None else None, nonfinite)
+    return FrameOptions(score_threshold, int(emulate_beams) if emulate_beams is not None else None, nonfinite,
+                        FrameStamps(image_stamp_ns, points_stamp_ns))
 
 
 FrameOptionsDep = Annotated[FrameOptions, Depends(frame_options)]
@@ -115,20 +159,22 @@ class FrameResult:
     detections: Detections
     timings_ms: dict[str, float]
     png: bytes | None = None
+    stamp_warnings: list[CodedWarning] = field(default_factory=list)  # the capture times' (sensor_skew)
 
     @property
     def warnings(self) -> list[str]:
-        """The frame's warnings: its decoding's, then the Detector's."""
-        return self.frame.warnings + self.detections.warnings
+        """The frame's warnings: its capture times', its decoding's, then the Detector's."""
+        return [w.message for w in self.stamp_warnings] + self.frame.warnings + self.detections.warnings
 
     @property
     def warning_codes(self) -> list[str]:
         """Each warning's code, parallel to :attr:`warnings`."""
-        return self.frame.warning_codes + self.detections.warning_codes
+        return [w.code for w in self.stamp_warnings] + self.frame.warning_codes + self.detections.warning_codes
 
 
 def _detect_job(
-    upload: FrameUpload, options: FrameOptions, calib: Calibration | None, picture: Picture | None
+    upload: FrameUpload, options: FrameOptions, calib: Calibration | None, picture: Picture | None,
+    early_warnings: list[CodedWarning],
 ) -> Callable[[Detector, Cancellation], FrameResult]:
     """The work of one frame on a worker: decode the parts, detect, optionally render a picture as PNG."""
 
@@ -160,7 +206,7 @@ def _detect_job(
                 raise RuntimeError(f"PNG encoding of the {picture.value} picture failed")
             png = encoded.tobytes()
             timings["render"] = (time.perf_counter() - tic) * 1e3
-        return FrameResult(frame, detections, timings, png)
+        return FrameResult(frame, detections, timings, png, early_warnings)
 
     return job
 
@@ -207,9 +253,13 @@ async def _run_frame(
 
     needs_camera: what of the answer needs the image and a calibration even from a LiDAR-only model."""
     # Before the queue: a request that can never succeed gets its 4xx without waiting for a worker.
+    camera_use = _camera_use(runtime, needs_camera)
     calib = check_upload(upload, settings.max_points, settings.max_image_pixels, runtime.crop_hw,
-                         runtime.default_calib, _camera_use(runtime, needs_camera))
-    job = _detect_job(upload, options, calib, picture)
+                         runtime.default_calib, camera_use)
+    check_stamps(options.stamps, upload)
+    # Only where the image is used: a LiDAR-only model's boxes do not depend on when the image was taken.
+    job = _detect_job(upload, options, calib, picture,
+                      stamp_warnings(options.stamps, settings.max_sensor_skew_ms, camera_use))
     state = request.scope.get("state") or {}
     # The place AdmissionMiddleware took before the upload was read (None: an app served without it).
     reservation: Reservation | None = state.get("reservation")
@@ -243,9 +293,12 @@ async def _read_upload(image: UploadFile | None, points: UploadFile, calib: Uplo
     )
 
 
-def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> DetectResponse:
+def _to_response(result: FrameResult, runtime: Runtime, request_id: str, stamps: FrameStamps) -> DetectResponse:
     detections = result.detections
     corners = bev_corners(detections.boxes)
+    # Set only when a stamp was sent: the route leaves unset fields out, so KITTI's answers stay as they were.
+    echoed = {"stamps": SensorStamps(image_ns=stamps.image_ns, points_ns=stamps.points_ns,
+                                     skew_ms=stamps.skew_ms)} if stamps.sent else {}
     return DetectResponse(
         detections=[
             Detection(
@@ -262,6 +315,7 @@ def _to_response(result: FrameResult, runtime: Runtime, request_id: str) -> Dete
         warnings=result.warnings,
         warning_codes=result.warning_codes,
         request_id=request_id,
+        **echoed,
     )
 
 
@@ -272,6 +326,17 @@ def _warning_headers(result: FrameResult) -> dict[str, str]:
     if not warnings:
         return {}
     return {"X-Warnings": json.dumps(warnings), "X-Warning-Codes": json.dumps(result.warning_codes)}
+
+
+def stamp_headers(stamps: FrameStamps) -> dict[str, str]:
+    """The capture times the request sent, echoed on every detection answer (a KITTI-lines or PNG answer has no
+    room for them in its body): decimal nanoseconds, each header absent when its stamp was not sent."""
+    headers = {}
+    if stamps.image_ns is not None:
+        headers["X-Image-Stamp-Ns"] = str(stamps.image_ns)
+    if stamps.points_ns is not None:
+        headers["X-Points-Stamp-Ns"] = str(stamps.points_ns)
+    return headers
 
 
 def model_headers(identity: ModelIdentity) -> dict[str, str]:
@@ -304,6 +369,13 @@ _WARNINGS_HEADER = {
     },
 }
 
+_STAMP_HEADERS = {
+    "X-Image-Stamp-Ns": {"description": "`image_stamp_ns` as sent (decimal nanoseconds; absent when not sent)",
+                         "schema": {"type": "string"}},
+    "X-Points-Stamp-Ns": {"description": "`points_stamp_ns` as sent (decimal nanoseconds; absent when not sent)",
+                          "schema": {"type": "string"}},
+}
+
 # The detection routes answer the same errors (documented for clients and the OpenAPI fuzz test).
 DETECT_ERRORS = error_responses(400, 401, 408, 413, 415, 422, 500, 503, 504)
 
@@ -323,7 +395,7 @@ _FRAME_PARTS = {"requestBody": {"content": {"multipart/form-data": {"encoding": 
 def _picture_responses(description: str) -> dict:
     """The OpenAPI answers of a route answering a PNG picture."""
     return {200: {"description": description, "content": {"image/png": {"schema": _PNG_SCHEMA}},
-                  "headers": {**_WARNINGS_HEADER, **_MODEL_HEADERS}},
+                  "headers": {**_WARNINGS_HEADER, **_MODEL_HEADERS, **_STAMP_HEADERS}},
             **DETECT_ERRORS}
 
 
@@ -335,13 +407,14 @@ async def _picture_answer(request: Request, runtime: Runtime, settings: Settings
                               needs_camera=needs)
     assert result.png is not None
     return Response(result.png, media_type="image/png",
-                    headers={**model_headers(runtime.identity), **_warning_headers(result)})
+                    headers={**model_headers(runtime.identity), **_warning_headers(result), **stamp_headers(options.stamps)})
 
 
 @router.post(
     "/detect",
     summary="Detect cars in one frame",
     response_model=DetectResponse,
+    response_model_exclude_unset=True,  # `stamps` only when sent (_to_response); every other field is always set
     dependencies=[Depends(require_multipart), Depends(check_parts)],
     openapi_extra=_FRAME_PARTS,
     responses={
@@ -351,7 +424,7 @@ async def _picture_answer(request: Request, runtime: Runtime, settings: Settings
             "content": {"text/plain": {"schema": {"type": "string", "description": "one KITTI label_2 line per "
                                                   "box the camera sees, with the score as a 16th value"},
                                        "example": _KITTI_EXAMPLE}},
-            "headers": {**_WARNINGS_HEADER, **_MODEL_HEADERS},
+            "headers": {**_WARNINGS_HEADER, **_MODEL_HEADERS, **_STAMP_HEADERS},
         },
         **DETECT_ERRORS,
     },
@@ -393,9 +466,11 @@ async def detect(
         assert frame.calib is not None and frame.image_hw is not None  # check_upload refused a frame without
         objects = result.detections.to_objects(frame.calib, frame.image_hw)
         return PlainTextResponse("".join(format_label(o) + "\n" for o in objects),
-                                 headers={**model_headers(runtime.identity), **_warning_headers(result)})
-    response.headers.update(model_headers(runtime.identity))  # FastAPI copies them onto the JSON answer
-    return _to_response(result, runtime, request_id)
+                                 headers={**model_headers(runtime.identity), **_warning_headers(result),
+                                          **stamp_headers(options.stamps)})
+    # FastAPI copies them onto the JSON answer
+    response.headers.update({**model_headers(runtime.identity), **stamp_headers(options.stamps)})
+    return _to_response(result, runtime, request_id, options.stamps)
 
 
 @router.post(
