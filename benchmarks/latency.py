@@ -70,7 +70,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.op_profile import GPU_PROFILER_HINT, profile_network
 from benchmarks.op_profile import describe as describe_ops
 from benchmarks.peak import PeakResult, measure_peak
-from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to
 from pipeline.cli import (
     HelpFormatter,
     check_figure,
@@ -823,7 +823,7 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
         torch_networks, torch_weights = torch_twin(detector, checkpoints)
     trained_on = (detector.manifest["networks"]["pixor"].get("training") or {}).get("input")
     if beams is None:  # the model's own: a 64-line model's scans as they are (KITTI's have 64), else its lines (16)
-        beams = None if detector.trained_lines == 64 else (detector.trained_lines or 16)
+        beams = lines_to_thin_to(detector.trained_lines) or None
     source = FrameSource(data, max(frames, warmup), beams or None)
     pool = source.load()
 

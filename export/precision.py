@@ -55,6 +55,7 @@ from export.rewrite import (
     quantize_before_pad,
     rewrite_transposed_convs,
 )
+from pipeline.beams import lines_to_thin_to
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.errors import InputError
@@ -99,7 +100,7 @@ def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool =
     calibrating: INT8 (warns when the frames are few); FP16 only measures its deviation on them."""
     detector = Detector(model_dir)
     if beams is None:  # a model trained with --emulate-beams 8 calibrates on 8-line scans
-        beams = 0 if detector.trained_lines == 64 else (detector.trained_lines or 16)
+        beams = lines_to_thin_to(detector.trained_lines)
     ids = calibration_frame_ids(data, frames)
     if calibrating and len(ids) < FEWEST_CALIBRATION_FRAMES:
         log.warning("warning: INT8 calibrated on %d frame(s) of %s: ranges from so few frames may clip real ones; "

@@ -152,6 +152,14 @@ def recover_rings(points: np.ndarray, expected_rings: int = 64, method: str = "a
     return RingAssignment(ring=ring, n_rings=n_segments, elevation_deg=medians, method=used)
 
 
+def lines_to_thin_to(trained: int | None) -> int:
+    """The lines a 64-line scan is thinned to for a model whose PIXOR was trained on ``trained`` lines (its
+    manifest's record): 0, the scan as stored, for a 64-line model; 16, the recipe's, when the record does not
+    say. What the tools that feed a model 64-line frames of their own choose (the demo, check_models, latency.py,
+    export.precision's calibration)."""
+    return 0 if trained == 64 else (trained or 16)
+
+
 def check_beam_mode(beams: int, mode: str) -> None:
     """Refuse a line count its mode cannot give (a folder run checks it before its first scan)."""
     if mode == "stride":

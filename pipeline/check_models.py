@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to
 from pipeline.cli import HelpFormatter, check_output, examples, quiet_interrupt, write_text_file
 from pipeline.detector import Detector, resolve_providers
 from pipeline.errors import InputError
@@ -132,7 +132,7 @@ def scan_lines(detector: Detector, emulate: int | None) -> int | None:
     """The lines the bundled 64-line scan is thinned to: ``--emulate-beams`` (0: as stored), else the model's own."""
     if emulate is not None:
         return emulate or None
-    return None if detector.trained_lines == 64 else (detector.trained_lines or 16)
+    return lines_to_thin_to(detector.trained_lines) or None
 
 
 def _finite(name: str, array: np.ndarray, shape: tuple[int, ...] | None = None) -> None:

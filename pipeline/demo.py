@@ -1,8 +1,10 @@
 """The Quickstart's main job: run lowres3d end to end on a bundled real KITTI frame.
 
 With a model directory (the shipped ``weights/edge`` by default) it runs the
-full two-stage detector on the frame's scan thinned to 16 lines and writes the
-KITTI result file, the BEV picture and the camera view. With ``--core`` (or
+detector on the frame's scan thinned to the lines the model was trained on (16
+for the shipped camera model; a 64-line model takes it as stored), as
+``pipeline.detect --emulate-beams`` would, and writes the KITTI result file, the
+BEV picture and the camera view. With ``--core`` (or
 when the default directory is missing) it runs the frame-processing core alone
 — 16-line emulation, the depth-net view and its sparse depth, the BEV tensor —
 and writes pictures of each step.
@@ -22,13 +24,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.beams import emulate_beams, recover_rings
+from pipeline.beams import emulate_beams, lines_to_thin_to, recover_rings
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
 from pipeline.cli import HelpFormatter, examples, quiet_interrupt, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
-from pipeline.model_files import DEFAULT_MODELS, ModelFileError
+from pipeline.model_files import DEFAULT_MODELS, ModelFileError, load_manifest
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import get_preset
 from pipeline.render import depth_colours, draw_colour_scale, draw_label, render_bev, render_depth, write_png
@@ -77,17 +79,29 @@ def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
     }
 
 
+def scan_lines(models: Path) -> int | None:
+    """The lines the bundled 64-line scan is thinned to for ``models``: those its PIXOR was trained on (16 when
+    its manifest does not say), None for a 64-line model, which takes the scan as stored. As check_models,
+    export.golden and latency.py choose them: a fixed 16 gave a 64-line model a quarter of its points (1 car
+    on 000006 where pipeline.detect and accuracy.py --input lidar64 find 4)."""
+    from pipeline.detector import trained_lines
+
+    pixor = (load_manifest(models).get("networks") or {}).get("pixor") or {}
+    return lines_to_thin_to(trained_lines(pixor.get("training") or {})) or None
+
+
 def run(models: Path | None, frame_id: str, out: Path) -> dict:
     """The detector of the model directory ``models`` on the bundled frame; None: the core alone."""
     if models is None:
         return run_core(frame_id, out)
     from pipeline.detect import run as detect
 
-    result = detect(models, out, data=SAMPLE_DIR, frames=[frame_id], emulate_beams=16, progress=False)
-    lines = result.result_files[0].read_text().splitlines()
+    lines = scan_lines(models)
+    result = detect(models, out, data=SAMPLE_DIR, frames=[frame_id], emulate_beams=lines, progress=False)
+    scan = f"64-line scan thinned to {lines} lines" if lines else "64-line scan as stored (a 64-line model)"
     return {
-        "frame": frame_id, "mode": f"detector ({models}), 64-line scan thinned to 16 lines",
-        "detections_in_camera_view": lines,
+        "frame": frame_id, "mode": f"detector ({models}), {scan}",
+        "detections_in_camera_view": result.result_files[0].read_text().splitlines(),
         "results": [str(p) for p in result.result_files], "pictures": [str(p) for p in result.pictures],
         "timings_ms": {k: round(v, 1) for k, v in result.mean_timings_ms.items()},
     }

@@ -126,7 +126,10 @@ def decode_maps(
     score: (ny, nx) probabilities; regression: (6, ny, nx) normalised targets.
     Keeps cells at or above the threshold, at most ``decode.max_candidates`` of them.
     """
-    threshold = decode.score_threshold if score_threshold is None else score_threshold
+    # A Python float, compared with the float32 scores in float32 whatever the caller passed: an np.float64
+    # threshold made NumPy 2 compare in float64 and drop a score equal to it in float32 that the CLI's and the
+    # service's float threshold keeps.
+    threshold = float(decode.score_threshold if score_threshold is None else score_threshold)
     out = OutputGrid.from_bev(grid, stride)
     flat_score = score.reshape(-1)
     candidates = np.flatnonzero(flat_score >= threshold)

@@ -54,7 +54,7 @@ class Box(BaseModel):
     l: float = Field(description="length along the heading (metres)")
     w: float = Field(description="width (metres)")
     h: float = Field(description="height (metres)")
-    yaw: float = Field(description="heading about z from the x axis towards y (radians); KITTI rotation_y = -yaw - π/2")
+    yaw: float = Field(description="heading about z from the x axis towards y (radians); KITTI rotation_y = -yaw - π/2, wrapped to [-π, π)")
 
 
 class Detection(BaseModel):

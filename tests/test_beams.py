@@ -290,3 +290,11 @@ def test_without_the_raw_scan_each_pixels_beam_comes_from_its_elevation():
         on_kept_rings.append(max(np.count_nonzero(kept & (ring % 4 == k)) / np.count_nonzero(kept) for k in range(4)))
     assert np.mean(right_ring) > 0.75 and min(right_ring) > 0.65
     assert np.mean(on_kept_rings) > 0.6 and min(on_kept_rings) > 0.5
+
+
+def test_a_64_line_scan_is_thinned_to_the_models_own_lines():
+    """The rule the demo, check_models, latency.py and INT8 calibration share: as stored for a 64-line model, the
+    recorded lines otherwise, the recipe's 16 when the manifest does not say."""
+    from pipeline.beams import lines_to_thin_to
+
+    assert [lines_to_thin_to(lines) for lines in (64, 32, 16, 8, None)] == [0, 32, 16, 8, 16]
