@@ -94,13 +94,13 @@ def test_every_frame_is_sent_intact_and_broken_whatever_bad_every():
 
 
 def test_load_test_without_a_service_at_url_answers_one_line(tmp_path):
-    with socket.socket() as sock:  # a loopback port nothing listens on
+    with socket.socket() as sock:  # a loopback port nothing listens on: held, so no other test's server takes it
         sock.bind(("127.0.0.1", 0))
         port = sock.getsockname()[1]
-    result = subprocess.run(
-        [sys.executable, str(LOAD), "--url", f"http://127.0.0.1:{port}", "--requests", "2"],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False,
-    )
+        result = subprocess.run(
+            [sys.executable, str(LOAD), "--url", f"http://127.0.0.1:{port}", "--requests", "2"],
+            cwd=tmp_path, capture_output=True, text=True, timeout=120, check=False,
+        )
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"--url http://127.0.0.1:{port}: cannot reach the service" in result.stderr
 

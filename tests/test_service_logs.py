@@ -28,7 +28,7 @@ import pytest
 from service.logs import ACCESS_FIELDS, JsonFormatter, TextFormatter, utc_timestamp
 from service.middleware import access_level, request_target
 from tests.test_service import frame, parts  # noqa: F401 - fixtures
-from tests.test_service_process import Server, running_service
+from tests.test_service_process import Server, _metric, _wait_for, running_service
 
 REPO = Path(__file__).resolve().parents[1]
 COMMON_FIELDS = ("timestamp", "level", "logger", "message", "request_id")
@@ -78,6 +78,12 @@ def _hold_a_place(url: str, request_id: str) -> socket.socket:
     return sock
 
 
+def _wait_for_its_place(running: Service) -> None:
+    """Wait until a held request has its place in the pool: its head read and its place taken (a fixed pause
+    could end first on a busy machine, and the next request would take the place, or the signal come first)."""
+    _wait_for(lambda: _metric(running, "lowres3d_inference_queue_depth") == 1.0, "the held request took no place")
+
+
 def _wait_for_line(running: Service, predicate: object, what: str, timeout_s: float = 10.0) -> dict:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
@@ -117,7 +123,7 @@ def test_json_log_has_one_access_line_per_request_and_every_line_parses(
             assert httpx.get(f"{running.url}/v1/model", headers={"X-Request-ID": "log-401"}).status_code == 401
             held = _hold_a_place(running.url, "log-gone")
             try:
-                time.sleep(0.3)  # the held request has its place: the only one (1 worker, no queue)
+                _wait_for_its_place(running)  # the only one (1 worker, no queue)
                 busy = client.post("/v1/detect", files=parts(frame), headers={"X-Request-ID": "log-busy"})
                 assert busy.status_code == 503 and busy.json()["error"]["code"] == "overloaded"
             finally:
@@ -170,7 +176,7 @@ def test_json_log_of_a_shutdown_that_cuts_a_request_off(tiny_models: Path, tmp_p
                  "0.3", env={"LOWRES3D_TOKEN": TOKEN}) as running:
         held = _hold_a_place(running.url, "log-cut")
         try:
-            time.sleep(0.3)
+            _wait_for_its_place(running)
             running.process.send_signal(signal.SIGTERM)
             assert running.process.wait(20) == -signal.SIGTERM
         finally:

@@ -5,8 +5,9 @@ Content-Length), the OpenAPI schema fuzzed by schemathesis, SIGTERM letting
 in-flight requests finish (and answering those it cuts off, and ending a long
 warm-up), and bad start configurations (a corrupted or unreadable model
 directory, an address in use, empty or misspelt settings) stopping the start
-with one line. Every server gets a free port, a bounded start-up time, and is
-killed in teardown.
+with one line. Every server listens on a port it chose itself (--port 0: a port
+picked free here and handed over could be taken meanwhile by another xdist
+worker's server), has a bounded start-up time, and is killed in teardown.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ import sys
 import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -53,10 +54,25 @@ class Server:
         return self.log_path.read_text(errors="replace")
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+def listening_port(pid: int) -> int | None:
+    """The IPv4 TCP port process ``pid`` listens on, None while it listens on none (Linux: the socket inodes of
+    /proc/PID/fd looked up in /proc/PID/net/tcp). How a test learns the port of a server started with --port 0,
+    at any log level or format."""
+    inodes = set()
+    try:
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            with suppress(OSError):  # closed meanwhile
+                link = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if link.startswith("socket:["):
+                    inodes.add(link.removeprefix("socket:[").removesuffix("]"))
+        table = Path(f"/proc/{pid}/net/tcp").read_text().splitlines()[1:]
+    except OSError:  # the process has ended
+        return None
+    for row in table:  # sl local_address rem_address st ... inode: state 0A is LISTEN
+        fields = row.split()
+        if fields[3] == "0A" and fields[9] in inodes:
+            return int(fields[1].rsplit(":", 1)[1], 16)
+    return None
 
 
 def _stop(process: subprocess.Popen) -> None:
@@ -72,23 +88,24 @@ def _stop(process: subprocess.Popen) -> None:
 @contextmanager
 def running_service(models: Path, log_path: Path, *args: str, until: str = "/readyz",
                     env: dict[str, str] | None = None) -> Iterator[Server]:
-    """Start the service (with ``env`` added to this environment's, its LOWRES3D_* variables left out), wait
-    until ``until`` answers 200, stop it (SIGTERM, then SIGKILL) afterwards."""
-    port = free_port()
+    """Start the service on a port of its choosing (with ``env`` added to this environment's, its LOWRES3D_*
+    variables left out), wait until ``until`` answers 200, stop it (SIGTERM, then SIGKILL) afterwards."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")} | (env or {})
     with open(log_path, "w") as log_file:
         process = subprocess.Popen(
-            [sys.executable, "-m", "service", "--models", str(models), "--port", str(port), *args],
+            [sys.executable, "-m", "service", "--models", str(models), "--port", "0", *args],
             cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT,
         )
-    server = Server(f"http://127.0.0.1:{port}", process, log_path)
+    server = Server("", process, log_path)
     try:
         deadline = time.monotonic() + START_TIMEOUT_S
         while True:
             if process.poll() is not None:
                 pytest.fail(f"the service exited with {process.returncode} during start:\n{server.log()}")
+            if not server.url and (port := listening_port(process.pid)) is not None:
+                server.url = f"http://127.0.0.1:{port}"
             try:
-                if httpx.get(f"{server.url}{until}", timeout=1).status_code == 200:
+                if server.url and httpx.get(f"{server.url}{until}", timeout=1).status_code == 200:
                     break
             except httpx.TransportError:
                 pass
@@ -234,7 +251,9 @@ def test_request_log_names_each_refused_request_and_not_the_noise_clients_cause(
     for head in ("GARBAGE\n\n", upgrade):
         with _raw_request(server, head) as sock:
             assert _answer(sock, 5)[0] in (400, 200)
-    time.sleep(0.2)
+    # Each access line is written once its answer has gone out, maybe after the client has read it: wait for them.
+    _wait_for(lambda: all(f"request log-{status}: " in server.log() for status in (404, 422, 400)),
+              "an access line of log-404, log-422 or log-400 is missing")
     log = server.log()
     assert re.search(r"INFO service.access: request log-404: GET unmatched answered 404 not_found in \d+ ms", log)
     assert "request log-422: POST /v1/detect answered 422 invalid_input in " in log
@@ -416,10 +435,13 @@ def test_sigterm_lets_in_flight_requests_finish(
     with running_service(tiny_models, tmp_path / "service.log", "--workers", "1", "--queue-size", "4") as running:
         with ThreadPoolExecutor(3) as clients:
             futures = [clients.submit(httpx.post, f"{running.url}/v1/detect", files=heavy, timeout=60) for _ in range(3)]
-            deadline = time.monotonic() + 20
-            while "lowres3d_inference_in_flight 1.0" not in httpx.get(f"{running.url}/metrics").text:
-                assert time.monotonic() < deadline, "no frame got in flight"
-                time.sleep(0.01)
+            # A frame on the worker and every request in the service (its place in the pool, taken once its head
+            # is read; or answered): a request still connecting when SIGTERM comes is not in flight, nor let in.
+            def all_in() -> bool:
+                waiting, on_a_worker = _pool_state(running)
+                return on_a_worker == 1 and waiting + on_a_worker + sum(f.done() for f in futures) == len(futures)
+
+            _wait_for(all_in, "the three frames did not get in flight", 20)
             running.process.send_signal(signal.SIGTERM)
             responses = [f.result() for f in futures]
         assert [r.status_code for r in responses] == [200, 200, 200], [r.text for r in responses]
@@ -489,7 +511,7 @@ def test_a_stop_while_the_models_load_ends_the_start(tmp_path: Path, signum: int
     env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
     with open(log_path, "w") as log_file:  # two session sets of the shipped models: a load of a second or so
         process = subprocess.Popen(
-            [sys.executable, "-m", "service", "--models", str(REPO / "weights" / "edge"), "--port", str(free_port()),
+            [sys.executable, "-m", "service", "--models", str(REPO / "weights" / "edge"), "--port", "0",
              "--workers", "2", "--sessions", "per-worker"],
             cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT,
         )
@@ -542,7 +564,7 @@ def test_a_sigterm_right_after_the_start_stops_it_even_as_a_containers_first_pro
     env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
     with open(log_path, "w") as log_file:
         process = subprocess.Popen(
-            [sys.executable, "-m", "service", "--models", str(tiny_models), "--port", str(free_port())],
+            [sys.executable, "-m", "service", "--models", str(tiny_models), "--port", "0"],
             cwd=REPO, env=env, stdout=log_file, stderr=subprocess.STDOUT,
             preexec_fn=lambda: signal.signal(signal.SIGTERM, signal.SIG_IGN),  # noqa: PLW1509 - before exec
         )
@@ -587,10 +609,10 @@ def test_sigterm_during_a_long_warm_up_stops_promptly(tmp_path: Path) -> None:
 
 
 def _start_fails(models: Path | None, *args: str, env: dict[str, str] | None = None) -> tuple[int, str]:
-    """Run a start that must fail: its exit status and output. ``models`` None: no --models; a free port unless
-    ``args`` give one; ``env``: LOWRES3D_* variables (the test's own are left out)."""
+    """Run a start that must fail: its exit status and output. ``models`` None: no --models; --port 0 (any free
+    port) unless ``args`` give one; ``env``: LOWRES3D_* variables (the test's own are left out)."""
     command = [sys.executable, "-m", "service", *(["--models", str(models)] if models is not None else []),
-               *([] if "--port" in args else ["--port", str(free_port())]), *args]
+               *([] if "--port" in args else ["--port", "0"]), *args]
     environ = {k: v for k, v in os.environ.items() if not k.upper().startswith("LOWRES3D_")}
     result = subprocess.run(command, check=False, cwd=REPO, capture_output=True, text=True,
                             timeout=START_TIMEOUT_S, env=environ | (env or {}))
@@ -634,7 +656,7 @@ def test_without_models_outside_a_checkout_the_start_says_where_the_weights_are(
     for package in ("pipeline", "service"):
         shutil.copytree(REPO / package, site / package, ignore=shutil.ignore_patterns("__pycache__"))
     env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")} | {"PYTHONPATH": str(site)}
-    result = subprocess.run([sys.executable, "-m", "service", "--port", str(free_port())], check=False,
+    result = subprocess.run([sys.executable, "-m", "service", "--port", "0"], check=False,
                             cwd=tmp_path, capture_output=True, text=True, timeout=START_TIMEOUT_S, env=env)
     assert result.returncode == 2, result.stderr
     assert f"{site / 'weights' / 'edge'}" in result.stderr and "exists only in a source checkout" in result.stderr
