@@ -25,5 +25,6 @@ def in_frame(where: str) -> Iterator[None]:
 
 # The runtime install (`make demo`, `pip install -e .`) has no torch; the commands that need it say so.
 TORCH_MISSING = ("error: this command needs PyTorch, which the runtime install leaves out; install it with "
-                 "`make setup-dev` (pip install -e '.[train]': torch 2.13.0, pinned in version only; for the CPU "
-                 "build, install it first from PyTorch's CPU index, as the README says)")
+                 "`make setup-dev` in a checkout (pip install -e '.[train]'), or the wheel's 'train' extra "
+                 "(pip install 'lowres3d-….whl[train]'): torch 2.13.0, pinned in version only; for the CPU build, "
+                 "install it first from PyTorch's CPU index, as the README says")
