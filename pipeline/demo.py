@@ -82,8 +82,8 @@ def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
 def scan_lines(models: Path) -> int | None:
     """The lines the bundled 64-line scan is thinned to for ``models``: those its PIXOR was trained on (16 when
     its manifest does not say), None for a 64-line model, which takes the scan as stored. As check_models,
-    export.golden and latency.py choose them: a fixed 16 gave a 64-line model a quarter of its points (1 car
-    on 000006 where pipeline.detect and accuracy.py --input lidar64 find 4)."""
+    latency.py and INT8 calibration choose them (pipeline.beams.lines_to_thin_to): a fixed 16 gave a 64-line
+    model a quarter of its points (1 car on 000006 where pipeline.detect and accuracy.py --input lidar64 find 4)."""
     from pipeline.detector import trained_lines
 
     pixor = (load_manifest(models).get("networks") or {}).get("pixor") or {}

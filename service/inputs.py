@@ -107,10 +107,13 @@ def stamp_query(value: object) -> object:
         return value  # from code, not a query: pydantic's own checks
     number: object = value
     if _DECIMAL_INTEGER.fullmatch(value):
-        if len(value.lstrip("+-0")) > _INT64_DIGITS:  # int() of thousands of digits is slow, then refused
-            raise PydanticCustomError("stamp_ns", f"{len(value)} digits is more than int64 holds: nanoseconds, not a "
+        digits = value.lstrip("+-").lstrip("0")
+        if len(digits) > _INT64_DIGITS:  # int() of thousands of digits is slow, then refused
+            raise PydanticCustomError("stamp_ns", f"{len(digits)} digits is more than int64 holds: nanoseconds, not a "
                                       "finer unit?")
-        number = int(value)
+        # Without the leading zeros: int() refuses a string of over 4,300 characters, zeros and all, with a
+        # message about sys.set_int_max_str_digits.
+        number = -int(digits or "0") if value.startswith("-") else int(digits or "0")
     elif _DECIMAL_NUMBER.fullmatch(value):  # said as a float (seconds most likely); not '1_000' or ' 5'
         number = float(value)
     problem = stamp_problem(number)

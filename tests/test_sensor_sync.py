@@ -198,6 +198,20 @@ def test_a_stamp_in_another_form_is_a_422_naming_it(
     assert_error(client.post("/v1/detect", params=query, files=parts(frame)), 422, "invalid_input", *words)
 
 
+def test_leading_zeros_do_not_count_as_digits_of_a_stamp() -> None:
+    """A stamp padded with zeros is the number it spells (int() alone refuses 4,300 characters and more with a
+    message about sys.set_int_max_str_digits); its significant digits are what int64 bounds."""
+    from pydantic_core import PydanticCustomError
+
+    from service.inputs import stamp_query
+
+    assert stamp_query("0" * 5000 + "1718000000000000000") == 1718000000000000000
+    with pytest.raises(PydanticCustomError, match="-5 is negative"):
+        stamp_query("-" + "0" * 5000 + "5")
+    with pytest.raises(PydanticCustomError, match="^20 digits is more than int64 holds"):
+        stamp_query("0" * 10 + "9" * 20)
+
+
 def test_the_threshold_is_a_setting_and_a_lidar_only_model_is_not_warned(
     tiny_models: Path, frame: dict[str, bytes], tmp_path: Path  # noqa: F811
 ) -> None:

@@ -296,7 +296,7 @@ async def _read_upload(image: UploadFile | None, points: UploadFile, calib: Uplo
 def _to_response(result: FrameResult, runtime: Runtime, request_id: str, stamps: FrameStamps) -> DetectResponse:
     detections = result.detections
     corners = bev_corners(detections.boxes)
-    # Set only when a stamp was sent: the route leaves unset fields out, so KITTI's answers stay as they were.
+    # Set only when a stamp was sent: the route leaves unset fields out, so answers without stamps stay as they were.
     echoed = {"stamps": SensorStamps(image_ns=stamps.image_ns, points_ns=stamps.points_ns,
                                      skew_ms=stamps.skew_ms)} if stamps.sent else {}
     return DetectResponse(
@@ -351,7 +351,7 @@ _MODEL_HEADERS = {
                    "(`model.id`; `id` in `lowres3d_model_info`)", "required": True, "schema": {"type": "string"}},
     "X-Model-Directory": {"description": "the model directory's own name after symbolic links, percent-encoded",
                           "required": True, "schema": {"type": "string"}},
-    "X-Model-Preset": {"description": "the model's preset", "required": True, "schema": {"type": "string"}},
+    "X-Model-Preset": {"description": "the model's preset, percent-encoded", "required": True, "schema": {"type": "string"}},
     "X-Model-Precision": {"description": "`fp32`, `fp16` or `int8`", "required": True, "schema": {"type": "string"}},
 }
 
