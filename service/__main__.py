@@ -355,11 +355,10 @@ def main(argv: list[str] | None = None) -> int:
                 self.handle_exit(_pending_signals.pop(0), None)
             return await super().on_tick(counter)
 
-    options = vars(build_parser().parse_args(argv))
     try:
-        settings = Settings(**options)
-    except ValidationError as exc:
-        return refuse_settings(exc, requested_log_format(options, os.environ))
+        settings = settings_from_args(argv)
+    except ValidationError as exc:  # the options again (a usage error would have exited above): the log format
+        return refuse_settings(exc, requested_log_format(vars(build_parser().parse_args(argv)), os.environ))
     configure_logging(settings.log_level, settings.log_format)
     install_log_filters()  # no traceback for a cancelled request; what clients cause at will at DEBUG
     for line in unknown_env_warnings(os.environ):
