@@ -55,7 +55,6 @@ import os
 import platform
 import queue
 import re
-import socket
 import subprocess
 import sys
 import tempfile
@@ -63,7 +62,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Self
@@ -159,24 +158,37 @@ class LoadResult:
     service_log: str | None = None  # the started service's log (--log)
 
 
-def free_port() -> int:
-    """A loopback port free now (the service binds it a moment later)."""
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
+def listening_port(pid: int) -> int | None:
+    """The IPv4 TCP port process ``pid`` listens on, None while it listens on none (Linux: the socket inodes of
+    /proc/PID/fd looked up in /proc/PID/net/tcp). How a service started with --port 0 is found, whatever its
+    log level or format: a port picked free here and passed on could be taken by another process meanwhile."""
+    inodes = set()
+    try:
+        for fd in os.listdir(f"/proc/{pid}/fd"):
+            with suppress(OSError):  # closed meanwhile
+                link = os.readlink(f"/proc/{pid}/fd/{fd}")
+                if link.startswith("socket:["):
+                    inodes.add(link.removeprefix("socket:[").removesuffix("]"))
+        table = Path(f"/proc/{pid}/net/tcp").read_text().splitlines()[1:]
+    except OSError:  # the process has ended
+        return None
+    for row in table:  # sl local_address rem_address st ... inode: state 0A is LISTEN
+        fields = row.split()
+        if fields[3] == "0A" and fields[9] in inodes:
+            return int(fields[1].rsplit(":", 1)[1], 16)
+    return None
 
 
 @contextmanager
 def started_service(models: Path, server_args: list[str], log_path: Path, timeout_s: float = 60.0) -> Iterator[str]:
-    """Run ``python -m service`` on a free loopback port until the block ends; yields its URL."""
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
+    """Run ``python -m service`` on a loopback port of its choosing until the block ends; yields its URL."""
+    url = ""
     env = {k: v for k, v in os.environ.items() if not k.startswith("LOWRES3D_")}
     with open(log_path, "w") as log:
         process = subprocess.Popen(
             # Resolved here: the service runs in the checkout, and a relative --models names a folder under the
             # caller's working directory (where main checked it).
-            [sys.executable, "-m", "service", "--models", str(Path(models).resolve()), "--port", str(port),
+            [sys.executable, "-m", "service", "--models", str(Path(models).resolve()), "--port", "0",
              *server_args],
             cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT,
         )
@@ -185,8 +197,10 @@ def started_service(models: Path, server_args: list[str], log_path: Path, timeou
         while True:
             if process.poll() is not None:
                 raise SystemExit(f"the service exited with {process.returncode}:\n{log_path.read_text()}")
+            if not url and (port := listening_port(process.pid)) is not None:
+                url = f"http://127.0.0.1:{port}"
             try:
-                if httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
+                if url and httpx.get(f"{url}/readyz", timeout=1).status_code == 200:
                     break
             except httpx.TransportError:
                 pass

@@ -23,7 +23,7 @@ import sys
 import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
-from contextlib import contextmanager, suppress
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +35,7 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis.generation import GenerationMode
 
+from benchmarks.load import listening_port
 from pipeline.beams import emulate_beams
 from tests.test_service import assert_error, frame, parts, tiny_models  # noqa: F401 - fixtures
 
@@ -52,27 +53,6 @@ class Server:
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace")
-
-
-def listening_port(pid: int) -> int | None:
-    """The IPv4 TCP port process ``pid`` listens on, None while it listens on none (Linux: the socket inodes of
-    /proc/PID/fd looked up in /proc/PID/net/tcp). How a test learns the port of a server started with --port 0,
-    at any log level or format."""
-    inodes = set()
-    try:
-        for fd in os.listdir(f"/proc/{pid}/fd"):
-            with suppress(OSError):  # closed meanwhile
-                link = os.readlink(f"/proc/{pid}/fd/{fd}")
-                if link.startswith("socket:["):
-                    inodes.add(link.removeprefix("socket:[").removesuffix("]"))
-        table = Path(f"/proc/{pid}/net/tcp").read_text().splitlines()[1:]
-    except OSError:  # the process has ended
-        return None
-    for row in table:  # sl local_address rem_address st ... inode: state 0A is LISTEN
-        fields = row.split()
-        if fields[3] == "0A" and fields[9] in inodes:
-            return int(fields[1].rsplit(":", 1)[1], 16)
-    return None
 
 
 def _stop(process: subprocess.Popen) -> None:
