@@ -33,7 +33,7 @@ import onnxruntime as ort
 
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR, check_frame
 from export.port_spec import graph_report, port_spec_of
-from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to
 from pipeline.bev import BevVoxelizer, PseudoBins, pseudo_bins
 from pipeline.cli import check_not_input, check_output, interrupted, probability
 from pipeline.detector import Detector, session_options, trained_lines
@@ -111,9 +111,9 @@ def spec_document(models: Path, manifest: dict) -> dict:
 
 
 def default_beams(manifest: dict) -> int:
-    """The line count the bundled 64-line scans are thinned to: the model's own (0, as stored, for 64 lines)."""
-    lines = trained_lines(manifest["networks"]["pixor"].get("training") or {})
-    return lines if lines in BEAM_COUNTS else 0
+    """The line count the bundled 64-line scans are thinned to: the model's own (0, as stored, for 64 lines; 16,
+    the recipe's, when the manifest does not say), as every tool that feeds a model its own frames chooses."""
+    return lines_to_thin_to(trained_lines(manifest["networks"]["pixor"].get("training") or {}))
 
 
 def _sessions(models: Path, manifest: dict) -> dict[str, ort.InferenceSession]:

@@ -298,3 +298,13 @@ def test_a_64_line_scan_is_thinned_to_the_models_own_lines():
     from pipeline.beams import lines_to_thin_to
 
     assert [lines_to_thin_to(lines) for lines in (64, 32, 16, 8, None)] == [0, 32, 16, 8, 16]
+
+
+def test_the_golden_frame_thins_its_scan_as_the_other_tools_do():
+    """export.golden's bundled 64-line scan follows the same rule, a manifest without a recorded line count
+    included (it used to be kept as stored there, where the other tools thin to 16)."""
+    from export.golden import default_beams
+
+    records = [{"input": "lidar64"}, {"input": "lidar16", "emulate_beams": 32}, {"input": "pseudo"},
+               {"input": "lidar16", "emulate_beams": 8}, {}]
+    assert [default_beams({"networks": {"pixor": {"training": record}}}) for record in records] == [0, 32, 16, 8, 16]
