@@ -35,6 +35,7 @@ test: $(VENV)/.dev
 
 lint: $(VENV)/.dev
 	$(BIN)/ruff check pipeline service models export evaluation simulation benchmarks requirements tests
+	$(BIN)/mypy
 
 # After moving a dependency in the dev environment: pin what is installed now, then run make test.
 lock: $(VENV)/.dev

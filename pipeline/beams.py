@@ -17,11 +17,15 @@ import logging
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.cli import HelpFormatter, add_no_progress, examples, interrupted, show_progress, skipped_summary
 from pipeline.errors import InputError
+
+if TYPE_CHECKING:  # the annotation only: emulate_beams_on_depth_map imports pipeline.calib when it runs
+    from pipeline.calib import Calibration
 
 # HDL-64E: about +2° … −24.9°; VLP-16: −15° … +15° in 2° steps.
 HDL64_ELEVATION_RANGE_DEG = (-24.9, 2.0)
@@ -306,7 +310,7 @@ def _returns_nearby(depth: np.ndarray, returns: np.ndarray) -> np.ndarray:
     return found & (depth > 0)
 
 
-def emulate_beams_on_depth_map(depth: np.ndarray, calib, beams: int = 16, mode: str = "stride",
+def emulate_beams_on_depth_map(depth: np.ndarray, calib: Calibration, beams: int = 16, mode: str = "stride",
                                scan: np.ndarray | None = None, source: str = "depth map") -> np.ndarray:
     """Thin a projected 64-line depth map (KITTI depth completion's velodyne_raw) to ``beams`` lines.
 
@@ -331,7 +335,7 @@ def emulate_beams_on_depth_map(depth: np.ndarray, calib, beams: int = 16, mode: 
             raise InputError(f"{source}: {exc}") from exc
         whole = sparse_depth_map(scan, calib, depth.shape)
         matched = np.count_nonzero(_returns_nearby(whole, depth))
-        if matched < 0.9 * max(np.count_nonzero(whole), 1):
+        if matched < 0.9 * max(int(np.count_nonzero(whole)), 1):
             raise InputError(f"{source}: holds {matched} of the raw scan's {np.count_nonzero(whole)} returns projected "
                              "into the image: another frame's scan, or another drive's calibration?")
         keep = _returns_nearby(depth, sparse_depth_map(thinned, calib, depth.shape))

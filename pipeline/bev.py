@@ -155,7 +155,7 @@ def zeros_in_memory(shape: tuple[int, ...], dtype: type) -> np.ndarray:
     pay its page faults over the first frames that set its cells (and PIXOR's reads of it map
     nothing). Writing the zeros once moves that cost to start-up.
     """
-    array = np.empty(shape, dtype)
+    array: np.ndarray = np.empty(shape, dtype)
     array.fill(0)
     return array
 

@@ -8,6 +8,7 @@ KITTI labels give the bottom centre in the rectified camera frame and
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,7 +25,7 @@ def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
     return (np.asarray(angle, np.float64) + np.pi) % (2 * np.pi) - np.pi
 
 
-def labels_to_boxes(objects: list[Object3D], calib: Calibration) -> np.ndarray:
+def labels_to_boxes(objects: Sequence[Object3D], calib: Calibration) -> np.ndarray:
     """KITTI label objects → (N, 7) LiDAR-frame boxes (centre, l, w, h, yaw)."""
     if not objects:
         return np.zeros((0, 7))
@@ -67,7 +68,7 @@ def segments_in_front(rect: np.ndarray, segments: tuple[tuple[int, int], ...] = 
     """
     ends = rect[:, np.array(segments)]
     z, other = ends[..., 2], ends[..., ::-1, :]
-    shown = (z > near).any(axis=2)
+    shown = np.asarray((z > near).any(axis=2))  # an array for any K (NumPy's stubs allow a scalar)
     with np.errstate(divide="ignore", invalid="ignore"):
         along = (near - z) / (other[..., 2] - z)  # where the segment crosses the near plane
         cut = np.where((z <= near)[..., None], ends + along[..., None] * (other - ends), ends)
@@ -133,9 +134,9 @@ def boxes_to_objects(
     return [
         Object3D(
             type=label, truncated=0.0, occluded=0, alpha=float(alpha[i]),
-            bbox=tuple(float(v) for v in bbox[i]),
+            bbox=(float(bbox[i, 0]), float(bbox[i, 1]), float(bbox[i, 2]), float(bbox[i, 3])),
             dimensions=(float(boxes[i, 5]), float(boxes[i, 4]), float(boxes[i, 3])),
-            location=tuple(float(v) for v in location[i]),
+            location=(float(location[i, 0]), float(location[i, 1]), float(location[i, 2])),
             rotation_y=float(rotation_y[i]),
             score=None if scores is None else float(scores[i]),
         )
@@ -189,5 +190,5 @@ def box_records(boxes: np.ndarray, scores: np.ndarray, label: str = "Car") -> li
     scores = np.asarray(scores, np.float64).reshape(-1)
     if len(scores) != len(boxes):
         raise ValueError(f"{len(boxes)} boxes but {len(scores)} scores")
-    return [BoxRecord(*(float(v) for v in box), score=float(score), label=label)
-            for box, score in zip(boxes, scores, strict=True)]
+    return [BoxRecord(x, y, z, length, width, height, yaw, score, label)  # tolist(): Python floats
+            for (x, y, z, length, width, height, yaw), score in zip(boxes.tolist(), scores.tolist(), strict=True)]

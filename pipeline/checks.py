@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numbers
 from enum import Enum
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -28,7 +28,8 @@ class WarningCode(str, Enum):
     def __str__(self) -> str:  # as StrEnum: the value, not "WarningCode.NAME" (also in f-strings, below)
         return self.value
 
-    __format__ = str.__format__
+    def __format__(self, format_spec: str) -> str:  # the value, as StrEnum formats it (Enum's own varies by Python)
+        return str.__format__(self, format_spec)
 
     # A frame's (Detector.detect, the service's and the CLI's reading of the scan).
     CALIBRATION_MISFIT = "calibration_misfit"
@@ -104,10 +105,10 @@ PRINCIPAL_POINT_SPAN = (0.25, 0.75)
 def image_hw_of(image_hw: object) -> tuple[int, int]:
     """(rows, columns) from an image size or shape (its first two values), else an InputError naming ``image_hw``."""
     try:
-        size = tuple(image_hw)  # type: ignore[arg-type]
+        size: tuple[Any, ...] = tuple(image_hw)  # type: ignore[arg-type]  # TypeError: not a sequence
     except TypeError:
         size = ()
-    if len(size) not in (2, 3) or not all(isinstance(v, numbers.Integral) and not isinstance(v, bool) and v > 0
+    if len(size) not in (2, 3) or not all(not isinstance(v, bool) and isinstance(v, numbers.Integral) and int(v) > 0
                                           for v in size):
         raise InputError(f"image_hw: expected (rows, columns) or an image's shape (rows, columns, 3), got {image_hw!r}")
     return int(size[0]), int(size[1])
@@ -160,7 +161,7 @@ def check_options(score_threshold: object, emulate_to_beams: object) -> None:
     ``emulate_to_beams`` (None or 0: the scan as given, else one of BEAM_COUNTS)."""
     if score_threshold is not None and not (
         isinstance(score_threshold, numbers.Real) and not isinstance(score_threshold, bool)
-        and 0.0 <= score_threshold <= 1.0  # NaN fails too
+        and 0.0 <= float(score_threshold) <= 1.0  # NaN fails too
     ):
         raise InputError(f"score_threshold: a probability in [0, 1] (None: the model's default), got {score_threshold!r}")
     if emulate_to_beams is not None and not (
@@ -396,10 +397,10 @@ def stamp_problem(stamp: object) -> str | None:
     """What is wrong with ``stamp`` as a capture time in integer nanoseconds (0 … int64's largest); None: nothing.
     A float, seconds most likely, is refused rather than rounded: one representation, compared exactly."""
     if isinstance(stamp, numbers.Integral) and not isinstance(stamp, bool):
-        if stamp < 0:
+        if int(stamp) < 0:
             return (f"{stamp} is negative; a capture time counts nanoseconds since the epoch (or on another clock "
                     "both sensors share), 0 or later")
-        if stamp > STAMP_NS_MAX:
+        if int(stamp) > STAMP_NS_MAX:
             return f"{stamp} is more than int64 holds ({STAMP_NS_MAX}): nanoseconds, not a finer unit?"
         return None
     if isinstance(stamp, numbers.Real) and not isinstance(stamp, bool):

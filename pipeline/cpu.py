@@ -105,8 +105,8 @@ def cpu_quota(root: Path | None = None) -> float | None:
     """
     root = CGROUP if root is None else root
     try:  # cgroup v2: "max 100000" or "200000 100000"
-        quota, period = (root / "cpu.max").read_text().split()[:2]
-        return None if quota == "max" else int(quota) / int(period)
+        quota_text, period_text = (root / "cpu.max").read_text().split()[:2]
+        return None if quota_text == "max" else int(quota_text) / int(period_text)
     except (OSError, ValueError):
         pass
     try:  # cgroup v1: a quota of -1 is none

@@ -53,6 +53,7 @@ def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
     """Frame-processing core on one real frame; returns a summary and writes pictures into ``out``."""
     preset = get_preset(preset_name)
     frame = load_frame(SAMPLE_DIR, frame_id)
+    assert frame.image is not None  # loaded with its image (with_image=True)
     tic = time.perf_counter()
     rings = recover_rings(frame.points)
     lidar16 = emulate_beams(frame.points, 16)

@@ -174,9 +174,10 @@ def run(
     except BaseException as exc:  # an error or Ctrl-C: no cut-off video; one of an earlier run stays as it was
         if movie is not None:
             movie.discard()
-            exc.video_written = movie.written  # an interrupt may come just after the video was put in place
+            # main reads it: an interrupt may come just after the video was put in place
+            exc.video_written = movie.written  # type: ignore[attr-defined]
         raise
-    if movie is not None and not movie.written and Path(video).is_file():
+    if movie is not None and not movie.written and movie.path.is_file():
         log.warning("warning: --video %s: no frame was detected, so no video was written; the file there is an "
                     "earlier run's", video)
     return result
@@ -265,7 +266,9 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
     or drive's frame whose files are unusable is skipped and named."""
     from tqdm import tqdm
 
-    results, images, totals = [], [], {}
+    results: list[Path] = []
+    images: list[Path] = []
+    totals: dict[str, float] = {}
     count = 0
     warned: set[str] = set()
     skipped: dict[str, str] = {}
@@ -295,6 +298,8 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
             totals[stage] = totals.get(stage, 0.0) + ms
         (out / "data").mkdir(parents=True, exist_ok=True)
         result = out / "data" / f"{frame.frame_id}.txt"
+        # Every source loads the image (so its size), and _detect_frame keeps the points PIXOR saw.
+        assert frame.image is not None and frame.image_hw is not None and detections.points is not None
         objects = detections.to_objects(frame.calib, frame.image_hw)
         write_labels(result, objects)
         count += len(objects)  # what the result files hold: the boxes the camera sees
@@ -389,6 +394,7 @@ def _detect_frame(detector: Detector, frame: Frame, source: str | dict[str, Path
     the folder and frame, or for one set of files the file of the field the Detector names."""
     depth = None
     if depth_dir is not None:
+        assert frame.image is not None  # every frame source loads the image
         depth = read_image_depth_png(Path(depth_dir) / f"{frame.frame_id}.png", frame.image.shape[:2])
     if frame.points.shape[0] == 0 and frame.dropped_nonfinite:
         raise InputError(f"{_where(source, 'points')}: points: none of the scan's {frame.dropped_nonfinite} rows is finite")

@@ -29,6 +29,7 @@ import logging
 import threading
 import time
 import weakref
+from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +38,7 @@ import numpy as np
 import onnxruntime as ort
 
 from pipeline.beams import BEAM_COUNTS, emulate_beams
-from pipeline.bev import BevVoxelizer, pseudo_bins
+from pipeline.bev import BevVoxelizer, PseudoBins, pseudo_bins
 from pipeline.boxes import BoxRecord, box_records, boxes_to_objects, in_camera_view
 from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, Calibration, check_calibration
 from pipeline.checks import (
@@ -96,14 +97,15 @@ REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 writt
 MAX_COORDINATE = 1e6
 
 
-def trained_lines(training: dict) -> int | None:
+def trained_lines(training: dict[str, object]) -> int | None:
     """The line count of the scans a PIXOR learned from, by its manifest's training record: 64 for ``lidar64``;
     for ``lidar16`` and ``pseudo`` the lines ``models.train --emulate-beams`` thinned them to, 16 when it took
     them as stored (0: a 16-line sensor's own scans) or did not record it (runs before the flag); None without
     a recorded input."""
-    lines = SCAN_LINES_BY_INPUT.get(training.get("input"))
+    given = training.get("input")
+    lines = SCAN_LINES_BY_INPUT.get(given) if isinstance(given, str) else None  # a list would not even hash
     emulated = training.get("emulate_beams")
-    if lines == 16 and emulated in BEAM_COUNTS:
+    if lines == 16 and isinstance(emulated, int) and not isinstance(emulated, bool) and emulated in BEAM_COUNTS:
         return emulated
     return lines
 
@@ -179,7 +181,7 @@ class Detections:
         return box_records(self.boxes, self.scores, self.label)
 
 
-def resolve_providers(requested: str | list[str] | None = None, available: list[str] | None = None) -> list[str]:
+def resolve_providers(requested: str | Sequence[str] | None = None, available: list[str] | None = None) -> list[str]:
     """Execution providers to use, best first: TensorRT → CUDA → CPU, those this ONNX Runtime build offers.
 
     ``requested`` may be short names (cpu, cuda, tensorrt) or ONNX Runtime names. One name of the chain
@@ -323,7 +325,7 @@ class Detector:
     def __init__(
         self,
         model_dir: str | Path,
-        providers: str | list[str] | None = None,
+        providers: str | Sequence[str] | None = None,
         intra_op_threads: int | None = None,
         verify: bool = True,
         trt_cache_dir: str | Path | None = None,
@@ -716,6 +718,7 @@ class Detector:
 
         voxelizer = self._voxelizer()
         overlapped: dict[str, float] = {}
+        pseudo: PseudoBins | None = None  # a LiDAR-only model's: none
         if self.two_stage:
             if image is None or calib is None:
                 raise InputError("image and calib: this model needs a camera image and a calibration")
@@ -764,7 +767,7 @@ class Detector:
         else:
             if depth is not None:
                 raise InputError("depth: this model has no depth network to replace (a LiDAR-only model directory)")
-            pseudo = beside = None
+            beside = None
             warnings += self.frame_checks(points)
 
         tic = time.perf_counter()

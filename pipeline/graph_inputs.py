@@ -15,8 +15,12 @@ from __future__ import annotations
 import re
 from collections.abc import Iterable, Mapping
 from itertools import pairwise
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:  # the annotation only: this module works on names and arrays, and need not load ONNX Runtime
+    import onnxruntime as ort
 
 _PIECE = re.compile(r"^(?P<base>.+)\[(?P<lo>\d+):(?P<hi>\d+)\]$")
 
@@ -69,7 +73,7 @@ def whole_inputs(input_names: Iterable[str]) -> dict[str, list[tuple[int, int]]]
     return {base: sorted(ranges) for base, ranges in pieces.items()}
 
 
-def feeds_for(session, arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+def feeds_for(session: ort.InferenceSession, arrays: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
     """:func:`session_feeds` for an ONNX Runtime session (its inputs as the graph names them)."""
     return session_feeds([graph_input.name for graph_input in session.get_inputs()], arrays)
 

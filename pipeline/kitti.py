@@ -384,7 +384,7 @@ def format_label(obj: Object3D) -> str:
     return " ".join(parts)
 
 
-def write_labels(path: str | Path, objects: list[Object3D]) -> None:
+def write_labels(path: str | Path, objects: Iterable[Object3D]) -> None:
     """Write KITTI label lines (an empty file for no objects, as KITTI results expect)."""
     Path(path).write_text("".join(format_label(o) + "\n" for o in objects), encoding="ascii")
 

@@ -130,8 +130,10 @@ def _check_tables(manifest: dict, path: Path) -> None:
     for name, entry in networks.items():
         if not isinstance(entry, dict) or not isinstance(entry.get("file"), str):
             raise ModelFileError(f"{path}: networks.{name}: expected a table with its \"file\", got {entry!r:.60}")
-        if not isinstance(entry.get("training") or {}, dict):
+        training = entry.get("training") or {}
+        if not isinstance(training, dict):
             raise ModelFileError(f"{path}: networks.{name}.training: expected a table, got {entry['training']!r:.60}")
+        _check_training_record(training, f"{path}: networks.{name}.training")
         if entry["file"] not in manifest["files"]:  # it would be loaded without its sha256 checked
             raise ModelFileError(f"{path}: networks.{name}.file: {entry['file']!r:.60} has no sha256 in 'files'")
     if not isinstance(manifest.get("preset_config"), dict):
@@ -139,6 +141,19 @@ def _check_tables(manifest: dict, path: Path) -> None:
     precision = manifest.get("precision", "fp32")
     if precision not in PRECISIONS:
         raise ModelFileError(f"{path}: precision: {precision!r:.60} is none of {', '.join(PRECISIONS)}")
+
+
+def _check_training_record(training: dict, where: str) -> None:
+    """The training record's fields the runtime reads (the scan lines a PIXOR learned from): ``input`` a name and
+    ``emulate_beams`` a whole line count, each when recorded. A list there made the Detector fail with a
+    TypeError traceback."""
+    given = training.get("input")
+    if given is not None and not isinstance(given, str):
+        raise ModelFileError(f"{where}.input: expected the name of the input (such as \"pseudo\"), got {given!r:.60}")
+    emulated = training.get("emulate_beams")
+    if emulated is not None and (isinstance(emulated, bool) or not isinstance(emulated, int)):
+        raise ModelFileError(f"{where}.emulate_beams: expected a whole number of lines (0: as stored), got "
+                             f"{emulated!r:.60}")
 
 
 def verify_sha256(directory: str | Path, manifest: dict) -> None:

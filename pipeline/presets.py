@@ -9,6 +9,7 @@ keeps tests fast.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -204,7 +205,7 @@ PRESETS: dict[str, Preset] = {
 # Suffixes that change a part of a preset: the paper's two ablations of the depth net, the depth net's
 # full-resolution head in its two modes (experiments, docs/models.md: neither lifted the camera row), and
 # the BEV with the pseudo points in channels of their own (BevGrid.split_pseudo).
-ABLATIONS = {
+ABLATIONS: dict[str, tuple[str, dict[str, Any]]] = {
     "-no-gam": ("depth", {"use_gam": False}),
     "-no-aspp": ("depth", {"use_aspp": False}),
     "-refine": ("depth", {"refine_channels": 8}),
@@ -227,7 +228,8 @@ def get_preset(name: str) -> Preset:
     the pseudo points up to 35 m only (``DepthNetConfig.max_depth``; the depth net's weights do not depend on it).
     Suffixes stack (``edge-refine-no-gam``, ``edge-split-near35``).
     """
-    base, changes = name, {"depth": {}, "bev": {}}
+    base = name
+    changes: dict[str, dict[str, Any]] = {"depth": {}, "bev": {}}
     applied: set[str] = set()
     while base not in PRESETS:
         suffix = next((s for s in ABLATIONS if base.endswith(s)), None)
@@ -258,7 +260,7 @@ def lidar_only(preset: Preset) -> Preset:
                    bev=replace(preset.bev, split_pseudo=False))
 
 
-def _tuples(value):
+def _tuples(value: Any) -> Any:
     """JSON lists back to the tuples the frozen dataclasses hold."""
     return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
 

@@ -9,6 +9,7 @@ points are merged in they keep their measured reflectance.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -55,11 +56,11 @@ class RayTable:
     stride: int
 
 
-_TABLES: OrderedDict[tuple, object] = OrderedDict()
+_TABLES: OrderedDict[tuple, RayTable] = OrderedDict()
 _TABLES_MAX = 16  # a deployment sees one or a few calibrations; KITTI one per drive
 
 
-def _cached(key: tuple, build):
+def _cached(key: tuple, build: Callable[[], RayTable]) -> RayTable:
     """The table under key, built on first use (least recently built dropped past _TABLES_MAX)."""
     table = _TABLES.get(key)
     if table is None:
@@ -139,7 +140,7 @@ def depth_jumps(depth: np.ndarray, max_jump: float) -> np.ndarray:
     """
     d = np.asarray(depth, np.float32)
     with np.errstate(invalid="ignore", over="ignore"):  # inf − inf and NaN are not jumps (and not depths)
-        above = cv2.dilate(d, _CROSS)
+        above: np.ndarray = cv2.dilate(d, _CROSS)
         above -= d
         below = d - cv2.erode(d, _CROSS)
         np.maximum(above, below, out=above)

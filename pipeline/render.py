@@ -106,7 +106,8 @@ def render_bev(
     grey = (np.clip(np.log1p(density) / np.log(20.0), 0, 1) * 255).astype(np.uint8).reshape(height, width)
     canvas = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     # Range rings every 10 m help reading distances; their labels sit off the lane ahead, where boxes are.
-    origin = tuple(int(v) for v in _to_pixels(np.array([0.0, 0.0]), grid, metres_per_pixel))
+    column, row = _to_pixels(np.array([0.0, 0.0]), grid, metres_per_pixel)
+    origin = (int(column), int(row))
     farthest = float(np.hypot(max(grid.x_max, -grid.x_min), max(grid.y_max, -grid.y_min)))
     for r in range(RING_STEP_M, int(farthest) + 1, RING_STEP_M):
         radius = int(r / metres_per_pixel)
@@ -124,13 +125,13 @@ def render_bev(
         corners = _to_pixels(bev_corners(drawn), grid, metres_per_pixel)
         # A box far off the picture (a broken scan can give one) has no pixel position OpenCV accepts.
         drawable = np.isfinite(corners).all(axis=(1, 2)) & (np.abs(corners) < 1e5).all(axis=(1, 2))
-        drawn, corners = drawn[drawable], np.rint(corners[drawable]).astype(np.int32)
+        corners = np.rint(corners[drawable]).astype(np.int32)
         if with_score and scores is not None:
             scores = scores[drawable]
         cv2.polylines(canvas, list(corners), True, colour, 2, cv2.LINE_AA)
         front = np.rint(corners[:, [0, 3]].mean(axis=1)).astype(np.int32)  # mid front edge: heading
         centre = np.rint(corners.mean(axis=1)).astype(np.int32)
-        for i in range(len(drawn)):  # one line and label per box: tens of boxes at most
+        for i in range(len(corners)):  # one line and label per box: tens of boxes at most
             cv2.line(canvas, tuple(centre[i]), tuple(front[i]), colour, 2, cv2.LINE_AA)
             if with_score and scores is not None:
                 cv2.putText(canvas, f"{scores[i]:.2f}", tuple(corners[i, 0] + [4, -4]),
@@ -378,7 +379,7 @@ class FrameVideo:
             except OSError as exc:
                 raise VideoError(exc.errno, exc.strerror, str(self.path)) from exc
             self._size = (picture.shape[1], picture.shape[0])
-            self._writer = cv2.VideoWriter(str(self._partial), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self._size)
+            self._writer = cv2.VideoWriter(str(self._partial), cv2.VideoWriter.fourcc(*"mp4v"), self.fps, self._size)
             if not self._writer.isOpened():
                 raise VideoError(errno.EIO, f"OpenCV could not open an MP4 writer for {self._size[0]}×{self._size[1]} "
                                  "frames", str(self.path))

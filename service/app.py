@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Iterable
 from contextlib import asynccontextmanager
 from typing import Any
 
@@ -105,14 +105,12 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
         app.include_router(router)
     # Every route is a fixed path: the metrics label requests answered before routing (413s) by it, and
     # those to FastAPI's own routes (/openapi.json, /docs, /redoc), which do not name their route in the scope.
-    route_paths = frozenset(
-        [route.path for router in (*protected, *open_to_all) for route in router.routes]
-        + [path for route in app.routes if isinstance(path := getattr(route, "path", None), str)]  # FastAPI's own
-    )
-    open_paths = frozenset(route.path for router in open_to_all for route in router.routes)
+    route_paths = frozenset(paths_of([route for router in (*protected, *open_to_all) for route in router.routes])
+                            + paths_of(app.routes))  # FastAPI's own
+    open_paths = frozenset(paths_of([route for router in open_to_all for route in router.routes]))
     app.state.route_methods = route_methods([route for router in (*protected, *open_to_all) for route in router.routes]
                                             + list(app.routes))
-    detect_paths = frozenset(route.path for route in detect.router.routes)
+    detect_paths = frozenset(paths_of(detect.router.routes))
     # Added last = outermost. The request context wraps everything (but CORS, when configured: a 500 must carry
     # its headers too, or a browser's script cannot read it), so that every answer is counted and carries an id;
     # inside it, each layer answers before the body is read when it can: the connection limit (503), the
@@ -142,6 +140,11 @@ def served_model_id(app: FastAPI) -> str | None:
     """The id of the model the app serves (its manifest's sha256), None before it is loaded."""
     loaded: Runtime | None = app.state.runtime
     return loaded.identity.id if loaded is not None else None
+
+
+def paths_of(routes: Iterable[object]) -> list[str]:
+    """The paths of ``routes`` (Starlette types a router's routes as BaseRoute, which need not have one)."""
+    return [path for route in routes if isinstance(path := getattr(route, "path", None), str)]
 
 
 def route_methods(routes: list[Any]) -> dict[str, frozenset[str]]:

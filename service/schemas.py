@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from enum import Enum, IntEnum
-from typing import Annotated
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -114,7 +114,7 @@ class SensorStamps(BaseModel):
                                   "the warning `sensor_skew`", examples=[50.0])
 
 
-_DETECT_EXAMPLE = {
+_DETECT_EXAMPLE: dict[str, Any] = {
     "detections": [
         {
             "label": "Car",
@@ -212,7 +212,7 @@ class Health(BaseModel):
     """Liveness or readiness."""
 
     status: str = Field(examples=["ok"])
-    ready: bool | None = Field(None, description="models loaded and warmed up")
+    ready: bool | None = Field(default=None, description="models loaded and warmed up")
 
 
 class SessionPair(BaseModel):
