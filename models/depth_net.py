@@ -14,6 +14,14 @@ Layout (paper preset, 352 × 1216 input, stem stride 1)::
     convt1 128 → 64 (stride 1) ⊕ gam(conv1) → 128             /1
     convtf 128 → 1 (1×1)  → depth in metres
 
+Departures from Ma et al.'s code in the ``paper`` preset, each kept on purpose: conv1_d, conv1_img and
+conv6 end with ReLU where theirs end with LeakyReLU(0.2) (the decoder's convt5 … convt1 do use it, as
+theirs); the image is normalised with ImageNet's statistics inside the network, where theirs reads raw
+0–255 RGB; weights start He-normal (theirs: normal, σ 0.02). Why the activations stay: the layers are
+shared by every preset, the shipped edge weights were trained (and are fine-tuned from ONNX) with ReLU,
+and a paper-only switch would be a preset field every shipped manifest must state
+(tests/test_shipped_weights.py). After a BN the two differ only on negative pre-activations.
+
 ``stem_stride`` 2 gives conv1_d and conv1_img stride 2, so every feature map is
 halved (a quarter of the FLOPs of everything after the stem); the 1-channel
 output is then upsampled ×2 bilinearly back to the input resolution. Inputs
@@ -76,7 +84,8 @@ LEAKY_SLOPE = 0.2
 
 
 def conv_bn_relu(in_channels: int, out_channels: int, kernel_size: int = 3, stride: int = 1) -> nn.Sequential:
-    """Conv (no bias, BN follows) + BN + ReLU, as Ma et al.'s encoder stems and conv6."""
+    """Conv (no bias, BN follows) + BN + ReLU: Ma et al.'s encoder stems and conv6 (theirs end with
+    LeakyReLU(0.2); the module docstring says why ours do not)."""
     return nn.Sequential(
         nn.Conv2d(in_channels, out_channels, kernel_size, stride, kernel_size // 2, bias=False),
         nn.BatchNorm2d(out_channels),

@@ -7,8 +7,8 @@ Layout (paper preset, input 36 × 800 × 700)::
     block3    6 bottlenecks, width 48 → 192, first stride 2  /4
     block4    6 bottlenecks, width 64 → 256, first stride 2  /8
     block5    3 bottlenecks, width 96 → 384, first stride 2  /16
-    FPN       1×1 laterals to 96 channels; top-down 3×3 stride-2 transposed convs, summed,
-              from /16 down to /4 (output_stride)
+    FPN       1×1 laterals to the level's width (fpn_channels: one for all levels, or one per level);
+              top-down 3×3 stride-2 transposed convs, summed, from /16 down to /4 (output_stride)
     header    4 × (3×3 conv 96, BN, ReLU)
     score     3×3 conv → 1, sigmoid (bias = −log((1 − π)/π), π = 0.01)
     regression 3×3 conv → 6 (cos θ, sin θ, dx, dy, log w, log l, normalised)
@@ -63,6 +63,23 @@ class Bottleneck(nn.Module):
         return self.relu(out + identity)
 
 
+def fpn_widths(fpn_channels: int | tuple[int, ...], levels: int) -> tuple[int, ...]:
+    """Output channels of each FPN level, from the output level up to /16.
+
+    ``fpn_channels`` is one width for every level, or one per level in that order: PIXOR's own
+    top-down path narrows towards the output, 196 → 128 → 96 (``(96, 128, 196)`` here).
+    """
+    if isinstance(fpn_channels, int):
+        return (fpn_channels,) * levels
+    widths = tuple(int(width) for width in fpn_channels)
+    if len(widths) != levels:
+        raise ValueError(
+            f"fpn_channels {widths} gives {len(widths)} widths, but the FPN has {levels} levels "
+            f"(output stride to /{STAGE_STRIDES[-1]}): give one width per level or a single int"
+        )
+    return widths
+
+
 class Pixor(nn.Module):
     """PIXOR backbone + FPN + header.
 
@@ -102,17 +119,20 @@ class Pixor(nn.Module):
             stage_out.append(channels)
         self.block2, self.block3, self.block4, self.block5 = stages
 
-        # FPN: laterals on every stage from the output level up to /16, top-down transposed convs.
+        # FPN: laterals on every stage from the output level up to /16, top-down transposed convs, each
+        # from a level's width to the next finer level's.
         self.first_level = STAGE_STRIDES.index(stride)
-        fpn = config.fpn_channels
-        self.laterals = nn.ModuleList(nn.Conv2d(c, fpn, 1) for c in stage_out[self.first_level :])
+        widths = fpn_widths(config.fpn_channels, len(stage_out) - self.first_level)
+        self.laterals = nn.ModuleList(
+            nn.Conv2d(c, width, 1) for c, width in zip(stage_out[self.first_level :], widths, strict=True)
+        )
         self.upsamples = nn.ModuleList(
-            nn.ConvTranspose2d(fpn, fpn, 3, 2, padding=1, output_padding=1)
-            for _ in range(len(stage_out) - 1 - self.first_level)
+            nn.ConvTranspose2d(widths[level + 1], widths[level], 3, 2, padding=1, output_padding=1)
+            for level in range(len(widths) - 1)
         )
 
         header = []
-        previous = fpn
+        previous = widths[0]
         for _ in range(config.header_convs):
             header.append(conv3x3_bn_relu(previous, config.header_channels))
             previous = config.header_channels

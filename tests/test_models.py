@@ -65,8 +65,10 @@ def paper_pixor_parameters() -> int:
     for width, blocks in zip((24, 48, 64, 96), (3, 6, 6, 3)):
         total += bottleneck(cin, width, 2) + (blocks - 1) * bottleneck(width * 4, width, 1)
         cin = width * 4
-    total += sum(conv(c, 96, 1, bias=True) for c in (192, 256, 384))  # FPN laterals at /4, /8, /16
-    total += 2 * conv(96, 96, 3, bias=True)  # top-down transposed convs /16 → /8 → /4
+    # PIXOR's own top-down path: laterals to 96 (/4), 128 (/8) and 196 (/16) channels, transposed convs
+    # 196 → 128 (/16 → /8) and 128 → 96 (/8 → /4).
+    total += conv(192, 96, 1, bias=True) + conv(256, 128, 1, bias=True) + conv(384, 196, 1, bias=True)
+    total += conv(196, 128, 3, bias=True) + conv(128, 96, 3, bias=True)
     total += 4 * (conv(96, 96, 3) + bn(96))  # header
     total += conv(96, 1, 3, bias=True) + conv(96, 6, 3, bias=True)
     return total
@@ -179,6 +181,22 @@ def test_pixor_rejects_grid_not_divisible_by_output_stride() -> None:
 
     with pytest.raises(ValueError, match="not divisible by the output stride 4"):
         Pixor(PAPER.pixor, in_channels=36, input_hw=(800, 350))
+
+
+def test_pixor_fpn_takes_one_width_per_level_or_one_for_all() -> None:
+    """PIXOR's own top-down path narrows 196 → 128 → 96 towards the output; the edge and tiny presets give
+    one width for every level. A tuple of the wrong length names the levels it needed."""
+    from models.pixor import Pixor
+
+    with torch.device("meta"):
+        narrowing = Pixor(replace(TINY.pixor, fpn_channels=(16, 24, 40)), in_channels=8, input_hw=(200, 176))
+        uniform = Pixor(replace(TINY.pixor, fpn_channels=16), in_channels=8, input_hw=(200, 176))
+    assert [lateral.out_channels for lateral in narrowing.laterals] == [16, 24, 40]
+    assert [(up.in_channels, up.out_channels) for up in narrowing.upsamples] == [(24, 16), (40, 24)]
+    assert narrowing.header[0][0].in_channels == 16
+    assert [lateral.out_channels for lateral in uniform.laterals] == [16, 16, 16]
+    with pytest.raises(ValueError, match="gives 2 widths, but the FPN has 3 levels"):
+        Pixor(replace(TINY.pixor, fpn_channels=(16, 24)), in_channels=8, input_hw=(200, 176))
 
 
 # --------------------------------------------------------------------------- tiny forward passes
