@@ -222,6 +222,15 @@ class _Frame:
     dontcare: np.ndarray
 
 
+def too_hard_for(occluded: np.ndarray, truncated: np.ndarray, box_height: np.ndarray) -> np.ndarray:
+    """(3, N) bool: a ground-truth box is ignored at each difficulty (easy, moderate, hard), as ``cleanData``
+    decides it; a box exactly at a minimum height is too small (``height <= MIN_HEIGHT``)."""
+    occluded, truncated, box_height = (np.asarray(a, np.float64).reshape(-1) for a in (occluded, truncated, box_height))
+    return ((occluded[None, :] > MAX_OCCLUSION[:, None])
+            | (truncated[None, :] > MAX_TRUNCATION[:, None])
+            | (box_height[None, :] <= MIN_HEIGHT[:, None]))
+
+
 def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: Sequence[str],
                    ignore_small_detections: bool = True,
                    distance_range: tuple[float, float] | None = None) -> _Frame:
@@ -232,11 +241,7 @@ def _prepare_frame(gt: LabelArrays, det: LabelArrays, class_name: str, metrics: 
     keep_gt = gt_mine | (gt.types == neighbour) if neighbour else gt_mine
     gt_kept = gt.select(keep_gt)
     mine = gt_mine[keep_gt]
-    too_hard = (
-        (gt_kept.occluded[None, :] > MAX_OCCLUSION[:, None])
-        | (gt_kept.truncated[None, :] > MAX_TRUNCATION[:, None])
-        | (gt_kept.box_height[None, :] <= MIN_HEIGHT[:, None])
-    )
+    too_hard = too_hard_for(gt_kept.occluded, gt_kept.truncated, gt_kept.box_height)
     if distance_range is not None:  # outside the band: ignored, like a too-hard box
         too_hard |= ~_within(gt_kept.location[:, 2], distance_range)[None, :]
     ignored_gt = np.where(mine[None, :] & ~too_hard, 0, 1).astype(np.int8)

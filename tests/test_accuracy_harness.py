@@ -1,5 +1,6 @@
 """benchmarks/accuracy.py dataset modes: the detector over a KITTI folder, and depth metrics."""
 
+import dataclasses
 import hashlib
 import json
 import shutil
@@ -12,11 +13,15 @@ import numpy as np
 import pytest
 
 from evaluation.harness import run_depth, run_detection
+from evaluation.kitti_eval import evaluate_by_distance
+from evaluation.labels import LabelArrays
 from pipeline.calib import depth_crop, sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
-from pipeline.kitti import read_depth_png, write_depth_png
+from pipeline.kitti import read_depth_png, read_labels, write_depth_png
 from pipeline.provenance import code_version
+from simulation.run import RunConfig
+from simulation.run import run as simulate
 from tests.conftest import FRAMES, KITTI, lidar_only_models
 
 ACCURACY = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
@@ -573,3 +578,18 @@ def test_depth_pictures_name_their_frame_and_model(tiny_models, tmp_path, monkey
     assert titles == [f"frame 000006, model {tiny_models.name}", "frame 000006, depth from depth_2"]
     assert cv2.imread(str(tmp_path / "p" / "depth_000006.png")) is not None
 
+
+def test_depth_runs_cars_are_those_the_evaluation_counts_at_moderate(tiny_models, tmp_path):
+    # Synthetic validation frame 3 (seed 2) holds a car exactly 25 px high at 39 m, which the devkit ignores
+    # (height <= 25): the per-car depth figures must be of the same cars the moderate AP counts, band by band.
+    data = tmp_path / "sim"
+    simulate(RunConfig(data, frames=1, seed=2, start=3, split="val", progress=False))
+    labels = read_labels(data / "label_2" / "000003.txt")
+    assert any(o.type == "Car" and o.bbox[3] - o.bbox[1] == 25.0 and o.occluded <= 1 for o in labels)
+    depth = run_depth(data, tiny_models, progress=False)
+    truth = [LabelArrays.from_objects(labels)]
+    detections = [LabelArrays.from_objects([dataclasses.replace(o, score=1.0) for o in labels if o.type == "Car"])]
+    bands = evaluate_by_distance(truth, detections, edges=(0.0, 20.0, 35.0, 50.0), metrics=("bev",))
+    for (low, high), result in bands.items():
+        counted = result.curve("bev", 0.7, "moderate").n_ground_truth
+        assert sum(low <= z < high for z, _ in depth.car_errors) == counted, (low, high)
