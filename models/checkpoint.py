@@ -12,7 +12,9 @@ By convention a checkpoint directory holds ``depth.pt`` and/or ``pixor.pt``.
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -50,11 +52,57 @@ def save_checkpoint(path: str | Path, preset: Preset, networks: dict[str, nn.Mod
                         for name, module in networks.items()},
         "metadata": dict(metadata),
     }
-    # Write then rename: an interrupted save never leaves a truncated checkpoint behind.
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    return save_atomic(payload, path)
+
+
+def save_atomic(payload: object, path: Path) -> Path:
+    """``torch.save`` into ``path`` whole or not at all: written beside it as ``NAME.tmp``, flushed to the disk,
+    then renamed over it. A process killed meanwhile, or a full disk, leaves the earlier file as it was (and
+    no ``.tmp`` when the error can be caught). Raises OSError naming ``path`` when it cannot be written."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        # Through a file of our own: torch.save given a path reports a full disk as a RuntimeError without errno.
+        with open(tmp, "wb") as handle:
+            torch.save(payload, handle)
+            handle.flush()
+            os.fsync(handle.fileno())  # renamed only once the bytes are on the disk: a node failure keeps one whole
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        # The error that stopped the save is the one to report: torch's zip writer, closed on the way out,
+        # raises a RuntimeError of its own over a write error or a Ctrl-C / SIGTERM that came mid-write.
+        cause = _wrapped(exc) if isinstance(exc, RuntimeError) else exc
+        if isinstance(cause, OSError):
+            raise OSError(cause.errno, cause.strerror or str(cause), str(path)) from exc
+        if isinstance(cause, KeyboardInterrupt):
+            raise cause.with_traceback(None) from None
+        raise
     return path
+
+
+def _wrapped(exc: BaseException) -> BaseException:
+    """The write error or interruption a RuntimeError of torch's was raised while handling (its chain of
+    "during handling of …" contexts), else ``exc`` itself."""
+    context = exc.__context__
+    while context is not None and context is not exc:
+        if isinstance(context, (OSError, KeyboardInterrupt)):
+            return context
+        context = context.__context__
+    return exc
+
+
+def write_text_atomic(path: Path, text: str) -> None:
+    """Replace a small text file whole (beside it as ``NAME.tmp``, then renamed): a reader, or a run killed
+    meanwhile, never sees it cut short."""
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise
 
 
 def load_checkpoint(path: str | Path) -> Checkpoint:

@@ -64,6 +64,7 @@ from export.exporter import ExportConfig
 from export.exporter import run as export
 from models.cache_pseudo import run as cache_pseudo
 from models.schedule import Job, JobFailed, run_jobs
+from models.signals import sigterm_as_interrupt, stop_status
 from models.train import TrainConfig
 from models.train import run as train
 from pipeline.cli import HelpFormatter, check_output, examples, interrupted, positive_float, positive_int
@@ -284,7 +285,11 @@ def run_stage(config: ReproduceConfig, name: str, threads: int | None = None) ->
                 raise RuntimeError(f"{branch.parent}: trained {len(result['history'])} epochs, past the branch "
                                    f"point ({b.pseudo_branch_epochs}) whose weights the camera PIXOR starts "
                                    "from; remove that folder and rerun")
-            shutil.copy2(out / "pixor_lidar16" / "pixor.pt", branch)
+            # Copied whole or not at all: a half-copied branch would be taken as there on the rerun, and the
+            # 16-line run trains on past the weights it should hold.
+            partial = branch.with_name(branch.name + ".tmp")
+            shutil.copy2(out / "pixor_lidar16" / "pixor.pt", partial)
+            partial.replace(branch)
         return {"branch": str(branch)}
     if name == "pixor_lidar16":
         return detector("lidar16", b.detector_epochs)
@@ -488,15 +493,17 @@ def main(argv: list[str] | None = None) -> int:
                              lanes=args.lanes)
     config.budget = replace(config.budget, depth_car_weight=args.car_weight)
     try:
-        report = run(config)
+        with sigterm_as_interrupt():  # pre-emption (SIGTERM) stops the job processes too, as Ctrl-C does
+            report = run(config)
     except (InputError, FileNotFoundError, ValueError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except JobFailed as exc:  # a crash's traceback is above, from its own process
         print(f"error: {exc}; rerun the same command to resume", file=sys.stderr)
         return 2 if exc.user_error else 1
-    except KeyboardInterrupt:
-        return interrupted(f"{config.weights} is as it was; rerun the same command to resume")
+    except KeyboardInterrupt as exc:
+        status = interrupted(f"{config.weights} is as it was; rerun the same command to resume")
+        return stop_status(exc, status)
     print(format_table(report))
     print(f"shipped {report['shipped']} ({report['shipped_from']}); {report['total_seconds'] / 60:.1f} min in all")
     return 0

@@ -6,15 +6,24 @@ applies to the task is checked next to the flags, in models.train.check_flags_ap
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import random
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+try:
+    import fcntl
+except ImportError:  # Windows: no advisory locks; a run folder is then not guarded against a second process
+    fcntl = None
 
 import numpy as np
 import torch
 
 from models.cache_pseudo import check_sources, recorded_beams
+from models.checkpoint import save_atomic
 from pipeline.beams import check_thinnable
 from pipeline.depth_completion import check_map_size, drive_calibration, is_drive_folder, raw_scan_path
 from pipeline.errors import InputError
@@ -43,8 +52,57 @@ def check_out(out: Path) -> None:
         raise InputError(f"--out: cannot create {out}: {existing} is a file")
 
 
+@contextlib.contextmanager
+def run_lock(out: Path) -> Iterator[None]:
+    """Hold the run folder ``out`` (an existing directory) for this process while it trains: a second process
+    given the same --out (the command started twice, a rerun while the earlier one still winds down) is refused
+    instead of both writing its state. The lock is on the folder itself, so it adds no file to it, and the
+    system drops it when the process ends, however it ends (SIGKILL included)."""
+    if fcntl is None:
+        yield
+        return
+    handle = os.open(out, os.O_RDONLY)
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise InputError(f"--out: {out} is in use by another training process; wait for it to end (or stop "
+                             "it), then rerun") from None
+        yield
+    finally:
+        os.close(handle)  # closing the last descriptor releases the lock
+
+
+def save_state(state_path: Path, networks: dict[str, torch.nn.Module], optimizer, scheduler, epoch: int,
+               best: float, history: list[dict], config: dict) -> None:
+    """Write the run's state after ``epoch`` epochs (0: before the first), whole or not at all (save_atomic):
+    everything ``--resume`` needs to continue as if never stopped."""
+    save_atomic({"networks": {name: net.state_dict() for name, net in networks.items()},
+                 "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                 "epoch": epoch, "best": best, "history": history, "config": config,
+                 "torch_rng": torch.get_rng_state(), "numpy_rng": np.random.get_state(),
+                 "python_rng": random.getstate()}, state_path)
+
+
+def stopped_at(out: Path) -> str:
+    """What an interrupted run in ``out`` keeps and how to go on (the command's last line)."""
+    state_path = out / STATE_FILE
+    if not state_path.is_file():
+        return f"{out} has no finished epoch yet; nothing to resume"
+    try:
+        state = load_state(state_path)
+    except InputError:
+        return f"{out}: {STATE_FILE} cannot be read back; start a new run in another folder"
+    done = state["epoch"]
+    if done == 0:
+        return f"{out} has no finished epoch yet; rerun with --resume to start it again"
+    return (f"{out} keeps epoch {done} ({STATE_FILE}); rerun with --resume "
+            f"to continue from epoch {done + 1}")
+
+
 def load_state(state_path: Path) -> dict:
-    """The training state a run folder holds (written at the end of each epoch); InputError if it is not one."""
+    """The training state a run folder holds (written before the first epoch and at the end of each); InputError
+    if it is not one."""
     try:
         state = torch.load(state_path, map_location="cpu", weights_only=False)
     except Exception as exc:  # torch raises pickle, zip, value and runtime errors for files that are not its own
@@ -104,10 +162,12 @@ def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
         if wanted != started:
             raise InputError(f"{_flag_text(flag, wanted)}, but {out} was started with {_flag_text(flag, started)}"
                              f" (resume with the same flags; only --epochs may change)")
-    for flag, key in (("--precision", "precision"), ("--device", "device")):
+    # Not refused, but the float sums run in another order: the remaining epochs do not match the uninterrupted run's.
+    for flag, key in (("--precision", "precision"), ("--device", "device"), ("--threads", "threads"),
+                      ("--compile", "compile")):
         if key in recorded and recorded[key] != getattr(config, key):
-            log.warning("%s: resumed with %s %s, started with %s: the remaining epochs compute differently",
-                        out, flag, getattr(config, key), recorded[key])
+            log.warning("%s: resumed with %s, started with %s: the remaining epochs compute differently", out,
+                        _flag_text(flag, getattr(config, key)), _flag_text(flag, recorded[key]))
 
 
 def restore_state(state: dict, state_path: Path, networks: dict[str, torch.nn.Module], optimizer, scheduler,

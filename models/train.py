@@ -29,11 +29,14 @@ which an older export lacks and which then starts from its initialisation);
 every other weight and batch-norm statistic stays as loaded.
 
 Each epoch: a progress bar, validation metrics (depth RMSE/MAE; detector loss
-and KITTI BEV AP), one JSON line in ``RUN_DIR/log.jsonl``, the full training
-state in ``RUN_DIR/state.pt`` (exact resume with ``--resume``: weights,
-optimizer, schedule, RNG, the epoch's data order comes from the seed and the
-epoch number) and the best weights as ``RUN_DIR/depth.pt`` / ``pixor.pt`` in
-the checkpoint format ``python -m export --checkpoints RUN_DIR`` reads.
+and KITTI BEV AP), the best weights as ``RUN_DIR/depth.pt`` / ``pixor.pt`` in
+the checkpoint format ``python -m export --checkpoints RUN_DIR`` reads, the full
+training state in ``RUN_DIR/state.pt`` (also written before the first epoch;
+exact resume with ``--resume``: weights, optimizer, schedule, RNG, the epoch's
+data order comes from the seed and the epoch number) and one JSON line in
+``RUN_DIR/log.jsonl``. Each file is written whole or not at all, so a run killed
+at any moment resumes; SIGTERM stops it as Ctrl-C does, saying which epoch it
+keeps; a second process given the same RUN_DIR is refused while one trains there.
 
 Arithmetic: bf16 autocast with channels-last tensors where the CPU supports it
 (``--precision auto``, the default; ``fp32`` to turn it off). Weights, optimizer
@@ -54,10 +57,10 @@ bits (fused reductions), so losses agree to a few decimals, not to the digit.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import json
 import logging
-import random
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -70,7 +73,7 @@ from tqdm import tqdm
 
 from models import build_depth_net, build_pixor
 from models.allocator import keep_freed_memory
-from models.checkpoint import CHECKPOINT_FILES, save_checkpoint
+from models.checkpoint import CHECKPOINT_FILES, save_checkpoint, write_text_atomic
 from models.data import (
     DETECTOR_INPUTS,
     DepthCompletionDataset,
@@ -102,8 +105,12 @@ from models.run_checks import (
     emulated_lines,
     load_state,
     restore_state,
+    run_lock,
+    save_state,
+    stopped_at,
     thins_scans,
 )
+from models.signals import sigterm_as_interrupt, stop_status
 from models.start_weights import (
     freeze_batch_norms,
     freeze_except,
@@ -372,7 +379,33 @@ def loader(dataset, batch_size: int, shuffle: bool, seed: int, workers: int, inp
 
 # ----------------------------------------------------------------------------- run
 def run(config: TrainConfig) -> TrainResult:
-    """Train one task; see the module docstring."""
+    """Train one task; see the module docstring. The run folder is held (run_lock) while it trains."""
+    with contextlib.ExitStack() as guard:
+        return _run(config, guard)
+
+
+def _write_log(log_path: Path, history: list[dict]) -> None:
+    """The run's log from its state's records: one line per finished epoch, replaced whole."""
+    text = "".join(json.dumps(record) + "\n" for record in history)
+    if not log_path.is_file() or log_path.read_text(encoding="utf-8") != text:
+        write_text_atomic(log_path, text)
+
+
+def _append_log(log_path: Path, record: dict) -> None:
+    """One epoch's line; a write that fails (a full disk) is undone, so no line is left cut short."""
+    with open(log_path, "a", encoding="utf-8") as handle:
+        size = handle.tell()
+        try:
+            handle.write(json.dumps(record) + "\n")
+            handle.flush()
+        except OSError:
+            with contextlib.suppress(OSError):
+                handle.truncate(size)
+            raise
+
+
+def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
+    """:func:`run` with ``guard`` holding the run folder's lock once it is taken."""
     if config.task not in TASKS:
         raise InputError(f"task: {config.task!r} is not one of {', '.join(TASKS)}")
     if config.task == "detector" and config.input_mode not in DETECTOR_INPUTS:
@@ -394,6 +427,9 @@ def run(config: TrainConfig) -> TrainResult:
     # Every input is checked before anything is trained or written: --out is made only after the checks.
     out = Path(config.out)
     check_out(out)
+    locked = out.is_dir()
+    if locked:  # before its state is read: another process may be writing it
+        guard.enter_context(run_lock(out))
     state_path = out / STATE_FILE
     state = None
     if config.resume and (state_path.exists() or config.strict_resume):
@@ -406,14 +442,17 @@ def run(config: TrainConfig) -> TrainResult:
     elif not config.resume and (held := [f for f in CHECKPOINT_FILES.values() if (out / f).exists()]):
         # Checkpoints without a run's state (models.onnx_weights writes such folders): a new run would replace
         # one and leave the other beside it, for export --checkpoints to pair.
+        stopped = " (a run stopped in its first epoch, by a version that kept no state before it: remove the " \
+            "folder to start it again)" if (out / "log.jsonl").is_file() else ""
         raise InputError(f"--out: {out} already holds {' and '.join(held)} but no {STATE_FILE} (not a run to "
-                         "resume); give a new folder")
+                         f"resume){stopped}; give a new folder")
     if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
     train_dir, train_ids, val_dir, val_ids = split_ids(config)
     check_thinnable_scans(config, train_dir, train_ids, val_dir, val_ids)
     check_pseudo_maps(config, train_ids, val_ids)
     if state is not None and state["epoch"] >= config.epochs:  # nothing to train: the run stays as it is
+        _write_log(out / "log.jsonl", list(state["history"]))  # its last line, if a kill came before it
         checkpoints = {name: out / f"{name}.pt" for name in state["networks"] if (out / f"{name}.pt").exists()}
         return TrainResult(out, checkpoints, list(state["history"]), epochs_before=state["epoch"],
                            epochs=config.epochs)
@@ -447,6 +486,13 @@ def run(config: TrainConfig) -> TrainResult:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"--out: cannot create {out} ({exc.strerror or exc})") from None
+    if not locked:  # a folder this run has just made
+        guard.enter_context(run_lock(out))
+    recorded_config = _jsonable(asdict(config))
+    if state is None:
+        # The state before the first epoch, right after the folder is made: a run stopped in its first epoch
+        # resumes (--resume) like any other, and the flags it was started with are there to compare.
+        save_state(state_path, networks, optimizer, scheduler, 0, best, history, recorded_config)
 
     beams = emulated_lines(config)
     if thins_scans(config):  # which scans the run learns from, said once at its start
@@ -499,9 +545,8 @@ def run(config: TrainConfig) -> TrainResult:
             if earlier:
                 metadata_base["recipe"][f"{name}_start_training"] = earlier
     log_path = out / "log.jsonl"
-    # One line per epoch the state holds: an interruption after an epoch's log line but before its state.pt
-    # (or a stale log in a folder without one) would otherwise leave that epoch twice once it is trained again.
-    log_path.write_text("".join(json.dumps(record) + "\n" for record in history), encoding="utf-8")
+    # One line per epoch the state holds (a stale log in a folder without one would otherwise keep its lines).
+    _write_log(log_path, history)
     for epoch in range(start_epoch, config.epochs):
         tic = time.perf_counter()
         for net in networks.values():
@@ -569,8 +614,6 @@ def run(config: TrainConfig) -> TrainResult:
                   "seconds": round(time.perf_counter() - tic, 1),
                   **{k: v for k, v in metrics.items() if k != "bev_ap"}}
         history.append(record)
-        with open(log_path, "a", encoding="utf-8") as handle:
-            handle.write(json.dumps(record) + "\n")
         log.info("epoch %d: %s", epoch + 1,  # 4 significant digits: a learning rate of 5e-5 stays 5e-05
                  {k: float(f"{v:.4g}") if isinstance(v, float) else v for k, v in record.items()})
         criterion = selection_criterion(config.task, metrics)
@@ -580,12 +623,10 @@ def run(config: TrainConfig) -> TrainResult:
             for name, net in networks.items():
                 save_checkpoint(out / f"{name}.pt", preset, {name: net},  # save_checkpoint stores CPU tensors
                                 {**metadata_base, "epoch": epoch + 1, "metrics": metrics})
-        torch.save({"networks": {n: net.state_dict() for n, net in networks.items()},
-                    "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
-                    "epoch": epoch + 1, "best": best, "history": history, "config": _jsonable(asdict(config)),
-                    "torch_rng": torch.get_rng_state(), "numpy_rng": np.random.get_state(),
-                    "python_rng": random.getstate()}, state_path.with_suffix(".tmp"))
-        state_path.with_suffix(".tmp").replace(state_path)
+        # Best checkpoints, then the state, then the log line: stopped between two of them, the run resumes at
+        # this epoch and writes them again, and the log never shows an epoch the state does not hold.
+        save_state(state_path, networks, optimizer, scheduler, epoch + 1, best, history, recorded_config)
+        _append_log(log_path, record)
     checkpoints = {name: out / f"{name}.pt" for name in networks if (out / f"{name}.pt").exists()}
     return TrainResult(out, checkpoints, history, first_loss, last_loss, epochs_before=start_epoch,
                        epochs=config.epochs)
@@ -700,14 +741,18 @@ def main(argv: list[str] | None = None) -> int:
     progress = not options.pop("no_progress")
     config = TrainConfig(**options, progress=progress, strict_resume=args.resume)
     try:
-        result = run(config)
+        with sigterm_as_interrupt():  # a cluster's pre-emption (SIGTERM) stops the run as Ctrl-C does
+            result = run(config)
     except (InputError, FileNotFoundError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        kept = ("keeps the last finished epoch (state.pt); rerun with --resume to continue"
-                if (args.out / STATE_FILE).is_file() else "has no finished epoch yet; nothing to resume")
-        return interrupted(f"{args.out} {kept}")
+    except OSError as exc:  # a full disk, a folder made read-only or removed while the run writes
+        print(f"error: {exc.filename or args.out}: cannot write it ({exc.strerror or exc}); "
+              f"{stopped_at(args.out)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as exc:
+        status = interrupted(stopped_at(args.out))
+        return stop_status(exc, status)
     if result.nothing_to_do:
         print(already_trained(result))
         return 0
