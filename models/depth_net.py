@@ -434,7 +434,11 @@ def load_resnet18_encoder(model: DepthCompletionNet, path: str | Path) -> list[s
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: ResNet-18 checkpoint not found")
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises pickle, zip and runtime errors for files not its own
+        raise ValueError(f"{path}: not a PyTorch state dict, such as torchvision's resnet18-f37072fd.pth "
+                         f"({type(exc).__name__})") from None
     for key in ("state_dict", "model"):
         if isinstance(state, dict) and isinstance(state.get(key), dict):
             state = state[key]

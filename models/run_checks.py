@@ -147,6 +147,7 @@ def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
     compared += [("--data", "data"), ("--val-data", "val_data"), ("--train-split", "train_split"),
                  ("--val-split", "val_split"), ("--max-train-frames", "max_train_frames"),
                  ("--max-val-frames", "max_val_frames"), ("--batch-size", "batch_size"), ("--lr", "lr"),
+                 ("--lr-step", "lr_step"), ("--lr-gamma", "lr_gamma"), ("--resnet18", "resnet18"),
                  ("--seed", "seed"), ("--depth-loss", "depth_loss"), ("--car-weight", "car_weight"),
                  ("--freeze-bn", "freeze_bn"), ("--quick", "quick"), ("--pseudo-dir", "pseudo_dir"),
                  ("--val-pseudo-dir", "val_pseudo_dir"), ("--depth-checkpoint", "depth_checkpoint"),

@@ -1,7 +1,8 @@
 """Training: ``python -m models.train depth|detector|joint --data DIR --preset P --out RUN_DIR [--resume] …``
 
-* depth — the paper's recipe by default: batch 4, Adam lr 1e-4 halved every 5
-  epochs, 10 epochs, MSE on pixels with ground truth; input = 16-line sparse
+* depth — the paper's recipe by default: batch 4, Adam lr 1e-4 decayed every 5
+  epochs (the paper gives no factor: halved here, ``--lr-gamma``; Ma et al.'s code
+  divides by 10), 10 epochs, MSE on pixels with ground truth; input = 16-line sparse
   depth + image. ``--data`` / ``--val-data`` may also be KITTI depth-completion
   drives in the flat layout of pipeline/depth_completion.py (``image_02/``,
   ``velodyne_raw/``, ``groundtruth/``, the drive's calibration in it or above;
@@ -82,6 +83,7 @@ from models.data import (
     car_boxes,
     frame_points,
 )
+from models.depth_net import load_resnet18_encoder
 from models.devices import (
     COMPILE_MIN_STEPS,
     CPU,
@@ -170,10 +172,11 @@ class TrainConfig:
     epochs: int | None = None
     batch_size: int | None = None
     lr: float | None = None
-    lr_step: int = 5  # depth: halve every lr_step epochs
+    lr_step: int = 5  # depth and joint: multiply the rate by lr_gamma every lr_step epochs
     depth_loss: str = "mse"  # depth and joint: mse (the paper) | l1 (models/reproduce.py says why)
     car_weight: float = 1.0  # depth: the loss weight of the labelled cars' own pixels (models.data.car_pixels)
     lr_gamma: float = 0.5
+    resnet18: Path | None = None  # depth: ImageNet ResNet-18 weights (torchvision's format) for the encoder
     max_train_frames: int | None = None
     max_val_frames: int | None = None
     workers: int = 0
@@ -251,10 +254,40 @@ def check_flags_apply(config: TrainConfig) -> None:
          "it weights the depth loss of a depth run"),
         ("--freeze-bn", config.freeze_bn and config.depth_checkpoint is None and config.pixor_checkpoint is None,
          "it keeps the batch norms of the weights a run starts from: give --depth-checkpoint or --pixor-checkpoint"),
+        ("--lr-step", config.lr_step != TrainConfig.lr_step and config.task == "detector",
+         "a detector run halves its rate when the validation loss stops falling"),
+        ("--lr-gamma", config.lr_gamma != TrainConfig.lr_gamma and config.task == "detector",
+         "a detector run halves its rate when the validation loss stops falling"),
+        ("--resnet18", config.resnet18 is not None and config.task != "depth",
+         "it starts a depth run's encoder; a joint run starts from the trained --depth-checkpoint"),
+        ("--resnet18", config.resnet18 is not None and config.depth_checkpoint is not None,
+         "--depth-checkpoint gives every weight of the depth net already"),
     ]
     for flag, given, why in unused:
         if given:
             raise InputError(f"{flag}: not used by a {config.task} run ({why})")
+
+
+def start_networks(config: TrainConfig, preset: Preset, resumed: bool = False) -> dict[str, torch.nn.Module]:
+    """The task's networks with the weights the run starts from: ``--depth-checkpoint`` / ``--pixor-checkpoint``,
+    or for a depth run ``--resnet18``'s ImageNet encoder (as Ma et al. start theirs; not when resumed: the run's
+    state holds every weight)."""
+    networks: dict[str, torch.nn.Module] = {}
+    if config.task in ("depth", "joint"):
+        networks["depth"] = build_depth_net(preset)
+    if config.task in ("detector", "joint"):
+        networks["pixor"] = build_pixor(preset)
+    for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
+        if name in networks and path is not None:
+            load_start_weights(networks[name], name, Path(path), preset, config.train_only)
+    if config.resnet18 is not None and not resumed:
+        try:
+            load_resnet18_encoder(networks["depth"], config.resnet18)
+        except FileNotFoundError:
+            raise InputError(f"--resnet18: {config.resnet18} does not exist") from None
+        except (TypeError, ValueError) as exc:  # not a state dict, or widths that do not fit: it names the file
+            raise InputError(f"--resnet18: {exc}") from None
+    return networks
 
 
 # ----------------------------------------------------------------------------- data
@@ -458,14 +491,7 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
                            epochs=config.epochs)
     seed_everything(config.seed)
 
-    networks: dict[str, torch.nn.Module] = {}
-    if config.task in ("depth", "joint"):
-        networks["depth"] = build_depth_net(preset)
-    if config.task in ("detector", "joint"):
-        networks["pixor"] = build_pixor(preset)
-    for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
-        if name in networks and path is not None:
-            load_start_weights(networks[name], name, Path(path), preset, config.train_only)
+    networks = start_networks(config, preset, resumed=state is not None)
     trained = freeze_except(networks, config.train_only)
     layout = run_layout(networks)
     for net in networks.values():
@@ -532,6 +558,9 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         metadata_base["emulate_beams"] = config.emulate_beams
     if config.task in ("depth", "joint"):
         metadata_base["recipe"]["depth_loss"] = config.depth_loss
+        metadata_base["recipe"]["lr_decay"] = {"every_epochs": config.lr_step, "factor": config.lr_gamma}
+    if config.resnet18 is not None:
+        metadata_base["recipe"]["encoder_start"] = str(config.resnet18)
     if config.train_only:
         metadata_base["recipe"]["train_only"] = list(config.train_only)
     if config.car_weight != 1.0:
@@ -712,6 +741,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--epochs", type=positive_int, metavar="N", help="default: the task's recipe")
     parser.add_argument("--batch-size", type=positive_int, metavar="N", help="default: the task's recipe")
     parser.add_argument("--lr", type=positive_float, help="default: the task's recipe")
+    parser.add_argument("--lr-step", type=positive_int, default=TrainConfig.lr_step, metavar="N",
+                        help=f"depth and joint: decay the rate every N epochs (default {TrainConfig.lr_step}, the paper's)")
+    parser.add_argument("--lr-gamma", type=positive_float, default=TrainConfig.lr_gamma, metavar="F",
+                        help=f"depth and joint: the rate's factor at each decay (default {TrainConfig.lr_gamma}; the "
+                             "paper gives none, Ma et al.'s code uses 0.1)")
+    parser.add_argument("--resnet18", type=Path, metavar="FILE",
+                        help="depth: start the encoder from ImageNet ResNet-18 weights in torchvision's format "
+                             "(resnet18-f37072fd.pth; the paper preset's widths only), as Ma et al. do")
     parser.add_argument("--depth-loss", default="mse", choices=tuple(DEPTH_LOSSES),
                         help="depth and joint: per-pixel loss on the depth map (default mse, the paper's)")
     parser.add_argument("--car-weight", type=positive_float, default=1.0,

@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from models.train import TrainConfig, main, run
+from pipeline.presets import get_preset
 from tests.conftest import KITTI
 
 REPO = Path(__file__).resolve().parents[1]
@@ -262,6 +264,11 @@ def test_checkpoints_without_a_run_are_never_replaced(finished_run, tmp_path, ca
     ("detector", ["--pseudo-dir", "maps"], "--pseudo-dir: not used by a detector run (read by detector runs with --input"),
     ("depth", ["--val-pseudo-dir", "maps"], "--val-pseudo-dir: not used by a depth run"),
     ("depth", ["--freeze-bn"], "--freeze-bn: not used by a depth run (it keeps the batch norms of the weights"),
+    ("detector", ["--lr-gamma", "0.1"], "--lr-gamma: not used by a detector run (a detector run halves its rate"),
+    ("detector", ["--lr-step", "3"], "--lr-step: not used by a detector run"),
+    ("detector", ["--resnet18", "r.pth"], "--resnet18: not used by a detector run (it starts a depth run's encoder"),
+    ("depth", ["--resnet18", "r.pth", "--depth-checkpoint", "d.pt"],
+     "--resnet18: not used by a depth run (--depth-checkpoint gives every weight"),
 ])
 def test_a_setting_the_task_does_not_use_is_refused(tmp_path, capsys, one_frame, task, extra, says):
     """Silently ignored, it would leave the user believing the run used it."""
@@ -527,3 +534,42 @@ def test_validation_frames_that_are_trained_on_are_warned_of(tmp_path, caplog):
     other = _object_folder(tmp_path / "other", ("000003", "000006"))
     assert warned(val_data=other) == []
     assert warned() == ["no --val-data or --val-split: validating on the training frames"]  # as before, alone
+
+
+def test_depth_rate_decays_by_the_given_factor_every_given_epochs(tmp_path, one_frame):
+    """--lr-step and --lr-gamma: the paper's "decayed every 5 epochs" has no factor; Ma et al.'s code divides by 10.
+    The log's rate per epoch follows the schedule asked for, and the recipe records it."""
+    out = tmp_path / "run"
+    assert main(args("depth", out, one_frame, "--epochs", "3", "--lr", "0.001", "--lr-step", "1", "--lr-gamma",
+                     "0.1", "--no-progress")) == 0
+    rates = [json.loads(line)["lr"] for line in (out / "log.jsonl").read_text().splitlines()]
+    assert rates == pytest.approx([1e-4, 1e-5, 1e-6])
+    recipe = torch.load(out / "depth.pt", map_location="cpu", weights_only=False)["metadata"]["recipe"]
+    assert recipe["lr_decay"] == {"every_epochs": 1, "factor": 0.1}
+    resumed_otherwise = args("depth", out, one_frame, "--epochs", "4", "--lr", "0.001", "--lr-step", "1", "--resume")
+    assert main(resumed_otherwise) == 2  # the rest of the run would decay by another factor than its log says
+
+
+def test_resnet18_weights_start_the_paper_encoder_and_unusable_files_are_named(tmp_path, one_frame, capsys):
+    """--resnet18: torchvision's ImageNet ResNet-18 as the paper preset's encoder (start_networks, as a run
+    builds them); a file that is not one, or a preset of other widths, is one line naming the flag and file."""
+    from models.train import start_networks
+    from tests.test_models import torchvision_resnet18_state
+
+    state = torchvision_resnet18_state()
+    path = tmp_path / "resnet18.pth"
+    torch.save(state, path)
+    config = TrainConfig(task="depth", data=KITTI, preset="paper", out=tmp_path / "unused", resnet18=path)
+    depth = start_networks(config, get_preset("paper"))["depth"].state_dict()
+    assert all(torch.equal(depth[name], tensor) for name, tensor in state.items() if name.startswith("layer"))
+    resumed = start_networks(config, get_preset("paper"), resumed=True)["depth"].state_dict()
+    assert not torch.equal(resumed["layer1.0.conv1.weight"], state["layer1.0.conv1.weight"])
+
+    says = refused(args("depth", tmp_path / "edge", one_frame, "--resnet18", str(path)), capsys)
+    assert says.startswith(f"error: --resnet18: {path}: layer1.0.conv1.weight has")
+    garbage = tmp_path / "notes.pth"
+    garbage.write_text("not a checkpoint")
+    says = refused(args("depth", tmp_path / "garbage", one_frame, "--resnet18", str(garbage)), capsys)
+    assert says.startswith(f"error: --resnet18: {garbage}: not a PyTorch state dict")
+    says = refused(args("depth", tmp_path / "missing", one_frame, "--resnet18", str(tmp_path / "nowhere.pth")), capsys)
+    assert says == f"error: --resnet18: {tmp_path / 'nowhere.pth'} does not exist"
