@@ -50,6 +50,7 @@ from pipeline.presets import Preset, preset_from_dict
 SAMPLE_DIR = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 SAMPLE_FRAME = "000006"
 CHECKS = ("manifest", "files", "sessions", "frame")
+SHOWN_PROBLEMS = 5  # the bad files the files check names, before "and N more"
 
 
 class CheckFailed(Exception):
@@ -121,8 +122,9 @@ def check_files(models: Path, manifest: dict) -> list[str]:
             verify_sha256(models, {"files": {name: entry}})
         except ModelFileError as exc:
             problems.append(str(exc))
-    if problems:
-        raise CheckFailed("; ".join(problems))
+    if problems:  # a few named, then a count: a manifest may list 100,000 files, and the report stays readable
+        more = f"; and {len(problems) - SHOWN_PROBLEMS} more" if len(problems) > SHOWN_PROBLEMS else ""
+        raise CheckFailed("; ".join(problems[:SHOWN_PROBLEMS]) + more)
     listed = {MANIFEST_NAME, "trt_cache", *manifest["files"]}
     return [f"{models / name}: not listed in the manifest (never loaded)"
             for name in sorted(p.name for p in models.iterdir()) if name not in listed]

@@ -61,7 +61,7 @@ from pipeline.cpu import int8_pairs_saturate, usable_cpus
 from pipeline.errors import InputError
 from pipeline.graph_inputs import session_feeds, whole_shapes
 from pipeline.kitti import Object3D
-from pipeline.model_files import ModelFileError, load_manifest, verify_sha256
+from pipeline.model_files import ModelFileError, load_manifest, read_verified, verify_sha256
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, depth_view, view_calibration
 from pipeline.presets import Preset, preset_from_dict
@@ -95,6 +95,12 @@ REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 writt
 # garbage, and the float32 stages (squared ranges, projections) would overflow on it: a float64 1e300 even
 # became infinite in the cast to float32.
 MAX_COORDINATE = 1e6
+# Where ONNX Runtime looks for a graph's external data (tensors kept in another file) when the graph is given as bytes:
+# by default the working directory, where no sha256 covers anything. A path under /dev/null can hold no file, so a
+# graph that names one is refused, as is one naming a path outside it (ONNX Runtime's own check).
+NO_EXTERNAL_DATA = "/dev/null/lowres3d-loads-no-external-data"
+# What each network's graph must give, by output name (float32, of the preset's shapes: Detector._check_shapes).
+NETWORK_OUTPUTS = {"depth": ("depth",), "pixor": ("score", "regression")}
 
 
 def trained_lines(training: dict[str, object]) -> int | None:
@@ -352,8 +358,7 @@ class Detector:
         self.networks_used = tuple(networks_used)
         self.model_dir = Path(model_dir)
         self.manifest = load_manifest(self.model_dir)
-        if verify:
-            verify_sha256(self.model_dir, self.manifest)
+        graphs = self._read_graphs(verify)
         try:
             self.preset: Preset = preset_from_dict(self.manifest["preset_config"])
         except (KeyError, TypeError, ValueError) as exc:
@@ -370,6 +375,13 @@ class Detector:
             raise ModelFileError(f"{self.model_dir / 'manifest.json'}: no 'pixor' network listed")
         self.two_stage = "depth" in networks
         self._sessions: dict[str, ort.InferenceSession] = {}
+        # CPU and CUDA get the very bytes whose sha256 was checked: no second read of a file that a copy may have
+        # replaced since, and no external data (the check covers only the listed files). TensorRT gets the path,
+        # as before: its engine cache is named after the model file (untested here from bytes), and the file is
+        # checked again once the session holds it.
+        by_path = "TensorrtExecutionProvider" in self.providers
+        if not by_path:
+            options.add_session_config_entry("session.model_external_initializers_file_folder_path", NO_EXTERNAL_DATA)
         for name in ("depth", "pixor") if self.two_stage else ("pixor",):
             path = self.model_dir / networks[name]["file"]
             try:
@@ -377,12 +389,20 @@ class Detector:
                 # the provider options (the device id, TensorRT's cache): a worker given GPU 1 would run on
                 # GPU 0, a failing GPU session on the CPU, with a printout only; later, a run that fails on the
                 # GPU would rebuild the session there for good. A GPU that fails says so instead.
-                self._sessions[name] = ort.InferenceSession(str(path), options, providers=entries, enable_fallback=0)
+                model = str(path) if by_path else graphs[networks[name]["file"]]
+                self._sessions[name] = ort.InferenceSession(model, options, providers=entries, enable_fallback=0)
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
+                reason = " ".join(str(exc).split())  # one line: some of ONNX Runtime's messages span several
+                if "External data path" in reason:  # ONNX Runtime's words when it will not read a tensor's file
+                    raise ModelFileError(f"{path}: the graph keeps tensors in another file (ONNX external data), "
+                                         "which no sha256 of the manifest covers; export it with its weights inside "
+                                         f"({reason})") from exc
                 gpu = next((p for p in self.providers if p in GPU_PROVIDERS), None)
                 if gpu is not None:  # the file's sha256 was checked: the likelier cause is the GPU side
                     raise InputError(gpu_session_error(path, gpu, device_id, trt_options, exc)) from exc
-                raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({exc})") from exc
+                raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({reason})") from exc
+        if by_path and verify:  # the file ONNX Runtime read by its path, checked again now that the session holds it
+            verify_sha256(self.model_dir, {"files": {f: self.manifest["files"][f] for f in graphs}})
         # Input names as each graph has them: a lowered PIXOR reads its BEV in channel pieces.
         self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}
         self._check_shapes()
@@ -411,14 +431,31 @@ class Detector:
             log.warning(warning)
         self.trained_lines: int | None = trained_lines(networks["pixor"].get("training") or {})  # None: not recorded
 
+    def _read_graphs(self, verify: bool) -> dict[str, bytes]:
+        """The bytes of the networks' files, by file name, each read once and (``verify``) checked against its
+        sha256; the manifest's other files checked too. Every file in the manifest's order, as verify_sha256 did."""
+        networks = self.manifest.get("networks", {})
+        wanted = {networks[name]["file"] for name in ("depth", "pixor") if name in networks}
+        graphs: dict[str, bytes] = {}
+        for file, entry in self.manifest["files"].items():
+            if file in wanted:
+                graphs[file] = read_verified(self.model_dir, self.manifest, file, check=verify)
+            elif verify:
+                verify_sha256(self.model_dir, {"files": {file: entry}})
+        return graphs
+
     def _check_shapes(self) -> None:
         """The manifest's preset gives the input shapes the graphs were exported with (a hand-edited preset
-        would otherwise fail at the first frame, inside ONNX Runtime)."""
+        would otherwise fail at the first frame, inside ONNX Runtime), and the outputs the runtime reads: each
+        network's by name, float32, of the preset's shapes (a graph that gives another shape or type, or names its
+        outputs otherwise, loaded and failed at the first frame: in the service, after it had started)."""
         manifest = self.model_dir / "manifest.json"
         try:
             bev = (1, *self.preset.bev.shape)
             height, width = self.preset.depth.input_hw
             crop_h, crop_w = self.preset.crop_hw
+            stride = self.preset.pixor.output_stride
+            maps = (self.preset.bev.ny // stride, self.preset.bev.nx // stride)
         except (ArithmeticError, TypeError, ValueError) as exc:
             raise ModelFileError(f"{manifest}: preset_config: not a usable grid or input size ({exc})") from exc
         if min(bev) <= 0 or min(height, width, crop_h, crop_w) <= 0:
@@ -440,6 +477,23 @@ class Detector:
                 if shape != want:
                     raise ModelFileError(f"{manifest}: preset_config gives {name} input '{input_name}' the "
                                          f"shape {list(want)}, but {path} expects {list(shape)}")
+            for graph_input in session.get_inputs():
+                if graph_input.type != "tensor(float)":
+                    raise ModelFileError(f"{path}: input '{graph_input.name}' is a {graph_input.type}, where the "
+                                         "runtime feeds tensor(float)")
+            given = {output.name: output for output in session.get_outputs()}
+            outputs = {"depth": (1, 1, height, width), "score": (1, 1, *maps), "regression": (1, 6, *maps)}
+            for output_name in NETWORK_OUTPUTS[name]:
+                output = given.get(output_name)
+                if output is None:
+                    raise ModelFileError(f"{path}: no output '{output_name}' (a {name} network gives "
+                                         f"{', '.join(NETWORK_OUTPUTS[name])}; this graph: {', '.join(given)})")
+                if output.type != "tensor(float)":
+                    raise ModelFileError(f"{path}: output '{output_name}' is a {output.type}, where the runtime "
+                                         "reads tensor(float)")
+                if tuple(output.shape) != outputs[output_name]:
+                    raise ModelFileError(f"{manifest}: preset_config gives {name} output '{output_name}' the shape "
+                                         f"{list(outputs[output_name])}, but {path} gives {list(output.shape)}")
 
     def _check_provider_loaded(self, explicit: bool) -> str | None:
         """A provider asked for by name must really run the networks: otherwise an InputError naming

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import re
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,6 +42,14 @@ def default_models_hint(models: Path) -> str | None:
 
 
 _CHUNK = 1 << 20
+# What a model directory's files may weigh. The shipped manifests are 8–21 KB and 9–13 levels deep: the bounds are
+# hundreds of times that, and keep a manifest.json that is /dev/zero, a gigabyte of JSON or 100,000 nested brackets
+# (Python's parser: RecursionError) to one line instead of all the memory or a traceback.
+MAX_MANIFEST_BYTES = 8 << 20
+MAX_MANIFEST_DEPTH = 64
+# An ONNX file holds its weights inside it (the exporter writes no external data), and protobuf caps a message at
+# 2 GiB: a bigger file is no model this runtime loads.
+MAX_MODEL_FILE_BYTES = 2 << 30
 
 
 class ModelFileError(RuntimeError):
@@ -51,16 +61,70 @@ def _reason(exc: OSError) -> str:
     return exc.strerror or str(exc)
 
 
-def sha256_file(path: str | Path) -> str:
-    """Hex sha256 of a file, read in 1 MiB chunks; ModelFileError naming the file when it cannot be read."""
-    digest = hashlib.sha256()
+def _kind(mode: int) -> str:
+    """What a file that is not a regular one is, in words."""
+    for test, kind in ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a named pipe"), (stat.S_ISCHR, "a device"),
+                       (stat.S_ISBLK, "a device"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return "not a regular file"
+
+
+def _open_regular(path: str | Path, what: str) -> int:
+    """A read-only descriptor of the regular file at ``path`` (symbolic links followed). Opened without blocking,
+    then checked on the descriptor itself: a named pipe in a file's place would otherwise hang the open, and a link
+    to /dev/zero the read, for ever; checking the name first would leave a moment to swap the file."""
     try:
-        with open(path, "rb") as handle:
+        descriptor = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except OSError as exc:  # no permission, a name too long; a missing file is the caller's to say first
+        raise ModelFileError(f"{path}: cannot read the {what} ({_reason(exc)})") from exc
+    mode = os.fstat(descriptor).st_mode
+    if not stat.S_ISREG(mode):
+        os.close(descriptor)
+        raise ModelFileError(f"{path}: {_kind(mode)}, where the model directory needs the {what} as a regular file")
+    return descriptor
+
+
+def _read_bounded(path: str | Path, what: str, limit: int) -> bytes:
+    """The whole regular file at ``path``; ModelFileError when it is not one, cannot be read, or holds more than
+    ``limit`` bytes (counted as read: /proc files report a size of 0)."""
+    descriptor = _open_regular(path, what)
+    try:
+        with os.fdopen(descriptor, "rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            data = handle.read(limit + 1) if size <= limit else b""
+    except OSError as exc:  # a failing disk, /proc/self/mem
+        raise ModelFileError(f"{path}: cannot read the {what} ({_reason(exc)})") from exc
+    if size > limit or len(data) > limit:
+        raise ModelFileError(f"{path}: more than {limit >> 20} MiB, far more than any {what} this lowres3d reads")
+    return data
+
+
+def sha256_file(path: str | Path) -> str:
+    """Hex sha256 of a regular file, read in 1 MiB chunks; ModelFileError naming the file when it cannot be read
+    or is no regular file (a named pipe, /dev/zero)."""
+    digest = hashlib.sha256()
+    descriptor = _open_regular(path, "model file")
+    try:
+        with os.fdopen(descriptor, "rb") as handle:
             for chunk in iter(lambda: handle.read(_CHUNK), b""):
                 digest.update(chunk)
-    except OSError as exc:  # no permission, a directory in its place, a failing disk
+    except OSError as exc:  # no permission, a failing disk
         raise ModelFileError(f"{path}: cannot read the model file ({_reason(exc)})") from exc
     return digest.hexdigest()
+
+
+def _nesting(value: object) -> int:
+    """How deeply lists and tables nest in a parsed JSON value (1: a scalar), counted without recursion."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        deepest = max(deepest, depth)
+        if isinstance(item, dict):
+            stack.extend((child, depth + 1) for child in item.values())
+        elif isinstance(item, list):
+            stack.extend((child, depth + 1) for child in item)
+    return deepest
 
 
 def load_manifest(directory: str | Path) -> dict:
@@ -80,14 +144,21 @@ def load_manifest_with_digest(directory: str | Path) -> tuple[dict, str]:
     except OSError as exc:
         raise ModelFileError(f"{directory}: cannot open the model directory ({_reason(exc)})") from exc
     try:
-        data = path.read_bytes()
-        manifest = json.loads(data.decode("utf-8"))
-    except FileNotFoundError:
-        raise ModelFileError(f"{path}: no manifest; export the models with `python -m export`") from None
+        exists = path.exists() or path.is_symlink()
     except OSError as exc:
         raise ModelFileError(f"{path}: unreadable manifest ({_reason(exc)})") from exc
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+    if not exists:
+        raise ModelFileError(f"{path}: no manifest; export the models with `python -m export`")
+    data = _read_bounded(path, "manifest", MAX_MANIFEST_BYTES)  # a regular file of a manifest's size, or one line
+    try:
+        manifest = json.loads(data.decode("utf-8"))
+    except RecursionError:  # Python's parser recurses once per bracket
+        raise ModelFileError(f"{path}: unreadable manifest (lists and tables nested too deep to parse)") from None
+    except ValueError as exc:  # bad JSON or UTF-8, and an integer of more than 4,300 digits
         raise ModelFileError(f"{path}: unreadable manifest ({exc})") from exc
+    if _nesting(manifest) > MAX_MANIFEST_DEPTH:  # a later comparison or copy of it would recurse as deep
+        raise ModelFileError(f"{path}: unreadable manifest (lists and tables nested more than {MAX_MANIFEST_DEPTH} "
+                             "deep)")
     if not isinstance(manifest, dict):
         raise ModelFileError(f"{path}: manifest has no 'files' table with sha256 checksums")
     manifest_format(manifest, path)  # first: a newer format's tables may differ from those checked below
@@ -163,33 +234,58 @@ def verify_sha256(directory: str | Path, manifest: dict) -> None:
     """
     directory = Path(directory)
     for name, entry in manifest["files"].items():
-        path = directory / name
-        expected = entry.get("sha256") if isinstance(entry, dict) else None
-        if not expected:
-            raise ModelFileError(f"{directory / MANIFEST_NAME}: no sha256 for {name}")
+        path = _listed_file(directory, name, entry)
+        _check_digest(path, entry, sha256_file(path))
+
+
+def read_verified(directory: str | Path, manifest: dict, name: str, check: bool = True) -> bytes:
+    """The bytes of the listed file ``name``, read once and (``check``) checked against its sha256: what ONNX
+    Runtime is then given, so that no file replaced between the check and the load (nor a path read twice) is run.
+
+    Raises ModelFileError as :func:`verify_sha256` does, and for a file over :data:`MAX_MODEL_FILE_BYTES`."""
+    entry = manifest["files"][name]
+    path = _listed_file(Path(directory), name, entry)
+    data = _read_bounded(path, "model file", MAX_MODEL_FILE_BYTES)
+    if check:
+        _check_digest(path, entry, hashlib.sha256(data).hexdigest(), len(data))
+    return data
+
+
+def _listed_file(directory: Path, name: str, entry: object) -> Path:
+    """The path of the manifest's file ``name``; ModelFileError when it has no sha256 or is not a file."""
+    path = directory / name
+    if not isinstance(entry, dict) or not entry.get("sha256"):
+        raise ModelFileError(f"{directory / MANIFEST_NAME}: no sha256 for {name}")
+    try:
+        is_dir, exists = path.is_dir(), path.exists()
+    except OSError as exc:  # no permission on the directory, a name too long
+        raise ModelFileError(f"{path}: cannot open the model file ({_reason(exc)})") from exc
+    if is_dir:
+        raise ModelFileError(f"{path}: a directory, where the manifest lists a model file")
+    if not exists:
+        raise ModelFileError(f"{path}: model file listed in the manifest is missing")
+    return path  # a named pipe or a device in its place: the read says so (_open_regular)
+
+
+def _check_digest(path: Path, entry: dict, actual: str, size: int | None = None) -> None:
+    """ModelFileError when ``actual`` is not the sha256 ``entry`` lists, saying a cut-off copy as such."""
+    expected = entry["sha256"]
+    if actual == expected:
+        return
+    listed = entry.get("bytes")
+    if size is None:
         try:
-            is_dir, is_file = path.is_dir(), path.is_file()
-        except OSError as exc:  # no permission on the directory, a name too long
-            raise ModelFileError(f"{path}: cannot open the model file ({_reason(exc)})") from exc
-        if is_dir:
-            raise ModelFileError(f"{path}: a directory, where the manifest lists a model file")
-        if not is_file:
-            raise ModelFileError(f"{path}: model file listed in the manifest is missing")
-        actual = sha256_file(path)
-        if actual == expected:
-            continue
-        try:
-            size, listed = path.stat().st_size, entry.get("bytes")
+            size = path.stat().st_size
         except OSError:  # removed since it was read: the mismatch is what there is to say
             size, listed = None, None
-        if isinstance(listed, int) and size != listed:  # a cut-off copy: the likeliest cause, said as such
-            raise ModelFileError(f"{path}: sha256 mismatch: {size} bytes, where the manifest lists {listed} (a copy cut "
-                                 "off or still in progress, or another model's file); copy the whole model directory "
-                                 "again")
-        raise ModelFileError(
-            f"{path}: sha256 mismatch (manifest {expected[:12]}…, file {actual[:12]}…): "
-            "the file is corrupted or was replaced; re-export the model directory"
-        )
+    if isinstance(listed, int) and size != listed:  # a cut-off copy: the likeliest cause, said as such
+        raise ModelFileError(f"{path}: sha256 mismatch: {size} bytes, where the manifest lists {listed} (a copy cut "
+                             "off or still in progress, or another model's file); copy the whole model directory "
+                             "again")
+    raise ModelFileError(
+        f"{path}: sha256 mismatch (manifest {expected[:12]}…, file {actual[:12]}…): "
+        "the file is corrupted or was replaced; re-export the model directory"
+    )
 
 
 @dataclass(frozen=True)
