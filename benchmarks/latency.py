@@ -26,6 +26,12 @@ moved). ``--baseline DIR`` does the same with another model directory
 (an INT8 directory against its FP32 source, say): on a shared machine, two
 separate runs minutes apart differed by more than the precisions did.
 
+End to end is ``Detector.detect`` on frames already in memory, from its input checks to the boxes (the
+wait for the work beside the depth net included); reading and decoding the files and the line emulation are
+not timed. ``fps`` is 1000 / the mean (``fps_wall`` the frames over the loop's wall time); each summary gives
+its frame count and slowest frame (below 100 frames a p99 lies between the two slowest), and the JSON's
+``definitions`` say what each figure is.
+
 What else moves the figures is in the report. The peak is measured before and
 after the stream and the best reading counts (a reading taken while something
 else ran reads low). Each throughput worker's share of its core is recorded and
@@ -70,6 +76,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks.op_profile import GPU_PROFILER_HINT, profile_network
 from benchmarks.op_profile import describe as describe_ops
 from benchmarks.peak import PeakResult, measure_peak
+from export.flops import count_flops
 from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to
 from pipeline.cli import (
     HelpFormatter,
@@ -121,9 +128,72 @@ def load_frames(data: Path, count: int, beams: int | None) -> list[Frame]:
 
 
 def summarize(samples: list[float]) -> dict:
+    """Mean, percentiles (numpy's linear interpolation between the sorted samples), the slowest and the count of
+    ``samples``, none dropped: below 100 samples p99 lies between the two slowest (:func:`tail_note`)."""
     s = np.asarray(samples)
     return {"mean": float(s.mean()), "p50": float(np.percentile(s, 50)), "p90": float(np.percentile(s, 90)),
-            "p99": float(np.percentile(s, 99)), "n": int(s.size)}
+            "p99": float(np.percentile(s, 99)), "max": float(s.max()), "n": int(s.size)}
+
+
+def tail_note(n: int) -> str:
+    """What a p99 (and p90) of ``n`` samples rests on, for the printed report ("" from 100 samples on)."""
+    if n >= 100:
+        return ""
+    p90 = "" if n >= 10 else ", and p90 between the two slowest"
+    return f"; with fewer than 100 frames p99 is an interpolation between the two slowest{p90}"
+
+
+# What each figure of the report is, written into its JSON (``definitions``), so a reader setting one beside
+# the paper's (25.4 ms, 3.4 fps) knows what it includes.
+DEFINITIONS = {
+    "end_to_end_ms": "per frame, Detector.detect on frames already in memory, from its input checks to the boxes: "
+                     "crop and sparse depth, both networks, pseudo points, BEV, decoding and NMS, and the wait for "
+                     "the work run beside the depth net; not reading or decoding the files, and not the line "
+                     "emulation (scans thinned before timing, as a 16-line sensor sends them). Mean and percentiles "
+                     "(numpy's linear interpolation) of n frames after the warm-up ones, none dropped; max the "
+                     "slowest. Below 100 frames p99 lies between the two slowest",
+    "fps": "1000 / end_to_end_ms.mean: the single stream, one frame at a time on every core",
+    "fps_wall": "the single stream's frames / its wall time, the loop between frames included",
+    "stages_ms": "each stage's time on the frame's path (ray_table with a stage thread: the wait for the work "
+                 "beside the depth net), as end_to_end_ms",
+    "overlapped_ms": "the work of the stage thread beside the depth net, on the frame's path only as waited for",
+    "non_network_fraction": "(end_to_end_ms.mean - the networks' stages' means) / end_to_end_ms.mean",
+    "non_network_fraction_fixed_calibration": "the same without the ray tables' builds on the frame's path (a "
+                                              "vehicle's one calibration builds its table once)",
+    "networks.gflops": "GFLOP a frame: 2 x the multiply-accumulates of the convolutions and matrix products, "
+                       "counted from the ONNX graph before its lowering for the CPU (the manifest's flops), "
+                       "x runs; graph_gflops: the same count on the graph that runs (its zero-padded channels, "
+                       "an INT8 graph's sub-pixel convolutions)",
+    "networks.ms": "the p50 of the network's stage (the sum over its runs)",
+    "networks.peak_fraction": "gflops / ms over peak_gflops; matmul_peak_fraction over the MatMul's GFLOP/s",
+    "peak_gflops": "ONNX Runtime fp32 on the CPU with the single stream's intra-op threads: the better of a "
+                   "MatMul and a 256-channel 3x3 convolution, each the median of 5 runs after 1 untimed, read "
+                   "before and after the stream, the higher reading counting",
+    "throughput.fps": "the workers' frames / the wall time from their common start to the last one's end, "
+                      "each worker after its own warm-up; the median over the rounds",
+    "throughput.scaling": "throughput.fps / throughput.fps_one_worker (medians over the rounds; each round's "
+                          "ratio in scaling_per_round)",
+    "throughput.vs_single_stream": "throughput.fps / fps_wall",
+    "speedup_vs_torch": "the median over the alternating blocks of PyTorch's time / ONNX Runtime's on the same "
+                        "frames",
+}
+
+
+def ray_tables_on_path_ms(stream: StreamResult) -> float:
+    """The mean time a frame's path spent building ray tables (pipeline/detector.py builds one per calibration).
+
+    Run in turn, that is the ``ray_table`` stage. With a stage thread the table is built first of the work
+    beside the depth net and the stage is the frame's wait for that work: of a wait W for work whose table
+    took R, min(W, R) was the table's (without it the wait would have been max(0, W − R)); the rest of a
+    wait is the voxelization and checks that outlasted the network, which a fixed calibration still waits for.
+    """
+    waited = stream.stages.get("ray_table", [])
+    built = stream.overlapped.get("ray_table", [])
+    if not waited:
+        return 0.0
+    if len(built) != len(waited):  # every frame of a stream runs the same way: beside or in turn
+        return float(np.mean(waited))
+    return float(np.mean(np.minimum(waited, built)))
 
 
 def summarize_stages(stream: StreamResult) -> dict:
@@ -687,10 +757,31 @@ def versions() -> dict:
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 
 
+def governor(cpu: int = 0) -> str | None:
+    """The CPU frequency governor of ``cpu`` (``performance``, ``powersave``, …); None where the kernel shows none
+    (a virtual machine often has no cpufreq)."""
+    try:
+        return Path(f"/sys/devices/system/cpu/cpu{cpu}/cpufreq/scaling_governor").read_text().strip() or None
+    except OSError:
+        return None
+
+
+def load_average() -> list[float] | None:
+    """The 1, 5 and 15-minute load averages (None off Unix): what else the machine was running."""
+    try:
+        return [round(x, 2) for x in os.getloadavg()]
+    except (AttributeError, OSError):
+        return None
+
+
 def machine() -> dict:
     # INT8 speed (and exactness) hangs on VNNI, fp32 on AVX-512 and FMA: say which this box has.
-    return {**describe_cpu(), "cores": usable_cpus(), "affinity_cpus": len(os.sched_getaffinity(0)),
-            "cpu_quota": cpu_quota(), "system": platform.platform(),
+    cpus = sorted(os.sched_getaffinity(0))
+    return {**describe_cpu(), "cores": usable_cpus(), "affinity_cpus": len(cpus),
+            "cpu_quota": cpu_quota(), "governor": governor(cpus[0]),
+            # At the start; load_average_end is added when the run ends. On a shared machine the figures move
+            # with it (docs/measurements.md quotes it by hand).
+            "load_average_start": load_average(), "system": platform.platform(),
             "python": platform.python_version(),
             # Thread counts set for NumPy's BLAS and OpenMP runtimes move the figures (docs/measurements.md, session 35).
             "thread_environment": {name: os.environ[name] for name in THREAD_VARIABLES if name in os.environ}}
@@ -861,8 +952,10 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     between = report["end_to_end_ms"]["mean"] - networks_ms
     report["non_network_fraction"] = between / report["end_to_end_ms"]["mean"]
     # A calibration's ray table is built on its first frame only (pipeline/detector.py): what a vehicle,
-    # with one calibration, spends between the networks is the rest.
-    rays = report["stages_ms"].get("ray_table", {"mean": 0.0})["mean"]
+    # with one calibration, spends between the networks is the rest. With a stage thread the ray_table stage
+    # is the wait for all the work beside the depth net, of which only the table's part goes.
+    rays = ray_tables_on_path_ms(stream)
+    report["ray_tables_on_path_ms"] = rays
     report["non_network_fraction_fixed_calibration"] = (between - rays) / (report["end_to_end_ms"]["mean"] - rays)
 
     _step(progress, f"the peak ({peak_size}² MatMul, 3×3 conv), after the stream")
@@ -888,10 +981,14 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
         if name in detector.manifest["networks"] and stages[0] in report["stages_ms"]:
             runs = sum(stage in report["stages_ms"] for stage in stages)  # PIXOR runs twice with the mirror
             flops = detector.manifest["networks"][name]["flops"] * runs
+            # The manifest counts the graph before its lowering for the CPU (zero-padded channels are no work);
+            # the graph that runs multiplies a little more (an INT8 one's sub-pixel convolutions more still).
+            graph_flops = count_flops(detector.model_dir / detector.manifest["networks"][name]["file"]).total * runs
             ms = sum(report["stages_ms"][stage]["p50"] for stage in stages if stage in report["stages_ms"])
             achieved = flops / (ms / 1e3) / 1e9
             # The peak is the CPU's: against a GPU's network time a share of it would mean nothing.
-            report["networks"][name] = {"gflops": flops / 1e9, "runs": runs, "ms": ms, "achieved_gflops_per_s": achieved,
+            report["networks"][name] = {"gflops": flops / 1e9, "graph_gflops": graph_flops / 1e9, "runs": runs, "ms": ms,
+                                        "achieved_gflops_per_s": achieved,
                                         "peak_fraction": achieved / peak.peak_gflops if on_cpu else None,
                                         "matmul_peak_fraction": achieved / peak.matmul_gflops if on_cpu else None}
             # The peak is fp32's: an INT8 network may run above it (VNNI does four multiply-adds where fp32 does one).
@@ -920,7 +1017,8 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
                                               score_threshold=score_threshold, device_ids=device_ids)
         # The workers' fps against the single stream's, which had every core too: what the box gains by
         # running frames side by side rather than one frame on all cores.
-        report["throughput"]["vs_single_stream"] = report["throughput"]["fps"] / report["fps"]
+        # Frames over wall time on both sides (report["fps"] is 1000 / the mean of detect's own times).
+        report["throughput"]["vs_single_stream"] = report["throughput"]["fps"] / report["fps_wall"]
     if compare_torch:
         import torch
 
@@ -960,6 +1058,8 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
         report["speedup_vs_baseline_of_means"] = float(np.mean(base.end_to_end) / np.mean(paired.end_to_end))
         if report["speedup_vs_baseline_blocks"]["unstable"]:
             warnings.add([unstable_warning("--baseline", report["speedup_vs_baseline_blocks"])])
+    report["machine"]["load_average_end"] = load_average()
+    report["definitions"] = DEFINITIONS
     report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages, "overlapped": stream.overlapped}
     if scratch is not None:
         scratch.cleanup()
@@ -1010,6 +1110,15 @@ def plot(report: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def _governor_and_load(described: dict) -> str:
+    """"; governor performance; load average 0.9 → 2.1" from :func:`machine`'s dict (what is known of it)."""
+    text = f"; governor {described['governor']}" if described.get("governor") else ""
+    start, end = described.get("load_average_start"), described.get("load_average_end")
+    if start and end:
+        text += f"; load average {start[0]:.1f} at the start, {end[0]:.1f} at the end"
+    return text
+
+
 def print_report(report: dict) -> None:
     e = report["end_to_end_ms"]
     tta = ", PIXOR with mirror TTA (two runs a frame)" if report.get("mirror_tta") else ""
@@ -1018,15 +1127,17 @@ def print_report(report: dict) -> None:
     print(f"{report['models']}: preset {report['preset']}{tta}, {report['precision']}, {report['input']}; "
           f"{report['frames']} frames{distinct} after {report['warmup']} warm-up, score threshold "
           f"{report['score_threshold']:g}, "
-          f"{cpu_label(report['machine'])} ({report['machine']['cores']} cores; {' '.join(report['machine']['cpu_flags'])}), "
-          f"{report['provider']}")
+          f"{cpu_label(report['machine'])} ({report['machine']['cores']} cores; {' '.join(report['machine']['cpu_flags'])}"
+          f"{_governor_and_load(report['machine'])}), {report['provider']}")
     # With fewer than 100 frames p99 is an interpolation between the slowest few: say how many there were.
-    print(f"end to end: mean {e['mean']:.1f} ms, p50 {e['p50']:.1f}, p90 {e['p90']:.1f}, p99 {e['p99']:.1f} "
-          f"(of {e['n']} frames) → {report['fps']:.2f} fps")
+    print(f"end to end (Detector.detect on frames in memory: no file reading, decoding or line emulation): mean "
+          f"{e['mean']:.1f} ms, p50 {e['p50']:.1f}, p90 {e['p90']:.1f}, p99 {e['p99']:.1f}, max {e['max']:.1f} (of "
+          f"{e['n']} frames{tail_note(e['n'])}) → {report['fps']:.2f} fps (1000 / mean; {report['fps_wall']:.2f} "
+          "frames over the loop's wall time)")
     for stage, s in report["stages_ms"].items():
         print(f"  {stage:14s} mean {s['mean']:8.2f}  p50 {s['p50']:8.2f}  p99 {s['p99']:8.2f} ms")
     between = f"between the networks: {100 * report['non_network_fraction']:.1f} % of end to end"
-    if report["stages_ms"].get("ray_table", {"mean": 0.0})["mean"] > 0.05:
+    if report["ray_tables_on_path_ms"] > 0.05:
         between += (f" ({100 * report['non_network_fraction_fixed_calibration']:.1f} % without building ray tables,"
                     " which a fixed calibration does once: these frames do not share one)")
     print(between)
@@ -1043,7 +1154,10 @@ def print_report(report: dict) -> None:
         flops = f"2 × {n['gflops'] / 2:.2f}" if n["runs"] == 2 else f"{n['gflops']:.2f}"
         share = ("no share of the CPU's peak (the networks ran on another provider)" if n["peak_fraction"] is None
                  else f"{100 * n['peak_fraction']:.0f} % of peak ({100 * n['matmul_peak_fraction']:.0f} % of the MatMul's)")
-        print(f"  {name:6s} {flops} GFLOP in {n['ms']:.1f} ms (p50) = {n['achieved_gflops_per_s']:.0f} GFLOP/s, {share}")
+        graph = (f" (the graph that runs, lowered, multiplies {n['graph_gflops']:.2f})"
+                 if abs(n["graph_gflops"] - n["gflops"]) > 0.005 * n["gflops"] else "")
+        print(f"  {name:6s} {flops} GFLOP{graph} in {n['ms']:.1f} ms (p50) = {n['achieved_gflops_per_s']:.0f} GFLOP/s, "
+              f"{share}")
     for name, n in report["networks"].items():
         if "ops" in n:
             print(describe_ops(name, n["ops"]))

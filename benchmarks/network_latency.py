@@ -44,7 +44,7 @@ from pipeline.cli import (
     quiet_interrupt,
     show_progress,
 )
-from pipeline.cpu import cpu_label
+from pipeline.cpu import cpu_label, usable_cpus
 from pipeline.detector import session_options
 from pipeline.errors import TORCH_MISSING
 from pipeline.graph_inputs import feeds_for
@@ -73,6 +73,7 @@ class LatencyRow:
     ort_p50_ms: float
     ort_max_ms: float
     repeats: int
+    threads: int  # intra-op threads of each runtime: read back from the ONNX Runtime session, PyTorch set to it
 
     @property
     def speedup(self) -> float:
@@ -100,8 +101,11 @@ def _time_alternating(
     return times
 
 
-def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, bar: tqdm) -> list[LatencyRow]:
-    """Export ``preset_name`` into ``workdir`` and time both networks."""
+def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, bar: tqdm,
+                   threads: int | None = None) -> list[LatencyRow]:
+    """Export ``preset_name`` into ``workdir`` and time both networks, ONNX Runtime with ``threads`` intra-op
+    threads (None: PyTorch's count, so both runtimes have the same cores)."""
+    threads = threads or torch.get_num_threads()
     result = export_run(ExportConfig(preset=preset_name, out=workdir / preset_name, parity=False))
     inputs = kitti_inputs(get_preset(preset_name))
     rows = []
@@ -111,7 +115,9 @@ def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, ba
         tensors = [torch.from_numpy(v) for v in feeds.values()]
         # The Detector's options: ORT's pool spins within a run and stops when it ends, so it does not
         # steal the cores from the PyTorch block after it.
-        session = ort.InferenceSession(str(result.files[network]), session_options(),
+        # With as many threads as PyTorch's: left to ONNX Runtime's default (one per physical core), --threads 1
+        # timed one PyTorch thread against every core.
+        session = ort.InferenceSession(str(result.files[network]), session_options(threads),
                                        providers=["CPUExecutionProvider"])
 
         def eager(module: torch.nn.Module = module, tensors: list[torch.Tensor] = tensors) -> object:
@@ -135,6 +141,7 @@ def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, ba
                 ort_p50_ms=statistics.median(ort_ms),
                 ort_max_ms=max(ort_ms),
                 repeats=repeats,
+                threads=session.get_session_options().intra_op_num_threads,
             )
         )
     return rows
@@ -142,21 +149,22 @@ def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, ba
 
 def run(presets: list[str], repeats: int = 5, threads: int | None = None, progress: bool = True,
         block: int = 5) -> list[LatencyRow]:
-    """Measure every preset in ``presets``; returns one row per (preset, network)."""
-    if threads is not None:
-        torch.set_num_threads(threads)
+    """Measure every preset in ``presets``; returns one row per (preset, network). threads: both runtimes'
+    intra-op threads (None: one per usable core)."""
+    threads = threads or usable_cpus()
+    torch.set_num_threads(threads)
     rows: list[LatencyRow] = []
     with tempfile.TemporaryDirectory(prefix="lowres3d-latency-") as tmp, tqdm(
         total=len(presets) * 2 * 2 * repeats, disable=not progress, unit="run"
     ) as bar:
         for name in presets:
-            rows.extend(measure_preset(name, repeats, block, Path(tmp), bar))
+            rows.extend(measure_preset(name, repeats, block, Path(tmp), bar, threads))
     return rows
 
 
 def hardware() -> str:
-    """CPU model, generation and core count, for the table header."""
-    return f"{cpu_label()}, {os.cpu_count()} logical CPUs"
+    """CPU model, generation and the CPUs this process may use (its affinity and quota), for the table header."""
+    return f"{cpu_label()}, {usable_cpus()} usable CPUs of {os.cpu_count()}"
 
 
 def format_table(rows: list[LatencyRow]) -> str:
@@ -199,14 +207,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="runs of one runtime before switching to the other (default 5); each block starts "
                              "with one untimed run")
     parser.add_argument("--threads", type=positive_int, default=None, metavar="N",
-                        help="PyTorch intra-op threads (default: torch's)")
+                        help="intra-op threads of both runtimes (default: one per usable core)")
     add_no_progress(parser)
     args = parser.parse_args(argv)
     presets = args.preset or list(PRESETS)
     rows = run(presets, args.repeats, args.threads, progress=show_progress(args.no_progress), block=args.block)
     print(
-        f"{hardware()}; fp32, batch 1, CPUExecutionProvider (onnxruntime {ort.__version__}), "
-        f"torch {torch.__version__} with {torch.get_num_threads()} threads; {args.repeats} runs after 1 warm-up, "
+        f"{hardware()}; fp32, batch 1, CPUExecutionProvider (onnxruntime {ort.__version__}) and torch "
+        f"{torch.__version__}, each with {torch.get_num_threads()} intra-op threads; {args.repeats} runs after 1 warm-up, "
         f"alternating in blocks of {args.block}; input: KITTI 000006"
     )
     print(format_table(rows))

@@ -21,6 +21,7 @@ import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
 
 from pipeline.cli import quiet_interrupt
+from pipeline.detector import session_options
 
 
 @dataclass(frozen=True)
@@ -37,11 +38,9 @@ class PeakResult:
 
 
 def _session(model: onnx.ModelProto, threads: int) -> ort.InferenceSession:
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    return ort.InferenceSession(model.SerializeToString(), options, providers=["CPUExecutionProvider"])
+    """A CPU session of ``model`` with the Detector's own options (pipeline.detector.session_options: full graph
+    optimisation, ``threads`` intra-op threads, one inter-op, the pool spinning within a run only)."""
+    return ort.InferenceSession(model.SerializeToString(), session_options(threads), providers=["CPUExecutionProvider"])
 
 
 def _median_seconds(session: ort.InferenceSession, feeds: dict, repeats: int) -> float:
@@ -92,17 +91,18 @@ def measure_peak(threads: int, repeats: int = 5, matmul_n: int = 4096, conv_chan
 @quiet_interrupt("no report was written")
 def main(argv: list[str] | None = None) -> int:
     import argparse
-    import os
 
     from pipeline.cli import HelpFormatter, examples, positive_int
+    from pipeline.cpu import usable_cpus
 
     parser = argparse.ArgumentParser(prog="python benchmarks/peak.py",
                                      description="Measure ONNX Runtime's fp32 GFLOP/s on this machine: a 4096² MatMul "
                                      "and a 256-channel 3×3 convolution (the peak benchmarks/latency.py divides by).",
                                      epilog=examples("python benchmarks/peak.py --threads 2"),
                                      formatter_class=HelpFormatter)
-    parser.add_argument("--threads", type=positive_int, default=os.cpu_count() or 1, metavar="N",
-                        help="ONNX Runtime's intra-op threads (default: one per core; latency.py's --threads are workers)")
+    parser.add_argument("--threads", type=positive_int, default=usable_cpus(), metavar="N",
+                        help="ONNX Runtime's intra-op threads (default: one per usable core, as latency.py's single "
+                        "stream; latency.py's --threads are workers)")
     parser.add_argument("--repeats", type=positive_int, default=5, metavar="N",
                         help="timed runs of each; the median counts (default 5)")
     args = parser.parse_args(argv)

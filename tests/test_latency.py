@@ -25,6 +25,15 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     assert result.returncode == 0, result.stderr[-2000:]
     report = json.loads((tmp_path / "lat.json").read_text())
     assert set(report["end_to_end_ms"]) >= {"mean", "p50", "p90", "p99"}
+    # Each summary says what it rests on: the count and the slowest frame; the JSON says what each figure is.
+    end_to_end = report["end_to_end_ms"]
+    assert end_to_end["n"] == 4 and end_to_end["p50"] <= end_to_end["p99"] <= end_to_end["max"]
+    assert {"end_to_end_ms", "fps", "fps_wall", "networks.gflops", "networks.ms", "peak_gflops", "throughput.scaling",
+            "throughput.vs_single_stream", "speedup_vs_torch"} <= set(report["definitions"])
+    assert "not reading or decoding the files" in report["definitions"]["end_to_end_ms"]
+    assert "1000 / mean" in result.stdout and "max" in result.stdout and "no file reading" in result.stdout
+    assert "p99 is an interpolation between the two slowest" in result.stdout  # 4 frames: no tail to speak of
+    assert {"governor", "load_average_start", "load_average_end"} <= set(report["machine"])
     assert report["fps"] > 0 and report["input"] == "16-line scan + camera" and report["beams"] == 16
     assert set(report["stages_ms"]) == {"prepare", "depth_net", "ray_table", "pseudo_points", "voxelize", "pixor", "decode"}
     assert all(set(s) >= {"mean", "p50", "p99"} for s in report["stages_ms"].values())
@@ -41,7 +50,8 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     assert t["workers"] == 2 and t["mode"] == "thread" and t["fps"] > 0 and t["fps_one_worker"] > 0
     assert abs(t["scaling"] - t["fps"] / t["fps_one_worker"]) < 1e-9
     assert t["rounds"] == len(t["scaling_per_round"]) == 3 and all(r > 0 for r in t["scaling_per_round"])
-    assert abs(t["vs_single_stream"] - t["fps"] / report["fps"]) < 1e-9
+    # Frames over wall time on both sides: the single stream's fps_wall, not 1000 / the mean of detect's times.
+    assert abs(t["vs_single_stream"] - t["fps"] / report["fps_wall"]) < 1e-9
     # Every run's workers with the share of their one core they got; the lone worker takes each core in turn.
     assert [run["workers"] for run in t["runs"]] == [1, 2, 2, 1, 1, 2]
     lone = [run["per_worker"][0]["cores"] for run in t["runs"] if run["workers"] == 1]
@@ -53,6 +63,14 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     for name in ("depth", "pixor"):
         n = report["networks"][name]
         assert n["gflops"] > 0 and n["ms"] > 0 and 0 < n["peak_fraction"] <= n["matmul_peak_fraction"]
+    # The fixed calibration's share takes off the ray tables' builds on the frame's path, no more: with a stage
+    # thread, at most what the tables took beside the depth net (the rest of the wait was the voxelization).
+    rays = report["ray_tables_on_path_ms"]
+    assert 0 <= rays <= report["stages_ms"]["ray_table"]["mean"] + 1e-9
+    if report["stage_threads"] == 2:
+        assert rays <= report["overlapped_ms"]["ray_table"]["mean"] + 1e-9
+    between = report["non_network_fraction"] * e2e
+    assert abs(report["non_network_fraction_fixed_calibration"] - (between - rays) / (e2e - rays)) < 1e-9
     assert report["peak_gflops"] > 1 and report["peak_detail"]["matmul_size"] == 512
     assert report["peak_gflops"] == max(report["peak_detail"]["matmul_512_gflops"], report["peak_detail"]["conv3x3_256_gflops"])
     readings = report["peak_detail"]["readings"]  # before and after the stream; the best of each kind counts
@@ -123,6 +141,14 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
     report = json.loads((tmp_path / "b.json").read_text())
     # Which model was timed, as the service's X-Model-ID names it: the sha256 of its manifest.json.
     assert report["model_id"] == hashlib.sha256((tiny_models / "manifest.json").read_bytes()).hexdigest()
+    # Each network's FLOPs: the manifest's (counted before the graph's lowering) and those of the graph that ran.
+    from export.flops import count_flops
+
+    manifest = json.loads((tiny_models / "manifest.json").read_text())
+    for name, entry in manifest["networks"].items():
+        n = report["networks"][name]
+        assert n["gflops"] == entry["flops"] / 1e9
+        assert n["graph_gflops"] == count_flops(tiny_models / entry["file"]).total / 1e9
     base = report["baseline"]
     assert base["precision"] == "fp32" and base["end_to_end_ms"]["n"] == base["paired_end_to_end_ms"]["n"] == 8
     assert set(base["stages_ms"]) == set(report["stages_ms"])
@@ -364,3 +390,64 @@ def test_gpu_ids_are_refused_without_a_gpu_provider_or_when_malformed(tiny_model
         result = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models),
                                  f"--device-ids={ids}"], capture_output=True, text=True, timeout=120, check=False)
         assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr, ids
+
+
+def test_summaries_keep_every_sample_and_say_what_a_p99_rests_on():
+    """80 frames, the README's runs: numpy's p99 lies between the two slowest, so the report gives the slowest
+    and the count beside it, and says so below 100 frames."""
+    from benchmarks.latency import summarize, tail_note
+
+    samples = [float(i) for i in range(1, 81)]  # 1 … 80 ms
+    summary = summarize(samples)
+    assert summary["n"] == 80 and summary["max"] == 80.0 and summary["mean"] == 40.5
+    assert 79.0 < summary["p99"] < 80.0  # 79.21: an interpolation between the two slowest, not a tail
+    assert "between the two slowest" in tail_note(80) and "p90" not in tail_note(80)
+    assert "p90 between the two slowest" in tail_note(8) and tail_note(100) == ""
+
+
+def test_the_fixed_calibration_takes_off_only_the_ray_tables_on_the_frames_path():
+    """With a stage thread the ray_table stage is the frame's wait for all the work beside the depth net: a
+    fast depth net (a GPU's, the tiny preset's) leaves the voxelization in that wait, and the share "without
+    building ray tables" took it off too. Of a wait W for work whose table took R, min(W, R) is the table's."""
+    from benchmarks.latency import StreamResult, ray_tables_on_path_ms
+
+    beside = StreamResult(end_to_end=[10.0, 10.0, 10.0], stages={"ray_table": [5.0, 0.0, 0.3]}, wall_s=0.03,
+                          frames=3, overlapped={"ray_table": [0.5, 0.6, 0.4], "voxelize": [6.0, 1.0, 1.0]})
+    # frame 1 waited 5 ms, 0.5 of them the table's; frame 2 not at all; frame 3 0.3 ms, all of it the table's
+    assert abs(ray_tables_on_path_ms(beside) - (0.5 + 0.0 + 0.3) / 3) < 1e-12
+    in_turn = StreamResult(end_to_end=[10.0, 10.0], stages={"ray_table": [0.7, 0.02]}, wall_s=0.02, frames=2)
+    assert abs(ray_tables_on_path_ms(in_turn) - 0.36) < 1e-12
+    lidar_only = StreamResult(end_to_end=[5.0], stages={"pixor": [4.0]}, wall_s=0.005, frames=1)
+    assert ray_tables_on_path_ms(lidar_only) == 0.0
+
+
+def test_the_peak_runs_with_the_detectors_session_options(tiny_models):
+    """The share of the peak compares like with like only if the micro-benchmarks' sessions are configured as
+    the networks' are: the same threads, graph optimisation and thread-pool spinning."""
+    from benchmarks.peak import _session, matmul_model
+    from pipeline.detector import Detector
+
+    peak = _session(matmul_model(64), 2).get_session_options()
+    with Detector(tiny_models, providers="cpu", intra_op_threads=2) as detector:
+        network = detector._sessions["pixor"].get_session_options()
+        assert (peak.intra_op_num_threads, peak.inter_op_num_threads, peak.graph_optimization_level) == (
+            network.intra_op_num_threads, network.inter_op_num_threads, network.graph_optimization_level)
+        for key in ("session.intra_op.allow_spinning", "session.force_spinning_stop"):
+            assert peak.get_session_config_entry(key) == network.get_session_config_entry(key) == "1", key
+
+
+def test_network_latency_gives_both_runtimes_the_same_threads():
+    """--threads 1 set PyTorch's threads alone: ONNX Runtime kept its default, one per core, and the table set
+    one PyTorch thread against every core. The thread count is read back from the ONNX Runtime session."""
+    import torch
+
+    from benchmarks.network_latency import run
+
+    before = torch.get_num_threads()
+    try:
+        rows = run(["tiny"], repeats=1, threads=1, progress=False, block=1)
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+    assert {row.network for row in rows} == {"depth", "pixor"}
+    assert all(row.threads == 1 and row.ort_p50_ms > 0 and row.torch_p50_ms > 0 for row in rows)
