@@ -34,9 +34,10 @@ devkit runs over (rows × detections) arrays.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from itertools import pairwise
+from statistics import NormalDist
 from typing import Literal
 
 import numpy as np
@@ -482,50 +483,283 @@ def _curves(frames: Sequence[_Frame], metrics: tuple[str, ...], iou_thresholds: 
     return curves
 
 
+# ----------------------------------------------------------------------------- frame bootstrap
+IntervalMethod = Literal["bca", "bc", "percentile"]
+INTERVAL_METHODS: tuple[str, ...] = ("bca", "bc", "percentile")
+_NORMAL = NormalDist()
+
+
+@dataclass(frozen=True)
+class _StepTables:
+    """One detection set's prepared frames reduced to what R40 AP needs on any weighting of the frames.
+
+    A frame's second-pass counts are step functions of the score threshold t: detections scoring ``>= t``
+    take part, so the counts change only at the frame's own scores. Matching each frame once at each of its
+    scores (and the first pass once, which has no threshold) gives AP of any multiset of the frames (a
+    bootstrap draw: weight = times drawn; a jackknife sample: weight 0 for the frame left out) with no
+    matching at all, and exactly the AP that :func:`evaluate` gives on the frames listed that many times.
+
+    cfg_difficulty: (C,) difficulty of each (metric, overlap threshold, difficulty), in ``_curves``' order.
+    n_counted_gt: (F, 3) int64 counted ground truth per frame and difficulty.
+    tp_scores, tp_frames: per configuration, (P_c,) first-pass true-positive scores and the frame of each.
+    step_scores: (E,) ascending, the scores at which a frame's counts change; step_frames: (E,) that frame.
+    step_tp, step_fp: (C, E) int64, how much the frame's true / false positives grow when t falls from
+    above the score to the score.
+    """
+
+    cfg_difficulty: np.ndarray
+    n_counted_gt: np.ndarray
+    tp_scores: tuple[np.ndarray, ...]
+    tp_frames: tuple[np.ndarray, ...]
+    step_scores: np.ndarray
+    step_frames: np.ndarray
+    step_tp: np.ndarray
+    step_fp: np.ndarray
+
+
+def _step_tables(frames: Sequence[_Frame], metrics: tuple[str, ...],
+                 iou_thresholds: tuple[float, ...]) -> _StepTables:
+    """Both matching passes of every frame, once: the first as in ``_curves``, the second at the frame's scores."""
+    configs = [(m, iou, d) for m in range(len(metrics)) for iou in iou_thresholds for d in range(3)]
+    n_cfg = len(configs)
+    cfg_metric = np.array([c[0] for c in configs], dtype=np.int64)
+    cfg_iou = np.array([c[1] for c in configs], dtype=np.float64)
+    cfg_diff = np.array([c[2] for c in configs], dtype=np.int64)
+    cfg_bbox = np.array([metrics[c[0]] == "bbox" for c in configs], dtype=bool)
+    first = _Rows(cfg_metric, cfg_diff, cfg_iou, np.full(n_cfg, -np.inf), cfg_bbox)
+    tp_scores: list[list[np.ndarray]] = [[] for _ in range(n_cfg)]
+    tp_frames: list[list[np.ndarray]] = [[] for _ in range(n_cfg)]
+    scores, owners, grow_tp, grow_fp = [], [], [], []
+    for f, frame in enumerate(frames):
+        if frame.scores.size == 0:
+            continue  # counts nothing but its missed cars, which the weights' total of counted ground truth holds
+        if frame.ignored_gt.shape[1]:
+            outcome = _assign(frame, first, by_score=True)
+            for c in np.flatnonzero(outcome.tp):
+                found = frame.scores[outcome.tp_detections[c]]
+                tp_scores[c].append(found)
+                tp_frames[c].append(np.full(found.size, f, dtype=np.int64))
+        levels = np.unique(frame.scores)  # ascending
+        k = levels.size
+        rows = _Rows(np.repeat(cfg_metric, k), np.repeat(cfg_diff, k), np.repeat(cfg_iou, k),
+                     np.tile(levels, n_cfg), np.repeat(cfg_bbox, k))
+        outcome = _assign(frame, rows, by_score=False)
+        counts = np.stack([outcome.tp, _false_positives(frame, rows, outcome.assigned)]).reshape(2, n_cfg, k)
+        # Above the frame's top score no detection takes part: no true or false positive.
+        grown = counts - np.concatenate([counts[:, :, 1:], np.zeros((2, n_cfg, 1), np.int64)], axis=2)
+        scores.append(levels)
+        owners.append(np.full(k, f, dtype=np.int64))
+        grow_tp.append(grown[0])
+        grow_fp.append(grown[1])
+    if scores:
+        all_scores = np.concatenate(scores)
+        order = np.argsort(all_scores, kind="stable")
+        step_scores, step_frames = all_scores[order], np.concatenate(owners)[order]
+        step_tp, step_fp = np.concatenate(grow_tp, axis=1)[:, order], np.concatenate(grow_fp, axis=1)[:, order]
+    else:
+        step_scores, step_frames = np.zeros(0), np.zeros(0, dtype=np.int64)
+        step_tp = step_fp = np.zeros((n_cfg, 0), dtype=np.int64)
+    empty_scores, empty_frames = np.zeros(0), np.zeros(0, dtype=np.int64)
+    return _StepTables(
+        cfg_difficulty=cfg_diff,
+        n_counted_gt=np.array([frame.n_counted_gt for frame in frames], dtype=np.int64).reshape(len(frames), 3),
+        tp_scores=tuple(np.concatenate(s) if s else empty_scores for s in tp_scores),
+        tp_frames=tuple(np.concatenate(s) if s else empty_frames for s in tp_frames),
+        step_scores=step_scores, step_frames=step_frames, step_tp=step_tp, step_fp=step_fp,
+    )
+
+
+def _weighted_ap(tables: _StepTables, weights: np.ndarray) -> np.ndarray:
+    """(C,) R40 AP in percent of the frames taken ``weights`` (F,) times each, per configuration of ``tables``."""
+    n_gt = weights @ tables.n_counted_gt  # (3,)
+    step_weights = weights[tables.step_frames]
+    # Totals at a threshold t: the growth of every step at or above t (steps ascending: a suffix sum).
+    suffix = np.zeros((2, tables.step_tp.shape[0], step_weights.size + 1), dtype=np.int64)
+    grown = np.stack([tables.step_tp, tables.step_fp]) * step_weights
+    suffix[:, :, :-1] = np.cumsum(grown[:, :, ::-1], axis=2)[:, :, ::-1]
+    ap = np.zeros(tables.cfg_difficulty.size)
+    for c, difficulty in enumerate(tables.cfg_difficulty):
+        found = np.repeat(tables.tp_scores[c], weights[tables.tp_frames[c]])
+        thresholds = recall_thresholds(found, int(n_gt[difficulty]))
+        start = np.searchsorted(tables.step_scores, thresholds, side="left")
+        tp, fp = suffix[0, c, start], suffix[1, c, start]
+        precision = np.zeros(N_SAMPLE_PTS)
+        np.divide(tp, tp + fp, out=precision[: thresholds.size], where=(tp + fp) > 0)  # as in _curves
+        precision = np.maximum.accumulate(precision[::-1])[::-1]
+        ap[c] = precision[1:].sum() / 40.0 * 100.0
+    return ap
+
+
+@dataclass(frozen=True)
+class BootstrapInterval:
+    """An interval of one statistic (an AP, a difference of two, a share of a gap) over the bootstrap draws.
+
+    low, high: the bounds; NaN when there are none, and ``note`` says why. method: ``bca`` (bias-corrected
+    and accelerated, Efron 1987), ``bc`` (bias-corrected, acceleration 0: no jackknife was run) or
+    ``percentile`` (the central ``level`` of the draws; also where BCa was asked for and z0 is infinite,
+    with a note). estimate: the statistic on all frames. z0: the bias
+    correction, Φ⁻¹ of the share of draws below the estimate (ties count half); ±inf when every draw lies on
+    one side; NaN for ``percentile``. acceleration: from the leave-one-frame-out jackknife (0 for ``bc``,
+    NaN for ``percentile``). draws: the draws the statistic exists on (a share needs a gap in the draw).
+    """
+
+    low: float
+    high: float
+    method: str
+    estimate: float
+    z0: float
+    acceleration: float
+    draws: int
+    note: str = ""
+
+
+def _acceleration(jackknife: np.ndarray) -> float:
+    """Efron's acceleration from leave-one-out values θ_i: Σ(θ̄ − θ_i)³ / (6 (Σ(θ̄ − θ_i)²)^1.5); 0 if they are equal."""
+    values = jackknife[np.isfinite(jackknife)]
+    if values.size < 2:
+        return 0.0
+    spread = values.mean() - values
+    squares = float((spread**2).sum())
+    if squares <= 0.0:
+        return 0.0
+    return float((spread**3).sum() / (6.0 * squares**1.5))
+
+
+def _bca_point(z0: float, z: float, acceleration: float) -> float:
+    """Φ(z0 + (z0 + z) / (1 − a (z0 + z))), the share of the draws below a BCa bound."""
+    shifted = z0 + z
+    denominator = 1.0 - acceleration * shifted
+    if denominator <= 0.0:  # past the pole of the adjustment: the draws' edge on the bound's side
+        return 1.0 if shifted > 0 else 0.0
+    return _NORMAL.cdf(z0 + shifted / denominator)
+
+
+def bootstrap_interval(draws: np.ndarray, estimate: float, jackknife: np.ndarray | None = None,
+                       level: float = 0.95, method: str = "bca") -> BootstrapInterval:
+    """The ``level`` interval of a statistic from its values on the draws (B,), on all frames, and on the
+    leave-one-out jackknife samples (n,) (needed for ``bca`` only; without them ``bca`` falls back to ``bc``).
+
+    Draws where the statistic does not exist (NaN: a share without a gap) are left out. BCa takes the draws'
+    percentiles Φ(z0 + (z0 + z_q) / (1 − a (z0 + z_q))) for q = (1 ∓ level) / 2 instead of q itself: z0
+    moves the interval against the draws' lean (AP on a drawn frame set leans above the whole set's), a
+    widens it on the side where the statistic's spread grows. When every draw lies above (or below) the
+    estimate, z0 is infinite and there is no BCa interval: the percentile one, ``method`` saying so, with a note.
+    """
+    if method not in INTERVAL_METHODS:
+        raise ValueError(f"method must be one of {INTERVAL_METHODS}, got {method!r}")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be between 0 and 1, got {level}")
+    values = np.asarray(draws, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    nan = float("nan")
+    tails = (50.0 * (1.0 - level), 50.0 * (1.0 + level))
+    if values.size == 0:
+        return BootstrapInterval(nan, nan, method, estimate, nan, nan, 0, "no draw has a value")
+    if method == "percentile":
+        low, high = np.percentile(values, tails)
+        return BootstrapInterval(float(low), float(high), method, estimate, nan, nan, int(values.size))
+    if not np.isfinite(estimate):
+        return BootstrapInterval(nan, nan, method, estimate, nan, nan, int(values.size), "no value on all frames")
+    below = (float((values < estimate).sum()) + 0.5 * float((values == estimate).sum())) / values.size
+    if below in (0.0, 1.0):
+        side = "above" if below == 0.0 else "below"
+        low, high = np.percentile(values, tails)
+        return BootstrapInterval(
+            float(low), float(high), "percentile", estimate, -np.inf if below == 0.0 else np.inf, nan,
+            int(values.size), f"every draw lies {side} the value on all frames ({estimate:.4g}): z0 is infinite "
+            "and no BCa interval can be read off the draws; this is the percentile one")
+    z0 = _NORMAL.inv_cdf(below)
+    note = ""
+    acceleration = 0.0
+    if method == "bca" and jackknife is None:
+        method, note = "bc", "no jackknife: acceleration 0 (BC)"
+    elif method == "bca":
+        acceleration = _acceleration(np.asarray(jackknife, dtype=np.float64))
+    shares = [_bca_point(z0, _NORMAL.inv_cdf(tail / 100.0), acceleration) for tail in tails]
+    low, high = np.percentile(values, [100.0 * s for s in shares])
+    return BootstrapInterval(float(low), float(high), method, estimate, z0, acceleration, int(values.size), note)
+
+
 @dataclass(frozen=True)
 class BootstrapResult:
     """R40 AP (percent) of one or more detection sets on frame sets drawn with replacement.
 
     ap: (sets, resamples, metrics, overlap thresholds, 3 difficulties); every set was scored on
-    the same draws, so differences between sets are paired.
+    the same draws, so differences between sets are paired. full: (sets, metrics, overlap thresholds, 3)
+    on all frames. jackknife: (sets, frames, metrics, overlap thresholds, 3) with each frame left out in
+    turn, or None when it was not run. method: the interval the methods give unless told (``bca``;
+    ``bc`` without a jackknife; ``percentile``). Every statistic (one set's AP, a paired difference, the
+    share of a gap) is computed alike on the draws, on all frames and on the jackknife samples, set by set
+    within each, so the BCa interval of a difference or share stays paired.
     """
 
     metrics: tuple[str, ...]
     iou_thresholds: tuple[float, ...]
     ap: np.ndarray
     seed: int
+    full: np.ndarray
+    jackknife: np.ndarray | None = None
+    method: str = "bca"
 
     def _values(self, index: int, metric: str, iou_threshold: float, difficulty: str) -> np.ndarray:
         m, t = self.metrics.index(metric), self.iou_thresholds.index(float(iou_threshold))
         return self.ap[index, :, m, t, DIFFICULTIES.index(difficulty)]
 
+    def _bounds(self, statistic: Callable[[np.ndarray], np.ndarray], metric: str, iou_threshold: float,
+                difficulty: str, level: float, method: str | None) -> BootstrapInterval:
+        """``statistic`` maps an array whose first axis is the sets to its value, on draws, all frames and
+        jackknife samples alike."""
+        m, t, d = (self.metrics.index(metric), self.iou_thresholds.index(float(iou_threshold)),
+                   DIFFICULTIES.index(difficulty))
+        jackknife = None if self.jackknife is None else statistic(self.jackknife[:, :, m, t, d])
+        return bootstrap_interval(statistic(self.ap[:, :, m, t, d]), float(statistic(self.full[:, m, t, d])),
+                                  jackknife, level, method or self.method)
+
+    def ap_bounds(self, metric: str, iou_threshold: float, difficulty: str, index: int = 0, level: float = 0.95,
+                  method: str | None = None) -> BootstrapInterval:
+        """Interval of set ``index``'s AP, with how it was made."""
+        return self._bounds(lambda ap: ap[index], metric, iou_threshold, difficulty, level, method)
+
+    def difference_bounds(self, metric: str, iou_threshold: float, difficulty: str, first: int = 0,
+                          second: int = 1, level: float = 0.95, method: str | None = None) -> BootstrapInterval:
+        """Interval of AP(first) − AP(second) over the same draws (a paired bootstrap), with how it was made."""
+        return self._bounds(lambda ap: ap[first] - ap[second], metric, iou_threshold, difficulty, level, method)
+
+    def gap_share_bounds(self, metric: str, iou_threshold: float, difficulty: str, middle: int = 0, low: int = 1,
+                         high: int = 2, level: float = 0.95, method: str | None = None) -> BootstrapInterval:
+        """Interval of the share of the gap from set ``low`` up to set ``high`` that set ``middle`` closes,
+        (AP(middle) − AP(low)) / (AP(high) − AP(low)), over the draws (and jackknife samples) where high is
+        above low; none (NaN, with a note) when it is not on all frames."""
+        def share(ap: np.ndarray) -> np.ndarray:
+            gap = ap[high] - ap[low]
+            return np.where(gap > 0, (ap[middle] - ap[low]) / np.where(gap > 0, gap, 1.0), np.nan)
+
+        bounds = self._bounds(share, metric, iou_threshold, difficulty, level, method)
+        if not np.isfinite(bounds.estimate):
+            nan = float("nan")
+            return BootstrapInterval(nan, nan, bounds.method, nan, nan, nan, bounds.draws,
+                                     "no gap on all frames (the upper set is not above the lower one): no share")
+        return bounds
+
     def interval(self, metric: str, iou_threshold: float, difficulty: str, index: int = 0,
-                 level: float = 0.95) -> tuple[float, float]:
-        """Percentile interval of set ``index``'s AP (the central ``level`` of the draws)."""
-        values = self._values(index, metric, iou_threshold, difficulty)
-        low, high = np.percentile(values, [50 * (1 - level), 50 * (1 + level)])
-        return float(low), float(high)
+                 level: float = 0.95, method: str | None = None) -> tuple[float, float]:
+        """Interval of set ``index``'s AP (``method``, default the result's: BCa)."""
+        bounds = self.ap_bounds(metric, iou_threshold, difficulty, index, level, method)
+        return bounds.low, bounds.high
 
     def gap_share_interval(self, metric: str, iou_threshold: float, difficulty: str, middle: int = 0, low: int = 1,
-                           high: int = 2, level: float = 0.95) -> tuple[float, float, int]:
-        """Percentile interval of the share of the gap from set ``low`` up to set ``high`` that set ``middle``
-        closes, (AP(middle) − AP(low)) / (AP(high) − AP(low)), over the draws where high is above low; and how
-        many draws those were (a draw without a gap has no share)."""
-        middle_ap, low_ap, high_ap = (self._values(i, metric, iou_threshold, difficulty) for i in (middle, low, high))
-        gap = high_ap - low_ap
-        shares = (middle_ap - low_ap)[gap > 0] / gap[gap > 0]
-        if shares.size == 0:
-            return float("nan"), float("nan"), 0
-        lo, hi = np.percentile(shares, [50 * (1 - level), 50 * (1 + level)])
-        return float(lo), float(hi), int(shares.size)
+                           high: int = 2, level: float = 0.95, method: str | None = None
+                           ) -> tuple[float, float, int]:
+        """Interval of the share of the gap (:meth:`gap_share_bounds`) and how many draws had a gap (a draw
+        without one has no share)."""
+        bounds = self.gap_share_bounds(metric, iou_threshold, difficulty, middle, low, high, level, method)
+        return bounds.low, bounds.high, bounds.draws
 
     def difference_interval(self, metric: str, iou_threshold: float, difficulty: str, first: int = 0,
-                            second: int = 1, level: float = 0.95) -> tuple[float, float]:
-        """Percentile interval of AP(first) − AP(second) over the same draws (a paired bootstrap)."""
-        values = (self._values(first, metric, iou_threshold, difficulty)
-                  - self._values(second, metric, iou_threshold, difficulty))
-        low, high = np.percentile(values, [50 * (1 - level), 50 * (1 + level)])
-        return float(low), float(high)
+                            second: int = 1, level: float = 0.95, method: str | None = None) -> tuple[float, float]:
+        """Interval of AP(first) − AP(second) over the same draws (a paired bootstrap)."""
+        bounds = self.difference_bounds(metric, iou_threshold, difficulty, first, second, level, method)
+        return bounds.low, bounds.high
 
 
 def bootstrap(
@@ -539,17 +773,24 @@ def bootstrap(
     ignore_small_detections: bool = True,
     distance_range: tuple[float, float] | None = None,
     progress: bool = False,
+    jackknife: bool = True,
+    method: str = "bca",
 ) -> BootstrapResult:
     """How much AP moves with the choice of frames: the frame-level bootstrap.
 
     Each draw takes as many frames as there are, with replacement (a frame drawn twice counts
     twice), and scores every detection set with the official protocol (:func:`evaluate`) on
     those frames. Frames, not boxes, are drawn because boxes of one frame are matched together.
-    The overlaps are computed once; a draw costs the matching passes only (about 0.3 s per set
-    for BEV on 300 frames here).
+    The same frames also give each set's AP on all frames and, with ``jackknife``, on every
+    leave-one-frame-out sample: the three ingredients of the BCa interval (``method``, the
+    default of the result's interval methods). Each frame is matched once, at every one of its
+    detection scores; an AP of any draw or sample then needs no matching (:class:`_StepTables`),
+    and the jackknife of 300 frames costs about as much as 300 draws (~20 ms each per set here).
     """
     if resamples < 1:
         raise ValueError(f"resamples must be at least 1, got {resamples}")
+    if method not in INTERVAL_METHODS:
+        raise ValueError(f"method must be one of {INTERVAL_METHODS}, got {method!r}")
     for i, detections in enumerate(detection_sets):
         if len(detections) != len(ground_truth):
             raise ValueError(f"detection set {i}: {len(detections)} frames, ground truth {len(ground_truth)}")
@@ -558,18 +799,28 @@ def bootstrap(
         metrics = tuple(m for m in METRICS if all(m in f for f in found))
     metrics = tuple(metrics)
     iou_thresholds = tuple(float(t) for t in iou_thresholds)
-    prepared = [
-        [_prepare_frame(gt, det, class_name, metrics, ignore_small_detections, distance_range)
-         for gt, det in zip(ground_truth, detections)]
-        for detections in detection_sets
+    tables = [
+        _step_tables([_prepare_frame(gt, det, class_name, metrics, ignore_small_detections, distance_range)
+                      for gt, det in zip(ground_truth, detections)], metrics, iou_thresholds)
+        for detections in tqdm(detection_sets, desc="matching", disable=not progress)
     ]
-    rng = np.random.default_rng(seed)
     n = len(ground_truth)
-    ap = np.zeros((len(detection_sets), resamples, len(metrics), len(iou_thresholds), len(DIFFICULTIES)))
+    cell = (len(metrics), len(iou_thresholds), len(DIFFICULTIES))
+
+    def scored(weights: np.ndarray) -> np.ndarray:
+        return np.stack([_weighted_ap(t, weights).reshape(cell) for t in tables])
+
+    full = scored(np.ones(n, dtype=np.int64))
+    rng = np.random.default_rng(seed)
+    ap = np.zeros((len(detection_sets), resamples, *cell))
     for r in tqdm(range(resamples), desc="bootstrap", disable=not progress):
-        draw = rng.integers(0, n, n)
-        for s, frames in enumerate(prepared):
-            for curve in _curves([frames[i] for i in draw], metrics, iou_thresholds):
-                ap[s, r, metrics.index(curve.metric), iou_thresholds.index(curve.iou_threshold),
-                   DIFFICULTIES.index(curve.difficulty)] = curve.ap_r40
-    return BootstrapResult(metrics=metrics, iou_thresholds=iou_thresholds, ap=ap, seed=seed)
+        ap[:, r] = scored(np.bincount(rng.integers(0, n, n), minlength=n).astype(np.int64))
+    left_out = None
+    if jackknife:
+        left_out = np.zeros((len(detection_sets), n, *cell))
+        for i in tqdm(range(n), desc="jackknife", disable=not progress):
+            weights = np.ones(n, dtype=np.int64)
+            weights[i] = 0
+            left_out[:, i] = scored(weights)
+    return BootstrapResult(metrics=metrics, iou_thresholds=iou_thresholds, ap=ap, seed=seed, full=full,
+                           jackknife=left_out, method=method)

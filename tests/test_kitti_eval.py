@@ -13,6 +13,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import statistics
 import subprocess
 import sys
 from pathlib import Path
@@ -21,7 +22,15 @@ import numpy as np
 import pytest
 
 from evaluation.depth_metrics import moderate_cars_in_view
-from evaluation.kitti_eval import DIFFICULTIES, available_metrics, bootstrap, evaluate, recall_thresholds
+from evaluation.kitti_eval import (
+    DIFFICULTIES,
+    BootstrapResult,
+    available_metrics,
+    bootstrap,
+    bootstrap_interval,
+    evaluate,
+    recall_thresholds,
+)
 from evaluation.labels import LabelArrays
 from evaluation.overlaps import bev_overlap, box3d_overlap, image_overlap
 from evaluation.report import to_json
@@ -315,6 +324,129 @@ def test_frame_bootstrap_intervals_and_paired_differences(tmp_path: Path):
     assert out.returncode == 2 and f"--compare-pred-labels: {tmp_path / 'nowhere'}" in out.stderr
     out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--bootstrap", "0")
     assert out.returncode == 2 and "--bootstrap" in out.stderr
+
+
+
+def _random_scenes(n_frames: int, seed: int) -> tuple[list[list[Object3D]], ...]:
+    """Ground truth and two detectors' results on ``n_frames`` frames with every case the matching meets: cars of
+    each difficulty and too hard, a van, DontCare regions, misses, false positives, scores tied within and across
+    frames (one decimal), frames without detections and frames without cars."""
+    rng = np.random.default_rng(seed)
+    gt: list[list[Object3D]] = []
+    detectors: tuple[list[list[Object3D]], list[list[Object3D]]] = ([], [])
+    for f in range(n_frames):
+        n_cars = int(rng.integers(0, 5)) if f % 9 else 0
+        cars = [{"x": rng.uniform(-15, 15), "z": rng.uniform(5, 60), "ry": rng.uniform(-3, 3),
+                 "left": rng.uniform(0, 1000), "height_px": float(rng.choice([20.0, 30.0, 60.0])),
+                 "occluded": int(rng.integers(0, 3)), "truncated": float(rng.choice([0.0, 0.2, 0.4]))}
+                for _ in range(n_cars)]
+        frame = [obj(**car) for car in cars]
+        if f % 5 == 0:
+            frame.append(obj(kind="Van", x=rng.uniform(-15, 15), z=rng.uniform(5, 60)))
+        if f % 7 == 0:
+            frame.append(dontcare(0, 0, 600, 400))
+        gt.append(frame)
+        for detections, jitter in zip(detectors, (0.2, 0.6)):
+            found = [obj(**{**car, "x": car["x"] + rng.normal(0, jitter), "z": car["z"] + rng.normal(0, jitter)},
+                         score=round(float(rng.uniform(0.05, 1.0)), 1)) for car in cars if rng.uniform() < 0.8]
+            if rng.uniform() < 0.5:
+                found.append(obj(x=rng.uniform(-15, 15), z=rng.uniform(5, 60), score=round(float(rng.uniform(0.05, 0.7)), 1)))
+            detections.append(found if f % 6 else [])
+    return (gt, *detectors)
+
+
+def _ap_cells(result, metrics: tuple[str, ...], iou_thresholds=(0.7, 0.5)) -> np.ndarray:
+    return np.array([[[result.ap(m, t, d) for d in DIFFICULTIES] for t in iou_thresholds] for m in metrics])
+
+
+def test_bootstrap_scores_draws_all_frames_and_each_frame_left_out_as_evaluate_does():
+    """The bootstrap matches each frame once and then scores any multiset of frames without matching: every
+    draw, the full set and every leave-one-frame-out (jackknife) sample give exactly evaluate()'s AP."""
+    gt, first, second = _random_scenes(30, seed=1)
+    metrics = ("bbox", "bev", "3d")
+    sets = [frames(*first), frames(*second)]
+    truth = frames(*gt)
+    result = bootstrap(truth, sets, resamples=3, seed=5, metrics=metrics)
+    assert result.full.shape == (2, 3, 2, 3) and result.jackknife.shape == (2, 30, 3, 2, 3)
+    rng = np.random.default_rng(5)  # the draws the bootstrap makes with seed 5
+    for r in range(3):
+        draw = rng.integers(0, 30, 30)
+        for s, detections in enumerate(sets):
+            drawn = evaluate([truth[i] for i in draw], [detections[i] for i in draw], metrics=metrics)
+            np.testing.assert_array_equal(result.ap[s, r], _ap_cells(drawn, metrics))
+    for s, detections in enumerate(sets):
+        np.testing.assert_array_equal(result.full[s], _ap_cells(evaluate(truth, detections, metrics=metrics), metrics))
+        for left_out in (0, 6, 9, 29):  # 0 and 6: no detections; 9: no cars
+            rest = [i for i in range(30) if i != left_out]
+            sample = evaluate([truth[i] for i in rest], [detections[i] for i in rest], metrics=metrics)
+            np.testing.assert_array_equal(result.jackknife[s, left_out], _ap_cells(sample, metrics))
+    assert bootstrap(truth, sets, resamples=3, seed=5, metrics=metrics, jackknife=False).jackknife is None
+
+
+def test_bca_interval_by_hand():
+    """BCa (Efron 1987): z0 = Φ⁻¹(share of draws below the estimate, ties half), a from the jackknife, bounds at
+    the draws' percentiles Φ(z0 + (z0 + z_q) / (1 − a (z0 + z_q)))."""
+    normal = statistics.NormalDist()
+    draws = np.arange(100.0)
+    jackknife = np.array([0.0, 0.0, 0.0, 1.0, 5.0])  # skewed: a ≠ 0
+    spread = jackknife.mean() - jackknife
+    a = (spread**3).sum() / (6 * ((spread**2).sum()) ** 1.5)
+    z0 = normal.inv_cdf(0.30)  # 30 of the 100 draws below 29.5
+    expected = np.percentile(draws, [100 * normal.cdf(z0 + (z0 + z) / (1 - a * (z0 + z)))
+                                     for z in (normal.inv_cdf(0.025), normal.inv_cdf(0.975))])
+    bounds = bootstrap_interval(draws, 29.5, jackknife)
+    assert bounds.method == "bca" and bounds.z0 == pytest.approx(z0) and bounds.acceleration == pytest.approx(a)
+    assert (bounds.low, bounds.high) == pytest.approx(tuple(expected)) and bounds.note == ""
+    # The draws lean above the estimate: the interval moves down from the plain percentile one.
+    percentile = bootstrap_interval(draws, 29.5, jackknife, method="percentile")
+    assert (percentile.low, percentile.high) == pytest.approx((2.475, 96.525))
+    assert bounds.low < percentile.low and bounds.high < percentile.high
+    # Without a jackknife BCa falls back to BC (a = 0) and says so; ties count half.
+    bc = bootstrap_interval(draws, 29.5)
+    assert bc.method == "bc" and bc.acceleration == 0.0 and "no jackknife" in bc.note
+    assert bootstrap_interval(np.array([1.0, 1.0, 2.0, 2.0]), 1.0).z0 == pytest.approx(normal.inv_cdf(0.25))
+    with pytest.raises(ValueError, match="method"):
+        bootstrap_interval(draws, 29.5, method="basic")
+
+
+def test_bootstrap_intervals_of_every_statistic_and_their_degenerate_cases():
+    """One AP, a paired difference and a gap share all get their BCa interval from the same draws, full-set values
+    and jackknife values, the statistic taken set by set within each; degenerate cells give NaN with a note."""
+    rng = np.random.default_rng(0)
+    draws = np.stack([rng.normal(mean, 1.0, (50, 1, 1, 3)) for mean in (85.0, 83.0, 91.0)])
+    full = np.array([84.5, 83.0, 91.0])[:, None, None, None] * np.ones((3, 1, 1, 3))
+    jackknife = np.stack([rng.normal(mean, 0.1, (20, 1, 1, 3)) for mean in (84.5, 83.0, 91.0)])
+    draws[:, :, 0, 0, 2] = 100.0  # hard: every draw of every set at 100 …
+    full[:, 0, 0, 2] = 100.0
+    draws[0, :, 0, 0, 0] = full[0, 0, 0, 0] + 1.0 + rng.uniform(size=50)  # easy: set 0's draws all above its value
+    result = BootstrapResult(metrics=("bev",), iou_thresholds=(0.7,), ap=draws, seed=0, full=full, jackknife=jackknife)
+    cell = ("bev", 0.7, "moderate")
+
+    def values(statistic):
+        return statistic(draws[:, :, 0, 0, 1]), float(statistic(full[:, 0, 0, 1])), statistic(jackknife[:, :, 0, 0, 1])
+
+    assert result.ap_bounds(*cell, index=2) == bootstrap_interval(*values(lambda ap: ap[2]))
+    difference = result.difference_bounds(*cell, first=0, second=1)
+    assert difference == bootstrap_interval(*values(lambda ap: ap[0] - ap[1]))
+    assert difference.estimate == pytest.approx(1.5) and difference.method == "bca" and difference.acceleration != 0
+    assert result.difference_interval(*cell) == (difference.low, difference.high)
+    share = result.gap_share_bounds(*cell)
+    assert share == bootstrap_interval(*values(lambda ap: (ap[0] - ap[1]) / (ap[2] - ap[1])))
+    assert result.gap_share_interval(*cell) == (share.low, share.high, 50)
+    percentile = result.difference_bounds(*cell, method="percentile")
+    assert (percentile.low, percentile.high) == pytest.approx(tuple(np.percentile(values(
+        lambda ap: ap[0] - ap[1])[0], [2.5, 97.5])))
+    # Every draw equal to the value on all frames (AP 100 everywhere): the interval is that value.
+    assert result.interval("bev", 0.7, "hard") == (100.0, 100.0)
+    assert result.difference_interval("bev", 0.7, "hard") == (0.0, 0.0)
+    # Every draw above it: z0 is −inf and there is no BCa interval; the percentile one, saying so.
+    above = result.ap_bounds("bev", 0.7, "easy")
+    assert above.method == "percentile" and above.z0 == -math.inf and "every draw lies above" in above.note
+    assert (above.low, above.high) == pytest.approx(tuple(np.percentile(draws[0, :, 0, 0, 0], [2.5, 97.5])))
+    # No gap on all frames (hard: 100 − 100): no share, whatever the draws.
+    low, high, _ = result.gap_share_interval("bev", 0.7, "hard")
+    assert math.isnan(low) and math.isnan(high)
+    assert "no gap on all frames" in result.gap_share_bounds("bev", 0.7, "hard").note
 
 
 @pytest.mark.parametrize(
@@ -621,3 +753,39 @@ def test_gap_share_between_a_weaker_and_a_stronger_model(tmp_path: Path):
     alone = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "middle", "--gap-to-pred-labels",
                  tmp_path / "high")
     assert alone.returncode == 2 and "--gap-to-pred-labels: give --compare-pred-labels too" in alone.stderr
+
+
+def test_cli_bootstrap_intervals_are_bca_by_default_and_percentile_on_request(tmp_path: Path):
+    """The table and the JSON give BCa intervals and say so, the JSON with the percentile ones beside them;
+    --interval percentile gives those; a share without a gap is null with a note, and the JSON has no NaN."""
+    gt, first, second = _random_scenes(40, seed=2)
+    for folder, dets in (("gt", gt), ("a", first), ("b", second), ("b_again", second)):
+        (tmp_path / folder).mkdir()
+        for i, objects in enumerate(dets):
+            write_labels(tmp_path / folder / f"{i:06d}.txt", objects)
+    common = ("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels", tmp_path / "b",
+              "--gap-to-pred-labels", tmp_path / "b_again", "--bootstrap", "30")
+    out = _cli(*common, "--json", tmp_path / "bca.json")
+    assert out.returncode == 0, out.stderr
+    assert "intervals: BCa, bias-corrected and accelerated" in out.stdout
+    assert "BEV @0.7 moderate, share of the gap: no gap on all frames" in out.stdout
+
+    def strict(text: str):
+        return json.loads(text, parse_constant=lambda name: pytest.fail(f"{name} in the JSON"))
+
+    bca = strict((tmp_path / "bca.json").read_text())
+    assert bca["bootstrap"]["method"] == "bca" and bca["gap_share"]["method"] == "bca"
+    assert bca["gap_share"]["interval"]["bev"]["0.7"][1] is None
+    assert any("share of the gap: no gap on all frames" in note for note in bca["bootstrap"]["notes"])
+    out = _cli(*common, "--interval", "percentile", "--json", tmp_path / "percentile.json")
+    assert out.returncode == 0 and "intervals: percentile" in out.stdout, out.stderr
+    percentile = strict((tmp_path / "percentile.json").read_text())
+    assert percentile["bootstrap"]["method"] == "percentile"
+    for key in ("interval", "difference_interval"):
+        assert percentile["bootstrap"][key] == bca["bootstrap"]["percentile"][key]
+        assert percentile["bootstrap"][key] != bca["bootstrap"][key]
+    assert percentile["gap_share"]["interval"] == bca["gap_share"]["percentile_interval"]
+    refused = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--interval", "bca")
+    assert refused.returncode == 2 and "argument --interval: only with --bootstrap N" in refused.stderr
+    help_text = " ".join(_cli("--help").stdout.split())
+    assert "which bootstrap interval (default bca)" in help_text and "(Efron 1987)" in help_text
