@@ -486,6 +486,7 @@ def _curves(frames: Sequence[_Frame], metrics: tuple[str, ...], iou_thresholds: 
 # ----------------------------------------------------------------------------- frame bootstrap
 IntervalMethod = Literal["bca", "bc", "percentile"]
 INTERVAL_METHODS: tuple[str, ...] = ("bca", "bc", "percentile")
+METHOD_NAMES = {"bca": "BCa", "bc": "BC", "percentile": "percentile"}  # as tables and titles name them
 _NORMAL = NormalDist()
 
 

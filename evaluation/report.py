@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.kitti_eval import DIFFICULTIES, N_SAMPLE_PTS, BootstrapResult, KittiEvalResult
+from evaluation.kitti_eval import DIFFICULTIES, METHOD_NAMES, N_SAMPLE_PTS, BootstrapResult, KittiEvalResult
 
 METRIC_TITLES = {"bev": "BEV", "3d": "3D", "bbox": "2D bbox"}
 
@@ -235,7 +235,8 @@ def format_spread(result: KittiEvalResult, spread: BootstrapResult, other: Kitti
                   other_name: str = "other", level: float = 0.95) -> str:
     """R40 AP with its bootstrap interval, and with ``other``: the paired difference this − other."""
     n = spread.ap.shape[1]
-    title = (f"{result.class_name} AP (%, R40) with its {level:.0%} interval over {n} bootstrap draws of the "
+    title = (f"{result.class_name} AP (%, R40) with its {level:.0%} {METHOD_NAMES[spread.method]} interval over {n} "
+             "bootstrap draws of the "
              f"{result.n_frames} frames (seed {spread.seed})")
     lines = [title]
 
@@ -302,7 +303,8 @@ def format_gap(middle: KittiEvalResult, low: KittiEvalResult, high: KittiEvalRes
     (sets: this, low, high) its interval over the bootstrap draws."""
     lines = [f"share of the gap from {low_name} up to {high_name} that this closes (R40; (this − low) / (high − low))"]
     if spread is not None:
-        lines[0] += f", with its {level:.0%} interval over the {spread.ap.shape[1]} bootstrap draws"
+        lines[0] += (f", with its {level:.0%} {METHOD_NAMES[spread.method]} interval over the {spread.ap.shape[1]} "
+                     "bootstrap draws")
     for metric in _gap_metrics(middle, low, high):
         for iou in sorted(middle.iou_thresholds):
             cells = []

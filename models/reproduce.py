@@ -99,7 +99,7 @@ class Budget:
     joint_epochs: int = 1
     val_frames_during_training: int = 60
     distance_edges: tuple[float, ...] = (0.0, 20.0, 35.0, 80.0)  # BEV AP per band (benchmarks/accuracy.py)
-    bootstrap_draws: int = 200  # frame-bootstrap draws for the intervals of the rows' differences (178 s here)
+    bootstrap_draws: int = 200  # frame-bootstrap draws for the intervals of the rows' differences (BCa; about 30 s)
 
 
 QUICK = Budget(train_frames=6, val_frames=3, depth_frames=6, depth_epochs=2, depth_lr=1e-4, detector_frames=6,

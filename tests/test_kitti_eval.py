@@ -306,7 +306,7 @@ def test_frame_bootstrap_intervals_and_paired_differences(tmp_path: Path):
     out = _cli("--gt-labels", tmp_path / "gt", "--pred-labels", tmp_path / "a", "--compare-pred-labels",
                tmp_path / "b", "--bootstrap", "10", "--json", tmp_path / "ap.json")
     assert out.returncode == 0, out.stderr
-    assert "interval over 10 bootstrap draws" in out.stdout and "paired" in out.stdout
+    assert "95% BCa interval over 10 bootstrap draws" in out.stdout and "paired" in out.stdout
     document = json.loads((tmp_path / "ap.json").read_text())
     assert document["bootstrap"]["draws"] == 10
     assert document["bootstrap"]["interval"]["bev"]["0.7"][1] == [100.0, 100.0]
