@@ -64,10 +64,17 @@ from export.exporter import ExportConfig
 from export.exporter import run as export
 from models.cache_pseudo import run as cache_pseudo
 from models.schedule import Job, JobFailed, run_jobs
-from models.signals import sigterm_as_interrupt, stop_status
 from models.train import TrainConfig
 from models.train import run as train
-from pipeline.cli import HelpFormatter, check_output, examples, interrupted, positive_float, positive_int
+from pipeline.cli import (
+    HelpFormatter,
+    check_output,
+    examples,
+    positive_float,
+    positive_int,
+    sigterm_as_interrupt,
+    stopped,
+)
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError
 from pipeline.presets import PRESETS, get_preset, lidar_only
@@ -502,8 +509,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc}; rerun the same command to resume", file=sys.stderr)
         return 2 if exc.user_error else 1
     except KeyboardInterrupt as exc:
-        status = interrupted(f"{config.weights} is as it was; rerun the same command to resume")
-        return stop_status(exc, status)
+        return stopped(exc, f"{config.weights} is as it was; rerun the same command to resume")
     print(format_table(report))
     print(f"shipped {report['shipped']} ({report['shipped_from']}); {report['total_seconds'] / 60:.1f} min in all")
     return 0

@@ -112,7 +112,6 @@ from models.run_checks import (
     stopped_at,
     thins_scans,
 )
-from models.signals import sigterm_as_interrupt, stop_status
 from models.start_weights import (
     freeze_batch_norms,
     freeze_except,
@@ -125,10 +124,11 @@ from pipeline.cli import (
     HelpFormatter,
     add_no_progress,
     examples,
-    interrupted,
     non_negative_int,
     positive_float,
     positive_int,
+    sigterm_as_interrupt,
+    stopped,
 )
 from pipeline.depth_completion import (
     drive_calibration,
@@ -788,8 +788,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{stopped_at(args.out)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        status = interrupted(stopped_at(args.out))
-        return stop_status(exc, status)
+        return stopped(exc, stopped_at(args.out))
     if result.nothing_to_do:
         print(already_trained(result))
         return 0

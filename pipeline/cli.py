@@ -10,13 +10,16 @@ A count of 0 is not "the default": ``--epochs 0`` used to fall through to the re
 from __future__ import annotations
 
 import argparse
+import contextlib
 import copy
 import functools
 import importlib.util
 import os
 import re
+import signal
 import sys
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 from pipeline.errors import InputError
@@ -171,6 +174,42 @@ def interrupted(leaves: str) -> int:
     user has now and how to go on), instead of a traceback. Returns the exit status, 130."""
     print(f"interrupted: {leaves}", file=sys.stderr)
     return INTERRUPTED_STATUS
+
+
+TERMINATED_STATUS = 143  # 128 + SIGTERM: what a shell reports for a command that `kill` or `timeout` stopped
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a cluster's pre-emption, `kill`, `timeout`, a service manager's stop), raised where the command
+    is, so that it stops as Ctrl-C does: files being written abandoned whole, worker processes stopped, one line."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated(signum)
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block SIGTERM raises :class:`Terminated`, for the long-running commands (training, simulation)
+    whose default end on SIGTERM would say nothing of what they kept. Outside the main thread, where Python sets
+    no handler, the block runs with the signal as it was."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def stopped(exc: KeyboardInterrupt, leaves: str) -> int:
+    """:func:`interrupted` for Ctrl-C; for SIGTERM (:class:`Terminated`) the same line as ``terminated: …`` and
+    exit status 143, as if the signal had ended the command."""
+    if not isinstance(exc, Terminated):
+        return interrupted(leaves)
+    print(f"terminated: {leaves}", file=sys.stderr)
+    return TERMINATED_STATUS
 
 
 Main = Callable[..., int]

@@ -4,42 +4,21 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import statistics
 import sys
-import threading
-from collections.abc import Iterator
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
 from pathlib import Path
-from types import FrameType
 
-from pipeline.cli import HelpFormatter, add_no_progress, examples, interrupted, non_negative_int, positive_int
+from pipeline.cli import (
+    HelpFormatter,
+    add_no_progress,
+    examples,
+    non_negative_int,
+    positive_int,
+    sigterm_as_interrupt,
+    stopped,
+)
 from simulation.run import RunConfig, run
-
-TERMINATED_STATUS = 143  # 128 + SIGTERM: what a shell reports for a command that `kill` or `timeout` stopped
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where the run is, so it stops as Ctrl-C does (the finished frames listed)."""
-
-
-def _raise_terminated(signum: int, frame: FrameType | None) -> None:
-    raise Terminated
-
-
-@contextmanager
-def _sigterm_stops_like_ctrl_c() -> Iterator[None]:
-    """A build server's stop (`timeout`, `kill`, a CI job's cancel) sends SIGTERM, which by default ends the
-    process at once: no split list for the frames finished, and a traceback-less exit status -15."""
-    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
-        yield
-        return
-    previous = signal.signal(signal.SIGTERM, _raise_terminated)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -72,18 +51,15 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     resume = f"the frames finished are in {args.out}; rerun the same command to resume"
     try:
-        with _sigterm_stops_like_ctrl_c():
+        with sigterm_as_interrupt():  # a build server's stop (`timeout`, `kill`, a CI job's cancel)
             result = run(RunConfig(out=args.out, frames=args.frames, seed=args.seed, start=args.start,
                                    workers=args.workers, split=args.split, progress=not args.no_progress,
                                    imagesets=args.imagesets))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except Terminated:
-        print(f"terminated: {resume}", file=sys.stderr)
-        return TERMINATED_STATUS
-    except KeyboardInterrupt:  # each frame's files are whole (renamed into place, depth_2 last)
-        return interrupted(resume)
+    except KeyboardInterrupt as exc:  # each frame's files are whole (renamed into place, depth_2 last)
+        return stopped(exc, resume)
     except BrokenProcessPool:  # the OOM killer or a `kill -9` took a worker: its frame is not on disk
         print(f"error: a worker process ended abruptly (killed, or out of memory?); {resume}", file=sys.stderr)
         return 2

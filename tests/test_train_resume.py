@@ -138,7 +138,7 @@ def test_sigterm_mid_write_stops_in_one_line_and_the_run_resumes(frames, tmp_pat
     assert process.returncode == 143, err[-2000:]
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1] == (
-        f"interrupted: {out} has no finished epoch yet; rerun with --resume to start it again")
+        f"terminated: {out} has no finished epoch yet; rerun with --resume to start it again")
     assert sorted(p.name for p in out.iterdir()) == ["log.jsonl", "state.pt"]
     done = subprocess.run([sys.executable, "-m", "models.train", *args(frames, out, "--resume")], cwd=REPO,
                           capture_output=True, text=True, timeout=DEADLINE_S, check=False)
