@@ -419,18 +419,23 @@ def evaluate_by_distance(ground_truth: Sequence[LabelArrays], detections: Sequen
             for low, high in pairwise(edges)}
 
 
+def _first_pass_rows(metrics: tuple[str, ...], iou_thresholds: tuple[float, ...]) -> _Rows:
+    """One row per (metric, overlap threshold, difficulty), in that order, with no score threshold: the
+    protocol's first matching pass."""
+    configs = [(m, iou, d) for m in range(len(metrics)) for iou in iou_thresholds for d in range(3)]
+    return _Rows(np.array([c[0] for c in configs], dtype=np.int64), np.array([c[2] for c in configs], dtype=np.int64),
+                 np.array([c[1] for c in configs], dtype=np.float64), np.full(len(configs), -np.inf),
+                 np.array([metrics[c[0]] == "bbox" for c in configs], dtype=bool))
+
+
 def _curves(frames: Sequence[_Frame], metrics: tuple[str, ...], iou_thresholds: tuple[float, ...],
             progress: bool = False) -> list[PrCurve]:
     """Steps 2–4 of the protocol over prepared frames: one curve per (metric, threshold, difficulty)."""
-    configs = [(m, iou, d) for m in range(len(metrics)) for iou in iou_thresholds for d in range(3)]
-    n_cfg = len(configs)
-    cfg_metric = np.array([c[0] for c in configs], dtype=np.int64)
-    cfg_iou = np.array([c[1] for c in configs], dtype=np.float64)
-    cfg_diff = np.array([c[2] for c in configs], dtype=np.int64)
-    cfg_bbox = np.array([metrics[c[0]] == "bbox" for c in configs], dtype=bool)
+    first = _first_pass_rows(metrics, iou_thresholds)
+    n_cfg, cfg_metric, cfg_iou, cfg_diff, cfg_bbox = (first.metric.size, first.metric, first.min_overlap,
+                                                      first.difficulty, first.is_bbox)
 
     # First pass: true-positive scores and counted ground truth per configuration.
-    first = _Rows(cfg_metric, cfg_diff, cfg_iou, np.full(n_cfg, -np.inf), cfg_bbox)
     tp_scores: list[list[np.ndarray]] = [[] for _ in range(n_cfg)]
     n_gt = np.zeros(n_cfg, dtype=np.int64)
     for frame in tqdm(frames, desc="thresholds", disable=not progress):
@@ -466,7 +471,7 @@ def _curves(frames: Sequence[_Frame], metrics: tuple[str, ...], iou_thresholds: 
         fp += _false_positives(frame, second, outcome.assigned)
 
     curves = []
-    for c, (m, iou, d) in enumerate(configs):
+    for c, (m, iou, d) in enumerate(zip(cfg_metric.tolist(), cfg_iou.tolist(), cfg_diff.tolist(), strict=True)):
         k = thresholds[c].size
         sl = slice(c * N_SAMPLE_PTS, c * N_SAMPLE_PTS + k)
         precision = np.zeros(N_SAMPLE_PTS)
@@ -521,13 +526,9 @@ class _StepTables:
 def _step_tables(frames: Sequence[_Frame], metrics: tuple[str, ...],
                  iou_thresholds: tuple[float, ...]) -> _StepTables:
     """Both matching passes of every frame, once: the first as in ``_curves``, the second at the frame's scores."""
-    configs = [(m, iou, d) for m in range(len(metrics)) for iou in iou_thresholds for d in range(3)]
-    n_cfg = len(configs)
-    cfg_metric = np.array([c[0] for c in configs], dtype=np.int64)
-    cfg_iou = np.array([c[1] for c in configs], dtype=np.float64)
-    cfg_diff = np.array([c[2] for c in configs], dtype=np.int64)
-    cfg_bbox = np.array([metrics[c[0]] == "bbox" for c in configs], dtype=bool)
-    first = _Rows(cfg_metric, cfg_diff, cfg_iou, np.full(n_cfg, -np.inf), cfg_bbox)
+    first = _first_pass_rows(metrics, iou_thresholds)
+    n_cfg, cfg_metric, cfg_iou, cfg_diff, cfg_bbox = (first.metric.size, first.metric, first.min_overlap,
+                                                      first.difficulty, first.is_bbox)
     tp_scores: list[list[np.ndarray]] = [[] for _ in range(n_cfg)]
     tp_frames: list[list[np.ndarray]] = [[] for _ in range(n_cfg)]
     scores, owners, grow_tp, grow_fp = [], [], [], []
