@@ -161,6 +161,15 @@ def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str,
             if isinstance(config.get(section), dict):
                 config[section] = {k: v for k, v in config[section].items() if k not in fields}
     differing = [key for key in NETWORK_SECTIONS.get(network, tuple(wanted)) if saved.get(key) != wanted.get(key)]
+    if differing and checkpoint.preset == preset.name:  # the preset itself changed since the checkpoint was made
+        fields = [f"{key}.{field}: {saved[key].get(field)!r} then, {value!r} now" for key in differing
+                  if isinstance(saved.get(key), dict) and isinstance(wanted.get(key), dict)
+                  for field, value in wanted[key].items() if saved[key].get(field) != value]
+        raise ValueError(
+            f"{checkpoint.path}: trained with preset {preset.name!r} as an earlier lowres3d defined it "
+            f"({'; '.join(fields) or ', '.join(differing)}); this version builds another network under that name, "
+            "so the weights do not fit it: train again, or export it with the lowres3d it was trained with"
+        )
     if differing:
         raise ValueError(
             f"{checkpoint.path}: trained with preset {checkpoint.preset!r} whose {', '.join(differing)} "
