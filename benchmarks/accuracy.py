@@ -422,7 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
     spread = parser.add_argument_group("how sure: spread over frames and comparison with another model")
     spread.add_argument(
         "--bootstrap", type=positive_int, default=0, metavar="N",
-        help="N frame-bootstrap draws (e.g. 200; with the jackknife about 10 s per model on 300 frames): each BEV "
+        help="N frame-bootstrap draws (e.g. 200; with the jackknife about 8 s per model on 300 frames): each BEV "
         "and 3D AP with its 95%% interval, and with --compare-pred-labels the paired interval of the difference",
     )
     spread.add_argument("--seed", type=non_negative_int, default=0, help="seed of the bootstrap draws (default 0)")

@@ -766,7 +766,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--compile", default="auto", choices=("auto", "on", "off"),
                         help=f"torch.compile the training forward pass (auto, default: depth and detector runs of "
                              f"at least {COMPILE_MIN_STEPS} steps, where a C++ compiler is found)")
-    parser.add_argument("--resume", action="store_true", help="continue the run in --out from its last epoch (its state.pt; the same flags, only --epochs may change)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue the run in --out from its last epoch (its state.pt; the same flags, only "
+                             "--epochs may change; another --precision, --device, --threads or --compile is "
+                             "allowed with a warning)")
     parser.add_argument("--quick", action="store_true", help="a few frames and epochs: a smoke test")
     add_no_progress(parser, "no progress bars (drawn into a log too: a run of hours in the background, "
                     "nohup … > log, shows its epoch's progress there)")

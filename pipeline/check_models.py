@@ -8,9 +8,10 @@ The checks, in order (each needs the ones before it; those after a failure are r
 
   manifest  manifest.json reads: a format this lowres3d reads, the tables the runtime needs, a usable preset,
             trained weights (--allow-untrained for a latency-only export)
-  files     every file it lists is there, of its listed size and sha256 (each bad file named)
+  files     every file it lists is there, of its listed size and sha256 (the first five bad files named, then
+            how many more)
   sessions  ONNX Runtime loads each graph on --provider (the provider really used, no silent fallback), and the
-            graphs' input shapes are those of the manifest's preset
+            graphs' inputs and outputs (names, float32, shapes) are those of the manifest's preset
   frame     one real frame runs: each network's raw outputs finite and of the preset's shapes, the scores in
             [0, 1], the boxes finite
 
