@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import signal
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -48,10 +47,11 @@ from pipeline.cli import (
     check_output,
     examples,
     frame_rate,
-    interrupted,
     probability,
     show_progress,
+    sigterm_as_interrupt,
     skipped_summary,
+    stopped,
     unwritable,
 )
 from pipeline.errors import InputError
@@ -411,14 +411,6 @@ def _where(source: str | dict[str, Path], field: str) -> str:
     return source if isinstance(source, str) else str(source.get(field, source["points"]))
 
 
-class Stopped(KeyboardInterrupt):
-    """SIGTERM (a supervisor stopping the run), raised as Ctrl-C is so that the same clean-up runs."""
-
-
-def _stop(signum: int, frame: object) -> None:
-    raise Stopped(signum)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m pipeline.detect",
@@ -472,10 +464,10 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if args.video_fps is not None and args.video is None:
         parser.error("--video-fps sets the frame rate of --video: give --video FILE.mp4 too")
-    # SIGTERM (a supervisor stopping the run) ends it as Ctrl-C does, so the partial video is removed.
-    previous = signal.signal(signal.SIGTERM, _stop)
     try:
-        return _run_and_report(args)
+        # SIGTERM (a supervisor stopping the run) ends it as Ctrl-C does, so the partial video is removed.
+        with sigterm_as_interrupt():
+            return _run_and_report(args)
     except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the frames done keep their files
         if args.video is None:
             video = ""
@@ -483,10 +475,7 @@ def main(argv: list[str] | None = None) -> int:
             video = f"; the video {args.video} was written"
         else:
             video = f"; no video was written{' (the earlier one is kept)' if args.video.is_file() else ''}"
-        status = interrupted(f"the frames detected so far have their files in {args.out}{video}")
-        return 128 + exc.args[0] if isinstance(exc, Stopped) else status
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+        return stopped(exc, f"the frames detected so far have their files in {args.out}{video}")
 
 
 def _run_and_report(args: argparse.Namespace) -> int:

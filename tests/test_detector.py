@@ -874,7 +874,7 @@ def test_a_stopped_run_says_so_and_leaves_no_partial_video(tiny_models, tmp_path
     run.send_signal(signal.SIGTERM)
     _, stderr = run.communicate(timeout=120)
     assert run.returncode == 128 + signal.SIGTERM, stderr[-2000:]
-    assert f"interrupted: the frames detected so far have their files in {tmp_path / 'out'}; no video was written " \
+    assert f"terminated: the frames detected so far have their files in {tmp_path / 'out'}; no video was written " \
            "(the earlier one is kept)" in stderr and "Traceback" not in stderr
     assert (tmp_path / "run.mp4").read_bytes() == b"an earlier run's video" and not list(tmp_path.glob(".*partial*"))
     done = len(list((tmp_path / "out" / "data").glob("*.txt")))
