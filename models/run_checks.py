@@ -68,6 +68,10 @@ def run_lock(out: Path) -> Iterator[None]:
         except BlockingIOError:
             raise InputError(f"--out: {out} is in use by another training process; wait for it to end (or stop "
                              "it), then rerun") from None
+        except OSError as exc:  # NFS takes an exclusive lock only on a file open for writing (EBADF); Lustre
+            # without -o flock has none (ENOSYS): the run trains unguarded there, as on Windows, rather than not at all
+            log.warning("%s: the file system locks no folder (%s): not guarded against a second process given the "
+                        "same --out", out, exc.strerror or exc)
         yield
     finally:
         os.close(handle)  # closing the last descriptor releases the lock

@@ -514,6 +514,9 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         raise InputError(f"--out: cannot create {out} ({exc.strerror or exc})") from None
     if not locked:  # a folder this run has just made
         guard.enter_context(run_lock(out))
+        if state is None and state_path.exists():  # another process made it too, and held it first
+            raise InputError(f"--out: {out} was started by another training process meanwhile ({STATE_FILE}); "
+                             "give a new folder, or --resume it once that process has ended")
     recorded_config = _jsonable(asdict(config))
     if state is None:
         # The state before the first epoch, right after the folder is made: a run stopped in its first epoch

@@ -92,7 +92,14 @@ def _read_bounded(path: str | Path, what: str, limit: int) -> bytes:
     try:
         with os.fdopen(descriptor, "rb") as handle:
             size = os.fstat(handle.fileno()).st_size
-            data = handle.read(limit + 1) if size <= limit else b""
+            # The size it states and one byte more (to see it grew), then on in chunks: read(limit + 1) asks for
+            # a buffer of the whole limit up front (2 GiB for a model file), a MemoryError under a memory limit.
+            data = handle.read(size + 1) if size <= limit else b""
+            if len(data) > size:  # grown since, or a /proc file stating 0: on in chunks, to a byte past the limit
+                grown = bytearray(data)
+                while len(grown) <= limit and (chunk := handle.read(min(_CHUNK, limit + 1 - len(grown)))):
+                    grown += chunk
+                data = bytes(grown)
     except OSError as exc:  # a failing disk, /proc/self/mem
         raise ModelFileError(f"{path}: cannot read the {what} ({_reason(exc)})") from exc
     if size > limit or len(data) > limit:

@@ -169,6 +169,20 @@ def test_a_pipe_or_device_in_a_files_place_is_refused_at_once(which: str, fault:
         done.stderr[-2000:]
 
 
+def _at_most_1_5_gib() -> None:
+    resource.setrlimit(resource.RLIMIT_AS, (3 << 29, 3 << 29))
+
+
+def test_a_model_loads_in_less_memory_than_the_file_size_bound(tmp_path: Path) -> None:
+    """Reading a 1.4 MB graph asked for a buffer of the whole bound up front (read(2 GiB + 1)): under an address-space
+    limit (ulimit -v, a 32-bit board, strict overcommit) every model failed to load with a MemoryError traceback."""
+    code = (f"from pipeline.detector import Detector\nDetector({str(SOURCE)!r}, providers='cpu').close()\n"
+            "print('loaded')\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60,
+                          check=False, preexec_fn=_at_most_1_5_gib)  # loading takes about 0.7 GiB of address space
+    assert done.stdout == "loaded\n", done.stderr[-2000:]
+
+
 def test_a_link_to_a_checked_file_outside_the_directory_still_loads(tmp_path: Path) -> None:
     """Files linked rather than copied (tests/test_typing.py does so) stay a model: their bytes are what is checked."""
     models = tmp_path / "models"

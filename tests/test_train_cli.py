@@ -573,3 +573,29 @@ def test_resnet18_weights_start_the_paper_encoder_and_unusable_files_are_named(t
     assert says.startswith(f"error: --resnet18: {garbage}: not a PyTorch state dict")
     says = refused(args("depth", tmp_path / "missing", one_frame, "--resnet18", str(tmp_path / "nowhere.pth")), capsys)
     assert says == f"error: --resnet18: {tmp_path / 'nowhere.pth'} does not exist"
+
+
+def test_a_new_run_refuses_a_folder_another_process_started_meanwhile(tmp_path, one_frame, capsys, monkeypatch):
+    """Two new runs given one --out that does not exist yet: whichever takes the folder's lock second finds the
+    other's state.pt and stops, instead of writing an epoch-0 state over it. The other process is played by the
+    lock itself: it finishes a run into the folder just before this one's lock is taken."""
+    from models import train
+
+    out = tmp_path / "run"
+    taken = train.run_lock
+    played: list[Path] = []
+
+    def after_another_run(folder):
+        if not played:  # the first lock this run takes: the other process's whole run comes just before it
+            played.append(folder)
+            assert main(args("detector", tmp_path / "other", one_frame, "--input", "lidar16")) == 0
+            for name in ("state.pt", "pixor.pt", "log.jsonl"):
+                shutil.copy(tmp_path / "other" / name, folder / name)
+        return taken(folder)
+
+    monkeypatch.setattr(train, "run_lock", after_another_run)
+    says = refused(args("detector", out, one_frame, "--input", "lidar16"), capsys)
+    assert played == [out]
+    assert says == (f"error: --out: {out} was started by another training process meanwhile (state.pt); give a new "
+                    "folder, or --resume it once that process has ended")
+    assert files(out) == files(tmp_path / "other")  # the other run's files, as it left them

@@ -163,6 +163,32 @@ def test_a_full_disk_is_one_line_and_keeps_the_last_state(frames, tmp_path, caps
     assert not (out / "state.pt.tmp").exists() and not (out / "state.pt.tmp").is_symlink()
 
 
+def test_a_file_system_without_folder_locks_still_trains(frames, tmp_path, monkeypatch, caplog):
+    """NFS places an exclusive flock only on a file open for writing, which a folder never is (EBADF); Lustre without
+    -o flock has none (ENOSYS). Every run there stopped with "cannot write it (Bad file descriptor)": it trains,
+    saying it is unguarded; a folder really in use is still refused."""
+    import errno
+    import fcntl
+
+    real = fcntl.flock
+
+    def unsupported(descriptor: int, operation: int) -> None:
+        raise OSError(errno.EBADF, os.strerror(errno.EBADF))
+
+    out = tmp_path / "run"
+    monkeypatch.setattr(fcntl, "flock", unsupported)
+    assert main(args(frames, out, "--epochs", "1")) == 0
+    assert f"{out}: the file system locks no folder (Bad file descriptor)" in caplog.text
+    assert [r["epoch"] for r in records(out)] == [1]
+    monkeypatch.setattr(fcntl, "flock", real)
+    holder = os.open(out, os.O_RDONLY)
+    try:
+        real(holder, fcntl.LOCK_EX)
+        assert main(args(frames, out, "--resume")) == 2
+    finally:
+        os.close(holder)
+
+
 def _sleep_and_say(path: str, threads: int | None) -> dict:
     """A job of the test below: writes its pid, then sleeps (spawned: module-level, importable)."""
     Path(path).write_text(str(os.getpid()))
