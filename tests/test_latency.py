@@ -16,6 +16,21 @@ LATENCY = Path(__file__).resolve().parents[1] / "benchmarks" / "latency.py"
 QUICK_PEAK = ["--peak-size", "512"]  # the 4096² MatMul of the real peak takes 12 s a run; the keys are the same
 
 
+def refused(capsys, *args: str) -> tuple[int, str]:
+    """The command's exit status and stderr for a command line it refuses before any timing, run in this
+    process: its real main (argparse, the checks, the decorator's handling), without a fresh interpreter's
+    imports (one to three seconds each, fifteen times in this file). An exception main lets through fails the
+    test here as a traceback would; every run that times frames still goes through a real subprocess."""
+    from benchmarks.latency import main
+
+    capsys.readouterr()
+    try:
+        code = main([*QUICK_PEAK, *args])
+    except SystemExit as stop:  # argparse's refusals
+        code = stop.code
+    return code, capsys.readouterr().err
+
+
 def test_latency_report_with_two_workers_and_torch(tmp_path):
     result = subprocess.run(
         [sys.executable, str(LATENCY), *QUICK_PEAK, "--preset", "tiny", "--frames", "4", "--warmup", "1", "--threads", "2",
@@ -101,7 +116,7 @@ def test_latency_report_with_two_workers_and_torch(tmp_path):
     assert picture is not None and picture.shape[0] > 100
 
 
-def test_latency_int8_and_precision_check(tmp_path, tiny_models):
+def test_latency_int8_and_precision_check(tmp_path, tiny_models, capsys):
     ok = subprocess.run(
         [sys.executable, str(LATENCY), *QUICK_PEAK, "--preset", "tiny", "--precision", "int8", "--frames", "2", "--warmup", "1",
          "--ops", "--stage-threads", "1", "--json", str(tmp_path / "q.json")],
@@ -121,17 +136,13 @@ def test_latency_int8_and_precision_check(tmp_path, tiny_models):
         assert abs(sum(entry["share"] for entry in ops["by_op"].values()) - 1) < 1e-9
         assert ops["compute_gflops_per_s"] == report["networks"][name]["gflops"] / (ops["compute_ms"] / 1e3)
         assert ops["run_ms"] > 0 and f"{name:6s} operators (median of 20 profiled runs of" in ok.stdout
-    mismatch = subprocess.run(
-        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--precision", "int8", "--frames", "1"],
-        capture_output=True, text=True, timeout=300, check=False,
-    )
-    assert mismatch.returncode == 2 and "error: --precision int8, but" in mismatch.stderr
-    none = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--frames", "0"],
-                          capture_output=True, text=True, timeout=120, check=False)
-    assert none.returncode == 2 and "argument --frames: must be at least 1, got 0" in none.stderr
+    code, err = refused(capsys, "--models", str(tiny_models), "--precision", "int8", "--frames", "1")
+    assert code == 2 and "error: --precision int8, but" in err
+    code, err = refused(capsys, "--models", str(tiny_models), "--frames", "0")
+    assert code == 2 and "argument --frames: must be at least 1, got 0" in err
 
 
-def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny_models):
+def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny_models, capsys):
     result = subprocess.run(
         [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--baseline", str(tiny_models), "--frames", "8",
          "--warmup", "1", "--json", str(tmp_path / "b.json")],
@@ -155,21 +166,15 @@ def test_latency_baseline_runs_interleaved_and_bad_dir_is_refused(tmp_path, tiny
     b = report["speedup_vs_baseline_blocks"]
     assert b["blocks"] == 2 and b["min"] <= b["p50"] <= b["max"] and report["speedup_vs_baseline"] > 0
     assert "in alternating blocks" in result.stdout
-    missing = subprocess.run(
-        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--baseline", str(tmp_path / "nowhere"),
-         "--frames", "1", "--warmup", "1"],
-        capture_output=True, text=True, timeout=300, check=False,
-    )
-    assert missing.returncode == 2 and "nowhere" in missing.stderr and "Traceback" not in missing.stderr
+    code, err = refused(capsys, "--models", str(tiny_models), "--baseline", str(tmp_path / "nowhere"), "--frames", "1",
+                        "--warmup", "1")
+    assert code == 2 and "nowhere" in err and "Traceback" not in err
     # A LiDAR-only baseline runs another pipeline on the frames: no speed-up of one over the other to report.
     lidar_only = lidar_only_models(tiny_models, tmp_path / "lidar")
-    other = subprocess.run(
-        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--baseline", str(lidar_only),
-         "--frames", "1", "--warmup", "1"],
-        capture_output=True, text=True, timeout=300, check=False,
-    )
-    assert other.returncode == 2 and "Traceback" not in other.stderr, other.stderr
-    assert f"--baseline {lidar_only}: reads a " in other.stderr and "alone (LiDAR-only)" in other.stderr
+    code, err = refused(capsys, "--models", str(tiny_models), "--baseline", str(lidar_only), "--frames", "1",
+                        "--warmup", "1")
+    assert code == 2 and "Traceback" not in err, err
+    assert f"--baseline {lidar_only}: reads a " in err and "alone (LiDAR-only)" in err
 
 
 def test_latency_throughput_with_worker_processes(tmp_path, tiny_models):
@@ -227,7 +232,7 @@ def test_a_worker_that_fails_is_reported_instead_of_waited_for(tmp_path, tiny_mo
                     mode="thread")
 
 
-def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, tiny_models):
+def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, tiny_models, capsys):
     """--compare-torch with --models times PyTorch networks of the directory's preset (tiny here), not the
     default one's; a --preset that contradicts the directory is refused at once, in one line."""
     result = subprocess.run(
@@ -252,16 +257,13 @@ def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, t
     assert result.returncode == 0, result.stderr[-2000:]
     weights = json.loads((tmp_path / "q.json").read_text())["torch_weights"]
     assert f"of the FP32 directory it was converted from, {tiny_models}" in weights
-    wrong = subprocess.run(
-        [sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--preset", "paper", "--compare-torch",
-         "--frames", "1", "--warmup", "1"],
-        capture_output=True, text=True, timeout=300, check=False,
-    )
-    assert wrong.returncode == 2 and "Traceback" not in wrong.stderr
-    assert "--preset paper" in wrong.stderr and "holds tiny models" in wrong.stderr
+    code, err = refused(capsys, "--models", str(tiny_models), "--preset", "paper", "--compare-torch", "--frames", "1",
+                        "--warmup", "1")
+    assert code == 2 and "Traceback" not in err
+    assert "--preset paper" in err and "holds tiny models" in err
 
 
-def test_what_latency_could_not_use_or_write_is_refused_before_timing(tmp_path, tiny_models):
+def test_what_latency_could_not_use_or_write_is_refused_before_timing(tmp_path, tiny_models, capsys):
     """A misspelt preset, a folder without scans, and a --json or --plot that cannot be written: one line
     naming the flag, exit 2, before minutes of timing whose report would be lost."""
     (tmp_path / "empty" / "velodyne").mkdir(parents=True)
@@ -273,9 +275,8 @@ def test_what_latency_could_not_use_or_write_is_refused_before_timing(tmp_path, 
         "--plot": ["--models", str(tiny_models), "--plot", str(tmp_path / "a-file" / "p.png")],
     }
     for flag, args in cases.items():
-        done = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, *args, "--frames", "1", "--warmup", "0"],
-                              capture_output=True, text=True, timeout=120, check=False)
-        assert done.returncode == 2 and f"error: {flag}" in done.stderr and "Traceback" not in done.stderr, done.stderr
+        code, err = refused(capsys, *args, "--frames", "1", "--warmup", "0")
+        assert code == 2 and f"error: {flag}" in err and "Traceback" not in err, err
 
 
 def test_network_latency_alternates_in_blocks_each_after_an_untimed_run():
@@ -334,18 +335,16 @@ def test_the_score_threshold_reaches_every_detector_timed(tiny_models, monkeypat
     assert len(usage) == 1 and usage[0]["frames"] == 2 and 0 < usage[0]["cpu_share"] <= 1.05
 
 
-def test_a_score_threshold_outside_0_1_is_refused_at_once(tiny_models):
-    result = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models),
-                             "--score-threshold", "1.5"], capture_output=True, text=True, timeout=120, check=False)
-    assert result.returncode == 2 and "--score-threshold" in result.stderr and "Traceback" not in result.stderr
+def test_a_score_threshold_outside_0_1_is_refused_at_once(tiny_models, capsys):
+    code, err = refused(capsys, "--models", str(tiny_models), "--score-threshold", "1.5")
+    assert code == 2 and "--score-threshold" in err and "Traceback" not in err
 
 
-def test_no_warm_up_on_a_gpu_provider_is_refused_before_anything_runs(tiny_models):
+def test_no_warm_up_on_a_gpu_provider_is_refused_before_anything_runs(tiny_models, capsys):
     """A GPU's first frames build its kernels (TensorRT's engine, for minutes): timed, they would be the mean."""
-    result = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models), "--provider",
-                             "tensorrt", "--warmup", "0"], capture_output=True, text=True, timeout=120, check=False)
-    assert result.returncode == 2 and "--warmup 0: with --provider tensorrt" in result.stderr
-    assert "Traceback" not in result.stderr
+    code, err = refused(capsys, "--models", str(tiny_models), "--provider", "tensorrt", "--warmup", "0")
+    assert code == 2 and "--warmup 0: with --provider tensorrt" in err
+    assert "Traceback" not in err
 
 
 def test_throughput_workers_take_the_gpus_in_turn(tiny_models, monkeypatch):
@@ -381,15 +380,14 @@ def test_throughput_workers_take_the_gpus_in_turn(tiny_models, monkeypatch):
     assert given == [None, None, None]
 
 
-def test_gpu_ids_are_refused_without_a_gpu_provider_or_when_malformed(tiny_models):
+def test_gpu_ids_are_refused_without_a_gpu_provider_or_when_malformed(tiny_models, capsys):
     """--device-ids before minutes of timing: malformed or repeated ids by argparse, any without --provider
     cuda or tensorrt in one line (exit 2)."""
     for ids, message in (("0,1", "--device-ids 0,1: GPU ids need --provider cuda or tensorrt"),
                          ("0,x", "expected GPU ids from 0 separated by commas"), ("1,1", "a GPU id given twice"),
                          ("-1", "expected GPU ids from 0")):
-        result = subprocess.run([sys.executable, str(LATENCY), *QUICK_PEAK, "--models", str(tiny_models),
-                                 f"--device-ids={ids}"], capture_output=True, text=True, timeout=120, check=False)
-        assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr, ids
+        code, err = refused(capsys, "--models", str(tiny_models), f"--device-ids={ids}")
+        assert code == 2 and message in err and "Traceback" not in err, ids
 
 
 def test_summaries_keep_every_sample_and_say_what_a_p99_rests_on():

@@ -10,6 +10,8 @@ from pipeline.presets import get_preset
 
 def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     out = tmp_path / "run"
+    # The recipe's default two lanes: each training stage in a spawned process, as a user's run has them (one lane
+    # would save about 40 CPU seconds of imports, and leave that path to the stand-in jobs of test_schedule.py).
     result = subprocess.run(
         [sys.executable, "-m", "models.reproduce", "--quick", "--out", str(out), "--data", str(tmp_path / "sim"),
          "--sim-workers", "1"],
@@ -49,6 +51,23 @@ def test_quick_reproduce_runs_every_stage_and_losses_fall(tmp_path):
     manifest = json.loads((weights / "tiny" / "manifest.json").read_text())
     assert manifest["weights"] == "trained"
     assert manifest["networks"]["depth"]["training"]["task"] in ("depth", "joint")
+
+
+def test_the_training_jobs_can_be_sent_to_a_spawned_lane(tmp_path):
+    """With two or more lanes (the recipe's default) each training job runs in a spawned process, which gets it
+    pickled: every job of the recipe, with the config it closes over, must survive the trip and still name the
+    recipe's stage function (a lambda or a local function here would fail only in a multi-lane run)."""
+    import pickle
+
+    from models.reproduce import QUICK, ReproduceConfig, run_stage, training_jobs
+
+    config = ReproduceConfig(out=tmp_path / "run", data=tmp_path / "sim", quick=True)
+    jobs = training_jobs(config)
+    copies = pickle.loads(pickle.dumps(jobs))
+    assert [job.name for job in copies] == [job.name for job in jobs] and len(jobs) == 8
+    for job, sent in zip(jobs, copies, strict=True):
+        assert sent.after == job.after and sent.run.func is run_stage
+        assert sent.run.args == (config, job.name) and sent.run.args[0].budget == QUICK
 
 
 def test_ablation_presets():
