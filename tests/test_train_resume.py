@@ -12,6 +12,8 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -83,6 +85,21 @@ class Blocked:
         self.path.unlink(missing_ok=True)
 
 
+@contextmanager
+def held_writing_depth_pt(frames: Path, out: Path) -> Iterator[tuple[subprocess.Popen, Blocked]]:
+    """A new run in ``out`` stopped in its first checkpoint's write (depth.pt's .tmp a full FIFO); killed and the
+    FIFO removed when the block ends."""
+    out.mkdir()
+    fifo = Blocked(out / "depth.pt.tmp")
+    process = start(args(frames, out))
+    try:
+        fifo.wait_for_writer(process)
+        yield process, fifo
+    finally:
+        process.kill()
+        fifo.close()
+
+
 def weights(run_dir: Path) -> dict[str, torch.Tensor]:
     return torch.load(run_dir / "state.pt", weights_only=False)["networks"]["depth"]
 
@@ -100,19 +117,12 @@ def test_killed_while_writing_its_first_checkpoint_resumes_exactly_and_holds_its
     straight = tmp_path / "straight"
     assert main(args(frames, straight)) == 0
     out = tmp_path / "run"
-    out.mkdir()
-    fifo = Blocked(out / "depth.pt.tmp")
-    process = start(args(frames, out))
-    try:
-        fifo.wait_for_writer(process)
+    with held_writing_depth_pt(frames, out) as (process, _):
         assert main(args(frames, out, "--resume")) == 2
         assert capsys.readouterr().err.strip().splitlines()[-1] == (
             f"error: --out: {out} is in use by another training process; wait for it to end (or stop it), then rerun")
         process.kill()
         process.communicate(timeout=DEADLINE_S)
-    finally:
-        process.kill()
-        fifo.close()
     assert not (out / "depth.pt").exists()  # killed before its first checkpoint was whole
     assert main(args(frames, out, "--resume")) == 0
     assert [r["epoch"] for r in records(out)] == [1, 2] and records(out) == records(straight)
@@ -124,17 +134,10 @@ def test_sigterm_mid_write_stops_in_one_line_and_the_run_resumes(frames, tmp_pat
     """SIGTERM (pre-emption) while depth.pt is being written: exit status 143, one line saying what the run
     kept and how to go on, no traceback, no half-written file left beside the checkpoints."""
     out = tmp_path / "run"
-    out.mkdir()
-    fifo = Blocked(out / "depth.pt.tmp")
-    process = start(args(frames, out))
-    try:
-        fifo.wait_for_writer(process)
+    with held_writing_depth_pt(frames, out) as (process, fifo):
         process.send_signal(signal.SIGTERM)
         fifo.drain(process)
         _, err = process.communicate(timeout=DEADLINE_S)
-    finally:
-        process.kill()
-        fifo.close()
     assert process.returncode == 143, err[-2000:]
     assert "Traceback" not in err
     assert err.strip().splitlines()[-1] == (
