@@ -152,8 +152,9 @@ def model_directory(models: Path) -> Path:
 
 def loaded_identity(directory: Path, detectors: list[Detector]) -> ModelIdentity:
     """The identity of the model the sessions hold, after checking that the directory still holds it: a copy
-    into the directory while the service started (its manifest or a file replaced between the Detector's sha256
-    check and ONNX Runtime's read) is refused rather than served under the wrong identity."""
+    into the directory while the service started (its manifest replaced between the workers' loads, or a file)
+    is refused rather than served under an identity the directory no longer has. (The CPU and CUDA sessions run
+    the very bytes each Detector checked; TensorRT's, loaded by path, were checked again by the Detector.)"""
     manifest, digest = load_manifest_with_digest(directory)
     if any(d.manifest != manifest for d in detectors):
         raise ModelFileError(f"{directory}: the model directory changed while the service loaded it (a copy in "
