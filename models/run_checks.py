@@ -162,7 +162,7 @@ def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
         wanted, started = getattr(config, key), recorded.get(key, RECORDED_SINCE.get(key))
         if isinstance(wanted, (list, tuple)) or isinstance(started, (list, tuple)):
             wanted, started = tuple(wanted or ()), tuple(started or ())
-        elif key.endswith(("data", "split", "dir", "checkpoint")):  # the same file, however it is spelt
+        elif key.endswith(("data", "split", "dir", "checkpoint", "resnet18")):  # the same file, however it is spelt
             wanted, started = (None if v is None else str(Path(v).resolve()) for v in (wanted, started))
         if wanted != started:
             raise InputError(f"{_flag_text(flag, wanted)}, but {out} was started with {_flag_text(flag, started)}"

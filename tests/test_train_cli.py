@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from models.train import TrainConfig, main, run
+from pipeline.errors import InputError
 from pipeline.presets import get_preset
 from tests.conftest import KITTI
 
@@ -599,3 +600,17 @@ def test_a_new_run_refuses_a_folder_another_process_started_meanwhile(tmp_path, 
     assert says == (f"error: --out: {out} was started by another training process meanwhile (state.pt); give a new "
                     "folder, or --resume it once that process has ended")
     assert files(out) == files(tmp_path / "other")  # the other run's files, as it left them
+
+
+def test_a_run_started_from_resnet18_weights_resumes_with_the_same_file(tmp_path):
+    """--resnet18 is a file, compared on --resume as the other files are (the state records it as text): the
+    same file, however it is spelt, resumes; another is refused."""
+    from models.run_checks import check_resumable
+
+    weights = tmp_path / "resnet18.pth"
+    state = {"config": {"task": "depth", "resnet18": str(weights)}, "networks": {"depth": {}}}
+    spelt_otherwise = tmp_path / "." / "resnet18.pth"
+    check_resumable(TrainConfig(task="depth", data=KITTI, preset="paper", out=tmp_path, resnet18=spelt_otherwise), state, tmp_path)
+    other = TrainConfig(task="depth", data=KITTI, preset="paper", out=tmp_path, resnet18=tmp_path / "other.pth")
+    with pytest.raises(InputError, match=r"--resnet18 .*other\.pth, but .* was started with --resnet18"):
+        check_resumable(other, state, tmp_path)
