@@ -24,7 +24,7 @@ from export.inputs import (
 from export.manifest import UNTRAINED, NetworkEntry, build_manifest, verify_model_dir, write_manifest
 from export.onnx_export import EXPORTER, OPSET, NetworkIO, depth_io, export_onnx, pixor_io
 from export.parity import ParityResult, cpu_session, depth_parity, pixor_parity, require_parity
-from models import build_depth_net, build_pixor
+from models import build_network
 from models.checkpoint import find_checkpoints, load_checkpoint, load_network_weights
 from models.depth_net import IMAGENET_MEAN, IMAGENET_STD
 from pipeline.errors import InputError
@@ -141,7 +141,7 @@ def _step(bar: tqdm, label: str) -> Iterator[None]:
 
 
 def run(config: ExportConfig) -> ExportResult:
-    """Build (and load) the networks, export both to ONNX, check them, write the manifest.
+    """Build (and load) the networks of ``config.networks``, export each to ONNX, check them, write the manifest.
 
     Raises ParityError when ONNX Runtime disagrees with PyTorch past tolerance, and
     ValueError/FileNotFoundError for bad presets or checkpoints; ``--out`` is then left as it was.
@@ -175,8 +175,7 @@ def _export(config: ExportConfig, preset: Preset, staging: Path, checkpoints: di
             sources: list[NetworkInputs]) -> tuple[dict, dict, list[ParityResult]]:
     """Export, check (on ``sources``) and describe the networks in ``staging``; returns (manifest, modules,
     parity results)."""
-    builders = {"depth": build_depth_net, "pixor": build_pixor}
-    models = {name: builders[name](preset).eval() for name in FILES if name in config.networks}
+    models = {name: build_network(name, preset).eval() for name in FILES if name in config.networks}
     interfaces: dict[str, NetworkIO] = {
         "depth": depth_io(preset.depth.input_hw),
         "pixor": pixor_io(preset.bev.shape, preset.pixor.output_stride),

@@ -91,7 +91,8 @@ def depth_target(data_dir: Path, frame: Frame, preset: Preset) -> np.ndarray:
 
 @dataclass
 class DepthDataset(Dataset):
-    """(rgb (3,H,W), sparse (1,H,W), target (1,H,W)) float32 tensors per frame."""
+    """(rgb (3,H,W), sparse (1,H,W), target (1,H,W)) float32 tensors per frame, and with ``car_weight`` != 1 a
+    fourth, the per-pixel loss weight (1,H,W) (:func:`depth_sample`)."""
 
     inputs: ClassVar[int] = 2  # leading fields that are network inputs (rgb, sparse); the rest are targets
     data_dir: Path

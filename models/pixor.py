@@ -13,8 +13,8 @@ Layout (paper preset, input 36 × 800 × 700)::
     score     3×3 conv → 1, sigmoid (bias = −log((1 − π)/π), π = 0.01)
     regression 3×3 conv → 6 (cos θ, sin θ, dx, dy, log w, log l, normalised)
 
-The grid (800 × 700) is not a multiple of the total stride 16, so the input is
-zero-padded bottom/right inside the network (zero = empty cell) and the outputs
+The grid's 700 columns are not a multiple of the total stride 16 (its 800 rows
+are), so the input is zero-padded bottom/right inside the network (zero = empty cell) and the outputs
 are cropped to exactly (ny / output_stride, nx / output_stride): static, exact
 ONNX shapes.
 """

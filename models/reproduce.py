@@ -28,8 +28,11 @@ starts from the 16-line PIXOR: trained from scratch on pseudo + 16-line points
 AP (IoU 0.7, moderate) after 2 epochs, far below the 16-line PIXOR after as
 many — the smeared pseudo points hide the real returns' sharp
 outlines, and learning to see through them from scratch needs more epochs than
-this budget. It branches off half-way, so every PIXOR of the table has
-trained the same number of epochs.
+this budget. It branches off half-way, from the 16-line run's best
+checkpoint by then (``pixor_epochN.pt``, a copy of its ``pixor.pt``), and
+trains the rest of the epochs, so every PIXOR of the table runs the same
+number of epochs (the camera one fewer, by as many epochs as that best
+checkpoint precedes the branch point).
 
 The recipe's preset is ``edge-split-near35``: the edge networks, the camera
 PIXOR reading the pseudo points in BEV channels of their own (``-split``,
@@ -101,7 +104,9 @@ class Budget:
     depth_car_weight: float = 1.0  # the depth nets' loss weight on the labelled cars' own pixels (--car-weight)
     detector_frames: int = 2000
     detector_epochs: int = 12
-    pseudo_branch_epochs: int = 6  # the camera PIXOR starts from the 16-line PIXOR of this epoch
+    # The camera PIXOR starts from the 16-line run's best pixor.pt after this many epochs (by BEV AP: the best
+    # of epochs 1 … N, not necessarily epoch N's weights), copied as pixor_epochN.pt.
+    pseudo_branch_epochs: int = 6
     joint_frames: int = 2000
     joint_epochs: int = 1
     val_frames_during_training: int = 60
@@ -260,8 +265,9 @@ def run_stage(config: ReproduceConfig, name: str, threads: int | None = None) ->
     b, out = config.budget, config.out
     branch = out / "pixor_lidar16" / f"pixor_epoch{b.pseudo_branch_epochs}.pt"
 
-    # Every PIXOR trains detector_epochs in all: the camera pipeline's branches off the 16-line one
-    # after pseudo_branch_epochs and spends the rest on pseudo + 16-line points.
+    # Every PIXOR runs detector_epochs in all: the camera pipeline's branches off the 16-line one after
+    # pseudo_branch_epochs (from its best checkpoint so far, which may be an earlier epoch's: then the camera
+    # PIXOR has trained fewer epochs than the others) and spends the rest on pseudo + 16-line points.
     # On a -split preset the camera PIXOR starts as the 16-line one, its pseudo channels at zero.
     def detector(input_mode: str, epochs: int, start: Path | None = None) -> dict:
         pseudo = {"pseudo_dir": out / "pseudo" / "train", "val_pseudo_dir": out / "pseudo" / "val"}

@@ -81,6 +81,7 @@ from models.data import (
     DepthDataset,
     DetectorDataset,
     car_boxes,
+    depth_target,
     frame_points,
 )
 from models.depth_net import load_resnet18_encoder
@@ -209,7 +210,9 @@ class TrainResult:
         return self.epochs_before >= self.epochs > 0
 
 
-RECIPES = {  # the paper's settings per task: (epochs, batch size, learning rate)
+# Defaults per task: (epochs, batch size, learning rate). Depth is the paper's recipe; for the detector the paper
+# gives the batch and rate but no epoch count (30 is ours); joint fine-tuning's numbers are ours throughout.
+RECIPES = {
     "depth": (10, 4, 1e-4),
     "detector": (30, 8, 1e-3),
     "joint": (3, 2, 1e-5),
@@ -551,31 +554,8 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         forward = {name: torch.compile(fn) for name, fn in forward.items()}
         log.info("torch.compile: %s (the first step compiles, about a minute)", ", ".join(forward))
     first_loss = last_loss = float("nan")
-    metadata_base = {"task": config.task, "preset": preset.name, "code": code_version(), "data": str(train_dir),
-                     "train_frames": len(train_ids),
-                     "val_data": str(val_dir), "val_frames": len(val_ids), "input": config.input_mode,
-                     "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
-                                "optimizer": "Adam", "seed": config.seed, "precision": config.precision,
-                                "compiled": compiled}}
-    if thins_scans(config):  # the lines its scans were thinned to (0: as stored); a lidar64 run reads them as stored
-        metadata_base["emulate_beams"] = config.emulate_beams
-    if config.task in ("depth", "joint"):
-        metadata_base["recipe"]["depth_loss"] = config.depth_loss
-        metadata_base["recipe"]["lr_decay"] = {"every_epochs": config.lr_step, "factor": config.lr_gamma}
-    if config.resnet18 is not None:
-        metadata_base["recipe"]["encoder_start"] = str(config.resnet18)
-    if config.train_only:
-        metadata_base["recipe"]["train_only"] = list(config.train_only)
-    if config.car_weight != 1.0:
-        metadata_base["recipe"]["car_weight"] = config.car_weight
-    if config.freeze_bn:
-        metadata_base["recipe"]["freeze_bn"] = True
-    for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
-        if name in networks and path is not None:
-            metadata_base["recipe"][f"{name}_start"] = str(path)
-            earlier = start_training_metadata(Path(path), name)
-            if earlier:
-                metadata_base["recipe"][f"{name}_start_training"] = earlier
+    metadata_base = _checkpoint_metadata(config, preset, networks, train_dir, train_ids, val_dir, val_ids,
+                                         compiled)
     log_path = out / "log.jsonl"
     # One line per epoch the state holds (a stale log in a folder without one would otherwise keep its lines).
     _write_log(log_path, history)
@@ -664,6 +644,39 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
                        epochs=config.epochs)
 
 
+def _checkpoint_metadata(config: TrainConfig, preset: Preset, networks: dict[str, torch.nn.Module],
+                         train_dir: Path, train_ids: list[str], val_dir: Path, val_ids: list[str],
+                         compiled: bool) -> dict:
+    """What every checkpoint of the run records besides its epoch and metrics: the task, the data and the
+    recipe, with the flags that changed it and the weights the run started from (and how those were trained)."""
+    metadata = {"task": config.task, "preset": preset.name, "code": code_version(), "data": str(train_dir),
+                "train_frames": len(train_ids),
+                "val_data": str(val_dir), "val_frames": len(val_ids), "input": config.input_mode,
+                "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
+                           "optimizer": "Adam", "seed": config.seed, "precision": config.precision,
+                           "compiled": compiled}}
+    if thins_scans(config):  # the lines its scans were thinned to (0: as stored); a lidar64 run reads them as stored
+        metadata["emulate_beams"] = config.emulate_beams
+    if config.task in ("depth", "joint"):
+        metadata["recipe"]["depth_loss"] = config.depth_loss
+        metadata["recipe"]["lr_decay"] = {"every_epochs": config.lr_step, "factor": config.lr_gamma}
+    if config.resnet18 is not None:
+        metadata["recipe"]["encoder_start"] = str(config.resnet18)
+    if config.train_only:
+        metadata["recipe"]["train_only"] = list(config.train_only)
+    if config.car_weight != 1.0:
+        metadata["recipe"]["car_weight"] = config.car_weight
+    if config.freeze_bn:
+        metadata["recipe"]["freeze_bn"] = True
+    for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
+        if name in networks and path is not None:
+            metadata["recipe"][f"{name}_start"] = str(path)
+            earlier = start_training_metadata(Path(path), name)
+            if earlier:
+                metadata["recipe"][f"{name}_start_training"] = earlier
+    return metadata
+
+
 def selection_criterion(task: str, metrics: dict) -> float:
     """Lower is better. Depth: the validation loss (MSE or L1, as trained). Detector and joint: minus the mean of BEV AP at IoU 0.7 and
     0.5 (moderate) — the validation loss can fall while AP does not (seen here: PIXOR on 16-line input had
@@ -678,8 +691,6 @@ def joint_step(networks: dict, preset: Preset, data_dir: Path, frame_id: str, pr
                depth_loss: str = "mse", beams: int | None = 16) -> torch.Tensor:
     """Loss of one frame through depth net → soft BEV → PIXOR (+ the depth loss); its scan thinned to ``beams``
     lines (None or 0: as stored)."""
-    from models.data import depth_target
-
     frame = load_frame(data_dir, frame_id)
     lidar16 = frame_points(frame, beams)
     inputs = depth_inputs(frame.image, lidar16, frame.calib, preset)

@@ -38,7 +38,9 @@ from pipeline.targets import encode_targets
 @torch.no_grad()
 def validate_depth(net, dataset: DepthDataset | DepthCompletionDataset, device: torch.device = CPU,
                    loss: str = "mse") -> dict:
-    """RMSE and MAE (mm) of the validation frames; val_loss is the training loss (MSE in m², or L1 in m).
+    """Depth errors on the validation pixels with ground truth: ``rmse_mm`` is the mean of the frames' RMSEs
+    (KITTI's depth benchmark averages per frame), ``mae_mm`` and ``val_loss`` (the training loss: MSE in m², or
+    L1 in m) are over all those pixels at once, ``pixels`` is how many there were.
 
     On labelled object frames also ``car_in_box_<band>``: per distance band, the mean over the moderate
     cars of the share of their pixels whose point lands in their BEV box, and ``car_stray_<band>``: the

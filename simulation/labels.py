@@ -1,7 +1,8 @@
 """KITTI ``label_2`` objects from the render: 2D boxes, truncation, occlusion, DontCare.
 
 - 2D box: the tight box around the object's silhouette as if nothing occluded it
-  (its amodal mask in the render), clipped to the image, pixel edges (centre ± 0.5).
+  (its amodal mask in the render), pixel edges (centre ± 0.5), clipped as KITTI's boxes are
+  to 0 … W − 1 and 0 … H − 1.
 - truncated: fraction of the object's volume (sampled on a grid in its 3D box)
   that projects outside the image or behind the camera.
 - occluded: from the visible fraction of the silhouette: level 0 / 1 / 2 below the
@@ -38,7 +39,8 @@ class Visibility:
 
     amodal_pixels / visible_pixels: silhouette pixels without / with occluders.
     amodal_box / visible_box: (left, top, right, bottom) pixel edges, None when empty.
-    truncated: fraction outside the image. occluded_fraction: 1 - visible / amodal.
+    truncated: fraction of the box volume outside the image or behind the camera (:func:`truncation`).
+    occluded_fraction: 1 - visible / amodal.
     """
 
     amodal_pixels: int

@@ -28,7 +28,7 @@ from simulation.constants import (
     ROAD_BEHIND,
     VAN_SIZE,
 )
-from simulation.geometry import UNIT_CORNERS, Material, Primitive, Texture
+from simulation.geometry import UNIT_CORNERS, Material, Primitive, Texture, rotation_z
 from simulation.road import Road
 from simulation.scene import Actor, Lighting, Scene
 
@@ -136,9 +136,7 @@ class _Placer:
         self.primitives.extend(prims)
         self.footprints.extend(circles)
         corners = UNIT_CORNERS * np.array([l / 2, w / 2, h / 2])
-        c, s = np.cos(yaw), np.sin(yaw)
-        rot = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-        self.casters.append(corners @ rot.T + bottom + [0, 0, h / 2])
+        self.casters.append(corners @ rotation_z(yaw).T + bottom + [0, 0, h / 2])
         return True
 
 
