@@ -202,7 +202,9 @@ def _check_tables(manifest: dict, path: Path) -> None:
             raise ModelFileError(f"{path}: files.{name}: expected {{\"sha256\": \"<hex>\"}}, got {entry!r:.60}")
         if Path(name).name != name or name in ("", ".", ".."):  # a path would check a file outside the directory
             raise ModelFileError(f"{path}: files.{name}: a file name in the model directory, not a path")
-    networks = manifest.get("networks", {})
+    networks = manifest.get("networks")
+    if networks is None:  # every reader walks this table: a missing one is named here, not as a KeyError
+        raise ModelFileError(f"{path}: manifest has no 'networks' table")
     if not isinstance(networks, dict):
         raise ModelFileError(f"{path}: networks: expected a table of networks, got {networks!r:.60}")
     for name, entry in networks.items():

@@ -141,6 +141,13 @@ def test_a_model_directory_back_to_checkpoints(tiny_models, tmp_path, capsys):
     (damaged / "pixor.onnx").write_bytes((tiny_models / "pixor.onnx").read_bytes()[:1000])
     assert main(["--models", str(damaged), "--out", str(tmp_path / "y")]) == 2
     assert f"{damaged / 'pixor.onnx'}: sha256 mismatch" in capsys.readouterr().err
+    listless = tmp_path / "listless"  # a manifest without its networks table: named, not "--models: 'networks'"
+    shutil.copytree(tiny_models, listless)
+    manifest = json.loads((listless / "manifest.json").read_text())
+    del manifest["networks"]
+    (listless / "manifest.json").write_text(json.dumps(manifest))
+    assert main(["--models", str(listless), "--out", str(tmp_path / "z")]) == 2
+    assert f"{listless / 'manifest.json'}: manifest has no 'networks' table" in capsys.readouterr().err
 
 
 def test_a_file_that_is_not_onnx_is_named(tmp_path):
