@@ -1,8 +1,9 @@
 """Uploaded frame parts → validated arrays, or an error that names the part.
 
-Two steps. :func:`check_upload` runs on the event loop before the frame takes a
-place in the inference queue, so a request that can never succeed is answered
-4xx even when the queue is full, never 503 "retry": it looks at sizes and
+Two steps. :func:`check_upload` runs on the event loop before the frame's job is
+handed to the inference pool (its place there was taken before its upload was
+read, service.middleware.AdmissionMiddleware), so a request that can never succeed
+is answered 4xx at once, not after a wait for a worker: it looks at sizes and
 headers (empty or missing parts, a scan size that is not a multiple of 16 bytes,
 too many points, an image that is not PNG/JPEG, has too many pixels or is
 smaller than the crop, all read from its header before any decoding, a PNG

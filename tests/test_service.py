@@ -388,7 +388,8 @@ def test_too_many_points(tiny_models: Path, frame: dict[str, bytes]) -> None:
      ({"emulate_beams": 15}, "emulate_beams"), ({"format": "xml"}, "format"), ({"nonfinite": "keep"}, "nonfinite")],
 )
 def test_bad_query_names_the_field(client: AppClient, frame: dict[str, bytes], params: dict, field: str) -> None:
-    assert_error(client.post("/v1/detect", params=params, files=parts(frame)), 422, "invalid_input", field)
+    error = assert_error(client.post("/v1/detect", params=params, files=parts(frame)), 422, "invalid_input", field)
+    assert error["message"].startswith(f"{field}: "), error  # the parameter as sent, not where FastAPI found it
 
 
 @pytest.mark.parametrize("value", ["nan", "NaN", "inf", "-inf"])
@@ -620,6 +621,10 @@ def test_the_token_is_checked_before_the_upload_is_read(tiny_models: Path, frame
         # Refused before routing, and still counted under the route asked for.
         assert 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status="401"} 2.0' in (
             app_client.get("/metrics").text)
+        # Nothing to read and drop: a request without a body (none, or Content-Length: 0) keeps its connection.
+        for bodiless in (app_client.get("/v1/model"), app_client.post("/v1/detect", content=b"", headers=headers)):
+            assert_error(bodiless, 401, "unauthorized")
+            assert "connection" not in bodiless.headers, bodiless.request.headers
 
 
 # --------------------------------------------------------------------------- load and faults
@@ -968,6 +973,11 @@ def test_unsafe_request_ids_are_replaced(client: AppClient) -> None:
     assert client.get("/healthz", headers={"X-Request-ID": "abc-123"}).headers["x-request-id"] == "abc-123"
     replaced = client.get("/healthz", headers={"X-Request-ID": "bad id\twith spaces"}).headers["x-request-id"]
     assert replaced != "bad id\twith spaces" and len(replaced) == 32
+    # At most 64 characters are kept as sent (a UUID with its dashes is 36): one more and a new id is given.
+    longest = "r" * 64
+    assert client.get("/healthz", headers={"X-Request-ID": longest}).headers["x-request-id"] == longest
+    replaced = client.get("/healthz", headers={"X-Request-ID": longest + "r"}).headers["x-request-id"]
+    assert re.fullmatch(r"[0-9a-f]{32}", replaced), replaced
 
 
 # --------------------------------------------------------------------------- health, model, metrics

@@ -26,8 +26,9 @@ import httpx
 import pytest
 
 from service.logs import ACCESS_FIELDS, JsonFormatter, TextFormatter, utc_timestamp
-from service.middleware import access_level, request_target
+from service.middleware import access_level, client_address, request_target
 from tests.test_service import frame, parts  # noqa: F401 - fixtures
+from tests.test_service import service as in_process_service
 from tests.test_service_process import Server, _metric, _wait_for, running_service
 
 REPO = Path(__file__).resolve().parents[1]
@@ -265,6 +266,28 @@ def test_request_target_is_one_bounded_line() -> None:
     assert request_target({"path": "/a\nb\x1b[31m", "query_string": b""}) == "/a\\x0ab\\x1b[31m"
     long = request_target({"raw_path": b"/" + b"p" * 5000, "query_string": b""})
     assert len(long) == 203 and long.endswith("...")
+    longest = "/" + "p" * 199  # 200 characters: shown whole, no "..." for what was not cut
+    assert request_target({"raw_path": longest.encode(), "query_string": b""}) == longest
+
+
+def test_client_addresses_name_host_and_port_ipv6_in_brackets() -> None:
+    """``[::1]:8000``, as in a URL: an IPv6 address's own colons would otherwise run into the port's."""
+    assert client_address({"client": ("192.168.1.20", 51000)}) == "192.168.1.20:51000"
+    assert client_address({"client": ("::1", 51000)}) == "[::1]:51000"
+    assert client_address({"client": None}) is None and client_address({}) is None
+
+
+def test_a_400_names_its_error_code_in_the_access_line(
+    tiny_models: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Every refusal's code is in its access line (``error_code``), the lowest status of the 4xx too."""
+    boundary = "lowres3dboundary"
+    with in_process_service(tiny_models) as app_client, caplog.at_level(logging.INFO, logger="service.access"):
+        response = app_client.post("/v1/detect", content=b"",
+                                   headers={"content-type": f"multipart/form-data; boundary={boundary}"})
+        assert response.status_code == 400, response.text
+    (line,) = [r for r in caplog.records if r.name == "service.access" and getattr(r, "status", None) == 400]
+    assert line.error_code == "bad_request" and " 400 bad_request " in line.getMessage()  # type: ignore[attr-defined]
 
 
 def test_formatters_write_utc_and_one_line_per_record() -> None:

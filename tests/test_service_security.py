@@ -117,6 +117,22 @@ def test_png_image_data_is_counted_exactly_also_interlaced() -> None:
             png_for_decoding(_png(raw + b"\x00", interlace=1, width=width, height=height))
 
 
+@pytest.mark.parametrize("bits", [1, 2, 4])
+def test_a_png_of_fewer_bits_a_pixel_is_counted_by_its_packed_rows(bits: int) -> None:
+    """A palette PNG of 1, 2 or 4 bits a pixel packs several pixels a byte; a width that is no multiple of them
+    leaves each row's last byte partly filled, which the image data holds all the same: such an image decodes as
+    it does without the check (a row counted one byte short would refuse it as a decompression bomb)."""
+    rng = np.random.default_rng(bits)
+    colours = 2**bits
+    image = Image.fromarray(rng.integers(0, colours, (7, 13), dtype=np.uint8), "L").convert("P")
+    image.putpalette([value for i in range(colours) for value in (i * 16, 255 - i * 16, i * 8)])
+    buffer = io.BytesIO()
+    image.save(buffer, "PNG", bits=bits)
+    data = buffer.getvalue()
+    assert (data[24], data[25]) == (bits, 3)  # IHDR: the bit depth asked for, colour type 3 (palette)
+    assert np.array_equal(decode_image(png_for_decoding(data)), decode_image(data))
+
+
 def test_the_bundled_pngs_decode_to_the_same_pixels(tmp_path: Path) -> None:
     """What the check keeps of a camera's PNG decodes exactly as the whole file did; ancillary chunks (text, gamma,
     physical size) are dropped without a change to OpenCV's pixels."""
@@ -201,6 +217,16 @@ def test_an_unknown_critical_png_chunk_is_named() -> None:
     """A critical chunk (upper-case first letter) a decoder does not know means it cannot decode the file."""
     with pytest.raises(InputError, match=r"unknown critical chunk 'ABCD'"):
         png_for_decoding(_png(GREY_ROWS, _chunk(b"ABCD", b"")))
+
+
+def test_a_png_chunk_longer_than_the_file_is_named() -> None:
+    """A chunk whose length field runs past the file's end (a damaged length, the file ending with IEND all the
+    same) is named with the length it claims, not taken for a file that ends early."""
+    data = (KITTI_IMAGES / "000006.png").read_bytes()
+    length_at = data.index(b"IDAT") - 4
+    damaged = data[:length_at] + struct.pack(">I", 10_000_000) + data[length_at + 4 :]
+    with pytest.raises(InputError, match=r"a chunk of 10000000 bytes runs past its end"):
+        png_for_decoding(damaged)
 
 
 # --------------------------------------------------------------------------- start-up: an open address
