@@ -87,11 +87,12 @@ def image_boxes(boxes: np.ndarray, calib: Calibration, image_hw: tuple[int, int]
         uv = calib.rect_to_image(ends.reshape(-1, 3))[0].reshape(*ends.shape[:-1], 2)
     uv = np.where(shown[..., None, None], uv, np.nan).reshape(len(rect), -1, 2)
     h, w = image_hw
-    with np.errstate(invalid="ignore"):
-        left = np.nan_to_num(np.nanmin(uv[..., 0], axis=1), nan=0.0)
-        right = np.nan_to_num(np.nanmax(uv[..., 0], axis=1), nan=w - 1.0)
-        top = np.nan_to_num(np.nanmin(uv[..., 1], axis=1), nan=0.0)
-        bottom = np.nan_to_num(np.nanmax(uv[..., 1], axis=1), nan=h - 1.0)
+    # fmin/fmax skip the NaN ends; on a box wholly behind (all NaN) they give NaN without the RuntimeWarning
+    # nanmin/nanmax raise there (a warnings.warn, which np.errstate does not silence).
+    left = np.nan_to_num(np.fmin.reduce(uv[..., 0], axis=1), nan=0.0)
+    right = np.nan_to_num(np.fmax.reduce(uv[..., 0], axis=1), nan=w - 1.0)
+    top = np.nan_to_num(np.fmin.reduce(uv[..., 1], axis=1), nan=0.0)
+    bottom = np.nan_to_num(np.fmax.reduce(uv[..., 1], axis=1), nan=h - 1.0)
     return np.column_stack([
         np.clip(left, 0, w - 1), np.clip(top, 0, h - 1), np.clip(right, 0, w - 1), np.clip(bottom, 0, h - 1)
     ])

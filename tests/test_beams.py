@@ -308,3 +308,13 @@ def test_the_golden_frame_thins_its_scan_as_the_other_tools_do():
     records = [{"input": "lidar64"}, {"input": "lidar16", "emulate_beams": 32}, {"input": "pseudo"},
                {"input": "lidar16", "emulate_beams": 8}, {}]
     assert [default_beams({"networks": {"pixor": {"training": record}}}) for record in records] == [0, 32, 16, 8, 16]
+
+
+def test_a_scan_with_a_sector_missing_keeps_its_64_rings():
+    """A scan with a 120° sector of no returns (masked by a mount, or cut to a field of view): within a ring the
+    azimuth jumps across the gap by less than half a turn, which is no wrap, so each ring stays one segment."""
+    points = scan("000006")
+    azimuth = np.degrees(np.arctan2(points[:, 1], points[:, 0]))
+    for low, high in ((30, 150), (100, 170)):
+        rings = recover_rings(points[(azimuth <= low) | (azimuth >= high)])
+        assert rings.method == "azimuth-wrap" and abs(rings.n_rings - 64) <= 1

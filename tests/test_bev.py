@@ -401,3 +401,66 @@ def test_near35_keeps_the_pseudo_points_up_to_35_m_only():
     assert x_metres.max() <= 35.0 + 0.3 + near.bev.cell  # the camera sits 0.27 m ahead of the LiDAR
     far = near.bev.x_min + (everything.cell % near.bev.nx) * near.bev.cell
     assert far.max() > 45.0
+
+
+def test_pseudo_bins_keep_depths_on_the_limits_as_the_points_do():
+    """Pixels at exactly min_depth or max_depth are kept (compared in float32, as pseudo_xyz and the port spec
+    keep them); one float32 step outside either limit is dropped."""
+    from pipeline.bev import bins_of_xyz, pseudo_bins
+    from pipeline.pseudo import pseudo_xyz
+
+    _, preset, view_calib = _kitti_view()
+    h, w = preset.depth.input_hw
+    for limit, outside in ((2.0, 1.0), (30.0, 80.0)):  # exactly on min_depth, then on max_depth
+        on = np.full((h, w), np.float32(limit))
+        bins = pseudo_bins(on, view_calib, preset.bev, 2.0, 30.0)
+        reference = bins_of_xyz(*pseudo_xyz(on, view_calib, 2.0, 30.0), preset.bev)
+        assert bins.cell.size == reference.cell.size > 1000
+        beyond = np.full((h, w), np.nextafter(np.float32(limit), np.float32(outside)))
+        assert pseudo_bins(beyond, view_calib, preset.bev, 2.0, 30.0).cell.size == 0
+
+
+def test_pseudo_bins_on_a_grid_whose_slices_are_not_its_cells():
+    """A grid whose height slices differ from its cells (tiny: 0.4 m cells, 0.5 m slices): z bins and the
+    max_height limit are in slices, not cells, so the bins equal binning the points themselves."""
+    from pipeline.bev import bins_of_xyz, pseudo_bins
+    from pipeline.pseudo import pseudo_xyz
+
+    _, preset, view_calib = _kitti_view()
+    grid = PRESETS["tiny"].bev
+    assert grid.cell != grid.z_cell
+    h, w = preset.depth.input_hw
+    rows = np.linspace(60, 2, h, dtype=np.float32)[:, None]
+    depth = (rows + np.random.default_rng(6).uniform(-1, 1, (h, w))).astype(np.float32)
+    for max_height in (None, -1.0):
+        bins = pseudo_bins(depth, view_calib, grid, 0.9, 80.0, 1, max_height)
+        reference = bins_of_xyz(*pseudo_xyz(depth, view_calib, 0.9, 80.0, 1, max_height), grid)
+        assert reference.cell.size > 10000
+        assert abs(bins.cell.size - reference.cell.size) <= 1e-3 * reference.cell.size
+        ours, theirs = np.unique(bins.occupancy), np.unique(reference.occupancy)
+        assert np.setxor1d(ours, theirs).size <= 1e-3 * theirs.size
+    top = grid.z_min + (bins.occupancy // (grid.ny * grid.nx)) * grid.z_cell  # the lower edge of each slice
+    assert top.max() <= -1.0
+
+
+def test_pseudo_bins_of_two_grids_on_one_calibration_are_each_grids_own():
+    """The bin rays are cached per calibration and grid: a second grid on the same view gets its own bins."""
+    from pipeline.bev import bins_of_xyz, pseudo_bins
+    from pipeline.pseudo import pseudo_xyz
+
+    _, preset, view_calib = _kitti_view()
+    depth = np.full(preset.depth.input_hw, 20.0, np.float32)
+    for grid in (preset.bev, PRESETS["paper"].bev, preset.bev):
+        bins = pseudo_bins(depth, view_calib, grid, 0.9, 80.0)
+        reference = bins_of_xyz(*pseudo_xyz(depth, view_calib, 0.9, 80.0), grid)
+        assert np.setxor1d(np.unique(bins.occupancy), np.unique(reference.occupancy)).size <= 2
+
+
+def test_a_depth_jump_of_exactly_max_jump_is_not_one():
+    """"More than max_jump × its own depth": 10 m beside 15 m is a jump of exactly 0.5 × 10 m, not more, so at
+    max_jump 0.5 neither side is marked; at 0.49 the 10 m side is (5 > 4.9) and the 15 m side is not (5 < 7.35)."""
+    from pipeline.pseudo import depth_jumps
+
+    depth = np.array([[10.0, 15.0]], np.float32)
+    np.testing.assert_array_equal(depth_jumps(depth, 0.5), [[False, False]])
+    np.testing.assert_array_equal(depth_jumps(depth, 0.49), [[True, False]])

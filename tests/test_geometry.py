@@ -149,3 +149,98 @@ def test_downscale_sparse_depth_keeps_nearest_return_per_block():
     np.testing.assert_array_equal(small, [[7.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
     with pytest.raises(ValueError, match="not divisible"):
         downscale_sparse_depth(np.zeros((5, 6), np.float32), 2)
+
+
+def _axis_aligned_calibration(p2_offset: float = 0.0):
+    """A calibration with no rotation but the axes' swap (camera z = LiDAR x) and no translation: a point's depth
+    is its x, exactly, so a test can put one on a limit."""
+    from pipeline.calib import Calibration
+
+    return Calibration(P2=np.array([[700.0, 0.0, 600.0, p2_offset], [0.0, 700.0, 180.0, 0.0], [0.0, 0.0, 1.0, 0.0]]),
+                       R0_rect=np.eye(3),
+                       Tr_velo_to_cam=np.array([[0.0, -1.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [1.0, 0.0, 0.0, 0.0]]))
+
+
+def test_sparse_depth_drops_a_return_exactly_at_min_depth():
+    """The spec a port reads says ``d > min_depth``: a return exactly at min_depth is dropped, one just beyond kept."""
+    calib = _axis_aligned_calibration()
+    limit = float(np.float32(0.1))
+    points = np.array([[limit, 0.0, 0.0, 0.5], [20.0, 0.0, 1.0, 0.5]], np.float32)  # on the axis; 1 m up
+    depth_map = sparse_depth_map(points, calib, (375, 1242), min_depth=limit)
+    assert np.count_nonzero(depth_map) == 1 and depth_map[145, 600] == 20.0
+    beyond = points.copy()
+    beyond[0, 0] = np.nextafter(np.float32(limit), np.float32(1))
+    assert sparse_depth_map(beyond, calib, (375, 1242), min_depth=limit)[180, 600] == beyond[0, 0]
+
+
+def test_ray_tables_are_cached_per_calibration_shape_and_stride():
+    """The ray cache tells apart calibrations that differ in any one matrix, and strides: each table is its own
+    calibration's rays."""
+    from dataclasses import replace
+
+    from pipeline.pseudo import pixel_rays, ray_table
+
+    base = _axis_aligned_calibration()
+    turned = replace(base, Tr_velo_to_cam=base.Tr_velo_to_cam + [[0, 0, 0, 0.5], [0, 0, 0, 0], [0, 0, 0, 0]])
+    rotated = replace(base, R0_rect=np.array([[1.0, 0.0, 0.0], [0.0, 0.8, -0.6], [0.0, 0.6, 0.8]]))
+    shifted = _axis_aligned_calibration(p2_offset=40.0)
+    for calib, stride in ((base, 1), (turned, 1), (rotated, 1), (shifted, 1), (base, 2), (base, 1)):
+        table = ray_table(calib, 30, 40, stride)
+        rays, origin = pixel_rays(calib, 30, 40, stride)
+        np.testing.assert_array_equal(table.rays, rays.reshape(3, -1))
+        np.testing.assert_array_equal(table.origin, origin.astype(np.float32))
+
+
+def test_the_depth_nets_view_is_area_resampled_and_in_rgb_order():
+    """The network's image input: the crop averaged over each scale × scale block (area resampling, which
+    scale_calibration's geometry assumes) in R, G, B planes; at the tiny preset's quarter scale, bilinear
+    sampling would read 2 of each block's 4 rows and columns instead."""
+    from pipeline.preprocess import depth_inputs
+    from pipeline.presets import PRESETS
+
+    frame = load_frame(KITTI, "000006")
+    preset = PRESETS["tiny"]
+    factor = round(1 / preset.depth.input_scale)
+    rng = np.random.default_rng(8)
+    image = np.zeros((*frame.image_hw, 3), np.uint8)
+    image[..., 0] = rng.integers(0, 256, frame.image_hw)  # red: noise, which only an area average keeps
+    image[..., 1] = 100  # green and blue flat, told apart by their level
+    image[..., 2] = 200
+    rgb = depth_inputs(image, frame.points, frame.calib, preset).rgb
+    crop = depth_crop(frame.image_hw).apply(image).astype(np.float64)
+    h, w = preset.depth.input_hw
+    blocks = crop.reshape(h, factor, w, factor, 3).mean(axis=(1, 3))
+    assert rgb.shape == (1, 3, h, w)
+    np.testing.assert_allclose(rgb[0, 0], blocks[..., 0], atol=0.51)  # rounded to uint8
+    assert (rgb[0, 1] == 100).all() and (rgb[0, 2] == 200).all()
+
+
+def test_a_dense_depth_map_in_the_nets_view_keeps_real_depths_only():
+    """depth_view resizes by nearest neighbour: a car at 8 m before a wall at 40 m gives no depth between them
+    (an interpolating resize would put points in the empty space along every outline)."""
+    from pipeline.preprocess import depth_view
+    from pipeline.presets import PRESETS
+
+    depth = np.full((375, 1242), 40.0, np.float32)
+    depth[:, 301::2] = 8.0  # every other column from an odd one: each 2 × 2 block of the view straddles an edge
+    view = depth_view(depth, PRESETS["edge"])
+    assert view.shape == PRESETS["edge"].depth.input_hw and view.dtype == np.float32
+    assert set(np.unique(view)) == {8.0, 40.0}
+
+
+def test_depth_png_inputs_follow_the_presets_own_crop():
+    """A preset with a crop other than KITTI's (a manifest may carry one): the sparse map of a depth-completion
+    frame is cropped as the image is, so both inputs have the network's shape."""
+    from dataclasses import replace
+
+    from pipeline.preprocess import view_from_depth_png
+    from pipeline.presets import PRESETS
+
+    edge = PRESETS["edge"]
+    preset = replace(edge, crop_hw=(344, 1200), depth=replace(edge.depth, input_hw=(172, 600)))
+    image = np.zeros((375, 1242, 3), np.uint8)
+    sparse = np.zeros((375, 1242), np.float32)
+    sparse[-1, -22], sparse[30, 20] = 5.0, 7.0  # the crop's last row and column; a pixel just outside it
+    rgb, sparse_view = view_from_depth_png(image, sparse, preset)
+    assert rgb.shape == (1, 3, 172, 600) and sparse_view.shape == (1, 1, 172, 600)
+    assert sparse_view[0, 0, -1, -1] == 5.0 and np.count_nonzero(sparse_view) == 1
