@@ -318,3 +318,22 @@ def test_a_scan_with_a_sector_missing_keeps_its_64_rings():
     for low, high in ((30, 150), (100, 170)):
         rings = recover_rings(points[(azimuth <= low) | (azimuth >= high)])
         assert rings.method == "azimuth-wrap" and abs(rings.n_rings - 64) <= 1
+
+
+
+def test_beam_gaps_are_counted_only_with_enough_far_returns():
+    """Beam gaps are told from the returns beyond 20 m. A scan without them (taken in a garage, say) has no gaps
+    to count and is thinned, not failed; with fewer than 100 of them even a 16-line scan's far returns are too
+    few to tell, and with more they show its gaps."""
+    from pipeline.beams import beam_gaps
+
+    points = scan("000006")
+    shuffled = points[np.random.default_rng(0).permutation(points.shape[0])]
+    near = shuffled[np.hypot(shuffled[:, 0], shuffled[:, 1]) < 20.0]
+    assert beam_gaps(near) == 0
+    assert 0.2 < emulate_beams(near, 16).shape[0] / near.shape[0] < 0.3
+    lines16 = emulate_beams(points, 16)
+    far16 = lines16[np.hypot(lines16[:, 0], lines16[:, 1]) > 20.0]
+    far16 = far16[np.random.default_rng(1).permutation(far16.shape[0])]
+    assert beam_gaps(far16[:99]) == 0
+    assert beam_gaps(far16[:400]) > 0
