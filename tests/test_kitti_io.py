@@ -1,6 +1,9 @@
 """KITTI file formats on the real samples, and clear errors on bad files."""
 
 import dataclasses
+import struct
+import warnings
+import zlib
 
 import cv2
 import numpy as np
@@ -8,9 +11,13 @@ import pytest
 
 from pipeline.errors import InputError
 from pipeline.kitti import (
+    PNG_SIGNATURE,
     Object3D,
+    check_header_size,
     decode_depth_png,
+    decode_image,
     format_label,
+    image_header_hw,
     parse_calib,
     parse_labels,
     parse_velodyne,
@@ -283,3 +290,145 @@ def test_split_files_name_the_line_at_fault(tmp_path):
         frame_ids(tmp_path / "nowhere")
     with pytest.raises(InputError, match=r"not a KITTI object folder \(no velodyne/ inside\)"):
         frame_ids(tmp_path)
+
+
+# --------------------------------------------------------------------------- pinned by mutation testing
+def test_a_label_line_written_back_is_kittis_own_text():
+    """Every field of a label keeps KITTI's precision through read and write: the line comes back character for
+    character (truncation and the 2D box in hundredths, occlusion an integer), and DontCare's -1/-10/-1000 stay."""
+    lines = ["Car 0.37 2 -1.57 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59",
+             "DontCare -1.00 -1 -10.00 603.36 169.62 631.06 186.56 -1.00 -1.00 -1.00 -1000.00 -1000.00 -1000.00 -10.00"]
+    objects = parse_labels("\n".join(lines), "labels.txt")
+    assert [format_label(obj) for obj in objects] == lines
+    assert objects[0].truncated == 0.37 and objects[0].occluded == 2 and type(objects[0].occluded) is int
+    assert type(objects[1].occluded) is int
+
+
+def test_calibration_is_written_with_kittis_keys_in_kittis_order_and_read_without_tr_imu_to_velo(tmp_path):
+    """write_calib writes the seven keys of a KITTI object calib file in its order (other tools look them up);
+    a file without Tr_imu_to_velo (which the pipeline does not use) reads the same."""
+    source = KITTI / "calib" / "000006.txt"
+    keys = [line.split(":")[0] for line in source.read_text().splitlines() if line.strip()]
+    calib = read_calib(source)
+    write_calib(tmp_path / "c.txt", calib)
+    assert [line.split(":")[0] for line in (tmp_path / "c.txt").read_text().splitlines()] == keys
+    without = "\n".join(line for line in source.read_text().splitlines() if not line.startswith("Tr_imu_to_velo"))
+    again = parse_calib(without, "calib.txt")
+    for key in ("P2", "R0_rect", "Tr_velo_to_cam"):
+        np.testing.assert_array_equal(getattr(again, key), getattr(calib, key))
+
+
+def test_a_calibration_of_full_float64_precision_is_written_without_loss(tmp_path):
+    """A calibration computed rather than read (a simulator's, a rig's) keeps 12 significant digits in its file:
+    the real files' 7 digits would hide a writer that rounds."""
+    from pipeline.calib import Calibration
+
+    calib = read_calib(KITTI / "calib" / "000006.txt")
+    angle = 0.0123456789012345
+    c, s = np.cos(angle), np.sin(angle)
+    exact = Calibration(P2=calib.P2 * (1 + 1.23456789e-9), R0_rect=np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]),
+                        Tr_velo_to_cam=calib.Tr_velo_to_cam + 1.23456789e-9)
+    write_calib(tmp_path / "c.txt", exact)
+    again = read_calib(tmp_path / "c.txt")
+    for key in ("P2", "R0_rect", "Tr_velo_to_cam"):
+        np.testing.assert_allclose(getattr(again, key), getattr(exact, key), rtol=1e-11, atol=1e-15)
+
+
+def test_calibration_numbers_are_checked_with_their_file_and_line():
+    """A NaN or infinity is named with the file, line and key (not only the matrix, after parsing); 16 numbers are
+    the homogeneous form of R0_rect and Tr_velo_to_cam only: a P2 of 16 is refused, not cut to its first rows."""
+    lines = (KITTI / "calib" / "000006.txt").read_text().splitlines()
+
+    def replaced(key: str, numbers: str) -> str:
+        return "\n".join(f"{key}: {numbers}" if line.startswith(f"{key}:") else line for line in lines)
+
+    for key, at, value in (("P2", 3, "nan"), ("R0_rect", 5, "inf"), ("Tr_velo_to_cam", 6, "-inf")):
+        numbers = lines[at - 1].split(":")[1].split()
+        numbers[1] = value
+        with pytest.raises(InputError, match=rf"^calib\.txt, line {at}: {key} has a non-finite value$"):
+            parse_calib(replaced(key, " ".join(numbers)), "calib.txt")
+    p2_4x4 = " ".join(lines[2].split(":")[1].split() + ["0", "0", "0", "1"])
+    with pytest.raises(InputError, match=r"^calib\.txt, line 3: P2 needs 12 numbers, got 16$"):
+        parse_calib(replaced("P2", p2_4x4), "calib.txt")
+    r0_4x4 = np.eye(4)
+    r0_4x4[:3, :3] = read_calib(KITTI / "calib" / "000006.txt").R0_rect
+    calib = parse_calib(replaced("R0_rect", " ".join(f"{v:.12e}" for v in r0_4x4.ravel())), "calib.txt")
+    np.testing.assert_array_equal(calib.R0_rect, r0_4x4[:3, :3])
+
+
+def test_depth_png_values_are_kittis_metres_times_256_and_0_is_no_depth(tmp_path):
+    """Read: uint16 / 256 m, 0 staying 0 (no measurement). Written: what is no depth (NaN, ±inf, negative) is 0,
+    not a wrapped uint16 (-1 m was 255 m), and beyond 65535/256 m it is the largest value, without warnings."""
+    raw = np.array([[0, 1, 256, 65535]], np.uint16)
+    cv2.imwrite(str(tmp_path / "k.png"), raw)
+    np.testing.assert_array_equal(read_depth_png(tmp_path / "k.png"), [[0.0, 1 / 256, 1.0, 65535 / 256]])
+    depth = np.array([[np.nan, np.inf, -np.inf, -1.0, -0.001, 0.0, 12.5, 300.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        write_depth_png(tmp_path / "d.png", depth)
+    stored = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(stored, [[0, 0, 0, 0, 0, 0, 3200, 65535]])
+
+
+def test_a_depth_png_of_three_16_bit_channels_is_refused(tmp_path):
+    cv2.imwrite(str(tmp_path / "rgb16.png"), np.full((4, 5, 3), 256, np.uint16))
+    with pytest.raises(InputError, match=r"rgb16\.png: a depth PNG must be single-channel uint16, got uint16 "
+                                         r"\(4, 5, 3\)"):
+        read_depth_png(tmp_path / "rgb16.png")
+
+
+def test_images_are_read_as_rgb(tmp_path):
+    """A red pixel stored by OpenCV (which writes BGR) is read as red, (255, 0, 0), from a PNG and a JPEG."""
+    bgr = np.zeros((8, 8, 3), np.uint8)
+    bgr[..., 2] = 255
+    for suffix in (".png", ".jpg"):
+        cv2.imwrite(str(tmp_path / f"red{suffix}"), bgr)
+        rgb = read_image(tmp_path / f"red{suffix}")
+        assert rgb[..., 0].min() >= 250 and rgb[..., 1:].max() <= 5, suffix
+
+
+def _png_header(rows: int, columns: int) -> bytes:
+    """A PNG's signature and IHDR chunk (16-bit grey) with its CRC: all a header check reads."""
+    fields = b"IHDR" + struct.pack(">IIBBBBB", columns, rows, 16, 0, 0, 0, 0)
+    return PNG_SIGNATURE + struct.pack(">I", 13) + fields + struct.pack(">I", zlib.crc32(fields))
+
+
+def _jpeg_with_tables_first(rgb: np.ndarray) -> bytes:
+    """``rgb`` as a JPEG whose Huffman tables (DHT) come before its frame header (SOF0), as some encoders
+    write them; OpenCV puts them after."""
+    data = cv2.imencode(".jpg", rgb)[1].tobytes()
+    at, segments = 2, []
+    while data[at + 1] != 0xDA:  # up to the scan
+        length = int.from_bytes(data[at + 2 : at + 4], "big")
+        segments.append(data[at : at + 2 + length])
+        at += 2 + length
+    ordered = sorted(segments, key=lambda s: 0 if s[1] == 0xC4 else 1)  # stable: the rest keep their order
+    assert ordered != segments
+    return data[:2] + b"".join(ordered) + data[at:]
+
+
+def test_image_headers_give_rows_then_columns():
+    """(rows, columns) from a PNG's IHDR and a JPEG's frame header, wherever its tables lie; a frame header within
+    the pixel limit passes, one pixel row past it is refused; a cut-off frame header gives none."""
+    rgb = np.zeros((7, 11, 3), np.uint8)
+    for data in (cv2.imencode(".png", rgb)[1].tobytes(), cv2.imencode(".jpg", rgb)[1].tobytes(),
+                 _jpeg_with_tables_first(rgb)):
+        assert image_header_hw(data, "image") == (7, 11)
+    assert decode_image(_jpeg_with_tables_first(rgb), "image").shape == (7, 11, 3)  # a valid JPEG
+    jpeg = cv2.imencode(".jpg", rgb)[1].tobytes()
+    frame = jpeg.index(b"\xff\xc0")
+    assert image_header_hw(jpeg[: frame + 8], "image") is None  # a frame header cut off: no size from half of it
+    side = 1 << 13  # 8192² = MAX_IMAGE_PIXELS
+    assert check_header_size(_png_header(side, side), "image") == (side, side)
+    with pytest.raises(InputError, match=r"image: its header says 8192×8193 pixels, more than the limit"):
+        check_header_size(_png_header(side + 1, side), "image")
+
+
+def test_scans_of_one_point_of_text_or_three_columns_are_refused(tmp_path):
+    """A 16-byte text file (one point's size) is named as text, not read as a point; points of 3 columns are
+    refused by the writer, which would otherwise write a file that reads as other rows."""
+    with pytest.raises(InputError, match=r"scan\.bin: holds text \('abcdefghijklmnop'…\)"):
+        parse_velodyne(b"abcdefghijklmnop", "scan.bin")
+    with pytest.raises(InputError, match=r"x\.bin: points must have shape \(N, 4\), got \(8, 3\)"):
+        write_velodyne(tmp_path / "x.bin", np.zeros((8, 3), np.float32))
+    assert not (tmp_path / "x.bin").exists()
