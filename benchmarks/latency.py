@@ -29,7 +29,7 @@ separate runs minutes apart differed by more than the precisions did.
 End to end is ``Detector.detect`` on frames already in memory, from its input checks to the boxes (the
 wait for the work beside the depth net included); reading and decoding the files and the line emulation are
 not timed. ``fps`` is 1000 / the mean (``fps_wall`` the frames over the loop's wall time); each summary gives
-its frame count and slowest frame (below 100 frames a p99 lies between the two slowest), and the JSON's
+its frame count and slowest frame (up to 101 frames a p99 lies between the two slowest), and the JSON's
 ``definitions`` say what each figure is.
 
 What else moves the figures is in the report. The peak is measured before and
@@ -129,18 +129,24 @@ def load_frames(data: Path, count: int, beams: int | None) -> list[Frame]:
 
 def summarize(samples: list[float]) -> dict:
     """Mean, percentiles (numpy's linear interpolation between the sorted samples), the slowest and the count of
-    ``samples``, none dropped: below 100 samples p99 lies between the two slowest (:func:`tail_note`)."""
+    ``samples``, none dropped: up to 101 samples p99 lies between the two slowest (:func:`tail_note`)."""
     s = np.asarray(samples)
     return {"mean": float(s.mean()), "p50": float(np.percentile(s, 50)), "p90": float(np.percentile(s, 90)),
             "p99": float(np.percentile(s, 99)), "max": float(s.max()), "n": int(s.size)}
 
 
+def between_the_two_slowest(q: int, n: int) -> bool:
+    """Whether numpy's linear ``q``-th percentile of ``n`` samples lies between the two slowest: its rank
+    q/100 × (n − 1) in the sorted samples is n − 2 or more (p99 up to 101 samples, p90 up to 11)."""
+    return q * (n - 1) >= 100 * (n - 2)
+
+
 def tail_note(n: int) -> str:
-    """What a p99 (and p90) of ``n`` samples rests on, for the printed report ("" from 100 samples on)."""
-    if n >= 100:
+    """What a p99 (and p90) of ``n`` samples rests on, for the printed report ("" from 102 samples on)."""
+    if not between_the_two_slowest(99, n):
         return ""
-    p90 = "" if n >= 10 else ", and p90 between the two slowest"
-    return f"; with fewer than 100 frames p99 is an interpolation between the two slowest{p90}"
+    p90 = ", and p90 between the two slowest" if between_the_two_slowest(90, n) else ""
+    return f"; with {n} frames p99 is an interpolation between the two slowest{p90}"
 
 
 # What each figure of the report is, written into its JSON (``definitions``), so a reader setting one beside
@@ -151,7 +157,7 @@ DEFINITIONS = {
                      "the work run beside the depth net; not reading or decoding the files, and not the line "
                      "emulation (scans thinned before timing, as a 16-line sensor sends them). Mean and percentiles "
                      "(numpy's linear interpolation) of n frames after the warm-up ones, none dropped; max the "
-                     "slowest. Below 100 frames p99 lies between the two slowest",
+                     "slowest. Up to 101 frames p99 lies between the two slowest (numpy's rank 0.99 x (n - 1))",
     "fps": "1000 / end_to_end_ms.mean: the single stream, one frame at a time on every core",
     "fps_wall": "the single stream's frames / its wall time, the loop between frames included",
     "stages_ms": "each stage's time on the frame's path (ray_table with a stage thread: the wait for the work "
@@ -199,6 +205,67 @@ def ray_tables_on_path_ms(stream: StreamResult) -> float:
 def summarize_stages(stream: StreamResult) -> dict:
     """:func:`summarize` of each stage of a stream."""
     return {stage: summarize(v) for stage, v in stream.stages.items()}
+
+
+def stream_figures(stream: StreamResult) -> dict:
+    """The single stream's figures of the report, from its per-frame timings: ``end_to_end_ms``, ``fps`` (1000 /
+    its mean), ``fps_wall`` (the frames over the loop's wall time), ``stages_ms``, ``overlapped_ms``, and the share
+    of end to end outside the network stages (:data:`NETWORK_STAGES`), with and without the ray tables' builds
+    (``non_network_fraction``, ``non_network_fraction_fixed_calibration``; :data:`DEFINITIONS`)."""
+    end_to_end = summarize(stream.end_to_end)
+    stages = summarize_stages(stream)
+    mean = end_to_end["mean"]
+    # Everything of a frame's wall time outside the network runs (the input checks too); stages run
+    # beside a network count only for the time the frame waited for them.
+    between = mean - sum(stages[s]["mean"] for s in NETWORK_STAGES if s in stages)
+    # A calibration's ray table is built on its first frame only (pipeline/detector.py): what a vehicle,
+    # with one calibration, spends between the networks is the rest. With a stage thread the ray_table stage
+    # is the wait for all the work beside the depth net, of which only the table's part goes.
+    rays = ray_tables_on_path_ms(stream)
+    return {"end_to_end_ms": end_to_end, "fps": 1e3 / mean,
+            "fps_wall": stream.frames / stream.wall_s,  # the inputs' checks and the loop between frames included
+            "stages_ms": stages, "overlapped_ms": {stage: summarize(ms) for stage, ms in stream.overlapped.items()},
+            "non_network_fraction": between / mean, "ray_tables_on_path_ms": rays,
+            "non_network_fraction_fixed_calibration": (between - rays) / (mean - rays)}
+
+
+def best_peak(readings: list[PeakResult]) -> PeakResult:
+    """The best reading of each micro-benchmark over ``readings`` (before and after the stream): a reading taken
+    while something else ran reads low, and the networks' share of the peak would rise with it."""
+    return PeakResult(matmul_gflops=max(p.matmul_gflops for p in readings),
+                      conv_gflops=max(p.conv_gflops for p in readings), threads=readings[0].threads)
+
+
+def peak_warning(readings: list[PeakResult], size: int) -> str | None:
+    """The warning when the peak's readings (before and after the stream) differ by more than a fifth; None when
+    they agree, or for a MatMul smaller than the quoted one (it runs for milliseconds: its readings vary by
+    themselves)."""
+    best = best_peak(readings).peak_gflops
+    if size < PEAK_MATMUL or min(p.peak_gflops for p in readings) >= 0.8 * best:
+        return None
+    return (f"peak: the readings before and after the stream differ ({readings[0].peak_gflops:.0f} and "
+            f"{readings[-1].peak_gflops:.0f} GFLOP/s): the machine's speed moved during the run, and its "
+            "figures with it; the higher reading counts")
+
+
+def network_figures(stages_ms: dict, stages: tuple[str, ...], flops: float, graph_flops: float,
+                    peak: PeakResult | None) -> dict:
+    """One network's entry of the report's ``networks``.
+
+    stages_ms: the stream's :func:`summarize_stages`; stages: the network's stages, one a run (PIXOR's second run
+    with the mirror), those timed counting; flops, graph_flops: FLOPs of one run, counted on the graph before its
+    lowering (the manifest's) and on the graph that runs. The time is the sum of the stages' p50, the achieved
+    GFLOP/s the FLOPs over it, its shares those of ``peak``'s best micro-benchmark and of its MatMul (None when
+    ``peak`` is None: the network ran on another provider than the CPU whose peak was measured).
+    """
+    runs = sum(stage in stages_ms for stage in stages)
+    flops, graph_flops = flops * runs, graph_flops * runs
+    ms = sum(stages_ms[stage]["p50"] for stage in stages if stage in stages_ms)
+    achieved = flops / (ms / 1e3) / 1e9
+    return {"gflops": flops / 1e9, "graph_gflops": graph_flops / 1e9, "runs": runs, "ms": ms,
+            "achieved_gflops_per_s": achieved,
+            "peak_fraction": achieved / peak.peak_gflops if peak is not None else None,
+            "matmul_peak_fraction": achieved / peak.matmul_gflops if peak is not None else None}
 
 
 # Per-block ratios further apart than this (max / min) say the machine's load moved during the comparison.
@@ -580,8 +647,9 @@ def check_workers(workers: int, mode: str = "thread", cores: int | None = None) 
 def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameSource, workers: int,
                 per_worker: int, warmup: int, cores: list[int], mode: str = "thread", mirror_tta: bool = False,
                 warnings: Warnings | None = None, score_threshold: float | None = None,
-                usage: list | None = None, device_ids: list[int] | None = None) -> float:
-    """Aggregate fps of ``workers`` workers, each pinned to its share of ``cores`` with its own sessions.
+                usage: list | None = None, device_ids: list[int] | None = None, clock: dict | None = None) -> float:
+    """Aggregate fps of ``workers`` workers, each pinned to its share of ``cores`` with its own sessions: their
+    frames over the wall time from their common start to the last one's end, which ``clock`` gets (``wall_s``).
 
     device_ids: the GPUs the workers' sessions run on, worker i on ``device_ids[i % len(device_ids)]`` (None:
     every worker on the provider's default, GPU 0).
@@ -643,6 +711,8 @@ def run_workers(models: Path, provider: str | None, frames: list[Frame] | FrameS
     if usage is not None:
         entries = reported if isinstance(reported, list) else [reported.get() for _ in range(workers)]
         usage.extend(sorted(entries, key=lambda entry: entry["worker"]))
+    if clock is not None:
+        clock["wall_s"] = wall
     return workers * per_worker / wall
 
 
@@ -679,9 +749,9 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
 
     ``scaling`` is per share of cores: N workers on N shares against one worker on one share. The single
     worker takes each share in turn (round r the r-th), so a neighbour busy on one core does not touch
-    only the N-worker runs. Each run's workers and the share of their cores they got are kept
-    (``runs``); a run where a worker got less than :data:`FULL_CORE_SHARE` is named in ``shared_runs``
-    and said in ``warnings``: its fps measured the neighbour as well.
+    only the N-worker runs. Each run's workers, frames, wall time and fps (their quotient) and the share of
+    their cores each worker got are kept (``runs``); a run where a worker got less than :data:`FULL_CORE_SHARE`
+    is named in ``shared_runs`` and said in ``warnings``: its fps measured the neighbour as well.
     """
     check_workers(workers, mode, len(cores))
     shares = core_shares(cores, workers)
@@ -689,14 +759,16 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
     for r in range(rounds):
         for n in ((1, workers) if r % 2 == 0 else (workers, 1)):
             usage: list[dict] = []
+            clock: dict = {}
             devices = device_ids
             if device_ids and n == 1:
                 devices = [device_ids[r % workers % len(device_ids)]]  # the GPU worker r % workers would have
             fps = run_workers(models, provider, source if mode == "process" else frames, n, per_worker, warmup,
                               shares[r % workers] if n == 1 else [cpu for mine in shares for cpu in mine], mode,
-                              mirror_tta, warnings, score_threshold, usage, devices)
+                              mirror_tta, warnings, score_threshold, usage, devices, clock)
             (one if n == 1 else many).append(fps)
-            runs.append({"round": r, "workers": n, "fps": fps, "per_worker": usage})
+            runs.append({"round": r, "workers": n, "frames": n * per_worker, "wall_s": clock["wall_s"], "fps": fps,
+                         "per_worker": usage})
             got = [u["cpu_share"] for u in usage if u["cpu_share"] is not None]
             if got and min(got) < FULL_CORE_SHARE:
                 shared.append(len(runs) - 1)
@@ -940,57 +1012,34 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     peaks = [measure_peak(len(cores), matmul_n=peak_size)]
     _step(progress, f"the single stream: {frames} frames after {warmup} warm-up, {report['input']}")
     stream = run_stream(detector, pool, frames, warmup, warnings, score_threshold)
-    report["end_to_end_ms"] = summarize(stream.end_to_end)
-    report["fps"] = 1e3 / report["end_to_end_ms"]["mean"]
-    report["fps_wall"] = stream.frames / stream.wall_s  # frames over the loop's wall time, the inputs' checks included
-    report["stages_ms"] = summarize_stages(stream)
+    report.update(stream_figures(stream))
     report["stage_threads"] = detector.stage_threads
-    report["overlapped_ms"] = {stage: summarize(ms) for stage, ms in stream.overlapped.items()}
-    # Everything of a frame's wall time outside the network runs (the input checks too); stages run
-    # beside a network count only for the time the frame waited for them.
-    networks_ms = sum(report["stages_ms"][s]["mean"] for s in NETWORK_STAGES if s in report["stages_ms"])
-    between = report["end_to_end_ms"]["mean"] - networks_ms
-    report["non_network_fraction"] = between / report["end_to_end_ms"]["mean"]
-    # A calibration's ray table is built on its first frame only (pipeline/detector.py): what a vehicle,
-    # with one calibration, spends between the networks is the rest. With a stage thread the ray_table stage
-    # is the wait for all the work beside the depth net, of which only the table's part goes.
-    rays = ray_tables_on_path_ms(stream)
-    report["ray_tables_on_path_ms"] = rays
-    report["non_network_fraction_fixed_calibration"] = (between - rays) / (report["end_to_end_ms"]["mean"] - rays)
 
     _step(progress, f"the peak ({peak_size}² MatMul, 3×3 conv), after the stream")
     peaks.append(measure_peak(len(cores), matmul_n=peak_size))
     # Measured before and after the stream, the best of each kind counts: a reading taken while something
     # else ran reads low (here 88–190 GFLOP/s for the MatMul in seven runs on a shared machine), and the
     # networks' share of the peak would rise with it.
-    peak = PeakResult(matmul_gflops=max(p.matmul_gflops for p in peaks), conv_gflops=max(p.conv_gflops for p in peaks),
-                      threads=len(cores))
+    peak = best_peak(peaks)
     report["peak_gflops"] = peak.peak_gflops
     report["peak_detail"] = {f"matmul_{peak_size}_gflops": peak.matmul_gflops, "matmul_size": peak_size,
                              "conv3x3_256_gflops": peak.conv_gflops, "threads": peak.threads,
                              "readings": [{"matmul_gflops": p.matmul_gflops, "conv3x3_256_gflops": p.conv_gflops}
                                           for p in peaks],
                              "provider": "CPUExecutionProvider"}
-    # A smaller MatMul than the quoted one runs for milliseconds: its readings vary by themselves.
-    if peak_size >= PEAK_MATMUL and min(p.peak_gflops for p in peaks) < 0.8 * peak.peak_gflops:
-        warnings.add([(f"peak: the readings before and after the stream differ ({peaks[0].peak_gflops:.0f} and "
-                      f"{peaks[1].peak_gflops:.0f} GFLOP/s): the machine's speed moved during the run, and its "
-                      "figures with it; the higher reading counts")])
+    if (moved := peak_warning(peaks, peak_size)) is not None:
+        warnings.add([moved])
     report["networks"] = {}
     for name, stages in (("depth", ("depth_net",)), ("pixor", ("pixor", "pixor_mirror"))):
         if name in detector.manifest["networks"] and stages[0] in report["stages_ms"]:
-            runs = sum(stage in report["stages_ms"] for stage in stages)  # PIXOR runs twice with the mirror
-            flops = detector.manifest["networks"][name]["flops"] * runs
+            entry = detector.manifest["networks"][name]
             # The manifest counts the graph before its lowering for the CPU (zero-padded channels are no work);
             # the graph that runs multiplies a little more (an INT8 one's sub-pixel convolutions more still).
-            graph_flops = count_flops(detector.model_dir / detector.manifest["networks"][name]["file"]).total * runs
-            ms = sum(report["stages_ms"][stage]["p50"] for stage in stages if stage in report["stages_ms"])
-            achieved = flops / (ms / 1e3) / 1e9
             # The peak is the CPU's: against a GPU's network time a share of it would mean nothing.
-            report["networks"][name] = {"gflops": flops / 1e9, "graph_gflops": graph_flops / 1e9, "runs": runs, "ms": ms,
-                                        "achieved_gflops_per_s": achieved,
-                                        "peak_fraction": achieved / peak.peak_gflops if on_cpu else None,
-                                        "matmul_peak_fraction": achieved / peak.matmul_gflops if on_cpu else None}
+            report["networks"][name] = network_figures(report["stages_ms"], stages, entry["flops"],
+                                                       count_flops(detector.model_dir / entry["file"]).total,
+                                                       peak if on_cpu else None)
+            achieved = report["networks"][name]["achieved_gflops_per_s"]
             # The peak is fp32's: an INT8 network may run above it (VNNI does four multiply-adds where fp32 does one).
             if on_cpu and report["precision"] == "fp32" and achieved > peak.peak_gflops:
                 warnings.add([(f"{name}: {achieved:.0f} GFLOP/s, above the measured peak ({peak.peak_gflops:.0f}): "
@@ -1129,7 +1178,7 @@ def print_report(report: dict) -> None:
           f"{report['score_threshold']:g}, "
           f"{cpu_label(report['machine'])} ({report['machine']['cores']} cores; {' '.join(report['machine']['cpu_flags'])}"
           f"{_governor_and_load(report['machine'])}), {report['provider']}")
-    # With fewer than 100 frames p99 is an interpolation between the slowest few: say how many there were.
+    # Up to 101 frames p99 is an interpolation between the two slowest (tail_note): say how many there were.
     print(f"end to end (Detector.detect on frames in memory: no file reading, decoding or line emulation): mean "
           f"{e['mean']:.1f} ms, p50 {e['p50']:.1f}, p90 {e['p90']:.1f}, p99 {e['p99']:.1f}, max {e['max']:.1f} (of "
           f"{e['n']} frames{tail_note(e['n'])}) → {report['fps']:.2f} fps (1000 / mean; {report['fps_wall']:.2f} "

@@ -76,15 +76,26 @@ def conv_model(channels: int, size: int) -> onnx.ModelProto:
     return helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)], ir_version=8)
 
 
+def matmul_flops(n: int) -> int:
+    """FLOPs of :func:`matmul_model` (2 × its multiply-accumulates, as export/flops.py counts them)."""
+    return 2 * n**3
+
+
+def conv_flops(channels: int, size: int) -> int:
+    """FLOPs of :func:`conv_model` (2 × its multiply-accumulates: 3 × 3 × channels per output, channels × size²
+    outputs, the padding keeping the size)."""
+    return 2 * channels * channels * 9 * size * size
+
+
 def measure_peak(threads: int, repeats: int = 5, matmul_n: int = 4096, conv_channels: int = 256,
                  conv_size: int = 96) -> PeakResult:
     """Run both micro-benchmarks with ``threads`` intra-op threads."""
     a = np.random.default_rng(1).standard_normal((matmul_n, matmul_n)).astype(np.float32)
     t = _median_seconds(_session(matmul_model(matmul_n), threads), {"A": a}, repeats)
-    matmul = 2 * matmul_n**3 / t / 1e9
+    matmul = matmul_flops(matmul_n) / t / 1e9
     x = np.random.default_rng(2).standard_normal((1, conv_channels, conv_size, conv_size)).astype(np.float32)
     t = _median_seconds(_session(conv_model(conv_channels, conv_size), threads), {"X": x}, repeats)
-    conv = 2 * conv_channels * conv_channels * 9 * conv_size * conv_size / t / 1e9
+    conv = conv_flops(conv_channels, conv_size) / t / 1e9
     return PeakResult(matmul_gflops=matmul, conv_gflops=conv, threads=threads)
 
 

@@ -83,3 +83,29 @@ def test_a_gpu_provider_is_refused_before_a_session_is_made(tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["--provider", "cuda"])
     assert "invalid choice: 'cuda'" in capsys.readouterr().err
+
+
+def test_the_summary_takes_the_median_of_the_last_runs_per_node_summed_per_type():
+    """A constructed profile (microseconds, as ONNX Runtime writes it): one warm-up run whose times must not count,
+    then three; two Conv nodes and a Transpose."""
+    from benchmarks.op_profile import summarize_events
+
+    def kernel(node, op, us):
+        return {"cat": "Node", "name": f"{node}_kernel_time", "dur": us, "args": {"op_name": op}}
+
+    runs = [  # conv_a, conv_b, transpose, the whole run
+        (9000, 9000, 9000, 50000),  # warm-up
+        (1000, 500, 100, 4000), (3000, 500, 300, 6000), (2000, 800, 200, 5000),
+    ]
+    events = []
+    for a, b, t, whole in runs:
+        events += [kernel("conv_a", "Conv", a), kernel("conv_b", "Conv", b), kernel("tr", "Transpose", t),
+                   {"cat": "Session", "name": "model_run", "dur": whole}]
+    profile = summarize_events(events, 3)
+    # Medians over the last three runs: conv_a 2 ms, conv_b 0.5 ms, the Transpose 0.2 ms, a run 5 ms.
+    assert profile.by_op == pytest.approx({"Conv": 2.5, "Transpose": 0.2}) and profile.nodes == {"Conv": 2, "Transpose": 1}
+    assert profile.run_ms == pytest.approx(5.0) and profile.kernels_ms == pytest.approx(2.7)
+    assert profile.compute_ms == pytest.approx(2.5)
+    entry = profile.to_dict(gflops=0.005, matmul_gflops=4.0)  # 5 MFLOP in the 2.5 ms of the convolutions
+    assert entry["compute_gflops_per_s"] == pytest.approx(2.0) and entry["compute_matmul_peak_fraction"] == pytest.approx(0.5)
+    assert entry["by_op"]["Conv"]["share"] == pytest.approx(2.5 / 2.7) and entry["by_op"]["Conv"]["nodes"] == 2
