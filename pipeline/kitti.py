@@ -372,6 +372,11 @@ def format_label(obj: Object3D) -> str:
     rounded location moves a box's IoU by up to about 0.01 and so flips matches that lie that close to 0.7,
     which moved BEV AP by up to 3 points on 30 frames against the unrounded boxes (docs/evaluation.md)."""
     places = 2 if obj.score is None else RESULT_DECIMALS
+    values = (obj.truncated, obj.occluded, obj.alpha, *obj.bbox, *obj.dimensions, *obj.location, obj.rotation_y,
+              *(() if obj.score is None else (obj.score,)))
+    bad = [name for name, value in zip(LABEL_FIELDS, values) if not math.isfinite(value)]
+    if bad:  # written as "nan", the line would be refused by every KITTI reader, ours included
+        raise InputError(f"{obj.type} object: {', '.join(bad)} not a finite number; KITTI label lines hold numbers only")
     h, w, l = obj.dimensions
     x, y, z = obj.location
     parts = [
@@ -385,7 +390,8 @@ def format_label(obj: Object3D) -> str:
 
 
 def write_labels(path: str | Path, objects: Iterable[Object3D]) -> None:
-    """Write KITTI label lines (an empty file for no objects, as KITTI results expect)."""
+    """Write KITTI label lines (an empty file for no objects, as KITTI results expect); an object with a field
+    that is not a finite number is refused (InputError) before the file is touched."""
     Path(path).write_text("".join(format_label(o) + "\n" for o in objects), encoding="ascii")
 
 

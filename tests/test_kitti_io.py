@@ -304,6 +304,26 @@ def test_a_label_line_written_back_is_kittis_own_text():
     assert type(objects[1].occluded) is int
 
 
+def test_a_label_with_a_field_that_is_not_a_number_is_refused_before_the_file_is_touched(tmp_path):
+    """Written as "nan", such a line would be refused by every KITTI reader (ours too): write_labels names the
+    fields and leaves an existing file as it was."""
+    import dataclasses
+
+    from pipeline.kitti import write_labels
+
+    car = parse_labels("Car 0.00 0 -1.57 587.01 173.33 614.12 200.12 1.65 1.67 3.64 -0.65 1.71 46.70 -1.59",
+                       "labels.txt")[0]
+    path = tmp_path / "000001.txt"
+    path.write_text("kept\n")
+    for broken, named in ((dataclasses.replace(car, location=(np.nan, 1.71, 46.7)), "x"),
+                          (dataclasses.replace(car, rotation_y=np.inf, score=np.nan), "rotation_y, score")):
+        with pytest.raises(InputError, match=f"Car object: {named} not a finite number"):
+            write_labels(path, [car, broken])
+        assert path.read_text() == "kept\n"
+    write_labels(path, [dataclasses.replace(car, score=0.5)])
+    assert parse_labels(path.read_text(), "results.txt")[0].score == 0.5
+
+
 def test_calibration_is_written_with_kittis_keys_in_kittis_order_and_read_without_tr_imu_to_velo(tmp_path):
     """write_calib writes the seven keys of a KITTI object calib file in its order (other tools look them up);
     a file without Tr_imu_to_velo (which the pipeline does not use) reads the same."""
