@@ -195,6 +195,12 @@ def test_detect_kitti_lines_match_json(client: AppClient, frame: dict[str, bytes
     seen = in_camera_view(boxes, parse_calib(frame["calib"].decode(), "calib"), (375, 1242))
     expected = [d for d, keep in zip(as_json["detections"], seen, strict=True) if keep]
     assert 0 < len(objects) == len(expected) < len(boxes)
+    # A label_2 file's lines, each ended: answers appended to one file stay one object a line.
+    assert response.text.endswith("\n") and response.text.count("\n") == len(objects)
+    # Which model answered, as on the JSON answer (the body has no room for it).
+    model = as_json["model"]
+    assert (response.headers["x-model-id"], response.headers["x-model-preset"], response.headers["x-model-precision"]) \
+        == (model["id"], model["preset"], model["precision"])
     for obj, detection in zip(objects, expected, strict=True):
         assert obj.type == "Car"
         assert obj.score == pytest.approx(detection["score"], abs=1e-4)
