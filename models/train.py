@@ -618,11 +618,12 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
             metrics = validate_detector(networks["pixor"], preset, val_dir, val_ids, config.input_mode,
                                         config.val_pseudo_dir or config.pseudo_dir,
                                         networks.get("depth") if config.task == "joint" else None, device, beams)
+        trained_at = optimizer.param_groups[0]["lr"]  # the log's rate: the one this epoch ran, not the next one's
         if config.task == "detector":
             scheduler.step(metrics["val_loss"])
         else:
             scheduler.step()
-        record = {"epoch": epoch + 1, "train_loss": float(np.mean(epoch_losses)), "lr": optimizer.param_groups[0]["lr"],
+        record = {"epoch": epoch + 1, "train_loss": float(np.mean(epoch_losses)), "lr": trained_at,
                   "seconds": round(time.perf_counter() - tic, 1),
                   **{k: v for k, v in metrics.items() if k != "bev_ap"}}
         history.append(record)
