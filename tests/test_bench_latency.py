@@ -146,9 +146,7 @@ def test_paired_blocks_alternate_each_after_an_untimed_frame_and_give_second_ove
 def test_throughput_figures_are_the_rounds_medians_and_each_runs_frames_over_its_wall_time(tiny_models, frames):
     from benchmarks.latency import run_throughput
 
-    cores = sorted(os.sched_getaffinity(0))[:2]
-    if len(cores) < 2:
-        pytest.skip("two worker threads need two cores")
+    cores = sorted(os.sched_getaffinity(0))[:2]  # the project's machines have two; one core is refused by name
     report = run_throughput(tiny_models, None, None, frames, 2, per_worker=2, warmup=0, cores=cores, rounds=3)
     runs = report["runs"]
     one = [run["fps"] for run in runs if run["workers"] == 1]
