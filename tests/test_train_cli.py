@@ -537,6 +537,18 @@ def test_validation_frames_that_are_trained_on_are_warned_of(tmp_path, caplog):
     assert warned() == ["no --val-data or --val-split: validating on the training frames"]  # as before, alone
 
 
+def test_the_rate_decays_after_every_lr_step_epochs_not_one_sooner_or_later(tmp_path):
+    """--lr-step 2: epochs 1 and 2 train at the rate given, 3 at a tenth of it; the log gives each epoch the rate
+    it trained at."""
+    split = tmp_path / "one.txt"
+    split.write_text(f"{FRAME}\n")
+    out = tmp_path / "run"
+    assert main(args("depth", out, split, "--epochs", "3", "--lr", "0.001", "--lr-step", "2", "--lr-gamma",
+                     "0.1", "--no-progress")) == 0
+    rates = [json.loads(line)["lr"] for line in (out / "log.jsonl").read_text().splitlines()]
+    assert rates == pytest.approx([1e-3, 1e-3, 1e-4])
+
+
 def test_depth_rate_decays_by_the_given_factor_every_given_epochs(tmp_path, one_frame):
     """--lr-step and --lr-gamma: the paper's "decayed every 5 epochs" has no factor; Ma et al.'s code divides by 10.
     The log's rate per epoch follows the schedule asked for, and the recipe records it."""
