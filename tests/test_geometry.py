@@ -244,3 +244,82 @@ def test_depth_png_inputs_follow_the_presets_own_crop():
     rgb, sparse_view = view_from_depth_png(image, sparse, preset)
     assert rgb.shape == (1, 3, 172, 600) and sparse_view.shape == (1, 1, 172, 600)
     assert sparse_view[0, 0, -1, -1] == 5.0 and np.count_nonzero(sparse_view) == 1
+
+
+def _fresh_calibration(seed: int):
+    """KITTI's calibration with P2's principal point moved by a random fraction of a pixel: values no other
+    test has checked, so the cache of passed calibrations starts without them."""
+    from pipeline.calib import KITTI_CALIBRATION, Calibration
+
+    p2 = KITTI_CALIBRATION.P2.copy()
+    p2[0, 2] += np.random.default_rng(seed).uniform(0.01, 0.99)
+    return Calibration(P2=p2, R0_rect=KITTI_CALIBRATION.R0_rect.copy(),
+                       Tr_velo_to_cam=KITTI_CALIBRATION.Tr_velo_to_cam.copy())
+
+
+@pytest.fixture
+def full_checks(monkeypatch):
+    """How many times check_calibration ran its full checks (the real ones, counted)."""
+    import pipeline.calib as calib_module
+
+    calls = []
+    real = calib_module._check_calibration_values
+
+    def counted(calib, source):
+        calls.append(calib)
+        return real(calib, source)
+
+    monkeypatch.setattr(calib_module, "_check_calibration_values", counted)
+    return calls
+
+
+def test_a_calibration_that_passed_is_not_checked_again(full_checks):
+    """The detector checks every frame's calibration, which its reader checked already: equal values that
+    passed pass at once, as the object given (0.2 ms of an edge frame, session 42)."""
+    from dataclasses import replace
+
+    from pipeline.calib import check_calibration
+
+    first = _fresh_calibration(1)
+    assert check_calibration(first) is first
+    again = replace(first, P2=first.P2.copy())  # another object, the same values: as each frame's file reads
+    assert check_calibration(again, "frame 2's calib") is again
+    assert full_checks == [first]
+
+
+def test_a_calibration_is_checked_by_its_values_not_its_object(full_checks):
+    """A matrix changed in place after it passed is checked anew, and refused; a refused one is never let
+    through later; a calibration of another dtype is checked (and copied to float64) every time."""
+    from pipeline.calib import Calibration, check_calibration
+
+    calib = _fresh_calibration(2)
+    check_calibration(calib)
+    calib.P2[1, 1] = np.nan
+    for _ in range(2):
+        with pytest.raises(InputError, match="^calib: P2 has a non-finite value"):
+            check_calibration(calib)
+    assert len(full_checks) == 3
+    single = _fresh_calibration(3)
+    single = Calibration(**{key: value.astype(np.float32) for key, value in vars(single).items()})
+    for _ in range(2):
+        assert check_calibration(single).P2.dtype == np.float64
+    assert len(full_checks) == 5
+
+
+def test_the_passed_calibrations_kept_are_bounded(full_checks, monkeypatch):
+    """A service sent a new calibration with every frame keeps the last _PASSED_MAX, oldest out first."""
+    from collections import OrderedDict
+
+    import pipeline.calib as calib_module
+    from pipeline.calib import check_calibration
+
+    monkeypatch.setattr(calib_module, "_PASSED", OrderedDict())
+    monkeypatch.setattr(calib_module, "_PASSED_MAX", 3)
+    calibrations = [_fresh_calibration(seed) for seed in range(10, 15)]
+    for calib in calibrations:
+        check_calibration(calib)
+    assert len(calib_module._PASSED) == 3
+    check_calibration(calibrations[-1])  # among the last three: no checks
+    assert len(full_checks) == 5
+    check_calibration(calibrations[0])  # dropped: checked again
+    assert len(full_checks) == 6
