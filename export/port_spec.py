@@ -207,7 +207,7 @@ def decode_section(preset: Preset) -> dict:
         "over_max_candidates": "keep the max_candidates highest scores",
         # Sigmoid scores saturate at 1.0f on confident cars, so equal scores happen and the order decides NMS.
         "order": "score descending; equal scores by cell index (row-major) ascending (past max_candidates, "
-                 "which of the equal scores at the cut are kept is not defined)",
+                 "of the equal scores at the cut those of the lowest cell indices are kept)",
         "regression_channels": list(REGRESSION_CHANNELS),
         "reg_mean": list(decode.reg_mean),
         "reg_std": list(decode.reg_std),

@@ -117,6 +117,18 @@ def encode_targets(boxes: np.ndarray, grid: BevGrid, stride: int, decode: Decode
     return PixorTargets(score=score, regression=regression)
 
 
+def _highest(values: np.ndarray, count: int) -> np.ndarray:
+    """Positions of the ``count`` highest ``values``, ascending; of equal values at the cut, the first ones.
+
+    Not ``np.argpartition``'s selection: which of the equal values it keeps, and the order it returns them
+    in, follow NumPy's sort kernels for the CPU (AVX-512 or not), and the same maps gave other boxes on an
+    AVX2 machine than on an AVX-512 one (session 42)."""
+    cut = np.partition(values, values.size - count)[values.size - count]  # the count-th highest value
+    above = np.flatnonzero(values > cut)
+    at_cut = np.flatnonzero(values == cut)[: count - above.size]
+    return np.sort(np.concatenate([above, at_cut]))
+
+
 def decode_maps(
     score: np.ndarray, regression: np.ndarray, grid: BevGrid, stride: int, decode: DecodeConfig,
     score_threshold: float | None = None,
@@ -132,10 +144,10 @@ def decode_maps(
     threshold = float(decode.score_threshold if score_threshold is None else score_threshold)
     out = OutputGrid.from_bev(grid, stride)
     flat_score = score.reshape(-1)
-    candidates = np.flatnonzero(flat_score >= threshold)
+    candidates = np.flatnonzero(flat_score >= threshold)  # in cell order
     if candidates.size > decode.max_candidates:
-        top = np.argpartition(-flat_score[candidates], decode.max_candidates - 1)[: decode.max_candidates]
-        candidates = candidates[top]
+        candidates = candidates[_highest(flat_score[candidates], decode.max_candidates)]
+    # Equal scores (sigmoids saturate at 1.0f on confident cars) in cell order, which decides what NMS keeps.
     candidates = candidates[np.argsort(-flat_score[candidates], kind="stable")]
     rows, cols = np.divmod(candidates, out.nx)
     mean = np.asarray(decode.reg_mean, np.float64)[:, None]

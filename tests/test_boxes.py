@@ -146,6 +146,32 @@ def test_encode_decode_recovers_boxes(preset):
     assert (iou.max(axis=0) > 0.999).all()
 
 
+def test_past_max_candidates_equal_scores_keep_the_cell_order():
+    """Past max_candidates the highest scores are kept; of equal scores (sigmoids saturate at 1.0f), the
+    first cells, in cell order. np.argpartition left both to the CPU's sort kernels: the same maps gave
+    other boxes on an AVX2 machine than on an AVX-512 one (session 42)."""
+    p = PRESETS["edge"]
+    shape = (p.bev.ny // 4, p.bev.nx // 4)
+    rng = np.random.default_rng(7)
+    # 2,000 cells over the threshold with four distinct scores, so that ties fill both sides of the cut.
+    score = np.zeros(shape, np.float32)
+    cells = rng.choice(score.size, 2000, replace=False)
+    score.reshape(-1)[cells] = rng.choice(np.float32([0.6, 0.8, 0.9, 1.0]), 2000, p=[0.5, 0.3, 0.1, 0.1])
+    regression = rng.normal(0, 0.5, (6, *shape)).astype(np.float32)
+    limit = p.decode.max_candidates
+    candidates, scores = decode_maps(score, regression, p.bev, p.pixor.output_stride, p.decode)
+    flat = score.reshape(-1)
+    above = np.flatnonzero(flat >= p.decode.score_threshold)
+    expected = above[np.lexsort((above, -flat[above]))][:limit]  # score descending, then cell index
+    at_cut = flat[expected[-1]]
+    assert len(scores) == limit and 0 < (flat[expected] == at_cut).sum() < (flat == at_cut).sum()  # the cut splits a tie
+    _, cols = np.divmod(expected, shape[1])
+    step = p.bev.cell * p.pixor.output_stride
+    cx = p.bev.x_min + (cols + 0.5) * step + regression[2].reshape(-1)[expected] * p.decode.reg_std[2] + p.decode.reg_mean[2]
+    np.testing.assert_allclose(candidates[:, 0], cx, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(scores, flat[expected])
+
+
 def test_encoding_owner_is_nearest_box():
     p = PRESETS["paper"]
     # Two boxes overlapping in BEV: each cell goes to the closer centre.
