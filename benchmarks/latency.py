@@ -180,6 +180,12 @@ DEFINITIONS = {
     "throughput.scaling": "throughput.fps / throughput.fps_one_worker (medians over the rounds; each round's "
                           "ratio in scaling_per_round)",
     "throughput.vs_single_stream": "throughput.fps / fps_wall",
+    "throughput.cpu_ms_per_frame": "the CPU time a worker spent on a frame (its CPU time over its frames), with one "
+                                   "worker and with all of them (medians over the runs), and all / one: with every "
+                                   "worker at its full cores the scaling is workers / that ratio, and a ratio above 1 "
+                                   "is cores slowing each other down (shared caches, memory, the host's clock), not "
+                                   "workers waiting (the shares of their cores say that). null where a worker's CPU "
+                                   "time is not measured (a thread worker of more than one core)",
     "speedup_vs_torch": "the median over the alternating blocks of PyTorch's time / ONNX Runtime's on the same "
                         "frames",
 }
@@ -782,7 +788,24 @@ def run_throughput(models: Path, provider: str | None, source: FrameSource, fram
             "scaling": fps_many / fps_one, "cores_per_worker": len(shares[0]), "rounds": rounds,
             "device_ids": None if not device_ids else [device_ids[i % len(device_ids)] for i in range(workers)],
             "scaling_per_round": [m / o for m, o in zip(many, one, strict=True)],
-            "runs": runs, "shared_runs": shared}
+            "cpu_ms_per_frame": cpu_per_frame(runs), "runs": runs, "shared_runs": shared}
+
+
+def cpu_per_frame(runs: list[dict]) -> dict | None:
+    """The CPU time a frame took with one worker and with all of them (ms; medians over the runs of each) and
+    their ratio (``DEFINITIONS["throughput.cpu_ms_per_frame"]``): what tells a scaling short of the workers'
+    count by cores that slow each other from one by workers that wait. None where a worker's CPU time is not
+    measured (:class:`_CpuClock`)."""
+    one, many = [], []
+    for run in runs:
+        cpu = [u["cpu_s"] for u in run["per_worker"]]
+        if not cpu or any(c is None for c in cpu):
+            return None
+        (one if run["workers"] == 1 else many).append(1e3 * sum(cpu) / run["frames"])
+    if not one or not many:
+        return None
+    alone, together = float(np.median(one)), float(np.median(many))
+    return {"one_worker": alone, "all_workers": together, "ratio": together / alone}
 
 
 def _reads(detector: Detector) -> str:
@@ -1219,6 +1242,11 @@ def print_report(report: dict) -> None:
               f"worker on one share {t['fps_one_worker']:.2f} fps → scaling {t['scaling']:.2f}× (medians of "
               f"{t['rounds']} alternating rounds; per round {per_round}{got}); against the single stream on every "
               f"core {t['vs_single_stream']:.2f}×")
+        cpu = t.get("cpu_ms_per_frame")
+        if cpu:
+            print(f"  a frame's CPU time: {cpu['one_worker']:.1f} ms with one worker, {cpu['all_workers']:.1f} ms with "
+                  f"{t['workers']} ({cpu['ratio']:.2f}×; with the workers on their full cores, scaling ≈ "
+                  f"{t['workers']} / that: above 1, the cores slowed each other down)")
     if "speedup_vs_torch" in report:
         b = report["speedup_vs_torch_blocks"]
         print(f"PyTorch eager: mean {report['torch_end_to_end_ms']['mean']:.1f} ms vs ONNX Runtime "

@@ -160,4 +160,25 @@ def test_throughput_figures_are_the_rounds_medians_and_each_runs_frames_over_its
         assert run["frames"] == 2 * run["workers"] == sum(u["frames"] for u in run["per_worker"])
         assert run["fps"] == pytest.approx(run["frames"] / run["wall_s"], rel=1e-12)
     assert report["cores_per_worker"] == len(runs[1]["per_worker"][0]["cores"]) == 1
+    # One core per thread worker: its CPU time is measured, and so is a frame's with one worker and with two.
+    per_frame = {n: statistics.median(1e3 * sum(u["cpu_s"] for u in run["per_worker"]) / run["frames"]
+                                      for run in runs if run["workers"] == n) for n in (1, 2)}
+    cpu = report["cpu_ms_per_frame"]
+    assert (cpu["one_worker"], cpu["all_workers"]) == pytest.approx((per_frame[1], per_frame[2]), rel=1e-12)
+    assert cpu["ratio"] == pytest.approx(per_frame[2] / per_frame[1], rel=1e-12) and cpu["one_worker"] > 0
     assert {"workers", "fps", "fps_one_worker", "scaling"} <= set(report)  # issue #8's keys
+
+
+def test_a_frames_cpu_time_alone_and_together_is_the_median_over_the_runs():
+    """Each run's CPU time over its frames (ms), the runs of one worker and of all of them apart, medians;
+    None where a worker's CPU time was not measured (a thread of more than one core) or a side has no run."""
+    from benchmarks.latency import cpu_per_frame
+
+    def run(workers: int, cpu: list) -> dict:
+        return {"workers": workers, "frames": 10 * workers, "per_worker": [{"cpu_s": c} for c in cpu]}
+
+    runs = [run(1, [1.0]), run(2, [1.3, 1.1]), run(2, [1.2, 1.2]), run(1, [1.2]), run(1, [1.1]), run(2, [1.5, 1.3])]
+    # one worker: 100, 120, 110 ms a frame; two: 120, 120, 140
+    assert cpu_per_frame(runs) == pytest.approx({"one_worker": 110.0, "all_workers": 120.0, "ratio": 120 / 110})
+    assert cpu_per_frame([*runs[:5], run(2, [1.4, None])]) is None
+    assert cpu_per_frame([r for r in runs if r["workers"] == 1]) is None
