@@ -295,15 +295,22 @@ def test_reduced_range_int8_stays_close_to_fp32_on_any_cpu(tmp_path):
     assert max(_relative_deviation(source, target, feed) for feed in feeds[:3]) < 0.05
 
 
-@pytest.mark.skipif(int8_pairs_saturate(), reason="x86 without VNNI: full-range int8 weights saturate ONNX "
-                    "Runtime's 16-bit pair sums (pipeline/cpu.py); the 7-bit test covers this CPU")
-def test_full_range_int8_stays_close_to_fp32_with_vnni(tmp_path):
+def test_full_range_int8_stays_close_to_fp32_only_where_pair_sums_do_not_saturate(tmp_path):
+    """With VNNI (or off x86) full-range int8 weights stay as close to fp32 as 7-bit ones. On an x86 CPU
+    without it ONNX Runtime adds pairs of uint8 × int8 products in 16 bits, which saturate: the same graph
+    departs further from fp32 than its 7-bit twin, the reason for the shipped 7-bit weights and the
+    Detector's warning (pipeline/cpu.py). On the AVX2 Zen 3 of session 42: 0.073 against 0.021."""
     from export.precision import to_int8
 
     source, feeds = _input_conv_model(tmp_path)
-    target = tmp_path / "int8.onnx"
-    to_int8(source, target, feeds, inputs_fp32=False, output_convs=1)
-    assert max(_relative_deviation(source, target, feed) for feed in feeds[:3]) < 0.05
+    full, seven = tmp_path / "int8.onnx", tmp_path / "int8_7bit.onnx"
+    to_int8(source, full, feeds, inputs_fp32=False, output_convs=1)
+    to_int8(source, seven, feeds, inputs_fp32=False, output_convs=1, reduce_range=True)
+    deviation = {path: max(_relative_deviation(source, path, feed) for feed in feeds[:3]) for path in (full, seven)}
+    if int8_pairs_saturate():
+        assert deviation[full] > 2 * deviation[seven]
+    else:
+        assert deviation[full] < 0.05
 
 
 def test_quantize_before_pad_is_exact():
