@@ -30,8 +30,9 @@ demo: $(VENV)/.runtime
 
 # Two pytest workers, a test file each at a time (its fixtures built once per worker): the suite's subprocesses,
 # imports and servers leave a core idle in a serial run (12.2 against 7.9 min on a 2-vCPU Zen 3, session 17).
+# The 15 slowest tests close the log: where the suite's time goes, run after run.
 test: $(VENV)/.dev
-	$(BIN)/python -m pytest -q -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -n 2 --dist loadfile --durations=15
 
 lint: $(VENV)/.dev
 	$(BIN)/ruff check pipeline service models export evaluation simulation benchmarks requirements tests
