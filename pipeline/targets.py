@@ -3,7 +3,7 @@
 The output grid has the BEV grid's layout at 1/``stride`` resolution: row i,
 column j is the cell centred at ``y_min + (i + ½)·s``, ``x_min + (j + ½)·s``
 with ``s = cell · stride``. A cell is positive when its centre lies inside a
-box (the box with the nearest centre wins where boxes touch). Its regression
+box (the box with the nearest centre wins where boxes overlap). Its regression
 target is ``cos θ, sin θ, dx, dy, log w, log l`` (dx, dy from the cell centre
 to the box centre), stored normalised as ``(t - mean) / std``.
 """
@@ -119,10 +119,13 @@ def encode_targets(boxes: np.ndarray, grid: BevGrid, stride: int, decode: Decode
 
 def _highest(values: np.ndarray, count: int) -> np.ndarray:
     """Positions of the ``count`` highest ``values``, ascending; of equal values at the cut, the first ones.
+    For ``count`` < ``values.size`` (:func:`decode_maps` calls it only past ``max_candidates``); none for 0.
 
     Not ``np.argpartition``'s selection: which of the equal values it keeps, and the order it returns them
     in, follow NumPy's sort kernels for the CPU (AVX-512 or not), and the same maps gave other boxes on an
     AVX2 machine than on an AVX-512 one (session 42)."""
+    if count <= 0:  # a manifest's max_candidates of 0: no candidates, as np.argpartition's [:0] gave
+        return np.zeros(0, np.intp)
     cut = np.partition(values, values.size - count)[values.size - count]  # the count-th highest value
     above = np.flatnonzero(values > cut)
     at_cut = np.flatnonzero(values == cut)[: count - above.size]
@@ -136,7 +139,8 @@ def decode_maps(
     """Network maps → candidate BEV boxes ``[x, y, l, w, yaw]`` (K, 5) and scores (K,), best first.
 
     score: (ny, nx) probabilities; regression: (6, ny, nx) normalised targets.
-    Keeps cells at or above the threshold, at most ``decode.max_candidates`` of them.
+    Keeps cells at or above the threshold, at most ``decode.max_candidates`` of them: the highest scores,
+    and of equal scores at the cut the first cells in row-major order (:func:`_highest`).
     """
     # A Python float, compared with the float32 scores in float32 whatever the caller passed: an np.float64
     # threshold made NumPy 2 compare in float64 and drop a score equal to it in float32 that the CLI's and the

@@ -172,6 +172,17 @@ def test_past_max_candidates_equal_scores_keep_the_cell_order():
     np.testing.assert_array_equal(scores, flat[expected])
 
 
+def test_max_candidates_of_zero_keeps_no_candidate():
+    """A manifest may say 0 (preset_from_dict takes it): no boxes, not a ValueError from np.partition."""
+    from dataclasses import replace
+
+    p = PRESETS["edge"]
+    shape = (p.bev.ny // 4, p.bev.nx // 4)
+    candidates, scores = decode_maps(np.full(shape, 0.9, np.float32), np.zeros((6, *shape), np.float32), p.bev,
+                                     p.pixor.output_stride, replace(p.decode, max_candidates=0))
+    assert candidates.shape == (0, 5) and scores.shape == (0,)
+
+
 def test_encoding_owner_is_nearest_box():
     p = PRESETS["paper"]
     # Two boxes overlapping in BEV: each cell goes to the closer centre.
