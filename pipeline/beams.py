@@ -61,8 +61,10 @@ _MOST_GAPS_OF_64_LINES = 1
 class RingAssignment:
     """Ring id per point, rings numbered 0 … n_rings-1 from the lowest elevation up.
 
-    ring: int32 (N,). elevation_deg: median elevation of each ring (n_rings,).
-    method: "azimuth-wrap" (file order) or "elevation-clusters" (fallback).
+    ring: int32 (N,). elevation_deg: median elevation of each ring (n_rings,); for "elevation-model" the
+    nominal beam table, shifted.
+    method: "azimuth-wrap" (file order) or "elevation-clusters" (fallback), from :func:`recover_rings`;
+    "elevation-model" from :func:`beams_from_elevation`.
     """
 
     ring: np.ndarray

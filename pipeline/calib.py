@@ -180,7 +180,8 @@ def homogeneous_block(matrix: np.ndarray, shape: tuple[int, int], where: str) ->
     return matrix[:rows, :cols].copy()
 
 
-# The values of the float64 calibrations that passed check_calibration, oldest first. The detector checks
+# The values of the float64 calibrations that passed check_calibration, in the order they first passed (a hit
+# does not move one: the oldest is dropped first, however often it is used since). The detector checks
 # every frame's calibration, which its reader (pipeline.kitti, the service's parser) has checked already, and a
 # vehicle's every frame has the same one: the full checks took 0.20 ms of an edge frame (p50, AMD Zen 3,
 # session 42; 0.06 ms alone in a loop, the rest the caches the networks left cold), a lookup by value a few µs.
@@ -210,8 +211,8 @@ def check_calibration(calib: object, source: str = "calib") -> Calibration:
     inverted, as back-projection needs, and whose values lie within a real rig's bounds; else an InputError
     naming ``source`` and the matrix (a singular, NaN or absurdly scaled matrix would otherwise fail deep
     inside the pipeline, overflow, or give boxes that vanish later). A copy in float64 when a matrix is of
-    another real dtype. The detector checks every frame's: values that passed before (the last
-    :data:`_PASSED_MAX` calibrations) pass at once."""
+    another real dtype. The detector checks every frame's: float64 values that passed before (the last
+    :data:`_PASSED_MAX` distinct ones to pass, counted from their first pass) pass at once."""
     key = _passed_key(calib)
     if key is not None and key in _PASSED:
         return calib  # type: ignore[return-value]  # _passed_key returns a key for Calibrations only

@@ -190,7 +190,7 @@ def _raise_terminated(signum: int, frame: object) -> None:
 
 @contextlib.contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
-    """Within the block SIGTERM raises :class:`Terminated`, for the long-running commands (training, simulation)
+    """Within the block SIGTERM raises :class:`Terminated`, for the long-running commands (pipeline.detect, training, models.reproduce, simulation)
     whose default end on SIGTERM would say nothing of what they kept. Outside the main thread, where Python sets
     no handler, the block runs with the signal as it was."""
     if threading.current_thread() is not threading.main_thread():

@@ -12,7 +12,8 @@ stages from ``prepare`` to ``pseudo_points``.
 
 With two or more cores for a frame (``stage_threads``), the work that needs
 no depth runs on a second thread while the depth net runs: the calibration's
-rays and the real points' half of the voxelization. Those stages are then
+rays, the real points' half of the voxelization and the frame's sensor and rig
+checks (:meth:`Detector.frame_checks`). Those stages are then
 timed as the frame waited for them (about nothing), and what they took on
 their thread is in ``Detections.overlapped_ms``.
 
@@ -647,7 +648,8 @@ class Detector:
     def _without_depth(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration,
                        image_hw: tuple[int, int]) -> tuple[dict[str, float], list[CodedWarning]]:
         """The stages of a frame that need no depth: the view's rays (built once per calibration), the real
-        points' half of the voxelization and the rig's checks. Returns what each took, and the checks' warnings."""
+        points' half of the voxelization and :meth:`frame_checks` (timed as ``rig_checks``). Returns what each took,
+        and the checks' warnings."""
         timings = {}
         tic = time.perf_counter()
         self._ray_table(view_calib)
@@ -732,7 +734,7 @@ class Detector:
         (N, 4) float32 velodyne points, finite. calib: required for a
         two-stage model; a warning when its principal point does not fit the
         image's size. score_threshold: in [0, 1] (None: the model's default).
-        emulate_to_beams: thin a 64-line scan to 32, 16, 8 or 4 lines first.
+        emulate_to_beams: thin a 64-line scan to 32, 16, 8 or 4 lines first (None or 0: the scan as given).
         keep_points: also return the point cloud PIXOR saw (pseudo + real),
         for pictures; otherwise the pseudo points go from the depth map
         straight to their BEV bins and are never built. depth: a dense depth

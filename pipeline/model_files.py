@@ -42,7 +42,7 @@ def default_models_hint(models: Path) -> str | None:
 
 
 _CHUNK = 1 << 20
-# What a model directory's files may weigh. The shipped manifests are 8–21 KB and 9–13 levels deep: the bounds are
+# What a model directory's files may weigh. The shipped manifests are 8–25 KB and 9–13 levels deep: the bounds are
 # hundreds of times that, and keep a manifest.json that is /dev/zero, a gigabyte of JSON or 100,000 nested brackets
 # (Python's parser: RecursionError) to one line instead of all the memory or a traceback.
 MAX_MANIFEST_BYTES = 8 << 20

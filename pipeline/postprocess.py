@@ -79,7 +79,8 @@ def boxes_from_maps(
     score: np.ndarray, regression: np.ndarray, bev: np.ndarray, preset: Preset,
     score_threshold: float | None = None, with_pseudo: bool = False, mark: float = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """PIXOR maps (ny/4, nx/4) and (6, ny/4, nx/4) plus the BEV occupancy → (K, 7) LiDAR boxes and (K,) scores.
+    """PIXOR maps (ny/s, nx/s) and (6, ny/s, nx/s), s the preset's output stride (4 in every preset), plus the BEV
+    occupancy → (K, 7) LiDAR boxes and (K,) scores, best first.
 
     bev: the BEV input, or any (≥nz, ny, nx) occupancy of the same grid (the heights read only that).
     with_pseudo: it holds pseudo points; mark: the value of its occupied voxels (:func:`estimate_heights`).

@@ -170,7 +170,7 @@ def render_camera(
     """BGR uint8 picture of the camera image (RGB in) with the 3D boxes drawn as wireframes, the front face
     crossed: ground truth in red, predictions in green with their scores (kept inside the picture). An edge
     reaching behind the camera (a car beside it) is cut at :data:`pipeline.boxes.NEAR_PLANE_M` in front of it; a box wholly
-    behind the camera, with a corner beyond 1 km, not finite or projecting more than 1e5 pixels away is left
+    behind the camera, with a corner more than 1 km in front of or behind it, not finite or projecting more than 1e5 pixels away is left
     out (the BEV picture shows every box).
 
     scale: the image is resized by it first and the boxes drawn on the result, so lines and scores keep

@@ -181,7 +181,7 @@ def reject_unknown_query(request: Request) -> None:
     """422 naming any query parameter the route does not declare.
 
     FastAPI ignores undeclared parameters, so a typo (``emulate_beam=16``) would
-    silently run with the default (the full 64-line scan); the accepted names
+    silently run with the default (no ``emulate_beams``: the scan as sent, not thinned); the accepted names
     come from the route's own declarations, so they cannot drift from the schema.
     """
     route = request.scope.get("route")

@@ -419,7 +419,8 @@ class AuthMiddleware:
 
 class BodyLimitMiddleware:
     """413 for bodies over ``max_bytes``: by Content-Length up front, else by counting received bytes; 408 for a
-    body not received within ``receive_timeout_s`` of the request's start.
+    body not received within ``receive_timeout_s`` of its head's arrival (when the request reaches this layer;
+    the head's own deadline is service/protocol.py's).
 
     Also records whether a multipart/form-data body was empty, or arrived without its close delimiter."""
 

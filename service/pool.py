@@ -226,6 +226,7 @@ class InferencePool:
         Blocking; call it off the event loop. The frames wait for each other at a barrier, so each one
         starts a worker thread of its own and makes that thread's buffers (Detector.warm_up_thread).
         ``stop`` (cancelled when the service shuts down) ends it at the next network node; False when it did.
+        ``runs`` 0: no network run and no frame, True at once.
         """
         if runs == 0:
             return True

@@ -61,7 +61,8 @@ class Runtime:
         return tuple(detector.preset.crop_hw) if detector.two_stage else None  # type: ignore[return-value]
 
     def warm_up(self, runs: int) -> None:
-        """Run the networks ``runs`` times and a frame on each worker, then mark the runtime ready (blocking).
+        """Run the networks ``runs`` times and a frame on each worker (``runs`` 0: neither), then mark the runtime
+        ready (blocking).
 
         Ends at the next network node once ``stopping`` is cancelled, so a SIGTERM during a long warm-up
         (many ``--warmup-runs``, TensorRT) does not wait for all of it."""
