@@ -168,7 +168,7 @@ def check_options(score_threshold: object, emulate_to_beams: object) -> None:
         isinstance(emulate_to_beams, numbers.Integral) and not isinstance(emulate_to_beams, bool)
         and emulate_to_beams in (0, *BEAM_COUNTS)
     ):
-        raise InputError(f"emulate_to_beams: one of {', '.join(map(str, BEAM_COUNTS))} lines (None: the scan as given), "
+        raise InputError(f"emulate_to_beams: one of {', '.join(map(str, BEAM_COUNTS))} lines (None or 0: the scan as given), "
                          f"got {emulate_to_beams!r}")
 
 
