@@ -1,7 +1,6 @@
 """requirements/lowest.py: the pins of pyproject.toml's lower bounds that the lowest-versions venv is built with
 (docs/deploy.md, "Lowest versions"), and the lines of that recipe held to them. Installs nothing."""
 
-import importlib.util
 import json
 import re
 import subprocess
@@ -12,20 +11,12 @@ from pathlib import Path
 import pytest
 from packaging.requirements import Requirement
 
+# requirements/ is a namespace package (the lowest-versions run loads this as the plugin -p requirements.lowest)
+from requirements import lowest
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "requirements" / "lowest.py"
 PYPROJECT = ROOT / "pyproject.toml"
-
-
-def _lowest_module():
-    """requirements/lowest.py, loaded by path (requirements/ is not a package)."""
-    spec = importlib.util.spec_from_file_location("lowest", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-lowest = _lowest_module()
 
 
 def _project(tmp_path: Path, *dependencies: str) -> Path:
