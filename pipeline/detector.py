@@ -63,6 +63,7 @@ from pipeline.errors import InputError
 from pipeline.graph_inputs import session_feeds, whole_shapes
 from pipeline.kitti import Object3D
 from pipeline.model_files import ModelFileError, load_manifest, read_verified, verify_sha256
+from pipeline.onnx_wire import WireError, external_tensors
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, depth_view, view_calibration
 from pipeline.presets import Preset, preset_from_dict
@@ -98,10 +99,28 @@ REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 writt
 MAX_COORDINATE = 1e6
 # Where ONNX Runtime looks for a graph's external data (tensors kept in another file) when the graph is given as bytes:
 # by default the working directory, where no sha256 covers anything. A path under /dev/null can hold no file, so a
-# graph that names one is refused, as is one naming a path outside it (ONNX Runtime's own check).
+# graph that names one is refused, as is one naming a path outside it (ONNX Runtime's own check, from 1.24). The
+# second line of defence: refuse_external_data reads the graph first and refuses such a graph on every version.
 NO_EXTERNAL_DATA = "/dev/null/lowres3d-loads-no-external-data"
 # What each network's graph must give, by output name (float32, of the preset's shapes: Detector._check_shapes).
 NETWORK_OUTPUTS = {"depth": ("depth",), "pixor": ("score", "regression")}
+
+
+def refuse_external_data(path: Path, graph: bytes) -> None:
+    """ModelFileError when the ONNX graph ``graph`` (the bytes of ``path``) keeps a tensor in another file, which no
+    sha256 of the manifest covers, or is no protobuf message at all. Checked here, on the bytes, for every ONNX
+    Runtime version and provider: see pipeline/onnx_wire.py for the versions and the TensorRT path that would load
+    such a file."""
+    try:
+        external = external_tensors(graph)
+    except WireError as exc:
+        raise ModelFileError(f"{path}: not an ONNX graph ({exc})") from exc
+    if external:
+        first = external[0]
+        where = f"'{first.location}'" if first.location else "a file it does not name"
+        raise ModelFileError(f"{path}: the graph keeps tensors in another file (ONNX external data), which no sha256 "
+                             f"of the manifest covers; export it with its weights inside ({len(external)} tensor(s), "
+                             f"the first '{first.name}' in {where})")
 
 
 def trained_lines(training: dict[str, object]) -> int | None:
@@ -394,7 +413,8 @@ class Detector:
                 self._sessions[name] = ort.InferenceSession(model, options, providers=entries, enable_fallback=0)
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
                 reason = " ".join(str(exc).split())  # one line: some of ONNX Runtime's messages span several
-                if "External data path" in reason:  # ONNX Runtime's words when it will not read a tensor's file
+                # ONNX Runtime's words when it will not read a tensor's file: refuse_external_data missed one.
+                if "External data path" in reason:
                     raise ModelFileError(f"{path}: the graph keeps tensors in another file (ONNX external data), "
                                          "which no sha256 of the manifest covers; export it with its weights inside "
                                          f"({reason})") from exc
@@ -441,6 +461,7 @@ class Detector:
         for file, entry in self.manifest["files"].items():
             if file in wanted:
                 graphs[file] = read_verified(self.model_dir, self.manifest, file, check=verify)
+                refuse_external_data(self.model_dir / file, graphs[file])
             elif verify:
                 verify_sha256(self.model_dir, {"files": {file: entry}})
         return graphs

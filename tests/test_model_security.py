@@ -22,6 +22,7 @@ import onnx
 import pytest
 from onnx import TensorProto
 
+from pipeline import detector as detector_module
 from pipeline.check_models import CheckConfig, run
 from pipeline.detector import Detector
 from pipeline.model_files import ModelFileError, load_manifest
@@ -86,24 +87,53 @@ def test_a_graph_with_external_data_is_refused_wherever_the_data_is(where: str, 
         (models / "weights.bin").symlink_to(outside)
         location = "weights.bin"
     with_external_weight(models, location)
+    first = onnx.load(str(models / "pixor.onnx"), load_external_data=False).graph.initializer[0].name
     with pytest.raises(ModelFileError) as refused:
         Detector(models, providers="cpu")
     message = str(refused.value)
-    assert message.startswith(f"{models / 'pixor.onnx'}: the graph keeps tensors in another file (ONNX external data), "
-                              "which no sha256 of the manifest covers")
-    assert "\n" not in message
+    assert message == (f"{models / 'pixor.onnx'}: the graph keeps tensors in another file (ONNX external data), "
+                       "which no sha256 of the manifest covers; export it with its weights inside (1 tensor(s), "
+                       f"the first '{first}' in '{location}')")
     assert check_line(models).startswith(f"{models / 'pixor.onnx'}: the graph keeps tensors in another file")
 
 
 def test_graph_bytes_never_resolve_external_data_in_the_working_directory(tmp_path: Path, monkeypatch) -> None:
     """Given bytes, ONNX Runtime looks for external data in the working directory (the service's /app): pinned that
-    the Detector's sessions look nowhere instead, even with the file right there."""
+    the Detector's sessions look nowhere instead, even with the file right there. This is the second line of
+    defence, so the first (the Detector reading the graph itself) is switched off here: as if it missed a tensor."""
     models = copy(tmp_path / "models")
     with_external_weight(models, "weights.bin")
     (tmp_path / "weights.bin").write_bytes(np.zeros(2304, np.float32).tobytes())
     monkeypatch.chdir(tmp_path)
-    with pytest.raises(ModelFileError, match="ONNX external data"):
+    monkeypatch.setattr(detector_module, "external_tensors", lambda graph: [])
+    with pytest.raises(ModelFileError) as refused:
         Detector(models, providers="cpu")
+    message = str(refused.value)
+    assert message.startswith(f"{models / 'pixor.onnx'}: the graph keeps tensors in another file (ONNX external data), "
+                              "which no sha256 of the manifest covers; export it with its weights inside (")
+    assert "External data path" in message and "\n" not in message  # ONNX Runtime's refusal, in one line
+
+
+def test_external_data_is_refused_before_any_provider_is_chosen(tmp_path: Path) -> None:
+    """TensorRT is given the graph's path, from which every ONNX Runtime version reads a file beside it, and 1.21–1.23
+    (the GPU and Jetson images) read one named by an absolute path: the graph is read and refused first, whatever
+    the provider (TensorRT is not in this machine's build, which would be the error otherwise)."""
+    models = copy(tmp_path / "models")
+    (models / "weights.bin").write_bytes(np.full(2304, 0.5, np.float32).tobytes())
+    with_external_weight(models, "weights.bin")
+    with pytest.raises(ModelFileError, match=r"pixor\.onnx: the graph keeps tensors in another file .* in 'weights\.bin'"):
+        Detector(models, providers="tensorrt")
+
+
+def test_a_model_file_that_is_no_protobuf_is_refused_before_onnx_runtime(tmp_path: Path) -> None:
+    """What the Detector cannot read it cannot vouch for: a listed, resealed file of text is refused in one line."""
+    models = copy(tmp_path / "models")
+    (models / "pixor.onnx").write_text("<html>502 Bad Gateway</html>\n")
+    reseal(models)
+    with pytest.raises(ModelFileError) as refused:
+        Detector(models, providers="tensorrt")
+    assert str(refused.value) == f"{models / 'pixor.onnx'}: not an ONNX graph (field 7 at byte 0 has wire type 4)"
+    assert check_line(models) == str(refused.value)
 
 
 # --------------------------------------------------------------------------- what ONNX Runtime is given
