@@ -26,6 +26,7 @@ from pipeline import detector as detector_module
 from pipeline.check_models import CheckConfig, run
 from pipeline.detector import Detector
 from pipeline.model_files import ModelFileError, load_manifest
+from tests.test_onnx_wire import external
 
 REPO = Path(__file__).resolve().parents[1]
 SOURCE = REPO / "weights" / "edge-lidar16"
@@ -49,13 +50,7 @@ def reseal(models: Path, graph: onnx.ModelProto | None = None) -> None:
 def with_external_weight(models: Path, location: str) -> None:
     """pixor.onnx with its first initializer's data moved to ``location`` (ONNX external data), resealed."""
     graph = onnx.load(str(models / "pixor.onnx"))
-    weight = graph.graph.initializer[0]
-    size = len(weight.raw_data)
-    weight.ClearField("raw_data")
-    weight.data_location = TensorProto.EXTERNAL
-    for key, value in (("location", location), ("offset", "0"), ("length", str(size))):
-        entry = weight.external_data.add()
-        entry.key, entry.value = key, value
+    external(graph.graph.initializer[0], location)
     reseal(models, graph)
 
 
