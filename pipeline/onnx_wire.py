@@ -21,15 +21,15 @@ from typing import NamedTuple
 # Wire types (protobuf encoding): varint, 64-bit, length-delimited, group start, group end, 32-bit.
 VARINT, FIXED64, LENGTH, GROUP_START, GROUP_END, FIXED32 = 0, 1, 2, 3, 4, 5
 # onnx.proto's field numbers, per message, of the fields that lead to a TensorProto.
-MODEL_FIELDS = {7: "graph", 20: "training_info", 25: "functions"}
+MODEL_FIELDS = {7: "graph", 20: "training_info", 25: "function"}
 TRAINING_INFO_FIELDS = {1: "graph", 2: "graph"}  # initialization, algorithm
 GRAPH_FIELDS = {1: "node", 5: "tensor", 15: "sparse_tensor"}  # node, initializer, sparse_initializer
-FUNCTION_FIELDS = {7: "node"}
+FUNCTION_FIELDS = {7: "node", 11: "attribute"}  # node, attribute_proto (default attribute values)
 NODE_FIELDS = {5: "attribute"}
 ATTRIBUTE_FIELDS = {5: "tensor", 6: "graph", 10: "tensor", 11: "graph", 22: "sparse_tensor", 23: "sparse_tensor"}
 SPARSE_TENSOR_FIELDS = {1: "tensor", 2: "tensor"}  # values, indices
 MESSAGES = {"model": MODEL_FIELDS, "training_info": TRAINING_INFO_FIELDS, "graph": GRAPH_FIELDS,
-            "functions": FUNCTION_FIELDS, "node": NODE_FIELDS, "attribute": ATTRIBUTE_FIELDS,
+            "function": FUNCTION_FIELDS, "node": NODE_FIELDS, "attribute": ATTRIBUTE_FIELDS,
             "sparse_tensor": SPARSE_TENSOR_FIELDS}
 TENSOR_NAME, TENSOR_EXTERNAL_DATA, TENSOR_DATA_LOCATION = 8, 13, 14
 ENTRY_KEY, ENTRY_VALUE = 1, 2  # StringStringEntryProto

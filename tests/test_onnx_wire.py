@@ -12,7 +12,19 @@ import pytest
 from onnx import TensorProto, helper, numpy_helper
 from onnx.external_data_helper import _get_all_tensors, convert_model_to_external_data, uses_external_data
 
-from pipeline.onnx_wire import MAX_DEPTH, ExternalTensor, WireError, external_tensors
+from pipeline.onnx_wire import (
+    ENTRY_KEY,
+    ENTRY_VALUE,
+    EXTERNAL,
+    MAX_DEPTH,
+    MESSAGES,
+    TENSOR_DATA_LOCATION,
+    TENSOR_EXTERNAL_DATA,
+    TENSOR_NAME,
+    ExternalTensor,
+    WireError,
+    external_tensors,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = sorted(REPO.glob("weights/*/*.onnx"))
@@ -45,6 +57,39 @@ def model(nodes: list, initializers: list | None = None, functions: list | None 
 
 def constant(output: str, tensor: TensorProto) -> onnx.NodeProto:
     return helper.make_node("Constant", [], [output], value=tensor)
+
+
+def test_the_field_numbers_are_onnx_protos() -> None:
+    """Every field number the reader follows is the one onnx's own generated classes carry, for the message
+    the reader takes it to lead to."""
+    protos = {"model": onnx.ModelProto, "training_info": onnx.TrainingInfoProto, "graph": onnx.GraphProto,
+              "function": onnx.FunctionProto, "node": onnx.NodeProto, "attribute": onnx.AttributeProto,
+              "sparse_tensor": onnx.SparseTensorProto, "tensor": onnx.TensorProto}
+    assert set(MESSAGES) == set(protos) - {"tensor"}
+    for kind, fields in MESSAGES.items():
+        by_number = protos[kind].DESCRIPTOR.fields_by_number
+        for number, inner in fields.items():
+            assert by_number[number].message_type is protos[inner].DESCRIPTOR, (kind, number)
+    tensor = onnx.TensorProto.DESCRIPTOR.fields_by_name
+    assert (tensor["name"].number, tensor["external_data"].number, tensor["data_location"].number) == (
+        TENSOR_NAME, TENSOR_EXTERNAL_DATA, TENSOR_DATA_LOCATION)
+    entry = onnx.StringStringEntryProto.DESCRIPTOR.fields_by_name
+    assert (entry["key"].number, entry["value"].number) == (ENTRY_KEY, ENTRY_VALUE)
+    assert TensorProto.EXTERNAL == EXTERNAL
+
+
+def test_every_field_that_holds_a_tensor_or_a_graph_is_followed() -> None:
+    """The other way round: no field of these messages that holds a graph, a tensor or a message leading to one
+    is left out (a new onnx release adding one would fail here, not pass a tensor by)."""
+    leads = {onnx.GraphProto.DESCRIPTOR, onnx.TensorProto.DESCRIPTOR, onnx.SparseTensorProto.DESCRIPTOR,
+             onnx.NodeProto.DESCRIPTOR, onnx.AttributeProto.DESCRIPTOR, onnx.FunctionProto.DESCRIPTOR,
+             onnx.TrainingInfoProto.DESCRIPTOR}
+    protos = {"model": onnx.ModelProto, "training_info": onnx.TrainingInfoProto, "graph": onnx.GraphProto,
+              "function": onnx.FunctionProto, "node": onnx.NodeProto, "attribute": onnx.AttributeProto,
+              "sparse_tensor": onnx.SparseTensorProto}
+    for kind, proto in protos.items():
+        holding = {f.number for f in proto.DESCRIPTOR.fields if f.message_type in leads}
+        assert holding == set(MESSAGES[kind]), kind
 
 
 @pytest.mark.parametrize("path", SHIPPED, ids=lambda p: f"{p.parent.name}/{p.name}")
@@ -107,6 +152,16 @@ def test_a_constant_in_a_function_body_is_found() -> None:
     function = helper.make_function("local", "AddK", ["a"], ["b"], body, [helper.make_opsetid("", 17)])
     graph = model([helper.make_node("AddK", ["x"], ["y"], domain="local")], functions=[function])
     assert external_tensors(graph.SerializeToString()) == [ExternalTensor("in_function", "f.bin")]
+
+
+def test_a_functions_default_attribute_tensor_is_found() -> None:
+    """A function's attribute defaults (IR 9) may be tensors, used wherever a call leaves the attribute out."""
+    body = [helper.make_node("Constant", [], ["k"], value_float=1.0), helper.make_node("Add", ["a", "k"], ["b"])]
+    default = helper.make_attribute("bias", external(weight("default"), "d.bin"))
+    function = helper.make_function("local", "AddK", ["a"], ["b"], body, [helper.make_opsetid("", 17)],
+                                    attribute_protos=[default])
+    graph = model([helper.make_node("AddK", ["x"], ["y"], domain="local")], functions=[function])
+    assert external_tensors(graph.SerializeToString()) == [ExternalTensor("default", "d.bin")]
 
 
 @pytest.mark.parametrize("outside", ["sparse_values", "sparse_indices"])
