@@ -343,7 +343,8 @@ def quantize_before_pad(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
         moved_q.input[0], moved_q.output[0] = pad.input[0], f"{padded}_unpadded"
         moved_pad.CopyFrom(pad)
         del moved_pad.input[:]
-        moved_pad.input.extend([f"{padded}_unpadded", pad.input[1], quantize.input[2]])  # pad with the zero point
+        # Pad with the zero point; without one (its default is 0) the Pad's own default 0 is q(0).
+        moved_pad.input.extend([f"{padded}_unpadded", pad.input[1], *quantize.input[2:3]])
         moved_pad.output[0] = padded
         replacement[pad.name] = [moved_q, moved_pad]
         skipped.add(quantize.name)
@@ -427,7 +428,8 @@ def where_as_arithmetic(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
     the net). For finite a and b the two are equal (x·1 = x, x·0 = ±0, x + ±0 = x); an infinite branch
     would give NaN (∞·0), so a branch counts as finite only when it provably is: a constant with finite
     values, a graph input (the runtime refuses non-finite inputs), the reciprocal of a Clip with a
-    positive minimum, or a finite-preserving op (Clip, MaxPool, Relu, Max, Where, …) of finite inputs.
+    positive minimum whose own reciprocal float32 can hold (1/1e-45 cannot), or a finite-preserving op
+    (Clip, MaxPool, Relu, Max, Where, …) of finite inputs.
     """
     model = onnx.ModelProto.FromString(model.SerializeToString())
     graph = model.graph
@@ -441,7 +443,12 @@ def where_as_arithmetic(model: onnx.ModelProto) -> tuple[onnx.ModelProto, int]:
     memo: dict[str, bool] = {}
 
     def positive_constant(name: str) -> bool:
-        return name in initializers and bool((numpy_helper.to_array(initializers[name]) > 0).all())
+        """A constant whose reciprocal is finite: positive, and not so small (below 1/FLT_MAX) that 1/x overflows."""
+        if name not in initializers:
+            return False
+        values = numpy_helper.to_array(initializers[name])
+        with np.errstate(divide="ignore", over="ignore"):
+            return bool((values > 0).all() and np.isfinite(np.reciprocal(values)).all())
 
     def finite(name: str) -> bool:
         if name not in memo:
