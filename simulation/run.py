@@ -112,6 +112,8 @@ def _check(config: RunConfig) -> None:
         raise ValueError(f"--workers: need at least 1 worker, got {config.workers}")
     if config.seed < 0:  # numpy's SeedSequence refuses it, after the folders are made
         raise ValueError(f"--seed: must be 0 or more, got {config.seed}")
+    if config.start < 0:  # the same for a frame index (the command line refuses it; run() was handed it as is)
+        raise ValueError(f"--start: must be 0 or more, got {config.start}")
     if not config.split or Path(config.split).name != config.split or config.split in (".", ".."):
         raise ValueError(f"--split: {config.split!r} names a list file in ImageSets/, not a path")
     if config.start + config.frames > MAX_FRAMES:  # KITTI's ids have six digits, and the lists sort as text
