@@ -28,22 +28,11 @@ from onnx import helper, numpy_helper
 from pipeline.check_models import CheckConfig, CheckFailed, _finite, main, run
 from pipeline.model_files import sha256_file
 from tests.conftest import KITTI
+from tests.test_provenance import _git, checkout  # noqa: F401 (checkout: test_provenance's fixture, used by name)
+from tests.test_rollout import copy_models, edit_manifest
 
 REPO = Path(__file__).resolve().parents[1]
 WEIGHTS = REPO / "weights"
-
-
-def copy_models(name: str, folder: Path) -> Path:
-    """A copy of the shipped model directory ``name`` at ``folder``."""
-    shutil.copytree(WEIGHTS / name, folder)
-    return folder
-
-
-def edit_manifest(models: Path, change) -> None:
-    """Rewrite ``models``' manifest with ``change(manifest)`` applied."""
-    manifest = json.loads((models / "manifest.json").read_text())
-    change(manifest)
-    (models / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
 
 
 def save_graph(models: Path, name: str, graph: onnx.ModelProto) -> None:
@@ -310,12 +299,6 @@ def test_pieces_join_back_into_the_whole_shape_in_channel_order() -> None:
 
 
 # --------------------------------------------------------------------------- which code made a result
-def _git(root: Path, *args: str) -> str:
-    done = subprocess.run(["git", "-C", str(root), "-c", "user.name=t", "-c", "user.email=t@example.com", *args],
-                          capture_output=True, text=True, timeout=30, check=True)
-    return done.stdout.strip()
-
-
 def test_a_git_that_hangs_or_is_missing_gives_no_commit_instead_of_stopping_the_run(tmp_path: Path,
                                                                                    monkeypatch) -> None:
     """A git stuck on a network file system is given up after GIT_TIMEOUT_S (here 0.3 s, a real sleeping git)."""
@@ -332,19 +315,13 @@ def test_a_git_that_hangs_or_is_missing_gives_no_commit_instead_of_stopping_the_
     assert provenance.code_version(REPO)["commit"] is None
 
 
-def test_a_checkout_whose_status_fails_is_of_unknown_dirtiness_not_clean(tmp_path: Path) -> None:
+def test_a_checkout_whose_status_fails_is_of_unknown_dirtiness_not_clean(checkout: Path) -> None:  # noqa: F811
     """A corrupt index: git still names the commit, but cannot say whether files differ, so dirty is None."""
     from pipeline.provenance import code_version
 
-    root = tmp_path / "repo"
-    root.mkdir()
-    _git(root, "init", "-q")
-    (root / "a.py").write_text("x = 1\n")
-    _git(root, "add", "a.py")
-    _git(root, "commit", "-q", "-m", "first")
-    (root / ".git" / "index").write_bytes(b"DIRC garbage")
-    assert code_version(root) == {"lowres3d": code_version()["lowres3d"], "commit": _git(root, "rev-parse", "HEAD"),
-                                  "dirty": None}
+    (checkout / ".git" / "index").write_bytes(b"DIRC garbage")
+    assert code_version(checkout) == {"lowres3d": code_version()["lowres3d"],
+                                      "commit": _git(checkout, "rev-parse", "HEAD"), "dirty": None}
 
 
 # --------------------------------------------------------------------------- the manifest
