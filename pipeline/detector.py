@@ -99,8 +99,8 @@ REFLECTANCE_SLACK = 1e-6  # float32 rounding of a reflectance of exactly 1 writt
 MAX_COORDINATE = 1e6
 # Where ONNX Runtime looks for a graph's external data (tensors kept in another file) when the graph is given as bytes:
 # by default the working directory, where no sha256 covers anything. A path under /dev/null can hold no file, so a
-# graph that names one is refused, as is one naming a path outside it (ONNX Runtime's own check, from 1.24). The
-# second line of defence: refuse_external_data reads the graph first and refuses such a graph on every version.
+# graph that names one is refused, as is one naming a path outside it (ONNX Runtime's own check, from 1.24). That is
+# the second line of defence; the first, refuse_external_data, reads the graph before and refuses it on every version.
 NO_EXTERNAL_DATA = "/dev/null/lowres3d-loads-no-external-data"
 # What each network's graph must give, by output name (float32, of the preset's shapes: Detector._check_shapes).
 NETWORK_OUTPUTS = {"depth": ("depth",), "pixor": ("score", "regression")}
