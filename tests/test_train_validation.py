@@ -90,7 +90,8 @@ def test_detector_figures_are_moderate_r40_at_each_iou(tmp_path):
     The five KITTI frames' eight cars, by the devkit's rules: easy A (000003), B and C (000006, 41 and 61 px high),
     moderate D (000004, 30 px), and F (000006, 34 px, occlusion 1, made 2 here so that it is hard only); the other
     three are under 25 px and count nowhere. The oracle finds A, B, C and F exactly (scores 0.9, 0.8, 0.7, 0.6)
-    and D shifted by a quarter of its length (IoU 0.6; score 0.85). The devkit samples precision only at the
+    and D shifted by a quarter of its length (IoU 0.6; score 0.85); its best-scored box (0.95) lies 72° to the
+    left, outside the camera's view, where the Detector drops it (kept, it was a false positive above all). The devkit samples precision only at the
     scores of true positives, one recall point per detection: R40 AP = Σ over the 2nd to last of the
     interpolated precisions / 40. IoU 0.7: easy 1 + 1 (D and F are under easy's 40 px: ignored) → 5.0;
     moderate with D a false positive, 2/3, 3/4 → 0.75 + 0.75 → 3.75; hard 2/3, 3/4, 4/5 → 3 × 0.8 → 6.0.
@@ -111,8 +112,9 @@ def test_detector_figures_are_moderate_r40_at_each_iou(tmp_path):
     maps = []
     for fid in ids:
         cars = car_boxes(load_frame(data, fid, with_image=False))
-        if fid == "000003":
-            maps.append(_oracle_maps(cars, [0.9], preset))  # A
+        if fid == "000003":  # A, and the box outside the camera's view
+            outside = np.array([[8.0, 24.0, cars[0, 2], *cars[0, 3:6], 0.0]])
+            maps.append(_oracle_maps(np.vstack([cars, outside]), [0.9, 0.95], preset))
         elif fid == "000004":
             near = cars[np.argmin(cars[:, 0])]  # D, the nearer of the two (38 m; the other is 20 px high)
             shifted = near.copy()
