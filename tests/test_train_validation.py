@@ -90,10 +90,10 @@ def test_detector_figures_are_moderate_r40_at_each_iou(tmp_path):
     The five KITTI frames' eight cars, by the devkit's rules: easy A (000003), B and C (000006, 41 and 61 px high),
     moderate D (000004, 30 px), and F (000006, 34 px, occlusion 1, made 2 here so that it is hard only); the other
     three are under 25 px and count nowhere. The oracle finds A, B, C and F exactly (scores 0.9, 0.8, 0.7, 0.6)
-    and D shifted by a quarter of its length (IoU 0.6; score 0.85); its best-scored box (0.95) lies 72° to the
-    left, outside the camera's view, where the Detector drops it (kept, it was a false positive above all). The devkit samples precision only at the
-    scores of true positives, one recall point per detection: R40 AP = Σ over the 2nd to last of the
-    interpolated precisions / 40. IoU 0.7: easy 1 + 1 (D and F are under easy's 40 px: ignored) → 5.0;
+    and D shifted by a quarter of its length (IoU 0.6; score 0.85). Its best-scored box (0.95) lies 72° to the
+    left, outside the camera's view, where the Detector drops it (kept, it was a false positive above all).
+    The devkit samples precision only at the scores of true positives, one recall point per detection:
+    R40 AP = Σ over the 2nd to last of the interpolated precisions / 40. IoU 0.7: easy 1 + 1 (D and F are under easy's 40 px: ignored) → 5.0;
     moderate with D a false positive, 2/3, 3/4 → 0.75 + 0.75 → 3.75; hard 2/3, 3/4, 4/5 → 3 × 0.8 → 6.0.
     IoU 0.5: easy 5.0, moderate 3 × 1 → 7.5, hard 4 × 1 → 10.0."""
     data = tmp_path / "training"
