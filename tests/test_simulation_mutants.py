@@ -102,8 +102,6 @@ def test_a_car_at_a_known_place_gets_kitti_s_label(two_cars) -> None:
     for obj, (_, (x, y), yaw, (l, w, h)) in zip(objects, (NEAR, FAR)):
         bottom = np.array([x, y, -HEIGHT])
         np.testing.assert_allclose(obj.location, velo_to_rect(bottom[None])[0], atol=1e-6)
-        # The bottom is about 1.65 m under camera 2 (y points down) and x = −y_velo (camera x points right).
-        assert 1.6 < obj.location[1] < 2.0 and obj.location[0] == pytest.approx(-y, abs=0.1)
         assert obj.dimensions == pytest.approx((h, w, l))
         assert obj.rotation_y == pytest.approx(-yaw - np.pi / 2)
         assert obj.alpha == pytest.approx(obj.rotation_y - np.arctan2(obj.location[0], obj.location[2]))
