@@ -125,7 +125,7 @@ def rewrite_transposed_convs(model: onnx.ModelProto, subpixel: bool = True) -> t
         plain = (node.op_type == "ConvTranspose" and attrs.get("group", 1) == 1
                  and list(attrs.get("dilations", [1, 1])) == [1, 1] and attrs.get("auto_pad", b"NOTSET") == b"NOTSET"
                  and list(attrs.get("kernel_shape", [])) == [3, 3] and node.input[1] in initializers
-                 and (len(node.input) < 3 or node.input[2] in initializers))
+                 and (len(node.input) < 3 or not node.input[2] or node.input[2] in initializers))  # "": no bias
         strides = list(attrs.get("strides", [1, 1]))
         pads = list(attrs.get("pads", [0, 0, 0, 0]))
         output_padding = list(attrs.get("output_padding", [0, 0]))

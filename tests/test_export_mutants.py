@@ -96,10 +96,11 @@ def _feeds(model: onnx.ModelProto, seed: int = 3) -> dict[str, np.ndarray]:
 
 @pytest.mark.parametrize("subpixel", [True, False])
 @pytest.mark.parametrize(("strides", "output_padding"), [([1, 1], [0, 0]), ([2, 2], [1, 1])])
-@pytest.mark.parametrize("bias", ["b", None])
+@pytest.mark.parametrize("bias", ["b", None, ""])
 def test_transposed_convs_become_convs_with_the_same_outputs(subpixel, strides, output_padding, bias):
     """3 → 5 channels on a 6 × 7 map (no square or channel symmetry to hide a swapped axis), with a bias or
-    without one: the stride-1 form as a flipped conv, the stride-2 one (with ``subpixel``) as
+    without one (no third input, or ONNX's "" for an omitted one): the stride-1 form as a flipped conv, the
+    stride-2 one (with ``subpixel``) as
     a 2×2 conv and DepthToSpace; ONNX Runtime gives the same outputs, and the old weights are gone."""
     model = _transposed(bias=bias, strides=strides, pads=[1, 1, 1, 1], output_padding=output_padding)
     rewritten, count = rewrite.rewrite_transposed_convs(model, subpixel=subpixel)
