@@ -102,7 +102,7 @@ class DepthDataset(Dataset):
     augment: bool = False
     seed: int = 0
     epoch: int = 0  # set by the training loop: augmentation differs per epoch, reproducibly
-    # > 1: a 4th field, the per-pixel loss weight: this on the labelled cars' own pixels, 1 elsewhere.
+    # != 1: a 4th field, the per-pixel loss weight: this on the labelled cars' own pixels, 1 elsewhere.
     car_weight: float = 1.0
     cache: SampleCache = field(default_factory=SampleCache, repr=False)
 

@@ -175,6 +175,10 @@ def load_onnx_weights(network: nn.Module, path: str | Path, optional: tuple[str,
             state[key] = value
         elif key not in state and key in arrays:
             put(key, arrays[key], value)
+        elif key not in state and key.endswith(".num_batches_tracked"):
+            # A count of training batches, no weight: no graph holds it, so a batch norm the graph keeps
+            # unfolded (its statistics read by name above) keeps the network's own count.
+            state[key] = value
     unset = [key for key in reference if key not in state]
     if unset:
         raise ValueError(f"{path}: no weights for {', '.join(unset[:6])}{' …' if len(unset) > 6 else ''}")
