@@ -703,10 +703,6 @@ class BootstrapResult:
     jackknife: np.ndarray | None = None
     method: str = "bca"
 
-    def _values(self, index: int, metric: str, iou_threshold: float, difficulty: str) -> np.ndarray:
-        m, t = self.metrics.index(metric), self.iou_thresholds.index(float(iou_threshold))
-        return self.ap[index, :, m, t, DIFFICULTIES.index(difficulty)]
-
     def _bounds(self, statistic: Callable[[np.ndarray], np.ndarray], metric: str, iou_threshold: float,
                 difficulty: str, level: float, method: str | None) -> BootstrapInterval:
         """``statistic`` maps an array whose first axis is the sets to its value, on draws, all frames and
