@@ -98,6 +98,10 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
     result = detect(models, out, data=data, frames=frames, emulate_beams=emulate, provider=provider,
                     pictures=False, progress=progress, score_threshold=score_threshold, depth_dir=depth_dir,
                     mirror_tta=mirror_tta)
+    if result.skipped and not result.result_files:
+        # Else the evaluation's last line would be a missing result folder, after every frame was named.
+        raise InputError(f"--data {data}: all {len(result.skipped)} frame(s) skipped (each named above with its "
+                         "reason): nothing to evaluate")
     return DetectionRun(out / "data" if result.result_files else out, result.skipped)
 
 

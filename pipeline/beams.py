@@ -235,8 +235,9 @@ def check_thinnable(data: Path, frames: list[str] | None, beams: int, purpose: s
     path = Path(data) / "velodyne" / f"{ids[0]}.bin"
     if not path.is_file():
         return  # the command names the missing scan
+    points = read_velodyne(path).points  # an unusable file is refused as such, its reader naming it once
     try:
-        emulate_beams(read_velodyne(path).points, beams or 16)
+        emulate_beams(points, beams or 16)
     except InputError as exc:
         if beams:
             raise InputError(f"{path}: {exc}; to {purpose} scans of a {beams}-line sensor as they are, give "

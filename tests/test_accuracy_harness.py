@@ -110,6 +110,39 @@ def test_a_skipped_frame_fails_the_evaluation_and_no_old_result_stands_in(tiny_m
     assert json.loads((tmp_path / "ap.json").read_text())["frames"] == 2
 
 
+def test_a_run_whose_every_frame_is_skipped_says_so(tmp_path, capfd):
+    """With no frame left to score, the error says that every frame was skipped (each was named before), not
+    that a result folder is missing."""
+    data = tmp_path / "kitti"
+    for part, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt")):
+        (data / part).mkdir(parents=True)
+        (data / part / f"000006{suffix}").write_bytes((KITTI / part / f"000006{suffix}").read_bytes())
+    (data / "image_2" / "000006.png").write_bytes(b"\x89PNG\r\n")  # cut off after 6 bytes
+    with pytest.raises(InputError, match=r"all 1 frame\(s\) skipped \(each named above with its reason\): "
+                                         r"nothing to evaluate"):
+        run_detection(data, ACCURACY.parents[1] / "weights" / "edge", "lidar16+camera", tmp_path / "run",
+                      progress=False)
+    named = capfd.readouterr().err
+    assert f"{data / 'image_2' / '000006.png'}" in named and "(frame 000006 skipped" in named
+    assert not (tmp_path / "run" / "data" / "000006.txt").exists()
+
+
+def test_a_broken_first_scan_is_refused_as_broken_not_as_a_sensors_line_count(tmp_path):
+    """The check that the first scan thins to 16 lines runs before any model: a scan that cannot be read is
+    named once by its reader, not taken for a 16-line sensor's (no advice to give --emulate-beams 0)."""
+    data = tmp_path / "kitti"
+    for part, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt")):
+        (data / part).mkdir(parents=True)
+        (data / part / f"000006{suffix}").write_bytes((KITTI / part / f"000006{suffix}").read_bytes())
+    scan = data / "velodyne" / "000006.bin"
+    scan.write_bytes(b"\0" * 1000)  # not a multiple of 16 bytes
+    with pytest.raises(InputError) as refused:
+        run_detection(data, ACCURACY.parents[1] / "weights" / "edge-lidar16", "lidar16", tmp_path / "run",
+                      progress=False)
+    assert str(refused.value).startswith(f"{scan}: size 1000 bytes is not a multiple of 16")
+    assert str(refused.value).count(str(scan)) == 1 and "--emulate-beams" not in str(refused.value)
+
+
 def test_a_run_warns_of_its_own_score_threshold_only_when_it_cuts(tiny_models, tmp_path, caplog):
     """The detector's run knows its threshold: 0.05 (the default) gets no warning whatever the lowest score
     written, 0.5 (pipeline.detect's default) one line saying what it costs."""
