@@ -81,6 +81,19 @@ def _ring_label_at(radius_px: int, origin: tuple[int, int], size: tuple[int, int
     return width - text_w - 3, row + text_h + 5
 
 
+def _put_score(canvas: np.ndarray, text: str, corners: np.ndarray, colour: tuple[int, int, int]) -> None:
+    """A BEV box's score just above and right of its front-left corner (``corners``: its four (column, row)),
+    kept whole in the picture: under the box when the front reaches past the far edge, moved in from a side."""
+    (text_w, text_h), _ = cv2.getTextSize(text, FONT, 0.45, 1)
+    height, width = canvas.shape[:2]
+    column, row = corners[0, 0] + 4, corners[0, 1] - 4
+    if row - text_h < 0:  # above the top edge: under the box's lowest point, clear of its lines
+        row = corners[:, 1].max() + text_h + 6
+    at = (int(np.clip(column, 0, max(width - text_w - 1, 0))),
+          int(np.clip(row, text_h + 1, max(height - 3, text_h + 1))))
+    cv2.putText(canvas, text, at, FONT, 0.45, colour, 1, cv2.LINE_AA)
+
+
 def render_bev(
     points: np.ndarray,
     grid: BevGrid,
@@ -134,8 +147,7 @@ def render_bev(
         for i in range(len(corners)):  # one line and label per box: tens of boxes at most
             cv2.line(canvas, tuple(centre[i]), tuple(front[i]), colour, 2, cv2.LINE_AA)
             if with_score and scores is not None:
-                cv2.putText(canvas, f"{scores[i]:.2f}", tuple(corners[i, 0] + [4, -4]),
-                            FONT, 0.45, colour, 1, cv2.LINE_AA)
+                _put_score(canvas, f"{scores[i]:.2f}", corners[i], colour)
     if legend:
         draw_key(canvas, bev_key_rows(title, boxes is not None, gt_boxes is not None))
     return canvas
