@@ -92,7 +92,7 @@ def frame_rate(text: str) -> float:
 
 def unwritable(out: object, exc: OSError) -> str:
     """The one-line error for an output folder the system refused (a file in the way, no permission, full)."""
-    where = f"{exc.filename}: " if exc.filename else ""
+    where = f"{exc.filename}: " if exc.filename and str(exc.filename) != str(out) else ""  # each path once
     return f"error: --out {out}: {where}{exc.strerror or exc}"
 
 

@@ -476,6 +476,7 @@ def test_demo_bad_input_is_one_line_and_status_2(tmp_path, capsys):
     assert demo.main(["--core", "--out", str(tmp_path / "a-file")]) == 2
     err = capsys.readouterr().err
     assert err.startswith(f"error: --out {tmp_path / 'a-file'}: ") and err.count("\n") == 1
+    assert err.count(str(tmp_path / "a-file")) == 1  # the path once, not again as the error's own file name
     assert not (tmp_path / "o").exists()
 
 
