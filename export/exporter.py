@@ -105,7 +105,10 @@ def _check_keeps_trained(out: Path, checkpoints: dict[str, Path], networks: tupl
     """Refuse to replace a trained network at ``out`` by initialised weights (a forgotten --checkpoints)."""
     try:
         held = json.loads((out / MANIFEST_NAME).read_text(encoding="utf-8"))["networks"]
-        trained = [name for name in networks if name not in checkpoints and held[name]["weights"] == "trained"]
+        # A network the directory does not hold (the depth net over a LiDAR-only one) has nothing to lose; the
+        # ones it does hold must still be checked.
+        trained = [name for name in networks
+                   if name not in checkpoints and held.get(name, {}).get("weights") == "trained"]
         dropped = [name for name in held if name not in networks and held[name].get("weights") == "trained"]
     except (OSError, ValueError, KeyError, TypeError, AttributeError):  # no or broken model directory there
         return

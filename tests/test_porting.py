@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 import json
 import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -539,8 +540,9 @@ def test_golden_command_answers_help_and_refuses_what_it_would_not_use(tmp_path:
     assert helped.returncode == 0 and all(flag in helped.stdout for flag in ("--models", "--data", "--frame", "--out"))
     refused = run("--spec-only", "--frame", "000001", "--out", str(tmp_path / "spec"))
     assert refused.returncode == 2 and "--spec-only" in refused.stderr and not (tmp_path / "spec").exists()
-    inside = run("--models", str(WEIGHTS / "edge-lidar16"), "--out", str(WEIGHTS / "edge-lidar16" / "golden"))
-    assert inside.returncode == 2 and "Traceback" not in inside.stderr and not (WEIGHTS / "edge-lidar16" / "golden").exists()
+    models = shutil.copytree(WEIGHTS / "edge-lidar16", tmp_path / "edge-lidar16")  # a regression writes there
+    inside = run("--models", str(models), "--out", str(models / "golden"))
+    assert inside.returncode == 2 and "Traceback" not in inside.stderr and not (models / "golden").exists()
     spec_only = run("--models", str(WEIGHTS / "edge-lidar16"), "--spec-only", "--out", str(tmp_path / "spec"))
     assert spec_only.returncode == 0, spec_only.stderr
     written = json.loads((tmp_path / "spec" / "port.json").read_text())
