@@ -42,8 +42,9 @@ from pipeline.beams import emulate_beams
 from pipeline.calib import sparse_depth_map
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
-from pipeline.kitti import read_labels, read_velodyne, write_depth_png, write_labels
+from pipeline.kitti import read_labels, read_velodyne, write_depth_png
 from tests.conftest import KITTI
+from tests.test_eval_frames import _folders
 from tests.test_kitti_eval import frames, obj
 
 REPO = Path(__file__).resolve().parents[1]
@@ -51,22 +52,13 @@ EDGE = REPO / "weights" / "edge"  # a two-stage model directory: its depth netwo
 
 
 # ----------------------------------------------------------------------------- evaluation.frames
-def _label_folders(tmp_path: Path, gt_ids: list[str], result_ids: list[str]) -> tuple[Path, Path]:
-    gt, results = tmp_path / "gt", tmp_path / "results"
-    gt.mkdir()
-    results.mkdir()
-    for frame_id in gt_ids:
-        write_labels(gt / f"{frame_id}.txt", [obj()])
-    for frame_id in result_ids:
-        write_labels(results / f"{frame_id}.txt", [obj(score=0.9)])
-    return gt, results
 
 
 def test_result_files_of_other_frames_are_counted_and_the_first_named(tmp_path: Path):
     """Seven frames, and results for two frames that are not among them: the error lists the first three frames
     and the count (``a, b, c, … 7481 frames``), and says how many result files the folder holds, naming the
     first in id order."""
-    gt, results = _label_folders(tmp_path, [f"{i:06d}" for i in range(7)], ["000011", "000010"])
+    gt, results = _folders(tmp_path, [f"{i:06d}" for i in range(7)], ["000011", "000010"])
     with pytest.raises(InputError) as caught:
         load_label_dirs(gt, results)
     assert str(caught.value) == (f"{results}: no result file matches a frame of {gt} (000000, 000001, 000002, … 7 "
@@ -74,7 +66,7 @@ def test_result_files_of_other_frames_are_counted_and_the_first_named(tmp_path: 
 
 
 def test_the_frame_named_for_missing_results_is_the_first_in_id_order(tmp_path: Path):
-    gt, results = _label_folders(tmp_path, ["000003", "000000", "000002", "000001"], ["000000", "000002"])
+    gt, results = _folders(tmp_path, ["000003", "000000", "000002", "000001"], ["000000", "000002"])
     with pytest.raises(InputError, match=r"2 of 4 frames have no result file, e\.g\. 000001\.txt;"):
         load_label_dirs(gt, results)
 
