@@ -231,7 +231,7 @@ def test_bev_key_shows_its_title_and_stays_in_its_black_box():
     left, top, right, bottom = draw_key(grey, [("detection (score)", (60, 220, 60))])
     outside = np.ones(grey.shape[:2], bool)
     outside[top:bottom + 1, left:right + 1] = False
-    assert (grey[outside] == 128).all() and (grey[top:bottom, left:right] == 255).all(axis=2).any()
+    assert (grey[outside] == 128).all() and (grey[top:bottom, left:right] > 200).all(axis=2).any()  # white text
 
 
 # ----------------------------------------------------------------------------- the camera picture
