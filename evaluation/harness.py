@@ -66,7 +66,8 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
     """Detect on every frame and write KITTI result files.
 
     beams: the line count the scans are thinned to; None: the input row's (16 for the lidar16 rows, the scans as
-    stored for lidar64), 0: the scans as stored (a 16-line sensor's own scans, which cannot be thinned again).
+    stored for lidar64), 0: the scans as stored (a 16-line sensor's own scans, which cannot be thinned again;
+    64-line ones are refused for the 16-line rows).
 
     A frame whose files are unusable is skipped (named on stderr) and has no result file, not even one
     from an earlier run into ``out``: the evaluation counts its cars as missed, and the caller says so.
@@ -93,8 +94,8 @@ def run_detection(data: Path, models: Path, input_mode: str, out: Path, frames: 
     if depth_dir is not None and not wants_camera:
         raise InputError(f"--depth-dir: only the camera pipeline uses depth (--input lidar16+camera, not {input_mode})")
     emulate = INPUTS[input_mode] if beams is None else (beams or None)
-    if emulate:
-        check_thinnable(data, frames, emulate)
+    if emulate or INPUTS[input_mode]:  # a 16-line row's scans as stored (beams 0) must not be 64-line ones
+        check_thinnable(data, frames, emulate or 0)
     result = detect(models, out, data=data, frames=frames, emulate_beams=emulate, provider=provider,
                     pictures=False, progress=progress, score_threshold=score_threshold, depth_dir=depth_dir,
                     mirror_tta=mirror_tta)

@@ -143,6 +143,21 @@ def test_a_broken_first_scan_is_refused_as_broken_not_as_a_sensors_line_count(tm
     assert str(refused.value).count(str(scan)) == 1 and "--emulate-beams" not in str(refused.value)
 
 
+def test_a_16_line_row_refuses_64_line_scans_taken_as_stored(tmp_path):
+    """--emulate-beams 0 says the scans are a 16-line sensor's own: on KITTI's 64-line scans the 16-line rows are
+    refused before any model runs (as training and the pseudo-depth cache refuse them), not scored on 64 lines
+    with a warning a frame; the 64-line row takes the same scans as they are."""
+    for model, input_mode in (("edge-lidar16", "lidar16"), ("edge", "lidar16+camera")):
+        with pytest.raises(InputError, match=r"000003\.bin: the scan has 64 lines, and --emulate-beams 0 would "
+                                             r"evaluate it as stored"):
+            run_detection(KITTI, ACCURACY.parents[1] / "weights" / model, input_mode, tmp_path / input_mode,
+                          frames=["000003"], beams=0, progress=False)
+        assert not (tmp_path / input_mode).exists()
+    run = run_detection(KITTI, ACCURACY.parents[1] / "weights" / "edge-lidar64", "lidar64", tmp_path / "lidar64",
+                        frames=["000003"], beams=0, progress=False)
+    assert (run.results / "000003.txt").is_file() and not run.skipped
+
+
 def test_a_run_warns_of_its_own_score_threshold_only_when_it_cuts(tiny_models, tmp_path, caplog):
     """The detector's run knows its threshold: 0.05 (the default) gets no warning whatever the lowest score
     written, 0.5 (pipeline.detect's default) one line saying what it costs."""
