@@ -23,6 +23,7 @@ from pipeline.provenance import code_version
 from simulation.run import RunConfig
 from simulation.run import run as simulate
 from tests.conftest import FRAMES, KITTI, lidar_only_models
+from tests.test_bad_files import _object_folder
 
 ACCURACY = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy.py"
 
@@ -91,11 +92,7 @@ def test_detection_run_with_depth_from_files_and_distance_bands(tiny_models, tmp
 def test_a_skipped_frame_fails_the_evaluation_and_no_old_result_stands_in(tiny_models, tmp_path):
     """A frame whose scan is unusable is named, its cars count as missed, and the command exits 1; a result
     file left for it by an earlier run into the same folder is removed, not scored as this run's."""
-    data = tmp_path / "kitti"
-    for part, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt")):
-        (data / part).mkdir(parents=True)
-        for fid in ("000003", "000006"):
-            (data / part / f"{fid}{suffix}").write_bytes((KITTI / part / f"{fid}{suffix}").read_bytes())
+    data = _object_folder(tmp_path / "kitti")
     (data / "velodyne" / "000006.bin").write_bytes(b"\0" * 1000)  # not a multiple of 16 bytes
     stale = tmp_path / "run" / "data" / "000006.txt"
     stale.parent.mkdir(parents=True)
@@ -113,10 +110,7 @@ def test_a_skipped_frame_fails_the_evaluation_and_no_old_result_stands_in(tiny_m
 def test_a_run_whose_every_frame_is_skipped_says_so(tmp_path, capfd):
     """With no frame left to score, the error says that every frame was skipped (each was named before), not
     that a result folder is missing."""
-    data = tmp_path / "kitti"
-    for part, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt")):
-        (data / part).mkdir(parents=True)
-        (data / part / f"000006{suffix}").write_bytes((KITTI / part / f"000006{suffix}").read_bytes())
+    data = _object_folder(tmp_path / "kitti", ("000006",))
     (data / "image_2" / "000006.png").write_bytes(b"\x89PNG\r\n")  # cut off after 6 bytes
     with pytest.raises(InputError, match=r"all 1 frame\(s\) skipped \(each named above with its reason\): "
                                          r"nothing to evaluate"):
@@ -130,10 +124,7 @@ def test_a_run_whose_every_frame_is_skipped_says_so(tmp_path, capfd):
 def test_a_broken_first_scan_is_refused_as_broken_not_as_a_sensors_line_count(tmp_path):
     """The check that the first scan thins to 16 lines runs before any model: a scan that cannot be read is
     named once by its reader, not taken for a 16-line sensor's (no advice to give --emulate-beams 0)."""
-    data = tmp_path / "kitti"
-    for part, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt"), ("label_2", ".txt")):
-        (data / part).mkdir(parents=True)
-        (data / part / f"000006{suffix}").write_bytes((KITTI / part / f"000006{suffix}").read_bytes())
+    data = _object_folder(tmp_path / "kitti", ("000006",))
     scan = data / "velodyne" / "000006.bin"
     scan.write_bytes(b"\0" * 1000)  # not a multiple of 16 bytes
     with pytest.raises(InputError) as refused:

@@ -36,9 +36,9 @@ from pipeline.render import (
     stack_views,
     write_png,
 )
+from tests.conftest import KITTI
 
 REPO = Path(__file__).resolve().parents[1]
-KITTI = REPO / "tests" / "data" / "kitti" / "training"
 GRID = PRESETS["tiny"].bev  # x 0–70.4 m, y −40–40 m: 704 × 800 pixels at the pictures' 0.1 m
 M = 0.1  # render_bev's metres a pixel
 NO_POINTS = np.zeros((0, 4), np.float32)
