@@ -116,8 +116,10 @@ def tables(sim: list[FrameFiles], real: list[FrameFiles]) -> str:
         f"{m:.2f} ± {s:.2f}" for m, s in KITTI_CAR_SIZE.values()) + " |")
     for label, frames in (("simulated", sim), ("KITTI samples", real)):
         dims = np.array([o.dimensions for f in frames for o in f.objects if o.type == "Car"]).reshape(-1, 3)
+        # No labelled car (a folder of pedestrians only): dashes, as the distance table's empty bins, rather
+        # than "nan ± nan" after NumPy's warnings of an empty mean.
         lines.append(f"| {label} | {len(dims)} | " + " | ".join(
-            f"{dims[:, k].mean():.2f} ± {dims[:, k].std():.2f}" for k in range(3)) + " |")
+            f"{dims[:, k].mean():.2f} ± {dims[:, k].std():.2f}" if len(dims) else "–" for k in range(3)) + " |")
     return "\n".join(lines)
 
 
