@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 import cv2
+import pytest
 
 from pipeline.cpu import int8_pairs_saturate, speed_flags
 from pipeline.provenance import code_version
@@ -441,18 +442,37 @@ def test_the_peak_runs_with_the_detectors_session_options(tiny_models):
             assert peak.get_session_config_entry(key) == network.get_session_config_entry(key) == "1", key
 
 
-def test_network_latency_gives_both_runtimes_the_same_threads():
+def test_network_latency_gives_both_runtimes_the_same_threads_and_reports_each_ones_own_runs(monkeypatch):
     """--threads 1 set PyTorch's threads alone: ONNX Runtime kept its default, one per core, and the table set
-    one PyTorch thread against every core. The thread count is read back from the ONNX Runtime session."""
+    one PyTorch thread against every core. The thread count is read back from the ONNX Runtime session.
+
+    The networks run for real, their runs timed by a scripted clock: PyTorch's of 1, 2 and 6 ms give p50 2 and
+    max 6, ONNX Runtime's of 1, 1 and 4 ms p50 1 and max 4 (a speed-up of 2); parameters and GFLOP are the
+    networks' own."""
+    from types import SimpleNamespace
+
     import torch
 
-    from benchmarks.network_latency import run
+    from benchmarks import network_latency
+    from models import build_network
+    from pipeline.presets import get_preset
+    from tests.test_benchmarks_mutants import ScriptedClock
 
+    runs = {"torch": [1, 2, 6], "ort": [1, 1, 4]}  # ms, one block of three each
+    clock = ScriptedClock([step for _network in ("depth", "pixor") for side in ("torch", "ort") for ms in runs[side]
+                           for step in (0.0, ms / 1e3)])  # each timed run reads the clock at its start and its end
+    monkeypatch.setattr(network_latency, "time", SimpleNamespace(perf_counter=clock.perf_counter))
     before = torch.get_num_threads()
     try:
-        rows = run(["tiny"], repeats=1, threads=1, progress=False, block=1)
+        rows = network_latency.run(["tiny"], repeats=3, threads=1, progress=False, block=3)
         assert torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
-    assert {row.network for row in rows} == {"depth", "pixor"}
-    assert all(row.threads == 1 and row.ort_p50_ms > 0 and row.torch_p50_ms > 0 for row in rows)
+    assert next(clock._steps, None) is None  # every scripted run was read, and no more
+    assert [row.network for row in rows] == ["depth", "pixor"]
+    for row in rows:
+        assert row.threads == 1 and row.repeats == 3
+        assert (row.torch_p50_ms, row.torch_max_ms, row.ort_p50_ms, row.ort_max_ms) == pytest.approx((2, 6, 1, 4))
+        assert row.speedup == pytest.approx(2.0)
+        assert row.parameters == sum(p.numel() for p in build_network(row.network, get_preset("tiny")).parameters())
+        assert 0.01 < row.gflops < 1.0  # the README's 0.21 and 0.13 GFLOP, in GFLOP
