@@ -105,7 +105,7 @@ LEFT_OUT = {
     "torch (models/, export/'s exporter)": (
         "test_benchmarks_mutants.py", "test_cache_pseudo.py", "test_depth_bound.py", "test_export.py",
         "test_export_stage_mutants.py", "test_models.py", "test_models_io_mutants.py", "test_onnx_weights.py",
-        "test_run_checks_mutants.py",
+        "test_networks_mutants.py", "test_run_checks_mutants.py",
         "test_own_sensor_training.py", "test_paper_fidelity.py", "test_reproduce.py", "test_schedule.py",
         "test_train_cli.py", "test_train_data.py", "test_train_init.py", "test_train_losses.py",
         "test_train_resume.py", "test_train_schedule.py", "test_train_soft_bev.py", "test_train_validation.py",
