@@ -104,12 +104,12 @@ def python_version(text: str) -> str:
 LEFT_OUT = {
     "torch (models/, export/'s exporter)": (
         "test_benchmarks_mutants.py", "test_cache_pseudo.py", "test_depth_bound.py", "test_export.py",
-        "test_export_stage_mutants.py", "test_models.py", "test_models_io_mutants.py", "test_onnx_weights.py",
-        "test_networks_mutants.py", "test_run_checks_mutants.py",
-        "test_own_sensor_training.py", "test_paper_fidelity.py", "test_reproduce.py", "test_schedule.py",
-        "test_train_cli.py", "test_train_data.py", "test_train_init.py", "test_train_losses.py",
-        "test_train_resume.py", "test_train_schedule.py", "test_train_soft_bev.py", "test_train_validation.py",
-        "test_training.py", "test_bad_files.py::test_cache_pseudo_names_the_frame_the_detector_refused",
+        "test_export_stage_mutants.py", "test_models.py", "test_models_io_mutants.py", "test_networks_mutants.py",
+        "test_onnx_weights.py", "test_own_sensor_training.py", "test_paper_fidelity.py", "test_reproduce.py",
+        "test_run_checks_mutants.py", "test_schedule.py", "test_train_cli.py", "test_train_data.py",
+        "test_train_init.py", "test_train_loop_mutants.py", "test_train_losses.py", "test_train_resume.py",
+        "test_train_schedule.py", "test_train_soft_bev.py", "test_train_validation.py", "test_training.py",
+        "test_bad_files.py::test_cache_pseudo_names_the_frame_the_detector_refused",
         "test_lowest_bounds.py::test_the_plugin_has_the_models_exported_by_the_interpreter_with_torch",
         "test_model_tools_mutants.py::test_depth_parity_is_relative_so_far_depths_may_differ_by_more_than_a_millimetre",
         "test_model_tools_mutants.py::test_regression_parity_scales_with_the_maps_largest_value_and_every_failure_is_listed",
