@@ -94,13 +94,14 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # KITTI's PNG first; a camera record
 
 
 def frame_image_path(data_dir: str | Path, frame_id: str) -> Path:
-    """``image_2/ID.png``, else the frame's JPEG (``.jpg``, ``.jpeg``) when only that exists; an InputError
-    naming what was looked for when there is none."""
+    """``image_2/ID.png``, else the frame's JPEG (``.jpg``, ``.jpeg``) when only that exists, each suffix in
+    lower or upper case; an InputError naming what was looked for when there is none."""
     folder = Path(data_dir) / "image_2"
     for suffix in IMAGE_SUFFIXES:
-        path = folder / f"{frame_id}{suffix}"
-        if path.is_file():
-            return path
+        for spelt in (suffix, suffix.upper()):  # cameras and Windows tools write .JPG (detect counts it an image)
+            path = folder / f"{frame_id}{spelt}"
+            if path.is_file():
+                return path
     raise InputError(f"{folder / (frame_id + '.png')}: no image for frame {frame_id} (nor {frame_id}.jpg or "
                      f"{frame_id}.jpeg)")
 
