@@ -337,10 +337,14 @@ def _jpeg(png: bytes) -> bytes:
     return cv2.imencode(".jpg", cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR))[1].tobytes()
 
 
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    """A PNG chunk: length, type, data, CRC (right: a damaged chunk is refused as such)."""
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
 def _png_header(width: int, height: int) -> bytes:
-    """A PNG's signature and IHDR chunk (its CRC right: a damaged header is refused as such)."""
-    ihdr = b"IHDR" + struct.pack(">II", width, height) + b"\x08\x02\x00\x00\x00"
-    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + ihdr + struct.pack(">I", zlib.crc32(ihdr))
+    """A PNG's signature and IHDR chunk."""
+    return b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", struct.pack(">II", width, height) + b"\x08\x02\x00\x00\x00")
 
 
 BAD_PARTS = {

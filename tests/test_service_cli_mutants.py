@@ -14,7 +14,6 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -29,7 +28,7 @@ from service.__main__ import (
     build_parser,
     stop_on_signals_until_serving,
 )
-from tests.test_service_process import START_TIMEOUT_S, _start_fails, _stop
+from tests.test_service_process import START_TIMEOUT_S, _start_fails, _stop, running_service
 
 REPO = Path(__file__).resolve().parents[1]
 EDGE = REPO / "weights" / "edge"
@@ -140,34 +139,18 @@ def test_the_start_warns_of_an_exposed_address_naming_the_port_it_bound(token: b
     assert "cannot start: " in output and "model directory not found" in output
 
 
-def _wait_for_line(log_path: Path, process: subprocess.Popen, pattern: str) -> re.Match:
-    """The first match of ``pattern`` in the process's output once it is written (bounded; fails if it exits)."""
-    deadline = time.monotonic() + START_TIMEOUT_S
-    while not (found := re.search(pattern, log_path.read_text())):
-        assert process.poll() is None and time.monotonic() < deadline, log_path.read_text()
-        time.sleep(0.05)
-    return found
-
-
 def test_a_serving_service_answers_without_naming_its_server_and_sigterm_ends_it_by_the_signal(
     tmp_path: Path,
 ) -> None:
     """Started without --host, the start's last line names http://127.0.0.1:PORT, where it answers, without a
     ``server`` header (nothing to tell a scanner which server and version it is); a SIGTERM then stops it
     gracefully and the process ends by the signal (status −15), as a supervisor expects of a stopped service."""
-    log_path = tmp_path / "service.log"
-    with open(log_path, "w") as log_file:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "service", "--models", str(EDGE), "--port", "0", *QUICK],
-            cwd=REPO, env=_environ(), stdout=log_file, stderr=subprocess.STDOUT)
-    try:
-        running = _wait_for_line(log_path, process, r"Uvicorn running on http://127\.0\.0\.1:(\d+) \(Press CTRL\+C")
-        answer = httpx.get(f"http://127.0.0.1:{running.group(1)}/healthz", timeout=5)
-        process.send_signal(signal.SIGTERM)
-        code = process.wait(20)
-    finally:
-        _stop(process)
-    log = log_path.read_text()
+    with running_service(EDGE, tmp_path / "service.log", *QUICK, until="/healthz") as running:
+        answer = httpx.get(f"{running.url}/healthz", timeout=5)
+        running.process.send_signal(signal.SIGTERM)
+        code = running.process.wait(20)
+        log = running.log()
+    assert f"Uvicorn running on {running.url} (Press CTRL+C" in log, log
     assert answer.status_code == 200 and "server" not in answer.headers, answer.headers
     assert code == -signal.SIGTERM, log
     assert "Shutting down" in log and "inference pool stopped" in log

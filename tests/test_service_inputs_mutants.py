@@ -7,8 +7,6 @@ Through the app over ASGI with the real tiny models and KITTI frame 000006, as `
 
 from __future__ import annotations
 
-import struct
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -19,6 +17,7 @@ from tests.test_service import (  # noqa: F401 - fixtures
     FRAME,
     KITTI,
     AppClient,
+    _chunk,
     _png_header,
     assert_error,
     client,
@@ -68,11 +67,6 @@ def test_a_bad_uploaded_calibration_is_refused_even_with_a_default(with_default:
     server's default."""
     response = with_default.post("/v1/detect", files=parts(frame, calib=b"P2: 1 2 3\n"))
     assert_error(response, 422, "invalid_input", "calib", "P2 needs 12 numbers")
-
-
-def _chunk(kind: bytes, data: bytes) -> bytes:
-    """A PNG chunk: length, type, data, CRC."""
-    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
 
 def test_png_image_data_that_is_not_zlib_is_a_422_naming_the_image(client: AppClient,  # noqa: F811
