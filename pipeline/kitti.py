@@ -500,14 +500,41 @@ def _jpeg_header_hw(data: bytes, source: str) -> tuple[int, int] | None:
                      "segments)")
 
 
+# The PNG standard's bit depths for each colour type (section 11.2.2); libpng refuses any other IHDR.
+PNG_BIT_DEPTHS = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+PNG_COLOUR_TYPES = {0: "greyscale", 2: "truecolour", 3: "indexed-colour", 4: "greyscale with alpha",
+                    6: "truecolour with alpha"}
+
+
+def check_png_fields(ihdr_fields: bytes, source: str) -> None:
+    """InputError naming ``source`` and the field for an IHDR (its 13 bytes of fields) that the PNG standard
+    does not allow: a bit depth its colour type cannot have, an unknown colour type, compression, filter or
+    interlace method. Checked here, not left to libpng, which refuses them too but writes two or three lines
+    to stderr for each, outside the service's log and a batch run's report."""
+    depth, colour, compression, filtering, interlace = ihdr_fields[8:13]
+    if colour not in PNG_BIT_DEPTHS:
+        raise InputError(f"{source}: PNG header names colour type {colour}, which PNG does not have "
+                         f"(0, 2, 3, 4 or 6)")
+    if depth not in PNG_BIT_DEPTHS[colour]:
+        allowed = ", ".join(map(str, PNG_BIT_DEPTHS[colour]))
+        raise InputError(f"{source}: PNG header gives {PNG_COLOUR_TYPES[colour]} (colour type {colour}) a bit depth "
+                         f"of {depth}, which PNG does not allow ({allowed})")
+    for field, value, allowed_values in (("compression", compression, (0,)), ("filter", filtering, (0,)),
+                                         ("interlace", interlace, (0, 1))):
+        if value not in allowed_values:
+            raise InputError(f"{source}: PNG header names {field} method {value}, which PNG does not have "
+                             f"({' or '.join(map(str, allowed_values))})")
+
+
 def image_header_hw(data: bytes, source: str) -> tuple[int, int] | None:
     """(rows, columns) as a PNG's IHDR chunk or a JPEG's frame header gives them, without decoding; None for
     a JPEG without a frame header and for other formats. An InputError naming ``source`` for a PNG header
-    that is cut off or fails its CRC (a damaged size must not be believed)."""
+    that is cut off or fails its CRC (a damaged size must not be believed), or whose fields PNG does not allow."""
     if data[:8] == PNG_SIGNATURE:
         ihdr = bytes(data[12:33])  # chunk type, 13 bytes of fields, CRC
         if len(ihdr) < 21 or ihdr[:4] != b"IHDR" or zlib.crc32(ihdr[:17]) != int.from_bytes(ihdr[17:], "big"):
             raise InputError(f"{source}: PNG header damaged (its IHDR chunk is missing, cut off or fails its CRC)")
+        check_png_fields(ihdr[4:17], source)
         return int.from_bytes(ihdr[8:12], "big"), int.from_bytes(ihdr[4:8], "big")
     if data[:2] == JPEG_START:
         return _jpeg_header_hw(data, source)

@@ -196,7 +196,8 @@ def _check_jpeg_scans(data: bytes) -> None:
 
 def _png_image_bytes(ihdr: bytes) -> int:
     """The bytes a PNG's image data inflates to, from its IHDR fields: each row (of each Adam7 pass when
-    interlaced) a filter byte and its packed samples. An unknown colour type counts 4 samples (libpng refuses it)."""
+    interlaced) a filter byte and its packed samples. An unknown colour type (the header check refuses it
+    before this) counts 4 samples."""
     width, height, depth, colour, _, _, interlace = struct.unpack(">IIBBBBB", ihdr)
     bits = _PNG_CHANNELS.get(colour, 4) * depth
     passes = _ADAM7 if interlace else ((0, 0, 1, 1),)

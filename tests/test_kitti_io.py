@@ -444,6 +444,54 @@ def test_image_headers_give_rows_then_columns():
         check_header_size(_png_header(side + 1, side), "image")
 
 
+
+def _png_with_fields(png: bytes, **fields: int) -> bytes:
+    """``png`` with IHDR fields (bit_depth, colour_type, compression, filter, interlace) changed, CRC made again:
+    a header libpng parses and then refuses."""
+    offsets = {"bit_depth": 24, "colour_type": 25, "compression": 26, "filter": 27, "interlace": 28}
+    data = bytearray(png)
+    for name, value in fields.items():
+        data[offsets[name]] = value
+    data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])))
+    return bytes(data)
+
+
+@pytest.mark.parametrize(("fields", "words"), [
+    ({"bit_depth": 3}, "gives truecolour (colour type 2) a bit depth of 3, which PNG does not allow (8, 16)"),
+    ({"colour_type": 3, "bit_depth": 16}, "indexed-colour (colour type 3) a bit depth of 16"),
+    ({"colour_type": 5}, "colour type 5, which PNG does not have"),
+    ({"compression": 1}, "compression method 1"),
+    ({"filter": 1}, "filter method 1"),
+    ({"interlace": 2}, "interlace method 2, which PNG does not have (0 or 1)"),
+])
+def test_png_headers_png_does_not_allow_are_named_before_libpng_sees_them(tmp_path, capfd, fields, words):
+    """An image whose IHDR has a valid CRC but fields PNG does not allow: one error naming the file and the field,
+    and nothing from libpng on stderr (it writes two or three lines for each such file, past any log)."""
+    path = tmp_path / "000000.png"
+    path.write_bytes(_png_with_fields(cv2.imencode(".png", np.zeros((4, 5, 3), np.uint8))[1].tobytes(), **fields))
+    with pytest.raises(InputError) as raised:
+        read_image(path)
+    assert str(raised.value).startswith(f"{path}: PNG header ") and words in str(raised.value)
+    assert capfd.readouterr().err == ""
+
+
+def test_every_png_colour_type_and_bit_depth_png_allows_passes_the_header_check():
+    """The standard's 15 combinations all give their size (greyscale 1–16 bits, indexed 1–8, the rest 8 and 16),
+    interlaced or not; each one step outside its colour type's depths is refused."""
+    allowed = {0: (1, 2, 4, 8, 16), 2: (8, 16), 3: (1, 2, 4, 8), 4: (8, 16), 6: (8, 16)}
+    png = cv2.imencode(".png", np.zeros((4, 5), np.uint8))[1].tobytes()
+    for colour, depths in allowed.items():
+        for depth in depths:
+            for interlace in (0, 1):
+                data = _png_with_fields(png, colour_type=colour, bit_depth=depth, interlace=interlace)
+                assert image_header_hw(data, "image") == (4, 5), (colour, depth, interlace)
+        for depth in {1, 2, 4, 8, 16, 32} - set(depths):
+            with pytest.raises(InputError, match=rf"colour type {colour}\) a bit depth of {depth},"):
+                image_header_hw(_png_with_fields(png, colour_type=colour, bit_depth=depth), "image")
+    # Real encoders' files: 8- and 16-bit grey and colour, with alpha, decode as before.
+    for pixels in (np.zeros((4, 5), np.uint16), np.zeros((4, 5, 3), np.uint16), np.zeros((4, 5, 4), np.uint8)):
+        assert decode_image(cv2.imencode(".png", pixels)[1].tobytes(), "image").shape == (4, 5, 3)
+
 def test_scans_of_one_point_of_text_or_three_columns_are_refused(tmp_path):
     """A 16-byte text file (one point's size) is named as text, not read as a point; points of 3 columns are
     refused by the writer, which would otherwise write a file that reads as other rows."""
