@@ -41,6 +41,7 @@ from itertools import pairwise
 from pathlib import Path
 from typing import Any
 
+from evaluation import DEFAULT_SCORE_THRESHOLD
 from evaluation.frames import (
     LabelSet,
     check_ground_truth,
@@ -235,7 +236,7 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
 
 
 # Lowest score below which a result folder looks complete. The precision-recall curve's tail needs the
-# low-score detections: accuracy.py's own runs keep scores above 0.05, pipeline.detect above 0.5 by default.
+# low-score detections: accuracy.py's own runs keep scores above DEFAULT_SCORE_THRESHOLD, pipeline.detect above 0.5.
 CUT_SCORE = 0.1
 
 
@@ -247,15 +248,15 @@ def _warn_if_cut_at_a_score(labels: LabelSet, config: LabelEvalConfig) -> None:
         threshold = config.detector["score_threshold"]
         if threshold >= CUT_SCORE:
             log.warning("--score-threshold %.2f leaves out the low-score detections that AP's recall needs, and AP "
-                        "comes out lower; the default 0.05 keeps them", threshold)
+                        "comes out lower; the default %g keeps them", threshold, DEFAULT_SCORE_THRESHOLD)
         return
     scores = [d.score[d.types == config.class_name.lower()] for d in labels.detections]
     lowest = min((float(s.min()) for s in scores if s.size), default=None)
     if lowest is not None and lowest >= CUT_SCORE:
         log.warning("the lowest %s score in %s is %.2f: if these results were written with a score threshold, "
                     "they miss the low-score detections that AP's recall needs, and AP comes out lower; write them "
-                    "with --score-threshold 0.05 (python -m pipeline.detect keeps 0.5 and up by default)",
-                    config.class_name, config.pred_labels, lowest)
+                    "with --score-threshold %g (python -m pipeline.detect keeps 0.5 and up by default)",
+                    config.class_name, config.pred_labels, lowest, DEFAULT_SCORE_THRESHOLD)
 
 
 @contextmanager
@@ -454,8 +455,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="frame ids to run and evaluate, one per line, as --split-file (default all); or N: "
                         "the first N frames in id order, as --frames N of the other commands")
     detect.add_argument("--out", type=Path, metavar="DIR", help="run folder: result files go to DIR/data (default outputs/accuracy/INPUT, + written _: outputs/accuracy/lidar16_camera)")
-    detect.add_argument("--score-threshold", type=probability, default=0.05, metavar="SCORE",
-                        help="keep detections above this score (default 0.05: AP needs the whole curve)")
+    detect.add_argument("--score-threshold", type=probability, default=DEFAULT_SCORE_THRESHOLD, metavar="SCORE",
+                        help=f"keep detections above this score (default {DEFAULT_SCORE_THRESHOLD}: AP needs the "
+                        "whole curve)")
     detect.add_argument("--provider", choices=["cpu", "cuda", "tensorrt"], help="execution provider")
     detect.add_argument("--mirror-tta", action="store_true",
                         help="PIXOR also on the BEV mirrored left to right, maps averaged (pipeline.detect --mirror-tta)")

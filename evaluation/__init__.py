@@ -10,3 +10,7 @@ Modules:
     depth_metrics RMSE, MAE, iRMSE, iMAE of a dense depth map against sparse ground truth.
     harness       accuracy runs: the detector over a KITTI-layout dataset, and depth completion.
 """
+
+# The score above which accuracy runs keep detections: low, as AP integrates over the whole precision–recall
+# curve (pipeline.detect keeps 0.5 and up, for use). Here, not in harness, so --help need not import the runtime.
+DEFAULT_SCORE_THRESHOLD = 0.05

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from evaluation import DEFAULT_SCORE_THRESHOLD
 from evaluation.depth_metrics import (
     DepthMetrics,
     car_box_shares,
@@ -48,7 +49,6 @@ log = logging.getLogger(__name__)
 INPUTS = {"lidar64": None, "lidar16": 16, "lidar16+camera": 16}
 
 
-DEFAULT_SCORE_THRESHOLD = 0.05  # low: AP integrates over the whole precision–recall curve
 
 
 @dataclass(frozen=True)

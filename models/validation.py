@@ -11,6 +11,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
+from evaluation import DEFAULT_SCORE_THRESHOLD
 from evaluation.depth_metrics import car_box_shares, car_shares_by_band, moderate_cars_in_view
 from evaluation.kitti_eval import evaluate
 from evaluation.labels import LabelArrays
@@ -131,7 +132,7 @@ def validate_detector(pixor, preset: Preset, data_dir: Path, ids: list[str], inp
                                        torch.from_numpy(targets.regression)[None]).total))
         score = torch.sigmoid(logits)[0, 0].numpy()
         boxes, scores = boxes_from_maps(score, regression[0].numpy(), voxelizer.height_occupancy, preset,
-                                        score_threshold=0.05, with_pseudo=pseudo is not None,
+                                        score_threshold=DEFAULT_SCORE_THRESHOLD, with_pseudo=pseudo is not None,
                                         mark=voxelizer.height_mark)
         seen = in_camera_view(boxes, frame.calib, frame.image_hw)
         objects = boxes_to_objects(boxes[seen], frame.calib, frame.image_hw, scores[seen])
