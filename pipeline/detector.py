@@ -47,6 +47,7 @@ from pipeline.checks import (
     WarningCode,
     beam_pattern_mismatch,
     blocked_sector_fault,
+    byte_order_hint,
     calibration_mismatch,
     check_image,
     check_options,
@@ -955,7 +956,10 @@ class Detector:
         # 0–255 intensities would read as a wall of bright returns (about 100 made-up cars at score 1).
         low, high = float(points[:, 3].min()), float(points[:, 3].max())
         if low < 0.0 or high > 1.0 + REFLECTANCE_SLACK:
-            if low < 0.0 or high > 65535.0:  # no intensity scale: the rows are misread (5 or 6 values each?)
+            swapped = byte_order_hint(points)
+            if swapped:  # garbage in every column, plausible the other way round: a big-endian file
+                hint = swapped
+            elif low < 0.0 or high > 65535.0:  # no intensity scale: the rows are misread (5 or 6 values each?)
                 hint = ("no sensor's intensities: are the scan's rows 4 float32 values? A scan with a ring or time "
                         "column (5 or 6 values a row) reads as shifted rows; keep x, y, z and the intensity: "
                         "np.fromfile(path, np.float32).reshape(-1, 5)[:, :4]")
@@ -970,8 +974,10 @@ class Detector:
         if float(lowest) < -MAX_COORDINATE or float(highest) > MAX_COORDINATE:  # the reflectance is in [0, 1]
             extreme = lowest if float(lowest) < -MAX_COORDINATE else highest
             shown = np.format_float_scientific(extreme, 3, trim="-") if points.dtype.kind == "f" else str(extreme)
+            swapped = byte_order_hint(points)
             raise InputError(f"points: a coordinate of {shown} m, beyond any LiDAR's range (at most "
-                             f"{MAX_COORDINATE:g} m in magnitude is taken): garbage values, or rows misread?")
+                             f"{MAX_COORDINATE:g} m in magnitude is taken): "
+                             + (swapped or "garbage values, or rows misread?"))
         return points.astype(np.float32, copy=False)
 
     def warm_up(self, runs: int = 1, cancel: Cancellation | None = None) -> None:

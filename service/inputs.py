@@ -31,7 +31,15 @@ import numpy as np
 from pydantic_core import PydanticCustomError
 
 from pipeline.calib import SMALL_IMAGE_HINT, Calibration
-from pipeline.checks import STAMP_NS_MAX, CodedWarning, WarningCode, coded, sensor_skew, stamp_problem
+from pipeline.checks import (
+    STAMP_NS_MAX,
+    CodedWarning,
+    WarningCode,
+    byte_order_hint,
+    coded,
+    sensor_skew,
+    stamp_problem,
+)
 from pipeline.errors import InputError
 from pipeline.kitti import (
     JPEG_SCAN,
@@ -361,9 +369,12 @@ def decode_points(data: bytes, policy: NonFinitePolicy) -> tuple[np.ndarray, lis
     warnings: list[CodedWarning] = []
     if scan.dropped_nonfinite:
         if policy is NonFinitePolicy.reject:
+            # A big-endian scan read as KITTI's little-endian floats has such rows too: say so rather than
+            # suggest dropping them (the rest would be refused for their values next).
+            swapped = byte_order_hint(np.frombuffer(data, "<f4").reshape(-1, 4))
             raise InputError(
                 f"points: {scan.dropped_nonfinite} rows have NaN or infinite values "
-                "(nonfinite=reject; send nonfinite=drop to have them dropped)"
+                + (f"({swapped})" if swapped else "(nonfinite=reject; send nonfinite=drop to have them dropped)")
             )
         warnings.append(CodedWarning(WarningCode.NONFINITE_DROPPED,
                                      f"points: dropped {scan.dropped_nonfinite} rows with NaN or infinite values"))

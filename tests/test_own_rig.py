@@ -247,6 +247,27 @@ def test_a_scan_with_ring_and_time_columns_is_named_as_such(detector, frame):
         detector.detect(frame.image, intensities, frame.calib)
 
 
+
+def test_a_big_endian_scan_is_named_as_such(detector, frame):
+    """A scan written as big-endian float32 (some exporters' and Java tools' default) and read as KITTI's
+    little-endian .bin: its values are garbage in every column, and the errors blamed a ring or time column or
+    said 'garbage values'. Read the other way round they are the scan, which the error now says, with the fix;
+    a scan that is garbage either way keeps the old hint."""
+    lidar16 = emulate_beams(frame.points, 16)
+    swapped = parse_velodyne(lidar16.astype(">f4").tobytes(), "scan.bin").points  # rows that read as NaN dropped
+    fix = r"the file's floats look big-endian: read in the other byte order they are a plausible scan; convert it " \
+          r"with np.fromfile\(path, '>f4'\).astype\('<f4'\).reshape\(-1, 4\)"
+    with pytest.raises(InputError, match=rf"^points: reflectance \(the 4th column\) must lie in \[0, 1\].* \({fix}\)$"):
+        detector.detect(frame.image, swapped, frame.calib)
+    no_reflectance = np.column_stack([lidar16[:, :3], np.zeros(len(lidar16), np.float32)])
+    swapped = parse_velodyne(no_reflectance.astype(">f4").tobytes(), "scan.bin").points  # reflectance 0 either way
+    with pytest.raises(InputError, match=rf"^points: a coordinate of .* m, beyond any LiDAR's range .*: {fix}$"):
+        detector.detect(frame.image, swapped, frame.calib)
+    garbage = lidar16.copy()
+    garbage[::7, 0] = 3e30  # misread either way round
+    with pytest.raises(InputError, match=r"beyond any LiDAR's range .*: garbage values, or rows misread\?$"):
+        detector.detect(frame.image, garbage, frame.calib)
+
 # --------------------------------------------------------------------------- evaluating on the rig's own frames
 def test_accuracy_evaluates_a_16_line_sensors_own_scans(tmp_path):
     """benchmarks/accuracy.py --input lidar16+camera thinned every scan to 16 lines: a 16-line sensor's own scans

@@ -295,6 +295,19 @@ def test_nonfinite_points_dropped_with_warning(client: AppClient, frame: dict[st
     assert "points: dropped 7 rows with NaN or infinite values" in response.json()["warnings"]
     rejected = client.post("/v1/detect", params={"nonfinite": "reject"}, files=parts(frame, points=points.tobytes()))
     assert_error(rejected, 422, "invalid_input", "points", "7 rows", "NaN")
+    assert "send nonfinite=drop" in rejected.json()["error"]["message"]
+
+
+def test_a_big_endian_scan_is_named_as_such(client: AppClient, frame: dict[str, bytes]) -> None:
+    """A scan of big-endian floats: some of its rows read as NaN, the rest as garbage. Either policy's 422 says
+    what the file is and how to convert it, rather than to drop the NaN rows or that the rows are misread."""
+    points = np.frombuffer(frame["points"], "<f4").reshape(-1, 4)
+    big_endian = points.astype(">f4").tobytes()
+    for policy in ("reject", "drop"):
+        response = client.post("/v1/detect", params={"nonfinite": policy}, files=parts(frame, points=big_endian))
+        assert_error(response, 422, "invalid_input", "points", "the file's floats look big-endian",
+                     "np.fromfile(path, '>f4')")
+        assert "nonfinite=drop" not in response.json()["error"]["message"]
 
 
 def test_default_calibration(tiny_models: Path, frame: dict[str, bytes]) -> None:
