@@ -923,7 +923,8 @@ class Detector:
         """A warning when a scan's point count is far from that of the line count the model was trained on."""
         if self.trained_lines == 16 and count > MOST_POINTS_OF_16_LINES:
             return ("points: as many as a 64-line scan, but the model was trained on 16-line scans; thin it first "
-                    f"(--emulate-beams 16, or emulate_beams=16 in the API) ({count} points)")
+                    f"(--emulate-beams 16 to the commands, emulate_beams=16 to the service, emulate_to_beams=16 to "
+                    f"Detector.detect) ({count} points)")
         if self.trained_lines == 64 and count < FEWEST_POINTS_OF_64_LINES:
             return f"points: fewer than a 64-line scan has, but the model was trained on 64-line scans ({count} points)"
         return None

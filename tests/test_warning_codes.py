@@ -140,6 +140,19 @@ def test_a_clean_frame_has_no_codes_and_emulation_has_its_own(edge, kitti_frame)
     assert emulated.warnings[0].startswith("emulated 16 beams: kept")
 
 
+
+@shipped
+def test_the_line_count_warnings_advice_is_each_entry_points_own_spelling(edge, kitti_frame):
+    """The warning for a 64-line scan given to a 16-line model says how to thin it in each entry point; the
+    Detector's keyword it names (it once said emulate_beams=16, the service's, which Detector.detect refuses
+    with a TypeError) clears the warning when followed as written."""
+    message = _message_of(edge.detect(kitti_frame.image, kitti_frame.points, kitti_frame.calib), WarningCode.LINE_COUNT)
+    for spelling in ("--emulate-beams 16 to the commands", "emulate_beams=16 to the service",
+                     "emulate_to_beams=16 to Detector.detect"):
+        assert spelling in message, message
+    followed = edge.detect(kitti_frame.image, kitti_frame.points, kitti_frame.calib, emulate_to_beams=16)
+    assert WarningCode.LINE_COUNT not in followed.warning_codes
+
 @shipped
 def test_codes_are_the_same_with_the_stage_thread_and_without(kitti_frame):
     """The rig's checks run beside the depth net on a second thread or in turn: the same codes either way."""
