@@ -61,11 +61,37 @@ def _looks_like_text(data: bytes) -> bool:
     return len(head) >= POINT_BYTES and not head.translate(None, _TEXT_BYTES)
 
 
-def parse_velodyne(data: bytes, source: str = "<points>") -> Scan:
-    """Decode a KITTI velodyne ``.bin`` payload; drop and count non-finite rows."""
-    if _looks_like_text(data):  # else read as floats: a size or reflectance error that hides what the file is
+# Files taken for scans by mistake, by their first bytes: read as float32 rows they fail a size or reflectance
+# check whose hint (ring or time columns) sends the user the wrong way. Each signature read as a scan's first x
+# is a value no LiDAR gives (PNG 52,817 m; a JPEG's start with an APPn, DQT, DHT or COM marker 2 km or more
+# (not SOF0 or SOF2, which read as −8 and −128 m); a zip's or gzip's 1e-19 m or less; LAS 13,520 m), so a real
+# scan is not taken for one of them.
+NOT_SCAN_SIGNATURES: tuple[tuple[tuple[bytes, ...], str, str], ...] = (
+    ((b"\x89PNG\r\n\x1a\n",), "a PNG image", " (a camera image or depth map given as the scan?)"),
+    (tuple(b"\xff\xd8\xff" + bytes([m]) for m in (*range(0xE0, 0xF0), 0xDB, 0xC4, 0xFE)), "a JPEG image",
+     " (a camera image given as the scan?)"),
+    ((b"\x93NUMPY",), "a NumPy .npy file", ": np.load it, then write points.astype('<f4').tofile(path)"),
+    ((b"PK\x03\x04",), "a zip archive", ": extract it first"),
+    ((b"\x1f\x8b\x08",), "a gzip file", ": decompress it first"),
+    ((b"LASF",), "a LAS point cloud", ": convert its x, y, z and intensity to float32 rows"),
+)
+
+
+def check_scan_kind(data: bytes, source: str) -> None:
+    """InputError naming ``source`` for a file that is plainly no scan (an image, an archive, text …): read as
+    floats it would fail a size or reflectance check whose hint hides what the file is."""
+    head = bytes(data[:8])
+    for signatures, what, hint in NOT_SCAN_SIGNATURES:
+        if head.startswith(signatures):
+            raise InputError(f"{source}: {what}, not a KITTI scan of float32 rows x, y, z, reflectance{hint}")
+    if _looks_like_text(data):
         raise InputError(f"{source}: holds text ({bytes(data[:40]).decode('ascii')!r}…), not a scan's float32 rows: a "
                          "download that saved an error page, or a scan written as text?")
+
+
+def parse_velodyne(data: bytes, source: str = "<points>") -> Scan:
+    """Decode a KITTI velodyne ``.bin`` payload; drop and count non-finite rows."""
+    check_scan_kind(data, source)
     if len(data) % POINT_BYTES != 0:
         raise InputError(
             f"{source}: size {len(data)} bytes is not a multiple of {POINT_BYTES} "

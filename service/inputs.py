@@ -46,6 +46,7 @@ from pipeline.kitti import (
     PNG_SIGNATURE,
     POINT_BYTES,
     check_image_end,
+    check_scan_kind,
     decode_image,
     image_header_hw,
     parse_calib,
@@ -310,6 +311,7 @@ def _check_points(data: bytes, max_points: int) -> None:
     """The scan's byte size: not empty, whole 16-byte points, at most ``max_points`` of them."""
     if not data:
         raise InputError("points: the scan is empty (0 bytes)")
+    check_scan_kind(data, "points")  # an image or archive sent as the scan, named before its size is
     if len(data) % POINT_BYTES:
         raise InputError(
             f"points: size {len(data)} bytes is not a multiple of {POINT_BYTES} "

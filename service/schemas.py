@@ -29,8 +29,10 @@ class OutputFormat(str, Enum):
 
 
 class BeamCount(IntEnum):
-    """Lines a 64-line scan can be thinned to on the server."""
+    """Lines a 64-line scan can be thinned to on the server; 0 takes the scan as sent, as leaving it out does and
+    as ``--emulate-beams 0`` does in the commands."""
 
+    as_sent = 0
     four = 4
     eight = 8
     sixteen = 16

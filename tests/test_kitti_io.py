@@ -1,6 +1,8 @@
 """KITTI file formats on the real samples, and clear errors on bad files."""
 
 import dataclasses
+import gzip
+import re
 import struct
 import warnings
 import zlib
@@ -491,6 +493,29 @@ def test_every_png_colour_type_and_bit_depth_png_allows_passes_the_header_check(
     # Real encoders' files: 8- and 16-bit grey and colour, with alpha, decode as before.
     for pixels in (np.zeros((4, 5), np.uint16), np.zeros((4, 5, 3), np.uint16), np.zeros((4, 5, 4), np.uint8)):
         assert decode_image(cv2.imencode(".png", pixels)[1].tobytes(), "image").shape == (4, 5, 3)
+
+
+def test_files_of_other_kinds_given_as_scans_are_named(tmp_path):
+    """KITTI's own image_2/000006.png is a multiple of 16 bytes: read as a scan it failed the Detector's
+    reflectance check with a hint about ring or time columns. An image, a NumPy .npy, a zip, a gzip or a LAS file
+    is named for what it is; each real scan (and a scan whose first x reads as a JPEG's first bytes with a
+    frame marker, -8 m) is read as before."""
+    image = KITTI / "image_2" / "000006.png"
+    assert image.stat().st_size % 16 == 0
+    with pytest.raises(InputError, match=rf"^{re.escape(str(image))}: a PNG image, not a KITTI scan .* depth map"):
+        read_velodyne(image)
+    npy = tmp_path / "scan.npy"
+    np.save(npy, np.zeros((4, 4), np.float32))
+    kinds = {"a JPEG image": cv2.imencode(".jpg", np.zeros((8, 8, 3), np.uint8))[1].tobytes(),
+             "a NumPy .npy file": npy.read_bytes(), "a zip archive": b"PK\x03\x04" + bytes(60),
+             "a gzip file": gzip.compress(bytes(64)), "a LAS point cloud": b"LASF" + bytes(60)}
+    for what, data in kinds.items():
+        with pytest.raises(InputError, match=rf"^scan\.bin: {what}, not a KITTI scan"):
+            parse_velodyne(data, "scan.bin")
+    for fid in FRAMES:
+        assert len(read_velodyne(KITTI / "velodyne" / f"{fid}.bin").points) > 100_000
+    sof0 = np.frombuffer(b"\xff\xd8\xff\xc0" + bytes(12), "<f4").copy()  # x = -8.0 m: a point, not a JPEG
+    assert parse_velodyne(sof0.tobytes(), "scan.bin").points[0, 0] == pytest.approx(-7.99, abs=0.01)
 
 def test_scans_of_one_point_of_text_or_three_columns_are_refused(tmp_path):
     """A 16-byte text file (one point's size) is named as text, not read as a point; points of 3 columns are

@@ -377,6 +377,9 @@ BAD_PARTS = {
     "text image": ({"image": b"hello"}, 415, "unsupported_media_type", ("image",)),
     "decompression bomb": ({"image": _png_header(60000, 60000)}, 422, "invalid_input", ("image", "limit")),
     "scan size": ({"points": b"\x00" * 100}, 422, "invalid_input", ("points", "100 bytes", "multiple of 16")),
+    # A camera image sent as the scan: named for what it is, whatever its size (KITTI's 000006.png is 16-aligned).
+    "image as points": ({"points": _png_header(8, 8) + b"\x00" * 7}, 422, "invalid_input",
+                        ("points: a PNG image, not a KITTI scan",)),
     "zero points": ({"points": b""}, 422, "invalid_input", ("points", "empty")),
     "all nan": ({"points": np.full((10, 4), np.nan, np.float32).tobytes()}, 422, "invalid_input", ("points", "no finite")),
     "calib missing keys": ({"calib": b"P2: 1 0 0 0 0 1 0 0 0 0 1 0\n"}, 422, "invalid_input", ("calib", "R0_rect")),
@@ -548,6 +551,18 @@ def test_repeated_query_parameter_is_422(client: AppClient, frame: dict[str, byt
     response = client.post("/v1/detect?emulate_beams=16&emulate_beams=8", files=parts(frame))
     assert_error(response, 422, "invalid_input", "emulate_beams: given more than once")
 
+
+
+def test_emulate_beams_0_takes_the_scan_as_sent(client: AppClient, frame: dict[str, bytes]) -> None:
+    """emulate_beams=0, the commands' --emulate-beams 0, was a 422 ('Input should be 4, 8, 16 or 32'): it answers
+    as leaving the parameter out does, the scan not thinned (no emulate_beams stage, no beams_emulated warning)."""
+    sent = client.post("/v1/detect", params={"emulate_beams": 0}, files=parts(frame))
+    plain = client.post("/v1/detect", files=parts(frame))
+    assert sent.status_code == plain.status_code == 200, sent.text
+    assert sent.json()["detections"] == plain.json()["detections"]
+    assert "emulate_beams" not in sent.json()["timings_ms"] and "beams_emulated" not in sent.json()["warning_codes"]
+    thinned = client.post("/v1/detect", params={"emulate_beams": 16}, files=parts(frame)).json()
+    assert "emulate_beams" in thinned["timings_ms"] and "beams_emulated" in thinned["warning_codes"]
 
 def test_warnings_travel_in_a_header_where_the_body_has_no_room(client: AppClient, frame: dict[str, bytes]) -> None:
     params = {"emulate_beams": 16, "score_threshold": 0.0}
@@ -1196,11 +1211,12 @@ def test_openapi_documents_the_contract(client: AppClient) -> None:
 
 
 def test_the_beam_counts_the_api_takes_are_the_pipelines() -> None:
-    """emulate_beams's values in the HTTP API are pipeline.beams.BEAM_COUNTS, which the Python API checks."""
+    """emulate_beams's values in the HTTP API are pipeline.beams.BEAM_COUNTS, which the Python API checks, and 0
+    for the scan as sent, as the commands' --emulate-beams 0."""
     from pipeline.beams import BEAM_COUNTS
     from service.schemas import BeamCount
 
-    assert sorted(BeamCount) == sorted(BEAM_COUNTS)
+    assert sorted(BeamCount) == [0, *sorted(BEAM_COUNTS)]
 
 
 def test_every_setting_is_a_cli_option_and_an_env_var(monkeypatch: pytest.MonkeyPatch, tiny_models: Path) -> None:

@@ -115,7 +115,8 @@ def frame_options(
     ] = None,
     emulate_beams: Annotated[
         BeamCount | None,
-        Query(description="thin a 64-line scan to this many lines on the server first", examples=[16]),
+        Query(description="thin a 64-line scan to this many lines on the server first (0, or left out: the scan "
+              "as sent)", examples=[16]),
     ] = None,
     nonfinite: Annotated[
         NonFinitePolicy,
@@ -134,7 +135,7 @@ def frame_options(
     )] = None,
 ) -> FrameOptions:
     """Collect the query options."""
-    return FrameOptions(score_threshold, int(emulate_beams) if emulate_beams is not None else None, nonfinite,
+    return FrameOptions(score_threshold, int(emulate_beams) or None if emulate_beams is not None else None, nonfinite,
                         FrameStamps(image_stamp_ns, points_stamp_ns))
 
 
