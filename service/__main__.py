@@ -380,9 +380,11 @@ def main(argv: list[str] | None = None) -> int:
     except (ModelFileError, InputError) as exc:
         for sock in sockets:
             sock.close()
-        log.error("cannot start: %s", exc)
-        if hint := default_models_hint(settings.models):
-            log.error("%s (or LOWRES3D_MODELS)", hint)
+        hint = default_models_hint(settings.models)
+        if hint and str(settings.models) in str(exc):  # the default's absence itself: one line with the way out
+            log.error("cannot start: %s (or LOWRES3D_MODELS)", hint)
+        else:
+            log.error("cannot start: %s", exc)
         return 2
     except StoppedBeforeServing as stopped:
         for sock in sockets:

@@ -641,6 +641,7 @@ def test_without_models_outside_a_checkout_the_start_says_where_the_weights_are(
     assert result.returncode == 2, result.stderr
     assert f"{site / 'weights' / 'edge'}" in result.stderr and "exists only in a source checkout" in result.stderr
     assert "--models" in result.stderr and "LOWRES3D_MODELS" in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.splitlines()) == 1, result.stderr  # the hint alone, not "not found" before it
 
 
 @pytest.mark.parametrize("fault", ["a directory in its place", "a read error"])
