@@ -209,16 +209,17 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
     return values
 
 
+RAW_CALIB_ADVICE = ("a raw drive's calib_cam_to_cam.txt and calib_velo_to_cam.txt make one calibration together "
+                    "(P2 = P_rect_02, R0_rect = R_rect_00, Tr_velo_to_cam = [R | T]); the commands read a drive "
+                    "with --drive")
 # The keys that tell KITTI's calibration layouts apart, each with what to do with a file of it where another
 # layout is read: a raw drive's calib_cam_to_cam.txt copied into an object folder's calib/ is otherwise only
 # "missing P2, R0_rect, Tr_velo_to_cam".
 CALIB_LAYOUTS = (
     (("P2", "R0_rect", "Tr_velo_to_cam"), "a KITTI object calib/ID.txt (P2, R0_rect, Tr_velo_to_cam)",
      "an object folder's frames are read with --data"),
-    (("P_rect_02", "R_rect_00"), "KITTI raw's calib_cam_to_cam.txt (P_rect_02, R_rect_00)",
-     "a raw drive is read with --drive, which takes its calib_cam_to_cam.txt and calib_velo_to_cam.txt together"),
-    (("R", "T"), "KITTI raw's calib_velo_to_cam.txt (R, T)",
-     "a raw drive is read with --drive, which takes its calib_cam_to_cam.txt and calib_velo_to_cam.txt together"),
+    (("P_rect_02", "R_rect_00"), "KITTI raw's calib_cam_to_cam.txt (P_rect_02, R_rect_00)", RAW_CALIB_ADVICE),
+    (("R", "T"), "KITTI raw's calib_velo_to_cam.txt (R, T)", RAW_CALIB_ADVICE),
     (("R_rect", "Tr_velo_cam"), "a KITTI tracking calib (R_rect, Tr_velo_cam, without colons)",
      "write them as the object layout's 'R0_rect:' and 'Tr_velo_to_cam:'"),
 )
@@ -228,9 +229,13 @@ def _layout_hint(keys: Iterable[str], shapes: dict[str, tuple[int, int]]) -> str
     """For an error in a calibration file: '; the file is <its layout>, not <the one read>: <what to do>' when
     ``keys`` (those read so far) are another KITTI layout's than ``shapes``'; "" otherwise. Error paths only."""
     keys = set(keys)
-    wanted = next((desc for names, desc, _ in CALIB_LAYOUTS if set(names) <= set(shapes)), "")
+    wanted, raw_wanted = next(((desc, advice == RAW_CALIB_ADVICE) for names, desc, advice in CALIB_LAYOUTS
+                               if set(names) <= set(shapes)), ("", False))
     for names, desc, advice in CALIB_LAYOUTS:
         if desc != wanted and keys & (set(names) - set(shapes)):  # P2 alone is no sign: tracking files have it
+            if advice == RAW_CALIB_ADVICE and raw_wanted:  # one raw file where the other is read: a drive's pair
+                return (f"; the file is {desc}: are the drive's calib_cam_to_cam.txt and calib_velo_to_cam.txt "
+                        "swapped or misnamed?")
             return f"; the file is {desc}, not {wanted}: {advice}"
     return ""
 

@@ -18,6 +18,7 @@ from pipeline.kitti import (
     read_calib,
     read_depth_png,
     read_labels,
+    read_raw_calib,
     write_depth_png,
 )
 from tests.conftest import KITTI
@@ -136,7 +137,10 @@ def test_a_calibration_of_another_kitti_layout_says_which(tmp_path):
     raw.write_text(RAW_CAM_TO_CAM)
     with pytest.raises(InputError, match=rf"^{raw}: missing calibration key\(s\) P2, R0_rect, Tr_velo_to_cam; the "
                                          r"file is KITTI raw's calib_cam_to_cam.txt \(P_rect_02, R_rect_00\), not a "
-                                         r"KITTI object calib/ID.txt .*: a raw drive is read with --drive"):
+                                         r"KITTI object calib/ID.txt .*: a raw drive's calib_cam_to_cam.txt and "
+                                         r"calib_velo_to_cam.txt make one calibration together \(P2 = P_rect_02, "
+                                         r"R0_rect = R_rect_00, Tr_velo_to_cam = \[R \| T\]\); the commands read a "
+                                         r"drive with --drive$"):
         read_calib(raw)
     # The two raw files joined into one: the first repeated key is refused, and the layout is said with it.
     raw.write_text(RAW_CAM_TO_CAM + "calib_time: 15-Mar-2012 11:37:16\nR: 1 0 0 0 1 0 0 0 1\nT: 0 0 0\n")
@@ -158,6 +162,13 @@ def test_a_calibration_of_another_kitti_layout_says_which(tmp_path):
                                          "the file is a KITTI object calib/ID.txt .*: an object folder's frames are "
                                          "read with --data"):
         read_drive_calib(drive)
+    # A drive's two raw files given the wrong way round (the service and the commands' --drive alike): not the
+    # advice to read the drive with --drive, which is what is being done.
+    velo = drive.parent / "calib_velo_to_cam.txt"
+    with pytest.raises(InputError, match=rf"^{velo}: missing calibration key\(s\) P_rect_02, R_rect_00; the file is "
+                                         r"KITTI raw's calib_velo_to_cam.txt \(R, T\): are the drive's "
+                                         r"calib_cam_to_cam.txt and calib_velo_to_cam.txt swapped or misnamed\?$"):
+        read_raw_calib(velo, drive.parent / "calib_cam_to_cam.txt")
     # The hint is for a file of another layout: an object calib that lost R0_rect is only missing it.
     text = "\n".join(line for line in (KITTI / "calib" / "000001.txt").read_text().splitlines()
                      if not line.startswith("R0_rect"))
