@@ -86,8 +86,20 @@ def frame_ids(data_dir: str | Path, split_file: str | Path | None = None) -> lis
         raise InputError(f"{data_dir}: no such folder")
     velodyne = data_dir / "velodyne"
     if not velodyne.is_dir():
-        raise InputError(f"{data_dir}: not a KITTI object folder (no velodyne/ inside)")
+        raise InputError(f"{data_dir}: not a KITTI object folder (no velodyne/ inside){_object_folder_hint(data_dir)}")
     return sorted(p.stem for p in velodyne.glob("*.bin"))
+
+
+def _object_folder_hint(folder: Path) -> str:
+    """For a --data folder without velodyne/: what it is instead, when it is a folder people pass by mistake."""
+    if (folder / DRIVE_SCANS).is_dir():
+        return "; it is a KITTI raw drive: give it with --drive"
+    splits = [name for name in ("training", "testing") if (folder / name / "velodyne").is_dir()]
+    if splits:
+        return f"; give its {' or '.join(f'{name}/' for name in splits)} folder"
+    if folder.name in ("velodyne", "image_2", "calib", "label_2"):
+        return f"; give the folder that holds {folder.name}/: {folder.parent}"
+    return ""
 
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")  # KITTI's PNG first; a camera recorder's JPEGs read as well
@@ -136,6 +148,8 @@ def drive_frame_ids(drive: str | Path) -> list[str]:
     if not scans.is_dir():
         drives = sorted(p.name for p in drive.glob("*_drive_*_sync") if (p / DRIVE_SCANS).is_dir())
         hint = f"; the drives in it: {', '.join(drives[:5])}{' …' if len(drives) > 5 else ''}" if drives else ""
+        if (drive / "velodyne").is_dir():
+            hint = "; it is a KITTI object folder: give it with --data"
         raise InputError(f"{drive}: not a KITTI raw drive folder (no {DRIVE_SCANS}/ inside){hint}")
     if not any(scans.glob("*.bin")) and any(scans.glob("*.txt")):
         raise InputError(f"{drive}: its scans are text files (KITTI's unsynced '_extract' download); use the "

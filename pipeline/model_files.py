@@ -155,6 +155,10 @@ def load_manifest_with_digest(directory: str | Path) -> tuple[dict, str]:
     except OSError as exc:
         raise ModelFileError(f"{path}: unreadable manifest ({_reason(exc)})") from exc
     if not exists:
+        inside = sorted(p.parent.name for p in Path(directory).glob(f"*/{MANIFEST_NAME}"))
+        if inside:  # the folder above the model directories (weights/ for weights/edge)
+            raise ModelFileError(f"{path}: no manifest; the model directories in {directory}: {', '.join(inside)}: "
+                                 "give one of them")
         raise ModelFileError(f"{path}: no manifest; export the models with `python -m export`")
     data = _read_bounded(path, "manifest", MAX_MANIFEST_BYTES)  # a regular file of a manifest's size, or one line
     try:

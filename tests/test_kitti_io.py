@@ -294,6 +294,32 @@ def test_split_files_name_the_line_at_fault(tmp_path):
         frame_ids(tmp_path)
 
 
+
+def test_the_folders_people_give_by_mistake_are_named_with_the_right_one(tmp_path):
+    """--data given the KITTI root, the velodyne/ folder itself or a raw drive, --drive given an object folder, and
+    --models given the folder above the model directories: each error says which folder or flag was meant."""
+    from pipeline.frame import drive_frame_ids, frame_ids
+    from pipeline.model_files import ModelFileError, load_manifest_with_digest
+
+    root = KITTI.parent
+    with pytest.raises(InputError, match=rf"^{root}: not a KITTI object folder .*; give its training/ folder$"):
+        frame_ids(root)
+    with pytest.raises(InputError, match=rf"; give the folder that holds velodyne/: {KITTI}$"):
+        frame_ids(KITTI / "velodyne")
+    drive = tmp_path / "2011_09_26_drive_0005_sync"
+    (drive / "velodyne_points" / "data").mkdir(parents=True)
+    with pytest.raises(InputError, match=r"no velodyne/ inside\); it is a KITTI raw drive: give it with --drive$"):
+        frame_ids(drive)
+    with pytest.raises(InputError, match=r"no velodyne_points/data/ inside\); it is a KITTI object folder: give it "
+                                         r"with --data$"):
+        drive_frame_ids(KITTI)
+    for name in ("edge", "edge-int8"):
+        (tmp_path / "weights" / name).mkdir(parents=True)
+        (tmp_path / "weights" / name / "manifest.json").write_text("{}")
+    with pytest.raises(ModelFileError, match=r"no manifest; the model directories in .*weights: edge, edge-int8: "
+                                             r"give one of them$"):
+        load_manifest_with_digest(tmp_path / "weights")
+
 # --------------------------------------------------------------------------- pinned by mutation testing
 def test_a_label_line_written_back_is_kittis_own_text():
     """Every field of a label keeps KITTI's precision through read and write: the line comes back character for
