@@ -438,7 +438,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("src_dir", type=Path, metavar="SRC_DIR", help="folder of KITTI velodyne .bin scans")
     parser.add_argument("dst_dir", type=Path, metavar="DST_DIR", help="output folder (created if needed)")
-    parser.add_argument("--beams", type=int, default=16, choices=BEAM_COUNTS, metavar="N",
+    # --emulate-beams, the other commands' name for the lines a scan is thinned to, is accepted as a hidden alias.
+    parser.add_argument("--beams", "--emulate-beams", type=int, default=16, choices=BEAM_COUNTS, metavar="N",
                         help="lines to keep: 32, 16, 8 or 4 (default 16)")
     parser.add_argument("--mode", choices=["stride", "vlp16"], default="stride",
                         help="stride: every k-th ring by elevation; vlp16 (with --beams 16): the rings nearest the "

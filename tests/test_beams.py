@@ -132,6 +132,19 @@ def test_folder_command_never_touches_source(tmp_path):
     assert "Traceback" not in refused.stderr
 
 
+
+def test_the_folder_command_takes_the_familys_emulate_beams_too(tmp_path):
+    """Every other command calls the lines a scan is thinned to --emulate-beams; here it is --beams, and
+    --emulate-beams 8 was 'unrecognized arguments: --emulate-beams DST_DIR'. It is a hidden alias now."""
+    from pipeline.beams import main
+
+    src = tmp_path / "velodyne"
+    src.mkdir()
+    (src / "000006.bin").write_bytes((KITTI / "velodyne" / "000006.bin").read_bytes())
+    assert main(["--emulate-beams", "8", str(src), str(tmp_path / "v8"), "--no-progress"]) == 0
+    np.testing.assert_array_equal(read_velodyne(tmp_path / "v8" / "000006.bin").points,
+                                  emulate_beams(read_velodyne(src / "000006.bin").points, 8))
+
 def test_elevation_method_clusters_even_an_ordered_scan():
     points = scan("000006")
     assert recover_rings(points).method == "azimuth-wrap"

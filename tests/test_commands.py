@@ -124,6 +124,8 @@ def test_the_family_spells_each_shared_flag_alike(name, monkeypatch):
     for action in parser._actions:
         assert action.help, (name, action.option_strings or action.dest)
         for flag in set(action.option_strings) & SHARED_FLAGS.keys():
+            if (name, action.option_strings[0]) == ("pipeline.beams", "--beams"):
+                continue  # its own subject, with the family's --emulate-beams a hidden alias (below)
             assert action.option_strings[0] == flag, (name, action.option_strings)
             assert action.metavar in SHARED_FLAGS[flag], (name, flag, action.metavar)
         if "--seed" in action.option_strings:
@@ -320,6 +322,43 @@ def test_ctrl_c_ends_a_command_with_one_line(name, args, where, says, tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 130 and len(err) == 1 and err[0].startswith("interrupted: "), err
     assert says.format(tmp=tmp_path) in err[0]
+
+
+# Installed in the command's own process before it starts (a sitecustomize on PYTHONPATH): a real SIGINT sent to
+# itself when the module $CTRL_C_AT is first imported, $CTRL_C_TIMES times, as a Ctrl-C landing at that moment.
+CTRL_C_AT_IMPORT = """import os, signal, sys
+
+
+class CtrlCAt:
+    def find_spec(self, name, path=None, target=None):
+        if name == os.environ["CTRL_C_AT"]:
+            for _ in range(int(os.environ["CTRL_C_TIMES"])):
+                os.kill(os.getpid(), signal.SIGINT)
+        return None
+
+
+sys.meta_path.insert(0, CtrlCAt())
+"""
+
+
+@pytest.mark.parametrize(("name", "at", "times"), [
+    ("models.train", "torch", 1),  # models/__init__.py's `from torch import nn`
+    ("models.train", "torch", 2),  # a second Ctrl-C: at once
+    ("models.onnx_weights", "onnx", 1),  # its own imports, after PyTorch's
+    ("export", "torch", 1),  # export/__main__.py's imports
+])
+def test_ctrl_c_while_a_torch_command_loads_ends_in_one_line(name, at, times, tmp_path):
+    """Ctrl-C in a torch command's first second, while PyTorch and ONNX load, printed a traceback ending in
+    KeyboardInterrupt and the process died by SIGINT; later it is one ``interrupted: …`` line and 130, as here."""
+    (tmp_path / "sitecustomize.py").write_text(CTRL_C_AT_IMPORT)
+    path = os.pathsep.join(filter(None, [str(tmp_path), os.environ.get("PYTHONPATH")]))
+    done = subprocess.run([sys.executable, "-m", name, "--help"], capture_output=True, text=True, timeout=120,
+                          check=False, cwd=REPO,
+                          env={**os.environ, "PYTHONPATH": path, "CTRL_C_AT": at, "CTRL_C_TIMES": str(times)})
+    assert done.returncode == 130, (done.returncode, done.stderr[-2000:])
+    assert done.stderr == ("interrupted: while the command was loading PyTorch and ONNX, before it began; nothing "
+                           "was written\n"), done.stderr[-2000:]
+    assert done.stdout == ""  # it stopped there: not even its --help
 
 
 def test_ctrl_c_while_the_service_starts_ends_as_in_every_command():
