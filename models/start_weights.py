@@ -55,6 +55,7 @@ def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Pres
                 raise ValueError(f"{exc}; its manifest says it was exported with --preset {exported}, and this run's "
                                  f"--preset is {preset.name}") from None
             raise
+        log.info("loaded %s weights from %s", name, path)  # as a checkpoint's load says
         if left:
             log.info("%s: %s not in %s, starting from initialisation", name, ", ".join(left), path)
     else:

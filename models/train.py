@@ -283,6 +283,12 @@ def start_networks(config: TrainConfig, preset: Preset, resumed: bool = False) -
     for name, path in (("depth", config.depth_checkpoint), ("pixor", config.pixor_checkpoint)):
         if name in networks and path is not None:
             load_start_weights(networks[name], name, Path(path), preset, config.train_only)
+            if Path(path).suffix == ".onnx" and not config.freeze_bn and not config.train_only and not resumed:
+                # Its batch norms are identities (folded into the convolutions): in training mode they would
+                # normalise each batch afresh, and the network starts as another function than the one loaded.
+                log.warning("--%s-checkpoint %s: an exported network's batch norms are folded into its "
+                            "convolutions; without --freeze-bn (or --train-only) they re-learn their statistics "
+                            "from the first batches and the run starts from other weights than these", name, path)
     if config.resnet18 is not None and not resumed:
         try:
             load_resnet18_encoder(networks["depth"], config.resnet18)

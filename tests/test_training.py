@@ -1,6 +1,7 @@
 """Training: data loaders on real frames, the differentiable BEV, a quick run, exact resume."""
 
 import json
+import logging
 import shutil
 
 import numpy as np
@@ -309,9 +310,10 @@ def test_train_only_trains_the_refine_head_from_exported_weights_and_keeps_the_r
     assert metadata["code"] == code_version()  # which code trained it (into the manifest's training record)
 
 
-def test_freeze_bn_fine_tunes_exported_weights_and_keeps_their_statistics(small_sim, tmp_path, tiny_models):
+def test_freeze_bn_fine_tunes_exported_weights_and_keeps_their_statistics(small_sim, tmp_path, tiny_models, caplog):
     """--pixor-checkpoint pixor.onnx --freeze-bn: every weight may move, the (folded, identity) batch-norm
-    statistics do not, and a run without the flag does move them."""
+    statistics do not, and a run without the flag does move them, with a warning that says so; both say what
+    they loaded."""
     from models import build_pixor
     from models.onnx_weights import load_onnx_weights
 
@@ -321,7 +323,12 @@ def test_freeze_bn_fine_tunes_exported_weights_and_keeps_their_statistics(small_
     common = {"task": "detector", "data": small_sim, "preset": "tiny", "quick": True, "epochs": 1, "lr": 1e-3,
               "pixor_checkpoint": tiny_models / "pixor.onnx", "progress": False}
     for frozen in (True, False):
-        run(TrainConfig(out=tmp_path / str(frozen), freeze_bn=frozen, **common))
+        caplog.clear()
+        with caplog.at_level(logging.INFO):
+            run(TrainConfig(out=tmp_path / str(frozen), freeze_bn=frozen, **common))
+        assert f"loaded pixor weights from {tiny_models / 'pixor.onnx'}" in caplog.messages
+        warned = [m for m in caplog.messages if "batch norms are folded into its convolutions; without --freeze-bn" in m]
+        assert len(warned) == (0 if frozen else 1), caplog.messages
         after = torch.load(tmp_path / str(frozen) / "state.pt", weights_only=False)["networks"]["pixor"]
         statistics = [k for k in before if k.endswith(("running_mean", "running_var"))]
         moved = [k for k in statistics if not torch.equal(before[k], after[k])]
