@@ -24,6 +24,11 @@ or ``test.txt``) without one. On a whole folder, an image without its scan is a 
 it has no result file, and KITTI's server refuses a submission with a file missing. A skipped
 frame's result file and picture from an earlier run into the same folder are removed, so that
 ``OUT/data`` never passes an old result off as this run's.
+
+Refused before any model loads: an ``--out`` or ``--video`` that would be written over what the run reads (an
+object folder's KITTI folders, anything in a drive or the model directory, the files given; a new folder in
+``--data`` is fine), and ``--emulate-beams N`` for scans that have few lines already (a 16-line sensor's:
+give ``--emulate-beams 0``), which would otherwise skip every frame in turn.
 """
 
 from __future__ import annotations
@@ -38,12 +43,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.beams import BEAM_COUNTS
+from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.boxes import in_camera_view, labels_to_boxes
 from pipeline.checks import WarningCode
 from pipeline.cli import (
     HelpFormatter,
     add_no_progress,
+    check_not_input,
     check_output,
     examples,
     frame_rate,
@@ -146,10 +152,19 @@ def run(
     depth network, named by frame id (by the scan's file name for one set of files). mirror_tta: PIXOR also
     on the mirrored BEV, maps averaged (:class:`pipeline.detector.Detector`). video: also the pictures (camera
     view above BEV) as one MP4 (needs ``pictures``), ``video_fps`` frames a second.
+
+    An InputError before any model loads for an ``out`` or ``video`` over an input
+    (:func:`check_outputs_not_inputs`) and for ``emulate_beams`` on scans thinned already
+    (:func:`check_thinnable_first_scan`).
     """
     from pipeline.detector import Detector
 
     frames_of = frame_source(data, drive, frames, image, points, calib, split_file)  # before any model loads
+    inputs = {"--data": data, "--drive": drive, "--models": models, "--image": image, "--points": points,
+              "--calib": calib, "--split-file": split_file, "--depth-dir": depth_dir}
+    check_outputs_not_inputs(Path(out), video, frames_of.ids, inputs)
+    if emulate_beams:
+        check_thinnable_first_scan(frames_of, emulate_beams)
     if video is not None and not pictures:
         raise InputError("--video is made of the pictures: leave out --no-pictures")
     if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
@@ -166,12 +181,15 @@ def run(
     if depth_dir is not None and not detector.two_stage:
         raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
     _warn_of_earlier_outputs(out, frames_of.ids, pictures)
+    result: DetectResult | None = None
     try:
         result = _detect_frames(detector, frames_of, out, depth_dir, score_threshold, emulate_beams, pictures,
                                 progress, movie)
         if movie is not None and movie.close():
             result.video_frames = movie.frames
     except BaseException as exc:  # an error or Ctrl-C: no cut-off video; one of an earlier run stays as it was
+        if result is not None:  # stopped while the video was finished: every frame has its files (main says so)
+            exc.frames_written = len(result.result_files)  # type: ignore[attr-defined]
         if movie is not None:
             movie.discard()
             # main reads it: an interrupt may come just after the video was put in place
@@ -192,6 +210,7 @@ class FrameSource:
     where: Callable[[str], str | dict[str, Path]]  # the folder and frame, or the files of one frame
     labels: Path | None = None  # a KITTI object folder: the pictures draw its label_2 ground truth
     single: bool = False  # one set of files: an unusable one is an error, not a skipped frame
+    scan: Callable[[str], Path] | None = None  # a folder's or drive's frame → its scan file
 
 
 def frame_source(data: Path | None, drive: Path | None, frames: list[str] | None, image: Path | None,
@@ -216,12 +235,15 @@ def frame_source(data: Path | None, drive: Path | None, frames: list[str] | None
         if not frames:  # every frame: one whose image has no scan would otherwise get no result file, unsaid
             ids = sorted({*ids, *_image_ids(Path(data))})
         return FrameSource(ids, lambda fid: load_frame(data, fid, with_labels=False),  # labels: read for pictures
-                           lambda fid: f"{data}, frame {fid}", labels=Path(data))
+                           lambda fid: f"{data}, frame {fid}", labels=Path(data),
+                           scan=lambda fid: Path(data) / "velodyne" / f"{fid}.bin")
     if drive is not None:
         ids = _chosen_frames(drive_frame_ids(drive), frames, Path(drive) / DRIVE_SCANS, f"{drive}: no frames",
                              split_file)
         drive_calib = read_drive_calib(drive)
-        return FrameSource(ids, lambda fid: load_drive_frame(drive, fid, drive_calib), lambda fid: f"{drive}, frame {fid}")
+        return FrameSource(ids, lambda fid: load_drive_frame(drive, fid, drive_calib),
+                           lambda fid: f"{drive}, frame {fid}",
+                           scan=lambda fid: Path(drive) / DRIVE_SCANS / f"{fid}.bin")
     if image is not None and points is not None and calib is not None:
         scan = read_velodyne(points)
         frame = Frame(Path(points).stem, read_image(image), scan.points, read_calib(calib), None, scan.dropped_nonfinite)
@@ -229,6 +251,60 @@ def frame_source(data: Path | None, drive: Path | None, frames: list[str] | None
         return FrameSource([frame.frame_id], lambda fid: frame, lambda fid: files, single=True)
     raise InputError("give --data DIR or --drive DIR (and optionally --frame), or all of --image, --points and "
                      "--calib")
+
+
+# What a run writes in --out: each frame's file in each of these folders (a skipped frame's are removed instead,
+# pictures included, with or without --no-pictures).
+WRITTEN = {"data": ".txt", "bev": ".png", "camera": ".png"}
+
+
+def check_outputs_not_inputs(out: Path, video: Path | None, ids: list[str], inputs: dict[str, Path | None]) -> None:
+    """An InputError, before any model loads, for an --out or --video that would be written over what the run
+    reads (``inputs``: flag → path, None when not given): :func:`pipeline.cli.check_not_input` for --out, the
+    folders written in it and the video, so ``--out DRIVE/oxts`` no longer replaced a drive's GPS files; and
+    an input file that is one of the files written or removed in --out (``--calib X/data/ID.txt --out X``).
+
+    A raw drive (--drive) is an input whole, as --models is: besides the folders read, KITTI's drive holds
+    image_00/01/03/, oxts/ and tracklets, none of which a run's files belong among; an object folder
+    (--data) only its own folders (``--out K/results`` is a new folder beside them)."""
+    written = [out, *(out / folder for folder in WRITTEN)]
+    for folder in written:
+        check_not_input(folder, "--out", inputs)
+    if video is not None:
+        check_not_input(video, "--video", inputs)
+    names = set(ids)
+    kinds = {(out / folder).resolve(): suffix for folder, suffix in WRITTEN.items()}
+    for flag, source in inputs.items():
+        if source is None or not Path(source).is_file():
+            continue
+        path = Path(source).resolve()
+        if kinds.get(path.parent) == path.suffix and path.stem in names:
+            raise InputError(f"--out {out}: its {path.parent.name}/{path.name} would be written over {flag} {source}, "
+                             "which this run reads; give an --out elsewhere")
+
+
+def check_thinnable_first_scan(frames_of: FrameSource, beams: int) -> None:
+    """An InputError, before any model loads, when --emulate-beams ``beams`` is given for scans that cannot be
+    thinned to it (a 16-line sensor's): every frame would otherwise be skipped in turn, with advice to mend
+    files that are fine. As :func:`pipeline.beams.check_thinnable` (accuracy.py, models.train,
+    models.cache_pseudo) one scan decides: the first that can be read and has points, so that a broken one
+    stays its frame's skip, not the run's end; for a drive too (velodyne_points/data/)."""
+    if frames_of.scan is None:  # one set of files: the Detector's error names the file
+        return
+    for fid in frames_of.ids:
+        path = frames_of.scan(fid)
+        try:
+            points = read_velodyne(path).points
+        except InputError:
+            continue  # an unusable scan (or an image without one) is the frame loop's to skip and name
+        if points.shape[0] == 0:
+            continue
+        try:
+            emulate_beams(points, beams)
+        except InputError as exc:
+            raise InputError(f"{path}: {exc}; to detect on scans of a {beams}-line sensor as they are, give "
+                             "--emulate-beams 0") from None
+        return
 
 
 # An object folder's folders besides velodyne/ (frame_ids checks that one) that every frame reads from.
@@ -273,57 +349,61 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
     warned: set[str] = set()
     skipped: dict[str, str] = {}
     ids = frames_of.ids
-    for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
-        try:
-            frame = frames_of.load(fid)
-            detections = _detect_frame(detector, frame, frames_of.where(fid), depth_dir, score_threshold,
-                                       emulate_beams)
-        except InputError as exc:
-            if frames_of.single:  # one set of files: nothing else to do
-                raise
-            skipped[fid] = str(exc)
-            removed = _remove_earlier_outputs(out, fid)
-            also = f"; removed its {' and '.join(removed)} from an earlier run" if removed else ""
-            tqdm.write(f"error: {exc} (frame {fid} skipped{also})", file=sys.stderr)
-            continue
-        if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
-            detections.add_warning(WarningCode.NONFINITE_DROPPED,
-                                   f"points: dropped rows with NaN or infinite values ({frame.dropped_nonfinite} rows)")
-        for warning, code in zip(detections.warnings, detections.warning_codes, strict=True):
-            kind = warning.rsplit(" (", 1)[0]  # each kind once (the trailing "(…)" holds the frame's figures)
-            if code != WarningCode.BEAMS_EMULATED and kind not in warned:  # asked for: not worth a line a frame
-                warned.add(kind)
-                tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
-        for stage, ms in detections.timings_ms.items():
-            totals[stage] = totals.get(stage, 0.0) + ms
-        (out / "data").mkdir(parents=True, exist_ok=True)
-        result = out / "data" / f"{frame.frame_id}.txt"
-        # Every source loads the image (so its size), and _detect_frame keeps the points PIXOR saw.
-        assert frame.image is not None and frame.image_hw is not None and detections.points is not None
-        objects = detections.to_objects(frame.calib, frame.image_hw)
-        write_labels(result, objects)
-        count += len(objects)  # what the result files hold: the boxes the camera sees
-        results.append(result)
-        if pictures:
-            gt = None
-            labels = _labels_for_picture(frames_of.labels, fid) if frames_of.labels is not None else None
-            if labels:
-                gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
-            title = picture_title(frame.frame_id, detector.model_dir, emulate_beams)
-            bev = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt,
-                             title=title, legend=True)
-            seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)  # the result file's boxes
-            camera = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
-                                   title=title, legend=True)
-            for kind, picture in (("bev", bev), ("camera", camera)):
-                (out / kind).mkdir(parents=True, exist_ok=True)
-                path = out / kind / f"{frame.frame_id}.png"
-                write_png(path, picture)
-                images.append(path)
-            if video is not None:  # the camera view drawn again at the video's size, so its scores stay readable
-                small = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
-                                      scale=camera_scale_in_stack(frame.image_hw, bev), legend=True)
-                video.add(_captioned(stack_views(small, bev), frame.frame_id, len(objects)))
+    try:
+        for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
+            try:
+                frame = frames_of.load(fid)
+                detections = _detect_frame(detector, frame, frames_of.where(fid), depth_dir, score_threshold,
+                                           emulate_beams)
+            except InputError as exc:
+                if frames_of.single:  # one set of files: nothing else to do
+                    raise
+                skipped[fid] = str(exc)
+                removed = _remove_earlier_outputs(out, fid)
+                also = f"; removed its {' and '.join(removed)} from an earlier run" if removed else ""
+                tqdm.write(f"error: {exc} (frame {fid} skipped{also})", file=sys.stderr)
+                continue
+            if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
+                detections.add_warning(WarningCode.NONFINITE_DROPPED, "points: dropped rows with NaN or infinite "
+                                       f"values ({frame.dropped_nonfinite} rows)")
+            for warning, code in zip(detections.warnings, detections.warning_codes, strict=True):
+                kind = warning.rsplit(" (", 1)[0]  # each kind once (the trailing "(…)" holds the frame's figures)
+                if code != WarningCode.BEAMS_EMULATED and kind not in warned:  # asked for: not worth a line a frame
+                    warned.add(kind)
+                    tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
+            for stage, ms in detections.timings_ms.items():
+                totals[stage] = totals.get(stage, 0.0) + ms
+            (out / "data").mkdir(parents=True, exist_ok=True)
+            result = out / "data" / f"{frame.frame_id}.txt"
+            # Every source loads the image (so its size), and _detect_frame keeps the points PIXOR saw.
+            assert frame.image is not None and frame.image_hw is not None and detections.points is not None
+            objects = detections.to_objects(frame.calib, frame.image_hw)
+            write_labels(result, objects)
+            count += len(objects)  # what the result files hold: the boxes the camera sees
+            results.append(result)
+            if pictures:
+                gt = None
+                labels = _labels_for_picture(frames_of.labels, fid) if frames_of.labels is not None else None
+                if labels:
+                    gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
+                title = picture_title(frame.frame_id, detector.model_dir, emulate_beams)
+                bev = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt,
+                                 title=title, legend=True)
+                seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)  # the result file's boxes
+                camera = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
+                                       title=title, legend=True)
+                for kind, picture in (("bev", bev), ("camera", camera)):
+                    (out / kind).mkdir(parents=True, exist_ok=True)
+                    path = out / kind / f"{frame.frame_id}.png"
+                    write_png(path, picture)
+                    images.append(path)
+                if video is not None:  # the camera view drawn again at the video's size, so its scores stay readable
+                    small = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
+                                          scale=camera_scale_in_stack(frame.image_hw, bev), legend=True)
+                    video.add(_captioned(stack_views(small, bev), frame.frame_id, len(objects)))
+    except KeyboardInterrupt as exc:  # main says where the frames done are, or that there are none yet
+        exc.frames_written = len(results)  # type: ignore[attr-defined]
+        raise
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
     return DetectResult(list(ids), results, images, means, count, skipped)
@@ -458,7 +538,8 @@ def main(argv: list[str] | None = None) -> int:
                         "one MP4 (MPEG-4 Part 2: VLC, ffmpeg and most players, not web browsers)")
     parser.add_argument("--video-fps", type=frame_rate, default=None, metavar="FPS",
                         help=f"frames a second of --video, 0.1 to 1000 (default {VIDEO_FPS:g}: KITTI's LiDAR rate)")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    parser.add_argument("--out", type=Path, required=True, metavar="DIR",
+                        help="output folder (outside what the run reads; a new folder in --data will do)")
     add_no_progress(parser)
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
@@ -475,7 +556,11 @@ def main(argv: list[str] | None = None) -> int:
             video = f"; the video {args.video} was written"
         else:
             video = f"; no video was written{' (the earlier one is kept)' if args.video.is_file() else ''}"
-        return stopped(exc, f"the frames detected so far have their files in {args.out}{video}")
+        if getattr(exc, "frames_written", 0):
+            kept = f"the frames detected so far have their files in {args.out}"
+        else:  # stopped before any frame's result file was written: --out may not even exist yet
+            kept = f"no frame was detected yet, so this run wrote nothing in {args.out}"
+        return stopped(exc, f"{kept}{video}")
 
 
 def _run_and_report(args: argparse.Namespace) -> int:
@@ -504,6 +589,15 @@ def _run_and_report(args: argparse.Namespace) -> int:
     except OSError as exc:  # an --out that cannot be written (a file in the way, no permission, a full disk)
         print(unwritable(args.out, exc), file=sys.stderr)
         return 2
+    try:
+        return _report(args, result)
+    except KeyboardInterrupt as exc:  # the run is over: main says its files are there, not that none were written
+        exc.frames_written = len(result.result_files)  # type: ignore[attr-defined]
+        raise
+
+
+def _report(args: argparse.Namespace, result: DetectResult) -> int:
+    """The summary of a finished run on stdout (its skipped frames on stderr); the exit status."""
     stages = ", ".join(f"{k} {v:.1f} ms" for k, v in result.mean_timings_ms.items())
     done = len(result.frame_ids) - len(result.skipped)
     print(f"{done} frame(s), {result.detection_count} detection(s) → {args.out}/data")

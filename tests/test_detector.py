@@ -620,8 +620,10 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
     )
     assert single.returncode == 0, single.stderr
     assert (tmp_path / "single" / "data" / "000006.txt").exists()
+    (tmp_path / "empty").mkdir()  # a folder with no model in it (beside --out: one inside it would be refused)
     missing = subprocess.run(
-        [sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path), "--data", str(KITTI), "--out", str(tmp_path / "x")],
+        [sys.executable, "-m", "pipeline.detect", "--models", str(tmp_path / "empty"), "--data", str(KITTI), "--out",
+         str(tmp_path / "x")],
         capture_output=True, text=True, timeout=120, check=False,
     )
     assert missing.returncode == 2 and "no manifest" in missing.stderr and "Traceback" not in missing.stderr

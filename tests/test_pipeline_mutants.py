@@ -25,6 +25,7 @@ import pytest
 from onnx import helper
 
 from pipeline import cpu
+from pipeline import detect as detect_module
 from pipeline import detector as detector_module
 from pipeline.beams import emulate_beams
 from pipeline.calib import Calibration
@@ -51,6 +52,7 @@ from pipeline.onnx_wire import MAX_DEPTH, ExternalTensor, WireError, external_te
 from pipeline.presets import PRESETS, BevGrid, get_preset, lidar_only, preset_from_dict
 from tests.conftest import KITTI
 from tests.test_bad_files import _object_folder
+from tests.test_detector import _raw_drive
 from tests.test_onnx_wire import _length, external, model, weight
 
 LIDAR16 = Path(__file__).resolve().parents[1] / "weights" / "edge-lidar16"
@@ -166,6 +168,117 @@ def test_earlier_pictures_are_warned_of_only_when_this_run_writes_none(tmp_path:
     with caplog.at_level(logging.WARNING, logger="pipeline.detect"):
         assert _detect(capsys, "--data", KITTI, "--frame", "000006", "--no-pictures", "--out", out)[0] == 0
     assert f"{out / 'bev'} and {out / 'camera'} hold(s) {stale}" in caplog.text  # the first run's
+
+
+def _files(folder: Path) -> dict[Path, bytes]:
+    """Every file under ``folder`` with its bytes."""
+    return {path: path.read_bytes() for path in sorted(folder.rglob("*")) if path.is_file()}
+
+
+def test_an_out_over_what_the_run_reads_is_refused_before_anything_is_written(tmp_path: Path, capsys) -> None:
+    """``--out DRIVE/oxts`` replaced a drive's GPS/IMU files with result lines, ``--out K/label_2`` and a --video
+    in K/calib were taken, and a result file could be written over the --calib it read: each is now refused in
+    one line naming the input, before any model loads, with every input file as it was. A drive is an input
+    whole (its oxts/ is read by no run, yet is no place for results); an object folder its KITTI folders only."""
+    drive = _raw_drive(tmp_path / "raw", {"0000000000": "000006"})
+    (drive / "oxts" / "data").mkdir(parents=True)
+    (drive / "oxts" / "data" / "0000000000.txt").write_text("49.015 8.434 116.4 0.02 0.01 2.13 (GPS/IMU)\n")
+    data = _object_folder(tmp_path / "kitti", ("000006",))
+    one = tmp_path / "one"
+    (one / "data").mkdir(parents=True)
+    shutil.copy(KITTI / "calib" / "000006.txt", one / "data" / "000006.txt")  # what OUT/data/000006.txt would be
+    models = tmp_path / "models"
+    shutil.copytree(LIDAR16, models)
+    before = {folder: _files(folder) for folder in (tmp_path / "raw", data, one, models)}
+    single = ("--image", KITTI / "image_2" / "000006.png", "--points", KITTI / "velodyne" / "000006.bin")
+    video, maps = data / "calib" / "v.mp4", tmp_path / "o" / "bev"
+    for args, (flag, path), (source_flag, source) in (
+        (("--drive", drive, "--out", drive / "oxts"), ("--out", drive / "oxts"), ("--drive", drive)),
+        (("--drive", drive, "--out", drive / "image_02"), ("--out", drive / "image_02"), ("--drive", drive)),
+        (("--drive", drive, "--out", drive / "results"), ("--out", drive / "results"), ("--drive", drive)),
+        (("--data", data, "--out", data / "label_2"), ("--out", data / "label_2"), ("--data", data)),
+        (("--data", data, "--out", data / "velodyne"), ("--out", data / "velodyne"), ("--data", data)),
+        (("--data", data, "--video", video, "--out", tmp_path / "o"), ("--video", video), ("--data", data)),
+        # A skipped frame's earlier picture OUT/bev/ID.png is removed: here the frame's depth map.
+        (("--data", data, "--depth-dir", maps, "--out", tmp_path / "o"), ("--out", maps), ("--depth-dir", maps)),
+        (("--data", data, "--models", models, "--out", models / "out"), ("--out", models / "out"), ("--models", models)),
+    ):
+        status, _, err = _detect(capsys, *args)
+        assert status == 2 and err == (f"error: {flag} {path}: would be written over what {source_flag} {source} "
+                                       "holds, which this run reads; give a path outside it\n"), (args, err)
+    status, _, err = _detect(capsys, *single, "--calib", one / "data" / "000006.txt", "--out", one)
+    assert status == 2 and err == (f"error: --out {one}: its data/000006.txt would be written over --calib "
+                                   f"{one / 'data' / '000006.txt'}, which this run reads; give an --out elsewhere\n")
+    assert {folder: _files(folder) for folder in before} == before
+    assert not (tmp_path / "o").exists()
+    # A new folder in an object folder, beside its KITTI folders, holds the results.
+    status, out, _ = _detect(capsys, "--data", data, "--no-pictures", "--out", data / "results")
+    assert status == 0 and (data / "results" / "data" / "000006.txt").is_file(), out
+
+
+def _thinned(path: Path) -> None:
+    """Thin the 64-line scan at ``path`` (a copy) to 16 lines, as a 16-line sensor writes its scans."""
+    emulate_beams(np.fromfile(path, np.float32).reshape(-1, 4), 16).tofile(path)
+
+
+def test_emulate_beams_on_scans_thinned_already_is_refused_before_any_frame(tmp_path: Path, capsys) -> None:
+    """--emulate-beams 16 on a 16-line sensor's folder or drive skipped every frame in turn, advising to mend
+    files that are fine (exit 1): now one line, exit 2, before any model loads, naming the first scan that
+    reads (a cut-off one before it stays its frame's skip) and the flag to give, as accuracy.py does."""
+    data = _object_folder(tmp_path / "kitti")
+    for scan in (data / "velodyne").glob("*.bin"):
+        _thinned(scan)
+    (data / "velodyne" / "000002.bin").write_bytes(b"\0" * 10)  # sorts first, and cannot be read
+    drive = _raw_drive(tmp_path / "raw", {"0000000000": "000006", "0000000001": "000003"})
+    for scan in (drive / "velodyne_points" / "data").glob("*.bin"):
+        _thinned(scan)
+    thinned = "points: the scan has 16 rings, not 64: it is thinned already (emulate beams on 64-line scans only)"
+    for source, scan in (("--data", data / "velodyne" / "000003.bin"),
+                         ("--drive", drive / "velodyne_points" / "data" / "0000000000.bin")):
+        status, out, err = _detect(capsys, source, scan.parents[1 if source == "--data" else 2], "--out",
+                                   tmp_path / "out")
+        assert (status, out) == (2, "")
+        assert err == (f"error: {scan}: {thinned}; to detect on scans of a 16-line sensor as they are, give "
+                       "--emulate-beams 0\n")
+        assert not (tmp_path / "out").exists()
+
+
+def test_a_run_stopped_before_its_first_frame_says_it_wrote_nothing(tmp_path: Path, capsys, monkeypatch) -> None:
+    """Ctrl-C during the first frame said "the frames detected so far have their files in OUT", of an OUT that
+    did not exist. The interrupt is raised where the Detector works, as Ctrl-C's KeyboardInterrupt is: in the
+    first frame the line says nothing was written; in the second, that the first frame's files are there."""
+    detect = detector_module.Detector.detect
+
+    def interrupted_in_frame(number: int) -> Callable[..., object]:
+        """Detector.detect, with Ctrl-C in the ``number``-th frame (from 0)."""
+        calls = itertools.count()
+
+        def interrupted(self, *args, **kwargs):
+            if next(calls) == number:
+                raise KeyboardInterrupt
+            return detect(self, *args, **kwargs)
+        return interrupted
+
+    for frames_done in (0, 1):
+        monkeypatch.setattr(detector_module.Detector, "detect", interrupted_in_frame(frames_done))
+        out = tmp_path / f"out{frames_done}"
+        status, _, err = _detect(capsys, "--data", KITTI, "--frame", "3", "--frame", "6", "--out", out)
+        assert status == 130
+        if frames_done:
+            assert err.endswith(f"interrupted: the frames detected so far have their files in {out}\n"), err
+            assert [p.name for p in (out / "data").iterdir()] == ["000003.txt"]
+        else:
+            assert err.endswith(f"interrupted: no frame was detected yet, so this run wrote nothing in {out}\n"), err
+            assert not out.exists()
+    # Stopped while the summary is printed: the run is over, every frame's files are there.
+    monkeypatch.undo()
+
+    def interrupted_report(*args: object) -> int:
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(detect_module, "_report", interrupted_report)
+    status, _, err = _detect(capsys, "--data", KITTI, "--frame", "6", "--out", tmp_path / "done")
+    assert status == 130 and err.endswith(f"have their files in {tmp_path / 'done'}\n"), err
 
 
 # --------------------------------------------------------------------------- pipeline/checks.py
