@@ -579,9 +579,8 @@ def _run_and_report(args: argparse.Namespace) -> int:
             progress=show_progress(args.no_progress),
         )
     except (InputError, ModelFileError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        if hint := default_models_hint(args.models):
-            print(f"error: {hint}", file=sys.stderr)
+        hint = default_models_hint(args.models)  # the default's absence itself: one line with the way out
+        print(f"error: {hint if hint and str(args.models) in str(exc) else exc}", file=sys.stderr)
         return 2
     except VideoError as exc:
         print(f"error: --video {args.video}: {exc.strerror or exc}", file=sys.stderr)

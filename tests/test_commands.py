@@ -173,6 +173,7 @@ def test_detect_outside_a_checkout_says_where_the_default_weights_are(tmp_path):
     )
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"the default --models {site / 'weights' / 'edge'} exists only in a source checkout" in result.stderr
+    assert len(result.stderr.splitlines()) == 1, result.stderr  # the hint alone, not "no such model directory" too
 
 
 def test_the_demo_outside_a_checkout_says_it_needs_one(tmp_path):
