@@ -47,12 +47,30 @@ def is_drive_folder(folder: Path) -> bool:
     return (Path(folder) / "velodyne_raw").is_dir() and (Path(folder) / "groundtruth").is_dir()
 
 
+def flat_layout_hint(folder: Path) -> str:
+    """:data:`FLAT_LAYOUT_HINT` with the drive's own paths where ``folder`` gives them (a drive's folder in KITTI's
+    ``train/`` or ``val/``, its ``proj_depth/``, or the folder holding ``train/``: its first drive as the example);
+    the raw data's folder, which KITTI's depth download does not hold, stays RAW."""
+    folder = Path(folder).absolute()
+    if folder.name == "proj_depth":
+        folder = folder.parent
+    if not (folder / "proj_depth").is_dir():
+        folder = next(iter(sorted((folder / "train").glob("*/proj_depth"))), Path()).parent
+    if not (folder / "proj_depth").is_dir():
+        return FLAT_LAYOUT_HINT
+    name, date = folder.name, folder.name[:10]  # 2011_09_26_drive_0001_sync was recorded on 2011_09_26
+    return (f"link one drive into the flat layout: mkdir {name} && ln -s {folder}/proj_depth/velodyne_raw/image_02 "
+            f"{name}/velodyne_raw && ln -s {folder}/proj_depth/groundtruth/image_02 {name}/groundtruth && ln -s "
+            f"RAW/{date}/{name}/image_02/data {name}/image_02 && ln -s RAW/{date}/{name}/velodyne_points/data "
+            f"{name}/velodyne_points && ln -s RAW/{date}/calib_*.txt {name}/ (RAW: where KITTI's raw data is)")
+
+
 def refuse_kitti_layout(folder: Path, flag: str = "--data") -> None:
     """An InputError with the way to link one drive into the flat layout when ``folder`` is in KITTI's own."""
     folder = Path(folder)
     if (folder / "proj_depth").is_dir() or folder.name == "proj_depth" or (folder / "train").is_dir():
         raise InputError(f"{flag} {folder}: KITTI's depth-completion layout, one drive at a time in the flat one: "
-                         f"{FLAT_LAYOUT_HINT}")
+                         f"{flat_layout_hint(folder)}")
 
 
 def check_drive_folder(folder: Path, flag: str = "--data") -> None:

@@ -431,13 +431,29 @@ def test_depth_run_trains_and_validates_on_depth_completion_drives(make_drive, t
     assert json.loads((tmp_path / "mixed" / "log.jsonl").read_text())["pixels"] == record["pixels"]
 
 
+
+def test_the_flat_layout_hint_is_written_out_for_the_drive_given(tmp_path):
+    """Given KITTI's depth-completion folder (holding train/), a drive's proj_depth/ or the drive itself, the
+    hint's ln -s commands name that drive's own folders (the first drive of train/ for the whole folder), the
+    raw data's folder the only placeholder; a folder with no drive in it keeps the template."""
+    from pipeline.depth_completion import FLAT_LAYOUT_HINT, flat_layout_hint
+
+    drives = [tmp_path / "train" / name for name in ("2011_09_28_drive_0002_sync", "2011_09_26_drive_0001_sync")]
+    for drive in drives:
+        (drive / "proj_depth" / "groundtruth" / "image_02").mkdir(parents=True)
+    first = drives[1]
+    for given in (tmp_path, first, first / "proj_depth"):
+        hint = flat_layout_hint(given)
+        assert f"ln -s {first}/proj_depth/groundtruth/image_02 {first.name}/groundtruth" in hint, hint
+        assert f"RAW/2011_09_26/{first.name}/velodyne_points/data" in hint and "DRIVE" not in hint, hint
+    assert flat_layout_hint(tmp_path / "elsewhere") == FLAT_LAYOUT_HINT
+
 @pytest.mark.parametrize("case", ["kitti layout", "neither", "no calibration", "missing scan", "split frame",
                                   "smaller ground truth", "broken image", "detector", "car weight"])
 def test_a_drive_a_run_cannot_train_on_is_refused_by_name(make_drive, tmp_path, capsys, case):
     """KITTI's own layout gets the way to link a drive; a drive without its calibration (training thins its scans
     to 16 lines through it), a frame without a file, of maps of another size, or a broken PNG, a task needing
     labels: each one line naming the folder or file, before --out is made."""
-    from pipeline.depth_completion import FLAT_LAYOUT_HINT
     from pipeline.kitti import read_depth_png, write_depth_png
 
     drive = make_drive("drive", ("0000000005", "0000000006"), calib=case != "no calibration")
@@ -447,7 +463,13 @@ def test_a_drive_a_run_cannot_train_on_is_refused_by_name(make_drive, tmp_path, 
         data = tmp_path / "train" / "2011_09_26_drive_0001_sync"
         for name in ("velodyne_raw", "groundtruth"):
             (data / "proj_depth" / name / "image_02").mkdir(parents=True)
-        says = f"--data {data}: KITTI's depth-completion layout, one drive at a time in the flat one: {FLAT_LAYOUT_HINT}"
+        name = "2011_09_26_drive_0001_sync"  # the hint is written out for this drive, only the raw data's folder left
+        says = (f"--data {data}: KITTI's depth-completion layout, one drive at a time in the flat one: link one drive "
+                f"into the flat layout: mkdir {name} && ln -s {data}/proj_depth/velodyne_raw/image_02 {name}/"
+                f"velodyne_raw && ln -s {data}/proj_depth/groundtruth/image_02 {name}/groundtruth && ln -s "
+                f"RAW/2011_09_26/{name}/image_02/data {name}/image_02 && ln -s RAW/2011_09_26/{name}/velodyne_points/"
+                f"data {name}/velodyne_points && ln -s RAW/2011_09_26/calib_*.txt {name}/ (RAW: where KITTI's raw "
+                "data is)")
     elif case == "neither":
         data = drive / "image_02"
         says = (f"--data {data}: not a KITTI object folder (no velodyne/ inside) nor a depth-completion drive "
