@@ -83,6 +83,7 @@ from pipeline.beams import BEAM_COUNTS, emulate_beams
 from pipeline.cli import (
     HelpFormatter,
     check_figure,
+    check_not_input,
     check_output,
     examples,
     non_negative_int,
@@ -928,6 +929,23 @@ def check_frames(data: Path, frames: list[str]) -> None:
                 raise InputError(f"--data {data}: frame {frame} has no {folder}/{frame}{suffix}")
 
 
+def check_outputs(args: argparse.Namespace, log: Path) -> None:
+    """--json, --plot and (a service started here) its log, before the load, so that a bad path does not lose
+    the report: each writable, and none over what the run reads (a --json named as the served manifest replaced
+    it; a --log there would empty it before the service read it). With --url, --models is not read."""
+    started = args.url is None
+    inputs = {"--models": args.models if started else None, "--data": args.data}
+    if args.json is not None:
+        check_output(args.json, "--json")
+    if args.plot is not None:
+        check_figure(args.plot, "--plot")
+    if started:
+        check_output(log, "--log")
+    for path, flag in ((args.json, "--json"), (args.plot, "--plot"), (log if started else None, "--log")):
+        if path is not None:
+            check_not_input(path, flag, inputs)
+
+
 @quiet_interrupt("no report was written (--json and --plot come at the end); a service it started is stopped")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
@@ -1014,14 +1032,8 @@ def main(argv: list[str] | None = None) -> int:
         if not frames:
             raise InputError(f"--data {args.data}: no frames in its velodyne/")
         check_frames(args.data, frames)
-        # Before the load, so a bad path does not lose its report.
-        if args.json is not None:
-            check_output(args.json, "--json")
-        if args.plot is not None:
-            check_figure(args.plot, "--plot")
         log = DEFAULT_LOG if args.log is None else args.log
-        if args.url is None:
-            check_output(log, "--log")
+        check_outputs(args, log)
     except InputError as exc:
         parser.error(str(exc))
     duration = args.duration if args.duration is not None else (None if args.requests else 20.0)

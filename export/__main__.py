@@ -10,11 +10,9 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
-from export.directory import check_destination
-from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
-from export.precision import REDUCE_RANGE_HELP, calibration_frame_ids
-from pipeline.cli import (
+from pipeline.cli import (  # first: the standard library alone, so that Ctrl-C below is told in one line
     HelpFormatter,
+    ctrl_c_held_while_loading,
     examples,
     interrupted,
     missing_extra,
@@ -23,17 +21,23 @@ from pipeline.cli import (
     show_progress,
     unwritable,
 )
-from pipeline.errors import TORCH_MISSING
-from pipeline.model_files import ModelFileError
-from pipeline.presets import ABLATIONS, PRESETS, get_preset
+from pipeline.errors import TORCH_MISSING, InputError
 
-try:
-    from export.exporter import ExportConfig, run
-    from export.parity import ParityError
-except ModuleNotFoundError as exc:
-    if exc.name != "torch":
-        raise
-    raise missing_extra(TORCH_MISSING) from exc  # one error line, exit status 2
+# Ctrl-C while the imports below load (NumPy, ONNX, ONNX Runtime, PyTorch: the command's first second or two) ends
+# the command in one line once they are done, as in models/__init__.py (which this cannot import before PyTorch).
+with ctrl_c_held_while_loading(__name__ == "__main__"):  # an importer's Ctrl-C stays theirs
+    try:
+        from export.directory import check_destination
+        from export.exporter import ExportConfig, run
+        from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
+        from export.parity import ParityError
+        from export.precision import REDUCE_RANGE_HELP, calibration_frame_ids
+        from pipeline.model_files import ModelFileError
+        from pipeline.presets import ABLATIONS, PRESETS, get_preset
+    except ModuleNotFoundError as exc:
+        if exc.name != "torch":
+            raise
+        raise missing_extra(TORCH_MISSING) from exc  # one error line, exit status 2
 
 
 def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Namespace]:
@@ -137,8 +141,24 @@ def _interrupted(exc: BaseException | None) -> bool:
     return False
 
 
+def check_inputs_outside_out(config: ExportConfig, args: argparse.Namespace) -> None:
+    """Refuse, before any work, an input that lies inside --out: --out is replaced as a whole once the new model
+    is written, and ``--out M --data M/kitti`` deleted the frames it had just read (``--checkpoints M/run``, the
+    training run's checkpoints)."""
+    out = Path(config.out).resolve()
+    inputs = {"--checkpoints": config.checkpoints, "--data": config.kitti_dir if config.parity else None,
+              "--calibration-data": args.calibration_data if args.precision != "fp32" else None}
+    for flag, source in inputs.items():
+        if source is None or not Path(source).exists():  # not there: its own check names it
+            continue
+        if Path(source).resolve() == out or out in Path(source).resolve().parents:
+            raise InputError(f"--out {config.out}: replacing it would delete {flag} {source}, which this run reads; "
+                             "give an --out that does not hold it")
+
+
 def export(config: ExportConfig, args: argparse.Namespace) -> int:
     """Export (and convert) as ``args`` asks; prints what was written."""
+    check_inputs_outside_out(config, args)
     if args.precision == "fp32":
         result = run(config)
         manifest = result.manifest

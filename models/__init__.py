@@ -2,19 +2,22 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 
-from pipeline.cli import missing_extra
+from pipeline.cli import ctrl_c_held_while_loading, missing_extra
 from pipeline.errors import TORCH_MISSING
 
-try:
-    from torch import nn
-except ModuleNotFoundError as exc:  # every `python -m models.…` command passes through here first
-    raise missing_extra(TORCH_MISSING) from exc  # one error line, exit status 2
-
-from models.depth_net import DepthCompletionNet
-from models.pixor import Pixor
-from pipeline.presets import Preset
+# Python imports this package on its way to run `python -m models.…`, with sys.argv[0] "-m" until it has found the
+# module (documented): only then is Ctrl-C here a command's.
+with ctrl_c_held_while_loading(sys.argv[:1] == ["-m"]):
+    try:
+        from torch import nn
+    except ModuleNotFoundError as exc:  # every `python -m models.…` command passes through here first
+        raise missing_extra(TORCH_MISSING) from exc  # one error line, exit status 2
+    from models.depth_net import DepthCompletionNet
+    from models.pixor import Pixor
+    from pipeline.presets import Preset
 
 
 def build_depth_net(preset: Preset) -> DepthCompletionNet:

@@ -25,11 +25,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-import onnx
-import torch
-from onnx import numpy_helper
-from torch import nn
+from pipeline.cli import ctrl_c_held_while_loading
+
+with ctrl_c_held_while_loading(__name__ == "__main__"):  # ONNX, after PyTorch (models/__init__.py)
+    import numpy as np
+    import onnx
+    import torch
+    from onnx import numpy_helper
+    from torch import nn
 
 
 def _batch_norm_after(name: str, modules: dict[str, nn.Module]) -> str | None:
@@ -186,6 +189,17 @@ def load_onnx_weights(network: nn.Module, path: str | Path, optional: tuple[str,
     return leave
 
 
+def refuse_held_checkpoints(out: Path) -> None:
+    """InputError naming --out when ``out`` holds checkpoints already: a training run's own (or another
+    conversion's) are never replaced."""
+    from models.checkpoint import CHECKPOINT_FILES
+    from pipeline.errors import InputError
+
+    held = [name for name in (*CHECKPOINT_FILES.values(), "state.pt") if (Path(out) / name).exists()]
+    if held:
+        raise InputError(f"--out {out}: already holds {' and '.join(held)}; give a new folder")
+
+
 def checkpoints_from_model_dir(models: str | Path, out: str | Path) -> dict[str, Path]:
     """Write ``depth.pt`` / ``pixor.pt`` checkpoints (models/checkpoint.py) of a model directory's ONNX files.
 
@@ -195,14 +209,11 @@ def checkpoints_from_model_dir(models: str | Path, out: str | Path) -> dict[str,
     """
     from models import build_network
     from models.checkpoint import CHECKPOINT_FILES, save_checkpoint
-    from pipeline.errors import InputError
     from pipeline.model_files import load_manifest, verify_sha256
     from pipeline.presets import preset_from_dict
 
     models, out = Path(models), Path(out)
-    held = [name for name in (*CHECKPOINT_FILES.values(), "state.pt") if (out / name).exists()]
-    if held:  # a training run's own checkpoints (or another conversion's): never replaced
-        raise InputError(f"--out {out}: already holds {' and '.join(held)}; give a new folder")
+    refuse_held_checkpoints(out)
     manifest = load_manifest(models)
     verify_sha256(models, manifest)  # a damaged or edited ONNX file is named as such, as the runtime names it
     preset = preset_from_dict(manifest["preset_config"])
@@ -232,14 +243,16 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     import sys
 
-    from pipeline.cli import check_output, quiet_interrupt
+    from pipeline.cli import check_not_input, check_output, quiet_interrupt
     from pipeline.errors import InputError
     from pipeline.model_files import ModelFileError
 
     @quiet_interrupt("--out holds what was written before it (a checkpoint is written whole or not at all)")
     def run(args: argparse.Namespace) -> int:
-        try:
-            check_output(args.out, "--out", directory=True)  # its message names --out
+        try:  # what is wrong with --out, named as --out (not as --models, the conversion's errors below)
+            check_output(args.out, "--out", directory=True)
+            check_not_input(args.out, "--out", {"--models": args.models})
+            refuse_held_checkpoints(args.out)
         except InputError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

@@ -176,6 +176,47 @@ def interrupted(leaves: str) -> int:
     return INTERRUPTED_STATUS
 
 
+# What Ctrl-C leaves while a command still loads its libraries (a second or two): nothing begun, nothing written.
+STOPPED_LOADING = "while the command was loading PyTorch and ONNX, before it began; nothing was written"
+
+
+def _stop_loading() -> None:
+    """End the command with :func:`interrupted`'s line and 130, at once (os._exit): nothing is set up yet, and a
+    SystemExit raised inside a library's initialisation could be caught there."""
+    status = interrupted(STOPPED_LOADING)
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(status)
+
+
+@contextlib.contextmanager
+def ctrl_c_held_while_loading(command: bool) -> Iterator[None]:
+    """Hold Ctrl-C within the block, a torch command's imports (PyTorch and ONNX load for a second or two, before
+    any work), then end the command with one ``interrupted: …`` line and exit status 130; a second Ctrl-C ends it
+    at once. Raised inside a library's initialisation, the KeyboardInterrupt printed a traceback and could abort
+    the process from C++, be swallowed, or leave NumPy half-made. Only when ``command`` (the block runs on the way
+    to a command's main) and in the main thread: an importer's own Ctrl-C (pytest, a notebook) stays theirs."""
+    if not command or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pressed: list[int] = []
+
+    def hold(signum: int, frame: object) -> None:
+        if pressed:
+            _stop_loading()
+        pressed.append(signum)
+
+    previous = signal.signal(signal.SIGINT, hold)
+    try:
+        yield
+    except KeyboardInterrupt:  # one raised by other means than the signal
+        _stop_loading()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if pressed:
+        _stop_loading()
+
+
 TERMINATED_STATUS = 143  # 128 + SIGTERM: what a shell reports for a command that `kill` or `timeout` stopped
 
 

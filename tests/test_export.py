@@ -816,6 +816,35 @@ def test_cli_refuses_bad_inputs_in_one_line_before_exporting(tmp_path: Path, cap
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt", "only_depth"]
 
 
+def test_cli_refuses_an_out_that_holds_what_it_reads(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """--out is replaced as a whole once the new model is written: ``--out M --data M/kitti`` deleted the frames
+    it had read, ``--checkpoints M/run`` a training run's checkpoints. Refused before any network is exported."""
+    import export.exporter
+
+    def exported(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a network was exported before the mistake was refused")
+
+    monkeypatch.setattr(export.exporter, "export_onnx", exported)
+    models = shutil.copytree(Path(__file__).resolve().parents[1] / "weights" / "edge-lidar16", tmp_path / "models")
+    frames = models / "kitti"
+    for folder, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt")):
+        (frames / folder).mkdir(parents=True)
+        shutil.copy(KITTI / folder / f"000006{suffix}", frames / folder)
+    preset = get_preset("edge")
+    for run_dir in (models / "run", tmp_path / "run"):  # trained weights: the model at --out is not lost to initialised
+        save_checkpoint(run_dir / "pixor.pt", preset, {"pixor": build_pixor(preset)}, {})
+    before = {path: path.read_bytes() for path in models.rglob("*") if path.is_file()}
+    for flag, source, rest in (("--data", frames, ["--frame", "000006", "--checkpoints", str(tmp_path / "run")]),
+                               ("--checkpoints", models / "run", ["--no-parity"])):
+        code, err = _export_main(["--preset", "edge", "--networks", "pixor", "--out", str(models), flag, str(source),
+                                  *rest], capsys)
+        assert code == 2, err
+        assert err == (f"error: --out {models}: replacing it would delete {flag} {source}, which this run reads; "
+                       "give an --out that does not hold it\n")
+    assert {path: path.read_bytes() for path in models.rglob("*") if path.is_file()} == before
+
+
 def test_a_reduced_precision_export_records_what_made_its_fp32_networks(tmp_path: Path,
                                                                          capsys: pytest.CaptureFixture) -> None:
     """The FP32 directory of `python -m export --precision …` is temporary: the manifest names the command,

@@ -115,6 +115,37 @@ def test_load_test_refuses_a_frame_missing_from_data_before_starting_anything(tm
     assert not (tmp_path / "outputs").exists()  # no service was started
 
 
+@pytest.mark.parametrize(("flag", "where", "read"), [
+    ("--json", "models/manifest.json", "--models"),  # replaced the manifest with the report
+    ("--log", "models/manifest.json", "--models"),  # emptied it before the started service read it
+    ("--plot", "models/load.png", "--models"),
+    ("--json", "data/velodyne/load.json", "--data"),
+])
+def test_load_test_refuses_an_output_over_what_it_reads_before_starting_anything(flag, where, read, tmp_path,
+                                                                                kitti_dir, capsys, monkeypatch):
+    from benchmarks.load import main
+
+    monkeypatch.chdir(tmp_path)  # where the started service's default log would go
+    models = shutil.copytree(Path(__file__).resolve().parents[1] / "weights" / "edge-lidar16", tmp_path / "models")
+    data = tmp_path / "data"
+    for folder, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt")):
+        (data / folder).mkdir(parents=True)
+        shutil.copy(kitti_dir / folder / f"000006{suffix}", data / folder)
+    before = {path: path.read_bytes() for folder in (models, data) for path in folder.rglob("*") if path.is_file()}
+    out = tmp_path / where
+    with pytest.raises(SystemExit) as stopped:  # a short run if it is not refused, as it was
+        main(["--models", str(models), "--data", str(data), "--requests", "1", "--clients", "1", flag, str(out)])
+    assert stopped.value.code == 2
+    captured = capsys.readouterr()
+    source = models if read == "--models" else data
+    assert captured.err.splitlines()[-1] == (f"python benchmarks/load.py: error: {flag} {out}: would be written over "
+                                             f"what {read} {source} holds, which this run reads; give a path "
+                                             "outside it")
+    assert captured.out == "" and not (tmp_path / "outputs").exists()  # no service was started
+    after = {path: path.read_bytes() for folder in (models, data) for path in folder.rglob("*") if path.is_file()}
+    assert after == before
+
+
 def test_url_names_the_client_machine_and_the_load_generators_cpu(tmp_path, running_service):
     """With --url the server may run on another box: the machine described is the client's, never the server's."""
     result = load(["--url", running_service, "--clients", "1", "--requests", "2", "--json", str(tmp_path / "r.json")],

@@ -150,6 +150,24 @@ def test_a_model_directory_back_to_checkpoints(tiny_models, tmp_path, capsys):
     assert f"{listless / 'manifest.json'}: manifest has no 'networks' table" in capsys.readouterr().err
 
 
+def test_an_out_that_cannot_take_the_checkpoints_is_named_as_out(tmp_path, capsys):
+    """An --out holding checkpoints was reported as "error: --models: --out …": the flag at fault is --out alone.
+    An --out inside --models is refused too (its checkpoints would land in the model directory it reads)."""
+    from models.onnx_weights import main
+
+    held = tmp_path / "run"
+    held.mkdir()
+    (held / "pixor.pt").write_bytes(b"a training run's own")
+    assert main(["--models", str(WEIGHTS / "edge-lidar16"), "--out", str(held)]) == 2
+    assert capsys.readouterr().err == f"error: --out {held}: already holds pixor.pt; give a new folder\n"
+    assert (held / "pixor.pt").read_bytes() == b"a training run's own"
+    models = shutil.copytree(WEIGHTS / "edge-lidar16", tmp_path / "models")
+    assert main(["--models", str(models), "--out", str(models / "ckpt")]) == 2
+    assert capsys.readouterr().err == (f"error: --out {models / 'ckpt'}: would be written over what --models {models} "
+                                       "holds, which this run reads; give a path outside it\n")
+    assert not (models / "ckpt").exists()
+
+
 def test_a_file_that_is_not_onnx_is_named(tmp_path):
     from models.onnx_weights import read_onnx
 

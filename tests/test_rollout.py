@@ -141,6 +141,26 @@ def test_check_models_bad_command_line_is_one_line_and_status_2(args, says, mode
     assert captured.err.startswith("error: ") and says.format(**fill) in captured.err
 
 
+def test_check_models_refuses_a_json_over_what_it_reads_before_checking(models: Path, tmp_path: Path,
+                                                                       capsys) -> None:
+    """--json named as the model directory's manifest replaced it with the report (and said "passed"); named
+    inside --data's frames, it would replace a calibration file. Refused in one line before any check, as
+    benchmarks/accuracy.py and export.golden refuse it."""
+    data = tmp_path / "kitti"
+    for folder, suffix in (("image_2", ".png"), ("velodyne", ".bin"), ("calib", ".txt")):
+        (data / folder).mkdir(parents=True)
+        shutil.copy(KITTI / folder / f"000006{suffix}", data / folder)
+    for json_file, read in ((models / "manifest.json", f"--models {models}"),
+                            (data / "calib" / "000006.txt", f"--data {data}")):
+        before = json_file.read_bytes()
+        assert main(["--models", str(models), "--data", str(data), "--json", str(json_file)]) == 2
+        captured = capsys.readouterr()
+        assert captured.out == "", captured.out  # no check ran
+        assert captured.err == (f"error: --json {json_file}: would be written over what {read} holds, which this "
+                                "run reads; give a path outside it\n")
+        assert json_file.read_bytes() == before
+
+
 def test_check_models_provider_this_build_lacks_is_the_command_lines_fault(models: Path, capsys) -> None:
     import onnxruntime as ort
 
