@@ -54,6 +54,7 @@ from pipeline.calib import depth_crop
 from pipeline.cli import (
     HelpFormatter,
     add_no_progress,
+    check_not_input,
     check_output,
     examples,
     positive_int,
@@ -150,6 +151,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         check_output(args.out, "--out", directory=True)
+        check_not_input(args.out, "--out", {"--data": args.data, "--models": args.models})
         count = write_bounds(args.data, args.models, args.factor, args.out, args.frames, args.upsample, args.cache,
                              progress=show_progress(args.no_progress))
     except (InputError, ModelFileError, ValueError) as exc:

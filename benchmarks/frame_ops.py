@@ -26,7 +26,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from pipeline.beams import emulate_beams
 from pipeline.bev import BevVoxelizer, pseudo_bins
 from pipeline.boxes import labels_to_boxes
-from pipeline.cli import HelpFormatter, check_output, examples, positive_int, quiet_interrupt, write_text_file
+from pipeline.cli import (
+    HelpFormatter,
+    check_not_input,
+    check_output,
+    examples,
+    positive_int,
+    quiet_interrupt,
+    write_text_file,
+)
 from pipeline.cpu import describe as describe_cpu
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
@@ -147,6 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.json is not None:
             check_output(args.json, "--json")
+            check_not_input(args.json, "--json", {"--data": args.data})
         report = run(args.frame, args.repeats, args.preset, args.data)
     except InputError as exc:  # a frame --data lacks, an output that cannot be written
         print(f"error: {exc}", file=sys.stderr)

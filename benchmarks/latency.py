@@ -81,6 +81,7 @@ from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to
 from pipeline.cli import (
     HelpFormatter,
     check_figure,
+    check_not_input,
     check_output,
     examples,
     gpu_ids,
@@ -1334,6 +1335,11 @@ def main(argv: list[str] | None = None) -> int:
             check_output(args.json, "--json")
         if args.plot is not None:
             check_figure(args.plot, "--plot")
+        read = {"--models": args.models or (SHIPPED if args.preset is None else None), "--baseline": args.baseline, "--checkpoints": args.checkpoints,
+                "--data": args.data}
+        for path, flag in ((args.json, "--json"), (args.plot, "--plot")):
+            if path is not None:  # a report named as a manifest or a frame's file would replace it
+                check_not_input(path, flag, read)
         if args.models is None and args.preset is not None:
             get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
         if args.device_ids and args.provider not in ("cuda", "tensorrt"):

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from pipeline.cli import (  # first: the standard library alone, so that Ctrl-C below is told in one line
     HelpFormatter,
+    check_not_inside,
     ctrl_c_held_while_loading,
     examples,
     interrupted,
@@ -21,7 +22,7 @@ from pipeline.cli import (  # first: the standard library alone, so that Ctrl-C 
     show_progress,
     unwritable,
 )
-from pipeline.errors import TORCH_MISSING, InputError
+from pipeline.errors import TORCH_MISSING
 
 # Ctrl-C while the imports below load (NumPy, ONNX, ONNX Runtime, PyTorch: the command's first second or two) ends
 # the command in one line once they are done, as in models/__init__.py (which this cannot import before PyTorch).
@@ -141,24 +142,12 @@ def _interrupted(exc: BaseException | None) -> bool:
     return False
 
 
-def check_inputs_outside_out(config: ExportConfig, args: argparse.Namespace) -> None:
-    """Refuse, before any work, an input that lies inside --out: --out is replaced as a whole once the new model
-    is written, and ``--out M --data M/kitti`` deleted the frames it had just read (``--checkpoints M/run``, the
-    training run's checkpoints)."""
-    out = Path(config.out).resolve()
-    inputs = {"--checkpoints": config.checkpoints, "--data": config.kitti_dir if config.parity else None,
-              "--calibration-data": args.calibration_data if args.precision != "fp32" else None}
-    for flag, source in inputs.items():
-        if source is None or not Path(source).exists():  # not there: its own check names it
-            continue
-        if Path(source).resolve() == out or out in Path(source).resolve().parents:
-            raise InputError(f"--out {config.out}: replacing it would delete {flag} {source}, which this run reads; "
-                             "give an --out that does not hold it")
-
-
 def export(config: ExportConfig, args: argparse.Namespace) -> int:
     """Export (and convert) as ``args`` asks; prints what was written."""
-    check_inputs_outside_out(config, args)
+    # --out is replaced whole once the new model is written: --out M --data M/kitti deleted the frames.
+    check_not_inside(config.out, "--out", {
+        "--checkpoints": config.checkpoints, "--data": config.kitti_dir if config.parity else None,
+        "--calibration-data": args.calibration_data if args.precision != "fp32" else None})
     if args.precision == "fp32":
         result = run(config)
         manifest = result.manifest

@@ -29,7 +29,7 @@ from export.directory import check_destination, staged
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR, check_frame, kitti_inputs, random_inputs
 from export.manifest import graph_inputs
 from export.rewrite import lower_for_cpu
-from pipeline.cli import HelpFormatter, examples, interrupted
+from pipeline.cli import HelpFormatter, check_not_inside, examples, interrupted
 from pipeline.graph_inputs import feeds_for
 from pipeline.model_files import MANIFEST_NAME, ModelFileError, load_manifest, sha256_file, verify_sha256
 from pipeline.presets import preset_from_dict
@@ -132,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
               "KITTI object folder with --data DIR (and --frame ID)", file=sys.stderr)
         return 2
     try:
+        # The output directory is replaced whole once the new graphs are written: not with the check frames in it.
+        check_not_inside(args.out or args.models, "--out" if args.out else "--models", {"--data": args.data})
         result = run(args.models, args.out, args.data or DEFAULT_KITTI_DIR, args.frame)
     except (ModelFileError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)

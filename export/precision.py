@@ -343,6 +343,7 @@ def main(argv: list[str] | None = None) -> int:
     from export.inputs import DEFAULT_KITTI_DIR
     from pipeline.cli import (
         HelpFormatter,
+        check_not_inside,
         examples,
         interrupted,
         non_negative_int,
@@ -375,6 +376,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
+        # --out is replaced whole once the converted model is written: not with its inputs in it.
+        check_not_inside(args.out, "--out", {"--models": args.models, "--calibration-data": args.calibration_data})
         manifest = convert_precision(args.models, args.out, args.precision, args.calibration_data,
                                      args.calibration_frames, progress=show_progress(False), reduce_range=args.reduce_range,
                                      beams=args.beams)

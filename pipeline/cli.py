@@ -139,6 +139,19 @@ def check_not_input(path: Path, flag: str, inputs: dict[str, Path | None]) -> No
                              "reads; give a path outside it")
 
 
+def check_not_inside(folder: Path, flag: str, inputs: dict[str, Path | None]) -> None:
+    """Refuse an input that lies in ``folder`` (or is it), an output folder the run replaces whole once its new
+    content is written (``inputs``: flag → path; None, or a path not there, skipped: its own check names it):
+    ``python -m export --out M --data M/kitti`` deleted the frames it had just read."""
+    out = Path(folder).resolve()
+    for name, source in inputs.items():
+        if source is None or not Path(source).exists():
+            continue
+        if Path(source).resolve() == out or out in Path(source).resolve().parents:
+            raise InputError(f"{flag} {folder}: replacing it would delete {name} {source}, which this run reads; "
+                             f"give another {flag}, one that does not hold it")
+
+
 FIGURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".pdf", ".svg")  # what matplotlib writes from the file name
 
 

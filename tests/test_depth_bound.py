@@ -46,7 +46,8 @@ def test_maps_go_to_the_full_image_so_that_the_runtime_reads_them_back_exactly()
 
 
 def test_command_refuses_what_it_cannot_use(tmp_path, capsys):
-    assert main(["--data", str(tmp_path), "--models", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
+    (tmp_path / "models").mkdir()  # no manifest in it (an --out inside it would be refused for that first)
+    assert main(["--data", str(tmp_path), "--models", str(tmp_path / "models"), "--out", str(tmp_path / "o")]) == 2
     assert "manifest" in capsys.readouterr().err
 
 
@@ -102,8 +103,14 @@ def test_command_never_overwrites_depth_maps(tmp_path, capsys):
     truth = (data / "depth_2" / "000006.png").read_bytes()
     edge = str(REPO / "weights" / "edge")
     code, err = _run(capsys, "--data", str(data), "--models", edge, "--out", str(data))
-    assert code == 2 and f"would overwrite the true depth in {data / 'depth_2'}" in err
+    assert code == 2 and f"--out {data}: would be written over what --data {data.resolve()} holds" in err
     assert (data / "depth_2" / "000006.png").read_bytes() == truth
+    # --cache writes OUT/<id>.png: into image_2/ it replaced the frame's camera image; into the model directory.
+    image = (data / "image_2" / "000006.png").read_bytes()
+    for out, flag in ((data / "image_2", "--data"), (REPO / "weights" / "edge" / "maps", "--models")):
+        code, err = _run(capsys, "--data", str(data), "--models", edge, "--cache", "--out", str(out))
+        assert code == 2 and f"--out {out}: would be written over what {flag} " in err, err
+    assert (data / "image_2" / "000006.png").read_bytes() == image and not (REPO / "weights" / "edge" / "maps").exists()
     assert _run(capsys, "--data", str(data), "--models", edge, "--factor", "2", "--out", str(tmp_path / "out"))[0] == 0
     code, err = _run(capsys, "--data", str(data), "--models", edge, "--out", str(tmp_path / "out"))
     assert code == 2 and "already holds depth maps" in err

@@ -841,7 +841,19 @@ def test_cli_refuses_an_out_that_holds_what_it_reads(tmp_path: Path, capsys: pyt
                                   *rest], capsys)
         assert code == 2, err
         assert err == (f"error: --out {models}: replacing it would delete {flag} {source}, which this run reads; "
-                       "give an --out that does not hold it\n")
+                       "give another --out, one that does not hold it\n")
+    assert {path: path.read_bytes() for path in models.rglob("*") if path.is_file()} == before
+    # export.lower and export.precision replace their --out whole too: refused alike, before any work.
+    from export.lower import main as lower
+    from export.precision import main as precision
+
+    other = shutil.copytree(models, tmp_path / "other", ignore=shutil.ignore_patterns("kitti", "run"))
+    for main, args, flag in ((lower, ["--models", str(other), "--out", str(models), "--data", str(frames)], "--data"),
+                             (precision, ["--models", str(other), "--precision", "int8", "--out", str(models),
+                                          "--calibration-data", str(frames)], "--calibration-data")):
+        assert main(args) == 2
+        assert capsys.readouterr().err == (f"error: --out {models}: replacing it would delete {flag} {frames}, which "
+                                           "this run reads; give another --out, one that does not hold it\n")
     assert {path: path.read_bytes() for path in models.rglob("*") if path.is_file()} == before
 
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cpu import usable_cpus
+from tests.conftest import KITTI
 
 ROOT = Path(__file__).resolve().parents[1]
 LATENCY = ROOT / "benchmarks" / "latency.py"
@@ -122,3 +123,28 @@ def test_help_says_what_threads_and_the_default_model_are():
     text = " ".join(done.stdout.split())
     assert "throughput workers" in text and "not ONNX Runtime's intra-op threads" in text
     assert "default: the shipped weights/edge" in text and "edge-split-near35" in text
+
+
+def test_a_report_named_as_one_of_its_inputs_is_refused_before_any_timing(tmp_path, capsys):
+    """latency.py's --json and --plot, and frame_ops.py's --json, were never compared with what the run reads:
+    a report named as the model's manifest or a frame's calibration replaced it after minutes of timing. Refused
+    in one line before anything is timed; the inputs are as they were."""
+    import shutil
+
+    from benchmarks.frame_ops import main as frame_ops
+    from benchmarks.latency import main as latency
+
+    models = shutil.copytree(SHIPPED.with_name("edge-lidar16"), tmp_path / "models")
+    data = tmp_path / "kitti"
+    shutil.copytree(KITTI / "calib", data / "calib")
+    before = {p: p.read_bytes() for p in [*models.iterdir(), *(data / "calib").iterdir()]}
+    cases = [(latency, ["--models", str(models), "--json", str(models / "manifest.json")], "--json", "--models", models),
+             (latency, ["--models", str(models), "--data", str(data), "--plot", str(data / "calib" / "x.png")], "--plot",
+              "--data", data),
+             (frame_ops, ["--data", str(data), "--json", str(data / "calib" / "000006.txt")], "--json", "--data", data)]
+    for main, args, flag, read, source in cases:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {flag} ") and f"would be written over what {read} {source.resolve()} holds" in err
+        assert len(err.splitlines()) == 1, err
+    assert {p: p.read_bytes() for p in before} == before
