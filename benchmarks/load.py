@@ -685,7 +685,8 @@ def load_figure(samples: list[Sample], result: LoadResult, title: str):
         start, ms = np.asarray(ok).T
         # Faint enough that thousands do not hide the p50 line, large enough that a short run's few are seen.
         timeline.plot(start, ms, ".", markersize=3, alpha=0.5, color="tab:blue", label="a 200's latency")
-        windows = result.windows
+        # A tenth with no answer has no p50 (NaN), which would break the line into lone markers: joined over it.
+        windows = [w for w in result.windows if np.isfinite(w["p50_ms"])]
         timeline.plot([(w["start_s"] + w["end_s"]) / 2 for w in windows], [w["p50_ms"] for w in windows],
                       "-o", color="tab:blue", label="p50 per tenth of the run")
     timeline.set_xlabel("seconds into the load (due time)" if result.latency_from == "schedule"

@@ -255,6 +255,29 @@ def test_load_plot_gives_each_status_one_colour_in_every_run():
             plt.close("all")
 
 
+
+def test_the_load_plots_p50_line_joins_over_tenths_without_an_answer():
+    """A short run leaves tenths of the load without an answer, whose p50 is NaN: the line the legend draws
+    broke into lone markers. It joins the tenths that have one."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.pyplot as plt
+
+    sys.path.insert(0, str(REPO))
+    from benchmarks.load import LoadResult, Sample, load_figure
+
+    samples = [Sample(start_s=t, latency_ms=150.0 + t, status="200") for t in (0.05, 0.25, 0.45)]
+    windows = [{"start_s": i / 10, "end_s": (i + 1) / 10, "p50_ms": 150.0 + i if i % 2 == 0 else float("nan")}
+               for i in range(6)]
+    result = LoadResult(url="", clients=1, duration_s=0.6, requests=3, status_counts={}, throughput_ok_per_s=5.0,
+                        throughput_all_per_s=5.0, latency_ms={}, stage_p50_ms={}, rss_mb={}, rss_series=[],
+                        windows=windows)
+    fig = load_figure(samples, result, "test")
+    try:
+        (line,) = [ln for ln in fig.axes[1].get_lines() if ln.get_label() == "p50 per tenth of the run"]
+        assert list(line.get_ydata()) == [150.0, 152.0, 154.0] and line.get_linestyle() == "-"
+    finally:
+        plt.close("all")
+
 def test_sim_report_figure_has_colour_bars_and_bev_axes_in_metres():
     """The projected LiDAR is coloured as the depth pictures of the other tools (near warm), with a colour bar;
     the BEV has axes in metres and its height colour bar."""
