@@ -545,7 +545,7 @@ def check_png_fields(ihdr_fields: bytes, source: str) -> None:
     depth, colour, compression, filtering, interlace = ihdr_fields[8:13]
     if colour not in PNG_BIT_DEPTHS:
         raise InputError(f"{source}: PNG header names colour type {colour}, which PNG does not have "
-                         f"(0, 2, 3, 4 or 6)")
+                         "(0, 2, 3, 4 or 6)")
     if depth not in PNG_BIT_DEPTHS[colour]:
         allowed = ", ".join(map(str, PNG_BIT_DEPTHS[colour]))
         raise InputError(f"{source}: PNG header gives {PNG_COLOUR_TYPES[colour]} (colour type {colour}) a bit depth "
