@@ -135,8 +135,8 @@ def frame_options(
     )] = None,
 ) -> FrameOptions:
     """Collect the query options."""
-    return FrameOptions(score_threshold, int(emulate_beams) or None if emulate_beams is not None else None, nonfinite,
-                        FrameStamps(image_stamp_ns, points_stamp_ns))
+    beams = int(emulate_beams) if emulate_beams else None  # 0 (BeamCount.as_sent) as left out: the scan as sent
+    return FrameOptions(score_threshold, beams, nonfinite, FrameStamps(image_stamp_ns, points_stamp_ns))
 
 
 FrameOptionsDep = Annotated[FrameOptions, Depends(frame_options)]
