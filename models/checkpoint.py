@@ -144,6 +144,21 @@ def _as_lists(value: object) -> object:
     return value
 
 
+def _check_pseudo_range(checkpoint: Checkpoint, network: str, saved_config: dict, preset: Preset) -> None:
+    """ValueError for a PIXOR that learned on pseudo points (a ``pseudo`` or joint run) loaded under a preset that
+    keeps them up to another depth: the range is no part of its layers, but it is of what its BEV holds
+    (``-near35``'s camera PIXOR, exported as ``edge-split``, lost 4 BEV AP on points beyond 35 m it never saw)."""
+    metadata = checkpoint.metadata or {}
+    if network != "pixor" or not (metadata.get("task") == "joint" or metadata.get("input") == "pseudo"):
+        return
+    depth = saved_config.get("depth") if isinstance(saved_config, dict) else None
+    trained = depth.get("max_depth") if isinstance(depth, dict) else None
+    if trained is not None and trained != preset.depth.max_depth:
+        raise ValueError(f"{checkpoint.path}: its PIXOR learned on pseudo points up to {trained:g} m (preset "
+                         f"{checkpoint.preset!r}); preset {preset.name!r} keeps them up to {preset.depth.max_depth:g} "
+                         f"m, so its BEV would hold points it never saw: give --preset {checkpoint.preset}")
+
+
 def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str, preset: Preset) -> None:
     """Load ``checkpoint.state_dicts[network]`` into ``model`` after checking the preset matches.
 
@@ -176,6 +191,7 @@ def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str,
             f"configuration differs from the requested preset {preset.name!r}; give --preset {checkpoint.preset} "
             f"with it, or a checkpoint trained with {preset.name}"
         )
+    _check_pseudo_range(checkpoint, network, saved_config, preset)
     if network not in checkpoint.state_dicts:
         raise ValueError(
             f"{checkpoint.path}: no {network!r} weights (it holds {', '.join(checkpoint.state_dicts) or 'none'})"

@@ -530,3 +530,24 @@ def test_a_depth_net_exports_with_another_pseudo_range_but_not_another_layer(tmp
     other = get_preset("tiny-no-aspp-near35")
     with pytest.raises(ValueError, match="whose depth configuration differs"):
         load_network_weights(build_depth_net(other), checkpoint, "depth", other)
+
+
+def test_a_pixor_trained_on_pseudo_points_keeps_its_range(tmp_path: Path) -> None:
+    """The pseudo points' range (depth.max_depth) is no part of PIXOR's layers, so a camera PIXOR trained under
+    tiny-near35 loaded under tiny (85 m) without a word, and its BEV then held points it never saw (the shipped
+    camera model exported as edge-split lost 4 BEV AP on a user's frames). Refused for a PIXOR that learned on
+    pseudo points (a pseudo or joint run); a LiDAR-only PIXOR and a depth net may still change the range."""
+    near = get_preset("tiny-near35")
+    pixor, depth = build_pixor(near), build_depth_net(near)
+    for metadata, refused in (({"task": "detector", "input": "pseudo"}, True), ({"task": "joint"}, True),
+                              ({"task": "detector", "input": "lidar16"}, False)):
+        path = save_checkpoint(tmp_path / "pixor.pt", near, {"pixor": pixor, "depth": depth}, metadata)
+        if refused:
+            with pytest.raises(ValueError, match=r"its PIXOR learned on pseudo points up to 35 m \(preset "
+                                                 r"'tiny-near35'\); preset 'tiny' keeps them up to 85 m.*--preset "
+                                                 r"tiny-near35$"):
+                load_network_weights(build_pixor(TINY), load_checkpoint(path), "pixor", TINY)
+        else:
+            load_network_weights(build_pixor(TINY), load_checkpoint(path), "pixor", TINY)
+        load_network_weights(build_pixor(near), load_checkpoint(path), "pixor", near)  # its own range: loads
+        load_network_weights(build_depth_net(TINY), load_checkpoint(path), "depth", TINY)  # the depth net: any
