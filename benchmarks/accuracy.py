@@ -464,7 +464,8 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--emulate-beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
                         help="thin the scans to N lines first (16, 32, 8, 4; 0: keep them as stored, as a 16-line "
                         "sensor's own scans need); default: the --input row's, 16 for lidar16 and lidar16+camera "
-                        "(thinning KITTI's 64-line scans), none for lidar64; as in pipeline.detect and latency.py")
+                        "(thinning KITTI's 64-line scans), none for lidar64; with --depth, 16; as in pipeline.detect "
+                        "and latency.py")
     detect.add_argument(
         "--depth-dir", type=Path, metavar="DIR",
         help="with --input lidar16+camera or --depth: dense depth PNGs of the full camera image (KITTI depth "
@@ -488,7 +489,7 @@ def build_parser() -> argparse.ArgumentParser:
 # Flags (by dest) that only some modes read; main refuses them in the others.
 _RESULT_FILES = ("gt_labels", "pred_labels", "missing_as_empty")
 _RUN = ("data", "models", "provider")
-_DETECTION = ("input", "out", "score_threshold", "mirror_tta", "emulate_beams")
+_DETECTION = ("input", "out", "score_threshold", "mirror_tta")  # --emulate-beams serves --depth too
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
 _AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "interval", "compare_pred_labels",
        "gap_to_pred_labels")
@@ -637,8 +638,10 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
         if args.depth:
             if args.depth_dir is not None and not args.depth_dir.is_dir():
                 raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
-            outcome = run_depth(args.data, args.models, frames, provider=args.provider, progress=show_progress(args.no_progress),
-                                pictures=args.plots, depth_dir=args.depth_dir, first=first)
+            beams = 16 if args.emulate_beams is None else args.emulate_beams  # 0: a 16-line sensor's own, as stored
+            outcome = run_depth(args.data, args.models, frames, beams=beams, provider=args.provider,
+                                progress=show_progress(args.no_progress), pictures=args.plots, depth_dir=args.depth_dir,
+                                first=first)
             m = outcome.mean
             print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
             print(f"RMSE {m.rmse_mm:.1f} mm   MAE {m.mae_mm:.1f} mm   iRMSE {m.irmse_per_km:.2f} 1/km   "

@@ -632,3 +632,29 @@ def test_depth_runs_cars_are_those_the_evaluation_counts_at_moderate(tiny_models
     for (low, high), result in bands.items():
         counted = result.curve("bev", 0.7, "moderate").n_ground_truth
         assert sum(low <= z < high for z, _ in depth.car_errors) == counted, (low, high)
+
+
+def test_depth_mode_evaluates_a_16_line_sensors_own_scans(tiny_models, tmp_path):
+    """--depth thinned every scan to 16 lines, and a folder of a 16-line sensor's scans failed on its first frame
+    ('it is thinned already') while --emulate-beams 0 was refused with --depth as a flag for boxes. The first
+    scan now decides up front, naming the flag, and --emulate-beams 0 evaluates the scans as stored."""
+    from pipeline.beams import emulate_beams
+    from pipeline.kitti import read_velodyne, write_depth_png, write_velodyne
+
+    data = tmp_path / "own"
+    for sub in ("image_2", "calib"):
+        shutil.copytree(KITTI / sub, data / sub)
+    (data / "velodyne").mkdir()
+    (data / "depth_2").mkdir()
+    for fid in ("000006",):
+        write_velodyne(data / "velodyne" / f"{fid}.bin", emulate_beams(read_velodyne(KITTI / "velodyne" / f"{fid}.bin").points, 16))
+        rows, columns = cv2.imread(str(KITTI / "image_2" / f"{fid}.png")).shape[:2]
+        write_depth_png(data / "depth_2" / f"{fid}.png", np.full((rows, columns), 20.0, np.float32))
+    frames = _frames_file(tmp_path, "000006")
+    refused = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames", frames)
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr, refused.stderr
+    assert (f"error: {data / 'velodyne' / '000006.bin'}: points: the scan has" in refused.stderr
+            and "give --emulate-beams 0" in refused.stderr), refused.stderr
+    stored = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames", frames, "--emulate-beams", "0")
+    assert stored.returncode == 0, stored.stderr
+    assert "depth completion on 1 frame(s)" in stored.stdout and "input: scan as stored" in stored.stdout
