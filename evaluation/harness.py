@@ -214,7 +214,8 @@ def run_depth(data: Path, models: Path, frames: list[str] | None = None, beams: 
     else:
         used = f"{beams}-line emulated scan" if beams else "scan as stored"
         ids = first_frames(frames or frame_ids(data), first)
-        check_thinnable(data, ids, beams or 0)  # a 16-line sensor's scans: one line saying --emulate-beams 0
+        if beams:  # a 16-line sensor's scans cannot be thinned: one line saying --emulate-beams 0, up front
+            check_thinnable(data, ids, beams)
         labelled = (data / "label_2").is_dir()
         for fid in tqdm(ids, desc="depth", unit="frame", disable=not progress):
             frame = load_frame(data, fid, with_labels=labelled)
