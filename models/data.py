@@ -5,15 +5,16 @@ networks train on exactly what the Detector feeds them at inference.
 
 Depth samples: the 16-line scan projected into the depth net's view, the
 image, and the target — ``depth_2/ID.png`` (dense ground truth of the
-synthetic scenes) when present, else the full 64-line scan projected into the
-view (real KITTI object frames have no dense ground truth). On a KITTI
-depth-completion drive (:class:`DepthCompletionDataset`) the 16 lines are thinned
-on its projected scan and the target is its semi-dense ``groundtruth``.
+synthetic scenes, of the image's own size) when the folder has ``depth_2/``, else
+the full 64-line scan projected into the view (real KITTI object frames have no
+dense ground truth). On a KITTI depth-completion drive
+(:class:`DepthCompletionDataset`) the 16 lines are thinned on its projected scan
+and the target is its semi-dense ``groundtruth``.
 
 Detector samples: the BEV tensor of the chosen input — ``lidar64`` (scan as
 stored), ``lidar16`` (thinned), ``pseudo`` (pseudo points from a cached dense
 depth map in ``PSEUDO_DIR/ID.png`` plus the 16 real lines) — and PIXOR targets
-of the Car labels.
+of the Car labels (the class read case-insensitively, as the evaluator reads it: :func:`is_car`).
 
 Every "16-line" scan here is the stored scan thinned to ``beams`` lines (16 by
 default, ``models.train --emulate-beams``); ``beams`` 0 or None takes the scans
@@ -39,13 +40,14 @@ from pipeline.calib import Calibration, depth_crop, sparse_depth_map
 from pipeline.depth_completion import read_frame
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
-from pipeline.kitti import read_depth_png
+from pipeline.kitti import Object3D, read_depth_png, read_image_depth_png
 from pipeline.preprocess import depth_inputs, depth_view, view_calibration, view_from_depth_png
 from pipeline.presets import Preset
 from pipeline.pseudo import depth_to_points, merge_points
 from pipeline.targets import encode_targets
 
 DETECTOR_INPUTS = ("lidar64", "lidar16", "pseudo")
+CAR_CLASS = "Car"  # KITTI's class the detector learns and the evaluation scores
 SAMPLE_CACHE_BYTES = 6 * 1024**3  # per dataset: the edge depth set of 2,000 frames takes 2.4 GB
 
 
@@ -81,10 +83,12 @@ def frame_points(frame: Frame, beams: int | None) -> np.ndarray:
 
 
 def depth_target(data_dir: Path, frame: Frame, preset: Preset) -> np.ndarray:
-    """(H, W) target depth in the network's view (metres, 0 = none)."""
-    dense_path = Path(data_dir) / "depth_2" / f"{frame.frame_id}.png"
-    if dense_path.exists():
-        return depth_view(read_depth_png(dense_path), preset)
+    """(H, W) target depth in the network's view (metres, 0 = none): the frame's ``depth_2/`` map when the folder
+    has ``depth_2/`` (an InputError naming the map when it is missing or not of the image's size: the crop is
+    taken from the map's own shape, so another size would train on another part of the scene), else its scan."""
+    dense_dir = Path(data_dir) / "depth_2"
+    if dense_dir.is_dir():
+        return depth_view(read_image_depth_png(dense_dir / f"{frame.frame_id}.png", frame.image_hw), preset)
     view_calib = view_calibration(frame.image_hw, frame.calib, preset)
     return sparse_depth_map(frame.points, view_calib, preset.depth.input_hw)
 
@@ -152,7 +156,7 @@ def car_pixels(frame: Frame, target: np.ndarray, preset: Preset) -> np.ndarray:
     scale = preset.depth.input_scale
     mask = np.zeros(target.shape, bool)
     for label in frame.labels or []:  # a handful of cars per frame; the pixels are array slices
-        if label.type != "Car":
+        if not is_car(label):
             continue
         box = tuple((v - offset) * scale for v, offset in
                     zip(label.bbox, (crop.left, crop.top, crop.left, crop.top), strict=True))
@@ -161,9 +165,15 @@ def car_pixels(frame: Frame, target: np.ndarray, preset: Preset) -> np.ndarray:
     return mask
 
 
+def is_car(label: Object3D) -> bool:
+    """A label of KITTI's Car class, its name compared case-insensitively as the evaluation compares it
+    (evaluation.labels.LabelArrays): a ``car`` the trainer skipped would be a car it never learnt but is scored on."""
+    return label.type.lower() == CAR_CLASS.lower()
+
+
 def car_boxes(frame: Frame) -> np.ndarray:
     """(N, 7) LiDAR-frame boxes of the labelled cars."""
-    return labels_to_boxes([o for o in (frame.labels or []) if o.type == "Car"], frame.calib)
+    return labels_to_boxes([o for o in (frame.labels or []) if is_car(o)], frame.calib)
 
 
 def detector_points(frame: Frame, preset: Preset, input_mode: str,

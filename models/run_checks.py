@@ -10,6 +10,7 @@ import contextlib
 import logging
 import os
 import random
+from collections import Counter
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -24,10 +25,19 @@ import torch
 
 from models.cache_pseudo import check_sources, recorded_beams
 from models.checkpoint import save_atomic
-from pipeline.beams import check_thinnable
+from models.data import CAR_CLASS, is_car
+from pipeline.beams import check_thinnable, emulate_beams
 from pipeline.depth_completion import check_map_size, drive_calibration, is_drive_folder, raw_scan_path
 from pipeline.errors import InputError
-from pipeline.kitti import POINT_BYTES, check_image_file, read_calib, read_image_size, read_labels
+from pipeline.kitti import (
+    PNG_SIGNATURE,
+    POINT_BYTES,
+    check_image_file,
+    read_calib,
+    read_image_size,
+    read_labels,
+    read_velodyne,
+)
 
 if TYPE_CHECKING:
     from models.train import TrainConfig, TrainResult
@@ -246,12 +256,39 @@ def _check_drive_files(folder: Path, flag: str, ids: list[str], beams: int | Non
                              "points (a KITTI scan is float32 rows x, y, z, reflectance)")
 
 
+def _check_depth_maps(folder: Path, flag: str, ids: list[str]) -> None:
+    """A folder's ``depth_2/`` targets, when it has that folder: a map of every frame (a frame without one would
+    silently learn from its scan instead, mixing two kinds of target), each a PNG of its image's size (the crop is
+    taken from the map's own shape: another size trains on another part of the scene). Sizes from the PNG headers
+    alone; InputError naming the first frame without a map and how many more, or the first map of another size."""
+    dense = folder / "depth_2"
+    if not dense.is_dir():
+        return  # no dense ground truth: every frame's target is its scan, as documented
+    missing = _missing(folder, "depth_2/{}.png", ids)
+    if missing is not None:
+        frame, path, more = missing
+        raise InputError(f"{flag} {folder}: frame {frame}{more} has no depth map ({path}) although depth_2/ holds "
+                         "the others' targets; give every frame its map, or remove depth_2/ to train on the scans")
+    for fid in ids:
+        path, image = dense / f"{fid}.png", folder / "image_2" / f"{fid}.png"
+        check_image_file(path)  # whole, not cut off
+        with open(path, "rb") as handle:
+            if handle.read(len(PNG_SIGNATURE)) != PNG_SIGNATURE:
+                raise InputError(f"{path}: not a PNG (a KITTI depth map is a 16-bit PNG)")
+        map_hw, image_hw = read_image_size(path), read_image_size(image)
+        if map_hw != image_hw:
+            raise InputError(f"{path}: a {map_hw[1]}×{map_hw[0]} depth map for the {image_hw[1]}×{image_hw[0]} image "
+                             f"{image}; it must cover the whole image, pixel for pixel")
+
+
 def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path,
                  val_ids: list[str], beams: int | None = 16) -> None:
     """Every frame file the run reads is there, before it trains: each frame's scan, image and calibration;
     its labels (``label_2/``) for the detector and joint tasks, whose targets and AP come from them. Depth
     runs need no labels (the target is ``depth_2/ID.png`` when present, else the frame's own 64-line scan)
-    unless ``--car-weight`` weighs the labelled cars' pixels.
+    unless ``--car-weight`` weighs the labelled cars' pixels. A folder with ``depth_2/`` must hold the map of
+    every frame whose depth target the run reads (a depth run's, a joint run's training frames), of its image's
+    size (:func:`_check_depth_maps`).
 
     A depth-completion drive (:func:`pipeline.depth_completion.is_drive_folder`) has each frame's
     ``image_02``, ``velodyne_raw`` and ``groundtruth`` PNGs checked instead, and its calibration, which
@@ -279,6 +316,8 @@ def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val
             continue
         for fid in ids:  # what a file's size and ends tell, so that a broken one fails now, not an epoch in
             _check_frame_files(folder, fid)
+        if config.task == "depth" or (config.task == "joint" and ids is train_ids):  # joint validates PIXOR alone
+            _check_depth_maps(folder, flag, ids)
         if labels:
             if not (folder / "label_2").is_dir():
                 raise InputError(f"{flag} {folder}: no label_2/ folder; {needs} needs the ground-truth boxes "
@@ -292,6 +331,48 @@ def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val
             for fid in ids:  # InputError naming the file and line of a malformed one
                 if (folder / "label_2" / f"{fid}.txt").is_file():
                     read_labels(folder / "label_2" / f"{fid}.txt")
+
+
+def label_classes(folder: Path, ids: list[str]) -> tuple[Counter, bool]:
+    """Whether the ``label_2`` files of ``ids`` in ``folder`` label a Car (:func:`models.data.is_car`), and the
+    classes they name with their counts: of every file when none does (each read once, a few hundred bytes),
+    else of those read up to the first with a Car (usually the first file alone)."""
+    classes: Counter = Counter()
+    for fid in ids:
+        labels = read_labels(folder / "label_2" / f"{fid}.txt")
+        classes.update(label.type for label in labels)
+        if any(is_car(label) for label in labels):
+            return classes, True
+    return classes, False
+
+
+def check_cars(config: TrainConfig, train_dir: Path, train_ids: list[str], val_dir: Path, val_ids: list[str]) -> None:
+    """A detector or joint run's training frames (those it trains on, after --max-train-frames) label at least one
+    Car, or it would train PIXOR on no positive, to a low loss and an AP of 0, without a word: refused in one line
+    naming the folder and the classes its labels hold. Validation frames without a Car give an AP of 0 whatever
+    the net learns (and the best epoch is picked by AP): said in that line, or warned of when training has cars."""
+    if config.task not in ("detector", "joint"):
+        return
+    val_flag = "--val-data" if config.val_data is not None else "--data"
+    _, val_cars = label_classes(val_dir, val_ids)
+    classes, cars = label_classes(train_dir, train_ids)
+    if not cars:
+        found = ", ".join(f"{kind} {count}" for kind, count in classes.most_common()) or "none: the files are empty"
+        val_frames = (f"its {_frames(len(val_ids), 'validation')}" if val_dir.resolve() == train_dir.resolve()
+                      else f"the {_frames(len(val_ids), 'validation')} of {val_flag} {val_dir}")
+        also = "" if val_cars else f"; {val_frames} label none either (AP would be 0)"
+        raise InputError(f"--data {train_dir}: no {CAR_CLASS} in the label_2 files of its "
+                         f"{_frames(len(train_ids), 'training')} (classes found: {found}); the detector learns "
+                         f"KITTI's {CAR_CLASS} class{also}")
+    if not val_cars:
+        log.warning("%s %s: no %s in the label_2 files of its %s: their AP is 0 whatever the detector learns, "
+                    "and the run's best epoch (picked by AP) means nothing", val_flag, val_dir, CAR_CLASS,
+                    _frames(len(val_ids), "validation"))
+
+
+def _frames(count: int, kind: str) -> str:
+    """"1 training frame", "8 training frames"."""
+    return f"{count} {kind} frame{'' if count == 1 else 's'}"
 
 
 def thins_scans(config: TrainConfig) -> bool:
@@ -310,12 +391,28 @@ def check_thinnable_scans(config: TrainConfig, train_dir: Path, train_ids: list[
     the default 16, are refused now in one line naming the scan and the flag (--emulate-beams 0), not by the
     first batch's emulate_beams error without a file name. With --emulate-beams 0 they must not have 64 lines,
     or the run would learn from 64 as if from 16 and its manifest say 16. A drive's maps are thinned through its
-    calibration, which read_frame checks."""
-    if not thins_scans(config):
-        return
+    calibration, which read_frame checks. ``--input lidar64`` reads the scans as stored: they must have 64 lines
+    (:func:`check_64_lines`)."""
     for folder, first in dict.fromkeys(((train_dir, train_ids[0]), (val_dir, val_ids[0]))):  # each pair once
-        if not is_drive_folder(folder):
+        if is_drive_folder(folder):
+            continue
+        if thins_scans(config):
             check_thinnable(folder, [first], config.emulate_beams, "train on")
+        else:
+            check_64_lines(folder / "velodyne" / f"{first}.bin")
+
+
+def check_64_lines(scan: Path) -> None:
+    """``--input lidar64``: the scan has 64 lines, as :func:`pipeline.beams.emulate_beams` judges a scan it can thin
+    (the test every other input's check makes, :func:`pipeline.beams.check_thinnable`). A 16-line sensor's scans would
+    train a "lidar64" PIXOR, and its exported manifest would claim 64 lines: refused in one line naming the scan."""
+    points = read_velodyne(scan).points  # an unreadable scan is named by its reader, as such
+    try:
+        emulate_beams(points, 16)
+    except InputError as exc:  # its reason, without the advice that suits thinning: "the scan has 16 rings, …"
+        reason = str(exc).removeprefix("points: ").split(" (emulate beams")[0]
+        raise InputError(f"{scan}: --input lidar64 trains on 64-line scans as stored, but {reason}; "
+                         "for a 16-line sensor's scans give --input lidar16 --emulate-beams 0") from None
 
 
 def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str]) -> None:

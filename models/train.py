@@ -100,6 +100,7 @@ from models.losses import DEPTH_LOSSES, pixor_loss
 from models.run_checks import (
     STATE_FILE,
     already_trained,
+    check_cars,
     check_frames,
     check_out,
     check_pseudo_maps,
@@ -492,6 +493,7 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
     train_dir, train_ids, val_dir, val_ids = split_ids(config)
     check_thinnable_scans(config, train_dir, train_ids, val_dir, val_ids)
+    check_cars(config, train_dir, train_ids, val_dir, val_ids)
     check_pseudo_maps(config, train_ids, val_ids)
     if state is not None and state["epoch"] >= config.epochs:  # nothing to train: the run stays as it is
         _write_log(out / "log.jsonl", list(state["history"]))  # its last line, if a kill came before it

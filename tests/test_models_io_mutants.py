@@ -8,6 +8,7 @@ inputs; the tiny model directory is exported once per session (conftest's ``tiny
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -124,19 +125,63 @@ def test_a_car_weight_below_one_weighs_the_cars_down():
     assert set(torch.unique(sample[3]).tolist()) == {0.5, 1.0}
 
 
+def _label(kind: str, z: float) -> Object3D:
+    """A car-sized label of class ``kind``, ``z`` metres ahead of the camera."""
+    return Object3D(kind, 0.0, 0, 0.0, (500.0, 170.0, 600.0, 220.0), (1.5, 1.6, 3.9), (0.0, 1.6, z), 0.0)
+
+
 def test_vans_are_not_cars():
     """The detector's targets are KITTI's Car class alone; a Van (its own class, ignored in the Car evaluation)
     is no positive (mutant: Car and Van)."""
     calib = load_frame(KITTI, "000006", with_image=False).calib
-
-    def label(kind: str, z: float) -> Object3D:
-        return Object3D(kind, 0.0, 0, 0.0, (500.0, 170.0, 600.0, 220.0), (1.5, 1.6, 3.9), (0.0, 1.6, z), 0.0)
-
-    frame = Frame("000006", None, np.zeros((0, 4), np.float32), calib, [label("Car", 10.0), label("Van", 20.0)],
+    frame = Frame("000006", None, np.zeros((0, 4), np.float32), calib, [_label("Car", 10.0), _label("Van", 20.0)],
                   size_hw=(375, 1242))
     boxes = car_boxes(frame)
     assert boxes.shape == (1, 7)
     assert boxes[0, 0] == pytest.approx(10.0 + 0.27, abs=0.1)  # the car's 10 m (the LiDAR sits 0.27 m behind)
+
+
+def _frame_copy(folder: Path, fid: str = "000006") -> Path:
+    """An object folder of one real frame, its files linked (a test replaces the ones it changes)."""
+    for sub, suffix in (("velodyne", ".bin"), ("image_2", ".png"), ("calib", ".txt"), ("label_2", ".txt")):
+        (folder / sub).mkdir(parents=True)
+        (folder / sub / f"{fid}{suffix}").symlink_to(KITTI / sub / f"{fid}{suffix}")
+    return folder
+
+
+def test_a_car_is_a_car_whatever_the_case_of_its_class_as_the_evaluation_reads_it(tmp_path):
+    """Labels writing "car" trained PIXOR on no positive (and --car-weight on no pixel) while the evaluation, which
+    compares classes case-insensitively, scored the net on those cars (session 47's review); Van and Vehicle stay
+    other classes."""
+    calib = load_frame(KITTI, "000006", with_image=False).calib
+    kinds = ("car", "CAR", "Car", "Van", "Vehicle")
+    frame = Frame("000006", None, np.zeros((0, 4), np.float32), calib,
+                  [_label(kind, 10.0 + 5 * i) for i, kind in enumerate(kinds)], size_hw=(375, 1242))
+    assert car_boxes(frame)[:, 0] == pytest.approx([10.27, 15.27, 20.27], abs=0.1)
+    data = _frame_copy(tmp_path / "data")
+    labels = data / "label_2" / "000006.txt"
+    labels.unlink()
+    labels.write_text((KITTI / "label_2" / "000006.txt").read_text().replace("Car ", "car "))
+    weights = DepthDataset(data, ["000006"], TINY, car_weight=5.0)[0][3]
+    assert set(torch.unique(weights).tolist()) == {1.0, 5.0}
+
+
+def test_a_depth_target_of_another_size_or_missing_beside_other_maps_is_refused_by_name(tmp_path):
+    """A depth_2 map twice its image's size was cropped by its own shape: the target of another part of the scene
+    (session 47's review); one missing where depth_2/ holds maps trained on the scan instead. Each is an error
+    naming the map (training checks both up front, models.run_checks; this is the loader's own guard)."""
+    data = _frame_copy(tmp_path / "data")
+    (data / "depth_2").mkdir()
+    dense = data / "depth_2" / "000006.png"
+    write_depth_png(dense, np.full((748, 2476), 9.0))
+    with pytest.raises(InputError) as caught:
+        DepthDataset(data, ["000006"], TINY)[0]
+    assert str(caught.value) == f"{dense}: a 2476×748 depth map for a 1238×374 image; it must cover the whole image"
+    dense.unlink()
+    with pytest.raises(InputError, match=rf"^{re.escape(str(dense))}: cannot read depth PNG"):
+        DepthDataset(data, ["000006"], TINY)[0]
+    write_depth_png(dense, np.full((374, 1238), 9.0))
+    assert torch.unique(DepthDataset(data, ["000006"], TINY)[0][2]).tolist() == [9.0]  # the map's, in the view
 
 
 def test_an_unknown_input_is_refused_by_name():

@@ -14,6 +14,7 @@ import torch
 from models import build_pixor
 from models.devices import autocast, resolve_compile, resolve_device, run_layout, seed_everything
 from models.run_checks import (
+    check_cars,
     check_frames,
     check_pseudo_maps,
     check_resumable,
@@ -26,7 +27,7 @@ from models.run_checks import (
 from models.train import TrainConfig
 from pipeline.beams import emulate_beams
 from pipeline.errors import InputError
-from pipeline.kitti import read_velodyne, write_depth_png, write_velodyne
+from pipeline.kitti import read_image_size, read_velodyne, write_depth_png, write_velodyne
 from pipeline.presets import get_preset
 from tests.conftest import KITTI
 
@@ -219,6 +220,108 @@ def test_the_validation_frames_need_their_own_cached_maps(tmp_path):
     config = _config("detector", KITTI, input_mode="pseudo", pseudo_dir=maps)
     with pytest.raises(InputError, match=rf"--pseudo-dir {maps}: no cached depth map of frame 000003"):
         check_pseudo_maps(config, ["000006"], ["000003"])
+
+
+# ------------------------------------------------------------------- what a run learns from: cars, depth maps, lines
+def _relabel(folder: Path, fid: str, car_as: str) -> None:
+    """A frame's labels (a copy's) with their Car class written ``car_as``."""
+    path = folder / "label_2" / f"{fid}.txt"
+    path.write_text("".join(line.replace("Car ", f"{car_as} ", 1) + "\n" for line in path.read_text().splitlines()))
+
+
+@pytest.mark.parametrize("task", ["detector", "joint"])
+def test_a_run_whose_training_labels_hold_no_car_is_refused_naming_the_classes(tmp_path, task):
+    """Labels calling the cars "Vehicle": the detector would train on no positive, to a low loss and AP 0, without a
+    word (session 47's review: exit 0). Refused in one line naming the folder, the classes found and, when the
+    validation frames hold no Car either, that too."""
+    data = _object_folder(tmp_path / "data", ("000003", "000006"))
+    for fid in ("000003", "000006"):
+        _relabel(data, fid, "Vehicle")
+    with pytest.raises(InputError) as caught:
+        check_cars(_config(task, data), data, ["000003", "000006"], data, ["000003"])
+    assert str(caught.value) == (f"--data {data}: no Car in the label_2 files of its 2 training frames (classes "
+                                 "found: Vehicle 5, DontCare 4); the detector learns KITTI's Car class; its 1 "
+                                 "validation frame label none either (AP would be 0)")
+    with pytest.raises(InputError, match=r"training frames \(classes found: Vehicle 5, DontCare 4\); the detector "
+                                         r"learns KITTI's Car class$"):  # validated on KITTI's own cars
+        check_cars(_config(task, data, val_data=KITTI), data, ["000003", "000006"], KITTI, ["000006"])
+    check_cars(_config("depth", data), data, ["000003"], data, ["000003"])  # depth targets come from no label
+
+
+def test_cars_are_counted_whatever_the_case_of_their_class_and_validation_without_one_is_warned_of(tmp_path, caplog):
+    """"car" is a Car, as the evaluation reads it (case-insensitively): accepted. Training cars and validation
+    frames without one (000000: a pedestrian): a warning that their AP says nothing, no refusal."""
+    data = _object_folder(tmp_path / "data", ("000000", "000006"))
+    _relabel(data, "000006", "car")
+    with caplog.at_level(logging.WARNING, logger="models.run_checks"):
+        check_cars(_config("detector", data), data, ["000006"], data, ["000006"])
+        assert caplog.messages == []
+        check_cars(_config("detector", data), data, ["000006"], data, ["000000"])
+    assert caplog.messages == [(f"--data {data}: no Car in the label_2 files of its 1 validation frame: their AP is 0 "
+                                "whatever the detector learns, and the run's best epoch (picked by AP) means nothing")]
+
+
+def _depth_maps(data: Path, ids: tuple[str, ...]) -> None:
+    """``depth_2/`` maps of ``ids``, each of its image's size."""
+    (data / "depth_2").mkdir()
+    for fid in ids:
+        write_depth_png(data / "depth_2" / f"{fid}.png", np.full(read_image_size(data / "image_2" / f"{fid}.png"), 9.0))
+
+
+@pytest.mark.parametrize(("task", "wh"), [("depth", (2484, 750)), ("depth", (1216, 352)), ("joint", (621, 187))])
+def test_a_depth_map_of_another_size_than_its_image_is_named_before_training(tmp_path, task, wh):
+    """depth_2 maps twice, a crop of, or half the image's size: the crop is taken from the map's own shape, so the run
+    trained on another part of the scene, or failed an epoch in blaming the image (session 47's review). Refused
+    up front naming the map and the image it must match; maps of their own images' sizes (000003's is 1242×375,
+    000006's 1238×374) pass."""
+    data = _object_folder(tmp_path / "data", ("000003", "000006"))
+    _depth_maps(data, ("000003", "000006"))
+    ids = ["000003", "000006"]
+    check_frames(_config(task, data), data, ids, data, ids)
+    bad = data / "depth_2" / "000003.png"
+    write_depth_png(bad, np.full(wh[::-1], 9.0))
+    with pytest.raises(InputError) as caught:
+        check_frames(_config(task, data), data, ids, data, ids)
+    assert str(caught.value) == (f"{bad}: a {wh[0]}×{wh[1]} depth map for the 1242×375 image "
+                                 f"{data / 'image_2' / '000003.png'}; it must cover the whole image, pixel for pixel")
+    check_frames(_config("detector", data), data, ids, data, ids)  # a detector reads no depth map
+
+
+def test_a_frame_without_its_depth_map_beside_others_with_one_is_refused(tmp_path):
+    """depth_2/ with the maps of some frames: the others trained silently on their scans, two kinds of target mixed
+    (session 47's review). Refused naming the first frame without one and how many more; without depth_2/ at all
+    every target is the scan, as documented; a joint run's validation frames need none (it validates PIXOR)."""
+    ids = ["000000", "000003", "000006"]
+    data = _object_folder(tmp_path / "data", tuple(ids))
+    check_frames(_config("depth", data), data, ids, data, ids)
+    _depth_maps(data, ("000003",))
+    with pytest.raises(InputError) as caught:
+        check_frames(_config("depth", data), data, ids, data, ["000003"])
+    assert str(caught.value) == (f"--data {data}: frame 000000 (and 1 more) has no depth map "
+                                 f"({data / 'depth_2' / '000000.png'}) although depth_2/ holds the others' targets; "
+                                 "give every frame its map, or remove depth_2/ to train on the scans")
+    check_frames(_config("joint", data), data, ["000003"], data, ids)
+    with pytest.raises(InputError, match=r"frame 000006 has no depth map"):
+        check_frames(_config("depth", data, val_data=data), data, ["000003"], data, ["000006"])
+
+
+def test_lidar64_refuses_a_16_line_sensors_scans_in_either_folder(tmp_path):
+    """--input lidar64 on 16-line scans trained silently and recorded lidar64, so the exported model claimed 64
+    lines (session 47's review). The first training and validation scans are judged as emulate_beams judges them
+    and refused in one line naming the scan and the flags that fit; KITTI's 64-line scans pass."""
+    data = _object_folder(tmp_path / "data", ("000006",))
+    scan = data / "velodyne" / "000006.bin"
+    write_velodyne(scan, emulate_beams(read_velodyne(scan).points, 16))
+    says = (f"{scan}: --input lidar64 trains on 64-line scans as stored, but the scan has 16 rings, not 64: it is "
+            "thinned already; for a 16-line sensor's scans give --input lidar16 --emulate-beams 0")
+    with pytest.raises(InputError) as caught:
+        check_thinnable_scans(_config("detector", data, input_mode="lidar64"), data, ["000006"], KITTI, ["000006"])
+    assert str(caught.value) == says
+    with pytest.raises(InputError) as caught:
+        check_thinnable_scans(_config("detector", KITTI, input_mode="lidar64", val_data=data), KITTI, ["000003"], data,
+                              ["000006"])
+    assert str(caught.value) == says
+    check_thinnable_scans(_config("detector", KITTI, input_mode="lidar64"), KITTI, ["000003"], KITTI, ["000006"])
 
 
 # ------------------------------------------------------------------------------------------------- models/devices.py

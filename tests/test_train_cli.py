@@ -648,3 +648,53 @@ def test_a_run_started_from_resnet18_weights_resumes_with_the_same_file(tmp_path
     other = TrainConfig(task="depth", data=KITTI, preset="paper", out=tmp_path, resnet18=tmp_path / "other.pth")
     with pytest.raises(InputError, match=r"--resnet18 .*other\.pth, but .* was started with --resnet18"):
         check_resumable(other, state, tmp_path)
+
+
+# ----------------------------------------------------------------------------- what the run would learn from
+def _replace(path: Path, data: bytes) -> None:
+    """Write ``data`` in place of a linked sample file (the link goes, the sample stays)."""
+    path.unlink()
+    path.write_bytes(data)
+
+
+def _no_cars(data: Path) -> str:
+    _replace(data / "label_2" / f"{FRAME}.txt",
+             (KITTI / "label_2" / f"{FRAME}.txt").read_bytes().replace(b"Car ", b"Vehicle "))
+    return f"--data {data}: no Car in the label_2 files of its 1 training frame (classes found: Vehicle 4, DontCare 2)"
+
+
+def _doubled_depth_map(data: Path) -> str:
+    from pipeline.kitti import write_depth_png
+
+    (data / "depth_2").mkdir()
+    write_depth_png(data / "depth_2" / f"{FRAME}.png", np.full((748, 2476), 9.0))
+    return f"{data / 'depth_2' / f'{FRAME}.png'}: a 2476×748 depth map for the 1238×374 image"
+
+
+def _scans_of_16_lines(data: Path) -> str:
+    from pipeline.beams import emulate_beams
+    from pipeline.kitti import read_velodyne, write_velodyne
+
+    scan = data / "velodyne" / f"{FRAME}.bin"
+    points = read_velodyne(scan).points
+    scan.unlink()
+    write_velodyne(scan, emulate_beams(points, 16))
+    return f"{scan}: --input lidar64 trains on 64-line scans as stored, but the scan has 16 rings"
+
+
+@pytest.mark.parametrize(("task", "extra", "breakage"), [
+    ("detector", [], _no_cars),
+    ("depth", [], _doubled_depth_map),
+    ("detector", ["--input", "lidar64"], _scans_of_16_lines),
+], ids=["no-car-labelled", "depth-map-of-another-size", "lidar64-on-16-lines"])
+def test_data_the_run_would_silently_learn_wrong_from_is_refused_before_it_starts(tmp_path, capsys, task, extra,
+                                                                                    breakage):
+    """Session 47's review: labels naming no Car (the detector trained on no positive: exit 0, AP 0), a depth map
+    twice its image's size (the target of another part of the scene), --input lidar64 on a 16-line sensor's scans
+    (a model recorded as 64-line). Each is one line naming what is wrong (exit 2), and no --out is made."""
+    data = _object_folder(tmp_path / "data", (FRAME,))
+    says = breakage(data)
+    out = tmp_path / "run"
+    said = refused([task, "--data", str(data), "--out", str(out), *DRIVE_RUN, *extra], capsys)
+    assert said.startswith(f"error: {says}"), said
+    assert not out.exists()
