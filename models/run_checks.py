@@ -7,6 +7,7 @@ applies to the task is checked next to the flags, in models.train.check_flags_ap
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import os
 import random
@@ -183,6 +184,32 @@ def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
         if key in recorded and recorded[key] != getattr(config, key):
             log.warning("%s: resumed with %s, started with %s: the remaining epochs compute differently", out,
                         _flag_text(flag, getattr(config, key)), _flag_text(flag, recorded[key]))
+
+
+def frame_fingerprints(train_ids: list[str], val_ids: list[str]) -> dict[str, str | int]:
+    """What a run's state records of the frames it trains and validates on: their counts and the sha256 of each
+    id list in its order (which, with the seed, decides every batch), for :func:`check_same_frames`."""
+    def digest(ids: list[str]) -> str:
+        return hashlib.sha256("\n".join(ids).encode()).hexdigest()
+
+    return {"train_frames": len(train_ids), "train_frames_sha256": digest(train_ids),
+            "val_frames": len(val_ids), "val_frames_sha256": digest(val_ids)}
+
+
+def check_same_frames(state: dict, out: Path, train_ids: list[str], val_ids: list[str]) -> None:
+    """A resumed run reads the frames it was started on: the same flags can name others (a split file edited,
+    frames added to a folder read whole), and the remaining epochs would silently train on them. Refused in one
+    line; a state from before the record is not compared."""
+    recorded = state.get("config") if isinstance(state.get("config"), dict) else {}
+    now = frame_fingerprints(train_ids, val_ids)
+    for kind, flags in (("train", "--data / --train-split"), ("val", "--val-data / --val-split")):
+        started = recorded.get(f"{kind}_frames_sha256")
+        if started is not None and started != now[f"{kind}_frames_sha256"]:
+            name = "training" if kind == "train" else "validation"
+            raise InputError(f"{flags}: {out} was started on {_frames(recorded.get(f'{kind}_frames', 0), name)}, "
+                             f"and the same flags now give {_frames(int(now[f'{kind}_frames']), 'other')} (a split "
+                             "file edited, frames added or removed); resume on the frames it started with, or start "
+                             "a new run")
 
 
 def restore_state(state: dict, state_path: Path, networks: dict[str, torch.nn.Module], optimizer, scheduler,

@@ -105,8 +105,10 @@ from models.run_checks import (
     check_out,
     check_pseudo_maps,
     check_resumable,
+    check_same_frames,
     check_thinnable_scans,
     emulated_lines,
+    frame_fingerprints,
     load_state,
     restore_state,
     run_lock,
@@ -492,6 +494,8 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
     if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
     train_dir, train_ids, val_dir, val_ids = split_ids(config)
+    if state is not None:  # the same flags may name other frames now (a split file edited, frames added)
+        check_same_frames(state, out, train_ids, val_ids)
     check_thinnable_scans(config, train_dir, train_ids, val_dir, val_ids)
     check_cars(config, train_dir, train_ids, val_dir, val_ids)
     check_pseudo_maps(config, train_ids, val_ids)
@@ -528,7 +532,7 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         if state is None and state_path.exists():  # another process made it too, and held it first
             raise InputError(f"--out: {out} was started by another training process meanwhile ({STATE_FILE}); "
                              "give a new folder, or --resume it once that process has ended")
-    recorded_config = _jsonable(asdict(config))
+    recorded_config = {**_jsonable(asdict(config)), **frame_fingerprints(train_ids, val_ids)}
     if state is None:
         # The state before the first epoch, right after the folder is made: a run stopped in its first epoch
         # resumes (--resume) like any other, and the flags it was started with are there to compare.

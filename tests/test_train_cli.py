@@ -131,6 +131,24 @@ def test_resume_refuses_another_task_input_or_preset(finished_run, tmp_path, cap
     assert files(run_dir) == before
 
 
+
+def test_resume_refuses_a_split_that_names_other_frames_now(tmp_path, capsys):
+    """--resume compared the flags, not the frames they name: a split file edited between the two runs (or frames
+    added to a folder read whole) trained the remaining epochs on other frames without a word."""
+    split = tmp_path / "train.txt"
+    split.write_text(f"{FRAME}\n")
+    run_dir = tmp_path / "run"
+    assert main(args("detector", run_dir, split)) == 0
+    before = files(run_dir)
+    split.write_text("000000\n000001\n")  # the same --train-split, other frames
+    says = refused(args("detector", run_dir, split, "--resume", "--epochs", "2"), capsys)
+    assert says == (f"error: --data / --train-split: {run_dir} was started on 1 training frame, and the same flags "
+                    "now give 2 other frames (a split file edited, frames added or removed); resume on the frames it "
+                    "started with, or start a new run")
+    assert files(run_dir) == before
+    split.write_text(f"{FRAME}\n")  # as it was: resumes
+    assert main(args("detector", run_dir, split, "--resume", "--epochs", "2")) == 0
+
 def test_resume_of_a_finished_run_has_nothing_to_do(finished_run, tmp_path, capsys, one_frame):
     run_dir = tmp_path / "run"
     shutil.copytree(finished_run, run_dir)
