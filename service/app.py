@@ -26,6 +26,7 @@ from service.middleware import (
     BodyLimitMiddleware,
     ConnectionLimitMiddleware,
     CORSMiddleware,
+    Linger,
     RequestContextMiddleware,
     RequestsInFlight,
 )
@@ -116,12 +117,15 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     # inside it, each layer answers before the body is read when it can: the connection limit (503), the
     # token (401), a declared size over the limit (413), no place in the pool (503). The pool's place is taken
     # last, for a request nothing else refused.
-    app.add_middleware(AdmissionMiddleware, runtime=lambda: app.state.runtime, detect_paths=detect_paths)
+    # Those early answers read and drop the body the client sends anyway before they close the connection.
+    linger = Linger.of(settings.max_body_bytes, settings.receive_timeout_s)
+    app.add_middleware(AdmissionMiddleware, runtime=lambda: app.state.runtime, detect_paths=detect_paths,
+                       linger=linger)
     app.add_middleware(BodyLimitMiddleware, max_bytes=settings.max_body_bytes,
                        receive_timeout_s=settings.receive_timeout_s)
     if settings.token is not None:
-        app.add_middleware(AuthMiddleware, token=settings.token)
-    app.add_middleware(ConnectionLimitMiddleware, open_paths=open_paths)
+        app.add_middleware(AuthMiddleware, token=settings.token, linger=linger)
+    app.add_middleware(ConnectionLimitMiddleware, open_paths=open_paths, linger=linger)
     app.add_middleware(RequestContextMiddleware, metrics=metrics, route_paths=route_paths, in_flight=in_flight,
                        model_id=lambda: served_model_id(app), quiet_paths=open_paths)
     if settings.cors_origins:  # off by default: only a dashboard in a browser on another origin needs it

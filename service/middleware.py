@@ -27,6 +27,11 @@ check: :func:`service.deps.require_multipart` answers 400 for those.
 its upload is read, and answers 503 when there is none (or the models are not
 ready), so the uploads held at once are bounded by workers + queue.
 
+The 503s and the 401 given before the body is read close the connection, but only once the body has been
+read and dropped (:func:`send_early_error`, a bounded lingering close): closing a socket with the upload unread
+makes the kernel reset the connection, and a client that sends its whole body before it reads (httpx, most
+libraries) would get a connection error instead of its answer.
+
 With ``--cors-origins``, :class:`CORSMiddleware` is outermost of all: every answer a browser's script gets,
 a 500 included, carries the CORS headers; it answers a preflight itself (no request id, not counted).
 """
@@ -41,6 +46,7 @@ import re
 import time
 import uuid
 from collections.abc import Awaitable, Callable, MutableMapping
+from dataclasses import dataclass
 from typing import Any
 
 from pydantic import SecretStr
@@ -173,6 +179,70 @@ async def send_error(send: Send, status: int, code: str, message: str, request_i
     headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
     await send({"type": "http.response.start", "status": status, "headers": headers + (extra_headers or [])})
     await send({"type": "http.response.body", "body": body})
+
+
+# How long an early error answer waits for the rest of the request's body (its lingering close) at most. A
+# frame (3 MB) arrives in milliseconds on a LAN and in 2 s at 12 Mbit/s; a client slower than that is cut off
+# (reset) as before, and a flood of refused uploads holds each connection at most this long.
+LINGER_S = 2.0
+
+
+@dataclass(frozen=True)
+class Linger:
+    """The bounds of an early answer's lingering close: at most ``max_bytes`` (the body limit) of the body read
+    and dropped, for at most ``timeout_s``."""
+
+    max_bytes: int
+    timeout_s: float
+
+    @classmethod
+    def of(cls, max_body_bytes: int, receive_timeout_s: float) -> Linger:
+        """LINGER_S, or ``--receive-timeout-s`` when shorter (no client is owed longer than that for its body)."""
+        return cls(max_body_bytes, min(LINGER_S, receive_timeout_s))
+
+
+def _client_sends_body(scope: Scope) -> bool:
+    """Whether the client is sending a body: it announced one, and does not wait for ``100 Continue`` first (a
+    client that does sends none once answered: uvicorn sends 100 only at a receive() before the answer)."""
+    expect = _header(scope, b"expect")
+    return _has_body(scope) and (expect is None or expect.strip().lower() != "100-continue")
+
+
+async def _drop_body(receive: Receive, linger: Linger) -> None:
+    """Read and drop the request's body until its end, the client's leaving, or ``linger``'s bounds: no more
+    than one message of it is held at a time (uvicorn pauses reading once it holds 64 KiB)."""
+    deadline = time.monotonic() + linger.timeout_s
+    dropped = 0
+    while dropped <= linger.max_bytes:
+        try:
+            message = await asyncio.wait_for(receive(), deadline - time.monotonic())
+        except (TimeoutError, asyncio.TimeoutError):  # both: the builtin is not asyncio's on Python 3.10
+            return
+        if message["type"] != "http.request" or not message.get("more_body", False):
+            return
+        dropped += len(message.get("body", b""))
+
+
+async def send_early_error(scope: Scope, receive: Receive, send: Send, linger: Linger, status: int, code: str,
+                           message: str, extra_headers: list[tuple[bytes, bytes]]) -> None:
+    """Answer an error before the request's body was read, then close the connection (``extra_headers`` should
+    say ``Connection: close``) only once the body has been read and dropped, within ``linger``'s bounds.
+
+    Closing the socket with the upload still unread in its buffer makes the kernel reset the connection, and
+    a client that sends its whole body before it reads the answer then gets a connection error instead. The
+    answer goes out first, so a client that reads as it sends (curl) has it at once; its last (empty) part
+    waits for the body. A body past the bounds, or one the client waits to be invited for (``Expect:
+    100-continue``), is not waited for: the connection closes at once, as it would without the body."""
+    request_id = (scope.get("state") or {}).get("request_id")
+    if not _client_sends_body(scope):
+        await send_error(send, status, code, message, request_id, extra_headers)
+        return
+    body = error_bytes(code, message, request_id)
+    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
+    await send({"type": "http.response.start", "status": status, "headers": headers + extra_headers})
+    await send({"type": "http.response.body", "body": body, "more_body": True})
+    await _drop_body(receive, linger)
+    await send({"type": "http.response.body", "body": b"", "more_body": False})
 
 
 class CancelledRequestLogFilter(logging.Filter):
@@ -383,9 +453,10 @@ class ConnectionLimitMiddleware:
     """503 ``overloaded`` for a request service/protocol.py marked as over the connection limit, before its body
     is read; the probes and ``/metrics`` are answered still (an orchestrator must not take overload for death)."""
 
-    def __init__(self, app: ASGIApp, open_paths: frozenset[str]) -> None:
+    def __init__(self, app: ASGIApp, open_paths: frozenset[str], linger: Linger) -> None:
         self.app = app
         self.open_paths = open_paths
+        self.linger = linger
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         state = scope.get("state") or {}
@@ -393,8 +464,9 @@ class ConnectionLimitMiddleware:
         if scope["type"] != "http" or limit is None or scope.get("path") in self.open_paths:
             await self.app(scope, receive, send)
             return
-        await send_error(send, 503, "overloaded", f"connections: more than the limit of {limit} open; retry later",
-                         state.get("request_id"), [(b"retry-after", b"1"), (b"connection", b"close")])
+        await send_early_error(scope, receive, send, self.linger, 503, "overloaded",
+                               f"connections: more than the limit of {limit} open; retry later",
+                               [(b"retry-after", b"1"), (b"connection", b"close")])
 
 
 class AuthMiddleware:
@@ -402,17 +474,17 @@ class AuthMiddleware:
     check would come after FastAPI has read and parsed the whole upload). Probes, metrics and the schema stay
     open."""
 
-    def __init__(self, app: ASGIApp, token: SecretStr) -> None:
+    def __init__(self, app: ASGIApp, token: SecretStr, linger: Linger) -> None:
         self.app = app
         self.token = token
+        self.linger = linger
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         path = scope.get("path", "")
         protected = scope["type"] == "http" and (path == "/v1" or path.startswith("/v1/"))
         if protected and not token_accepted(self.token, _header(scope, b"authorization")):
-            request_id = (scope.get("state") or {}).get("request_id")
-            await send_error(send, 401, "unauthorized", UNAUTHORIZED_MESSAGE, request_id,
-                             [(b"www-authenticate", WWW_AUTHENTICATE.encode()), *_close_if_body(scope)])
+            await send_early_error(scope, receive, send, self.linger, 401, "unauthorized", UNAUTHORIZED_MESSAGE,
+                                   [(b"www-authenticate", WWW_AUTHENTICATE.encode()), *_close_if_body(scope)])
             return
         await self.app(scope, receive, send)
 
@@ -517,35 +589,37 @@ class AdmissionMiddleware:
     than the pool has places are held at once. Only the detection routes (``detect_paths``) take a place.
     """
 
-    def __init__(self, app: ASGIApp, runtime: Callable[[], Runtime | None], detect_paths: frozenset[str]) -> None:
+    def __init__(self, app: ASGIApp, runtime: Callable[[], Runtime | None], detect_paths: frozenset[str],
+                 linger: Linger) -> None:
         self.app = app
         self.runtime = runtime
         self.detect_paths = detect_paths
+        self.linger = linger
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http" or scope.get("method") != "POST" or scope.get("path") not in self.detect_paths:
             await self.app(scope, receive, send)
             return
         state = scope.setdefault("state", {})
-        request_id = state.get("request_id")
         close = [(b"connection", b"close")]
         runtime = self.runtime()
         reason = not_ready_reason(runtime)
         if reason is not None:
-            await send_error(send, 503, "not_ready", reason, request_id, [(b"retry-after", b"1"), *close])
+            await send_early_error(scope, receive, send, self.linger, 503, "not_ready", reason,
+                                   [(b"retry-after", b"1"), *close])
             return
         assert runtime is not None  # not_ready_reason said so
         pool = runtime.pool
         try:
             reservation = pool.reserve()
         except PoolFull as exc:
-            await send_error(send, 503, "overloaded",
-                             f"inference queue: full ({pool.capacity} frames admitted); retry later", request_id,
-                             [(b"retry-after", str(exc.retry_after_s).encode()), *close])
+            await send_early_error(scope, receive, send, self.linger, 503, "overloaded",
+                                   f"inference queue: full ({pool.capacity} frames admitted); retry later",
+                                   [(b"retry-after", str(exc.retry_after_s).encode()), *close])
             return
         except PoolClosed:
-            await send_error(send, 503, "shutting_down", "the service is shutting down", request_id,
-                             [(b"retry-after", b"1"), *close])
+            await send_early_error(scope, receive, send, self.linger, 503, "shutting_down",
+                                   "the service is shutting down", [(b"retry-after", b"1"), *close])
             return
         state["reservation"] = reservation
         try:

@@ -645,9 +645,11 @@ def test_bearer_token(tiny_models: Path, frame: dict[str, bytes]) -> None:
 
 
 def test_the_token_is_checked_before_the_upload_is_read(tiny_models: Path, frame: dict[str, bytes]) -> None:
-    """Without the token a detection request is answered 401 before a byte of its body is pulled (the
-    connection then closed, rather than the rest of the upload read and dropped), so an unauthenticated
-    client cannot make the service read and parse uploads; with it, the same upload is read and answered."""
+    """Without the token a detection request is answered 401 before its body is read (test_service_process.py
+    sees the answer come first over a socket), and the connection closed once the rest of the upload has been
+    read and dropped, up to the body limit (a client that sends all before it reads would otherwise get a
+    connection reset): an unauthenticated client cannot make the service parse or hold uploads. With the
+    token, the same upload is read and answered."""
     body, headers = _multipart_body(frame, frame["calib"])
     with service(tiny_models, token="s3cret-token") as app_client:
         for route in ("/v1/detect", "/v1/detect/bev.png", "/v1/detect/camera.png"):
@@ -655,7 +657,7 @@ def test_the_token_is_checked_before_the_upload_is_read(tiny_models: Path, frame
                 upload = CountedUpload(body)
                 response = app_client.post(route, content=upload, headers={**headers, **authorization})
                 assert_error(response, 401, "unauthorized", "Authorization: a valid bearer token is required")
-                assert upload.pulled == 0, route  # not a byte of the upload was read
+                assert upload.pulled == len(body), route  # read to its end, and dropped unparsed
                 assert response.headers["www-authenticate"] == 'Bearer realm="lowres3d"'
                 assert response.headers["connection"] == "close"
         upload = CountedUpload(body)
@@ -669,6 +671,10 @@ def test_the_token_is_checked_before_the_upload_is_read(tiny_models: Path, frame
         for bodiless in (app_client.get("/v1/model"), app_client.post("/v1/detect", content=b"", headers=headers)):
             assert_error(bodiless, 401, "unauthorized")
             assert "connection" not in bodiless.headers, bodiless.request.headers
+        limit = app_client.app.state.settings.max_body_bytes
+        endless = CountedUpload(b"\0" * (limit + 8 * 2**20), chunk=2**20)
+        assert_error(app_client.post("/v1/detect", content=endless, headers=headers), 401, "unauthorized")
+        assert limit < endless.pulled <= limit + 2**20  # dropped up to the body limit, not to its end
 
 
 # --------------------------------------------------------------------------- load and faults
@@ -711,8 +717,9 @@ class CountedUpload:
 
 def test_a_full_pool_refuses_a_frame_before_reading_its_upload(tiny_models: Path, frame: dict[str, bytes]) -> None:
     """The frame's place is taken before its upload is read: with every place taken a request is answered 503
-    overloaded (Retry-After, connection closed) before a byte of its body is pulled, so no more uploads than
-    workers + queue are held at once (a broken one too: it cannot be told apart unread). Once there is room, the
+    overloaded (Retry-After, connection closed) before its body is read (then read and dropped before the
+    close), so no more uploads than workers + queue are held at once (a broken one too: it cannot be told apart
+    unread). Once there is room, the
     checks that need no decoding still answer a broken frame 422 before it waits for a worker."""
     body, headers = _multipart_body(frame, frame["calib"])
     with service(tiny_models, workers=1, queue_size=0) as app_client:
@@ -727,7 +734,7 @@ def test_a_full_pool_refuses_a_frame_before_reading_its_upload(tiny_models: Path
             upload = CountedUpload(body)
             response = app_client.post("/v1/detect", content=upload, headers=headers)
             assert_error(response, 503, "overloaded", "inference queue: full (1 frames admitted)")
-            assert upload.pulled == 0  # not a byte of the upload was read
+            assert upload.pulled == len(body)  # read to its end and dropped, the place not taken
             assert int(response.headers["retry-after"]) >= 1 and response.headers["connection"] == "close"
             assert_error(app_client.post("/v1/detect", files=parts(frame, calib=None)), 503, "overloaded")
         finally:

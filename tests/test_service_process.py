@@ -12,6 +12,7 @@ worker's server), has a bounded start-up time, and is killed in teardown.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import re
@@ -188,14 +189,14 @@ def _raw_request(server: Server, head: str, body: bytes = b"") -> socket.socket:
     return sock
 
 
-def _answer(sock: socket.socket, timeout_s: float) -> tuple[int | None, dict[str, str], bytes, bool]:
-    """What the server sent on ``sock`` until it closed it or ``timeout_s`` passed: (status or None, headers,
-    body, whether it closed the connection)."""
+def _answer(sock: socket.socket, timeout_s: float, whole: bool = False) -> tuple[int | None, dict[str, str], bytes, bool]:
+    """What the server sent on ``sock`` until it closed it (or, ``whole``, until an answer with a Content-Length
+    was all in) or ``timeout_s`` passed: (status or None, headers, body, whether it closed the connection)."""
     sock.settimeout(timeout_s)
     data, closed = b"", False
     deadline = time.monotonic() + timeout_s
     try:
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not (whole and _complete(data)):
             chunk = sock.recv(65536)
             if not chunk:
                 closed = True
@@ -208,6 +209,13 @@ def _answer(sock: socket.socket, timeout_s: float) -> tuple[int | None, dict[str
     status = int(lines[0].split()[1]) if data else None
     headers = {name.lower(): value for name, _, value in (line.partition(": ") for line in lines[1:]) if value}
     return status, headers, body, closed
+
+
+def _complete(data: bytes) -> bool:
+    """Whether ``data`` holds an answer's whole head and all of the body its Content-Length announces."""
+    head, found, body = data.partition(b"\r\n\r\n")
+    length = re.search(rb"(?im)^content-length: *(\d+)", head)
+    return bool(found and length and len(body) >= int(length.group(1)))
 
 
 def test_request_log_names_each_refused_request_and_not_the_noise_clients_cause(
@@ -294,19 +302,28 @@ def test_a_stalled_request_head_is_answered_408_and_its_connection_closed(guarde
     assert f"request {error['request_id']}: its head from 127.0.0.1:" in guarded.log()
 
 
+STALLED_HEAD = ("POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\n"
+                f"Content-Length: 10000000\n{AUTH}\n")
+
+
+def _hold_the_places(guarded: Server) -> list[socket.socket]:
+    """Two uploads that stall after 1 kB of their 10 MB, holding both places of the guarded server's pool until
+    --receive-timeout-s (the caller closes them)."""
+    part = b'--b\r\nContent-Disposition: form-data; name="points"; filename="p.bin"\r\n\r\n' + b"\0" * 1000
+    stalled = [_raw_request(guarded, STALLED_HEAD, part) for _ in range(2)]
+    _wait_for(lambda: _metric(guarded, "lowres3d_inference_queue_depth") == 2.0, "the uploads took no place")
+    return stalled
+
+
 def test_the_pool_refuses_before_the_body_and_a_stalled_body_is_408(
     guarded: Server, frame: dict[str, bytes]  # noqa: F811
 ) -> None:
     """Each upload takes its place in the pool before its body is read: with both places held by uploads that
     stall, a third request is answered 503 overloaded without sending a byte of its 10 MB; the stalled ones
     are answered 408 after --receive-timeout-s and give their places back, and the next frame is answered."""
-    head = ("POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\n"
-            f"Content-Length: 10000000\n{AUTH}\n")
-    part = b'--b\r\nContent-Disposition: form-data; name="points"; filename="p.bin"\r\n\r\n' + b"\0" * 1000
-    stalled = [_raw_request(guarded, head, part) for _ in range(2)]
+    stalled = _hold_the_places(guarded)
     try:
-        _wait_for(lambda: _metric(guarded, "lowres3d_inference_queue_depth") == 2.0, "the uploads took no place")
-        with _raw_request(guarded, head) as third:
+        with _raw_request(guarded, STALLED_HEAD) as third:
             status, headers, body, closed = _answer(third, 5)
         assert (status, closed) == (503, True), body
         assert json.loads(body)["error"]["code"] == "overloaded" and int(headers["retry-after"]) >= 1
@@ -324,13 +341,81 @@ def test_the_pool_refuses_before_the_body_and_a_stalled_body_is_408(
 
 
 def test_without_the_token_the_answer_comes_before_the_body(guarded: Server) -> None:
-    """A 30 MB upload without the token is answered 401 at once, not after the server has read and parsed it."""
+    """A 30 MB upload without the token is answered 401 at once, not after the server has read and parsed it;
+    the connection closes once the rest of the body has been waited for at most --receive-timeout-s (2 s)."""
     head = "POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\nContent-Length: 30000000\n\n"
+    tic = time.monotonic()
     with _raw_request(guarded, head, b"--b\r\n") as sock:
-        status, headers, body, closed = _answer(sock, 5)
+        status, headers, body, _ = _answer(sock, 5, whole=True)
+        answered = time.monotonic() - tic
+        closed = _answer(sock, RECEIVE_TIMEOUT_S + 3)[3]
+        lingered = time.monotonic() - tic
     assert (status, closed) == (401, True), body
+    assert answered < 1.0 and RECEIVE_TIMEOUT_S - 0.2 < lingered < RECEIVE_TIMEOUT_S + 1.5, (answered, lingered)
     assert json.loads(body)["error"]["code"] == "unauthorized"
     assert headers["www-authenticate"] == 'Bearer realm="lowres3d"'
+
+
+async def _post_at_once(url: str, frame: dict[str, bytes], headers: list[dict[str, str]]) -> list[httpx.Response | str]:  # noqa: F811
+    """POST the frame once per item of ``headers``, all at once, from an httpx.AsyncClient (which sends a whole
+    request before it reads its answer): each answer, or the name of the transport error in its place."""
+    async def post(client: httpx.AsyncClient, sent: dict[str, str]) -> httpx.Response | str:
+        try:
+            return await client.post("/v1/detect", files=parts(frame), headers=sent)
+        except httpx.TransportError as exc:
+            return type(exc).__name__
+
+    async with httpx.AsyncClient(base_url=url, timeout=30, limits=httpx.Limits(max_connections=len(headers))) as client:
+        return list(await asyncio.gather(*(post(client, sent) for sent in headers)))
+
+
+def test_refused_uploads_sent_whole_get_their_answer_not_a_reset(
+    guarded: Server, frame: dict[str, bytes]  # noqa: F811
+) -> None:
+    """A client that sends its whole upload before it reads gets the 503 overloaded (and the 401) answered
+    before the body was read, not a connection reset: the server reads and drops the body before it closes
+    the connection (closed with the upload unread, the kernel reset it, and httpx raised ReadError). Three
+    bursts (a burst sometimes got all its answers before); the counts and access lines are the 503's and 401's."""
+    counted = 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status='
+    before = {status: _metric(guarded, f'{counted}"{status}"}}') for status in (401, 503)}
+    rejected = _metric(guarded, 'lowres3d_inference_rejected_total{reason="queue_full"}')
+    token, wrong = f"Bearer {GUARD_TOKEN}", "Bearer wrong"
+    bursts = [[{"Authorization": token if i < 6 else wrong, "X-Request-ID": f"whole-{burst}-{i}"} for i in range(8)]
+              for burst in range(3)]
+    stalled = _hold_the_places(guarded)
+    try:
+        answers = [asyncio.run(_post_at_once(guarded.url, frame, headers)) for headers in bursts]
+    finally:
+        for sock in stalled:
+            sock.close()
+    got = [answer if isinstance(answer, str) else answer.status_code for burst in answers for answer in burst]
+    assert got == [503] * 6 + [401] * 2 + [503] * 6 + [401] * 2 + [503] * 6 + [401] * 2, got
+    for headers, burst in zip(bursts, answers):
+        for sent, answer in zip(headers, burst):
+            assert isinstance(answer, httpx.Response)
+            error = assert_error(answer, answer.status_code, "overloaded" if answer.status_code == 503 else "unauthorized")
+            assert error["request_id"] == sent["X-Request-ID"] and answer.headers["connection"] == "close"
+    assert _metric(guarded, f'{counted}"503"}}') == before[503] + 18
+    assert _metric(guarded, f'{counted}"401"}}') == before[401] + 6
+    assert _metric(guarded, 'lowres3d_inference_rejected_total{reason="queue_full"}') == rejected + 18
+    _wait_for(lambda: "request whole-2-7: " in guarded.log(), "the last access line is missing")
+    assert "request whole-0-0: POST /v1/detect answered 503 overloaded in " in guarded.log()
+    assert "request whole-2-7: POST /v1/detect answered 401 unauthorized in " in guarded.log()
+    _wait_for(lambda: _metric(guarded, "lowres3d_inference_queue_depth") == 0.0, "the places were not given back")
+
+
+def test_a_refused_client_waiting_for_100_continue_is_answered_at_once(guarded: Server) -> None:
+    """A client that sends ``Expect: 100-continue`` (curl, for a large upload) has not sent its body, and will
+    not once answered: it gets its 401 (no ``100 Continue``) and its connection is closed at once, its body not
+    waited for."""
+    head = ("POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\n"
+            "Content-Length: 5000000\nExpect: 100-continue\n\n")
+    tic = time.monotonic()
+    with _raw_request(guarded, head) as sock:
+        status, _, body, closed = _answer(sock, 5)
+    assert (status, closed) == (401, True), body
+    assert time.monotonic() - tic < 1.0  # not the lingering close's 2 s
+    assert json.loads(body)["error"]["code"] == "unauthorized"
 
 
 def test_connections_over_the_limit_are_refused_but_probes_answered(guarded: Server) -> None:
@@ -341,15 +426,18 @@ def test_connections_over_the_limit_are_refused_but_probes_answered(guarded: Ser
     try:
         head = f"POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\n{AUTH}"
         with _raw_request(guarded, head + "Content-Length: 5000000\n\n") as sock:
-            status, headers, body, closed = _answer(sock, 5)
-        assert (status, closed) == (503, True), body
-        error = json.loads(body)["error"]
-        assert error["code"] == "overloaded" and "connections: more than the limit of 18 open" in error["message"]
-        assert headers["retry-after"] == "1"
-        for path in ("/healthz", "/readyz", "/metrics"):
-            assert httpx.get(f"{guarded.url}{path}", timeout=5).status_code == 200, path
-        model = httpx.get(f"{guarded.url}/v1/model", timeout=5, headers={"Authorization": f"Bearer {GUARD_TOKEN}"})
-        assert model.status_code == 503
+            # The answer comes at once; the connection closes when the 5 MB never sent has been waited for (2 s),
+            # and by then the idle connections have been closed (their head deadline): check the others first.
+            status, headers, body, _ = _answer(sock, 5, whole=True)
+            assert status == 503, body
+            error = json.loads(body)["error"]
+            assert error["code"] == "overloaded" and "connections: more than the limit of 18 open" in error["message"]
+            assert headers["retry-after"] == "1"
+            for path in ("/healthz", "/readyz", "/metrics"):
+                assert httpx.get(f"{guarded.url}{path}", timeout=5).status_code == 200, path
+            model = httpx.get(f"{guarded.url}/v1/model", timeout=5, headers={"Authorization": f"Bearer {GUARD_TOKEN}"})
+            assert model.status_code == 503
+            assert _answer(sock, RECEIVE_TIMEOUT_S + 3)[3], "the connection was not closed"
     finally:
         for sock in idle:
             sock.close()
@@ -368,11 +456,12 @@ def test_a_client_that_leaves_stops_its_frame_and_counts_499(guarded: Server, fr
             f"Content-Length: {len(body)}\n{AUTH}X-Request-ID: leaves-1\n\n")
     counted = 'lowres3d_http_requests_total{method="POST",route="/v1/detect",status='
     stopped, answered = _metric(guarded, "lowres3d_inference_stopped_total"), _metric(guarded, counted + '"200"}')
+    left = _metric(guarded, counted + '"499"}')  # other tests' clients may have left too
     with _raw_request(guarded, head, body):
         _wait_for(lambda: _metric(guarded, "lowres3d_inference_in_flight") == 1.0, "the frame did not start")
     _wait_for(lambda: _metric(guarded, "lowres3d_inference_stopped_total") == stopped + 1, "the frame was not stopped")
     _wait_for(lambda: _metric(guarded, "lowres3d_inference_in_flight") == 0.0, "the worker was not freed")
-    assert _metric(guarded, counted + '"499"}') == 1.0
+    assert _metric(guarded, counted + '"499"}') == left + 1
     assert _metric(guarded, counted + '"200"}') == answered
     log = guarded.log()
     assert "request leaves-1: POST /v1/detect client disconnected before its answer 499" in log
