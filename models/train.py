@@ -664,7 +664,9 @@ def _checkpoint_metadata(config: TrainConfig, preset: Preset, networks: dict[str
     recipe, with the flags that changed it and the weights the run started from (and how those were trained)."""
     metadata = {"task": config.task, "preset": preset.name, "code": code_version(), "data": str(train_dir),
                 "train_frames": len(train_ids),
-                "val_data": str(val_dir), "val_frames": len(val_ids), "input": config.input_mode,
+                "val_data": str(val_dir), "val_frames": len(val_ids),
+                # A joint run's PIXOR reads the depth net's pseudo points with the scan, whatever --input says.
+                "input": "pseudo" if config.task == "joint" else config.input_mode,
                 "recipe": {"epochs": config.epochs, "batch_size": config.batch_size, "lr": config.lr,
                            "optimizer": "Adam", "seed": config.seed, "precision": config.precision,
                            "compiled": compiled}}

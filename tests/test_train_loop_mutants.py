@@ -229,6 +229,8 @@ def test_a_joint_run_validates_the_camera_pipeline_it_fine_tunes(tmp_path):
     scan_alone = validate_detector(nets["pixor"], preset, KITTI, ["000006"], "lidar16", None)
     assert record["val_loss"] == pytest.approx(camera["val_loss"], rel=1e-5)
     assert scan_alone["val_loss"] != pytest.approx(camera["val_loss"], rel=1e-3)
+    # What the checkpoints (and so the exported manifest's training record) say its PIXOR read: pseudo points.
+    assert {load_checkpoint(out / f"{name}.pt").metadata["input"] for name in nets} == {"pseudo"}
 
 
 def test_a_joint_epoch_logs_the_mean_frame_loss_of_its_batches(tmp_path):
