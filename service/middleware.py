@@ -442,11 +442,12 @@ class RequestContextMiddleware:
             details.append(f"model {header_model.decode('latin-1')[:12]}")
         if warning_codes:
             details.append(f"warnings {','.join(warning_codes)}")
+        duration_ms = round(elapsed_s * 1e3, 1)  # one value for the field and the sentence (450.53 said 451 and 450.5)
         fields = {"request_id": request_id, "method": method, "path": target, "route": route, "status": status,
-                  "error_code": code, "duration_ms": round(elapsed_s * 1e3, 1), "client": client,
+                  "error_code": code, "duration_ms": duration_ms, "client": client,
                   "model_id": model_id, "warning_codes": warning_codes}
         access_log.log(level, "request %s: %s %s %s %d%s in %.0f ms (%s)", request_id, method, route, what, status,
-                       f" {code}" if code else "", elapsed_s * 1e3, "; ".join(details), extra=fields)
+                       f" {code}" if code else "", duration_ms, "; ".join(details), extra=fields)
 
 
 class ConnectionLimitMiddleware:
