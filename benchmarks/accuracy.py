@@ -12,8 +12,8 @@ figure as JSON and one precision-recall PNG per difficulty.
 
 The mode is chosen by flags (no subcommands): ``--gt-labels`` / ``--pred-labels``
 evaluate existing result files; ``--data`` / ``--models`` / ``--input`` run the
-detector over a KITTI-layout dataset first (results in ``--out``, default a
-folder beside the JSON or ``outputs/accuracy``) and evaluate them against its
+detector over a KITTI-layout dataset first (results in ``--out``, default
+``outputs/accuracy/MODELS/INPUT``: a folder per model and input) and evaluate them against its
 ``label_2``; ``--depth`` measures depth completion (RMSE, MAE, iRMSE, iMAE).
 ``--by-distance`` adds AP per distance band, and ``--depth-dir`` feeds the
 camera pipeline depth maps from files instead of its depth network (with the
@@ -454,7 +454,8 @@ def build_parser() -> argparse.ArgumentParser:
     detect.add_argument("--frames", type=list_or_count, metavar="LIST|N",
                         help="frame ids to run and evaluate, one per line, as --split-file (default all); or N: "
                         "the first N frames in id order, as --frames N of the other commands")
-    detect.add_argument("--out", type=Path, metavar="DIR", help="run folder: result files go to DIR/data (default outputs/accuracy/INPUT, + written _: outputs/accuracy/lidar16_camera)")
+    detect.add_argument("--out", type=Path, metavar="DIR", help="run folder: result files go to DIR/data (default outputs/accuracy/MODELS/INPUT, MODELS the model "
+                        "directory's name, + written _: outputs/accuracy/edge/lidar16_camera)")
     detect.add_argument("--score-threshold", type=probability, default=DEFAULT_SCORE_THRESHOLD, metavar="SCORE",
                         help=f"keep detections above this score (default {DEFAULT_SCORE_THRESHOLD}: AP needs the "
                         "whole curve)")
@@ -493,6 +494,12 @@ _DETECTION = ("input", "out", "score_threshold", "mirror_tta")  # --emulate-beam
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
 _AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "interval", "compare_pred_labels",
        "gap_to_pred_labels")
+
+
+def default_out(models: Path, input_mode: str) -> Path:
+    """``outputs/accuracy/<the model directory's name>/<input>`` (``+`` written ``_``): a run folder of its own for
+    each model and input, so that evaluating another model does not replace one's result files."""
+    return Path("outputs") / "accuracy" / Path(models).resolve().name / input_mode.replace("+", "_")
 
 
 def _flag(dest: str) -> str:
@@ -631,7 +638,9 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
         parser.error("--data DIR and --models DIR are both required to run the models")
     if not args.depth and args.input is None:
         parser.error("--input lidar64|lidar16|lidar16+camera is required with --data and --models")
-    out = None if args.depth else args.out or Path("outputs") / "accuracy" / args.input.replace("+", "_")
+    # By default a folder per model and input: one shared by every model let a second model's run replace the
+    # first's result files without a word.
+    out = None if args.depth else args.out or default_out(args.models, args.input)
     try:
         _check_outputs(args, out)
         frames = read_split_file(split_file) if split_file else None

@@ -658,3 +658,17 @@ def test_depth_mode_evaluates_a_16_line_sensors_own_scans(tiny_models, tmp_path)
     stored = _accuracy("--depth", "--data", data, "--models", tiny_models, "--frames", frames, "--emulate-beams", "0")
     assert stored.returncode == 0, stored.stderr
     assert "depth completion on 1 frame(s)" in stored.stdout and "input: scan as stored" in stored.stdout
+
+
+def test_the_default_run_folder_is_the_models_own(tiny_models, tmp_path):
+    """Without --out every model's run went to outputs/accuracy/INPUT: evaluating a second model replaced the
+    first's result files without a word. Each model directory now has a folder of its own there."""
+    frames = _frames_file(tmp_path, "000006")
+    for name in ("first", "second"):
+        models = shutil.copytree(tiny_models, tmp_path / "models" / name)
+        done = subprocess.run([sys.executable, str(ACCURACY), "--data", str(KITTI), "--models", str(models), "--input",
+                               "lidar16+camera", "--frames", str(frames), "--no-progress"],
+                              capture_output=True, text=True, timeout=300, check=False, cwd=tmp_path)
+        assert done.returncode == 0, done.stderr[-2000:]
+    for name in ("first", "second"):
+        assert (tmp_path / "outputs" / "accuracy" / name / "lidar16_camera" / "data" / "000006.txt").is_file(), name
