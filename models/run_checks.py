@@ -377,7 +377,18 @@ def check_cars(config: TrainConfig, train_dir: Path, train_ids: list[str], val_d
     """A detector or joint run's training frames (those it trains on, after --max-train-frames) label at least one
     Car, or it would train PIXOR on no positive, to a low loss and an AP of 0, without a word: refused in one line
     naming the folder and the classes its labels hold. Validation frames without a Car give an AP of 0 whatever
-    the net learns (and the best epoch is picked by AP): said in that line, or warned of when training has cars."""
+    the net learns (and the best epoch is picked by AP): said in that line, or warned of when training has cars.
+    A depth run with ``--car-weight`` whose training frames label no Car is refused too: the weight would weigh
+    nothing."""
+    if config.task == "depth" and config.car_weight != 1.0:
+        # --car-weight weighs the labelled cars' pixels: with no Car it weighs nothing, and the run is the plain one.
+        classes, cars = label_classes(train_dir, train_ids)
+        if not cars:
+            found = ", ".join(f"{kind} {count}" for kind, count in classes.most_common()) or "none: the files are empty"
+            raise InputError(f"--car-weight {config.car_weight:g}: no {CAR_CLASS} in the label_2 files of the "
+                             f"{_frames(len(train_ids), 'training')} of --data {train_dir} (classes found: {found}), "
+                             "so it would weigh nothing")
+        return
     if config.task not in ("detector", "joint"):
         return
     val_flag = "--val-data" if config.val_data is not None else "--data"

@@ -246,6 +246,11 @@ def test_a_run_whose_training_labels_hold_no_car_is_refused_naming_the_classes(t
                                          r"learns KITTI's Car class$"):  # validated on KITTI's own cars
         check_cars(_config(task, data, val_data=KITTI), data, ["000003", "000006"], KITTI, ["000006"])
     check_cars(_config("depth", data), data, ["000003"], data, ["000003"])  # depth targets come from no label
+    # A depth run weighing the cars' pixels (--car-weight) with no car to weigh: refused as well.
+    with pytest.raises(InputError, match=rf"^--car-weight 10: no Car in the label_2 files of the 1 training frame of "
+                                         rf"--data {data} \(classes found: DontCare 2, Vehicle 1\), so it would weigh "
+                                         r"nothing$"):
+        check_cars(_config("depth", data, car_weight=10.0), data, ["000003"], data, ["000003"])
 
 
 def test_cars_are_counted_whatever_the_case_of_their_class_and_validation_without_one_is_warned_of(tmp_path, caplog):
