@@ -384,7 +384,7 @@ def check_cars(config: TrainConfig, train_dir: Path, train_ids: list[str], val_d
         # --car-weight weighs the labelled cars' pixels: with no Car it weighs nothing, and the run is the plain one.
         classes, cars = label_classes(train_dir, train_ids)
         if not cars:
-            found = ", ".join(f"{kind} {count}" for kind, count in classes.most_common()) or "none: the files are empty"
+            found = _classes_text(classes)
             raise InputError(f"--car-weight {config.car_weight:g}: no {CAR_CLASS} in the label_2 files of the "
                              f"{_frames(len(train_ids), 'training')} of --data {train_dir} (classes found: {found}), "
                              "so it would weigh nothing")
@@ -395,7 +395,7 @@ def check_cars(config: TrainConfig, train_dir: Path, train_ids: list[str], val_d
     _, val_cars = label_classes(val_dir, val_ids)
     classes, cars = label_classes(train_dir, train_ids)
     if not cars:
-        found = ", ".join(f"{kind} {count}" for kind, count in classes.most_common()) or "none: the files are empty"
+        found = _classes_text(classes)
         val_frames = (f"its {_frames(len(val_ids), 'validation')}" if val_dir.resolve() == train_dir.resolve()
                       else f"the {_frames(len(val_ids), 'validation')} of {val_flag} {val_dir}")
         also = "" if val_cars else f"; {val_frames} label none either (AP would be 0)"
@@ -406,6 +406,11 @@ def check_cars(config: TrainConfig, train_dir: Path, train_ids: list[str], val_d
         log.warning("%s %s: no %s in the label_2 files of its %s: their AP is 0 whatever the detector learns, "
                     "and the run's best epoch (picked by AP) means nothing", val_flag, val_dir, CAR_CLASS,
                     _frames(len(val_ids), "validation"))
+
+
+def _classes_text(classes: Counter) -> str:
+    """"Vehicle 40, Pedestrian 3": the classes labels name, most frequent first."""
+    return ", ".join(f"{kind} {count}" for kind, count in classes.most_common()) or "none: the files are empty"
 
 
 def _frames(count: int, kind: str) -> str:

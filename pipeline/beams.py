@@ -236,16 +236,25 @@ def check_thinnable(data: Path, frames: list[str] | None, beams: int, purpose: s
     if not path.is_file():
         return  # the command names the missing scan
     points = read_velodyne(path).points  # an unusable file is refused as such, its reader naming it once
+    if beams:
+        check_scan_thinnable(path, points, beams, purpose)
+        return
     try:
-        emulate_beams(points, beams or 16)
-    except InputError as exc:
-        if beams:
-            raise InputError(f"{path}: {exc}; to {purpose} scans of a {beams}-line sensor as they are, give "
-                             "--emulate-beams 0") from None
+        emulate_beams(points, 16)
+    except InputError:
         return  # not a 64-line scan: a sensor's own, as --emulate-beams 0 says
-    if not beams:
-        raise InputError(f"{path}: the scan has 64 lines, and --emulate-beams 0 would {purpose} it as stored, as a "
-                         "16-line sensor's; give --emulate-beams 16 to thin such scans")
+    raise InputError(f"{path}: the scan has 64 lines, and --emulate-beams 0 would {purpose} it as stored, as a "
+                     "16-line sensor's; give --emulate-beams 16 to thin such scans")
+
+
+def check_scan_thinnable(path: Path, points: np.ndarray, beams: int, purpose: str = "evaluate") -> None:
+    """InputError naming the scan file ``path`` when its ``points`` cannot be thinned to ``beams`` lines (a
+    16-line sensor's own), saying to give ``--emulate-beams 0`` to ``purpose`` such scans as they are."""
+    try:
+        emulate_beams(points, beams)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}; to {purpose} scans of a {beams}-line sensor as they are, give "
+                         "--emulate-beams 0") from None
 
 
 def beam_gaps(points: np.ndarray) -> int:

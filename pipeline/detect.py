@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.beams import BEAM_COUNTS, emulate_beams
+from pipeline.beams import BEAM_COUNTS, check_scan_thinnable
 from pipeline.boxes import in_camera_view, labels_to_boxes
 from pipeline.checks import WarningCode
 from pipeline.cli import (
@@ -299,11 +299,7 @@ def check_thinnable_first_scan(frames_of: FrameSource, beams: int) -> None:
             continue  # an unusable scan (or an image without one) is the frame loop's to skip and name
         if points.shape[0] == 0:
             continue
-        try:
-            emulate_beams(points, beams)
-        except InputError as exc:
-            raise InputError(f"{path}: {exc}; to detect on scans of a {beams}-line sensor as they are, give "
-                             "--emulate-beams 0") from None
+        check_scan_thinnable(path, points, beams, "detect on")
         return
 
 
