@@ -173,12 +173,13 @@ def warning_codes_of(state: MutableMapping[str, Any], header: str | None) -> lis
 
 
 async def send_error(send: Send, status: int, code: str, message: str, request_id: str | None,
-                     extra_headers: list[tuple[bytes, bytes]] | None = None) -> None:
-    """Answer an error from middleware (no Response object available)."""
+                     extra_headers: list[tuple[bytes, bytes]] | None = None, more_body: bool = False) -> None:
+    """Answer an error from middleware (no Response object available); ``more_body``: an empty last part follows
+    (the caller sends it)."""
     body = error_bytes(code, message, request_id)
     headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
     await send({"type": "http.response.start", "status": status, "headers": headers + (extra_headers or [])})
-    await send({"type": "http.response.body", "body": body})
+    await send({"type": "http.response.body", "body": body, "more_body": more_body})
 
 
 # How long an early error answer waits for the rest of the request's body (its lingering close) at most. A
@@ -234,15 +235,11 @@ async def send_early_error(scope: Scope, receive: Receive, send: Send, linger: L
     waits for the body. A body past the bounds, or one the client waits to be invited for (``Expect:
     100-continue``), is not waited for: the connection closes at once, as it would without the body."""
     request_id = (scope.get("state") or {}).get("request_id")
-    if not _client_sends_body(scope):
-        await send_error(send, status, code, message, request_id, extra_headers)
-        return
-    body = error_bytes(code, message, request_id)
-    headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]
-    await send({"type": "http.response.start", "status": status, "headers": headers + extra_headers})
-    await send({"type": "http.response.body", "body": body, "more_body": True})
-    await _drop_body(receive, linger)
-    await send({"type": "http.response.body", "body": b"", "more_body": False})
+    lingers = _client_sends_body(scope)
+    await send_error(send, status, code, message, request_id, extra_headers, more_body=lingers)
+    if lingers:
+        await _drop_body(receive, linger)
+        await send({"type": "http.response.body", "body": b"", "more_body": False})
 
 
 class CancelledRequestLogFilter(logging.Filter):
