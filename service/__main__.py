@@ -311,8 +311,9 @@ def uvicorn_config(settings: Settings, app: FastAPI) -> uvicorn.Config:
         app,
         host=settings.host,
         port=settings.port,
-        # h11 with a deadline on each request's head and the connection limit (service/protocol.py).
-        http=protocol_class(settings.receive_timeout_s, settings.connection_limit()),
+        # h11 with a deadline on each request's head and the connection limit (service/protocol.py); the
+        # answers it gives itself are counted with the app's.
+        http=protocol_class(settings.receive_timeout_s, settings.connection_limit(), getattr(app.state, "metrics", None)),
         ws="none",  # no WebSocket route: an Upgrade request is answered as plain HTTP
         log_level=settings.log_level,  # uvicorn's loggers: the same level as the service's
         # A float: uvicorn waits in asyncio.timeout(), which takes fractions (int() made 0.9 s no grace at all).

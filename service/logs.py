@@ -21,7 +21,9 @@ from __future__ import annotations
 import contextvars
 import json
 import logging
+import re
 import sys
+import uuid
 from collections.abc import Mapping
 from datetime import datetime, timezone
 from typing import Any, TextIO
@@ -36,6 +38,12 @@ REQUEST_ID: contextvars.ContextVar[str | None] = contextvars.ContextVar("lowres3
 ACCESS_FIELDS = ("method", "path", "route", "status", "error_code", "duration_ms", "client", "model_id",
                  "warning_codes")
 TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
+_SAFE_REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
+
+
+def request_id_for(incoming: str | None) -> str:
+    """A request's id: the client's own (its X-Request-ID) when it is safe to log and echo, else a new one."""
+    return incoming if incoming and _SAFE_REQUEST_ID.match(incoming) else uuid.uuid4().hex
 
 
 def utc_timestamp(created: float) -> str:

@@ -44,7 +44,6 @@ import json
 import logging
 import re
 import time
-import uuid
 from collections.abc import Awaitable, Callable, MutableMapping
 from dataclasses import dataclass
 from typing import Any
@@ -55,10 +54,10 @@ from starlette.middleware.cors import CORSMiddleware as StarletteCORSMiddleware
 
 from service.deps import UNAUTHORIZED_MESSAGE, WWW_AUTHENTICATE, not_ready_reason, token_accepted
 from service.errors import error_bytes
-from service.logs import REQUEST_ID
+from service.logs import REQUEST_ID, request_id_for
 from service.metrics import Metrics
 from service.pool import PoolClosed, PoolFull
-from service.protocol import OVER_CONNECTION_LIMIT
+from service.protocol import MALFORMED_BODY, METHODS, OVER_CONNECTION_LIMIT, peer_text
 from service.runtime import Runtime
 
 log = logging.getLogger(__name__)
@@ -70,17 +69,7 @@ Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
-_SAFE_REQUEST_ID = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
-
-
-def request_id_of(incoming: str | None) -> str:
-    """The client's own request id when it is safe to log and echo, else a new one."""
-    return incoming if incoming and _SAFE_REQUEST_ID.match(incoming) else uuid.uuid4().hex
-
-
 _BOUNDARY = re.compile(r'boundary="?([^";]+)"?', re.IGNORECASE)
-# The method label's values: HTTP's methods (RFC 9110, and PATCH); any other token a client sends is "other".
-_METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"})
 CLIENT_CLOSED = 499  # nginx's "client closed request": the client left before its answer
 _ERROR_CODE_BYTES = 64 * 1024  # an error body read for its code in the log line (error bodies are small)
 _SHOWN_PATH_CHARS = 200  # of a request's target in its access line: a client may send kilobytes of it
@@ -119,7 +108,7 @@ def method_label(scope: Scope) -> str:
     """The request's method for metrics and the log: one of HTTP's methods, or "other" (a method token is any
     string a client likes, up to kilobytes: each would be a series of its own)."""
     method = scope.get("method", "")
-    return method if method in _METHODS else "other"
+    return method if method in METHODS else "other"
 
 
 def _route_label(scope: Scope, route_paths: frozenset[str]) -> str:
@@ -145,11 +134,7 @@ def request_target(scope: Scope) -> str:
 
 def client_address(scope: Scope) -> str | None:
     """``host:port`` of the peer (``[::1]:port`` for IPv6), None when the server does not say."""
-    client = scope.get("client")
-    if not client:
-        return None
-    host, port = client[0], client[1]
-    return f"[{host}]:{port}" if ":" in str(host) else f"{host}:{port}"
+    return peer_text(scope.get("client"))
 
 
 def access_level(status: int, quiet: bool) -> int:
@@ -341,7 +326,7 @@ class RequestContextMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        request_id = request_id_of(_header(scope, b"x-request-id"))
+        request_id = request_id_for(_header(scope, b"x-request-id"))
         scope.setdefault("state", {})["request_id"] = request_id
         method = method_label(scope)
         status = 500
@@ -411,7 +396,10 @@ class RequestContextMiddleware:
             self.in_flight.count -= 1
             elapsed_s = time.perf_counter() - tic
             label = _route_label(scope, self.route_paths)
-            if client_gone:  # whatever the app answered went nowhere
+            if client_gone and (scope.get("state") or {}).get(MALFORMED_BODY):
+                # The protocol answered the body h11 could not read (service/protocol.py), then closed.
+                status, code, client_gone = 400, "bad_request", False
+            elif client_gone:  # whatever the app answered went nowhere
                 status, code = CLIENT_CLOSED, None
             self.metrics.requests.labels(route=label, method=method, status=str(status)).inc()
             self.metrics.request_latency.labels(route=label).observe(elapsed_s)
@@ -656,7 +644,7 @@ class CORSMiddleware(StarletteCORSMiddleware):
         if response.status_code == 200:
             await response(scope, receive, send)
             return
-        request_id = request_id_of(headers.get("x-request-id"))
+        request_id = request_id_for(headers.get("x-request-id"))
         # Starlette's text: "Disallowed CORS origin, method, headers" (those at fault).
         failures = bytes(response.body).decode().removeprefix("Disallowed CORS ").split(", ")
         kept = [(key, value) for key, value in response.raw_headers if key not in (b"content-type", b"content-length")]

@@ -9,6 +9,7 @@ Each server gets a free port and a bounded start, and is stopped in teardown.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -167,6 +168,63 @@ def test_json_log_has_one_access_line_per_request_and_every_line_parses(
     # Nothing sensitive: the token never, the frame's bytes never.
     text = running.output.read_text()
     assert TOKEN not in text and "Bearer" not in text and "P2:" not in text
+
+
+# --------------------------------------------------------------------------- answers the protocol gives itself
+def _sent_raw(url: str, *parts: bytes, pause_s: float = 0.0) -> bytes:
+    """Send ``parts`` on one connection (``pause_s`` between them); all the server sent until it closed."""
+    host, port = url.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as sock:
+        for i, part in enumerate(parts):
+            if i:
+                time.sleep(pause_s)
+            sock.sendall(part)
+        data = b""
+        with contextlib.suppress(ConnectionResetError):
+            while chunk := sock.recv(65536):
+                data += chunk
+    return data
+
+
+def test_answers_given_before_the_app_have_one_access_line_and_a_count(tiny_models: Path, tmp_path: Path) -> None:
+    """What h11 answers on its own has its access line and its count like every other request: a body h11
+    cannot read (a malformed chunk) under the request's own id with its route (it used to be logged as a
+    client that left, 499, under another id than the answer's), a head past --receive-timeout-s (408) and one
+    HTTP does not allow (400) under the route ``unparsed``. A malformed chunk after an early answer has begun
+    closes the connection with no traceback in the log (h11 cannot start a second answer)."""
+    auth = f"Authorization: Bearer {TOKEN}\r\n".encode()
+    chunked = (b"POST /v1/detect HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=bb\r\n"
+               b"Transfer-Encoding: chunked\r\n")
+    with service(tiny_models, tmp_path / "service.log", "--log-format", "json", "--receive-timeout-s", "0.5",
+                 env={"LOWRES3D_TOKEN": TOKEN}) as running:
+        malformed = _sent_raw(running.url, chunked + auth + b"X-Request-ID: log-chunk\r\n\r\n4\r\n--bb\r\nzz\r\n")
+        late = _sent_raw(running.url, chunked + b"X-Request-ID: log-early\r\n\r\n4\r\n--bb\r\n", b"zz\r\n",
+                         pause_s=0.2)  # no token: answered 401 at once, the malformed chunk while its body drains
+        slow = _sent_raw(running.url, b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+        garbage = _sent_raw(running.url, b"GARBAGE\r\n\r\n")
+        counted = {status: _metric(running, f'lowres3d_http_requests_total{{method="{method}",route="unparsed",'
+                                            f'status="{status}"}}') for method, status in (("GET", 408), ("other", 400))}
+    assert malformed.startswith(b"HTTP/1.1 400 ") and b"x-request-id: log-chunk" in malformed, malformed
+    assert late.startswith(b"HTTP/1.1 401 "), late
+    assert slow.startswith(b"HTTP/1.1 408 ") and garbage.startswith(b"HTTP/1.1 400 "), (slow, garbage)
+    assert counted == {408: 1.0, 400: 1.0}
+    records = running.records()
+    _check_common(records)
+    assert not [r for r in records if "exception" in r or r["level"] in ("ERROR", "CRITICAL")], records
+    (chunk_line,) = running.access("log-chunk")
+    assert (chunk_line["status"], chunk_line["error_code"], chunk_line["route"]) == (400, "bad_request", "/v1/detect")
+    assert "answered 400 bad_request" in chunk_line["message"]
+    (early_line,) = running.access("log-early")
+    assert (early_line["status"], early_line["error_code"]) == (401, "unauthorized")
+    unparsed = {r["status"]: r for r in records if r["logger"] == "service.access" and r["route"] == "unparsed"}
+    assert set(unparsed) == {400, 408}, unparsed
+    for status, answer in ((408, slow), (400, garbage)):
+        line = unparsed[status]
+        assert set(ACCESS_FIELDS) <= set(line) and line["client"].startswith("127.0.0.1:"), line
+        assert f"x-request-id: {line['request_id']}".encode() in answer  # the answer's id is the line's
+    assert unparsed[408]["method"] == "GET" and unparsed[408]["error_code"] == "request_timeout"
+    assert 400 <= unparsed[408]["duration_ms"] < 5000, unparsed[408]  # from the connection's opening
+    assert unparsed[400]["method"] == "other" and unparsed[400]["error_code"] == "bad_request"
 
 
 # --------------------------------------------------------------------------- JSON, SIGTERM cutting a request off
