@@ -70,12 +70,7 @@ def normalisation(preset: Preset) -> dict:
         "rgb_mean": [round(m * 255.0, 6) for m in IMAGENET_MEAN],
         "rgb_std": [round(s * 255.0, 6) for s in IMAGENET_STD],
         "depth_units": "metres",
-        "min_depth": preset.depth.min_depth,
-        "max_depth": preset.depth.max_depth,
-        "input_scale": preset.depth.input_scale,
-        "crop_hw": list(preset.crop_hw),
-        "regression_mean": list(preset.decode.reg_mean),
-        "regression_std": list(preset.decode.reg_std),
+        **preset.described()["normalisation"],
     }
 
 

@@ -91,7 +91,6 @@ def build_manifest(
     parity: dict,
 ) -> dict:
     """The manifest dict; file checksums are computed from the files now in ``directory``."""
-    grid = preset.bev
     return {
         "format": FORMAT,
         "preset": preset.name,
@@ -99,7 +98,7 @@ def build_manifest(
         "weights": weights_summary(networks),
         "networks": {name: {**asdict(entry), "graph_inputs": graph_inputs(directory / entry.file)}
                      for name, entry in networks.items()},
-        "bev_grid": {**asdict(grid), "shape": list(grid.shape), "nx": grid.nx, "ny": grid.ny, "nz": grid.nz},
+        "bev_grid": preset.described()["bev_grid"],
         "normalisation": normalisation,
         # Every constant and rule of the NumPy stages, for a port to another runtime (docs/models.md, "Porting").
         "port": port_spec(preset),

@@ -63,7 +63,13 @@ from pipeline.cpu import int8_pairs_saturate, usable_cpus
 from pipeline.errors import InputError
 from pipeline.graph_inputs import session_feeds, whole_shapes
 from pipeline.kitti import Object3D
-from pipeline.model_files import ModelFileError, load_manifest, read_verified, verify_sha256
+from pipeline.model_files import (
+    ModelFileError,
+    check_descriptions,
+    load_manifest,
+    read_verified,
+    verify_sha256,
+)
 from pipeline.onnx_wire import WireError, external_tensors
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, depth_view, view_calibration
@@ -428,6 +434,8 @@ class Detector:
         # Input names as each graph has them: a lowered PIXOR reads its BEV in channel pieces.
         self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}
         self._check_shapes()
+        # After the shapes: an edited preset_config that no longer fits the graphs is named as such first.
+        check_descriptions(self.manifest, self.preset.described(), self.model_dir / "manifest.json")
         self._local = threading.local()
         self._closing = threading.Lock()  # guards the stage threads' set against close() on another thread
         # Held weakly: the only strong reference to a stage thread's executor is its calling thread's local state,

@@ -227,6 +227,28 @@ def _check_tables(manifest: dict, path: Path) -> None:
         raise ModelFileError(f"{path}: precision: {precision!r:.60} is none of {', '.join(PRECISIONS)}")
 
 
+def check_descriptions(manifest: dict, described: dict[str, dict], path: Path) -> None:
+    """The manifest's descriptive tables (``bev_grid``, and ``normalisation``'s constants of the stages around the
+    networks) say what its ``preset_config`` gives (``described``: :meth:`pipeline.presets.Preset.described`).
+
+    This runtime runs ``preset_config``; another runtime may read the descriptions. A hand edit of one of them
+    changed nothing here while a port would run the edited value, so the two are refused when they differ.
+    A field the manifest leaves out is not compared (a hand-made manifest may describe less)."""
+    for table, record in described.items():
+        given = manifest.get(table)
+        if given is None:
+            continue
+        if not isinstance(given, dict):
+            raise ModelFileError(f"{path}: {table}: expected a table, got {given!r:.60}")
+        for key, value in record.items():
+            if key in given and given[key] != value:
+                raise ModelFileError(
+                    f"{path}: {table}.{key} is {given[key]!r:.60} where preset_config gives {value!r}: this runtime "
+                    f"runs preset_config, which {table} only describes (for other runtimes), and the graphs were "
+                    "exported for it: export the models again with the preset wanted (python -m export) rather "
+                    "than edit the manifest")
+
+
 def _check_training_record(training: dict, where: str) -> None:
     """The training record's fields the runtime reads (the scan lines a PIXOR learned from): ``input`` a name and
     ``emulate_beams`` a whole line count, each when recorded. A list there made the Detector fail with a

@@ -167,6 +167,21 @@ class Preset:
         """Plain JSON-able form, as written into the ONNX manifest."""
         return asdict(self)
 
+    def described(self) -> dict[str, dict]:
+        """What the manifest's descriptive tables say of this preset, for runtimes other than this one: the
+        grid (``bev_grid``) and the constants of the stages around the networks (part of ``normalisation``).
+        This runtime runs ``preset_config``; :func:`pipeline.model_files.check_descriptions` holds the two to
+        agree."""
+        grid = self.bev
+        return {
+            "bev_grid": {**asdict(grid), "shape": list(grid.shape), "nx": grid.nx, "ny": grid.ny, "nz": grid.nz},
+            "normalisation": {
+                "min_depth": self.depth.min_depth, "max_depth": self.depth.max_depth,
+                "input_scale": self.depth.input_scale, "crop_hw": list(self.crop_hw),
+                "regression_mean": list(self.decode.reg_mean), "regression_std": list(self.decode.reg_std),
+            },
+        }
+
 
 PRESETS: dict[str, Preset] = {
     # The paper: full-resolution depth net, PIXOR with its own FPN widths on the 0.1 m, 36-channel grid

@@ -378,6 +378,13 @@ def _edited_manifest(tiny_models, tmp_path, edit) -> Path:
     (lambda m: m["preset_config"]["depth"].update(input_hw=[100, 100]), r"depth input 'rgb' the shape \[1, 3, 100, 100\]"),
     (lambda m: m["preset_config"]["bev"].update(cell=0), "preset_config: not a usable grid"),
     (lambda m: m["preset_config"].update(crop_hw=[352]), "preset_config: not a usable grid"),
+    # The descriptions other runtimes read must say what runs (a hand edit of one changed nothing here).
+    (lambda m: m["bev_grid"].update(x_max=100.0), r"bev_grid\.x_max is 100\.0 where preset_config gives 70\.4"),
+    (lambda m: m["normalisation"].update(max_depth=50.0), r"normalisation\.max_depth is 50\.0 where preset_config"),
+    (lambda m: m.update(bev_grid=[0, 70.4]), r"bev_grid: expected a table"),
+    # A grid moved 10 m back keeps the graphs' shapes: only the description still says where it was.
+    (lambda m: m["preset_config"]["bev"].update(x_min=-10.0, x_max=60.4),
+     r"bev_grid\.x_min is 0\.0 where preset_config gives -10\.0: this runtime runs preset_config, which bev_grid"),
 ])
 def test_a_broken_manifest_is_refused_at_load_naming_the_field(tiny_models, tmp_path, edit, message):
     broken = _edited_manifest(tiny_models, tmp_path, edit)
