@@ -204,9 +204,9 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
     if config.plots_dir:
         with _writing(config.plots_dir, "--plots"):
             source = config.source or f"{config.pred_labels} against {config.gt_labels}"
-            plot_paths = tuple(plot_pr_curves(result, config.plots_dir, source))
+            names = (_short_name(config.pred_labels), _short_name(config.compare_pred_labels))
+            plot_paths = tuple(plot_pr_curves(result, config.plots_dir, source, other, names))
             if by_distance:
-                names = (_short_name(config.pred_labels), _short_name(config.compare_pred_labels))
                 plot_paths += (plot_by_distance(by_distance, config.plots_dir / "ap_by_distance.png",
                                                 other_by_distance, names, source),)
     table = format_table(result)
@@ -677,8 +677,12 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             if args.plots:
                 print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
                 if outcome.car_errors:
+                    n = len(outcome.per_frame)
+                    depth_from = f"depth from {args.depth_dir} (not the depth network)" if args.depth_dir else args.models
+                    title = (f"depth on the moderate cars, {n} frame{'' if n == 1 else 's'}\n"
+                             f"{depth_from} ({outcome.input}) on {args.data}")
                     picture = plot_car_depth(outcome.car_errors, outcome.car_in_box, args.plots / "car_depth.png",
-                                             f"depth on the moderate cars, {outcome.input}")
+                                             title, CAR_BOX_MARGIN_M)
                     print(f"plot (each car's error and share on the car against its distance): {picture}")
             if args.json:
                 with _writing(args.json, "--json"):

@@ -658,6 +658,29 @@ def status_colour(key: str) -> str:
     return "tab:red"  # another 5xx, or a broken connection ("error …")
 
 
+def tenths_of_the_200s(start_s: np.ndarray, latency_ms: np.ndarray) -> list[tuple[float, float]]:
+    """(middle of its send times, p50) of ten runs of ``n // 10`` consecutive 200s in send order (``start_s``
+    sorted), spaced evenly from the first to the last: the first and last are the report's first and last
+    tenth (``trend``), and with n a multiple of 10 they are its ten tenths. Fewer than 10: one per answer."""
+    n = len(start_s)
+    size = max(1, n // 10)
+    firsts = np.unique(np.rint(np.linspace(0, n - size, 10)).astype(int)).tolist()
+    return [(float((start_s[i] + start_s[i + size - 1]) / 2), float(np.median(latency_ms[i:i + size])))
+            for i in firsts]
+
+
+def _mark_percentiles(histogram, latency_ms: list[float]) -> None:
+    """The 200s' p50 and p99 (the report's, numpy's linear interpolation) as lines across the histogram, each
+    named at its top."""
+    stats = _percentiles(latency_ms)
+    for key, style in (("p50", "--"), ("p99", ":")):
+        histogram.axvline(stats[key], color="black", linestyle=style, linewidth=1.2)
+        # Upright beside its line: two labels side by side overlapped where p50 and p99 are close.
+        histogram.text(stats[key], 0.98, f" 200s' {key} {stats[key]:.0f} ms", transform=histogram.get_xaxis_transform(),
+                       rotation=90, ha="left", va="top", fontsize=8,
+                       bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.7, "pad": 1})
+
+
 def load_figure(samples: list[Sample], result: LoadResult, title: str):
     """The figure of :func:`plot_load` (not saved)."""
     import matplotlib
@@ -680,19 +703,24 @@ def load_figure(samples: list[Sample], result: LoadResult, title: str):
     histogram.yaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))  # counts, not 17.5 requests
     histogram.legend(title="status (requests)", fontsize=8, title_fontsize=8)
 
-    ok = sorted((s.start_s, s.latency_ms) for s in samples if s.status == "200" and not s.broken)
+    # In send order, as summarise's first and last tenth (a stable sort: ties keep the samples' order).
+    ok = sorted((s for s in samples if s.status == "200" and not s.broken), key=lambda s: s.start_s)
     if ok:
-        start, ms = np.asarray(ok).T
+        _mark_percentiles(histogram, [s.latency_ms for s in ok])
+        start = np.asarray([s.start_s for s in ok])
+        ms = np.asarray([s.latency_ms for s in ok])
         # Faint enough that thousands do not hide the p50 line, large enough that a short run's few are seen.
         timeline.plot(start, ms, ".", markersize=3, alpha=0.5, color="tab:blue", label="a 200's latency")
-        # A tenth with no answer has no p50 (NaN), which would break the line into lone markers: joined over it.
-        windows = [w for w in result.windows if np.isfinite(w["p50_ms"])]
-        timeline.plot([(w["start_s"] + w["end_s"]) / 2 for w in windows], [w["p50_ms"] for w in windows],
-                      "-o", color="tab:blue", label="p50 per tenth of the run")
+        tenths = tenths_of_the_200s(start, ms)
+        size = max(1, len(ok) // 10)
+        # Black over the blue dots (in blue, p50 points that fell among them vanished), white-filled markers.
+        timeline.plot([t for t, _ in tenths], [p50 for _, p50 in tenths], "-D", color="black", markersize=5,
+                      markerfacecolor="white", linewidth=1.5, zorder=3,
+                      label=f"p50 of each tenth of the 200s ({size} each, in send order)")
     timeline.set_xlabel("seconds into the load (due time)" if result.latency_from == "schedule"
                         else "seconds into the load")
     timeline.set_ylabel("latency (ms)", color="tab:blue")
-    timeline.legend(loc="upper left")
+    timeline.legend(loc="upper left", fontsize=8)
     if result.rss_series:
         memory = timeline.twinx()
         seconds, mb = np.asarray(result.rss_series).T

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import textwrap
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from evaluation.kitti_eval import DIFFICULTIES, METHOD_NAMES, N_SAMPLE_PTS, BootstrapResult, KittiEvalResult
+from evaluation.depth_metrics import CAR_BOX_MARGIN_M
+from evaluation.kitti_eval import DIFFICULTIES, METHOD_NAMES, BootstrapResult, KittiEvalResult
 
 METRIC_TITLES = {"bev": "BEV", "3d": "3D", "bbox": "2D bbox"}
 
@@ -71,16 +73,28 @@ def _save(fig, path: str | Path) -> Path:
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")  # a long source line in the title is kept whole
     _pyplot().close(fig)
     return path
 
 
 # One colour per (metric, overlap threshold) in every plot, so BEV @0.7 is the same line in the PR curves and
-# in AP by distance: a hue per metric, the strict threshold dark and the loose one light.
-SERIES_COLOURS = {("bev", 0.7): "tab:blue", ("bev", 0.5): "tab:cyan", ("3d", 0.7): "tab:red",
-                  ("3d", 0.5): "tab:orange", ("bbox", 0.7): "tab:green", ("bbox", 0.5): "tab:olive"}
+# in AP by distance. Okabe and Ito's palette: no two of the six within 17 CIELAB units of each other for normal
+# vision or simulated deuteranopia, protanopia or tritanopia (matplotlib's tab: colours put 3D and 2D at 7 under
+# deuteranopia). BEV in blues, 3D in orange-reds, 2D black and purple; the strict threshold the darker.
+SERIES_COLOURS = {("bev", 0.7): "#0072B2", ("bev", 0.5): "#56B4E9", ("3d", 0.7): "#D55E00",
+                  ("3d", 0.5): "#E69F00", ("bbox", 0.7): "#000000", ("bbox", 0.5): "#CC79A7"}
 METRIC_ORDER = ("bev", "3d", "bbox")  # as the table: BEV first
+# Beside the colour, a marker per metric, and a width narrowing in drawing order (BEV, 3D, 2D; the loose
+# threshold first): curves lying on each other (BEV and 3D at 0.5 under 2D, or 2D at 0.5 under 2D at 0.7, often)
+# show as nested stripes and markers, not as the last one drawn. The line style is the model's: solid this one,
+# dashed the one it is compared with.
+METRIC_MARKERS = {"bev": "o", "3d": "^", "bbox": "s"}
+LINE_WIDTHS = (4.6, 3.8, 3.0, 2.3, 1.6, 0.9)  # by (metric, threshold) in drawing order
+MARKER_SIZES = (9.5, 8.0, 6.5, 5.2, 4.0, 2.8)
+# Below this many counted cars the devkit's 40 recall points outnumber the cars: it credits the k-th found car to
+# recall point k, so AP_40 is at most 100 (n - 1) / 40 (a lone car found exactly scores 0).
+FEW_CARS = 40
 
 
 def series_colour(metric: str, iou: float) -> str:
@@ -89,43 +103,103 @@ def series_colour(metric: str, iou: float) -> str:
     return SERIES_COLOURS.get((metric, round(float(iou), 2)), "tab:gray")
 
 
+def series_style(metric: str, iou: float, compared: bool = False) -> dict[str, Any]:
+    """Matplotlib line properties of (metric, threshold): its colour, its metric's marker, its width and marker
+    size by drawing order; the compared model's line dashed with hollow markers."""
+    rank = len(LINE_WIDTHS) - 1  # an unknown metric: the thinnest
+    if metric in METRIC_ORDER:
+        rank = 2 * METRIC_ORDER.index(metric) + (0 if round(float(iou), 2) < 0.7 else 1)
+    return {"color": series_colour(metric, iou), "marker": METRIC_MARKERS.get(metric, "o"),
+            "linewidth": LINE_WIDTHS[rank], "markersize": MARKER_SIZES[rank],
+            "linestyle": "--" if compared else "-", "markerfacecolor": "white" if compared else None}
+
+
+def cars(n: int) -> str:
+    """``1 car``, ``22 cars``."""
+    return f"{n} car" if n == 1 else f"{n} cars"
+
+
+def frames(n: int) -> str:
+    """``1 frame``, ``5 frames``."""
+    return f"{n} frame" if n == 1 else f"{n} frames"
+
+
+def ap_ceiling(n_ground_truth: int) -> float:
+    """The highest AP_40 (%) the devkit can give with ``n_ground_truth`` counted cars: with fewer than 41 it
+    samples recall at most at ``n`` of its 40 points, and the first of them (recall 0) is not averaged."""
+    return min(100.0, 100.0 * max(n_ground_truth - 1, 0) / 40.0)
+
+
+def few_cars_note(n_ground_truth: int) -> str:
+    """The warning a curve or band with fewer than :data:`FEW_CARS` counted cars carries ("" otherwise)."""
+    if n_ground_truth >= FEW_CARS or n_ground_truth == 0:
+        return ""
+    return (f"n={cars(n_ground_truth)} < {FEW_CARS}: the devkit's 40-point AP is coarse "
+            f"(at most {ap_ceiling(n_ground_truth):.1f})")
+
+
 def _series(result: KittiEvalResult) -> list[tuple[str, float]]:
     """(metric, threshold) in the table's order: BEV, 3D, 2D; the looser threshold first."""
     return [(m, iou) for m in sorted(result.metrics, key=METRIC_ORDER.index) for iou in sorted(result.iou_thresholds)]
 
 
-def pr_figure(result: KittiEvalResult, difficulty: str, source: str | None = None):
+def pr_points(result: KittiEvalResult, metric: str, iou: float, difficulty: str) -> tuple[np.ndarray, np.ndarray]:
+    """A curve's real points: the recall ``tp / (tp + fn)`` at each of the devkit's K score thresholds and the
+    devkit's interpolated precision there (the best at that recall or above), K ≤ 41 pairs. The 41-point
+    precision row is indexed by sampling point, not recall: k / 40 is its recall only with 40 or more cars."""
+    curve = result.curve(metric, iou, difficulty)
+    return curve.recall, curve.precision[: curve.thresholds.size]
+
+
+def pr_figure(result: KittiEvalResult, difficulty: str, source: str | None = None,
+              other: KittiEvalResult | None = None, names: tuple[str, str] = ("this", "other")):
     """The figure of one difficulty's precision-recall curves (not saved): a line per (metric, threshold) in
-    its colour of :data:`SERIES_COLOURS`, the title naming the class, difficulty, frames and ``source`` (the
-    model or result files, when the caller knows it)."""
+    its style of :func:`series_style` through the curve's real (recall, precision) points, its legend entry
+    giving the devkit's AP_40; ``other`` (another model on the same frames) dashed beside it. The title names
+    the class, difficulty, frames, counted cars and ``source`` (the model or result files, when the caller
+    knows it); with fewer than :data:`FEW_CARS` cars the legend says the AP is coarse."""
     plt = _pyplot()
-    recall = np.arange(N_SAMPLE_PTS) / (N_SAMPLE_PTS - 1)
-    fig, ax = plt.subplots(figsize=(6.6, 3.6))
-    for metric, iou in _series(result):
-        curve = result.curve(metric, iou, difficulty)
-        ax.plot(recall, curve.precision, color=series_colour(metric, iou),
-                label=f"{METRIC_TITLES[metric]} @{iou} (AP$_{{40}}$ {curve.ap_r40:.1f})")
-    title = f"{result.class_name} precision-recall, {difficulty}, {result.n_frames} frames"
-    ax.set(xlim=(0, 1), ylim=(0, 1.02), xlabel="recall", ylabel="precision (interpolated)",
-           title=title + (f"\n{source}" if source else ""))
+    fig, ax = plt.subplots(figsize=(7.4 if other is not None else 6.6, 3.8))
+    models = [(result, False)] + ([(other, True)] if other is not None else [])
+    counts = {r.curve(m, t, difficulty).n_ground_truth for r, _ in models for m, t in _series(r)}
+    shared = counts.pop() if len(counts) == 1 else None  # one count for every curve: said once, in the title
+    for model, compared in models:
+        for metric, iou in _series(model):
+            if compared and metric not in result.metrics:
+                continue
+            curve = model.curve(metric, iou, difficulty)
+            recall, precision = pr_points(model, metric, iou, difficulty)
+            who = f"{names[int(compared)]}, " if other is not None else ""
+            note = few_cars_note(curve.n_ground_truth) if shared is None else ""
+            label = f"{METRIC_TITLES[metric]} @{iou} ({who}AP$_{{40}}$ {curve.ap_r40:.1f}{'; ' + note if note else ''})"
+            # steps-pre: the interpolated precision holds from the previous point's recall up to this one's.
+            ax.plot(recall, precision, drawstyle="steps-pre", label=label, **series_style(metric, iou, compared))
+    cars_text = f", {cars(shared)}" if shared is not None else ""
+    title = f"{result.class_name} precision-recall, {difficulty}, {frames(result.n_frames)}{cars_text}"
+    ax.set(xlim=(0, 1.03), ylim=(0, 1.05), xlabel="recall tp / (tp + fn) at each of the devkit's score thresholds",
+           ylabel="precision (interpolated:\nbest at this recall or above)", title=title + (f"\n{source}" if source else ""))
     ax.grid(alpha=0.3)
     if result.metrics:  # beside the axes: inside, it covers the curves of a run with low recall
-        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="metric @IoU", title_fontsize=7)
+        legend_title = "metric @IoU (the devkit's AP$_{40}$)"
+        if shared is not None and few_cars_note(shared):
+            legend_title += "\n" + textwrap.fill(few_cars_note(shared), 36)
+        ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title=legend_title, title_fontsize=7)
     return fig
 
 
-def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path, source: str | None = None) -> list[Path]:
-    """One PNG per difficulty: interpolated precision against the 41 sampled recall points.
+def plot_pr_curves(result: KittiEvalResult, out_dir: str | Path, source: str | None = None,
+                   other: KittiEvalResult | None = None, names: tuple[str, str] = ("this", "other")) -> list[Path]:
+    """One PNG per difficulty: the devkit's interpolated precision against recall at its score thresholds.
 
     Every (metric, overlap threshold) is a line, like the devkit's plots and the
-    paper's PR figure. Returns the written paths.
+    paper's PR figure; ``other``'s dashed beside it. Returns the written paths.
     """
     plt = _pyplot()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for difficulty in DIFFICULTIES:
-        fig = pr_figure(result, difficulty, source)
+        fig = pr_figure(result, difficulty, source, other, names)
         fig.tight_layout()
         path = out_dir / f"pr_{result.class_name.lower()}_{difficulty}.png"
         fig.savefig(path, dpi=120, bbox_inches="tight")
@@ -180,26 +254,41 @@ def distance_json(bands: dict[tuple[float, float], KittiEvalResult]) -> list[dic
 def by_distance_figure(bands: dict[tuple[float, float], KittiEvalResult],
                        other: dict[tuple[float, float], KittiEvalResult] | None = None,
                        names: tuple[str, str] = ("this", "other"), source: str | None = None):
-    """The figure of :func:`plot_by_distance` (not saved)."""
+    """The figure of :func:`plot_by_distance` (not saved). A band with cars but fewer than :data:`FEW_CARS` is
+    hatched and carries its AP_40 ceiling: there the devkit's 40-point AP reads low (a lone car found exactly
+    scores 0)."""
+    from matplotlib.patches import Patch
+
     plt = _pyplot()
     first = next(iter(bands.values()))
-    cars = [r.curve(first.metrics[0], first.iou_thresholds[0], "moderate").n_ground_truth for r in bands.values()]
-    labels = [f"{low:g}–{high:g}\n{n} cars" for (low, high), n in zip(bands, cars)]
-    fig, ax = plt.subplots(figsize=(7.6 if other else 6.6, 3.6))
+    counts = [r.curve(first.metrics[0], first.iou_thresholds[0], "moderate").n_ground_truth for r in bands.values()]
+    labels = [f"{low:g}–{high:g}\n{cars(n)}" for (low, high), n in zip(bands, counts)]
+    fig, ax = plt.subplots(figsize=(7.8 if other else 6.8, 3.8))
     for metric, iou in [(m, t) for m, t in _series(first) if m in ("bev", "3d")]:
         suffix = f" ({names[0]})" if other else ""
         # A band without cars has no AP: NaN leaves a gap in the line, not a point at 0.
-        ax.plot(labels, [band_ap(r, metric, iou) for r in bands.values()], marker="o",
-                color=series_colour(metric, iou), label=f"{METRIC_TITLES[metric]} @{iou}{suffix}")
+        ax.plot(labels, [band_ap(r, metric, iou) for r in bands.values()], label=f"{METRIC_TITLES[metric]} @{iou}{suffix}",
+                **series_style(metric, iou))
         if other and metric in next(iter(other.values())).metrics:
-            ax.plot(labels, [band_ap(r, metric, iou) for r in other.values()], marker="s", linestyle="--",
-                    color=series_colour(metric, iou), label=f"{METRIC_TITLES[metric]} @{iou} ({names[1]})")
-    title = f"{first.class_name} AP by distance, {first.n_frames} frames"
-    ax.set(ylim=(0, 102), xlabel="distance band (m, camera depth of the box centre)", ylabel="AP$_{40}$ (%), moderate",
-           title=title + (f"\n{source}" if source else ""))
+            ax.plot(labels, [band_ap(r, metric, iou) for r in other.values()],
+                    label=f"{METRIC_TITLES[metric]} @{iou} ({names[1]})", **series_style(metric, iou, compared=True))
+    handles, _ = ax.get_legend_handles_labels()
+    few = [(i, n) for i, n in enumerate(counts) if few_cars_note(n)]
+    for i, n in few:
+        ax.axvspan(i - 0.45, i + 0.45, facecolor="none", edgecolor="0.75", hatch="//", linewidth=0, zorder=0)
+        ax.hlines(ap_ceiling(n), i - 0.45, i + 0.45, colors="0.4", linestyles=":", linewidth=1.2, zorder=1)
+        ax.text(i, 103, f"n={n} < {FEW_CARS}:\nAP$_{{40}}$ ≤ {ap_ceiling(n):.1f}", ha="center", va="top", fontsize=7,
+                bbox={"facecolor": "white", "edgecolor": "0.6", "boxstyle": "round,pad=0.2"})
+    if few:
+        handles.append(Patch(facecolor="none", edgecolor="0.75", hatch="//",
+                             label=f"< {FEW_CARS} cars: the devkit's\n40-point AP is coarse;\ndotted: its ceiling"))
+    title = f"{first.class_name} AP by distance, {frames(first.n_frames)}"
+    ax.set(ylim=(-2, 104), xlim=(-0.5, len(labels) - 0.5), xlabel="distance band (m, camera depth of the box centre)",
+           ylabel="AP$_{40}$ (%), moderate", title=title + (f"\n{source}" if source else ""))
     ax.grid(alpha=0.3)
     # Beside the axes, not over the lines.
-    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="metric @IoU", title_fontsize=7)
+    ax.legend(handles=handles, fontsize=7, loc="upper left", bbox_to_anchor=(1.02, 1.0), title="metric @IoU",
+              title_fontsize=7)
     return fig
 
 
@@ -211,12 +300,12 @@ def plot_by_distance(bands: dict[tuple[float, float], KittiEvalResult], path: st
     return _save(by_distance_figure(bands, other, names, source), path)
 
 
-def plot_car_depth(car_errors: list[tuple[float, float]], car_in_box: list[tuple[float, float]],
-                   path: str | Path, title: str = "depth on the moderate cars") -> Path:
-    """One PNG, a dot per car against its distance: the median |error| over its pixels (left, log scale)
-    and the share of them whose point lands in its BEV box (right)."""
+def car_depth_figure(car_errors: list[tuple[float, float]], car_in_box: list[tuple[float, float]],
+                     title: str = "depth on the moderate cars", box_margin_m: float = CAR_BOX_MARGIN_M):
+    """The figure of :func:`plot_car_depth` (not saved): its title is ``title``'s first line (the caller names
+    the frames), the count of cars drawn, then ``title``'s other lines (the model and data)."""
     plt = _pyplot()
-    fig, (left, right) = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    fig, (left, right) = plt.subplots(1, 2, figsize=(9.0, 3.8))
     if car_errors:
         z, mm = np.array(car_errors).T
         left.scatter(z, np.maximum(mm, 1.0), s=8, alpha=0.6)  # 0 mm (exact depth) drawn at 1 mm on the log axis
@@ -224,11 +313,21 @@ def plot_car_depth(car_errors: list[tuple[float, float]], car_in_box: list[tuple
     if car_in_box:
         z, share = np.array(car_in_box).T
         right.scatter(z, share, s=8, alpha=0.6)
-    right.set(ylim=(-0.02, 1.02), xlabel="car depth z (m)", ylabel="share of its pixels in its BEV box")
+    right.set(ylim=(-0.02, 1.02), xlabel="car depth z (m)",
+              ylabel=f"share of its pixels whose point lands\nin its BEV box grown by {box_margin_m:g} m")
     for ax in (left, right):
         ax.grid(alpha=0.3)
-    fig.suptitle(title)
-    return _save(fig, path)
+    head, _, rest = title.partition("\n")
+    fig.suptitle(f"{head}, {cars(len(car_errors))}" + (f"\n{rest}" if rest else ""))
+    return fig
+
+
+def plot_car_depth(car_errors: list[tuple[float, float]], car_in_box: list[tuple[float, float]],
+                   path: str | Path, title: str = "depth on the moderate cars",
+                   box_margin_m: float = CAR_BOX_MARGIN_M) -> Path:
+    """One PNG, a dot per car against its distance: the median |error| over its pixels (left, log scale)
+    and the share of them whose point lands in its BEV box grown by ``box_margin_m`` (right)."""
+    return _save(car_depth_figure(car_errors, car_in_box, title, box_margin_m), path)
 
 
 def format_spread(result: KittiEvalResult, spread: BootstrapResult, other: KittiEvalResult | None = None,

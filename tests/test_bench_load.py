@@ -108,3 +108,37 @@ def test_the_first_broken_request_is_the_bad_everyth():
 
     source = RequestSource(KITTI, ["000000", "000001"], {}, total=7, bad_every=3)
     assert [upload.broken for upload in iter(source.take, None)] == [False, False, True, False, False, True, False]
+
+
+def test_the_load_figures_p50_line_is_the_texts_tenths_of_the_200s_in_black_and_the_histogram_marks_p50_p99():
+    """The figure's p50 line was per tenth of the run's time while the printed first and last tenth are tenths of
+    the 200s in send order; and in the dots' blue, hiding points among them. 30 answers: the first ten all in the
+    first second (10 … 100 ms), twenty more over the next 29 s (200 … 2100 ms). Tenths of the 200s (3 each) give
+    20 ms first and 2000 ms last, as the text; tenths of time gave 65 ms first. The histogram marks the 200s' p50
+    and p99 as the report computes them."""
+    pytest.importorskip("matplotlib")
+    import matplotlib.colors as mcolors
+    import matplotlib.pyplot as plt
+
+    from benchmarks.load import load_figure
+
+    samples = [Sample(0.1 * i, 10.0 * (i + 1), "200", "000000") for i in range(10)]
+    samples += [Sample(1.0 + 1.45 * i, 200.0 + 100.0 * i, "200", "000000") for i in range(20)]
+    samples.append(Sample(0.5, 5.0, "422", "points-truncated", broken=True))
+    result = summarise(samples, 30.0, {"ready": 1.0, "warm": 1.0, "end": 1.0}, None, context())
+    fig = load_figure(samples, result, "test")
+    try:
+        histogram, timeline = fig.axes[:2]
+        (dots,) = [ln for ln in timeline.get_lines() if ln.get_label() == "a 200's latency"]
+        (p50,) = [ln for ln in timeline.get_lines() if ln.get_label().startswith("p50 ")]
+        assert len(p50.get_ydata()) == 10
+        assert p50.get_ydata()[0] == result.trend["p50_ms_first_tenth"] == 20.0
+        assert p50.get_ydata()[-1] == result.trend["p50_ms_last_tenth"] == 2000.0
+        assert not mcolors.same_color(p50.get_color(), dots.get_color())
+        assert p50.get_label() == "p50 of each tenth of the 200s (3 each, in send order)"
+        marked = sorted(ln.get_xdata()[0] for ln in histogram.get_lines())
+        assert marked == [result.latency_ms["200"]["p50"], result.latency_ms["200"]["p99"]]
+        assert [t.get_text() for t in histogram.texts] == [f" 200s' p50 {marked[0]:.0f} ms",
+                                                           f" 200s' p99 {marked[1]:.0f} ms"]
+    finally:
+        plt.close(fig)

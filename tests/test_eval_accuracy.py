@@ -51,3 +51,22 @@ def test_the_bootstrap_scores_only_the_metrics_both_models_carry(tmp_path: Path)
                                   compare_pred_labels=_folder(tmp_path / "b", [obj(score=0.9, h=-1.0, y=-1000.0)]),
                                   bootstrap=2))
     assert outcome.result.metrics == ("bbox", "bev", "3d") and outcome.spread.metrics == ("bev",)
+
+
+def test_the_pr_plots_of_a_comparison_draw_both_models(tmp_path: Path, monkeypatch):
+    """--compare-pred-labels with --plots: the PR plots showed only this model; they now get the compared
+    model's evaluation and both folders' names (its distance plot had them already)."""
+    from benchmarks import accuracy
+
+    given = []
+    real = accuracy.plot_pr_curves
+    monkeypatch.setattr(accuracy, "plot_pr_curves", lambda *args: (given.append(args), real(*args))[1])
+    gt = _folder(tmp_path / "gt", [obj(), obj(x=8.0, left=400.0)])
+    both = _folder(tmp_path / "both", [obj(score=0.9), obj(x=8.0, left=400.0, score=0.8)])
+    one = _folder(tmp_path / "one", [obj(score=0.9)])
+    outcome = run(LabelEvalConfig(gt_labels=gt, pred_labels=both, compare_pred_labels=one, progress=False,
+                                  plots_dir=tmp_path / "plots"))
+    (result, _, _, other, names), = given
+    assert result is outcome.result and names == ("both", "one")
+    assert other.ap("bev", 0.7, "moderate") == 0.0 < result.ap("bev", 0.7, "moderate")  # one car of two: no R40 AP
+    assert other.curve("bev", 0.7, "moderate").recall.tolist() == [0.5]

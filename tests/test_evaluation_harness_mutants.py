@@ -158,22 +158,24 @@ def test_the_json_details_give_each_thresholds_counts_in_the_devkits_order():
     assert details["precision_41"] == pytest.approx([1.0, 2 / 3] + [0.0] * 39, abs=1e-12)
 
 
-def test_the_pr_figure_draws_the_difficultys_interpolated_precision_over_recall_0_to_1():
-    """Hard, BEV @0.5: nine cars, all found at precision 1: precision 1 at the first nine of the 41 recall points
-    k / 40, 0 after; the legend gives its R40 AP (20.0); recall is the x axis, 0 to 1, precision the y axis."""
+def test_the_pr_figure_draws_the_difficultys_precision_over_its_real_recall():
+    """Hard, BEV @0.5: nine cars, all found at precision 1: the curve's points are its real recalls 1/9 … 9/9, each
+    at precision 1 (session 48: it plotted the devkit's 41 precision samples against k / 40, which is recall only
+    from 40 cars up, and so fell to 0 at "recall" 0.225); the legend keeps the devkit's R40 AP (20.0); nothing
+    is drawn for a metric that found no car; recall is the x axis from 0, precision the y axis."""
     import matplotlib.pyplot as plt
 
     fig = pr_figure(_quarter_length_off(), "hard")
     try:
         ax = fig.axes[0]
-        assert "hard" in ax.get_title()
-        assert ax.get_xlabel() == "recall" and ax.get_ylabel().startswith("precision")
-        assert ax.get_xlim() == (0.0, 1.0) and ax.get_ylim()[0] == 0.0 and ax.get_ylim()[1] >= 1.0
+        assert "hard" in ax.get_title() and "9 cars" in ax.get_title()
+        assert ax.get_xlabel().startswith("recall") and ax.get_ylabel().startswith("precision")
+        assert ax.get_xlim()[0] == 0.0 and ax.get_xlim()[1] >= 1.0 and ax.get_ylim()[0] == 0.0 and ax.get_ylim()[1] >= 1.0
         lines = {line.get_label(): line for line in ax.get_lines()}
         hit = lines["BEV @0.5 (AP$_{40}$ 20.0)"]
-        np.testing.assert_allclose(hit.get_xdata(), np.arange(41) / 40, rtol=0, atol=1e-15)
-        assert list(hit.get_ydata()) == [1.0] * 9 + [0.0] * 32
-        assert list(lines["BEV @0.7 (AP$_{40}$ 0.0)"].get_ydata()) == [0.0] * 41
+        np.testing.assert_allclose(hit.get_xdata(), np.arange(1, 10) / 9, rtol=0, atol=1e-15)
+        assert list(hit.get_ydata()) == [1.0] * 9
+        assert list(lines["BEV @0.7 (AP$_{40}$ 0.0)"].get_ydata()) == []
     finally:
         plt.close(fig)
 
