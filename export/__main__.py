@@ -1,4 +1,4 @@
-"""``python -m export --preset P [--checkpoints DIR] --out DIR``: write depth.onnx, pixor.onnx, manifest.json."""
+"""``python -m export [--preset P|FILE.json] [--checkpoints DIR] --out DIR``: write depth.onnx, pixor.onnx, manifest.json."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ from pipeline.errors import TORCH_MISSING
 with ctrl_c_held_while_loading(__name__ == "__main__"):  # an importer's Ctrl-C stays theirs
     try:
         from export.directory import check_destination
-        from export.exporter import ExportConfig, run
+        from export.exporter import ExportConfig, checkpoint_preset, export_preset, run
         from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR
         from export.parity import ParityError
         from export.precision import REDUCE_RANGE_HELP, calibration_frame_ids
@@ -51,8 +51,10 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
                         "--calibration-data data/sim/val --out weights/own-int8"),
         formatter_class=HelpFormatter,
     )
-    parser.add_argument("--preset", required=True, metavar="P", help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with "
-                        f"suffixes {', '.join(ABLATIONS)} (the shipped camera model: edge-split-near35)")
+    parser.add_argument("--preset", metavar="P", help=f"model preset: {', '.join(sorted(PRESETS))}, optionally with "
+                        f"suffixes {', '.join(ABLATIONS)} (the shipped camera model: edge-split-near35), or a preset "
+                        "file FILE.json (docs/models.md, \"Adding a preset\"); default with --checkpoints: the preset "
+                        "they were trained with (PIXOR's)")
     parser.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="output model directory: new, empty, or a model directory to replace (only once the new "
                         "one is written and checked)")
@@ -78,15 +80,32 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
                         help="networks to export (default both; 'pixor' alone for a LiDAR-only detector)")
     args = parser.parse_args(argv)
     _refuse_contradictions(parser, args)
-    try:
-        get_preset(args.preset)
-    except ValueError as exc:
-        parser.error(f"--preset: {exc}")
+    if args.preset is None and args.checkpoints is None:
+        parser.error("--preset: needed without --checkpoints (with them, export takes the preset they were trained "
+                     "with)")
+    if args.preset is not None:
+        try:
+            get_preset(args.preset)
+        except ValueError as exc:
+            parser.error(f"--preset: {exc}{_trained_with(args.preset, args.checkpoints, tuple(args.networks))}")
     return ExportConfig(
         preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir or DEFAULT_KITTI_DIR,
         frame=args.frame or DEFAULT_FRAME, seed=args.seed, parity=not args.no_parity, progress=show_progress(False),
         networks=tuple(dict.fromkeys(args.networks)),
     ), args
+
+
+def _trained_with(name: str, checkpoints: Path | None, networks: tuple[str, ...]) -> str:
+    """A hint when an unknown ``--preset`` is the one ``--checkpoints`` were trained with: the checkpoint holds that
+    preset's configuration, which export takes when --preset is left out."""
+    if checkpoints is None:
+        return ""
+    try:
+        preset, path = checkpoint_preset(ExportConfig(preset=None, out=Path(), checkpoints=checkpoints, networks=networks))
+    except (ValueError, OSError):  # no checkpoints there: --checkpoints' own error comes later
+        return ""
+    return (f"; {path} was trained with preset {name!r}: leave --preset out, and export takes that checkpoint's own "
+            "(its preset_config)") if preset.name == name else ""
 
 
 def _refuse_contradictions(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
@@ -155,12 +174,13 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
         from export.precision import convert_precision
 
         # Checked before the fp32 export, which takes minutes, rather than by the conversion after it.
-        check_destination(config.out, get_preset(config.preset).name, args.precision)
+        check_destination(config.out, export_preset(config).name, args.precision)
         calibration_frame_ids(args.calibration_data, 1)  # a folder without frames: refused now
         with tempfile.TemporaryDirectory(prefix="lowres3d-fp32-") as fp32_dir:
             result = run(replace(config, out=Path(fp32_dir)))
             # The FP32 directory is temporary: record what made it, not a folder that is gone after this.
-            made_by = (f"not kept: python -m export --preset {config.preset} --networks {' '.join(config.networks)}"
+            preset = f" --preset {config.preset}" if config.preset is not None else ""
+            made_by = (f"not kept: python -m export{preset} --networks {' '.join(config.networks)}"
                        + (f" --checkpoints {config.checkpoints}" if config.checkpoints else " (initialised)"))
             manifest = convert_precision(Path(fp32_dir), config.out, args.precision, args.calibration_data,
                                          args.calibration_frames, progress=show_progress(False), reduce_range=args.reduce_range,

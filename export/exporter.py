@@ -25,11 +25,11 @@ from export.manifest import UNTRAINED, NetworkEntry, build_manifest, verify_mode
 from export.onnx_export import EXPORTER, OPSET, NetworkIO, depth_io, export_onnx, pixor_io
 from export.parity import ParityResult, cpu_session, depth_parity, pixor_parity, require_parity
 from models import build_network
-from models.checkpoint import find_checkpoints, load_checkpoint, load_network_weights
+from models.checkpoint import Checkpoint, find_checkpoints, load_checkpoint, load_network_weights
 from models.depth_net import IMAGENET_MEAN, IMAGENET_STD
 from pipeline.errors import InputError
 from pipeline.model_files import MANIFEST_NAME, ModelFileError
-from pipeline.presets import Preset, get_preset
+from pipeline.presets import Preset, check_preset, get_preset, preset_from_dict, registered_preset
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +40,7 @@ FILES = {"depth": "depth.onnx", "pixor": "pixor.onnx"}
 class ExportConfig:
     """What to export and how to check it."""
 
-    preset: str
+    preset: str | None  # a registered name or a .json preset file; None: the checkpoints' own (checkpoint_preset)
     out: Path
     checkpoints: Path | None = None  # directory with depth.pt and/or pixor.pt (models/checkpoint.py)
     kitti_dir: Path = DEFAULT_KITTI_DIR  # real frame for the parity check
@@ -96,6 +96,63 @@ def _checkpoint_files(config: ExportConfig) -> dict[str, Path]:
     return wanted
 
 
+def export_preset(config: ExportConfig) -> Preset:
+    """The preset ``config`` exports with: ``--preset`` (a name or a file), else the checkpoints' own."""
+    if config.preset is not None:
+        return get_preset(config.preset)
+    if config.checkpoints is None:
+        raise InputError("--preset: needed without --checkpoints (with them, export takes the preset they were "
+                         "trained with)")
+    preset, path = checkpoint_preset(config)
+    log.info("preset %s: the one %s was trained with (no --preset given)", preset.name, path)
+    return preset
+
+
+def checkpoint_preset(config: ExportConfig) -> tuple[Preset, Path]:
+    """The preset ``config.checkpoints`` were trained with, and the checkpoint it was read from, for an export without
+    --preset: PIXOR's (its grid and decoding are the model directory's; the depth net is checked against it on
+    loading, as under any --preset), else the depth net's. A registered name is taken by name, so a preset whose
+    definition changed since training is refused on loading as under --preset; any other is the checkpoint's own
+    ``preset_config``, checked (:func:`check_preset`) as a --preset file would be."""
+    checkpoints = _checkpoint_files(config)
+    path = checkpoints.get("pixor") or checkpoints["depth"]
+    checkpoint = load_checkpoint(path)
+    try:
+        preset = registered_preset(checkpoint.preset)
+    except ValueError:
+        preset = preset_from_dict(checkpoint.preset_config)
+    try:
+        check_preset(preset)
+    except ValueError as exc:
+        raise InputError(f"{path}: its preset_config: {exc}") from None
+    return preset, path
+
+
+def _unregistered_preset(checkpoint: Checkpoint, preset: Preset) -> str | None:
+    """Why ``checkpoint`` does not load under ``preset`` and how to export it anyway, when it was trained with a
+    preset not registered here (a preset file's, or one added to another copy of pipeline/presets.py): its
+    message would send the user to a --preset of that name, which is unknown here. None for a registered one."""
+    try:
+        registered_preset(checkpoint.preset)
+    except ValueError:
+        pass
+    else:
+        return None
+    try:
+        trained = preset_from_dict(checkpoint.preset_config).to_dict()
+    except ValueError:
+        return None
+    wanted = preset.to_dict()
+    differing = [f"{section}.{key} {value!r} in the checkpoint, {wanted[section].get(key)!r} in {preset.name!r}"
+                 for section in ("depth", "pixor", "bev", "decode") for key, value in trained[section].items()
+                 if value != wanted[section].get(key)] + (
+                     [f"crop_hw {trained['crop_hw']!r} in the checkpoint"] if trained["crop_hw"] != wanted["crop_hw"] else [])
+    return (f"{checkpoint.path}: trained with preset {checkpoint.preset!r}, which is not registered here (it is the "
+            f"checkpoint's own preset_config), and its weights do not fit preset {preset.name!r} "
+            f"({'; '.join(differing[:3]) or 'another configuration'}): leave --preset out, and export takes the "
+            "checkpoints' own preset")
+
+
 def _check_keeps_trained(out: Path, checkpoints: dict[str, Path], networks: tuple[str, ...]) -> None:
     """Refuse to replace a trained network at ``out`` by initialised weights (a forgotten --checkpoints)."""
     try:
@@ -120,7 +177,13 @@ def _load_weights(checkpoints: dict[str, Path], preset: Preset, models: dict[str
     training: dict[str, dict | None] = {name: None for name in models}
     for name, path in checkpoints.items():
         checkpoint = load_checkpoint(path)
-        load_network_weights(models[name], checkpoint, name, preset)
+        try:
+            load_network_weights(models[name], checkpoint, name, preset)
+        except ValueError as exc:
+            hint = _unregistered_preset(checkpoint, preset) if name in checkpoint.state_dicts else None
+            if hint is None:
+                raise
+            raise InputError(hint) from exc
         training[name] = {"checkpoint": path.name, **checkpoint.metadata}
     untrained = [name for name, meta in training.items() if meta is None]
     if checkpoints and untrained:
@@ -144,7 +207,7 @@ def run(config: ExportConfig) -> ExportResult:
     Raises ParityError when ONNX Runtime disagrees with PyTorch past tolerance, and
     ValueError/FileNotFoundError for bad presets or checkpoints; ``--out`` is then left as it was.
     """
-    preset = get_preset(config.preset)
+    preset = export_preset(config)
     out = Path(config.out)
     unknown = set(config.networks) - set(FILES)
     if unknown or "pixor" not in config.networks:

@@ -8,7 +8,11 @@ keeps tests fast.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, replace
+import difflib
+import json
+import math
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
 from typing import Any
 
 
@@ -235,8 +239,14 @@ ABLATIONS: dict[str, tuple[str, dict[str, Any]]] = {
 }
 
 
+# Where presets come from, for the messages that send a user there (docs/models.md, "Adding a preset").
+PRESET_SOURCES = ("registered in pipeline/presets.py, or a preset file: a path ending in .json "
+                  "(docs/models.md, \"Adding a preset\")")
+
+
 def get_preset(name: str) -> Preset:
-    """Look up a preset by name, with an error that lists the valid ones.
+    """Look up a preset by name, or read it from a JSON file (a ``name`` ending in ``.json``), and check it
+    (:func:`check_preset`); errors list the valid names and say where presets come from.
 
     A suffix ``-no-gam`` or ``-no-aspp`` (e.g. ``edge-no-gam``) gives the paper's
     ablation: the same preset with that part of the depth net switched off;
@@ -244,8 +254,27 @@ def get_preset(name: str) -> Preset:
     the same head upsampling the half-resolution correction instead (``refine_mode``);
     ``-split`` gives the pseudo points their own BEV channels (:class:`BevGrid`), ``-near35`` keeps
     the pseudo points up to 35 m only (``DepthNetConfig.max_depth``; the depth net's weights do not depend on it).
-    Suffixes stack (``edge-refine-no-gam``, ``edge-split-near35``).
+    Suffixes stack (``edge-refine-no-gam``, ``edge-split-near35``). A file is read by :func:`preset_from_file`.
     """
+    if not is_preset_file(name):
+        preset = registered_preset(name)
+        check_preset(preset)
+        return preset
+    preset = preset_from_file(name)
+    try:
+        check_preset(preset)
+    except ValueError as exc:
+        raise ValueError(f"preset file {name}: {exc}") from None
+    return preset
+
+
+def is_preset_file(name: str) -> bool:
+    """Whether ``--preset`` names a preset file rather than a registered preset (no name ends in .json)."""
+    return name.lower().endswith(".json")
+
+
+def registered_preset(name: str) -> Preset:
+    """A preset of :data:`PRESETS` by name, with ablation suffixes (:func:`get_preset`), unchecked."""
     base = name
     changes: dict[str, dict[str, Any]] = {"depth": {}, "bev": {}}
     applied: set[str] = set()
@@ -253,7 +282,7 @@ def get_preset(name: str) -> Preset:
         suffix = next((s for s in ABLATIONS if base.endswith(s)), None)
         if suffix is None:
             choices = ", ".join(list(PRESETS) + [f"{p}{s}" for p in PRESETS for s in ABLATIONS][:2] + ["…"])
-            raise ValueError(f"unknown preset {name!r}; choose one of {choices}")
+            raise ValueError(f"unknown preset {name!r}; choose one of {choices} ({PRESET_SOURCES})")
         if suffix in applied:  # edge-no-gam-no-gam: a name built twice over, which would pass for another preset
             raise ValueError(f"preset {name!r}: {suffix[1:]} given twice")
         applied.add(suffix)
@@ -265,6 +294,189 @@ def get_preset(name: str) -> Preset:
         return preset
     return replace(preset, name=name, depth=replace(preset.depth, **changes["depth"]),
                    bev=replace(preset.bev, **changes["bev"]))
+
+
+# A preset file's sections and the dataclass each one builds.
+SECTIONS: dict[str, type] = {"depth": DepthNetConfig, "pixor": PixorConfig, "bev": BevGrid, "decode": DecodeConfig}
+
+
+def preset_from_file(path: str | Path) -> Preset:
+    """Read a preset file (docs/models.md, "Adding a preset"), unchecked.
+
+    Either a whole preset, as ``Preset.to_dict()`` writes it (a manifest's ``preset_config``): ``name``,
+    ``crop_hw`` and the four sections, a field left out of a section taking the dataclass's default as in
+    :func:`preset_from_dict`; or ``{"base": "edge", "name": "highway", "bev": {"x_max": 100.0}}``: the
+    registered preset ``base`` (suffixes allowed) with the fields given replacing its own. A misspelt key or
+    a value of the wrong type is refused naming it, not passed on to fail later.
+    """
+    where = f"preset file {path}"
+    config = _read_object(where, Path(path).expanduser())
+    allowed = ["base", "name", "crop_hw", *SECTIONS]
+    unknown = [key for key in config if key not in allowed]
+    if unknown:
+        raise ValueError(f"{where}: unknown key {unknown[0]!r}{_did_you_mean(unknown[0], allowed)} "
+                         f"(keys: {', '.join(allowed)})")
+    name = config.get("name")
+    if not isinstance(name, str) or not name or is_preset_file(name):
+        raise ValueError(f"{where}: 'name' must be the preset's name, a string (checkpoints and manifests record it)")
+    start = _file_base(where, config, name)
+    parts: dict[str, Any] = {}
+    for section, cls in SECTIONS.items():
+        given = config.get(section, {})
+        held = None if isinstance(given, dict) else type(given).__name__
+        if held:
+            raise ValueError(f"{where}: {section} must be an object of fields, not {held}")
+        parts[section] = replace(getattr(start, section), **_section_fields(where, section, cls, given))
+    crop_hw = _field_value(where, "crop_hw", config["crop_hw"], "tuple[int, int]") if "crop_hw" in config else start.crop_hw
+    preset = Preset(name=name, crop_hw=crop_hw, **parts)
+    _check_not_registered(where, preset)
+    return preset
+
+
+def _read_object(where: str, path: Path) -> dict:
+    """The JSON object in ``path``; ValueError naming the file (and the line of a syntax error) otherwise."""
+    try:
+        config = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ValueError(f"{where}: cannot be read ({exc.strerror or type(exc).__name__})") from None
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{where}: not JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{where}: not UTF-8 text") from None
+    held = None if isinstance(config, dict) else type(config).__name__
+    if held:
+        raise ValueError(f"{where}: holds a JSON {held}, not an object with the preset's sections")
+    return config
+
+
+def _file_base(where: str, config: dict, name: str) -> Preset:
+    """What a preset file's sections change: its ``base`` preset, or the dataclasses' defaults for a whole preset
+    (which must then give every section)."""
+    if "base" not in config:
+        missing = [key for key in ("crop_hw", *SECTIONS) if key not in config]
+        if missing:
+            raise ValueError(f"{where}: lacks {', '.join(missing)}; give the whole preset (Preset.to_dict(), a "
+                             "manifest's preset_config) or a \"base\" preset whose sections it changes")
+        return Preset(name=name)
+    if not isinstance(config["base"], str) or is_preset_file(config["base"]):
+        raise ValueError(f"{where}: 'base' must name a registered preset, e.g. \"edge\"")
+    try:
+        return registered_preset(config["base"])
+    except ValueError as exc:
+        raise ValueError(f"{where}: base: {exc}") from None
+
+
+def _section_fields(where: str, section: str, cls: type, given: dict) -> dict[str, Any]:
+    """The fields of one section of a preset file, checked against the dataclass ``cls``."""
+    types = {f.name: f.type for f in fields(cls)}
+    values = {}
+    for key, value in given.items():
+        if key not in types:
+            raise ValueError(f"{where}: {section}.{key} is not a field of {section}{_did_you_mean(key, list(types))} "
+                             f"(fields: {', '.join(types)})")
+        values[key] = _field_value(where, f"{section}.{key}", value, str(types[key]))
+    return values
+
+
+def _field_value(where: str, field_name: str, value: Any, kind: str) -> Any:
+    """``value`` from JSON as the dataclass field of annotation ``kind`` holds it (lists become tuples)."""
+    def number(v: Any, integer: bool) -> bool:
+        return not isinstance(v, bool) and isinstance(v, int if integer else (int, float))
+
+    ok = {"bool": isinstance(value, bool), "int": number(value, True), "float": number(value, False),
+          "str": isinstance(value, str)}.get(kind)
+    if ok is None:  # a tuple, or "int | tuple[int, ...]"
+        integer = "float" not in kind
+        items = value if isinstance(value, list) else None
+        length = kind.count(",") + 1 if "..." not in kind else None
+        ok = ((items is not None and all(number(v, integer) for v in items) and len(items) == (length or len(items))
+               and len(items) > 0) or (kind.startswith("int |") and number(value, True)))
+    if not ok:
+        raise ValueError(f"{where}: {field_name} is {json.dumps(value)}, not a value of type {kind}")
+    if kind == "float":
+        return float(value)
+    return _tuples(value)
+
+
+def _did_you_mean(key: str, choices: list[str]) -> str:
+    """`` (did you mean 'x_max'?)`` for a near miss among ``choices``, else nothing."""
+    close = difflib.get_close_matches(key, choices, n=1)
+    return f" (did you mean {close[0]!r}?)" if close else ""
+
+
+def _check_not_registered(where: str, preset: Preset) -> None:
+    """A file's preset may not take a registered preset's name with another configuration: checkpoints and
+    manifests identify a preset by its name, and export would read the registered one's definition."""
+    try:
+        registered = registered_preset(preset.name)
+    except ValueError:
+        return
+    if registered != preset:
+        raise ValueError(f"{where}: name {preset.name!r} is a registered preset's, whose configuration differs; "
+                         "give this one a name of its own")
+
+
+def check_preset(preset: Preset) -> None:
+    """ValueError naming each field of ``preset`` the networks or the pipeline cannot run as meant, with a value
+    that would do; run on every preset taken by name or file for training and export (:func:`get_preset`).
+
+    - the grid is a whole number of cells along x and y, and of PIXOR's output cells (its maps are the grid /
+      output_stride, and decoding reads them cell for cell);
+    - the height range is a whole number of z_cell slices (``nz`` rounds: 3.5 m of 0.2 m slices became 18
+      slices up to 1.1 m without a word);
+    - the depth net's input is the crop scaled by input_scale (the calibration is scaled by input_scale: an
+      input of another shape stretches the image, and the sparse depth and pseudo points miss it);
+    - each side of the prefill kernel is odd (a max-pool centred on its pixel).
+    """
+    grid, stride = preset.bev, preset.pixor.output_stride
+    sizes = {"bev.cell": grid.cell, "bev.z_cell": grid.z_cell, "pixor.output_stride": stride, "depth.input_scale":
+             preset.depth.input_scale}
+    bad = [f"{key} {value} must be positive" for key, value in sizes.items() if not value > 0]
+    bad += [f"bev.{axis}_max {_metres(getattr(grid, axis + '_max'))} must be above {axis}_min "
+            f"{_metres(getattr(grid, axis + '_min'))}"
+            for axis in "xyz" if not getattr(grid, axis + "_max") > getattr(grid, axis + "_min")]
+    if bad:  # the checks below divide by these
+        raise ValueError(f"preset {preset.name!r}: {'; '.join(bad)}")
+    problems = _grid_problems(grid, stride)
+    wanted_hw = tuple(round(side * preset.depth.input_scale) for side in preset.crop_hw)
+    if tuple(preset.depth.input_hw) != wanted_hw:
+        problems.append(f"depth.input_hw {list(preset.depth.input_hw)} is not crop_hw {list(preset.crop_hw)} × "
+                        f"input_scale {preset.depth.input_scale:g} (the calibration is scaled by input_scale: the "
+                        f"image would be stretched off the sparse depth and pseudo points): input_hw {list(wanted_hw)}")
+    kernel = tuple(preset.depth.prefill_kernel)
+    if any(side < 1 or side % 2 == 0 for side in kernel):
+        odd = [max(1, side + (side % 2 == 0)) for side in kernel]
+        problems.append(f"depth.prefill_kernel {list(kernel)} must be odd on each side (a max-pool centred on its "
+                        f"pixel): prefill_kernel {odd}")
+    if problems:
+        raise ValueError(f"preset {preset.name!r}: {'; '.join(problems)}")
+
+
+def _grid_problems(grid: BevGrid, stride: int) -> list[str]:
+    """What :func:`check_preset` says of a grid that is not whole cells (x, y), slices (z) or output cells, each
+    with the maximum that makes it so while keeping the range asked for."""
+    problems = []
+    for axis, cell, count, multiple in (("x", grid.cell, "nx", stride), ("y", grid.cell, "ny", stride),
+                                        ("z", grid.z_cell, "nz", 1)):
+        low, high = getattr(grid, f"{axis}_min"), getattr(grid, f"{axis}_max")
+        cells = (high - low) / cell
+        if abs(cells - round(cells)) < 1e-6 and round(cells) % multiple == 0:
+            continue
+        fixed = math.ceil(cells / multiple - 1e-6) * multiple
+        unit = f"z_cell {_metres(cell)}" if axis == "z" else f"cell {_metres(cell)}"
+        unit += f" with {axis}_min {_metres(low)}" if axis != "x" or low != 0 else ""
+        whole = abs(cells - round(cells)) < 1e-6
+        what = (f"gives {count} {round(cells)}, not a multiple of the output stride {stride}" if whole else
+                f"is {cells:.4g} {'slices' if axis == 'z' else 'cells'}, not a whole number (rounded to {count} "
+                f"{getattr(grid, count)}, up to {_metres(low + getattr(grid, count) * cell)})")
+        problems.append(f"bev.{axis}_max {_metres(high)} at {unit} {what}: {axis}_max {_metres(low + fixed * cell)} "
+                        f"gives {fixed}")
+    return problems
+
+
+def _metres(value: float) -> str:
+    """A length as the preset writes it (70.0, 70.4), without the float's last-digit noise (70.39999999999999)."""
+    return repr(round(float(value), 6))
 
 
 def lidar_only(preset: Preset) -> Preset:

@@ -49,7 +49,16 @@ from pipeline.frame import drive_frame_ids, frame_image_path, load_drive_frame, 
 from pipeline.kitti import read_calib, write_image
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, default_models_hint, load_manifest
 from pipeline.onnx_wire import MAX_DEPTH, ExternalTensor, WireError, external_tensors
-from pipeline.presets import PRESETS, BevGrid, get_preset, lidar_only, preset_from_dict
+from pipeline.presets import (
+    ABLATIONS,
+    PRESETS,
+    BevGrid,
+    check_preset,
+    get_preset,
+    lidar_only,
+    preset_from_dict,
+    registered_preset,
+)
 from tests.conftest import KITTI
 from tests.test_bad_files import _object_folder
 from tests.test_detector import _raw_drive
@@ -587,13 +596,12 @@ def test_a_manifest_preset_with_a_field_this_version_lacks_is_a_value_error() ->
         preset_from_dict(config)
 
 
-@pytest.mark.parametrize("name", sorted(PRESETS))
+@pytest.mark.parametrize("name", sorted(PRESETS) + [f"{base}{suffix}" for base in sorted(PRESETS) for suffix in ABLATIONS])
 def test_each_presets_grid_and_depth_input_fit_its_networks(name: str) -> None:
-    """The BEV grid is a whole number of PIXOR's output cells (its maps are the grid / output_stride, and decoding
-    reads them cell for cell), and the depth net's input is the crop scaled by input_scale."""
-    preset = PRESETS[name]
-    assert preset.bev.nx % preset.pixor.output_stride == 0 and preset.bev.ny % preset.pixor.output_stride == 0
-    assert preset.depth.input_hw == tuple(round(side * preset.depth.input_scale) for side in preset.crop_hw)
+    """Every registered preset and ablation keeps the rules check_preset holds a preset to (its docstring; a
+    file's preset is held to them too, tests/test_preset_files.py): a whole number of PIXOR's output cells, of
+    height slices, the depth input the crop scaled by input_scale, an odd prefill kernel."""
+    check_preset(registered_preset(name))
 
 
 def test_a_grid_range_a_hair_under_whole_cells_in_floats_keeps_its_last_cell() -> None:
