@@ -75,6 +75,7 @@ from tqdm import tqdm
 from models import build_depth_net, build_pixor
 from models.allocator import keep_freed_memory
 from models.checkpoint import CHECKPOINT_FILES, save_checkpoint, write_text_atomic
+from models.curves import RunInfo, after_epoch, run_description
 from models.data import (
     DETECTOR_INPUTS,
     DepthCompletionDataset,
@@ -499,6 +500,10 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
     check_thinnable_scans(config, train_dir, train_ids, val_dir, val_ids)
     check_cars(config, train_dir, train_ids, val_dir, val_ids)
     check_pseudo_maps(config, train_ids, val_ids)
+    # The first line of a run that will train (a refused one stays one error line; the checks' own warnings,
+    # such as no validation split, come before it): a wrong preset or input is seen now, not at export.
+    info = RunInfo(config.task, preset.name, config.input_mode, config.emulate_beams)
+    log.info("%s", run_description(info, preset))
     if state is not None and state["epoch"] >= config.epochs:  # nothing to train: the run stays as it is
         _write_log(out / "log.jsonl", list(state["history"]))  # its last line, if a kill came before it
         checkpoints = {name: out / f"{name}.pt" for name in state["networks"] if (out / f"{name}.pt").exists()}
@@ -652,6 +657,7 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         # this epoch and writes them again, and the log never shows an epoch the state does not hold.
         save_state(state_path, networks, optimizer, scheduler, epoch + 1, best, history, recorded_config)
         _append_log(log_path, record)
+        after_epoch(out, info)  # curves.png from the whole log (a resumed run's earlier epochs too)
     checkpoints = {name: out / f"{name}.pt" for name in networks if (out / f"{name}.pt").exists()}
     return TrainResult(out, checkpoints, history, first_loss, last_loss, epochs_before=start_epoch,
                        epochs=config.epochs)

@@ -18,7 +18,7 @@ REPO = Path(__file__).resolve().parents[1]
 KITTI = REPO / "tests" / "data" / "kitti" / "training"
 MODULES = ["pipeline.detect", "pipeline.beams", "pipeline.demo", "service", "simulation", "models.train",
            "models.reproduce", "models.cache_pseudo", "export", "export.lower", "export.precision",
-           "export.golden", "requirements.lock", "models.onnx_weights", "pipeline.check_models"]
+           "export.golden", "requirements.lock", "models.onnx_weights", "pipeline.check_models", "models.curves"]
 SCRIPTS = ["latency", "accuracy", "load", "frame_ops", "eval_speed", "sim_report", "network_latency", "peak",
            "op_profile", "depth_bound"]
 # The commands of the README's table and the Makefile, which this family's checks hold to: all of them.
@@ -56,7 +56,7 @@ def test_every_command_answers_help(name):
 # What the runtime install (make demo: no torch, matplotlib or httpx) answers to --help: the usage, or for a
 # command that needs a package it lacks one line saying what to install, exit status 2 as any usage error.
 NEEDS_EXTRAS = {"models.train", "models.cache_pseudo", "models.reproduce", "export", "network_latency", "depth_bound",
-                "load", "models.onnx_weights"}
+                "load", "models.onnx_weights", "models.curves"}
 RUNTIME = ("import runpy, sys; [sys.modules.__setitem__(m, None) for m in ('torch', 'matplotlib', 'httpx')]; "
            "sys.argv = ['x', '--help']; ")
 

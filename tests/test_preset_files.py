@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import re
 from dataclasses import replace
 from pathlib import Path
@@ -141,3 +142,23 @@ def test_export_under_another_preset_names_the_way_out(unregistered_run: tuple[P
     assert "unknown preset 'tinyway'" in err and (f"{run_dir / 'pixor.pt'} was trained with preset 'tinyway': leave "
                                                   "--preset out") in err
     assert not (tmp_path / "out").exists()
+
+
+def test_training_takes_a_preset_file_and_its_first_line_names_the_files_grid(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """``models.train --preset FILE.json`` trains under the file's preset, and its first line gives that grid (a
+    line built by looking the preset's name up again refused the run: "unknown preset 'tinyway'")."""
+    from models.train import main
+    from tests.test_train_cli import args
+
+    split = tmp_path / "one.txt"
+    split.write_text("000006\n")
+    preset_file = tmp_path / "tinyway.json"
+    preset_file.write_text(json.dumps({"base": "tiny", "name": "tinyway", "bev": {"x_max": 100.8}}))
+    argv = args("detector", tmp_path / "run", split, "--input", "lidar16")
+    argv[argv.index("--preset") + 1] = str(preset_file)
+    with caplog.at_level(logging.INFO, logger="models.train"):
+        assert main(argv) == 0
+    (line,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("detector: preset ")]
+    assert line.startswith("detector: preset tinyway, BEV grid 7 × 200 × 252 (nz × ny × nx), x 0…100.8 m"), line

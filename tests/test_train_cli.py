@@ -642,7 +642,7 @@ def test_a_new_run_refuses_a_folder_another_process_started_meanwhile(tmp_path, 
         if not played:  # the first lock this run takes: the other process's whole run comes just before it
             played.append(folder)
             assert main(args("detector", tmp_path / "other", one_frame, "--input", "lidar16")) == 0
-            for name in ("state.pt", "pixor.pt", "log.jsonl"):
+            for name in ("state.pt", "pixor.pt", "log.jsonl", "curves.png"):
                 shutil.copy(tmp_path / "other" / name, folder / name)
         return taken(folder)
 
