@@ -183,7 +183,7 @@ def figure_of(rows: list[tuple[str, FrameFiles]]):
         ax[2].set_ylim(-5, 70)
         ax[2].set_aspect("equal")
         ax[2].set(xlabel="right of the sensor (m)", ylabel="ahead of the sensor (m)")
-        ax[2].set_title(f"{title}: BEV, labelled cars red")
+        ax[2].set_title(f"{title}: BEV, labelled cars and vans red")
         for a in ax[:2]:
             a.axis("off")
     return fig

@@ -39,13 +39,16 @@ ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_DIR = ROOT / "tests" / "data" / "kitti" / "training"
 
 
-def sparse_depth_picture(rgb: np.ndarray, sparse_depth: np.ndarray, max_depth: float = 80.0) -> np.ndarray:
+def sparse_depth_picture(rgb: np.ndarray, sparse_depth: np.ndarray, max_depth: float = 80.0,
+                         frame_id: str | None = None) -> np.ndarray:
     """The depth net's view of the camera above the sparse depth it gets from the 16-line scan (each return
-    grown to 3 × 3 pixels to be seen), each labelled, the depth with its colour bar."""
+    grown to 3 × 3 pixels to be seen), each labelled (the camera's label with ``frame_id``: which frame it is),
+    the depth with its colour bar."""
     view = cv2.cvtColor(rgb[0].transpose(1, 2, 0).astype(np.uint8), cv2.COLOR_RGB2BGR)
     sparse = render_depth(cv2.dilate(sparse_depth[0, 0], np.ones((3, 3), np.uint8)), max_depth)
     draw_colour_scale(sparse, depth_colours(max_depth), 0.0, max_depth, "m", length=120)
-    return np.vstack([draw_label(view, "camera, the depth net's view"),
+    which = f"KITTI {frame_id}: " if frame_id else ""
+    return np.vstack([draw_label(view, f"{which}camera, the depth net's view"),
                       draw_label(sparse, "sparse depth, 16 lines (black: none)")])
 
 
@@ -69,7 +72,7 @@ def run_core(frame_id: str, out: Path, preset_name: str = "edge") -> dict:
         pictures.append(out / f"{frame_id}_bev_{lines}.png")
         write_png(pictures[-1], render_bev(points, preset.bev, gt_boxes=cars, title=title, legend=True))
     pictures.append(out / f"{frame_id}_sparse_depth_16.png")
-    write_png(pictures[-1], sparse_depth_picture(inputs.rgb, inputs.sparse_depth))
+    write_png(pictures[-1], sparse_depth_picture(inputs.rgb, inputs.sparse_depth, frame_id=frame_id))
     return {
         "frame": frame_id, "mode": "core (no model directory)", "points_64": int(frame.points.shape[0]),
         "rings_found": rings.n_rings, "points_16": int(lidar16.shape[0]),

@@ -5,9 +5,12 @@
     python -m pipeline.detect --models DIR --image F --points F --calib F --out DIR
 
 Writes ``OUT/data/ID.txt`` (KITTI label_2 lines with scores, the format of
-the official evaluation), ``OUT/bev/ID.png`` (points, predictions in green,
-ground truth in red when labels exist) and ``OUT/camera/ID.png`` (the camera
-image with the same boxes as wireframes); ``--video`` also puts the two
+the official evaluation), ``OUT/bev/ID.png`` (the scan's returns grey over the
+camera's pseudo points in magenta, the camera's field of view, predictions in
+orange, dimmed outside that view, where the result file leaves them out, the
+labelled cars dashed sky blue when labels exist, the frame's warning codes in
+the key) and ``OUT/camera/ID.png`` (the camera image with the boxes of the
+result file as wireframes); ``--video`` also puts the two
 pictures, one above the other, in frame order into one MP4.
 
 A raw drive (``--drive``) is read as KITTI's raw downloads lay it out:
@@ -89,6 +92,7 @@ from pipeline.render import (
     draw_label,
     render_bev,
     render_camera,
+    split_scan_and_pseudo,
     stack_views,
     write_png,
 )
@@ -114,7 +118,7 @@ class DetectResult:
 
 def _labels_for_picture(data: Path, fid: str) -> list | None:
     """The frame's ground truth for its picture, or None: labels are optional, so a broken label file
-    costs the picture its red boxes (with a warning), not the detections."""
+    costs the picture its labelled cars' boxes (with a warning), not the detections."""
     path = Path(data) / "label_2" / f"{fid}.txt"
     if not path.exists():
         return None
@@ -383,11 +387,14 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
                 if labels:
                     gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
                 title = picture_title(frame.frame_id, detector.model_dir, emulate_beams)
-                bev = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores, gt,
-                                 title=title, legend=True)
+                # The sensor faults and mismatches named on stderr, by code (the thinning asked for is in the title).
+                faults = [c for c in detections.warning_codes if c != WarningCode.BEAMS_EMULATED]
+                scan, pseudo = split_scan_and_pseudo(detections.points, frame.points, emulate_beams)
+                bev = render_bev(scan, detector.preset.bev, detections.boxes, detections.scores, gt, title=title,
+                                 legend=True, pseudo=pseudo, view=(frame.calib, frame.image_hw), warnings=faults)
                 seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)  # the result file's boxes
                 camera = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
-                                       title=title, legend=True)
+                                       title=title, legend=True, warnings=faults)
                 for kind, picture in (("bev", bev), ("camera", camera)):
                     (out / kind).mkdir(parents=True, exist_ok=True)
                     path = out / kind / f"{frame.frame_id}.png"
@@ -395,7 +402,8 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
                     images.append(path)
                 if video is not None:  # the camera view drawn again at the video's size, so its scores stay readable
                     small = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
-                                          scale=camera_scale_in_stack(frame.image_hw, bev), legend=True)
+                                          scale=camera_scale_in_stack(frame.image_hw, bev), legend=True,
+                                          warnings=faults)
                     video.add(_captioned(stack_views(small, bev), frame.frame_id, len(objects)))
     except KeyboardInterrupt as exc:  # main says where the frames done are, or that there are none yet
         exc.frames_written = len(results)  # type: ignore[attr-defined]

@@ -5,20 +5,37 @@ from __future__ import annotations
 
 import errno
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from pipeline.boxes import BOX_EDGES, bev_corners, box_corners_3d, segments_in_front
+from pipeline.beams import emulate_beams
+from pipeline.boxes import BOX_EDGES, bev_corners, box_corners_3d, in_camera_view, segments_in_front
 from pipeline.calib import Calibration
 from pipeline.preprocess import scale_calibration
 from pipeline.presets import BevGrid
 
-PREDICTION_BGR = (60, 220, 60)
-GROUND_TRUTH_BGR = (60, 60, 230)
+# Okabe–Ito colours (BGR), apart under every common colour-vision deficiency: detections orange on solid lines,
+# the labelled cars sky blue on dashed lines, so that neither the hue nor the line alone carries the difference.
+PREDICTION_BGR = (0, 159, 230)
+GROUND_TRUTH_BGR = (233, 180, 86)
+# A detection outside the camera's view (not in the result file): the orange at half brightness, on thin lines.
+OUTSIDE_VIEW_BGR = (0, 110, 160)
+# The camera's pseudo points (magenta) under the scan's own returns (grey to white, drawn on top): a sector the
+# LiDAR lost shows as magenta alone. Magenta stays a colour (blue) for a red-green colour-blind reader, where the
+# Okabe–Ito bluish green turns grey, as the scan is.
+PSEUDO_BGR = (200, 70, 200)
+SCAN_KEY_BGR = (255, 255, 255)
+VIEW_BGR = (150, 150, 150)  # the camera's field of view: lighter than the rings
+DASH_PX, GAP_PX = 8, 5
 # The two diagonals of a box's front face (corners 0 and 3 are the front edge), drawn to show its heading.
 FRONT_DIAGONALS = ((0, 7), (3, 4))
+
+# A key's row: (text, colour) or (text, colour, swatch style: "line", "dashed", "thin" or "points"); no colour:
+# a title row.
+KeyRow = tuple[str, tuple[int, int, int] | None] | tuple[str, tuple[int, int, int] | None, str]
 
 
 def _to_pixels(xy: np.ndarray, grid: BevGrid, scale: float) -> np.ndarray:
@@ -46,52 +63,121 @@ def fit_text(text: str, width: int, scale: float = KEY_SCALE) -> str:
     return text + "..."
 
 
-def draw_key(picture: np.ndarray, rows: list[tuple[str, tuple[int, int, int] | None]],
-             corner: str = "top-left") -> tuple[int, int, int, int]:
-    """A key in a corner of the picture (in place): one row per (text, colour), a short line of the colour
-    before the text (no line: a title row), white text on a black box so it reads on any background.
-    Returns the box as (left, top, right, bottom)."""
-    line_h, swatch, pad = 18, 22, 6
-    room = picture.shape[1] - 2 * pad - swatch - 6
-    rows = [(fit_text(text, room), colour) for text, colour in rows]
-    width = max(cv2.getTextSize(text, FONT, KEY_SCALE, 1)[0][0] + (swatch + 6 if colour else 0)
-                for text, colour in rows) + 2 * pad
-    height = line_h * len(rows) + pad
-    left = 0 if corner == "top-left" else max(picture.shape[1] - width, 0)
-    cv2.rectangle(picture, (left, 0), (left + width, height), (0, 0, 0), thickness=-1)
-    for i, (text, colour) in enumerate(rows):
-        baseline = pad + line_h * i + 11
-        x = left + pad
-        if colour is not None:
-            cv2.line(picture, (x, baseline - 4), (x + swatch, baseline - 4), colour, 2, cv2.LINE_AA)
-            x += swatch + 6
-        cv2.putText(picture, text, (x, baseline), FONT, KEY_SCALE, (255, 255, 255), 1, cv2.LINE_AA)
+_KEY_LINE_H, _KEY_SWATCH, _KEY_PAD = 18, 22, 6
+
+
+def key_box(picture_width: int, rows: list[KeyRow], corner: str = "top-left") -> tuple[int, int, int, int]:
+    """Where :func:`draw_key` puts a key of ``rows`` on a picture ``picture_width`` wide, as (left, top, right,
+    bottom): labels drawn before the key keep out of it."""
+    room = picture_width - 2 * _KEY_PAD - _KEY_SWATCH - 6
+    width = max(cv2.getTextSize(fit_text(row[0], room), FONT, KEY_SCALE, 1)[0][0]
+                + (_KEY_SWATCH + 6 if row[1] else 0) for row in rows) + 2 * _KEY_PAD
+    height = _KEY_LINE_H * len(rows) + _KEY_PAD
+    left = 0 if corner == "top-left" else max(picture_width - width, 0)
     return left, 0, left + width, height
 
 
-def _ring_label_at(radius_px: int, origin: tuple[int, int], size: tuple[int, int], text: str) -> tuple[int, int]:
-    """Where a range ring's label goes: just right of where the ring leaves the picture (its bottom edge, or
-    its right edge for a ring wider than the picture), away from the lane ahead where the cars are."""
-    width, height = size
-    (text_w, text_h), _ = cv2.getTextSize(text, FONT, 0.4, 1)
-    if origin[0] + radius_px + text_w + 4 < width:
-        return origin[0] + radius_px + 3, min(origin[1], height) - 4
-    across = width - 1 - origin[0]
-    row = origin[1] - int(np.sqrt(max(radius_px**2 - across**2, 0)))
-    return width - text_w - 3, row + text_h + 5
+def _swatch(picture: np.ndarray, x: int, y: int, colour: tuple[int, int, int], style: str) -> None:
+    """A key row's sample of what it names, ``_KEY_SWATCH`` pixels wide from (x, y): a line as the boxes draw
+    it, or dots for points."""
+    if style == "points":
+        for dx in range(1, _KEY_SWATCH, 5):
+            cv2.rectangle(picture, (x + dx, y - 1), (x + dx + 1, y + 1), colour, -1)
+        return
+    segment = np.array([[[x, y], [x + _KEY_SWATCH, y]]], np.int32)
+    _draw_segments(picture, segment, colour, style)
 
 
-def _put_score(canvas: np.ndarray, text: str, corners: np.ndarray, colour: tuple[int, int, int]) -> None:
-    """A BEV box's score just above and right of its front-left corner (``corners``: its four (column, row)),
-    kept whole in the picture: under the box when the front reaches past the far edge, moved in from a side."""
-    (text_w, text_h), _ = cv2.getTextSize(text, FONT, 0.45, 1)
-    height, width = canvas.shape[:2]
-    column, row = corners[0, 0] + 4, corners[0, 1] - 4
-    if row - text_h < 0:  # above the top edge: under the box's lowest point, clear of its lines
-        row = corners[:, 1].max() + text_h + 6
-    at = (int(np.clip(column, 0, max(width - text_w - 1, 0))),
-          int(np.clip(row, text_h + 1, max(height - 3, text_h + 1))))
-    cv2.putText(canvas, text, at, FONT, 0.45, colour, 1, cv2.LINE_AA)
+def draw_key(picture: np.ndarray, rows: list[KeyRow], corner: str = "top-left") -> tuple[int, int, int, int]:
+    """A key in a corner of the picture (in place): one row per (text, colour[, style]), a short sample of the
+    colour before the text drawn as the picture draws it (no colour: a title row), white text on a black box so it
+    reads on any background. Returns the box as (left, top, right, bottom), as :func:`key_box`."""
+    room = picture.shape[1] - 2 * _KEY_PAD - _KEY_SWATCH - 6
+    left, top, right, bottom = key_box(picture.shape[1], rows, corner)
+    cv2.rectangle(picture, (left, top), (right, bottom), (0, 0, 0), thickness=-1)
+    for i, row in enumerate(rows):
+        text, colour = fit_text(row[0], room), row[1]
+        baseline = _KEY_PAD + _KEY_LINE_H * i + 11
+        x = left + _KEY_PAD
+        if colour is not None:
+            _swatch(picture, x, baseline - 4, colour, row[2] if len(row) > 2 else "line")
+            x += _KEY_SWATCH + 6
+        cv2.putText(picture, text, (x, baseline), FONT, KEY_SCALE, (255, 255, 255), 1, cv2.LINE_AA)
+    return left, top, right, bottom
+
+
+def _dashes(segments: np.ndarray) -> np.ndarray:
+    """(M, 2, 2) segments (two (column, row) ends each) → (D, 2, 2) int32 dashes along them, ``DASH_PX`` drawn
+    then ``GAP_PX`` left, each segment starting with a dash."""
+    ends = segments.astype(np.float64)
+    delta = ends[:, 1] - ends[:, 0]
+    length = np.hypot(delta[:, 0], delta[:, 1])
+    count = np.maximum(np.ceil(length / (DASH_PX + GAP_PX)), 1).astype(np.int64)
+    which = np.repeat(np.arange(len(ends)), count)
+    nth = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    start = nth * float(DASH_PX + GAP_PX)
+    stop = np.minimum(start + DASH_PX, length[which])
+    unit = delta[which] / np.maximum(length[which], 1e-9)[:, None]
+    dashes = ends[which, 0][:, None] + unit[:, None] * np.stack([start, stop], axis=1)[..., None]
+    return np.rint(dashes).astype(np.int32)
+
+
+def _draw_segments(canvas: np.ndarray, segments: np.ndarray, colour: tuple[int, int, int], style: str) -> None:
+    """(M, 2, 2) int32 segments drawn in place: ``line`` solid 2 px (detections), ``dashed`` 2 px dashes (the
+    labelled cars), ``thin`` solid 1 px (detections outside the camera's view, the camera's field of view)."""
+    if len(segments) == 0:
+        return
+    if style == "dashed":
+        segments = _dashes(segments)
+    cv2.polylines(canvas, list(segments), False, colour, 1 if style == "thin" else 2, cv2.LINE_AA)
+
+
+def _overlaps(a: tuple[int, int, int, int], b: tuple[int, int, int, int]) -> bool:
+    """Whether two (left, top, right, bottom) boxes share a pixel."""
+    return a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3]
+
+
+def _free_spot(candidates: list[tuple[float, float]], text_wh: tuple[int, int], picture_wh: tuple[int, int],
+               taken: list[tuple[int, int, int, int]]) -> tuple[int, int]:
+    """Where a label goes: the first of ``candidates`` (its text's left end and baseline), moved whole into the
+    picture, whose box (the text and 2–3 pixels about it) meets none of ``taken`` (earlier labels, the sensor, the
+    key); the first one when every one does. Its box is added to ``taken``. A loop over a few candidates of a few
+    boxes: labels are one a box, tens at most."""
+    (text_w, text_h), (width, height) = text_wh, picture_wh
+    spots = []
+    for column, row in candidates:
+        at = (int(np.clip(column, 0, max(width - text_w - 1, 0))),
+              int(np.clip(row, text_h + 1, max(height - 3, text_h + 1))))
+        box = (at[0] - 2, at[1] - text_h - 3, at[0] + text_w + 2, at[1] + 3)
+        if not any(_overlaps(box, other) for other in taken):
+            taken.append(box)
+            return at
+        spots.append((at, box))
+    taken.append(spots[0][1])
+    return spots[0][0]
+
+
+def _ring_label_at(radius_px: int, origin: tuple[int, int], text_h: int) -> tuple[int, int] | None:
+    """Where a range ring's label goes: on the forward axis, just right of it and above the ring (just below it
+    for a ring at the picture's far edge), so a box ahead reads against the rings' distances; None for a ring
+    that crosses the axis off the picture."""
+    row = origin[1] - radius_px
+    if row < 0:
+        return None
+    return origin[0] + 4, row - 3 if row - 3 - text_h >= 0 else row + text_h + 4
+
+
+def _score_candidates(corners: np.ndarray, text_w: int, text_h: int) -> list[tuple[float, float]]:
+    """Where a BEV box's score may go (``corners``: its four (column, row), the front-left first), first choice
+    first: above and right of its front-left corner (under the box when that is past the far edge), then right of
+    it, left of it, under it and above it."""
+    left, top = corners.min(axis=0)
+    right, bottom = corners.max(axis=0)
+    first = (corners[0, 0] + 4, corners[0, 1] - 4)
+    if first[1] - text_h < 0:  # above the top edge: under the box's lowest point, clear of its lines
+        first = (corners[0, 0] + 4, bottom + text_h + 6)
+    return [first, (right + 5, top + text_h), (left - text_w - 5, top + text_h), (left, bottom + text_h + 6),
+            (left, top - 5)]
 
 
 def render_bev(
@@ -103,70 +189,157 @@ def render_bev(
     metres_per_pixel: float = 0.1,
     title: str | None = None,
     legend: bool = False,
+    pseudo: np.ndarray | None = None,
+    view: tuple[Calibration, tuple[int, int]] | None = None,
+    warnings: Sequence[str] = (),
 ) -> np.ndarray:
     """BGR uint8 picture of the BEV grid, forward (x) up, left (y) left, the sensor a white triangle at the
-    bottom centre: points (brighter where denser), range rings every 10 m labelled where they leave the
-    picture, ground truth in red, predictions in green with their scores.
+    bottom centre: points (grey to white, brighter where denser), range rings every 10 m labelled along the
+    forward axis, the labelled cars in dashed sky blue, detections in orange with their scores.
 
-    legend: a key in the top-left corner (``title`` first, then what each colour is and which way is ahead)
-    for pictures people look at; off for a picture compared pixel by pixel."""
+    pseudo: the camera's pseudo points, drawn in magenta under ``points`` (then the scan's own returns), so
+    a sector the LiDAR lost shows. view: the camera's (calibration, image (rows, columns)): its field of view is
+    drawn, and the detections whose centre it does not see (those a result file leaves out) dimmed on thin lines.
+    warnings: the frame's warning codes, for the key. legend: a key in the top-left corner (``title`` first,
+    the warnings, then what each colour is and which way is ahead) for pictures people look at; off for a
+    picture compared pixel by pixel."""
     width = round((grid.y_max - grid.y_min) / metres_per_pixel)
     height = round((grid.x_max - grid.x_min) / metres_per_pixel)
-    density = np.zeros(height * width, np.float32)
-    pix = np.floor(_to_pixels(points[:, :2], grid, metres_per_pixel)).astype(np.int64)
-    ok = (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
-    density += np.bincount(pix[ok, 1] * width + pix[ok, 0], minlength=height * width)
-    grey = (np.clip(np.log1p(density) / np.log(20.0), 0, 1) * 255).astype(np.uint8).reshape(height, width)
-    canvas = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
-    # Range rings every 10 m help reading distances; their labels sit off the lane ahead, where boxes are.
+
+    def shade(cloud: np.ndarray) -> np.ndarray:
+        """(height, width) 0–1: log of the points a pixel holds, 1 from 19 on."""
+        pix = np.floor(_to_pixels(cloud[:, :2], grid, metres_per_pixel)).astype(np.int64)
+        ok = (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
+        density = np.bincount(pix[ok, 1] * width + pix[ok, 0], minlength=height * width).astype(np.float32)
+        return np.clip(np.log1p(density) / np.log(20.0), 0, 1).reshape(height, width)
+
+    scan = (shade(points) * 255).astype(np.uint8)
+    canvas = cv2.cvtColor(scan, cv2.COLOR_GRAY2BGR)
+    if pseudo is not None and len(pseudo):
+        camera = (shade(pseudo)[..., None] * np.array(PSEUDO_BGR, np.float32)).astype(np.uint8)
+        canvas = np.where((scan > 0)[..., None], canvas, camera)  # the scan on top
     column, row = _to_pixels(np.array([0.0, 0.0]), grid, metres_per_pixel)
     origin = (int(column), int(row))
+    tip = (origin[0], min(origin[1], height) - 14)
+    # The boxes the camera sees, as a result file keeps them (pipeline.boxes.in_camera_view).
+    seen = in_camera_view(boxes, *view) if view is not None and boxes is not None else None
+    split = None if seen is None else (int(seen.sum()), int((~seen).sum()))
+    rows = bev_key_rows(title, boxes is not None, gt_boxes is not None, pseudo is not None, view is not None,
+                        warnings, split)
+    taken = [(tip[0] - 8, tip[1] - 2, tip[0] + 8, tip[1] + 14)]  # the sensor
+    if legend:
+        taken.append(key_box(width, rows))
+    # Range rings every 10 m help reading distances; labelled on the forward axis, where a box ahead is read.
     farthest = float(np.hypot(max(grid.x_max, -grid.x_min), max(grid.y_max, -grid.y_min)))
     for r in range(RING_STEP_M, int(farthest) + 1, RING_STEP_M):
         radius = int(r / metres_per_pixel)
         cv2.circle(canvas, origin, radius, RING_BGR, 1, cv2.LINE_AA)
-        at = _ring_label_at(radius, origin, (width, height), f"{r} m")
-        if 0 <= at[1] - 10 and at[1] < height:
+        (text_w, text_h), _ = cv2.getTextSize(f"{r} m", FONT, 0.4, 1)
+        at = _ring_label_at(radius, origin, text_h)
+        if at is not None:
             cv2.putText(canvas, f"{r} m", at, FONT, 0.4, RING_LABEL_BGR, 1, cv2.LINE_AA)
+            taken.append((at[0], at[1] - text_h, at[0] + text_w, at[1] + 2))
+    if view is not None:
+        edges = _to_pixels(camera_view_edges(*view), grid, metres_per_pixel)
+        _draw_segments(canvas, np.rint(edges).astype(np.int32), VIEW_BGR, "thin")
     # The sensor: a triangle pointing ahead, so the picture says which way is forward without the key.
-    tip = (origin[0], min(origin[1], height) - 14)
     cv2.fillPoly(canvas, [np.array([tip, (tip[0] - 6, tip[1] + 12), (tip[0] + 6, tip[1] + 12)], np.int32)],
                  (255, 255, 255), cv2.LINE_AA)
-    for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
-        if drawn is None or len(drawn) == 0:
-            continue
-        corners = _to_pixels(bev_corners(drawn), grid, metres_per_pixel)
-        # A box far off the picture (a broken scan can give one) has no pixel position OpenCV accepts.
-        drawable = np.isfinite(corners).all(axis=(1, 2)) & (np.abs(corners) < 1e5).all(axis=(1, 2))
-        corners = np.rint(corners[drawable]).astype(np.int32)
-        if with_score and scores is not None:
-            scores = scores[drawable]
-        cv2.polylines(canvas, list(corners), True, colour, 2, cv2.LINE_AA)
-        front = np.rint(corners[:, [0, 3]].mean(axis=1)).astype(np.int32)  # mid front edge: heading
-        centre = np.rint(corners.mean(axis=1)).astype(np.int32)
-        for i in range(len(corners)):  # one line and label per box: tens of boxes at most
-            cv2.line(canvas, tuple(centre[i]), tuple(front[i]), colour, 2, cv2.LINE_AA)
-            if with_score and scores is not None:
-                _put_score(canvas, f"{scores[i]:.2f}", corners[i], colour)
+    # The key before the boxes: a car far ahead on the left lies under it (KITTI 000006's at 61 m), and a box
+    # drawn over the key's text still reads, where the key's black box over a detection hid it.
     if legend:
-        draw_key(canvas, bev_key_rows(title, boxes is not None, gt_boxes is not None))
+        draw_key(canvas, rows)
+    _draw_bev_boxes(canvas, gt_boxes, None, None, grid, metres_per_pixel, taken)
+    _draw_bev_boxes(canvas, boxes, scores, seen, grid, metres_per_pixel, taken, prediction=True)
     return canvas
 
 
-def key_rows(title: str | None, predictions: bool, ground_truth: bool) -> list[tuple[str, tuple[int, int, int] | None]]:
-    """The rows of a picture's key: its title, then what the colours drawn are."""
-    rows: list[tuple[str, tuple[int, int, int] | None]] = [(title, None)] if title else []
+def _draw_bev_boxes(canvas: np.ndarray, drawn: np.ndarray | None, scores: np.ndarray | None,
+                    seen: np.ndarray | None, grid: BevGrid, metres_per_pixel: float,
+                    taken: list[tuple[int, int, int, int]], prediction: bool = False) -> None:
+    """Boxes as outlines with a line from the centre to the front (the heading), in place: detections (with
+    their scores, dimmed where ``seen`` is False) or the labelled cars (dashed)."""
+    if drawn is None or len(drawn) == 0:
+        return
+    corners = _to_pixels(bev_corners(drawn), grid, metres_per_pixel)
+    # A box far off the picture (a broken scan can give one) has no pixel position OpenCV accepts.
+    drawable = np.isfinite(corners).all(axis=(1, 2)) & (np.abs(corners) < 1e5).all(axis=(1, 2))
+    corners = np.rint(corners[drawable]).astype(np.int32)
+    inside = np.ones(len(corners), bool) if seen is None else np.asarray(seen)[drawable]
+    front = np.rint(corners[:, [0, 3]].mean(axis=1)).astype(np.int32)  # mid front edge: heading
+    centre = np.rint(corners.mean(axis=1)).astype(np.int32)
+    # (K, 5, 2, 2): the four edges and the heading line, each as its two ends.
+    segments = np.concatenate([np.stack([corners, np.roll(corners, -1, axis=1)], axis=2),
+                               np.stack([centre, front], axis=1)[:, None]], axis=1)
+    if not prediction:
+        _draw_segments(canvas, segments.reshape(-1, 2, 2), GROUND_TRUTH_BGR, "dashed")
+        return
+    _draw_segments(canvas, segments[~inside].reshape(-1, 2, 2), OUTSIDE_VIEW_BGR, "thin")
+    _draw_segments(canvas, segments[inside].reshape(-1, 2, 2), PREDICTION_BGR, "line")
+    if scores is None:
+        return
+    height, width = canvas.shape[:2]
+    for i, score in enumerate(np.asarray(scores)[drawable]):  # one label a box: tens of boxes at most
+        text = f"{score:.2f}"
+        (text_w, text_h), _ = cv2.getTextSize(text, FONT, 0.45, 1)
+        at = _free_spot(_score_candidates(corners[i], text_w, text_h), (text_w, text_h), (width, height), taken)
+        colour = PREDICTION_BGR if inside[i] else OUTSIDE_VIEW_BGR
+        cv2.putText(canvas, text, at, FONT, 0.45, colour, 1, cv2.LINE_AA)
+
+
+def split_scan_and_pseudo(seen: np.ndarray, scan: np.ndarray,
+                          lines: int | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points PIXOR saw (``seen``: the camera's pseudo points, then the scan's, as Detector.detect keeps them)
+    split into the scan's own returns and the pseudo points (None: a LiDAR-only model's, or a split that does not
+    add up), for :func:`render_bev`'s ``points`` and ``pseudo``. ``scan``: the frame's scan, thinned again to
+    ``lines`` as the Detector thinned it (a few ms, deterministic)."""
+    if lines:
+        scan = emulate_beams(scan, lines)
+    count = scan.shape[0]
+    if count >= seen.shape[0] or not np.array_equal(seen[-count:, :3], scan[:, :3]):
+        return seen, None
+    return seen[-count:], seen[:-count]
+
+
+def camera_view_edges(calib: Calibration, image_hw: tuple[int, int], far_m: float = 200.0) -> np.ndarray:
+    """(2, 2, 2): the left and right edges of the camera's view on the BEV, each as two (x, y) in the LiDAR frame
+    (0.5 m and ``far_m`` in front of the camera, through the middle row of the image's first and last column)."""
+    height, width = image_hw
+    u = np.array([0.0, 0.0, width, width])
+    depth = np.array([0.5, far_m, 0.5, far_m])
+    xyz = calib.image_to_velo(u, np.full(4, height / 2), depth)
+    return xyz[:, :2].reshape(2, 2, 2)
+
+
+def key_rows(title: str | None, predictions: bool, ground_truth: bool,
+             warnings: Sequence[str] = ()) -> list[KeyRow]:
+    """The rows of a picture's key: its title, the frame's warning codes, then what the colours drawn are."""
+    rows: list[KeyRow] = [(title, None)] if title else []
+    if warnings:
+        rows.append((f"frame warnings: {', '.join(dict.fromkeys(map(str, warnings)))}", None))
     if predictions:
-        rows.append(("detection (score)", PREDICTION_BGR))
+        rows.append(("detection (score)", PREDICTION_BGR, "line"))
     if ground_truth:
-        rows.append(("ground truth", GROUND_TRUTH_BGR))
+        rows.append(("labelled cars", GROUND_TRUTH_BGR, "dashed"))
     return rows
 
 
-def bev_key_rows(title: str | None, predictions: bool, ground_truth: bool) -> list[tuple[str, tuple[int, int, int] | None]]:
-    """The rows of a BEV picture's key: :func:`key_rows` and how to read the view."""
-    return [*key_rows(title, predictions, ground_truth),
-            (f"bird's-eye view: forward up, rings every {RING_STEP_M} m", None)]
+def bev_key_rows(title: str | None, predictions: bool, ground_truth: bool, pseudo: bool = False,
+                 view: bool = False, warnings: Sequence[str] = (),
+                 split: tuple[int, int] | None = None) -> list[KeyRow]:
+    """The rows of a BEV picture's key: :func:`key_rows`, how many detections the camera sees (``split``: in
+    view, outside), the points (the scan's and the camera's, when ``pseudo``), the camera's view and how to read
+    the view."""
+    rows = key_rows(title, predictions, ground_truth, warnings)
+    if split is not None and predictions:
+        shown = rows.index(("detection (score)", PREDICTION_BGR, "line"))
+        rows[shown] = (f"detection (score): {split[0]} in view (written), {split[1]} outside", PREDICTION_BGR, "line")
+        rows.insert(shown + 1, ("detection outside the camera's view", OUTSIDE_VIEW_BGR, "thin"))
+    if pseudo:
+        rows += [("LiDAR returns (on top)", SCAN_KEY_BGR, "points"), ("camera's pseudo points", PSEUDO_BGR, "points")]
+    if view:
+        rows.append(("camera's field of view", VIEW_BGR, "thin"))
+    return [*rows, (f"bird's-eye view: forward up, rings every {RING_STEP_M} m", None)]
 
 
 def render_camera(
@@ -178,21 +351,26 @@ def render_camera(
     scale: float = 1.0,
     title: str | None = None,
     legend: bool = False,
+    warnings: Sequence[str] = (),
 ) -> np.ndarray:
     """BGR uint8 picture of the camera image (RGB in) with the 3D boxes drawn as wireframes, the front face
-    crossed: ground truth in red, predictions in green with their scores (kept inside the picture). An edge
-    reaching behind the camera (a car beside it) is cut at :data:`pipeline.boxes.NEAR_PLANE_M` in front of it; a box wholly
-    behind the camera, with a corner more than 1 km in front of or behind it, not finite or projecting more than 1e5 pixels away is left
-    out (the BEV picture shows every box).
+    crossed: the labelled cars in dashed sky blue, detections in orange with their scores (kept inside the
+    picture, each moved clear of the labels before it). An edge reaching behind the camera (a car beside it) is
+    cut at :data:`pipeline.boxes.NEAR_PLANE_M` in front of it; a box wholly behind the camera, with a corner more
+    than 1 km in front of or behind it, not finite or projecting more than 1e5 pixels away is left out (the BEV
+    picture shows every box).
 
     scale: the image is resized by it first and the boxes drawn on the result, so lines and scores keep
     their size in pixels (a video's frame: :func:`camera_scale_in_stack`). legend: a key in the top-right
-    corner (``title`` first, then what each colour is), clear of a video's caption at the top left."""
+    corner (``title`` first, the frame's ``warnings`` codes, then what each colour is), clear of a video's caption
+    at the top left."""
     if scale != 1.0:
         size = (max(1, round(image.shape[1] * scale)), max(1, round(image.shape[0] * scale)))
         image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
         calib = scale_calibration(calib, scale)
     canvas = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR)
+    rows = key_rows(title, boxes is not None, gt_boxes is not None, warnings)
+    taken = [key_box(canvas.shape[1], rows, "top-right")] if legend else []
     for drawn, colour, with_score in ((gt_boxes, GROUND_TRUTH_BGR, False), (boxes, PREDICTION_BGR, True)):
         if drawn is None or len(drawn) == 0:
             continue
@@ -206,21 +384,27 @@ def render_camera(
                     & (np.abs(np.where(shown[..., None, None], uv, 0.0)) < 1e5).all(axis=(1, 2, 3)))
         drawable = sane & shown.any(axis=1)
         pixels = np.rint(np.where(shown[..., None, None], uv, 0.0)[drawable]).astype(np.int32)  # (K, 14, 2, 2)
-        cv2.polylines(canvas, list(pixels[shown[drawable]]), False, colour, 2, cv2.LINE_AA)
+        _draw_segments(canvas, pixels[shown[drawable]], colour, "line" if with_score else "dashed")
         if with_score and scores is not None:
-            # Each score above the top-left end of its box's drawn segments, moved into the picture when that
-            # end is off it (a box cut by the image's edge or by the near plane).
-            top_left = np.where(shown[drawable][..., None, None], pixels, np.iinfo(np.int32).max).min(axis=(1, 2))
+            # Each score above the top-left end of its box's drawn segments (else higher up, or under the box,
+            # clear of the scores before it and the key), moved into the picture when that end is off it (a box
+            # cut by the image's edge or by the near plane).
+            mask = shown[drawable][..., None, None]
+            top_left = np.where(mask, pixels, np.iinfo(np.int32).max).min(axis=(1, 2))
+            bottom = np.where(mask, pixels, np.iinfo(np.int32).min).max(axis=(1, 2))[:, 1]
             height, width = canvas.shape[:2]
-            for (left, top), score in zip(top_left, np.asarray(scores)[drawable], strict=True):
-                at = (int(np.clip(left, 0, max(width - 40, 0))), int(np.clip(top - 4, 14, max(height - 2, 14))))
+            for (left, top), low, score in zip(top_left, bottom, np.asarray(scores)[drawable], strict=True):
                 text = f"{score:.2f}"
-                (text_w, text_h), _ = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
-                # On a dark box: thin green text alone is lost on foliage and on a green car.
+                (text_w, text_h), _ = cv2.getTextSize(text, FONT, 0.5, 1)
+                step = text_h + 8
+                candidates = [(left, top - 4), (left, top - 4 - step), (left, top - 4 - 2 * step),
+                              (left, low + text_h + 6), (left + text_w + 8, top - 4)]
+                at = _free_spot(candidates, (text_w, text_h), (width, height), taken)
+                # On a dark box: thin orange text alone is lost on a bright or orange car.
                 cv2.rectangle(canvas, (at[0] - 2, at[1] - text_h - 3), (at[0] + text_w + 2, at[1] + 3), (0, 0, 0), -1)
-                cv2.putText(canvas, text, at, cv2.FONT_HERSHEY_SIMPLEX, 0.5, colour, 1, cv2.LINE_AA)
+                cv2.putText(canvas, text, at, FONT, 0.5, colour, 1, cv2.LINE_AA)
     if legend:
-        draw_key(canvas, key_rows(title, boxes is not None, gt_boxes is not None), corner="top-right")
+        draw_key(canvas, rows, corner="top-right")
     return canvas
 
 

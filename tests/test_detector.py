@@ -30,6 +30,7 @@ from pipeline.frame import load_frame
 from pipeline.kitti import format_label, read_labels
 from pipeline.model_files import ModelFileError, sha256_file
 from pipeline.presets import PRESETS, preset_from_dict
+from pipeline.render import GROUND_TRUTH_BGR, PREDICTION_BGR
 from tests.conftest import FRAMES, KITTI, lidar_only_models
 
 STAGES = {"prepare", "depth_net", "ray_table", "pseudo_points", "voxelize", "pixor", "decode", "total"}
@@ -614,11 +615,11 @@ def test_detect_command_on_bundled_frames(tiny_models, tmp_path):
         assert all(o.score is not None for o in objects)
         picture = cv2.imread(str(out / "bev" / f"{frame_id}.png"))
         assert picture is not None and picture.shape[2] == 3
-        assert (picture == [60, 60, 230]).all(axis=2).any()  # ground truth drawn in red
+        assert (picture == GROUND_TRUTH_BGR).all(axis=2).any()  # the labelled cars drawn (dashed sky blue)
         camera = cv2.imread(str(out / "camera" / f"{frame_id}.png"))  # the image with the boxes as wireframes
         image = cv2.imread(str(KITTI / "image_2" / f"{frame_id}.png"))
-        assert camera.shape == image.shape and (camera == [60, 60, 230]).all(axis=2).any()
-        assert (camera == [60, 220, 60]).all(axis=2).any() and not (image == [60, 220, 60]).all(axis=2).any()
+        assert camera.shape == image.shape and (camera == GROUND_TRUTH_BGR).all(axis=2).any()
+        assert (camera == PREDICTION_BGR).all(axis=2).any() and not (image == PREDICTION_BGR).all(axis=2).any()
     single = subprocess.run(
         [sys.executable, "-m", "pipeline.detect", "--models", str(tiny_models),
          "--image", str(KITTI / "image_2" / "000006.png"), "--points", str(KITTI / "velodyne" / "000006.bin"),
@@ -940,8 +941,8 @@ def test_pictures_survive_boxes_far_off_the_grid():
     grid = PRESETS["tiny"].bev
     boxes = np.array([[1e25, 3, 0, 4, 1.7, 1.5, 0.3], [10, 0, -1, 4, 1.7, 1.5, 0.3], [np.nan, 0, 0, 4, 1.7, 1.5, 0]])
     picture = render_bev(np.zeros((3, 4), np.float32), grid, boxes, np.array([1.0, 0.9, 0.5]), boxes)
-    green = (picture == [60, 220, 60]).all(axis=2)
-    assert green.any() and picture.shape[:2] == (round((grid.x_max - grid.x_min) / 0.1), round((grid.y_max - grid.y_min) / 0.1))
+    drawn = (picture == PREDICTION_BGR).all(axis=2)
+    assert drawn.any() and picture.shape[:2] == (round((grid.x_max - grid.x_min) / 0.1), round((grid.y_max - grid.y_min) / 0.1))
 
 
 def test_camera_picture_draws_each_box_where_its_corners_project(frame):
@@ -954,22 +955,22 @@ def test_camera_picture_draws_each_box_where_its_corners_project(frame):
     ahead = np.array([[15, 2, -0.9, 4, 1.7, 1.5, 0.3]])
     away = np.array([[-10, 0, -0.9, 4, 1.7, 1.5, 0.0], [1e25, 3, 0, 4, 1.7, 1.5, 0.3], [np.nan, 0, 0, 4, 1.7, 1.5, 0]])
     beside = np.array([[1.0, -3.0, -0.9, 4.5, 1.8, 1.5, 0.0]])  # from 1.25 m behind the LiDAR to 3.25 m ahead
-    green = (lambda boxes: (render_camera(frame.image, frame.calib, boxes, np.full(len(boxes), 0.9))
-                            == [60, 220, 60]).all(axis=2))
+    orange = (lambda boxes: (render_camera(frame.image, frame.calib, boxes, np.full(len(boxes), 0.9))
+                             == PREDICTION_BGR).all(axis=2))
     picture = render_camera(frame.image, frame.calib, np.vstack([ahead, away]), np.array([0.9, 0.8, 0.7, 0.6]))
     assert picture.shape == frame.image.shape and picture.dtype == np.uint8
-    np.testing.assert_array_equal((picture == [60, 220, 60]).all(axis=2), green(ahead))  # the others: nothing
-    drawn = green(ahead)
+    np.testing.assert_array_equal((picture == PREDICTION_BGR).all(axis=2), orange(ahead))  # the others: nothing
+    drawn = orange(ahead)
     uv, _ = frame.calib.velo_to_image(box_corners_3d(ahead).reshape(-1, 3))
     for u, v in np.rint(uv).astype(int):  # every corner of the box in view is drawn on
         assert drawn[max(v - 1, 0):v + 2, max(u - 1, 0):u + 2].any()
     left, top = uv.min(axis=0)
     right, bottom = uv.max(axis=0)
-    rows, cols = np.nonzero(drawn)  # nothing green outside the box (its score label sits just above it)
+    rows, cols = np.nonzero(drawn)  # nothing orange outside the box (its score label sits just above it)
     assert rows.min() >= top - 20 and rows.max() <= bottom + 2 and cols.min() >= left - 2 and cols.max() <= right + 40
     corners_z = frame.calib.velo_to_rect(box_corners_3d(beside).reshape(-1, 3))[:, 2]
     assert (corners_z < 0).any() and (corners_z > 0).any()  # the car beside reaches behind the camera
-    side = green(beside)
+    side = orange(beside)
     assert side.sum() > 500 and np.nonzero(side)[1].min() > frame.image.shape[1] // 2  # drawn, on the right (y < 0)
 
 
@@ -986,11 +987,11 @@ def test_camera_picture_drawn_at_a_scale_keeps_its_lines_and_scores_in_pixels(fr
     for scale in (1.0, 0.5):
         picture = render_camera(black, frame.calib, ahead, np.array([0.9]), scale=scale)
         assert picture.shape[:2] == (round(black.shape[0] * scale), round(black.shape[1] * scale))
-        drawn = (picture == [60, 220, 60]).all(axis=2)
+        drawn = (picture == PREDICTION_BGR).all(axis=2)
         for u, v in np.rint(uv * scale).astype(int):  # each corner, where it projects in the scaled picture
             assert drawn[max(v - 1, 0):v + 2, max(u - 1, 0):u + 2].any()
         rows = np.nonzero(drawn.any(axis=1))[0]
-        label_rows[scale] = int((rows < uv[:, 1].min() * scale - 1).sum())  # green rows above the box: the label
+        label_rows[scale] = int((rows < uv[:, 1].min() * scale - 1).sum())  # orange rows above the box: the label
     assert label_rows[1.0] >= 8 and abs(label_rows[0.5] - label_rows[1.0]) <= 1
 
 

@@ -22,6 +22,8 @@ from pipeline.boxes import box_corners_3d, labels_to_boxes
 from pipeline.frame import load_frame
 from pipeline.presets import PRESETS, get_preset
 from pipeline.render import (
+    GROUND_TRUTH_BGR,
+    PREDICTION_BGR,
     FrameVideo,
     bev_key_rows,
     depth_colours,
@@ -116,16 +118,18 @@ def test_bev_range_rings_every_10_m_to_the_farthest_corner():
     assert grey[0:3, 300:500].max() == 0  # the top edge is 70.4 m ahead: no ring between the corners
 
 
-def test_bev_ring_labels_sit_inside_the_picture_below_where_the_ring_leaves_it():
-    """A ring wider than the picture is labelled at the right edge just below where it crosses it, its whole text
-    inside the picture (it once could start 3 pixels from the edge and run off)."""
+def test_bev_ring_labels_sit_whole_beside_the_axis_clear_of_their_ring():
+    """Each ring's label lies just right of the forward axis, its text clear of its own ring's line (not struck
+    through) and whole inside the picture: the 70 m ring, 4 pixels from the far edge, has its label under it."""
     picture = render_bev(NO_POINTS, GRID)
     light = (picture > 120).all(axis=2) & (picture < 200).all(axis=2)  # the labels' light grey
-    for metres in (40, 50, 60, 70, 80):
-        crossing = 704 - int(np.sqrt(max((metres / M) ** 2 - 399**2, 0)))
-        band = light[max(crossing - 2, 0):crossing + 25, 740:797]
-        assert band.sum() > 20, metres
-        assert not light[max(crossing - 20, 0):max(crossing - 2, 0), 740:797].any(), metres
+    for metres in range(10, 80, 10):
+        crossing = 704 - round(metres / M)
+        text = np.flatnonzero(light[:, 403:440].any(axis=1))
+        near = text[np.abs(text - crossing) < 20]
+        assert len(near) >= 6, metres
+        assert not ((near >= crossing - 1) & (near <= crossing + 1)).any(), metres  # clear of the ring's line
+        assert (near > crossing).all() if metres == 70 else (near < crossing).all(), metres
 
 
 def test_bev_sensor_is_a_triangle_pointing_ahead():
@@ -140,7 +144,7 @@ def test_bev_box_is_closed_and_its_heading_line_runs_from_its_centre_to_its_fron
     """A car heading forward: its outline includes the front edge, and the line inside it runs from its centre
     up to the middle of its front edge, nothing in its rear half."""
     picture = render_bev(NO_POINTS, GRID, CAR)
-    green = (picture == (60, 220, 60)).all(axis=2)
+    green = (picture == PREDICTION_BGR).all(axis=2)
     centre_row, col = round((GRID.x_max - 30) / M), round(GRID.y_max / M)  # 404, 400
     front_row, rear_row = centre_row - 20, centre_row + 20
     assert green[front_row - 1:front_row + 2, col - 7:col + 8].all(axis=0).sum() >= 10  # the front edge
@@ -161,22 +165,23 @@ def test_bev_boxes_no_pixel_can_hold_are_left_out_without_a_warning():
     np.testing.assert_array_equal(picture, render_bev(NO_POINTS, GRID))
 
 
-def test_bev_ground_truth_is_red_and_detections_green_on_a_real_frame(frame):
-    """The README's colours: ground truth red, detections green (blue, green, red channel order in OpenCV)."""
+def test_bev_ground_truth_is_blue_and_detections_orange_on_a_real_frame(frame):
+    """Colours a colour-blind reader tells apart: the labelled cars sky blue, detections orange (blue, green, red
+    channel order in OpenCV; red and green, as until session 48, look alike to a deuteranope)."""
     cars = labels_to_boxes([o for o in frame.labels if o.type == "Car"], frame.calib)
     grid = get_preset("edge").bev
     plain = render_bev(frame.points, grid)
     truth = render_bev(frame.points, grid, gt_boxes=cars)
     found = render_bev(frame.points, grid, cars, np.full(len(cars), 0.9))
-    assert _dominant(truth, _changed(truth, plain)) == 2
-    assert _dominant(found, _changed(found, plain)) == 1
+    assert _dominant(truth, _changed(truth, plain)) == 0
+    assert _dominant(found, _changed(found, plain)) == 2
 
 
-def test_bev_detection_over_its_ground_truth_shows_green():
+def test_bev_detection_over_its_ground_truth_shows_orange():
     """A detection drawn over its own ground truth is seen: detections are drawn last."""
     both = render_bev(NO_POINTS, GRID, CAR, None, CAR)
     changed = _changed(both, render_bev(NO_POINTS, GRID))
-    assert _dominant(both, changed) == 1
+    assert _dominant(both, changed) == 2
 
 
 def test_bev_scores_are_each_boxs_own_two_decimals_above_its_front_left_corner():
@@ -248,7 +253,7 @@ def test_camera_wireframe_crosses_the_front_face(frame):
     black = np.zeros_like(frame.image)
     for box in (np.array([[15.0, 2.0, -0.9, 4.0, 1.7, 1.5, 0.0]]), np.array([[12.0, -3.0, -0.9, 4.0, 1.7, 1.5, 0.6]])):
         corners = box_corners_3d(box)[0]
-        green = (render_camera(black, frame.calib, box) == (60, 220, 60)).all(axis=2)
+        green = (render_camera(black, frame.calib, box) == PREDICTION_BGR).all(axis=2)
         drawn = []
         for face in ([0, 3, 4, 7], [1, 2, 5, 6]):  # front (corners 0 and 3 the front edge), rear
             uv, _ = frame.calib.velo_to_image(corners[face].mean(axis=0)[None])
@@ -411,7 +416,7 @@ def test_demo_sparse_depth_picture_keeps_colours_grows_returns_and_uses_the_dept
 
 def test_demo_core_pictures_summary_and_key(tmp_path):
     """The core's two BEV pictures: the 64-line scan lights more cells than its thinning to 16 lines (which keeps
-    about a quarter of the points), each with every labelled car in red and its own title in the key; the summary
+    about a quarter of the points), each with every labelled car in dashed blue and its own title in the key; the summary
     counts what it says it counts."""
     tic = time.perf_counter()
     summary = demo.run_core("000006", tmp_path)
@@ -427,9 +432,11 @@ def test_demo_core_pictures_summary_and_key(tmp_path):
     for lines in (64, 16):
         picture = cv2.imread(str(tmp_path / f"000006_bev_{lines}.png"))
         lit[lines] = int(((picture != empty).any(axis=2) & (picture == picture[..., :1]).all(axis=2)).sum())
-        red = (picture == (60, 60, 230)).all(axis=2)
-        red[:80, :300] = False  # the key's swatch
-        assert cv2.connectedComponents(red.astype(np.uint8))[0] - 1 == cars
+        blue = (picture == GROUND_TRUTH_BGR).all(axis=2)
+        blue[:80, :300] = False  # the key's swatch
+        # A box's dashes (5-pixel gaps) joined into one outline: one outline per labelled car.
+        joined = cv2.dilate(blue.astype(np.uint8), np.ones((7, 7), np.uint8))
+        assert cv2.connectedComponents(joined)[0] - 1 == cars
         title = f"KITTI 000006: {'the 64-line scan' if lines == 64 else 'the scan thinned to 16 lines'}"
         expected = np.zeros_like(picture)
         left, top, right, bottom = draw_key(expected, bev_key_rows(title, False, True))

@@ -32,14 +32,25 @@ import httpx
 import numpy as np
 import pytest
 
+from pipeline.beams import emulate_beams
 from pipeline.boxes import bev_corners, in_camera_view
 from pipeline.detector import Cancellation
 from pipeline.kitti import parse_calib, parse_labels
-from pipeline.render import draw_key, key_rows
+from pipeline.presets import PRESETS
+from pipeline.render import (
+    PREDICTION_BGR,
+    PSEUDO_BGR,
+    bev_key_rows,
+    draw_key,
+    key_box,
+    key_rows,
+    render_bev,
+)
 from service.__main__ import _OPTIONS, settings_from_args
 from service.app import create_app
 from service.metrics import Metrics
 from service.pool import InferencePool, PoolFull, PoolTimeout
+from service.routes.detect import picture_title
 from service.settings import Settings
 
 KITTI = Path(__file__).parent / "data" / "kitti" / "training"
@@ -213,13 +224,54 @@ def test_bev_png(client: AppClient, frame: dict[str, bytes]) -> None:
     assert response.headers["content-type"] == "image/png"
     picture = cv2.imdecode(np.frombuffer(response.content, np.uint8), cv2.IMREAD_COLOR)
     assert picture.shape == (704, 800, 3)  # the tiny grid: x 0–70.4 m up, y −40–40 m across, 0.1 m pixels
-    assert (picture == (60, 220, 60)).all(axis=2).any()  # predicted boxes drawn in green
+    assert (picture == PREDICTION_BGR).all(axis=2).any()  # predicted boxes drawn in orange
+
+
+def test_bev_png_draws_the_scan_over_the_pseudo_points_and_the_cameras_view(client: AppClient,
+                                                                          frame: dict[str, bytes]) -> None:
+    """bev.png drew the scan and the camera's pseudo points in one grey and no camera view; now as pipeline.detect
+    draws its BEV: each pixel of the scan thinned to 16 lines grey, magenta where pseudo points alone fall, and
+    the lines of the camera's view from the frame's calibration."""
+    response = client.post("/v1/detect/bev.png", params={"emulate_beams": 16}, files=parts(frame))
+    assert response.status_code == 200, response.text
+    picture = cv2.imdecode(np.frombuffer(response.content, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    grid = PRESETS["tiny"].bev
+    calib = parse_calib(frame["calib"].decode(), "calib")
+    view = (calib, cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR).shape[:2])
+    title = picture_title(client.app.state.runtime.identity, 16)
+    _, _, key_right, key_bottom = key_box(picture.shape[1], bev_key_rows(title, True, False, True, True, [], (0, 0)))
+    free = np.ones(picture.shape[:2], bool)
+    free[:key_bottom + 1, :key_right + 1] = False  # the key's box and its samples of each colour
+    blank = render_bev(np.zeros((0, 4), np.float32), grid).astype(int)  # the rings, their labels, the sensor
+    alone = render_bev(np.zeros((0, 4), np.float32), grid, view=view).astype(int)  # and the view
+    free &= (alone == 0).all(axis=2)
+    # The scan's returns: grey (on top of the pseudo points) in every pixel they fall in.
+    scan = emulate_beams(np.frombuffer(frame["points"], "<f4").reshape(-1, 4), 16)
+    rows = np.floor((grid.x_max - scan[:, 0]) / 0.1).astype(int)
+    cols = np.floor((grid.y_max - scan[:, 1]) / 0.1).astype(int)
+    inside = (rows >= 0) & (rows < picture.shape[0]) & (cols >= 0) & (cols < picture.shape[1])
+    returns = np.zeros(picture.shape[:2], bool)
+    returns[rows[inside], cols[inside]] = True
+    returns &= free
+    grey = (picture[..., 0] == picture[..., 1]) & (picture[..., 1] == picture[..., 2]) & (picture[..., 0] > 0)
+    assert returns.sum() > 2000 and grey[returns].all()
+    # The pseudo points: magenta (blue and red equal, green lower), never where a return is.
+    magenta = (picture[..., 0] == picture[..., 2]) & (picture[..., 0] > picture[..., 1] + 20) & free
+    assert magenta.sum() > 1000 and not (magenta & returns).any()
+    shade = picture[magenta] / np.array(PSEUDO_BGR)  # the pseudo colour times the density's shade
+    assert (np.abs(shade - shade[:, :1]) * np.array(PSEUDO_BGR) <= 1).all() and shade.max() <= 1
+    # The camera's view: its lines' bright core (anti-aliased, off the rings) drawn as on an empty picture, but
+    # where a point lies under an edge pixel.
+    core = (alone != blank).any(axis=2) & (blank == 0).all(axis=2) & (alone >= 100).all(axis=2)
+    core[:key_bottom + 1, :key_right + 1] = False
+    assert core.sum() > 500 and (picture[core] == alone[core]).all(axis=1).mean() > 0.9
 
 
 def test_camera_png_draws_the_boxes_of_the_kitti_answer(client: AppClient, frame: dict[str, bytes]) -> None:
     """camera.png: the uploaded image with the boxes format=kitti answers (those the camera sees) as wireframes:
-    each box's projected 2D extent (the KITTI line's bbox) holds green, and no green is outside them but the
-    key's swatch (top right, as pipeline.render draws it)."""
+    each box's projected 2D extent (the KITTI line's bbox) holds the detections' orange, and no orange is outside
+    them but the key's swatch (top right, as pipeline.render draws it, titled with the model) and the scores (above
+    a box, up to three label heights when the first spot is taken, or under it)."""
     params = {"score_threshold": 0.0}
     response = client.post("/v1/detect/camera.png", params=params, files=parts(frame))
     assert response.status_code == 200 and response.headers["content-type"] == "image/png"
@@ -228,19 +280,24 @@ def test_camera_png_draws_the_boxes_of_the_kitti_answer(client: AppClient, frame
     assert picture.shape == image.shape
     objects = parse_labels(client.post("/v1/detect", params={**params, "format": "kitti"}, files=parts(frame)).text,
                            "response")
-    green = (picture == (60, 220, 60)).all(axis=2) & ~(image == (60, 220, 60)).all(axis=2)
-    assert objects and green.any()
-    # The key: where draw_key puts the service's rows on a picture of this size; its swatch is the one green
-    # allowed outside the boxes.
-    left, top, right, bottom = draw_key(np.zeros_like(picture), key_rows(None, True, False), corner="top-right")
-    key = np.zeros_like(green)
+    orange = (picture == PREDICTION_BGR).all(axis=2) & ~(image == PREDICTION_BGR).all(axis=2)
+    assert objects and orange.any()
+    # The key: where draw_key puts the service's rows (its title first) on a picture of this size; its swatch is
+    # the one orange allowed outside the boxes.
+    title = picture_title(client.app.state.runtime.identity, None)
+    left, top, right, bottom = draw_key(np.zeros_like(picture), key_rows(title, True, False), corner="top-right")
+    key = np.zeros_like(orange)
     key[top:bottom + 1, left:right + 1] = True
     covered = key.copy()
+    # A score's label: above its box, moved up by one or two label heights (8 px apart) or right by its width
+    # when another label or the key is there, else under the box (pipeline.render.render_camera).
+    (text_w, text_h), _ = cv2.getTextSize("0.00", cv2.FONT_HERSHEY_SIMPLEX, 0.5, 1)
+    above, below, beside = 4 + 2 * (text_h + 8) + text_h + 3, text_h + 9, 2 * text_w + 14
     for obj in objects:
         left, top, right, bottom = (round(v) for v in obj.bbox)
-        assert green[top:bottom + 1, left:right + 1].any()
-        covered[max(top - 20, 0):bottom + 3, max(left - 3, 0):right + 45] = True  # the score sits above it
-    assert not (green & ~covered).any()
+        assert orange[top:bottom + 1, left:right + 1].any()
+        covered[max(top - above, 0):bottom + below, max(left - 3, 0):max(right + 45, left + beside)] = True
+    assert not (orange & ~covered).any()
 
 
 def test_jpeg_image_accepted(client: AppClient, frame: dict[str, bytes]) -> None:

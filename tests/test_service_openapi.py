@@ -31,6 +31,7 @@ from pydantic import ValidationError
 from pipeline.render import PREDICTION_BGR, draw_key, key_rows
 from service.__main__ import settings_errors, uvicorn_config
 from service.app import create_app
+from service.routes.detect import picture_title
 from service.schemas import ERROR_CODES
 from service.settings import Settings
 from tests.test_service import AppClient, assert_error, client, frame, parts, service, tiny_models  # noqa: F401
@@ -284,13 +285,15 @@ def test_a_cors_origin_that_is_no_origin_stops_the_start_naming_the_option(value
 # --------------------------------------------------------------------------- the camera picture
 def test_the_camera_picture_has_a_key_as_the_bev_picture_has(client: AppClient, frame: dict[str, bytes]) -> None:  # noqa: F811
     """camera.png's key in the top-right corner, drawn by pipeline.render.draw_key with the rows of
-    pipeline.render.key_rows: a black box holding the green swatch of the detections and white text."""
+    pipeline.render.key_rows, titled with the model (service.routes.detect.picture_title): a black box holding the
+    orange swatch of the detections and white text."""
     response = client.post("/v1/detect/camera.png", params={"score_threshold": 0.0}, files=parts(frame))
     assert response.status_code == 200
     picture = cv2.imdecode(np.frombuffer(response.content, np.uint8), cv2.IMREAD_COLOR)
     image = cv2.imdecode(np.frombuffer(frame["image"], np.uint8), cv2.IMREAD_COLOR)
     expected = image.copy()
-    left, top, right, bottom = draw_key(expected, key_rows(None, True, False), corner="top-right")
+    title = picture_title(client.app.state.runtime.identity, None)
+    left, top, right, bottom = draw_key(expected, key_rows(title, True, False), corner="top-right")
     assert (top, right) == (0, picture.shape[1])  # the top-right corner
     key, drawn = picture[top:bottom, left:right], expected[top:bottom, left:right]
     assert (key == PREDICTION_BGR).all(axis=2).any()  # the detections' swatch

@@ -15,8 +15,11 @@ import cv2
 import numpy as np
 from prometheus_client import CONTENT_TYPE_LATEST
 
-from pipeline.render import bev_key_rows, draw_key
+from pipeline.boxes import in_camera_view
+from pipeline.kitti import parse_calib
+from pipeline.render import OUTSIDE_VIEW_BGR, PREDICTION_BGR, bev_key_rows, draw_key
 from service.app import create_app
+from service.routes.detect import picture_title
 from tests.test_service import AppClient, assert_error, client, frame, parts, service, tiny_models  # noqa: F401
 from tests.test_service_metrics import _value
 from tests.test_service_mutants import _multipart
@@ -31,15 +34,34 @@ def _picture(content: bytes) -> np.ndarray:
 
 def test_the_bev_picture_has_its_key_in_the_top_left_corner(client: AppClient, frame: dict[str, bytes]) -> None:  # noqa: F811
     """bev.png's key (routes.detect: render_bev(legend=True)): pixel for pixel the one draw_key makes with
-    bev_key_rows, in the top-left corner (the camera picture's, top right, is pinned in test_service_openapi)."""
-    response = client.post("/v1/detect/bev.png", params={"score_threshold": 0.0}, files=parts(frame))
+    bev_key_rows, in the top-left corner (the camera picture's, top right, is pinned in test_service_openapi):
+    titled with the model (picture_title), the detections counted in the camera's view and outside it (as
+    format=kitti keeps them), the scan's and the camera's points and the camera's view named."""
+    params = {"score_threshold": 0.0}
+    response = client.post("/v1/detect/bev.png", params=params, files=parts(frame))
     assert response.status_code == 200, response.text
     picture = _picture(response.content)
-    # The key's box is opaque: what lies under it does not change its pixels.
+    detections = client.post("/v1/detect", params=params, files=parts(frame)).json()["detections"]
+    boxes = np.array([[d["box"][k] for k in ("x", "y", "z", "l", "w", "h", "yaw")] for d in detections])
+    seen = in_camera_view(boxes, parse_calib(frame["calib"].decode(), "calib"), _picture(frame["image"]).shape[:2])
+    split = (int(seen.sum()), int((~seen).sum()))
+    assert split[0] > 0 and split[1] > 0  # both kinds counted
+    title = picture_title(client.app.state.runtime.identity, None)
+    # The key's box is opaque: the points, rings and view under it do not change its pixels. The detections are
+    # drawn over it (a box far ahead on the left lay under it, hidden): a pixel that differs from draw_key's is
+    # one of a detection's, in the shade of its colour (in view or outside) that its line or score leaves.
     expected = np.zeros_like(picture)
-    left, top, right, bottom = draw_key(expected, bev_key_rows(None, True, False))
+    left, top, right, bottom = draw_key(expected, bev_key_rows(title, True, False, True, True, [], split))
     assert (left, top) == (0, 0)
-    assert np.array_equal(picture[top:bottom, left:right], expected[top:bottom, left:right])
+    key, drawn = picture[top:bottom, left:right].astype(float), expected[top:bottom, left:right]
+    differs = (key != drawn).any(axis=2)
+    assert differs.mean() < 0.2  # the key is there, under a few boxes at most
+    on_black = differs & (drawn == 0).all(axis=2)  # over the key's black box: the detection's colour alone
+    shades = np.array([PREDICTION_BGR, OUTSIDE_VIEW_BGR], float)
+    shades /= np.linalg.norm(shades, axis=1, keepdims=True)
+    brightness = np.linalg.norm(key[on_black], axis=1)
+    hue = (key[on_black] / np.maximum(brightness, 1e-9)[:, None]) @ shades.T  # cosine to each detection colour
+    assert on_black.any() and ((hue.max(axis=1) > 0.99) | (brightness < 40)).all()  # the faintest edge pixels aside
 
 
 def test_stage_timings_are_in_milliseconds(client: AppClient, frame: dict[str, bytes]) -> None:  # noqa: F811

@@ -32,11 +32,11 @@ from pydantic import BeforeValidator
 
 from pipeline.boxes import BOX_FIELDS, bev_corners, in_camera_view
 from pipeline.calib import Calibration
-from pipeline.checks import MAX_SENSOR_SKEW_MS, CodedWarning
+from pipeline.checks import MAX_SENSOR_SKEW_MS, CodedWarning, WarningCode
 from pipeline.detector import Cancellation, Detections, Detector, RunCancelled
 from pipeline.kitti import format_label
 from pipeline.model_files import ModelIdentity
-from pipeline.render import render_bev, render_camera
+from pipeline.render import render_bev, render_camera, split_scan_and_pseudo
 from service.deps import (
     MetricsDep,
     ReadyRuntimeDep,
@@ -175,9 +175,10 @@ class FrameResult:
 
 def _detect_job(
     upload: FrameUpload, options: FrameOptions, calib: Calibration | None, picture: Picture | None,
-    early_warnings: list[CodedWarning],
+    early_warnings: list[CodedWarning], title: str | None = None,
 ) -> Callable[[Detector, Cancellation], FrameResult]:
-    """The work of one frame on a worker: decode the parts, detect, optionally render a picture as PNG."""
+    """The work of one frame on a worker: decode the parts, detect, optionally render a picture as PNG (``title``
+    in its key, with the frame's warning codes)."""
 
     def job(detector: Detector, cancel: Cancellation) -> FrameResult:
         tic = time.perf_counter()
@@ -195,13 +196,19 @@ def _detect_job(
             tic = time.perf_counter()
             if picture is Picture.bev:
                 assert detections.points is not None  # keep_points=True: the points PIXOR saw
-                bgr = render_bev(detections.points, detector.preset.bev, detections.boxes, detections.scores,
-                                 legend=True)  # what the colours are and which way is ahead
+                # As pipeline.detect draws it: the scan over the camera's pseudo points, the camera's view.
+                scan, pseudo = split_scan_and_pseudo(detections.points, frame.points, options.emulate_beams)
+                view = (frame.calib, frame.image_hw) if frame.calib is not None and frame.image_hw else None
+                bgr = render_bev(scan, detector.preset.bev, detections.boxes, detections.scores,
+                                 title=title, legend=True,  # what the colours are and which way is ahead
+                                 warnings=_picture_warnings(early_warnings, frame.warning_codes, detections),
+                                 pseudo=pseudo, view=view)
             else:  # the boxes of format=kitti: those whose centre the camera sees
                 assert frame.image is not None and frame.calib is not None and frame.image_hw is not None  # checked
                 seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)
                 bgr = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen],
-                                    legend=True)  # what the green wireframes and numbers are, as on the BEV
+                                    title=title, legend=True,  # what the wireframes and numbers are, as on the BEV
+                                    warnings=_picture_warnings(early_warnings, frame.warning_codes, detections))
             ok, encoded = cv2.imencode(".png", bgr)
             if not ok:
                 raise RuntimeError(f"PNG encoding of the {picture.value} picture failed")
@@ -210,6 +217,20 @@ def _detect_job(
         return FrameResult(frame, detections, timings, png, early_warnings)
 
     return job
+
+
+def picture_title(identity: ModelIdentity, emulate_beams: int | None) -> str:
+    """What a bev.png or camera.png shows, for its key: the model (its id's first 12 hex digits, as X-Model-ID
+    begins, and its directory), its preset and whether the scan was thinned."""
+    thinned = f", scan thinned to {emulate_beams} lines" if emulate_beams else ""
+    return f"model {identity.id[:12]} ({identity.directory}), preset {identity.preset}{thinned}"
+
+
+def _picture_warnings(early: list[CodedWarning], decoding: list[str], detections: Detections) -> list[str]:
+    """The frame's warning codes (as X-Warnings carries them) for a picture's key, but the thinning asked for,
+    which its title says."""
+    codes = [w.code for w in early] + list(decoding) + list(detections.warning_codes)
+    return [c for c in codes if c != WarningCode.BEAMS_EMULATED]
 
 
 def _camera_use(runtime: Runtime, answer: str | None) -> str | None:
@@ -260,7 +281,8 @@ async def _run_frame(
     check_stamps(options.stamps, upload)
     # Only where the image is used: a LiDAR-only model's boxes do not depend on when the image was taken.
     job = _detect_job(upload, options, calib, picture,
-                      stamp_warnings(options.stamps, settings.max_sensor_skew_ms, camera_use))
+                      stamp_warnings(options.stamps, settings.max_sensor_skew_ms, camera_use),
+                      picture_title(runtime.identity, options.emulate_beams) if picture is not None else None)
     state = request.scope.get("state") or {}
     # The place AdmissionMiddleware took before the upload was read (None: an app served without it).
     reservation: Reservation | None = state.get("reservation")
