@@ -80,7 +80,7 @@ from pipeline.cli import (
 )
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError
-from pipeline.presets import PRESETS, get_preset, lidar_only
+from pipeline.presets import PRESETS, get_preset, is_preset_file, lidar_only
 from simulation.run import RunConfig
 from simulation.run import run as simulate
 
@@ -491,6 +491,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="depth nets: loss weight of the labelled cars' own pixels (default 1)")
     parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
     args = parser.parse_args(argv)
+    if is_preset_file(args.preset):  # its stages name presets by adding suffixes (-no-gam, the LiDAR rows'): a name
+        parser.error(f"argument --preset: {args.preset}: the recipe takes a registered preset's name, not a preset "
+                     "file (its stages add suffixes to it); train a file's preset with models.train and export "
+                     "(docs/models.md, \"Adding a preset\")")
     try:  # before anything is simulated or trained: a typo would otherwise surface an hour in
         preset = get_preset(args.preset)
     except ValueError as exc:

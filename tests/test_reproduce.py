@@ -135,6 +135,14 @@ def test_worker_and_lane_counts_must_be_positive(tmp_path, capsys):
     with pytest.raises(SystemExit) as stop:
         main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), "--preset", "edge-split-no-gam"])
     assert stop.value.code == 2 and "argument --preset: edge-split-no-gam has no GAMs" in capsys.readouterr().err
+    # A preset file (models.train and export take one): the recipe's stages add suffixes to a registered name, so
+    # a file would fail an hour in, at its first ablation; refused up front, even a valid one.
+    preset_file = tmp_path / "highway.json"
+    preset_file.write_text('{"base": "edge", "name": "highway", "bev": {"x_max": 100.0}}')
+    with pytest.raises(SystemExit) as stop:
+        main(["--out", str(tmp_path / "run"), "--data", str(tmp_path / "data"), "--preset", str(preset_file)])
+    assert stop.value.code == 2 and "the recipe takes a registered preset's name, not a preset file" in \
+        capsys.readouterr().err
     assert not (tmp_path / "run").exists() and not (tmp_path / "data").exists()
 
 
