@@ -313,7 +313,8 @@ def _compare_and_bootstrap(config: LabelEvalConfig, frame_ids: list[str] | None,
     spread = bootstrap(labels.ground_truth, sets, config.bootstrap, config.seed, class_name=config.class_name,
                        iou_thresholds=config.iou_thresholds, metrics=metrics,
                        ignore_small_detections=config.ignore_small_detections, progress=config.progress,
-                       jackknife=config.interval == "bca", method=config.interval)
+                       jackknife=config.interval == "bca", method=config.interval,
+                       frame_ids=labels.frame_ids)  # draws by id: the split file's order changes nothing
     return other, other_labels, upper, spread
 
 

@@ -689,10 +689,11 @@ class BootstrapResult:
     ap: (sets, resamples, metrics, overlap thresholds, 3 difficulties); every set was scored on
     the same draws, so differences between sets are paired. full: (sets, metrics, overlap thresholds, 3)
     on all frames. jackknife: (sets, frames, metrics, overlap thresholds, 3) with each frame left out in
-    turn, or None when it was not run. method: the interval the methods give unless told (``bca``;
-    ``bc`` without a jackknife; ``percentile``). Every statistic (one set's AP, a paired difference, the
-    share of a gap) is computed alike on the draws, on all frames and on the jackknife samples, set by set
-    within each, so the BCa interval of a difference or share stays paired.
+    turn (in the order of their ids when :func:`bootstrap` had them), or None when it was not run.
+    method: the interval the methods give unless told (``bca``; ``bc`` without a jackknife; ``percentile``).
+    Every statistic (one set's AP, a paired difference, the share of a gap) is computed alike on the draws,
+    on all frames and on the jackknife samples, set by set within each, so the BCa interval of a difference
+    or share stays paired.
     """
 
     metrics: tuple[str, ...]
@@ -760,6 +761,16 @@ class BootstrapResult:
         return bounds.low, bounds.high
 
 
+def _by_id(frame_ids: Sequence[str] | None, n: int) -> np.ndarray:
+    """The positions of ``n`` frames in the order of their ids (as given when there are none): a bootstrap's
+    draws go to the frames in this order, so they do not hang on the order the frames were listed in."""
+    if frame_ids is None:
+        return np.arange(n)
+    if len(frame_ids) != n:
+        raise ValueError(f"frame_ids: {len(frame_ids)} ids for {n} frames of ground truth")
+    return np.argsort(np.asarray(frame_ids, dtype=str), kind="stable")
+
+
 def bootstrap(
     ground_truth: Sequence[LabelArrays],
     detection_sets: Sequence[Sequence[LabelArrays]],
@@ -773,6 +784,7 @@ def bootstrap(
     progress: bool = False,
     jackknife: bool = True,
     method: str = "bca",
+    frame_ids: Sequence[str] | None = None,
 ) -> BootstrapResult:
     """How much AP moves with the choice of frames: the frame-level bootstrap.
 
@@ -784,6 +796,11 @@ def bootstrap(
     default of the result's interval methods). Each frame is matched once, at every one of its
     detection scores; an AP of any draw or sample then needs no matching (:class:`_StepTables`),
     and the jackknife of 300 frames costs about as much as 300 draws (~20 ms each per set here).
+
+    frame_ids: the frames' ids, in the order of ``ground_truth``. The draws are made over the frames sorted by
+    id (and the jackknife leaves them out in that order), so a seed gives the same draws of the same frames
+    however they are listed (a split file's lines reversed gave other intervals); without ids, the frames are
+    taken in the order given.
     """
     if resamples < 1:
         raise ValueError(f"resamples must be at least 1, got {resamples}")
@@ -803,6 +820,7 @@ def bootstrap(
         for detections in tqdm(detection_sets, desc="matching", disable=not progress)
     ]
     n = len(ground_truth)
+    order = _by_id(frame_ids, n)  # the k-th frame by id: the one each draw's k-th count goes to
     cell = (len(metrics), len(iou_thresholds), len(DIFFICULTIES))
 
     def scored(weights: np.ndarray) -> np.ndarray:
@@ -812,13 +830,15 @@ def bootstrap(
     rng = np.random.default_rng(seed)
     ap = np.zeros((len(detection_sets), resamples, *cell))
     for r in tqdm(range(resamples), desc="bootstrap", disable=not progress):
-        ap[:, r] = scored(np.bincount(rng.integers(0, n, n), minlength=n).astype(np.int64))
+        weights = np.zeros(n, dtype=np.int64)
+        weights[order] = np.bincount(rng.integers(0, n, n), minlength=n)
+        ap[:, r] = scored(weights)
     left_out = None
     if jackknife:
         left_out = np.zeros((len(detection_sets), n, *cell))
-        for i in tqdm(range(n), desc="jackknife", disable=not progress):
+        for k, i in enumerate(tqdm(order, desc="jackknife", disable=not progress)):
             weights = np.ones(n, dtype=np.int64)
             weights[i] = 0
-            left_out[:, i] = scored(weights)
+            left_out[:, k] = scored(weights)
     return BootstrapResult(metrics=metrics, iou_thresholds=iou_thresholds, ap=ap, seed=seed, full=full,
                            jackknife=left_out, method=method)

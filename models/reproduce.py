@@ -220,7 +220,8 @@ def _how_sure(config: ReproduceConfig, labels: dict[str, LabelSet]) -> dict:
         by_distance[row] = [{"range_m": [low, high], "bev_ap_0.7_moderate": result.ap("bev", 0.7, "moderate")}
                             for (low, high), result in bands.items()]
     sets = [labels[camera].detections, labels["lidar16"].detections, labels["lidar64"].detections]
-    spread = bootstrap(labels[camera].ground_truth, sets, config.budget.bootstrap_draws, seed=0, metrics=("bev",))
+    spread = bootstrap(labels[camera].ground_truth, sets, config.budget.bootstrap_draws, seed=0, metrics=("bev",),
+                       frame_ids=labels[camera].frame_ids)  # draws by frame id, not by listing order
     differences = {}
     for name, first, second in (("camera - lidar16", 0, 1), ("lidar64 - camera", 2, 0)):
         differences[name] = {

@@ -13,6 +13,13 @@ the key) and ``OUT/camera/ID.png`` (the camera image with the boxes of the
 result file as wireframes); ``--video`` also puts the two
 pictures, one above the other, in frame order into one MP4.
 
+Each frame's warnings (``Detections.warnings``: sensor faults, a rig unlike the training one, the thinning
+asked for) go to ``OUT/warnings.txt``, one tab-separated line per frame and warning (frame id, code, message,
+under a header line), which KITTI result files cannot hold; it is written only when a frame had one, and a
+frame detected again has its earlier lines replaced. The terminal gets the first frame of each kind of
+warning and, at the end, one line per code with its count of frames and their first ids, so that a fault
+persisting over thousands of frames is a few lines there and every frame of it is on record in the file.
+
 A raw drive (``--drive``) is read as KITTI's raw downloads lay it out:
 ``image_02/data/ID.png`` and ``velodyne_points/data/ID.bin`` in the drive
 folder, ``calib_cam_to_cam.txt`` and ``calib_velo_to_cam.txt`` in the date
@@ -114,6 +121,7 @@ class DetectResult:
     detection_count: int  # result lines written, over every frame
     skipped: dict[str, str] = field(default_factory=dict)  # frame id → why (folder runs go on past a bad frame)
     video_frames: int = 0  # frames in --video (0: no video written)
+    warnings: list[tuple[str, str, str]] = field(default_factory=list)  # (frame id, code, message), as in WARNINGS_FILE
 
 
 def _labels_for_picture(data: Path, fid: str) -> list | None:
@@ -260,6 +268,9 @@ def frame_source(data: Path | None, drive: Path | None, frames: list[str] | None
 # What a run writes in --out: each frame's file in each of these folders (a skipped frame's are removed instead,
 # pictures included, with or without --no-pictures).
 WRITTEN = {"data": ".txt", "bev": ".png", "camera": ".png"}
+# Every frame's warnings, in --out: frame id, code, message, tab-separated (KITTI result files cannot hold them).
+WARNINGS_FILE = "warnings.txt"
+WARNINGS_HEADER = "frame_id\tcode\tmessage"
 
 
 def check_outputs_not_inputs(out: Path, video: Path | None, ids: list[str], inputs: dict[str, Path | None]) -> None:
@@ -278,10 +289,14 @@ def check_outputs_not_inputs(out: Path, video: Path | None, ids: list[str], inpu
         check_not_input(video, "--video", inputs)
     names = set(ids)
     kinds = {(out / folder).resolve(): suffix for folder, suffix in WRITTEN.items()}
+    record = (out / WARNINGS_FILE).resolve()
     for flag, source in inputs.items():
         if source is None or not Path(source).is_file():
             continue
         path = Path(source).resolve()
+        if path == record:  # a --split-file kept beside the results: the run rewrites that file
+            raise InputError(f"--out {out}: its {WARNINGS_FILE} would be written over {flag} {source}, which this "
+                             "run reads; give an --out elsewhere")
         if kinds.get(path.parent) == path.suffix and path.stem in names:
             raise InputError(f"--out {out}: its {path.parent.name}/{path.name} would be written over {flag} {source}, "
                              "which this run reads; give an --out elsewhere")
@@ -347,8 +362,11 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
     totals: dict[str, float] = {}
     count = 0
     warned: set[str] = set()
+    said: list[tuple[str, str, str]] = []  # every frame's warnings, in frame order
     skipped: dict[str, str] = {}
     ids = frames_of.ids
+    record = out / WARNINGS_FILE
+    _forget_warnings_of(record, set(ids))
     try:
         for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
             try:
@@ -371,6 +389,14 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
                 if code != WarningCode.BEAMS_EMULATED and kind not in warned:  # asked for: not worth a line a frame
                     warned.add(kind)
                     tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
+            # Every frame's, on record as it is detected (a run stopped midway keeps the frames done): the
+            # terminal names only the first frame of each kind and, at the end, each code's count. Not the thinning
+            # the run's own --emulate-beams asked for: a line on every frame, saying what the command line says.
+            mine = [(frame.frame_id, str(code), warning)
+                    for warning, code in zip(detections.warnings, detections.warning_codes, strict=True)
+                    if code != WarningCode.BEAMS_EMULATED]
+            _record_warnings(record, mine)
+            said += mine
             for stage, ms in detections.timings_ms.items():
                 totals[stage] = totals.get(stage, 0.0) + ms
             (out / "data").mkdir(parents=True, exist_ok=True)
@@ -410,7 +436,52 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
         raise
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
-    return DetectResult(list(ids), results, images, means, count, skipped)
+    return DetectResult(list(ids), results, images, means, count, skipped, warnings=said)
+
+
+def _forget_warnings_of(record: Path, ids: set[str]) -> None:
+    """Drop the lines of ``ids`` (this run's frames) from an earlier run's warnings file, as their result files
+    are written again or removed; the file goes when no line is left. Other frames' lines stay with their
+    result files."""
+    if not record.is_file():
+        return
+    kept = [line for line in record.read_text(encoding="utf-8").splitlines()[1:]
+            if line and line.split("\t", 1)[0] not in ids]
+    if kept:
+        record.write_text("\n".join([WARNINGS_HEADER, *kept]) + "\n", encoding="utf-8")
+    else:
+        record.unlink()
+
+
+def _record_warnings(record: Path, warnings: list[tuple[str, str, str]]) -> None:
+    """Append one frame's warnings to the warnings file (its header first when new); nothing when none."""
+    if not warnings:
+        return
+    record.parent.mkdir(parents=True, exist_ok=True)
+    new = not record.is_file()
+    with record.open("a", encoding="utf-8") as file:
+        if new:
+            file.write(WARNINGS_HEADER + "\n")
+        for row in warnings:  # a tab or line break inside a message would split its line
+            file.write("\t".join(" ".join(part.split()) for part in row) + "\n")
+
+
+def warnings_summary(warnings: list[tuple[str, str, str]], frames: int, shown: int = 5) -> list[str]:
+    """One line per warning code of a run (``warnings``: frame id, code, message), the thinning asked for left
+    out: ``line_count on 2 of 5 frames (000000, 000006)``, the first ``shown`` frame ids, then how many more."""
+    by_code: dict[str, list[str]] = {}
+    for fid, code, _ in warnings:
+        named = by_code.setdefault(code, [])
+        if fid not in named:
+            named.append(fid)
+    lines = []
+    for code, ids in by_code.items():
+        if code == WarningCode.BEAMS_EMULATED:
+            continue
+        more = f", and {len(ids) - shown} more" if len(ids) > shown else ""
+        lines.append(f"{code} on {len(ids)} of {frames} frame{'' if frames == 1 else 's'} "
+                     f"({', '.join(ids[:shown])}{more})")
+    return lines
 
 
 def picture_title(frame_id: str, models: Path, emulate_beams: int | None) -> str:
@@ -612,6 +683,10 @@ def _report(args: argparse.Namespace, result: DetectResult) -> int:
         frames = result.video_frames
         print(f"video: {args.video} ({frames} frame{'' if frames == 1 else 's'} at {args.video_fps or VIDEO_FPS:g} "
               "a second)")
+    for line in warnings_summary(result.warnings, done):
+        print(f"warning: {line}", file=sys.stderr)
+    if result.warnings:
+        print(f"warnings of each frame: {args.out / WARNINGS_FILE}")
     if result.skipped:
         print(f"error: {skipped_summary(list(result.skipped), 'frame', len(result.frame_ids))}", file=sys.stderr)
         if args.data is not None:  # the folder is a KITTI object split: its result files are what gets zipped

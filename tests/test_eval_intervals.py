@@ -244,3 +244,54 @@ def test_boxes_that_only_touch_do_not_overlap_even_a_zero_area_detection():
     with np.errstate(all="raise"):  # no division may happen at all
         assert image_overlap(zero_width, region, "detection").tolist() == [[0.0]]
         assert image_overlap(np.array([[50.0, 0.0, 80.0, 50.0]]), region).tolist() == [[0.0]]
+
+
+# ----------------------------------------------------------------------------- draws by frame id
+def _varied_frames(tmp_path: Path) -> tuple[Path, Path, list[str]]:
+    """12 frames of one car each in label folders: found at scores that differ frame to frame, missed, or
+    found beside a false positive, so that which frames a draw takes moves every AP."""
+    gt, pred = tmp_path / "gt", tmp_path / "pred"
+    gt.mkdir()
+    pred.mkdir()
+    ids = [f"{i:06d}" for i in range(12)]
+    for i, frame_id in enumerate(ids):
+        write_labels(gt / f"{frame_id}.txt", [obj()])
+        found = [obj(score=0.3 + 0.05 * i)] if i % 3 else []
+        if i % 4 == 1:
+            found.append(obj(x=10.0, score=0.95 - 0.02 * i))
+        write_labels(pred / f"{frame_id}.txt", found)
+    return gt, pred, ids
+
+
+def test_the_draws_do_not_depend_on_the_order_the_frames_are_listed_in(tmp_path: Path):
+    """The same frames listed in two orders (a split file's lines reversed, or shuffled) give the same draws,
+    jackknife and intervals for a seed: the draws go to the frames by id, in the bootstrap itself, so
+    accuracy.py's --split-file order changes nothing. Ids listed in order (the default listing of the runs
+    published) draw what they drew before ids were taken, when draws went to the frames as listed."""
+    from benchmarks.accuracy import LabelEvalConfig, run
+
+    gt, pred, ids = _varied_frames(tmp_path)
+    listings = {"sorted": ids, "reversed": ids[::-1], "shuffled": [ids[i] for i in (5, 0, 11, 3, 8, 1, 10, 2, 7, 4, 9, 6)]}
+    spreads = {}
+    for name, listed in listings.items():
+        split = tmp_path / f"{name}.txt"
+        split.write_text("\n".join(listed) + "\n")
+        outcome = run(LabelEvalConfig(gt_labels=gt, pred_labels=pred, split_file=split, progress=False, bootstrap=40,
+                                      seed=3))
+        assert outcome.spread is not None
+        spreads[name] = outcome.spread
+    first = spreads["sorted"]
+    assert np.ptp(first.ap[0, :, 0, 0, 1]) > 10  # the draws differ from one another: their order could matter
+    for name in ("reversed", "shuffled"):
+        np.testing.assert_array_equal(spreads[name].ap, first.ap, err_msg=name)
+        np.testing.assert_array_equal(spreads[name].jackknife, first.jackknife, err_msg=name)
+        for metric in first.metrics:
+            for difficulty in ("easy", "moderate", "hard"):
+                assert spreads[name].interval(metric, 0.5, difficulty) == first.interval(metric, 0.5, difficulty)
+    # The sorted listing's draws are those made over the frames as listed, without ids.
+    truth = load_label_dirs(gt, pred)
+    as_listed = bootstrap(truth.ground_truth, [truth.detections], resamples=40, seed=3, metrics=first.metrics)
+    np.testing.assert_array_equal(as_listed.ap, first.ap)
+    np.testing.assert_array_equal(as_listed.jackknife, first.jackknife)
+    with pytest.raises(ValueError, match="frame_ids: 11 ids for 12 frames"):
+        bootstrap(truth.ground_truth, [truth.detections], resamples=1, frame_ids=ids[1:])

@@ -134,3 +134,52 @@ def test_a_synthetic_frame_gets_a_fault_warning_but_no_false_alarm(detectors, tm
             azimuth = _azimuth_deg(points)
             warnings = _detect(detector, frame, points[(azimuth < -40) | (azimuth > -30)]).warnings
             assert [w for w in warnings if w.startswith(f"{BLOCKED} -40° to -30°")], (name, frame_id, warnings)
+
+
+def _detect_command(capsys: pytest.CaptureFixture[str], *args: object) -> tuple[int, str, str]:
+    """``python -m pipeline.detect`` (its main, in this process, on the bundled KITTI frames): status, stdout, stderr."""
+    from pipeline.detect import main
+
+    status = main(["--data", str(KITTI), "--no-pictures", "--no-progress", *map(str, args)])
+    captured = capsys.readouterr()
+    return status, captured.out, captured.err
+
+
+def _warnings_file(out: Path) -> list[list[str]]:
+    """OUT/warnings.txt as rows of its tab-separated fields, its header first."""
+    return [line.split("\t") for line in (out / "warnings.txt").read_text(encoding="utf-8").splitlines()]
+
+
+def test_the_detect_command_keeps_every_frames_warnings_on_record(detectors, capsys, tmp_path):
+    """A 64-line scan given to the 16-line model is warned about on every frame (the Detector's and the service's
+    ``warnings``); pipeline.detect printed each kind once and kept nothing of the later frames, so 000006 had no
+    line_count anywhere. Now the terminal still names the first frame only, then one line per code with its
+    frames, and OUT/warnings.txt holds every frame's warnings as the Detector gives them (not the thinning the
+    run asked for). A frame detected again
+    has its lines replaced, the other frames' stay, and a run without warnings writes no file."""
+    out = tmp_path / "out"
+    status, stdout, err = _detect_command(capsys, "--models", WEIGHTS / "edge-lidar16", "--frame", "6", "--frame",
+                                          "0", "--out", out)
+    assert status == 0, err
+    assert [line for line in err.splitlines() if "as many as a 64-line scan" in line] == [
+        line for line in err.splitlines() if line.startswith("warning: 000000: points: as many as a 64-line scan")]
+    assert err.count("as many as a 64-line scan") == 1 and "warning: line_count on 2 of 2 frames (000000, 000006)\n" in err
+    assert f"warnings of each frame: {out / 'warnings.txt'}" in stdout
+    expected = [["frame_id", "code", "message"]]
+    for fid in ("000000", "000006"):
+        said = detectors["edge-lidar16"].detect(None, load_frame(KITTI, fid).points, None)
+        assert said.warning_codes == ["line_count"]
+        expected += [[fid, "line_count", said.warnings[0]]]
+    assert _warnings_file(out) == expected
+
+    status, _, err = _detect_command(capsys, "--models", WEIGHTS / "edge-lidar16", "--frame", "6",
+                                     "--emulate-beams", "16", "--out", out)
+    # Thinned to 16 lines, 000006 has no fault left: its line_count goes, 000000's stays, and the thinning the
+    # command line asked for is neither printed nor put on record (a line on every frame saying the flag).
+    assert status == 0 and "warning:" not in err, err
+    assert _warnings_file(out) == expected[:2]
+
+    clean = tmp_path / "clean"
+    status, stdout, err = _detect_command(capsys, "--models", WEIGHTS / "edge-lidar64", "--frame", "0", "--out", clean)
+    assert status == 0 and (clean / "data" / "000000.txt").is_file() and "warning" not in stdout + err, err
+    assert not (clean / "warnings.txt").exists()
