@@ -13,10 +13,15 @@ the spec cannot drift from the code. No torch here: the golden command (export/g
 from __future__ import annotations
 
 import inspect
+import math
 from collections import Counter
 from pathlib import Path
 
+import numpy as np
+
+from pipeline.boxes import NEAR_PLANE_M
 from pipeline.calib import sparse_depth_map
+from pipeline.kitti import RESULT_DECIMALS
 from pipeline.postprocess import _HEIGHT_RANGE, _HIGH_Q, _LOW_Q  # private, but the values the heights use
 from pipeline.presets import Preset, preset_from_dict
 
@@ -27,6 +32,9 @@ LOG_SIZE_CLIP = (-3.0, 3.0)
 REGRESSION_CHANNELS = ("cos_yaw", "sin_yaw", "dx", "dy", "log_w", "log_l")  # pipeline/targets.py
 # Mirror TTA (pipeline/detector.py, MIRRORED_TARGETS): the targets whose sign a left-right mirror flips.
 MIRROR_NEGATED = ("sin_yaw", "dy")
+# Each box size's direction as an angle from the box's yaw: l along the heading, w across it (pipeline/iou.py
+# rect_corners); tests/test_porting.py builds corners from these and checks them against the pipeline's.
+SIZE_DIRECTIONS = {"l": 0.0, "w": math.pi / 2}
 # TensorRT's ONNX parser: opsets up to 17 before TensorRT 10 (8.5 and 8.6: JetPack 5 and JetPack 6.0), 9–20 from 10.0.
 TENSORRT_8_MAX_OPSET = 17
 TENSORRT_10_MAX_OPSET = 20
@@ -53,6 +61,7 @@ def port_spec(preset: Preset) -> dict:
         "decode": decode_section(preset),
         "heights": heights_section(preset),
         "mirror_tta": mirror_section(),
+        "kitti_results": kitti_results_section(),
     }
 
 
@@ -72,6 +81,25 @@ def scan_section() -> dict:
         "frame": "LiDAR (velodyne): x forward, y left, z up, metres",
         "reflectance_range": [0.0, 1.0],
         "reflectance_note": "KITTI's scale: divide 0-255 intensities by 255",
+        "lines": "the line count the model learned from: port.json models.scan_lines (16 for the shipped models but "
+                 "edge-lidar64); a golden set's scan is the bundled 64-line one thinned to golden.json "
+                 "frame.emulate_beams lines (0: as stored)",
+        "thinning": {
+            "function": "pipeline.beams.emulate_beams",
+            "mode": "stride",
+            "rings": "a new ring wherever |atan2(y, x) - atan2(y, x) of the point before| > pi (the azimuth wraps; "
+                     "float32, scan order), when that gives 16 to 200 rings of 200 points or more on average; "
+                     "else 64 clusters of the elevations (1-D k-means); a 64-line KITTI scan gives 64-65 rings",
+            "rank": "rings by their median elevation atan2(z, hypot(x, y)) (of an even count the lower middle one), "
+                    "lowest 0",
+            "keep": "n rings: those ranked n-1, n-1-k, n-1-2k … (k = 64 / lines), the first `lines` of them; the kept "
+                    "points in their order in the scan",
+            "refused": "a scan thinned already: azimuth wraps giving fewer than 56 rings, or (clustered) far returns "
+                       "whose elevations leave the gaps of beams far apart",
+            "docs": "README.md, 'Conventions and design decisions' (16-line emulation) and 'Your own vehicle' (beams); "
+                    "pipeline/beams.py (recover_rings, select_rings)",
+            "own_sensor": "a real 16-line sensor's scan goes in as stored: no thinning (golden --emulate-beams 0)",
+        },
     }
 
 
@@ -137,10 +165,21 @@ def pseudo_points_section(preset: Preset) -> dict:
         "stride": stride,
         "max_height": max_height,
         # float32: a depth of exactly float32(0.9), 0.89999998, is kept (a float64 comparison would drop it).
-        "keep": "min_depth <= d <= max_depth and z <= max_height (LiDAR frame), compared in float32; rows and "
-                "columns 0, stride, 2*stride …",
+        "keep": "min_depth <= d <= max_depth and z <= max_height (z of `point`, LiDAR frame), compared in float32; "
+                "rows and columns 0, stride, 2*stride …",
         "back_projection": "X_rect = d * inv(K) @ [u, v, 1] - inv(K) @ P2_view[:, 3], K = P2_view[:, :3], u the column, "
                            "v the row; [x, y, z, 1] = inv(4x4 [R0_rect @ Tr_velo_to_cam; 0 0 0 1]) @ [X_rect, 1]",
+        # pipeline/pseudo.py pixel_rays and pseudo_xyz: both transforms folded into one ray per pixel.
+        "rays": "the back_projection folded, in float64: A, b the 3x3 and translation of inv(4x4 [R0_rect @ "
+                "Tr_velo_to_cam; 0 0 0 1]), [Du, Dv, D0] = the columns of A @ inv(K); per pixel, per axis "
+                "ray = Dv * v + (Du * u + D0), rounded once to ray_dtype; origin = b - A @ inv(K) @ P2_view[:, 3], "
+                "rounded once to ray_dtype",
+        "ray_dtype": "float32",
+        "point": "per axis d * ray + origin in point_dtype: the product rounded, then the sum (two roundings, "
+                 "not a fused multiply-add)",
+        "point_dtype": "float32",
+        "float64_rule": "back_projection evaluated in float64 lands within 6e-6 m of these points on the five bundled "
+                        "KITTI frames (inside golden.json's 1e-4 m); rays and point above give them bit for bit",
         "reflectance": 0.0,
         "depth_jumps": {
             "max_jump": preset.decode.height_max_jump,
@@ -168,8 +207,10 @@ def bev_section(preset: Preset) -> dict:
         "nx": grid.nx, "ny": grid.ny, "nz": nz, "channels": grid.channels, "shape": list(grid.shape),
         "split_pseudo": grid.split_pseudo,
         "layout": "float32 (1, channels, ny, nx), C order; row iy: y bin from y_min; column ix: x bin from x_min",
-        "bin": "i = floor((v - v_min) / cell) per axis in float64 (z: z_cell); a point is kept when "
-               "0 <= i < n on all three axes (a point on an upper edge lies outside)",
+        "bin": "real points (and points given as coordinates): i = floor((v - v_min) / cell) per axis, v converted "
+               "to float64 first (z: z_cell); a point is kept when 0 <= i < n on all three axes (a point on an "
+               "upper edge lies outside)",
+        "pseudo_bin": pseudo_bin_rule(preset),
         "channel_ranges": {"occupancy": [0, nz], "reflectance": [nz, nz + 1], "pseudo_occupancy": pseudo_channels},
         "occupied": 1.0,
         "empty": 0.0,
@@ -177,6 +218,28 @@ def bev_section(preset: Preset) -> dict:
         "pseudo_points": pseudo,
         "reflectance": reflectance,
         "reflectance_points": "only points kept in the grid (on all three axes) count",
+    }
+
+
+def pseudo_bin_rule(preset: Preset) -> dict:
+    """How the BEV bins the pseudo points: straight from the depth map, never through their coordinates
+    (pipeline/bev.py pseudo_bins, pipeline/pseudo.py bin_rays)."""
+    grid, (_, _, _, max_height) = preset.bev, preset.pseudo_limits
+    scale = [1 / grid.cell, 1 / grid.cell, 1 / grid.z_cell]
+    return {
+        "scale": scale,
+        "rays": "pseudo_points.rays with every axis of A @ inv(K) and of origin multiplied by scale (x, y, z) before "
+                "the one rounding to float32; origin = float32(scale * (b - A @ inv(K) @ P2_view[:, 3]) - "
+                "scale * (x_min, y_min, z_min)), all in float64 before the rounding",
+        "bin": "per axis i = floor(c), c = d * ray + origin in float32 (the product rounded, then the sum: two "
+               "roundings, not a fused multiply-add)",
+        "keep": "pseudo_points' depth limits (float32), c_z <= max_height_bin before the floor (float32), and "
+                "0 <= i < n on all three axes",
+        "max_height_bin": float(np.float32((max_height - grid.z_min) / grid.z_cell)),
+        "max_height_bin_rule": "float32((max_height - z_min) / z_cell), computed in float64",
+        "why": "the real points' rule on the float32 pseudo points (or on float64 ones) rounds differently: on KITTI "
+               "000004 it put 1 of 14,428 pseudo voxels in another cell, which moved a result line's 4th decimal "
+               "at score threshold 0.05",
     }
 
 
@@ -214,7 +277,11 @@ def decode_section(preset: Preset) -> dict:
         "denormalise": "t = r * reg_std + reg_mean, float64",
         "log_size_clip": list(LOG_SIZE_CLIP),
         "box": {"x": "centre_x + dx", "y": "centre_y + dy", "l": "exp(clip(log_l))", "w": "exp(clip(log_w))",
-                "yaw": "atan2(sin_yaw, cos_yaw)", "fields": ["x", "y", "l", "w", "yaw"]},
+                "yaw": "atan2(sin_yaw, cos_yaw)", "fields": ["x", "y", "l", "w", "yaw"],
+                "size_directions": dict(SIZE_DIRECTIONS),
+                "sizes": "each size runs along the direction at yaw + size_directions[size] (radians, from +x "
+                         "towards +y): l along the heading (cos yaw, sin yaw), w across it (-sin yaw, cos yaw); "
+                         "corners (x, y) + a * l/2 * (cos yaw, sin yaw) + b * w/2 * (-sin yaw, cos yaw), a, b = +-1"},
         "nms": {"iou_threshold": decode.nms_iou,
                 "rule": "greedy in the candidate order: drop a box whose IoU with a kept box is > iou_threshold",
                 "iou": "exact: area of the intersection of the two rotated rectangles / area of their union",
@@ -249,7 +316,8 @@ def heights_section(preset: Preset) -> dict:
         "measured": "T >= min_occupied: m = clip(top - bottom, height_range); V = T * voxel_volume; "
                     "h = (V * m + prior_volume * car_height) / (V + prior_volume); z = bottom + h / 2",
         "otherwise": "h = car_height; z = ground_z + car_height / 2",
-        "box": "(x, y, z, l, w, h, yaw), z the box centre, LiDAR frame, float64",
+        "box": "(x, y, z, l, w, h, yaw), z the box centre, LiDAR frame, float64; l along yaw, w across it "
+               "(decode.box.sizes), h along z",
     }
 
 
@@ -261,6 +329,40 @@ def mirror_section() -> dict:
         "negated": list(MIRROR_NEGATED),
         "merge": "the mirrored run's maps rows reversed back, its de-normalised negated targets negated, "
                  "re-normalised; score and regression: the mean of the two runs",
+    }
+
+
+def kitti_results_section() -> dict:
+    """The KITTI result lines of the boxes (pipeline/boxes.py in_camera_view, boxes_to_objects, image_boxes;
+    pipeline/kitti.py format_label; docs/evaluation.md, 'What each line holds')."""
+    return {
+        "calibration": "the frame's own P2 (the whole image's, not P2_view), R0_rect, Tr_velo_to_cam; rows and "
+                       "columns of the image as read",
+        "written": "the boxes whose visibility_point projects to depth > 0 and 0 <= u < columns, 0 <= v < rows: "
+                   "[u * depth, v * depth, depth] = P2 @ [R0_rect @ Tr_velo_to_cam @ [x, y, z, 1], 1], float64; in "
+                   "the boxes' order (the others are in JSON answers only)",
+        "visibility_point": "centre",
+        "visibility_point_note": "centre: the box's 3D centre (x, y, z) as decoded, not its bottom centre",
+        "fields": ["type", "truncated", "occluded", "alpha", "left", "top", "right", "bottom", "h", "w", "l",
+                   "x", "y", "z", "rotation_y", "score"],
+        "values": {"type": "Car", "truncated": 0.0, "occluded": 0},
+        "decimals": {"truncated": 2, "occluded": 0, "alpha": RESULT_DECIMALS, "bbox": 2, "dimensions": RESULT_DECIMALS,
+                     "location": RESULT_DECIMALS, "rotation_y": RESULT_DECIMALS, "score": 4},
+        "number_format": "fixed point with that many decimals, rounded to nearest as C's printf(\"%.4f\") and "
+                         "Python's format(v, '.4f') round; one space between fields, each line ending in \\n; a "
+                         "frame without a written box: an empty file",
+        "location": "the bottom centre (x, y, z - h/2) through R0_rect @ Tr_velo_to_cam: rectified camera frame",
+        "dimensions": "h, w, l (l along yaw, w across: decode.box.sizes)",
+        "rotation_y": "wrap(-yaw - pi/2), wrap(a) = ((a + pi) mod 2 pi) - pi in [-pi, pi), mod taking the sign of "
+                      "2 pi (Python's %, not C's fmod)",
+        "alpha": "wrap(rotation_y - atan2(location x, location z))",
+        "bbox": "the 12 edges of the 3D box (its 4 BEV corners at z - h/2 and at z + h/2) in the rectified frame; "
+                "an edge with no end in front of the near plane (rectified z > near_plane_m) is dropped, an end at "
+                "or behind it moved along its edge onto it; the ends left projected with P2 (u, v: the first two "
+                "components over the third); left, top = min u, min v and right, bottom = max u, max v, clipped "
+                "to 0 … columns - 1 (u) and 0 … rows - 1 (v); no edge left: 0, 0, columns - 1, rows - 1",
+        "near_plane_m": NEAR_PLANE_M,
+        "docs": "docs/evaluation.md, 'What each line holds'",
     }
 
 

@@ -9,8 +9,10 @@ tolerances golden.json states, and end to end gives the golden boxes.
 
 from __future__ import annotations
 
+import importlib
 import itertools
 import json
+import math
 import re
 import shutil
 import subprocess
@@ -25,12 +27,17 @@ import pytest
 from shapely.geometry import Polygon
 
 from export.port_spec import graph_report, port_spec, port_spec_of
-from pipeline.bev import voxelize_bev
+from pipeline.beams import emulate_beams
+from pipeline.bev import pseudo_bins, voxelize_bev
+from pipeline.boxes import bev_corners, boxes_to_objects, in_camera_view, labels_to_boxes
 from pipeline.calib import KITTI_CALIBRATION, KITTI_IMAGE_HW, depth_crop, sparse_depth_map
 from pipeline.detector import MIRRORED_TARGETS
+from pipeline.errors import InputError
+from pipeline.frame import load_frame
 from pipeline.iou import rotated_nms
+from pipeline.kitti import format_label
 from pipeline.postprocess import estimate_heights
-from pipeline.preprocess import network_view, view_calibration
+from pipeline.preprocess import depth_inputs, network_view, view_calibration
 from pipeline.presets import get_preset, preset_from_dict
 from pipeline.pseudo import depth_jumps, depth_to_points
 from pipeline.targets import decode_maps
@@ -115,6 +122,53 @@ def port_pseudo_points(spec: dict, depth: np.ndarray, view_p2: np.ndarray, r0: n
     return velo[:3, low].T, pixel[low]
 
 
+def port_rays(spec: dict, view_p2: np.ndarray, r0: np.ndarray, tr: np.ndarray, shape: tuple[int, int],
+              scale: tuple[float, ...] = (1.0, 1.0, 1.0), low: tuple[float, ...] = (0.0, 0.0, 0.0)
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """pseudo_points.rays: (3, H·W) rays and (3,) origin in ray_dtype, every axis scaled before the one rounding."""
+    dtype = np.dtype(spec["pseudo_points"]["ray_dtype"])
+    k_inv = np.linalg.inv(view_p2[:, :3])
+    to_velo = np.linalg.inv(_velo_to_rect(r0, tr))
+    a, b, factor = to_velo[:3, :3], to_velo[:3, 3], np.asarray(scale, np.float64)
+    columns = factor[:, None] * (a @ k_inv)  # Du, Dv, D0
+    u, v = np.arange(shape[1], dtype=np.float64), np.arange(shape[0], dtype=np.float64)
+    rays = np.stack([((columns[axis, 1] * v)[:, None] + (columns[axis, 0] * u + columns[axis, 2])).astype(dtype)
+                     for axis in range(3)]).reshape(3, -1)
+    origin = factor * (b - a @ (k_inv @ view_p2[:, 3])) - factor * np.asarray(low, np.float64)
+    return rays, origin.astype(dtype)
+
+
+def port_pseudo_points_exact(spec: dict, depth: np.ndarray, view_p2: np.ndarray, r0: np.ndarray, tr: np.ndarray
+                             ) -> np.ndarray:
+    """(M, 3) points by pseudo_points.rays and .point (stride 1, as every shipped preset)."""
+    rule = spec["pseudo_points"]
+    assert rule["stride"] == 1  # every shipped preset's; the port handles no other
+    rays, origin = port_rays(spec, view_p2, r0, tr, depth.shape)
+    d = depth.reshape(-1).astype(rule["point_dtype"])
+    keep = (d >= np.float32(rule["min_depth"])) & (d <= np.float32(rule["max_depth"]))
+    keep &= d * rays[2] + origin[2] <= np.float32(rule["max_height"])
+    return np.column_stack([d[keep] * rays[axis, keep] + origin[axis] for axis in range(3)])
+
+
+def port_pseudo_bins(spec: dict, depth: np.ndarray, view_p2: np.ndarray, r0: np.ndarray, tr: np.ndarray
+                     ) -> tuple[np.ndarray, ...]:
+    """bev.pseudo_bin: (iz, iy, ix) of the pseudo points straight from the depth map, and each one's pixel."""
+    bev, limits, rule = spec["bev"], spec["pseudo_points"], spec["bev"]["pseudo_bin"]
+    rays, origin = port_rays(spec, view_p2, r0, tr, depth.shape, rule["scale"], (bev["x_min"], bev["y_min"], bev["z_min"]))
+    d = depth.reshape(-1).astype(np.float32)
+    keep = (d >= np.float32(limits["min_depth"])) & (d <= np.float32(limits["max_depth"]))
+    bins = []
+    for axis, n in ((0, bev["nx"]), (1, bev["ny"]), (2, bev["nz"])):
+        c = d * rays[axis] + origin[axis]
+        if axis == 2:
+            keep &= c <= np.float32(rule["max_height_bin"])
+        b = np.floor(c)
+        keep &= (b >= 0) & (b < n)
+        bins.append(b)
+    ix, iy, iz = (b[keep].astype(np.int64) for b in bins)
+    return iz, iy, ix, np.flatnonzero(keep)
+
+
 def port_depth_jumps(spec: dict, depth: np.ndarray) -> np.ndarray:
     d = depth.astype(np.float32)
     padded = np.pad(d, 1, constant_values=np.nan)
@@ -122,6 +176,19 @@ def port_depth_jumps(spec: dict, depth: np.ndarray) -> np.ndarray:
     differences = [np.abs(padded[1 + dy:1 + dy + h, 1 + dx:1 + dx + w] - d) for dy, dx in ((-1, 0), (1, 0), (0, -1), (0, 1))]
     largest = np.nanmax(np.stack(differences), axis=0)
     return largest > np.float32(spec["pseudo_points"]["depth_jumps"]["max_jump"]) * d
+
+
+def port_thin(spec: dict, points: np.ndarray, lines: int) -> np.ndarray:
+    """scan.thinning of a 64-line scan in scan order (its rings from the azimuth wraps; mode stride)."""
+    assert spec["scan"]["thinning"]["mode"] == "stride"
+    azimuth = np.arctan2(points[:, 1], points[:, 0])
+    ring = np.concatenate([[0], np.cumsum(np.abs(np.diff(azimuth)) > np.pi)])
+    elevation = np.arctan2(points[:, 2], np.hypot(points[:, 0], points[:, 1]))
+    medians = [np.sort(elevation[ring == r])[(np.count_nonzero(ring == r) - 1) // 2] for r in range(ring[-1] + 1)]
+    rank = np.empty(len(medians), np.int64)
+    rank[np.argsort(medians, kind="stable")] = np.arange(len(medians))
+    kept = np.arange(len(medians) - 1, -1, -(64 // lines))[:lines]
+    return points[np.isin(rank[ring], kept)]
 
 
 def _bins(bev: dict, xyz: np.ndarray) -> tuple[np.ndarray, ...]:
@@ -135,10 +202,11 @@ def _bins(bev: dict, xyz: np.ndarray) -> tuple[np.ndarray, ...]:
     return bins[2][0][inside].astype(np.int64), bins[1][0][inside].astype(np.int64), bins[0][0][inside].astype(np.int64), inside
 
 
-def port_voxelize(spec: dict, points: np.ndarray, pseudo: np.ndarray | None = None, sharp: np.ndarray | None = None
-                  ) -> tuple[np.ndarray, np.ndarray]:
+def port_voxelize(spec: dict, points: np.ndarray, pseudo: np.ndarray | tuple | None = None,
+                  sharp: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The BEV (C, ny, nx) and the height occupancy (nz, ny, nx) of real points and pseudo points (with the flags
-    of those off depth jumps)."""
+    of those off depth jumps): pseudo as (M, 3) coordinates (binned as real points) or as the (iz, iy, ix) of
+    :func:`port_pseudo_bins`."""
     bev = spec["bev"]
     ranges = bev["channel_ranges"]
     out = np.zeros(bev["shape"], np.float32)
@@ -151,7 +219,10 @@ def port_voxelize(spec: dict, points: np.ndarray, pseudo: np.ndarray | None = No
     sums = np.bincount(iy * bev["nx"] + ix, weights=points[inside, 3].astype(np.float64), minlength=plane)
     real = counts > 0
     if pseudo is not None:
-        pz, py, px, pin = _bins(bev, pseudo)
+        if isinstance(pseudo, tuple):
+            (pz, py, px), pin = pseudo, np.arange(len(pseudo[0]))
+        else:
+            pz, py, px, pin = _bins(bev, pseudo)
         first = ranges["pseudo_occupancy"][0] if ranges["pseudo_occupancy"] else ranges["occupancy"][0]
         out[first + pz, py, px] = bev["occupied"]
         keep = sharp[pin]
@@ -184,18 +255,28 @@ def port_decode(spec: dict, score: np.ndarray, regression: np.ndarray, threshold
     return boxes, flat[index].astype(np.float64)
 
 
-def _polygon(box: np.ndarray) -> Polygon:
+def _size_axes(spec: dict, yaw: float) -> tuple[np.ndarray, np.ndarray]:
+    """Unit vectors along which l and w run (decode.box.size_directions)."""
+    directions = spec["decode"]["box"]["size_directions"]
+    return tuple(np.array([np.cos(yaw + directions[k]), np.sin(yaw + directions[k])]) for k in ("l", "w"))
+
+
+def port_corners(spec: dict, box: np.ndarray) -> np.ndarray:
+    """(4, 2) BEV corners of an (x, y, l, w, yaw) box, in order around it."""
     x, y, length, width, yaw = box
-    c, s = np.cos(yaw), np.sin(yaw)
-    corners = [(x + a * length / 2 * c - b * width / 2 * s, y + a * length / 2 * s + b * width / 2 * c)
-               for a, b in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
-    return Polygon(corners)
+    along, across = _size_axes(spec, yaw)
+    return np.array([(x, y) + a * length / 2 * along + b * width / 2 * across
+                     for a, b in ((1, 1), (-1, 1), (-1, -1), (1, -1))])
+
+
+def _polygon(spec: dict, box: np.ndarray) -> Polygon:
+    return Polygon(port_corners(spec, box))
 
 
 def port_nms(spec: dict, boxes: np.ndarray) -> np.ndarray:
     """Greedy NMS in the candidate order with exact rotated IoU (shapely)."""
     rule = spec["decode"]["nms"]
-    polygons = [_polygon(b) for b in boxes]
+    polygons = [_polygon(spec, b) for b in boxes]
     kept: list[int] = []
     for i, polygon in enumerate(polygons):
         if len(kept) == rule["max_detections"]:
@@ -213,8 +294,9 @@ def port_heights(spec: dict, boxes: np.ndarray, height: np.ndarray, with_pseudo:
                                      bev["x_min"] + (np.arange(grid["nx"]) + 0.5) * grid["step"], indexing="ij")
     z, h = np.full(len(boxes), rule["ground_z"] + rule["car_height"] / 2), np.full(len(boxes), rule["car_height"])
     for n, (x, y, length, width, yaw) in enumerate(boxes):
-        along = (centre_x - x) * np.cos(yaw) + (centre_y - y) * np.sin(yaw)
-        across = -(centre_x - x) * np.sin(yaw) + (centre_y - y) * np.cos(yaw)
+        (lx, ly), (wx, wy) = _size_axes(spec, yaw)
+        along = (centre_x - x) * lx + (centre_y - y) * ly
+        across = (centre_x - x) * wx + (centre_y - y) * wy
         histogram = np.zeros(bev["nz"], np.int64)
         for i, j in zip(*np.nonzero((np.abs(along) <= length / 2) & (np.abs(across) <= width / 2)), strict=True):
             histogram += height[:, stride * i:stride * (i + 1), stride * j:stride * (j + 1)].sum(axis=(1, 2))
@@ -229,6 +311,57 @@ def port_heights(spec: dict, boxes: np.ndarray, height: np.ndarray, with_pseudo:
         h[n] = (seen * measured + rule["prior_volume"] * rule["car_height"]) / (seen + rule["prior_volume"])
         z[n] = bottom + h[n] / 2
     return z, h
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def port_kitti_lines(spec: dict, boxes: np.ndarray, scores: np.ndarray, p2: np.ndarray, r0: np.ndarray, tr: np.ndarray,
+                     image_hw: tuple[int, int]) -> list[str]:
+    """kitti_results: the result lines of (x, y, z, l, w, h, yaw) boxes."""
+    rule = spec["kitti_results"]
+    places, near, (rows, columns) = rule["decimals"], rule["near_plane_m"], image_hw
+    to_rect = _velo_to_rect(r0, tr)
+
+    def project(rect: np.ndarray) -> np.ndarray:  # [u * depth, v * depth, depth]
+        return p2 @ np.append(rect, 1.0)
+
+    lines = []
+    for (x, y, z, length, width, height, yaw), score in zip(boxes, scores, strict=True):
+        seen_z = {"centre": z, "bottom_centre": z - height / 2}[rule["visibility_point"]]
+        u, v, depth = project((to_rect @ [x, y, seen_z, 1.0])[:3])
+        if not (depth > 0 and 0 <= u / depth < columns and 0 <= v / depth < rows):
+            continue
+        corners = port_corners(spec, np.array([x, y, length, width, yaw]))
+        rect = np.array([(to_rect @ [cx, cy, cz, 1.0])[:3] for cz in (z - height / 2, z + height / 2) for cx, cy in corners])
+        edges = [(k, (k + 1) % 4) for k in range(4)] + [(4 + k, 4 + (k + 1) % 4) for k in range(4)] + [(k, k + 4) for k in range(4)]
+        ends = []
+        for a, b in ((rect[i], rect[j]) for i, j in edges):
+            if max(a[2], b[2]) <= near:
+                continue  # wholly behind the near plane
+            for end, other in ((a, b), (b, a)):
+                ends.append(end if end[2] > near else end + (near - end[2]) / (other[2] - end[2]) * (other - end))
+        if ends:
+            uv = np.array([project(e)[:2] / project(e)[2] for e in ends])
+            left, top = uv.min(axis=0)
+            right, bottom = uv.max(axis=0)
+            bbox = (min(max(left, 0), columns - 1), min(max(top, 0), rows - 1),
+                    min(max(right, 0), columns - 1), min(max(bottom, 0), rows - 1))
+        else:
+            bbox = (0.0, 0.0, columns - 1.0, rows - 1.0)
+        location = (to_rect @ [x, y, z - height / 2, 1.0])[:3]
+        rotation_y = _wrap(-yaw - math.pi / 2)
+        alpha = _wrap(rotation_y - math.atan2(location[0], location[2]))
+        values = rule["values"]
+        fields = [values["type"], f"{values['truncated']:.{places['truncated']}f}", f"{values['occluded']:.{places['occluded']}f}",
+                  f"{alpha:.{places['alpha']}f}", *(f"{b:.{places['bbox']}f}" for b in bbox),
+                  *(f"{d:.{places['dimensions']}f}" for d in (height, width, length)),
+                  *(f"{c:.{places['location']}f}" for c in location), f"{rotation_y:.{places['rotation_y']}f}",
+                  f"{score:.{places['score']}f}"]
+        assert len(fields) == len(rule["fields"])
+        lines.append(" ".join(fields))
+    return lines
 
 
 # --------------------------------------------------------------------------- the spec of each shipped model
@@ -282,6 +415,12 @@ def test_spec_pseudo_points_and_depth_jumps_are_the_pipelines(name: str) -> None
     assert port.shape == (len(reference), 3)
     np.testing.assert_allclose(port, reference[:, :3], rtol=0, atol=1e-4)
     assert not reference[:, 3].any() and spec["pseudo_points"]["reflectance"] == 0.0
+    # The exact rules: the points bit for bit, the BEV's pseudo bins voxel for voxel.
+    view_p2, r0, tr = view.P2, view.R0_rect, view.Tr_velo_to_cam
+    assert np.array_equal(port_pseudo_points_exact(spec, depth, view_p2, r0, tr), reference[:, :3])
+    iz, iy, ix, _ = port_pseudo_bins(spec, depth, view_p2, r0, tr)
+    bev = spec["bev"]
+    assert np.array_equal((iz * bev["ny"] + iy) * bev["nx"] + ix, pseudo_bins(depth, view, preset.bev, *preset.pseudo_limits).occupancy)
     smooth = np.cumsum(rng.uniform(0.0, 0.3, preset.depth.input_hw), axis=0).astype(np.float32) + 5
     for map_ in (depth, smooth):
         assert np.array_equal(port_depth_jumps(spec, map_), depth_jumps(map_, preset.decode.height_max_jump))
@@ -306,6 +445,115 @@ def test_spec_bev_is_the_pipelines(name: str) -> None:
     assert list(reference.shape) == bev["shape"] == manifest["networks"]["pixor"]["inputs"][0]["shape"][1:]
     np.testing.assert_allclose(port, reference, rtol=0, atol=1e-6)
     assert np.array_equal(port != 0, reference != 0)
+
+
+@pytest.fixture(scope="module")
+def real_depth_maps() -> dict[str, tuple]:
+    """The shipped camera model's depth maps of KITTI 000004 and 000006 (their scans thinned to 16 lines) and the
+    view calibration of each."""
+    preset = preset_from_dict(_manifest("edge")["preset_config"])
+    session = ort.InferenceSession(str(WEIGHTS / "edge" / "depth.onnx"), providers=["CPUExecutionProvider"])
+    maps = {}
+    for frame_id in ("000004", "000006"):
+        frame = load_frame(KITTI, frame_id, with_labels=False)
+        inputs = depth_inputs(frame.image, emulate_beams(frame.points, 16), frame.calib, preset)
+        (depth,) = session.run(["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth})
+        maps[frame_id] = depth[0, 0], inputs.calib
+    return maps
+
+
+@pytest.mark.parametrize("frame_id", ["000004", "000006"])
+def test_spec_pseudo_points_and_bins_are_the_pipelines_on_real_depth_maps(frame_id: str, real_depth_maps: dict) -> None:
+    """pseudo_points.rays/.point give the points bit for bit and bev.pseudo_bin the BEV's pseudo voxels one for one;
+    the float64 back-projection stays within its stated bound, and on 000004 the real points' bin rule on it
+    puts a voxel elsewhere (what bev.pseudo_bin is for)."""
+    spec, preset, _ = _spec_and_preset("edge")
+    depth, view = real_depth_maps[frame_id]
+    view_p2, r0, tr = view.P2, view.R0_rect, view.Tr_velo_to_cam
+    reference = depth_to_points(depth, view, *preset.pseudo_limits)[:, :3]
+    assert np.array_equal(port_pseudo_points_exact(spec, depth, view_p2, r0, tr), reference)
+    float64_points, _ = port_pseudo_points(spec, depth, view_p2, r0, tr)
+    assert np.abs(float64_points - reference).max() < 6e-6  # pseudo_points.float64_rule
+    bev = spec["bev"]
+    iz, iy, ix, _ = port_pseudo_bins(spec, depth, view_p2, r0, tr)
+    runtime = pseudo_bins(depth, view, preset.bev, *preset.pseudo_limits)
+    assert np.array_equal((iz * bev["ny"] + iy) * bev["nx"] + ix, runtime.occupancy)
+    fz, fy, fx, _ = _bins(bev, float64_points)
+    moved = set(((fz * bev["ny"] + fy) * bev["nx"] + fx).tolist()) ^ set(runtime.occupancy.tolist())
+    assert len(moved) == (1 if frame_id == "000004" else 0)  # bev.pseudo_bin.why: one voxel set by one rule only
+
+
+def test_spec_pseudo_bins_on_a_grid_whose_z_cell_is_not_its_cell() -> None:
+    """bev.pseudo_bin.scale per axis: the tiny grid's voxels are 0.4 m wide and 0.5 m high (the shipped ones cubes)."""
+    preset = get_preset("tiny")
+    spec = json.loads(json.dumps(port_spec(preset)))
+    assert preset.bev.cell != preset.bev.z_cell
+    view = view_calibration(KITTI_IMAGE_HW, KITTI_CALIBRATION, preset)
+    depth = np.random.default_rng(10).uniform(0.5, 90.0, preset.depth.input_hw).astype(np.float32)
+    iz, iy, ix, _ = port_pseudo_bins(spec, depth, view.P2, view.R0_rect, view.Tr_velo_to_cam)
+    bev = spec["bev"]
+    assert np.array_equal((iz * bev["ny"] + iy) * bev["nx"] + ix, pseudo_bins(depth, view, preset.bev, *preset.pseudo_limits).occupancy)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_spec_box_sizes_run_along_and_across_the_yaw(name: str) -> None:
+    spec, _, _ = _spec_and_preset(name)
+    rng = np.random.default_rng(8)
+    boxes = np.column_stack([rng.uniform(0, 60, 50), rng.uniform(-30, 30, 50), rng.uniform(0, 2, 50) - 1,
+                             rng.uniform(3, 5, 50), rng.uniform(1.4, 2, 50), rng.uniform(1.4, 1.8, 50), rng.uniform(-4, 4, 50)])
+    for box, corners in zip(boxes, bev_corners(boxes), strict=True):
+        np.testing.assert_allclose(port_corners(spec, box[[0, 1, 3, 4, 6]]), corners, rtol=0, atol=1e-12)
+
+
+def test_spec_kitti_result_lines_are_the_pipelines() -> None:
+    """The result lines a port writes from kitti_results equal the pipeline's, character for character: the
+    bundled frames' labelled cars and boxes around the camera (some reaching behind the near plane, some whose
+    centre the camera sees and bottom centre not, or the other way round)."""
+    spec, _, _ = _spec_and_preset("edge")
+    rng = np.random.default_rng(9)
+    checked = near_plane_decides = centre_decides = 0
+    for frame_id in ("000000", "000001", "000003", "000004", "000006"):
+        frame = load_frame(KITTI, frame_id)
+        calib, image_hw = frame.calib, frame.image.shape[:2]
+        labelled = labels_to_boxes([o for o in frame.labels if o.type != "DontCare"], calib)
+        n = 400  # around the camera, and 50 of them again 8 m ahead on the road
+        near = np.column_stack([rng.uniform(-1.5, 4, n), rng.uniform(-3, 3, n), rng.uniform(-1.5, 1, n),
+                                rng.uniform(0.5, 6, n), rng.uniform(0.3, 3, n), rng.uniform(0.2, 3, n), rng.uniform(-4, 4, n)])
+        boxes = np.vstack([labelled, near, near[:50] * [1, 1, 0, 1, 1, 1, 1] + [8, 0, -1, 0, 0, 0, 0]])
+        scores = rng.uniform(0, 1, len(boxes))
+        seen = in_camera_view(boxes, calib, image_hw)
+        expected = [format_label(o) for o in boxes_to_objects(boxes[seen], calib, image_hw, scores[seen])]
+        matrices = (calib.P2, calib.R0_rect, calib.Tr_velo_to_cam)
+        assert port_kitti_lines(spec, boxes, scores, *matrices, image_hw) == expected
+        checked += len(expected)
+        # The set is one where the stated near plane and visibility point matter.
+        moved = json.loads(json.dumps(spec))
+        moved["kitti_results"]["near_plane_m"] *= 2
+        near_plane_decides += sum(a != b for a, b in zip(port_kitti_lines(moved, boxes, scores, *matrices, image_hw),
+                                                         expected, strict=True))
+        moved = json.loads(json.dumps(spec))
+        moved["kitti_results"]["visibility_point"] = "bottom_centre"
+        centre_decides += port_kitti_lines(moved, boxes, scores, *matrices, image_hw) != expected
+    assert checked > 100 and near_plane_decides > 0 and centre_decides > 0
+    document, heading = spec["kitti_results"]["docs"].split(", ")
+    assert f"**{heading.strip(chr(39))}**" in (ROOT / document).read_text()  # the pointer names a real paragraph
+
+
+def test_spec_beam_thinning_is_the_pipelines() -> None:
+    """scan.thinning names the function the golden scans go through, and its rule, ported, keeps the same points
+    of the bundled 64-line scans; a scan with 16 lines already is refused, so a 16-line sensor's goes in as stored."""
+    spec, _, _ = _spec_and_preset("edge")
+    thinning = spec["scan"]["thinning"]
+    module, function = thinning["function"].rsplit(".", 1)
+    thin = getattr(importlib.import_module(module), function)
+    assert thin is emulate_beams
+    for frame_id in ("000004", "000006"):
+        points = load_frame(KITTI, frame_id, with_labels=False, with_image=False).points
+        for lines in (16, 32, 8):
+            thinned = thin(points, lines, thinning["mode"])
+            assert np.array_equal(port_thin(spec, points, lines), thinned)
+        with pytest.raises(InputError, match="thinned already"):
+            thin(thin(points, 16, thinning["mode"]), 16, thinning["mode"])
 
 
 @pytest.mark.parametrize("name", SHIPPED)
@@ -457,8 +705,10 @@ def test_a_port_from_the_spec_reproduces_every_golden_stage(golden: Path) -> Non
                                atol=stages["pseudo_points"]["tolerance"]["pseudo_points"]["atol_m"])
     jumps = port_depth_jumps(spec, a["depth"][0, 0])
     assert np.array_equal(jumps, a["depth_jumps"].astype(bool))
+    # by the exact rule (pseudo_points.rays, .point): bit for bit
+    assert np.array_equal(port_pseudo_points_exact(spec, a["depth"][0, 0], view_p2, r0, tr), a["pseudo_points"][:, :3])
 
-    # voxelize the golden scan and the port's pseudo points
+    # voxelize the golden scan and the port's pseudo points: within the tolerance from the float64 points …
     bev, height = port_voxelize(spec, a["points"], pseudo, ~jumps.reshape(-1)[pixel])
     real = spec["bev"]["channel_ranges"]["reflectance"][1]
     np.testing.assert_allclose(bev[:real], a["bev"][0, :real], rtol=0, atol=1e-6)
@@ -467,6 +717,10 @@ def test_a_port_from_the_spec_reproduces_every_golden_stage(golden: Path) -> Non
     assert (bev[real:] != pseudo_golden).sum() <= tolerance["bev"]["pseudo_voxels_differing_max_share"] * pseudo_golden.sum()
     assert (height != a["height_occupancy"].astype(bool)).sum() <= \
         tolerance["height_occupancy"]["voxels_differing_max_share"] * a["height_occupancy"].sum()
+    # … and exactly by bev.pseudo_bin, straight from the depth map
+    *bins, pixel = port_pseudo_bins(spec, a["depth"][0, 0], view_p2, r0, tr)
+    bev, height = port_voxelize(spec, a["points"], tuple(bins), ~jumps.reshape(-1)[pixel])
+    assert np.array_equal(bev, a["bev"][0]) and np.array_equal(height, a["height_occupancy"].astype(bool))
 
     # pixor on the golden BEV, its graph inputs as channel ranges of it
     session = ort.InferenceSession(str(WEIGHTS / "edge" / "pixor.onnx"), providers=["CPUExecutionProvider"])
@@ -507,8 +761,8 @@ def test_the_whole_port_chained_gives_the_golden_boxes(golden: Path) -> None:
     sure = a["scores"] >= index["frame"]["score_threshold"] + tolerance["score_atol"]
     assert sure.any()
     for box, golden_score in zip(a["boxes"][sure], a["scores"][sure], strict=True):
-        polygon = _polygon(box[[0, 1, 3, 4, 6]])
-        ious = [polygon.intersection(p).area / polygon.union(p).area for p in map(_polygon, candidates[kept])]
+        polygon = _polygon(spec, box[[0, 1, 3, 4, 6]])
+        ious = [polygon.intersection(p).area / polygon.union(p).area for p in (_polygon(spec, c) for c in candidates[kept])]
         best = int(np.argmax(ious))
         assert ious[best] >= tolerance["bev_iou_min"] and abs(scores[kept][best] - golden_score) <= tolerance["score_atol"]
         assert abs(z[best] - box[2]) < 0.2 and abs(h[best] - box[5]) < 0.2
@@ -522,6 +776,8 @@ def test_a_lidar_only_golden_set_has_no_camera_stages_and_the_port_reproduces_it
     index, spec, a = _load(tmp_path)
     assert [s["stage"] for s in index["stages"]] == ["voxelize", "pixor", "decode"] and "image" not in a
     assert index["frame"]["emulate_beams"] == 16 and len(a["points"]) == index["frame"]["points"]
+    scan = load_frame(KITTI, "000006", with_labels=False, with_image=False).points  # scan.thinning, ported
+    assert np.array_equal(a["points"], port_thin(spec, scan, index["frame"]["emulate_beams"]))
     bev, height = port_voxelize(spec, a["points"])
     assert np.array_equal(bev, a["bev"][0]) and np.array_equal(height, a["height_occupancy"].astype(bool))
     candidates, _ = port_decode(spec, a["score"][0, 0], a["regression"][0], index["frame"]["score_threshold"])
