@@ -13,8 +13,8 @@ the key) and ``OUT/camera/ID.png`` (the camera image with the boxes of the
 result file as wireframes); ``--video`` also puts the two
 pictures, one above the other, in frame order into one MP4.
 
-Each frame's warnings (``Detections.warnings``: sensor faults, a rig unlike the training one, the thinning
-asked for) go to ``OUT/warnings.txt``, one tab-separated line per frame and warning (frame id, code, message,
+Each frame's warnings (``Detections.warnings``: sensor faults, a rig unlike the training one; not the thinning
+``--emulate-beams`` asked for) go to ``OUT/warnings.txt``, one tab-separated line per frame and warning (frame id, code, message,
 under a header line), which KITTI result files cannot hold; it is written only when a frame had one, and a
 frame detected again has its earlier lines replaced. The terminal gets the first frame of each kind of
 warning and, at the end, one line per code with its count of frames and their first ids, so that a fault
@@ -467,8 +467,8 @@ def _record_warnings(record: Path, warnings: list[tuple[str, str, str]]) -> None
 
 
 def warnings_summary(warnings: list[tuple[str, str, str]], frames: int, shown: int = 5) -> list[str]:
-    """One line per warning code of a run (``warnings``: frame id, code, message), the thinning asked for left
-    out: ``line_count on 2 of 5 frames (000000, 000006)``, the first ``shown`` frame ids, then how many more."""
+    """One line per warning code of a run (``warnings``: frame id, code, message, as the warnings file holds them):
+    ``line_count on 2 of 5 frames (000000, 000006)``, the first ``shown`` frame ids, then how many more."""
     by_code: dict[str, list[str]] = {}
     for fid, code, _ in warnings:
         named = by_code.setdefault(code, [])
@@ -476,8 +476,6 @@ def warnings_summary(warnings: list[tuple[str, str, str]], frames: int, shown: i
             named.append(fid)
     lines = []
     for code, ids in by_code.items():
-        if code == WarningCode.BEAMS_EMULATED:
-            continue
         more = f", and {len(ids) - shown} more" if len(ids) > shown else ""
         lines.append(f"{code} on {len(ids)} of {frames} frame{'' if frames == 1 else 's'} "
                      f"({', '.join(ids[:shown])}{more})")
