@@ -44,6 +44,7 @@ give ``--emulate-beams 0``), which would otherwise skip every frame in turn.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 from collections.abc import Callable
@@ -300,6 +301,24 @@ def check_outputs_not_inputs(out: Path, video: Path | None, ids: list[str], inpu
         if kinds.get(path.parent) == path.suffix and path.stem in names:
             raise InputError(f"--out {out}: its {path.parent.name}/{path.name} would be written over {flag} {source}, "
                              "which this run reads; give an --out elsewhere")
+    check_warnings_record(out / WARNINGS_FILE)
+
+
+def check_warnings_record(record: Path) -> None:
+    """An InputError, before any work, when ``record`` (OUT/warnings.txt) is there but is not a warnings file an
+    earlier run wrote (a folder, or a file of other text): the run rewrites it as each frame is done, which would
+    fail after the first frame's work (a folder) or lose what the file held."""
+    if not (record.exists() or record.is_symlink()):
+        return
+    if record.is_file():
+        with contextlib.suppress(OSError, UnicodeDecodeError), record.open(encoding="utf-8") as file:
+            if file.readline().rstrip("\n") == WARNINGS_HEADER:
+                return
+        what = f"not a warnings file of pipeline.detect (its first line is not {WARNINGS_HEADER!r})"
+    else:
+        what = "not a file"
+    raise InputError(f"--out {record.parent}: {record} is {what}; the run writes every frame's warnings there: move "
+                     "it away or give another --out")
 
 
 def check_thinnable_first_scan(frames_of: FrameSource, beams: int) -> None:

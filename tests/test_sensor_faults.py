@@ -183,3 +183,24 @@ def test_the_detect_command_keeps_every_frames_warnings_on_record(detectors, cap
     status, stdout, err = _detect_command(capsys, "--models", WEIGHTS / "edge-lidar64", "--frame", "0", "--out", clean)
     assert status == 0 and (clean / "data" / "000000.txt").is_file() and "warning" not in stdout + err, err
     assert not (clean / "warnings.txt").exists()
+
+
+@pytest.mark.parametrize("kind", ["folder", "other text", "not UTF-8"])
+def test_a_warnings_file_the_run_did_not_write_is_refused_before_any_work(capsys, tmp_path, kind):
+    """OUT/warnings.txt as a folder was found after the first frame's work (its outputs lost, no way out said),
+    and one not in UTF-8 ended in a UnicodeDecodeError traceback; one of other text would have been rewritten.
+    Each is now one line before the model loads, naming the file and the way out, and nothing is written."""
+    out = tmp_path / "out"
+    out.mkdir()
+    record = out / "warnings.txt"
+    if kind == "folder":
+        record.mkdir()
+    else:
+        record.write_bytes(b"my notes\n" if kind == "other text" else b"x\n\xff\xfe\n")
+    status, stdout, err = _detect_command(capsys, "--models", WEIGHTS / "edge-lidar16", "--frame", "0", "--out", out)
+    what = "is not a file" if kind == "folder" else "is not a warnings file of pipeline.detect"
+    assert status == 2 and err.startswith(f"error: --out {out}: {record} {what}") and err.count("\n") == 1, err
+    assert "give another --out" in err and stdout == ""
+    assert sorted(p.name for p in out.iterdir()) == ["warnings.txt"]  # no frame's files
+    if kind != "folder":
+        assert record.read_bytes() in (b"my notes\n", b"x\n\xff\xfe\n")  # kept as it was
