@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import json
 import logging
 import os
 import random
@@ -42,6 +43,7 @@ from pipeline.kitti import (
 
 if TYPE_CHECKING:
     from models.train import TrainConfig, TrainResult
+    from pipeline.presets import Preset
 
 log = logging.getLogger(__name__)
 STATE_FILE = "state.pt"
@@ -141,11 +143,13 @@ def _flag_text(flag: str, value) -> str:
     return f"no {flag}" if value is None or value is False or value == "" else f"{flag} {value}"
 
 
-def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
+def check_resumable(config: TrainConfig, state: dict, out: Path, preset: Preset | None = None) -> None:
     """The resumed run is the one started in ``out``: the same task and flags; only --epochs may change.
 
     The state records the configuration it was started with; a state without one (an older run) is
-    compared by the networks it holds.
+    compared by the networks it holds. ``preset``: the one --preset gives now, compared field by field with the
+    preset the run recorded (a preset file may be spelt from another folder, or edited since); without it, or for
+    a run that recorded none, --preset is compared as written.
     """
     recorded = state.get("config") if isinstance(state.get("config"), dict) else {}
     held = {("depth",): "depth", ("pixor",): "detector", ("depth", "pixor"): "joint"}
@@ -154,6 +158,12 @@ def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
         raise InputError(f"task {config.task}: {out} was started as a {task} run "
                          f"(resume it with python -m models.train {task} … --resume)")
     compared = [("--preset", "preset"), ("--train-only", "train_only")]
+    started_preset = recorded.get("preset_config") if preset is not None else None
+    if isinstance(started_preset, dict) and started_preset.get("name") == preset.name:
+        # The same preset's name: the preset itself is compared, not how its file is spelt (--preset as written
+        # still names another registered preset in the message that follows otherwise).
+        check_same_preset(preset, started_preset, config.preset, out)
+        compared = compared[1:]
     if config.task == "detector":
         compared.insert(1, ("--input", "input_mode"))
     # Everything else that decides what the remaining epochs train on and how (--epochs may grow):
@@ -184,6 +194,22 @@ def check_resumable(config: TrainConfig, state: dict, out: Path) -> None:
         if key in recorded and recorded[key] != getattr(config, key):
             log.warning("%s: resumed with %s, started with %s: the remaining epochs compute differently", out,
                         _flag_text(flag, getattr(config, key)), _flag_text(flag, recorded[key]))
+
+
+def check_same_preset(preset: Preset, started: dict, given: str, out: Path) -> None:
+    """An InputError naming the first field in which ``preset`` (--preset ``given`` now) differs from the preset
+    ``started`` (its ``to_dict()``) that the run in ``out`` recorded: its remaining epochs would train another grid
+    or network under the first epochs' log and checkpoints."""
+    now, then = (json.loads(json.dumps(d)) for d in (preset.to_dict(), started))  # tuples and lists alike
+    for section in now:
+        fields = now[section] if isinstance(now[section], dict) else {"": now[section]}
+        was = then.get(section, {}) if isinstance(now[section], dict) else {"": then.get(section)}
+        for key, value in fields.items():
+            if isinstance(was, dict) and key in was and was[key] != value:
+                name = f"{section}.{key}" if key else section
+                raise InputError(f"--preset {given}: {name} {value!r}, but {out} was started with {was[key]!r} "
+                                 f"(preset {then.get('name')!r}; resume with the preset it was started with, "
+                                 "unchanged; only --epochs may change)")
 
 
 def frame_fingerprints(train_ids: list[str], val_ids: list[str]) -> dict[str, str | int]:

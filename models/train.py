@@ -482,7 +482,7 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         if not state_path.is_file():
             raise InputError(f"{out}: nothing to resume (no {STATE_FILE}); leave out --resume to start a new run")
         state = load_state(state_path)
-        check_resumable(config, state, out)
+        check_resumable(config, state, out, preset)
     elif state_path.exists():
         raise InputError(f"--out: {out} already holds a run ({STATE_FILE}); pass --resume to continue it")
     elif not config.resume and (held := [f for f in CHECKPOINT_FILES.values() if (out / f).exists()]):
@@ -537,7 +537,8 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         if state is None and state_path.exists():  # another process made it too, and held it first
             raise InputError(f"--out: {out} was started by another training process meanwhile ({STATE_FILE}); "
                              "give a new folder, or --resume it once that process has ended")
-    recorded_config = {**_jsonable(asdict(config)), **frame_fingerprints(train_ids, val_ids)}
+    recorded_config = {**_jsonable(asdict(config)), **frame_fingerprints(train_ids, val_ids),
+                       "preset_config": preset.to_dict()}  # what --preset gave, compared on --resume
     if state is None:
         # The state before the first epoch, right after the folder is made: a run stopped in its first epoch
         # resumes (--resume) like any other, and the flags it was started with are there to compare.

@@ -162,3 +162,35 @@ def test_training_takes_a_preset_file_and_its_first_line_names_the_files_grid(
         assert main(argv) == 0
     (line,) = [r.getMessage() for r in caplog.records if r.getMessage().startswith("detector: preset ")]
     assert line.startswith("detector: preset tinyway, BEV grid 7 × 200 × 252 (nz × ny × nx), x 0…100.8 m"), line
+
+
+def test_a_resumed_run_compares_the_preset_itself_not_its_file_name(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """--resume compared --preset as written: the same file spelt from another folder was refused, and a file
+    edited since (or another file of the same name) trained the remaining epochs on another grid. Now the
+    preset the run recorded is compared field by field."""
+    from models.train import main
+    from tests.test_train_cli import args, refused
+
+    split = tmp_path / "one.txt"
+    split.write_text("000006\n")
+    first = _file(tmp_path, {"base": "tiny", "name": "tinyway", "bev": {"x_max": 100.8}}, "tinyway.json")
+    argv = args("detector", tmp_path / "run", split, "--input", "lidar16")
+    argv[argv.index("--preset") + 1] = str(first)
+    assert main(argv) == 0
+    # The same preset in a file of another name and folder: the run resumes.
+    (tmp_path / "copy").mkdir()
+    same = _file(tmp_path / "copy", json.loads(first.read_text()), "same.json")
+    argv[argv.index("--preset") + 1] = str(same)
+    argv[argv.index("--epochs") + 1] = "2"
+    assert main([*argv, "--resume"]) == 0
+    # The first file edited since: refused, naming the field, before any epoch.
+    first.write_text(json.dumps({"base": "tiny", "name": "tinyway", "bev": {"x_max": 80.0}}))
+    argv[argv.index("--preset") + 1] = str(first)
+    argv[argv.index("--epochs") + 1] = "3"
+    says = refused([*argv, "--resume"], capsys)
+    assert says.startswith(f"error: --preset {first}: bev.x_max 80.0, but {tmp_path / 'run'} was started with 100.8 "
+                           "(preset 'tinyway'"), says
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert [entry["epoch"] for entry in log] == [1, 2]
