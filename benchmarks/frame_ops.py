@@ -40,7 +40,7 @@ from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.postprocess import boxes_from_maps
 from pipeline.preprocess import depth_inputs, network_view
-from pipeline.presets import get_preset
+from pipeline.presets import get_preset, is_preset_file
 from pipeline.pseudo import depth_to_points, merge_points, pseudo_xyz
 from pipeline.targets import encode_targets
 
@@ -150,7 +150,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         get_preset(args.preset)
-    except ValueError as exc:  # get_preset's list of the valid names
+    except ValueError as exc:  # get_preset's list of the valid names, or what is wrong in a preset file
+        if is_preset_file(args.preset):  # the file's fault, in one line: argparse's usage says nothing of it
+            print(f"error: argument --preset: {exc}", file=sys.stderr)
+            return 2
         parser.error(f"argument --preset: {exc}")
     try:
         if args.json is not None:

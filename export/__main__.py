@@ -34,7 +34,7 @@ with ctrl_c_held_while_loading(__name__ == "__main__"):  # an importer's Ctrl-C 
         from export.parity import ParityError
         from export.precision import REDUCE_RANGE_HELP, calibration_frame_ids
         from pipeline.model_files import ModelFileError
-        from pipeline.presets import ABLATIONS, PRESETS, get_preset
+        from pipeline.presets import ABLATIONS, PRESETS, get_preset, is_preset_file
     except ModuleNotFoundError as exc:
         if exc.name != "torch":
             raise
@@ -87,6 +87,9 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
         try:
             get_preset(args.preset)
         except ValueError as exc:
+            if is_preset_file(args.preset):  # the file's fault, in one line: argparse's usage says nothing of it
+                print(f"error: --preset: {exc}", file=sys.stderr)
+                raise SystemExit(2) from None
             parser.error(f"--preset: {exc}{_trained_with(args.preset, args.checkpoints, tuple(args.networks))}")
     return ExportConfig(
         preset=args.preset, out=args.out, checkpoints=args.checkpoints, kitti_dir=args.kitti_dir or DEFAULT_KITTI_DIR,

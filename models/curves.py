@@ -95,7 +95,7 @@ def read_log(path: Path) -> list[dict]:
         try:
             record = json.loads(line)
         except json.JSONDecodeError as exc:
-            raise InputError(f"{path}, line {number}: not JSON ({exc.msg})") from None
+            raise InputError(f"{path}, line {number}: not JSON (column {exc.colno}: {exc.msg})") from None
         if not isinstance(record, dict) or not isinstance(record.get("epoch"), int):
             raise InputError(f"{path}, line {number}: not an epoch's record (no integer 'epoch')")
         history.append(record)

@@ -754,7 +754,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--train-split", type=Path, metavar="F",
                         help="training frame ids, one per line (default: all of --data)")
     parser.add_argument("--val-split", type=Path, metavar="F", help="validation frame ids, one per line")
-    parser.add_argument("--preset", default="edge", metavar="P", help="model preset (default edge)")
+    parser.add_argument("--preset", default="edge", metavar="P",
+                        help="model preset (default edge): a registered name, with suffixes such as -split-near35 (the "
+                        "shipped camera model), or a preset file FILE.json (docs/models.md, \"Adding a preset\")")
     parser.add_argument("--out", type=Path, required=True, metavar="DIR",
                         help="run directory (log.jsonl, state.pt, depth.pt/pixor.pt)")
     parser.add_argument("--input", dest="input_mode", default="lidar16", choices=DETECTOR_INPUTS,

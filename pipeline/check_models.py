@@ -50,6 +50,7 @@ from pipeline.model_files import (
     MANIFEST_NAME,
     ModelFileError,
     ModelIdentity,
+    check_descriptions,
     load_manifest_with_digest,
     model_identity,
     verify_sha256,
@@ -115,6 +116,15 @@ def check_manifest(models: Path, allow_untrained: bool) -> tuple[dict, str, Pres
         raise CheckFailed(str(exc)) from exc
     if "pixor" not in manifest.get("networks", {}):
         raise CheckFailed(f"{models / MANIFEST_NAME}: no 'pixor' network listed")
+    try:  # the descriptions other runtimes read say what runs (a grid too broken to describe: the sessions' check)
+        described = preset.described()
+    except (ArithmeticError, TypeError, ValueError):
+        described = None
+    if described is not None:
+        try:
+            check_descriptions(manifest, described, models / MANIFEST_NAME)
+        except ModelFileError as exc:
+            raise CheckFailed(str(exc)) from exc
     untrained = [name for name, entry in manifest["networks"].items() if entry.get("weights") != "trained"]
     if untrained and not allow_untrained:
         raise CheckFailed(f"{models / MANIFEST_NAME}: {', '.join(untrained)}: exported without trained weights (their "
@@ -216,6 +226,9 @@ def run(config: CheckConfig) -> CheckReport:
                                               f"{manifest.get('precision', 'fp32')}, weights "
                                               f"{manifest.get('weights', 'unrecorded')}, trained on "
                                               f"{', '.join(training)}")
+        check.warnings = [f"{models / MANIFEST_NAME}: no '{table}' table: a runtime other than this one (a port) "
+                          "reads the grid and constants there; export the models again to write it"
+                          for table in ("bev_grid", "normalisation") if table not in manifest]
         check = step("files")
         check.warnings = check_files(models, manifest)
         check.status = "pass"

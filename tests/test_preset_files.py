@@ -194,3 +194,14 @@ def test_a_resumed_run_compares_the_preset_itself_not_its_file_name(
                            "(preset 'tinyway'"), says
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert [entry["epoch"] for entry in log] == [1, 2]
+
+
+def test_a_bad_preset_file_is_one_error_line_in_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """export printed argparse's whole usage above a preset file's fault (7 lines, where models.train says one)."""
+    bad = _file(tmp_path, {"base": "edge", "name": "hw", "bev": {"x_maxx": 100.0}}, "hw.json")
+    with pytest.raises(SystemExit) as stop:
+        export_main(["--preset", str(bad), "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: --preset: preset file {bad}: bev.x_maxx is not a field of bev (did you mean 'x_max'?)")
+    assert not (tmp_path / "out").exists()

@@ -85,6 +85,22 @@ def test_check_models_passes_a_whole_directory_and_gives_its_id(models: Path, tm
     assert (report["identity"]["directory"], report["identity"]["precision"]) == ("edge-lidar16", "fp32")
 
 
+def test_check_models_judges_the_manifests_descriptions_under_its_manifest_check(models: Path, capsys) -> None:
+    """A bev_grid edited by hand failed only under the sessions' check, below a manifest check that had passed;
+    one deleted passed without a word, though a port reads the grid there. Now the first fails the manifest
+    check, naming the field, and the second passes it with a warning."""
+    edit_manifest(models, lambda m: m["bev_grid"].update(x_max=100.0))
+    assert main(["--models", str(models), "--provider", "cpu"]) == 1
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("FAIL manifest ") and "bev_grid.x_max is 100.0 where preset_config gives 70.4" in out[0]
+    assert [line.split()[:2] for line in out[1:4]] == [["SKIP", "files"], ["SKIP", "sessions"], ["SKIP", "frame"]]
+    edit_manifest(models, lambda m: m.pop("bev_grid"))
+    assert main(["--models", str(models), "--provider", "cpu"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith("PASS manifest ") and out[1].strip().startswith("warning: ")
+    assert "no 'bev_grid' table: a runtime other than this one (a port) reads the grid" in out[1]
+
+
 def test_check_models_fails_a_half_copied_directory_naming_the_file(models: Path, capsys) -> None:
     (models / "pixor.onnx").write_bytes((WEIGHTS / "edge-lidar16" / "pixor.onnx").read_bytes()[:300_000])
     assert main(["--models", str(models)]) == 1

@@ -133,7 +133,7 @@ def test_the_command_redraws_a_run_and_names_a_bad_log_line(tmp_path, capsys):
     assert "1 epoch(s)" in capsys.readouterr().out
     (tmp_path / "log.jsonl").write_text(json.dumps(history[0]) + "\n{cut short\n")
     assert main([str(tmp_path)]) == 2
-    assert capsys.readouterr().err.strip().endswith("log.jsonl, line 2: not JSON (Expecting property name "
+    assert capsys.readouterr().err.strip().endswith("log.jsonl, line 2: not JSON (column 2: Expecting property name "
                                                     "enclosed in double quotes)")
     assert main([str(tmp_path / "nothing")]) == 2
     assert "no log.jsonl" in capsys.readouterr().err
