@@ -92,9 +92,10 @@ METRIC_ORDER = ("bev", "3d", "bbox")  # as the table: BEV first
 METRIC_MARKERS = {"bev": "o", "3d": "^", "bbox": "s"}
 LINE_WIDTHS = (4.6, 3.8, 3.0, 2.3, 1.6, 0.9)  # by (metric, threshold) in drawing order
 MARKER_SIZES = (9.5, 8.0, 6.5, 5.2, 4.0, 2.8)
-# Below this many counted cars the devkit's 40 recall points outnumber the cars: it credits the k-th found car to
-# recall point k, so AP_40 is at most 100 (n - 1) / 40 (a lone car found exactly scores 0).
-FEW_CARS = 40
+# Below this many counted cars (40 or fewer) the devkit cannot give AP 100: it credits the k-th found car to its
+# k-th sampling point, the first of which (recall 0) is not averaged, so AP_40 is at most 100 (n - 1) / 40 (a lone
+# car found exactly scores 0).
+FEW_CARS = 41
 
 
 def series_colour(metric: str, iou: float) -> str:

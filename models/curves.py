@@ -256,9 +256,13 @@ def recorded_info(run_dir: Path, history: list[dict]) -> RunInfo:
     if state_path.is_file():
         from models.run_checks import load_state
 
-        config = load_state(state_path)["config"]
+        config = load_state(state_path).get("config")
+        if not isinstance(config, dict) or not all(isinstance(config.get(key), str) for key in ("task", "preset")):
+            raise InputError(f"{state_path}: no run configuration with its task and preset (not a state models.train "
+                             "wrote?)")
+        beams = config.get("emulate_beams", 16)
         return RunInfo(config["task"], config["preset"], config.get("input_mode", "lidar16"),
-                       int(config.get("emulate_beams", 16)))
+                       beams if isinstance(beams, int) else 16)
     return RunInfo(task_of(history), "unknown (no state.pt)", input_mode=None)
 
 

@@ -159,9 +159,11 @@ def check_resumable(config: TrainConfig, state: dict, out: Path, preset: Preset 
                          f"(resume it with python -m models.train {task} … --resume)")
     compared = [("--preset", "preset"), ("--train-only", "train_only")]
     started_preset = recorded.get("preset_config") if preset is not None else None
-    if isinstance(started_preset, dict) and started_preset.get("name") == preset.name:
-        # The same preset's name: the preset itself is compared, not how its file is spelt (--preset as written
-        # still names another registered preset in the message that follows otherwise).
+    if isinstance(started_preset, dict):  # the preset itself is compared, not how --preset spells it
+        if started_preset.get("name") != preset.name:  # another preset (a registered name, or a file renamed)
+            raise InputError(f"{_flag_text('--preset', config.preset)} (preset {preset.name!r}), but {out} was "
+                             f"started with {_flag_text('--preset', recorded.get('preset'))} (preset "
+                             f"{started_preset.get('name')!r}; resume with the same flags; only --epochs may change)")
         check_same_preset(preset, started_preset, config.preset, out)
         compared = compared[1:]
     if config.task == "detector":

@@ -46,6 +46,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -464,10 +465,14 @@ def _forget_warnings_of(record: Path, ids: set[str]) -> None:
     result files."""
     if not record.is_file():
         return
-    kept = [line for line in record.read_text(encoding="utf-8").splitlines()[1:]
+    # Its header was checked (check_warnings_record); a byte past it that is not UTF-8 is kept as U+FFFD, not a
+    # traceback. Replaced whole (a temporary file, then a rename): a run stopped here leaves the old file or the new.
+    kept = [line for line in record.read_text(encoding="utf-8", errors="replace").splitlines()[1:]
             if line and line.split("\t", 1)[0] not in ids]
     if kept:
-        record.write_text("\n".join([WARNINGS_HEADER, *kept]) + "\n", encoding="utf-8")
+        temporary = record.with_name(f".{record.name}.tmp")
+        temporary.write_text("\n".join([WARNINGS_HEADER, *kept]) + "\n", encoding="utf-8")
+        os.replace(temporary, record)
     else:
         record.unlink()
 

@@ -68,6 +68,10 @@ class BevGrid:
         return (self.channels, self.ny, self.nx)
 
 
+# The depth net's full-resolution head: its correction added to the upsampled depth, or convex upsampling weights.
+REFINE_MODES = ("add", "convex")
+
+
 @dataclass(frozen=True)
 class DepthNetConfig:
     """Depth-completion network (Ma et al. sparse-to-dense, ResNet-18 encoder, GAMs, ASPP).
@@ -296,6 +300,9 @@ def registered_preset(name: str) -> Preset:
                    bev=replace(preset.bev, **changes["bev"]))
 
 
+# The largest number a preset file may give (sizes in metres or cells, channel counts): far above any real one,
+# far below what overflows the grid's arithmetic (x_max 1e308 raised an OverflowError).
+MAX_PRESET_NUMBER = 1e6
 # A preset file's sections and the dataclass each one builds.
 SECTIONS: dict[str, type] = {"depth": DepthNetConfig, "pixor": PixorConfig, "bev": BevGrid, "decode": DecodeConfig}
 
@@ -333,16 +340,25 @@ def preset_from_file(path: str | Path) -> Preset:
     return preset
 
 
+def _refuse_constant(name: str) -> None:
+    """json's NaN, Infinity and -Infinity: no size or threshold of a preset is one."""
+    raise ValueError(f"{name} is not a number a preset holds")
+
+
 def _read_object(where: str, path: Path) -> dict:
     """The JSON object in ``path``; ValueError naming the file (and the line of a syntax error) otherwise."""
     try:
-        config = json.loads(path.read_text(encoding="utf-8"))
+        config = json.loads(path.read_text(encoding="utf-8"), parse_constant=_refuse_constant)
     except OSError as exc:
         raise ValueError(f"{where}: cannot be read ({exc.strerror or type(exc).__name__})") from None
     except json.JSONDecodeError as exc:
         raise ValueError(f"{where}: not JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
     except UnicodeDecodeError:
         raise ValueError(f"{where}: not UTF-8 text") from None
+    except RecursionError:  # Python's parser recurses once per bracket
+        raise ValueError(f"{where}: lists and objects nested too deep to be a preset") from None
+    except ValueError as exc:  # _refuse_constant's
+        raise ValueError(f"{where}: {exc}") from None
     held = None if isinstance(config, dict) else type(config).__name__
     if held:
         raise ValueError(f"{where}: holds a JSON {held}, not an object with the preset's sections")
@@ -380,8 +396,9 @@ def _section_fields(where: str, section: str, cls: type, given: dict) -> dict[st
 
 def _field_value(where: str, field_name: str, value: Any, kind: str) -> Any:
     """``value`` from JSON as the dataclass field of annotation ``kind`` holds it (lists become tuples)."""
-    def number(v: Any, integer: bool) -> bool:
-        return not isinstance(v, bool) and isinstance(v, int if integer else (int, float))
+    def number(v: Any, integer: bool) -> bool:  # finite, and within any size a preset holds (no overflow later)
+        return (not isinstance(v, bool) and isinstance(v, int if integer else (int, float))
+                and math.isfinite(v) and abs(v) <= MAX_PRESET_NUMBER)
 
     ok = {"bool": isinstance(value, bool), "int": number(value, True), "float": number(value, False),
           "str": isinstance(value, str)}.get(kind)
@@ -443,6 +460,23 @@ def check_preset(preset: Preset) -> None:
         problems.append(f"depth.input_hw {list(preset.depth.input_hw)} is not crop_hw {list(preset.crop_hw)} × "
                         f"input_scale {preset.depth.input_scale:g} (the calibration is scaled by input_scale: the "
                         f"image would be stretched off the sparse depth and pseudo points): input_hw {list(wanted_hw)}")
+    decode = preset.decode
+    problems += [f"decode.{name} {value!r} must lie in [0, 1]" for name, value in
+                 (("score_threshold", decode.score_threshold), ("nms_iou", decode.nms_iou)) if not 0 <= value <= 1]
+    problems += [f"decode.{name} has {len(value)} values: one per regression channel, 6 (dx, dy, cos, sin, log l, "
+                 "log w)" for name, value in (("reg_mean", decode.reg_mean), ("reg_std", decode.reg_std))
+                 if len(value) != 6]
+    problems += [f"decode.reg_std {list(decode.reg_std)} must be positive" for _ in [0] if min(decode.reg_std) <= 0]
+    problems += [f"{section}.{name} {value!r} must be at least {least}" for section, name, value, least in (
+        ("decode", "max_candidates", decode.max_candidates, 1), ("decode", "max_detections", decode.max_detections, 1),
+        ("decode", "pseudo_stride", decode.pseudo_stride, 1), ("pixor", "stem_channels", preset.pixor.stem_channels, 1),
+    ) if value < least]
+    problems += [f"{name} {list(value)} must be positive" for name, value in (
+        ("crop_hw", preset.crop_hw), ("depth.input_hw", preset.depth.input_hw),
+        ("pixor.stage_widths", preset.pixor.stage_widths), ("depth.encoder_widths", preset.depth.encoder_widths),
+    ) if min(value) <= 0]
+    if preset.depth.refine_mode not in REFINE_MODES:
+        problems.append(f"depth.refine_mode {preset.depth.refine_mode!r} is none of {', '.join(REFINE_MODES)}")
     kernel = tuple(preset.depth.prefill_kernel)
     if any(side < 1 or side % 2 == 0 for side in kernel):
         odd = [max(1, side + (side % 2 == 0)) for side in kernel]

@@ -42,6 +42,7 @@ access_log = logging.getLogger("service.access")
 MALFORMED_REQUEST_MESSAGE = ("request: not valid HTTP/1.1 (a malformed request line or header, or a body framing h11 "
                              "cannot read); the connection is closed")
 OVER_CONNECTION_LIMIT = "over_connection_limit"  # the scope["state"] key the protocol sets
+_HEAD_START_BYTES = 16  # of a request head kept for its method label: the longest method, a space, and more
 MALFORMED_BODY = "malformed_body"  # the scope["state"] key of a request whose body the protocol answered 400
 UNPARSED_ROUTE = "unparsed"  # the route label of an answer given before the request's head was read
 # The method label's values: HTTP's methods (RFC 9110, and PATCH); any other token a client sends is "other".
@@ -92,6 +93,7 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
             super().__init__(*args, **kwargs)
             self._head_timer: asyncio.TimerHandle | None = None
             self._head_since = 0.0  # the loop's time the head now awaited became due (connection, or last answer)
+            self._head_start = b""  # its first bytes, for the method label of an answer to it (h11 drops them)
             inner = self.app
 
             async def app(scope: Any, receive: Any, send: Any) -> None:
@@ -110,6 +112,11 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
             super().on_response_complete()
             self._arm_head_deadline()  # the next request's head on a kept-alive connection
 
+        def data_received(self, data: bytes) -> None:
+            if len(self._head_start) < _HEAD_START_BYTES and (self.cycle is None or self.cycle.response_complete):
+                self._head_start += data[: _HEAD_START_BYTES - len(self._head_start)]
+            super().data_received(data)
+
         def connection_lost(self, exc: Exception | None) -> None:
             self._cancel_head_deadline()
             super().connection_lost(exc)
@@ -122,11 +129,11 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
             cycle = self.cycle
             request_state = None
             if cycle is not None and not cycle.response_complete:  # the body of a request the app is handling
+                if cycle.response_started:  # h11 cannot start another answer: end the connection here (the
+                    self.transport.close()  # access line keeps the answer that had begun)
+                    return
                 request_state = cycle.scope.setdefault("state", {})
                 request_state[MALFORMED_BODY] = True  # its access line: this 400, not a client that left
-                if cycle.response_started:  # h11 cannot start another answer: end the connection here
-                    self.transport.close()
-                    return
             if request_state is None:
                 request_id = uuid.uuid4().hex
             else:  # the id the middleware gives the request, which may not have run yet (the body came with the head)
@@ -141,7 +148,7 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
                 self.transport.write(self.conn.send(event))
             self.transport.close()
             if request_state is None:  # a head: no request reached the app, so no middleware logs it
-                log_head_answer(metrics, request_id, 400, "bad_request", head_method(self.conn.trailing_data[0]),
+                log_head_answer(metrics, request_id, 400, "bad_request", head_method(self._head_start),
                                 peer_text(self.client), self.loop.time() - self._head_since,
                                 "a request line or header HTTP/1.1 does not allow")
 
@@ -154,6 +161,7 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
             self._cancel_head_deadline()
             if not self.transport.is_closing():
                 self._head_since = self.loop.time()
+                self._head_start = b""
                 # The cycle now on: a head that arrives in time starts a new one.
                 self._head_timer = self.loop.call_later(receive_timeout_s, self._head_overdue, self.cycle)
 
@@ -172,8 +180,8 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
                 head = (f"HTTP/1.1 408 Request Timeout\r\ncontent-type: application/json\r\n"
                         f"content-length: {len(body)}\r\nx-request-id: {request_id}\r\nconnection: close\r\n\r\n")
                 self.transport.write(head.encode("latin-1") + body)
-                log_head_answer(metrics, request_id, 408, "request_timeout", head_method(pending), peer_text(self.client),
-                                self.loop.time() - self._head_since,
+                log_head_answer(metrics, request_id, 408, "request_timeout", head_method(self._head_start),
+                                peer_text(self.client), self.loop.time() - self._head_since,
                                 f"its head not received within {receive_timeout_s:g} s, --receive-timeout-s")
             self.transport.close()
 

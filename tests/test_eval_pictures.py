@@ -1,5 +1,5 @@
 """The evaluation's pictures draw what the numbers are (session 48's review): precision against the curve's own
-recall, not against the devkit's 41 sampling points; a warning where fewer than 40 cars make the devkit's AP
+recall, not against the devkit's 41 sampling points; a warning where fewer than 41 cars make the devkit's AP
 coarse; a palette colour-blind readers can tell apart, with curves lying on each other still seen; the compared
 model beside this one; and the car-depth plot's title and axis saying what it shows."""
 
@@ -46,7 +46,7 @@ def test_one_car_found_exactly_is_drawn_at_recall_1_precision_1():
             assert list(line.get_xdata()) == [1.0] and list(line.get_ydata()) == [1.0], line.get_label()
             assert "AP$_{40}$ 0.0" in line.get_label()
         legend = fig.axes[0].get_legend().get_title().get_text()
-        assert "n=1 car < 40" in legend.replace("\n", " ") and "1 car" in fig.axes[0].get_title()
+        assert "n=1 car < 41" in legend.replace("\n", " ") and "1 car" in fig.axes[0].get_title()
     finally:
         plt.close(fig)
 
@@ -160,7 +160,7 @@ def test_a_band_with_few_cars_is_marked_and_counts_one_car_as_1_car():
         extent = hatched[0].get_path().transformed(hatched[0].get_patch_transform()).get_extents()
         assert -0.5 < extent.x0 < extent.x1 < 0.5  # over the first band's tick (at 0) alone
         notes = [t.get_text() for t in ax.texts]
-        assert notes == ["n=1 < 40:\nAP$_{40}$ ≤ 0.0"]
+        assert notes == ["n=1 < 41:\nAP$_{40}$ ≤ 0.0"]
         np.testing.assert_array_equal(_lines(fig)["BEV @0.7"].get_ydata(), [0.0, 100.0, np.nan])
     finally:
         plt.close(fig)

@@ -62,6 +62,18 @@ def test_a_whole_preset_file_is_the_preset_it_was_written_from(tmp_path: Path) -
     ([1, 2], r"holds a JSON list, not an object"),
     # The rules every preset is held to apply to a file's as to a registered one.
     ({**HIGHWAY, "bev": {"x_max": 100.1}}, r"preset 'highway': bev\.x_max 100\.1 at cell 0\.2 is 500\.5 cells"),
+    # Numbers no preset holds: an OverflowError traceback in the grid's arithmetic (x_max 1e308) or a
+    # RecursionError (deep nesting) before; NaN and Infinity are JSON's extensions.
+    ({**HIGHWAY, "bev": {"x_max": 1e308}}, r"bev\.x_max is 1e\+308, not a value of type float"),
+    ('{"base": "edge", "name": "x", "bev": {"x_max": Infinity}}', r"Infinity is not a number a preset holds"),
+    ('{"base": "edge", "name": "x", "decode": {"nms_iou": NaN}}', r"NaN is not a number a preset holds"),
+    ("[" * 100_000 + "]" * 100_000, r"nested too deep to be a preset"),
+    # Values the code would run with, wrongly, without a word (a threshold of 5, reg_mean broadcast from 1 value).
+    ({**HIGHWAY, "decode": {"score_threshold": 5.0}}, r"decode\.score_threshold 5\.0 must lie in \[0, 1\]"),
+    ({**HIGHWAY, "decode": {"reg_mean": [1.0]}}, r"decode\.reg_mean has 1 values: one per regression channel, 6"),
+    ({**HIGHWAY, "decode": {"max_candidates": -1}}, r"decode\.max_candidates -1 must be at least 1"),
+    ({**HIGHWAY, "crop_hw": [-352, 1216]}, r"crop_hw \[-352, 1216\] must be positive"),
+    ({**HIGHWAY, "depth": {"refine_mode": "bogus"}}, r"depth\.refine_mode 'bogus' is none of add, convex"),
 ])
 def test_a_bad_preset_file_is_refused_naming_the_key(tmp_path: Path, content: object, says: str) -> None:
     path = _file(tmp_path, content)
@@ -192,6 +204,10 @@ def test_a_resumed_run_compares_the_preset_itself_not_its_file_name(
     says = refused([*argv, "--resume"], capsys)
     assert says.startswith(f"error: --preset {first}: bev.x_max 80.0, but {tmp_path / 'run'} was started with 100.8 "
                            "(preset 'tinyway'"), says
+    # Edited and renamed at the same path: another preset, refused as such (the file's name alone had passed).
+    first.write_text(json.dumps({"base": "tiny", "name": "mine2", "bev": {"x_max": 80.0}}))
+    says = refused([*argv, "--resume"], capsys)
+    assert f"error: --preset {first} (preset 'mine2'), but {tmp_path / 'run'} was started with --preset " in says, says
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert [entry["epoch"] for entry in log] == [1, 2]
 

@@ -201,9 +201,9 @@ def test_answers_given_before_the_app_have_one_access_line_and_a_count(tiny_mode
         late = _sent_raw(running.url, chunked + b"X-Request-ID: log-early\r\n\r\n4\r\n--bb\r\n", b"zz\r\n",
                          pause_s=0.2)  # no token: answered 401 at once, the malformed chunk while its body drains
         slow = _sent_raw(running.url, b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
-        garbage = _sent_raw(running.url, b"GARBAGE\r\n\r\n")
+        garbage = _sent_raw(running.url, b"GET /healthz HTTP/1.1\r\nHost: x\r\nno colon here\r\n\r\n")
         counted = {status: _metric(running, f'lowres3d_http_requests_total{{method="{method}",route="unparsed",'
-                                            f'status="{status}"}}') for method, status in (("GET", 408), ("other", 400))}
+                                            f'status="{status}"}}') for method, status in (("GET", 408), ("GET", 400))}
     assert malformed.startswith(b"HTTP/1.1 400 ") and b"x-request-id: log-chunk" in malformed, malformed
     assert late.startswith(b"HTTP/1.1 401 "), late
     assert slow.startswith(b"HTTP/1.1 408 ") and garbage.startswith(b"HTTP/1.1 400 "), (slow, garbage)
@@ -224,7 +224,8 @@ def test_answers_given_before_the_app_have_one_access_line_and_a_count(tiny_mode
         assert f"x-request-id: {line['request_id']}".encode() in answer  # the answer's id is the line's
     assert unparsed[408]["method"] == "GET" and unparsed[408]["error_code"] == "request_timeout"
     assert 400 <= unparsed[408]["duration_ms"] < 5000, unparsed[408]  # from the connection's opening
-    assert unparsed[400]["method"] == "other" and unparsed[400]["error_code"] == "bad_request"
+    # h11 drops a refused head's bytes: the label is the head's own first word, kept as it arrived.
+    assert unparsed[400]["method"] == "GET" and unparsed[400]["error_code"] == "bad_request"
 
 
 # --------------------------------------------------------------------------- JSON, SIGTERM cutting a request off

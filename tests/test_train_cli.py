@@ -111,7 +111,7 @@ def test_resume_without_a_run_to_continue_is_refused(tmp_path, capsys, one_frame
 
 @pytest.mark.parametrize(("change", "says"), [
     (["--input", "lidar64"], "--input lidar64, but {run} was started with --input lidar16"),
-    (["--preset", "edge"], "--preset edge, but {run} was started with --preset tiny"),
+    (["--preset", "edge"], "--preset edge (preset 'edge'), but {run} was started with --preset tiny (preset 'tiny'"),
     (["--train-only", "score"], "--train-only score, but {run} was started with no --train-only"),
     (["task=depth"], "task depth: {run} was started as a detector run"),
     # The optimizer's saved state would override a new --lr while the checkpoints recorded it.
