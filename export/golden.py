@@ -36,11 +36,12 @@ from export.port_spec import graph_report, port_spec_of
 from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to
 from pipeline.bev import BevVoxelizer, PseudoBins, pseudo_bins
 from pipeline.cli import check_not_input, check_output, interrupted, probability
-from pipeline.detector import Detector, session_options, trained_lines
+from pipeline.detector import Detections, Detector, session_options, trained_lines
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
 from pipeline.graph_inputs import feeds_for
 from pipeline.iou import rotated_nms
+from pipeline.kitti import format_label
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, load_manifest, verify_sha256
 from pipeline.postprocess import estimate_heights
 from pipeline.preprocess import depth_inputs, network_view
@@ -50,6 +51,7 @@ from pipeline.targets import decode_maps
 
 GOLDEN_FORMAT = "lowres3d-golden/1"
 INDEX_NAME, SPEC_NAME = "golden.json", "port.json"
+RESULT_LINES_NAME = "result_lines.txt"  # the frame's KITTI result lines, as pipeline.detect writes them
 # The export's parity tolerances (export/parity.py): what ONNX Runtime on the CPU met against PyTorch.
 DEPTH_RTOL = 1e-3
 SCORE_ATOL = 1e-4
@@ -137,11 +139,15 @@ def write_golden(models: Path, out: Path, data: Path = DEFAULT_KITTI_DIR, frame_
     points = emulate_beams(frame.points, beams) if beams else frame.points
 
     out.mkdir(parents=True, exist_ok=True)
-    for stale in (INDEX_NAME, SPEC_NAME):  # an index left from an earlier run must not describe these arrays
+    # An index left from an earlier run must not describe these arrays, nor its lines pass for this frame's.
+    for stale in (INDEX_NAME, SPEC_NAME, RESULT_LINES_NAME):
         (out / stale).unlink(missing_ok=True)
     writer = ArrayWriter(out)
     stages = _run_stages(writer, _sessions(models, manifest), preset, frame, points, detector.two_stage, threshold)
-    _check_against_detector(detector, writer, frame, beams, threshold)
+    result = _check_against_detector(detector, writer, frame, beams, threshold)
+    # The frame's KITTI result lines, as pipeline.detect writes them: a port's last stage, checked to the character.
+    lines = [format_label(obj) for obj in result.to_objects(frame.calib, frame.image_hw)]
+    (out / RESULT_LINES_NAME).write_text("".join(f"{line}\n" for line in lines), encoding="utf-8")
 
     spec = spec_document(models, manifest)
     index = {
@@ -159,8 +165,13 @@ def write_golden(models: Path, out: Path, data: Path = DEFAULT_KITTI_DIR, frame_
                           "except": "golden boxes scoring within 0.05 of the score threshold may be missing, "
                                     "and a port's boxes there may be extra"},
         },
+        "result_lines": {"file": RESULT_LINES_NAME, "lines": len(lines), "image_hw": list(frame.image_hw),
+                         "rule": "port.json kitti_results (docs/models.md, 'The result lines'), on the golden boxes "
+                                 "and scores with the full image's calibration",
+                         "compare": "exact, character for character"},
         "checked": "boxes and scores equal to pipeline.detector.Detector.detect on the same frame and scan; "
-                   "rgb, sparse_depth and bev equal to what it feeds the networks",
+                   "rgb, sparse_depth and bev equal to what it feeds the networks; result lines those "
+                   "pipeline.detect writes",
     }
     (out / SPEC_NAME).write_text(json.dumps(spec, indent=2) + "\n", encoding="utf-8")
     (out / INDEX_NAME).write_text(json.dumps(index, indent=2) + "\n", encoding="utf-8")  # last: the run is whole
@@ -258,8 +269,9 @@ def _decode_stage(writer: ArrayWriter, preset: Preset, score: np.ndarray, regres
 
 
 def _check_against_detector(detector: Detector, writer: ArrayWriter, frame: Frame, beams: int,
-                            threshold: float) -> None:
-    """GoldenMismatch unless the written arrays are what the Detector feeds its networks and gives as boxes."""
+                            threshold: float) -> Detections:
+    """GoldenMismatch unless the written arrays are what the Detector feeds its networks and gives as boxes; the
+    Detector's result."""
     def written(name: str) -> np.ndarray:
         return np.load(writer.out / writer.arrays[name]["file"])
 
@@ -275,6 +287,7 @@ def _check_against_detector(detector: Detector, writer: ArrayWriter, frame: Fram
             or not np.array_equal(scores, result.scores):
         raise GoldenMismatch(f"boxes: {len(boxes)} written, the Detector gives {len(result.boxes)} "
                              "(or they differ): the stages here no longer follow pipeline/detector.py")
+    return result
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:

@@ -768,6 +768,24 @@ def test_the_whole_port_chained_gives_the_golden_boxes(golden: Path) -> None:
         assert abs(z[best] - box[2]) < 0.2 and abs(h[best] - box[5]) < 0.2
 
 
+def test_the_golden_result_lines_are_the_specs_on_the_golden_boxes(golden: Path, tmp_path: Path) -> None:
+    """result_lines.txt (a port had only pipeline.detect's output to check its last stage against): the spec's
+    kitti_results on the golden boxes and scores gives it character for character, and it is detect's file."""
+    from pipeline.detect import main as detect_main
+
+    index, spec, a = _load(golden)
+    calib, lines = index["calibration"], index["result_lines"]
+    ported = port_kitti_lines(spec, a["boxes"], a["scores"], np.array(calib["P2"]), np.array(calib["R0_rect"]),
+                              np.array(calib["Tr_velo_to_cam"]), tuple(lines["image_hw"]))
+    written = (golden / lines["file"]).read_text(encoding="utf-8")
+    assert lines["lines"] == len(ported) > 0 and written == "".join(f"{line}\n" for line in ported)
+    out = tmp_path / "detect"
+    assert detect_main(["--models", str(WEIGHTS / "edge"), "--data", str(KITTI), "--frame", index["frame"]["frame"],
+                        "--emulate-beams", str(index["frame"]["emulate_beams"]), "--no-pictures", "--no-progress",
+                        "--out", str(out)]) == 0
+    assert (out / "data" / f"{index['frame']['frame']}.txt").read_text(encoding="utf-8") == written
+
+
 def test_a_lidar_only_golden_set_has_no_camera_stages_and_the_port_reproduces_it(tmp_path: Path) -> None:
     """The 16-line PIXOR's golden set: the scan, the shared-channel BEV and the decode, which the port matches."""
     from export.golden import write_golden
