@@ -435,7 +435,7 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
                 title = picture_title(frame.frame_id, detector.model_dir, emulate_beams)
                 # The sensor faults and mismatches named on stderr, by code (the thinning asked for is in the title).
                 faults = [c for c in detections.warning_codes if c != WarningCode.BEAMS_EMULATED]
-                scan, pseudo = split_scan_and_pseudo(detections.points, frame.points, emulate_beams)
+                scan, pseudo = split_scan_and_pseudo(detections.points, detections.pseudo_count)
                 bev = render_bev(scan, detector.preset.bev, detections.boxes, detections.scores, gt, title=title,
                                  legend=True, pseudo=pseudo, view=(frame.calib, frame.image_hw), warnings=faults)
                 seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)  # the result file's boxes

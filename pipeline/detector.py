@@ -194,6 +194,7 @@ class Detections:
     warnings: list[str] = field(default_factory=list)
     warning_codes: list[str] = field(default_factory=list)
     points: np.ndarray | None = field(default=None, repr=False)  # the points PIXOR saw (for pictures)
+    pseudo_count: int = 0  # how many of ``points`` are the camera's pseudo points, which come first
 
     def add_warning(self, code: WarningCode, message: str) -> None:
         """Append a warning and its code (the two lists stay parallel)."""
@@ -879,11 +880,13 @@ class Detector:
                                         score_threshold, with_pseudo=pseudo is not None, mark=voxelizer.height_mark)
         timings["decode"] = (time.perf_counter() - tic) * 1e3
         timings["total"] = (time.perf_counter() - start) * 1e3
-        cloud = None
+        cloud, made = None, 0
         if keep_points:
-            cloud = points if pseudo is None else merge_points(depth_to_points(dense, view_calib, *limits), points)
+            camera_points = np.empty((0, 4), np.float32) if pseudo is None else depth_to_points(dense, view_calib, *limits)
+            cloud, made = merge_points(camera_points, points), camera_points.shape[0]
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped,
-                          warnings=[w.message for w in warnings], warning_codes=[w.code for w in warnings], points=cloud)
+                          warnings=[w.message for w in warnings], warning_codes=[w.code for w in warnings], points=cloud,
+                          pseudo_count=made)
 
     def _with_mirror(self, voxelizer: BevVoxelizer, score: np.ndarray, regression: np.ndarray,
                      timings: dict[str, float], cancel: Cancellation | None = None) -> tuple[np.ndarray, np.ndarray]:

@@ -11,7 +11,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.beams import emulate_beams
 from pipeline.boxes import BOX_EDGES, bev_corners, box_corners_3d, in_camera_view, segments_in_front
 from pipeline.calib import Calibration
 from pipeline.preprocess import scale_calibration
@@ -287,18 +286,13 @@ def _draw_bev_boxes(canvas: np.ndarray, drawn: np.ndarray | None, scores: np.nda
         cv2.putText(canvas, text, at, FONT, 0.45, colour, 1, cv2.LINE_AA)
 
 
-def split_scan_and_pseudo(seen: np.ndarray, scan: np.ndarray,
-                          lines: int | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """The points PIXOR saw (``seen``: the camera's pseudo points, then the scan's, as Detector.detect keeps them)
-    split into the scan's own returns and the pseudo points (None: a LiDAR-only model's, or a split that does not
-    add up), for :func:`render_bev`'s ``points`` and ``pseudo``. ``scan``: the frame's scan, thinned again to
-    ``lines`` as the Detector thinned it (a few ms, deterministic)."""
-    if lines:
-        scan = emulate_beams(scan, lines)
-    count = scan.shape[0]
-    if count >= seen.shape[0] or not np.array_equal(seen[-count:, :3], scan[:, :3]):
+def split_scan_and_pseudo(seen: np.ndarray, pseudo_count: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points PIXOR saw (``seen``: the camera's ``pseudo_count`` pseudo points first, then the scan's, as
+    :attr:`pipeline.detector.Detections.points` keeps them) as the scan's own returns and the pseudo points (None:
+    none, a LiDAR-only model's), for :func:`render_bev`'s ``points`` and ``pseudo``."""
+    if pseudo_count <= 0:
         return seen, None
-    return seen[-count:], seen[:-count]
+    return seen[pseudo_count:], seen[:pseudo_count]
 
 
 def camera_view_edges(calib: Calibration, image_hw: tuple[int, int], far_m: float = 200.0) -> np.ndarray:

@@ -197,7 +197,7 @@ def _detect_job(
             if picture is Picture.bev:
                 assert detections.points is not None  # keep_points=True: the points PIXOR saw
                 # As pipeline.detect draws it: the scan over the camera's pseudo points, the camera's view.
-                scan, pseudo = split_scan_and_pseudo(detections.points, frame.points, options.emulate_beams)
+                scan, pseudo = split_scan_and_pseudo(detections.points, detections.pseudo_count)
                 view = (frame.calib, frame.image_hw) if frame.calib is not None and frame.image_hw else None
                 bgr = render_bev(scan, detector.preset.bev, detections.boxes, detections.scores,
                                  title=title, legend=True,  # what the colours are and which way is ahead
