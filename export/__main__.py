@@ -177,13 +177,14 @@ def export(config: ExportConfig, args: argparse.Namespace) -> int:
         from export.precision import convert_precision
 
         # Checked before the fp32 export, which takes minutes, rather than by the conversion after it.
-        check_destination(config.out, export_preset(config).name, args.precision)
+        preset = export_preset(config)
+        check_destination(config.out, preset.name, args.precision)
         calibration_frame_ids(args.calibration_data, 1)  # a folder without frames: refused now
         with tempfile.TemporaryDirectory(prefix="lowres3d-fp32-") as fp32_dir:
-            result = run(replace(config, out=Path(fp32_dir)))
+            result = run(replace(config, out=Path(fp32_dir)), preset)
             # The FP32 directory is temporary: record what made it, not a folder that is gone after this.
-            preset = f" --preset {config.preset}" if config.preset is not None else ""
-            made_by = (f"not kept: python -m export{preset} --networks {' '.join(config.networks)}"
+            preset_flag = f" --preset {config.preset}" if config.preset is not None else ""
+            made_by = (f"not kept: python -m export{preset_flag} --networks {' '.join(config.networks)}"
                        + (f" --checkpoints {config.checkpoints}" if config.checkpoints else " (initialised)"))
             manifest = convert_precision(Path(fp32_dir), config.out, args.precision, args.calibration_data,
                                          args.calibration_frames, progress=show_progress(False), reduce_range=args.reduce_range,

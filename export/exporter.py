@@ -201,13 +201,13 @@ def _step(bar: tqdm, label: str) -> Iterator[None]:
     bar.update(1)
 
 
-def run(config: ExportConfig) -> ExportResult:
+def run(config: ExportConfig, preset: Preset | None = None) -> ExportResult:
     """Build (and load) the networks of ``config.networks``, export each to ONNX, check them, write the manifest.
 
     Raises ParityError when ONNX Runtime disagrees with PyTorch past tolerance, and
     ValueError/FileNotFoundError for bad presets or checkpoints; ``--out`` is then left as it was.
     """
-    preset = export_preset(config)
+    preset = preset or export_preset(config)  # resolved already by a caller that checked its destination
     out = Path(config.out)
     unknown = set(config.networks) - set(FILES)
     if unknown or "pixor" not in config.networks:

@@ -224,9 +224,10 @@ def save_atomic_png(figure: Figure, path: Path) -> None:
         raise
 
 
-def write_curves(run_dir: Path, info: RunInfo, out: Path | None = None) -> Path:
-    """Draw ``run_dir``'s log into ``out`` (default ``RUN_DIR/curves.png``); returns the file written."""
-    history = read_log(run_dir / LOG_FILE)
+def write_curves(run_dir: Path, info: RunInfo, out: Path | None = None, history: list[dict] | None = None) -> Path:
+    """Draw ``run_dir``'s log (``history`` when already read) into ``out`` (default ``RUN_DIR/curves.png``);
+    returns the file written."""
+    history = read_log(run_dir / LOG_FILE) if history is None else history
     out = out or run_dir / CURVES_FILE
     out.parent.mkdir(parents=True, exist_ok=True)
     save_atomic_png(draw(history, info, run_dir), out)
@@ -285,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
                 raise InputError(f"{args.run_dir}: no {LOG_FILE} (not a models.train run folder)")
             check_figure(args.out or args.run_dir / CURVES_FILE, "--out")
             history = read_log(args.run_dir / LOG_FILE)
-            written = write_curves(args.run_dir, recorded_info(args.run_dir, history), args.out)
+            written = write_curves(args.run_dir, recorded_info(args.run_dir, history), args.out, history)
         except (InputError, OSError, ValueError, KeyError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2

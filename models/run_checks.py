@@ -202,16 +202,24 @@ def check_same_preset(preset: Preset, started: dict, given: str, out: Path) -> N
     """An InputError naming the first field in which ``preset`` (--preset ``given`` now) differs from the preset
     ``started`` (its ``to_dict()``) that the run in ``out`` recorded: its remaining epochs would train another grid
     or network under the first epochs' log and checkpoints."""
-    now, then = (json.loads(json.dumps(d)) for d in (preset.to_dict(), started))  # tuples and lists alike
-    for section in now:
-        fields = now[section] if isinstance(now[section], dict) else {"": now[section]}
-        was = then.get(section, {}) if isinstance(now[section], dict) else {"": then.get(section)}
-        for key, value in fields.items():
-            if isinstance(was, dict) and key in was and was[key] != value:
-                name = f"{section}.{key}" if key else section
-                raise InputError(f"--preset {given}: {name} {value!r}, but {out} was started with {was[key]!r} "
-                                 f"(preset {then.get('name')!r}; resume with the preset it was started with, "
-                                 "unchanged; only --epochs may change)")
+    now, then = _preset_fields(preset.to_dict()), _preset_fields(started)
+    for name, value in now.items():
+        if name in then and then[name] != value:  # a field the run's record lacks (added since) is not compared
+            raise InputError(f"--preset {given}: {name} {value!r}, but {out} was started with {then[name]!r} "
+                             f"(preset {started.get('name')!r}; resume with the preset it was started with, "
+                             "unchanged; only --epochs may change)")
+
+
+def _preset_fields(config: dict) -> dict[str, object]:
+    """A preset's ``to_dict()`` as ``{"name": "edge", "bev.x_max": 70.4, …}``, the values as JSON holds them
+    (tuples and lists alike)."""
+    fields: dict[str, object] = {}
+    for key, value in json.loads(json.dumps(config)).items():
+        if isinstance(value, dict):
+            fields.update({f"{key}.{field}": inner for field, inner in value.items()})
+        else:
+            fields[key] = value
+    return fields
 
 
 def frame_fingerprints(train_ids: list[str], val_ids: list[str]) -> dict[str, str | int]:

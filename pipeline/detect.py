@@ -404,17 +404,18 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
             if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
                 detections.add_warning(WarningCode.NONFINITE_DROPPED, "points: dropped rows with NaN or infinite "
                                        f"values ({frame.dropped_nonfinite} rows)")
-            for warning, code in zip(detections.warnings, detections.warning_codes, strict=True):
-                kind = warning.rsplit(" (", 1)[0]  # each kind once (the trailing "(…)" holds the frame's figures)
-                if code != WarningCode.BEAMS_EMULATED and kind not in warned:  # asked for: not worth a line a frame
-                    warned.add(kind)
-                    tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
-            # Every frame's, on record as it is detected (a run stopped midway keeps the frames done): the
-            # terminal names only the first frame of each kind and, at the end, each code's count. Not the thinning
-            # the run's own --emulate-beams asked for: a line on every frame, saying what the command line says.
+            # The frame's warnings but the thinning the run's own --emulate-beams asked for (a line on every frame,
+            # saying what the command line says). Every frame's are on record as it is detected (a run stopped
+            # midway keeps the frames done); the terminal names only the first frame of each kind and, at the end,
+            # each code's count.
             mine = [(frame.frame_id, str(code), warning)
                     for warning, code in zip(detections.warnings, detections.warning_codes, strict=True)
                     if code != WarningCode.BEAMS_EMULATED]
+            for _, _, warning in mine:
+                kind = warning.rsplit(" (", 1)[0]  # each kind once (the trailing "(…)" holds the frame's figures)
+                if kind not in warned:
+                    warned.add(kind)
+                    tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
             _record_warnings(record, mine)
             said += mine
             for stage, ms in detections.timings_ms.items():
@@ -434,7 +435,7 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
                     gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
                 title = picture_title(frame.frame_id, detector.model_dir, emulate_beams)
                 # The sensor faults and mismatches named on stderr, by code (the thinning asked for is in the title).
-                faults = [c for c in detections.warning_codes if c != WarningCode.BEAMS_EMULATED]
+                faults = [code for _, code, _ in mine]
                 scan, pseudo = split_scan_and_pseudo(detections.points, detections.pseudo_count)
                 bev = render_bev(scan, detector.preset.bev, detections.boxes, detections.scores, gt, title=title,
                                  legend=True, pseudo=pseudo, view=(frame.calib, frame.image_hw), warnings=faults)

@@ -881,8 +881,10 @@ class Detector:
         timings["decode"] = (time.perf_counter() - tic) * 1e3
         timings["total"] = (time.perf_counter() - start) * 1e3
         cloud, made = None, 0
-        if keep_points:
-            camera_points = np.empty((0, 4), np.float32) if pseudo is None else depth_to_points(dense, view_calib, *limits)
+        if keep_points and pseudo is None:
+            cloud = points
+        elif keep_points:
+            camera_points = depth_to_points(dense, view_calib, *limits)
             cloud, made = merge_points(camera_points, points), camera_points.shape[0]
         return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped,
                           warnings=[w.message for w in warnings], warning_codes=[w.code for w in warnings], points=cloud,

@@ -466,7 +466,8 @@ def check_preset(preset: Preset) -> None:
     problems += [f"decode.{name} has {len(value)} values: one per regression channel, 6 (dx, dy, cos, sin, log l, "
                  "log w)" for name, value in (("reg_mean", decode.reg_mean), ("reg_std", decode.reg_std))
                  if len(value) != 6]
-    problems += [f"decode.reg_std {list(decode.reg_std)} must be positive" for _ in [0] if min(decode.reg_std) <= 0]
+    if decode.reg_std and min(decode.reg_std) <= 0:
+        problems.append(f"decode.reg_std {list(decode.reg_std)} must be positive")
     problems += [f"{section}.{name} {value!r} must be at least {least}" for section, name, value, least in (
         ("decode", "max_candidates", decode.max_candidates, 1), ("decode", "max_detections", decode.max_detections, 1),
         ("decode", "pseudo_stride", decode.pseudo_stride, 1), ("pixor", "stem_channels", preset.pixor.stem_channels, 1),
