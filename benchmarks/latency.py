@@ -997,7 +997,8 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     if precision and actual != precision:
         raise InputError(f"--precision {precision}, but {models} holds {actual} models")
     preset_name = detector.preset.name
-    if preset and preset != preset_name:
+    # A preset file is compared by the name inside it, as the export just wrote it into the manifest.
+    if preset and get_preset(preset).name != preset_name:
         raise InputError(f"--preset {preset}: {models} holds {preset_name} models (leave --preset out with --models)")
     if ops and any(p[0] != "CPUExecutionProvider" for p in detector.providers_in_use.values()):
         # Refused before minutes of timing: on CUDA the profiler's kernel times are the launches', not the GPU's

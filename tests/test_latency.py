@@ -271,6 +271,20 @@ def test_torch_twin_of_a_model_directory_is_built_for_its_own_preset(tmp_path, t
     assert "--preset paper" in err and "holds tiny models" in err
 
 
+def test_a_preset_file_is_exported_and_timed(tmp_path):
+    """--preset FILE.json exports the file's preset and times it: the directory then holds the name inside
+    the file, which is what --preset is compared with (the path itself once refused every preset file)."""
+    preset_file = tmp_path / "narrow.json"
+    preset_file.write_text(json.dumps({"base": "tiny", "name": "tiny-narrow", "decode": {"score_threshold": 0.4}}))
+    result = subprocess.run(
+        [sys.executable, str(LATENCY), *QUICK_PEAK, "--preset", str(preset_file), "--frames", "1", "--warmup", "0",
+         "--json", str(tmp_path / "t.json")],
+        capture_output=True, text=True, timeout=600, check=False,
+    )
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert json.loads((tmp_path / "t.json").read_text())["preset"] == "tiny-narrow"
+
+
 def test_what_latency_could_not_use_or_write_is_refused_before_timing(tmp_path, tiny_models, capsys):
     """A misspelt preset, a folder without scans, and a --json or --plot that cannot be written: one line
     naming the flag, exit 2, before minutes of timing whose report would be lost."""
