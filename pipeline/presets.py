@@ -345,10 +345,22 @@ def _refuse_constant(name: str) -> None:
     raise ValueError(f"{name} is not a number a preset holds")
 
 
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """A JSON object's members, refusing a key given twice: json keeps the last silently, and which of two
+    grids a preset meant is not for the reader to guess."""
+    seen: set[str] = set()
+    for key, _ in pairs:
+        if key in seen:
+            raise ValueError(f"key {key!r} is given twice in one object")
+        seen.add(key)
+    return dict(pairs)
+
+
 def _read_object(where: str, path: Path) -> dict:
     """The JSON object in ``path``; ValueError naming the file (and the line of a syntax error) otherwise."""
     try:
-        config = json.loads(path.read_text(encoding="utf-8"), parse_constant=_refuse_constant)
+        config = json.loads(path.read_text(encoding="utf-8"), parse_constant=_refuse_constant,
+                            object_pairs_hook=_unique_keys)
     except OSError as exc:
         raise ValueError(f"{where}: cannot be read ({exc.strerror or type(exc).__name__})") from None
     except json.JSONDecodeError as exc:
@@ -357,7 +369,7 @@ def _read_object(where: str, path: Path) -> dict:
         raise ValueError(f"{where}: not UTF-8 text") from None
     except RecursionError:  # Python's parser recurses once per bracket
         raise ValueError(f"{where}: lists and objects nested too deep to be a preset") from None
-    except ValueError as exc:  # _refuse_constant's
+    except ValueError as exc:  # _refuse_constant's and _unique_keys'
         raise ValueError(f"{where}: {exc}") from None
     held = None if isinstance(config, dict) else type(config).__name__
     if held:

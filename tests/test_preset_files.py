@@ -68,6 +68,8 @@ def test_a_whole_preset_file_is_the_preset_it_was_written_from(tmp_path: Path) -
     ('{"base": "edge", "name": "x", "bev": {"x_max": Infinity}}', r"Infinity is not a number a preset holds"),
     ('{"base": "edge", "name": "x", "decode": {"nms_iou": NaN}}', r"NaN is not a number a preset holds"),
     ("[" * 100_000 + "]" * 100_000, r"nested too deep to be a preset"),
+    # A key given twice: json kept the last, so the first x_max was dropped without a word.
+    ('{"base": "edge", "name": "x", "bev": {"x_max": 80.0, "x_max": 70.4}}', r"key 'x_max' is given twice"),
     # Values the code would run with, wrongly, without a word (a threshold of 5, reg_mean broadcast from 1 value).
     ({**HIGHWAY, "decode": {"score_threshold": 5.0}}, r"decode\.score_threshold 5\.0 must lie in \[0, 1\]"),
     ({**HIGHWAY, "decode": {"reg_mean": [1.0]}}, r"decode\.reg_mean has 1 values: one per regression channel, 6"),
