@@ -28,9 +28,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from models.init import init_conv_and_bn, projection_shortcut
+from pipeline.presets import PIXOR_STAGE_STRIDES as STAGE_STRIDES  # cumulative stride of block2 … block5
 from pipeline.presets import PixorConfig
-
-STAGE_STRIDES = (2, 4, 8, 16)  # cumulative stride of block2 … block5
 
 
 def conv3x3_bn_relu(in_channels: int, out_channels: int) -> nn.Sequential:

@@ -70,6 +70,9 @@ class BevGrid:
 
 # The depth net's full-resolution head: its correction added to the upsampled depth, or convex upsampling weights.
 REFINE_MODES = ("add", "convex")
+# PIXOR's four bottleneck stages (block2 … block5) and the cumulative stride of each: the FPN reads from the
+# output level up to /16, so the output stride is one of the first three (models/pixor.py).
+PIXOR_STAGE_STRIDES = (2, 4, 8, 16)
 
 
 @dataclass(frozen=True)
@@ -466,7 +469,7 @@ def check_preset(preset: Preset) -> None:
             for axis in "xyz" if not getattr(grid, axis + "_max") > getattr(grid, axis + "_min")]
     if bad:  # the checks below divide by these
         raise ValueError(f"preset {preset.name!r}: {'; '.join(bad)}")
-    problems = _grid_problems(grid, stride)
+    problems = _grid_problems(grid, stride) + _pixor_problems(preset.pixor)
     wanted_hw = tuple(round(side * preset.depth.input_scale) for side in preset.crop_hw)
     if tuple(preset.depth.input_hw) != wanted_hw:
         problems.append(f"depth.input_hw {list(preset.depth.input_hw)} is not crop_hw {list(preset.crop_hw)} × "
@@ -497,6 +500,23 @@ def check_preset(preset: Preset) -> None:
                         f"pixel): prefill_kernel {odd}")
     if problems:
         raise ValueError(f"preset {preset.name!r}: {'; '.join(problems)}")
+
+
+def _pixor_problems(pixor: PixorConfig) -> list[str]:
+    """What :func:`check_preset` says of an output stride PIXOR has no stage for, or of FPN widths that are not one
+    per level (the model build would refuse both, but only where torch runs, after the file was accepted)."""
+    strides = PIXOR_STAGE_STRIDES[:-1]
+    if pixor.output_stride not in strides:
+        return [f"pixor.output_stride {pixor.output_stride} is none of PIXOR's stage strides "
+                + ", ".join(map(str, strides))]
+    levels = len(PIXOR_STAGE_STRIDES) - PIXOR_STAGE_STRIDES.index(pixor.output_stride)
+    widths = (pixor.fpn_channels,) if isinstance(pixor.fpn_channels, int) else tuple(pixor.fpn_channels)
+    shown = pixor.fpn_channels if isinstance(pixor.fpn_channels, int) else list(widths)
+    if not isinstance(pixor.fpn_channels, int) and len(widths) != levels:
+        return [f"pixor.fpn_channels {shown} gives {len(widths)} widths, but an output stride of "
+                f"{pixor.output_stride} has {levels} FPN levels (up to /{PIXOR_STAGE_STRIDES[-1]}): one width per "
+                + "level, or a single number"]
+    return [f"pixor.fpn_channels {shown} must be positive"] if min(widths) <= 0 else []
 
 
 def _grid_problems(grid: BevGrid, stride: int) -> list[str]:

@@ -76,6 +76,11 @@ def test_a_whole_preset_file_is_the_preset_it_was_written_from(tmp_path: Path) -
     ({**HIGHWAY, "decode": {"max_candidates": -1}}, r"decode\.max_candidates -1 must be at least 1"),
     ({**HIGHWAY, "crop_hw": [-352, 1216]}, r"crop_hw \[-352, 1216\] must be positive"),
     ({**HIGHWAY, "depth": {"refine_mode": "bogus"}}, r"depth\.refine_mode 'bogus' is none of add, convex"),
+    # PIXOR's own rules, refused here where the file is read, not by a model build after it was accepted.
+    ({**HIGHWAY, "pixor": {"output_stride": 16}}, r"pixor\.output_stride 16 is none of PIXOR's stage strides 2, 4, 8"),
+    ({**HIGHWAY, "pixor": {"fpn_channels": [48, 48]}},
+     r"pixor\.fpn_channels \[48, 48\] gives 2 widths, but an output stride of 4 has 3 FPN levels"),
+    ({**HIGHWAY, "pixor": {"fpn_channels": 0}}, r"pixor\.fpn_channels 0 must be positive"),
 ])
 def test_a_bad_preset_file_is_refused_naming_the_key(tmp_path: Path, content: object, says: str) -> None:
     path = _file(tmp_path, content)
