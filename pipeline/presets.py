@@ -513,7 +513,7 @@ def _pixor_problems(pixor: PixorConfig) -> list[str]:
     widths = (pixor.fpn_channels,) if isinstance(pixor.fpn_channels, int) else tuple(pixor.fpn_channels)
     shown = pixor.fpn_channels if isinstance(pixor.fpn_channels, int) else list(widths)
     if not isinstance(pixor.fpn_channels, int) and len(widths) != levels:
-        return [f"pixor.fpn_channels {shown} gives {len(widths)} widths, but an output stride of "
+        return [f"pixor.fpn_channels {shown} gives {len(widths)} width{'s' * (len(widths) != 1)}, but an output stride of "
                 f"{pixor.output_stride} has {levels} FPN levels (up to /{PIXOR_STAGE_STRIDES[-1]}): one width per "
                 + "level, or a single number"]
     return [f"pixor.fpn_channels {shown} must be positive"] if min(widths) <= 0 else []
