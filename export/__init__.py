@@ -1,4 +1,4 @@
-"""torch → ONNX export of the two networks, the parity check and the model-directory manifest.
+"""torch → ONNX export of the networks (the depth net, PIXOR or both), the parity check and the model-directory manifest.
 
 ``from export import run`` gives the command's entry point; it imports torch
 lazily so that torch-free modules of this package (``export.flops``,

@@ -1,4 +1,5 @@
-"""Export a preset's two networks into a model directory: ONNX files, parity check, manifest."""
+"""Export one or both of a preset's networks (``--networks``) into a model directory: ONNX files, parity check,
+manifest."""
 
 from __future__ import annotations
 
@@ -204,8 +205,10 @@ def _step(bar: tqdm, label: str) -> Iterator[None]:
 def run(config: ExportConfig, preset: Preset | None = None) -> ExportResult:
     """Build (and load) the networks of ``config.networks``, export each to ONNX, check them, write the manifest.
 
-    Raises ParityError when ONNX Runtime disagrees with PyTorch past tolerance, and
-    ValueError/FileNotFoundError for bad presets or checkpoints; ``--out`` is then left as it was.
+    Raises ParityError when ONNX Runtime disagrees with PyTorch past tolerance, ValueError/FileNotFoundError for
+    bad presets or checkpoints, and ModelFileError for an ``--out`` that holds something other than an FP32 model
+    directory of this preset, or trained networks this export would replace by initialised ones or delete;
+    ``--out`` is then left as it was.
     """
     preset = preset or export_preset(config)  # resolved already by a caller that checked its destination
     out = Path(config.out)

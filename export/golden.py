@@ -206,8 +206,9 @@ def _run_stages(writer: ArrayWriter, sessions: dict[str, ort.InferenceSession], 
                                  "height_occupancy": {"voxels_differing_max_share": 1e-3}},
                    "note": "pseudo points within float32 rounding of a bin edge may land in the next voxel"})
     score, regression = sessions["pixor"].run(["score", "regression"], feeds_for(sessions["pixor"], {"bev": bev}))
-    writer.save("score", score, "float32 (1, 1, ny/4, nx/4): pixor.onnx output score")
-    writer.save("regression", regression, "float32 (1, 6, ny/4, nx/4): pixor.onnx output regression (normalised)")
+    maps = f"ny/{preset.pixor.output_stride}, nx/{preset.pixor.output_stride}"  # the grid at PIXOR's output stride
+    writer.save("score", score, f"float32 (1, 1, {maps}): pixor.onnx output score")
+    writer.save("regression", regression, f"float32 (1, 6, {maps}): pixor.onnx output regression (normalised)")
     stages.append({"stage": "pixor", "inputs": ["bev"], "outputs": ["score", "regression"],
                    "tolerance": {"score": {"atol": SCORE_ATOL},
                                  "regression": {"atol": REGRESSION_ATOL * max(1.0, float(np.abs(regression).max())),

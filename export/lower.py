@@ -16,7 +16,6 @@ with nothing left to rewrite is not touched).
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +26,7 @@ import onnxruntime as ort
 
 from export.directory import check_destination, staged
 from export.inputs import DEFAULT_FRAME, DEFAULT_KITTI_DIR, check_frame, kitti_inputs, random_inputs
-from export.manifest import graph_inputs
+from export.manifest import graph_inputs, write_manifest
 from export.rewrite import lower_for_cpu
 from pipeline.cli import HelpFormatter, check_not_inside, examples, interrupted
 from pipeline.graph_inputs import feeds_for
@@ -109,7 +108,7 @@ def run(models: Path, out: Path | None = None, data: Path = DEFAULT_KITTI_DIR,
                 totals[rewrite] = totals.get(rewrite, 0) + count
         manifest["export"]["relowered"] = {"by": "python -m export.lower", "max_abs_difference": differences,
                                            "checked_on": [sample.source for sample in samples]}
-        (staging / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
+        write_manifest(staging, manifest)
         verify_sha256(staging, manifest)
     return LowerResult(out, rewrites, differences)
 

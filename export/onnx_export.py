@@ -1,4 +1,4 @@
-"""torch → ONNX for the two networks: static shapes, named inputs/outputs, checked graphs.
+"""torch → ONNX for the depth net and PIXOR: static shapes, named inputs/outputs, checked graphs.
 
 Uses the dynamo exporter (``torch.onnx.export(..., dynamo=True)``, opset 18) with
 its onnxscript optimiser. The TorchScript exporter (``dynamo=False``) still runs

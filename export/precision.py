@@ -45,7 +45,7 @@ from export.fp16 import (
     name_nodes,
     sort_topologically,
 )
-from export.manifest import graph_inputs, package_versions
+from export.manifest import graph_inputs, package_versions, write_manifest
 from export.rewrite import (
     boundary_nodes,
     inputs_from_channel_pieces,
@@ -55,14 +55,13 @@ from export.rewrite import (
     quantize_before_pad,
     rewrite_transposed_convs,
 )
-from pipeline.beams import lines_to_thin_to
+from pipeline.beams import BEAM_COUNTS, lines_to_thin_to
 from pipeline.cpu import describe as describe_cpu
 from pipeline.detector import Detector
 from pipeline.errors import InputError
 from pipeline.frame import frame_ids, load_frame
 from pipeline.graph_inputs import feeds_for
 from pipeline.model_files import (
-    MANIFEST_NAME,
     PRECISIONS,
     ModelFileError,
     load_manifest,
@@ -95,8 +94,9 @@ def calibration_feeds(model_dir: Path, data: Path, frames: int, progress: bool =
                       calibrating: bool = True) -> dict[str, list[dict]]:
     """Inputs of each network on the first ``frames`` frames of ``data``, exactly as the FP32 Detector feeds them.
 
-    beams: thin each scan to this many lines first; None: to 16 for a model not trained on 64-line scans, as
-    the pipeline's users do with 64-line data; 0: the scans as stored (a 16-line sensor's own recordings).
+    beams: thin each scan to this many lines first; None: to the model's own line count (16 when its manifest
+    does not say; as stored for a model trained on 64-line scans), as the pipeline's tools do with 64-line data;
+    0: the scans as stored (a 16-line sensor's own recordings).
     calibrating: INT8 (warns when the frames are few); FP16 only measures its deviation on them."""
     detector = Detector(model_dir)
     if beams is None:  # a model trained with --emulate-beams 8 calibrates on 8-line scans
@@ -218,15 +218,20 @@ def to_int8(source: Path, target: Path, feeds: list[dict], inputs_fp32: bool = T
             "calibration": "min-max, moving average (0.01)" if moving_average else "min-max"}
 
 
-def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]]) -> dict:
+def deviation(fp32_dir: Path, reduced_dir: Path, feeds: dict[str, list[dict]],
+              files: dict[str, str] | None = None) -> dict:
     """Max deviation of each reduced network from FP32 on the first frames' inputs (for INT8: frames it was
-    calibrated on, so a check that the conversion worked, not a measure of accuracy: benchmarks/accuracy.py)."""
+    calibrated on, so a check that the conversion worked, not a measure of accuracy: benchmarks/accuracy.py).
+
+    files: each network's file name in both directories, as the manifest's ``networks.NAME.file`` names it
+    (default: the exporter's, ``NAME.onnx``)."""
     import onnxruntime as ort
 
     report = {}
     for name, samples in feeds.items():
-        ref = ort.InferenceSession(str(fp32_dir / f"{name}.onnx"), providers=["CPUExecutionProvider"])
-        low = ort.InferenceSession(str(reduced_dir / f"{name}.onnx"), providers=["CPUExecutionProvider"])
+        file = (files or {}).get(name, f"{name}.onnx")
+        ref = ort.InferenceSession(str(fp32_dir / file), providers=["CPUExecutionProvider"])
+        low = ort.InferenceSession(str(reduced_dir / file), providers=["CPUExecutionProvider"])
         errors = []
         for feed in samples[:DEVIATION_FRAMES]:
             feed = {k: v.astype(np.float32) for k, v in feed.items()}
@@ -252,6 +257,8 @@ def convert_precision(fp32_dir: Path, out: Path, precision: str, calibration_dat
         raise ValueError(f"--precision: {precision!r} is not one of {', '.join(PRECISIONS)}")
     if reduce_range and precision != "int8":
         raise ValueError(f"--reduce-range: applies to --precision int8 only, not {precision}")
+    if beams not in (None, 0, *BEAM_COUNTS):  # argparse's choices, for library callers: before any model loads
+        raise InputError(f"--emulate-beams: {beams} is not one of 0, {', '.join(map(str, BEAM_COUNTS))}")
     fp32_dir, out = Path(fp32_dir), Path(out)
     manifest = load_manifest(fp32_dir)  # ModelFileError naming the file when it is missing or broken
     verify_sha256(fp32_dir, manifest)
@@ -325,13 +332,14 @@ def _convert(fp32_dir: Path, out: Path, manifest: dict, source_files: dict, feed
             "graph": graph_info} if precision == "int8"
            # fp32_nodes: what FP16 cannot hold on the deviation frames stays FP32, each node with why.
            else {"io": "float32 (keep_io_types)", "graph": graph_info}),
-        "deviation_from_fp32": deviation(fp32_dir, out, feeds),
+        "deviation_from_fp32": deviation(fp32_dir, out, feeds,
+                                         {name: manifest["networks"][name]["file"] for name in feeds}),
         "deviation_data": str(calibration_data),
         "deviation_frames": min(DEVIATION_FRAMES, len(next(iter(feeds.values())))),
         # Full-range INT8 computes differently on CPUs whose pair sums saturate: where was it measured?
         "deviation_measured_on": describe_cpu(),
     }
-    (out / MANIFEST_NAME).write_text(json.dumps(manifest, indent=2) + "\n")
+    write_manifest(out, manifest)
     verify_sha256(out, manifest)
 
 
@@ -346,7 +354,6 @@ def main(argv: list[str] | None = None) -> int:
         check_not_inside,
         examples,
         interrupted,
-        non_negative_int,
         positive_int,
         show_progress,
     )
@@ -369,10 +376,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="int8: the first N frames calibrate it (default 300; fewer than 100 get a warning); fp16 "
                         f"reads only the first {DEVIATION_FRAMES}, for its deviation from fp32")
     parser.add_argument("--reduce-range", action="store_true", help=REDUCE_RANGE_HELP)
-    parser.add_argument("--emulate-beams", "--beams", dest="beams", type=non_negative_int, metavar="N",
-                        help="thin the calibration scans to N lines first (default: 16 for a model not trained "
-                        "on 64-line scans, as the pipeline's users do with 64-line data; 0: the scans as stored, "
-                        "e.g. a 16-line sensor's own recordings)")
+    # argparse's choices: a count a 64-line scan cannot thin to is refused here, naming the flag, not at frame one.
+    parser.add_argument("--emulate-beams", "--beams", dest="beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
+                        help=f"thin the calibration scans to N lines first ({', '.join(map(str, BEAM_COUNTS))}; "
+                        "default: the model's own line count, 16 when its manifest does not say, the scans as "
+                        "stored for a model trained on 64-line scans; 0: the scans as stored, e.g. a 16-line "
+                        "sensor's own recordings)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     try:
