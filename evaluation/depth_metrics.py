@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from evaluation.kitti_eval import DIFFICULTIES, too_hard_for
-from pipeline.calib import Calibration, depth_crop
+from pipeline.calib import Calibration, CropWindow, depth_crop
 from pipeline.errors import InputError
 from pipeline.kitti import Object3D
 
@@ -170,22 +170,31 @@ class CarInView:
     footprint: tuple[float, float, float, float, float]  # BEV box: centre x, z, length, width, rotation_y
 
 
+def box_in_view(bbox: Sequence[float], crop: CropWindow, scale: float = 1.0) -> tuple[float, float, float, float]:
+    """A 2D box (left, top, right, bottom) of the camera image in the pixels of its depth crop ``crop`` resized
+    by ``scale`` (the network's view), pixel centres at integers: x' = s·(x − crop) + (s − 1)/2, as
+    :func:`pipeline.preprocess.scale_calibration` maps them. The one mapping the evaluation and the trainer's
+    car weights (models.data.car_pixels) share, so that both count the same pixels."""
+    offset = (scale - 1.0) / 2.0
+    left, top, right, bottom = (scale * (edge - shift) + offset for edge, shift in
+                                zip(bbox, (crop.left, crop.top, crop.left, crop.top), strict=True))
+    return left, top, right, bottom
+
+
 def moderate_cars_in_view(labels: Sequence[Object3D] | None, image_hw: tuple[int, int], crop_hw: tuple[int, int],
                           scale: float = 1.0) -> list[CarInView]:
     """The KITTI-moderate cars among a frame's labels (2D box over 25 px high, occlusion ≤ 1, truncation ≤ 0.3:
     those the evaluator counts at moderate), their 2D boxes in the pixels of the image's depth crop
     (``crop_hw``) resized by ``scale`` (the network's view)."""
     crop = depth_crop(image_hw, *crop_hw)
-    offset = (scale - 1.0) / 2.0  # pixel centres at integers (pipeline.preprocess.scale_calibration)
     moderate = DIFFICULTIES.index("moderate")
     cars = []
     for label in labels or []:
-        left, top, right, bottom = label.bbox
+        _, top, _, bottom = label.bbox
         # The evaluator's own rule, so that these are the cars its moderate AP counts: a car exactly 25 px high
         # is not one (the simulator's boxes are whole pixels: 32 such cars in data/sim/val besides its 1,520).
         if label.type.lower() == "car" and not too_hard_for(label.occluded, label.truncated, bottom - top)[moderate, 0]:
-            box = tuple(scale * (edge - shift) + offset for edge, shift in
-                        zip((left, top, right, bottom), (crop.left, crop.top, crop.left, crop.top), strict=True))
+            box = box_in_view(label.bbox, crop, scale)
             x, _, z = label.location
             length, width = label.dimensions[2], label.dimensions[1]
             cars.append(CarInView(box=box, z=z, footprint=(x, z, length, width, label.rotation_y)))

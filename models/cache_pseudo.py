@@ -25,6 +25,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from models.checkpoint import write_text_atomic
 from pipeline.beams import BEAM_COUNTS, check_thinnable, emulate_beams
 from pipeline.cli import (
     HelpFormatter,
@@ -43,7 +44,8 @@ from pipeline.frame import frame_ids, load_frame
 from pipeline.kitti import write_depth_png
 from pipeline.model_files import ModelFileError
 
-FRAME_FILES = (("velodyne", ".bin"), ("image_2", ".png"), ("calib", ".txt"))  # what a frame's map is made from
+# What a frame's map is made from: the files load_frame reads of every frame (models.run_checks checks them too).
+FRAME_FILES = (("velodyne", ".bin"), ("image_2", ".png"), ("calib", ".txt"))
 RECORD = "cache.json"
 
 
@@ -180,9 +182,7 @@ def _check_record(out: Path, wanted: dict) -> None:
 
 def _write_record(out: Path, record: dict) -> None:
     """Write the record whole, then rename it over the old one: a stopped run never leaves half a record."""
-    partial = out / f"{RECORD}.tmp"
-    partial.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
-    partial.replace(out / RECORD)
+    write_text_atomic(out / RECORD, json.dumps(record, indent=1) + "\n")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,7 +6,8 @@ networks train on exactly what the Detector feeds them at inference.
 Depth samples: the 16-line scan projected into the depth net's view, the
 image, and the target — ``depth_2/ID.png`` (dense ground truth of the
 synthetic scenes, of the image's own size) when the folder has ``depth_2/``, else
-the full 64-line scan projected into the view (real KITTI object frames have no
+the stored scan projected into the view, not thinned (a 64-line scan on real KITTI,
+a 16-line sensor's own under ``--emulate-beams 0``; real KITTI object frames have no
 dense ground truth). On a KITTI depth-completion drive
 (:class:`DepthCompletionDataset`) the 16 lines are thinned on its projected scan
 and the target is its semi-dense ``groundtruth``.
@@ -32,7 +33,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from evaluation.depth_metrics import car_surface
+from evaluation.depth_metrics import box_in_view, car_surface
 from pipeline.beams import emulate_beams
 from pipeline.bev import voxelize_bev
 from pipeline.boxes import labels_to_boxes
@@ -150,16 +151,16 @@ def depth_sample(item: tuple[np.ndarray, ...], augment: bool, key: tuple[int, in
 
 
 def car_pixels(frame: Frame, target: np.ndarray, preset: Preset) -> np.ndarray:
-    """(H, W) bool in the network's view: the labelled cars' own pixels, as the depth evaluation counts
-    them (:func:`evaluation.depth_metrics.car_surface`: inside the 2D box, on the car's surface)."""
+    """(H, W) bool in the network's view: the own pixels of every labelled car (of any difficulty), each found
+    as the depth evaluation finds a moderate car's (the 2D box moved into the view by
+    :func:`evaluation.depth_metrics.box_in_view`, and in it the pixels on the car's surface:
+    :func:`evaluation.depth_metrics.car_surface`)."""
     crop = depth_crop(frame.image_hw, *preset.crop_hw)
-    scale = preset.depth.input_scale
     mask = np.zeros(target.shape, bool)
     for label in frame.labels or []:  # a handful of cars per frame; the pixels are array slices
         if not is_car(label):
             continue
-        box = tuple((v - offset) * scale for v, offset in
-                    zip(label.bbox, (crop.left, crop.top, crop.left, crop.top), strict=True))
+        box = box_in_view(label.bbox, crop, preset.depth.input_scale)
         window, on_car = car_surface(target, box, label.location[2])
         mask[window] |= on_car
     return mask

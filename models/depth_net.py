@@ -427,7 +427,8 @@ def load_resnet18_encoder(model: DepthCompletionNet, path: str | Path) -> list[s
     """Load ``layer1``–``layer4`` from a torchvision-format ResNet-18 checkpoint file.
 
     Accepts a plain state dict or one nested under ``state_dict``/``model``, with or
-    without a ``module.`` prefix. Returns the loaded parameter names. Raises
+    without a ``module.`` prefix, with or without the batch norms' ``num_batches_tracked``
+    counters (not weights). Returns the loaded parameter names. Raises
     ValueError naming the first mismatched tensor when widths differ (for example a
     narrow preset), and when the file has no layer1–layer4 weights at all.
     """
@@ -461,7 +462,10 @@ def load_resnet18_encoder(model: DepthCompletionNet, path: str | Path) -> list[s
                 f"{tuple(ours[name].shape)} (encoder_widths={model.config.encoder_widths}; "
                 "ResNet-18 needs (64, 128, 256, 512) and a 64-channel stem)"
             )
-    missing = [k for k in ours if k.split(".", 1)[0] in {"layer1", "layer2", "layer3", "layer4"} and k not in wanted]
+    # Batch-norm counters (num_batches_tracked) are not weights and torchvision's published files may lack them:
+    # not required; those missing keep the depth net's own values (load_state_dict(strict=False) leaves them).
+    missing = [k for k in ours if k.split(".", 1)[0] in {"layer1", "layer2", "layer3", "layer4"} and k not in wanted
+               and not k.endswith(".num_batches_tracked")]
     if missing:
         raise ValueError(f"{path}: checkpoint lacks {len(missing)} encoder tensors, e.g. {missing[0]}")
     model.load_state_dict(wanted, strict=False)

@@ -1,4 +1,5 @@
-"""Training losses: PIXOR's focal + smooth-L1, and the masked MSE of the depth net."""
+"""Training losses: PIXOR's focal + smooth-L1, and the depth net's masked MSE (the paper's) and masked L1
+(the edge recipe's, ``--depth-loss l1``)."""
 
 from __future__ import annotations
 

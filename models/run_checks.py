@@ -25,7 +25,7 @@ except ImportError:  # Windows: no advisory locks; a run folder is then not guar
 import numpy as np
 import torch
 
-from models.cache_pseudo import check_sources, recorded_beams
+from models.cache_pseudo import FRAME_FILES, check_sources, recorded_beams
 from models.checkpoint import save_atomic
 from models.data import CAR_CLASS, is_car
 from pipeline.beams import check_thinnable, emulate_beams
@@ -51,7 +51,7 @@ STATE_KEYS = ("networks", "optimizer", "scheduler", "epoch", "best", "history", 
               "python_rng")
 # Settings a run's state has recorded only since they existed, with the value every run had before.
 RECORDED_SINCE = {"emulate_beams": 16}
-FRAME_FILES = ("velodyne/{}.bin", "image_2/{}.png", "calib/{}.txt")  # what load_frame reads of every frame
+FRAME_PATTERNS = tuple(f"{sub}/{{}}{ext}" for sub, ext in FRAME_FILES)  # what load_frame reads of every frame
 # … and what pipeline.depth_completion.read_frame reads of a drive's (its raw scans are optional)
 DRIVE_FILES = ("image_02/{}.png", "velodyne_raw/{}.png", "groundtruth/{}.png")
 
@@ -287,15 +287,19 @@ def _missing(folder: Path, pattern: str, ids: list[str]) -> tuple[str, Path, str
     return missing[0], folder / pattern.format(missing[0]), f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
 
 
-def _check_frame_files(folder: Path, fid: str) -> None:
-    """A frame's files as far as they can be checked without decoding them: the calibration's keys, a scan
-    of whole points, an image that starts and ends as a PNG or JPEG (InputError naming the file)."""
-    read_calib(folder / "calib" / f"{fid}.txt")
-    scan = folder / "velodyne" / f"{fid}.bin"
+def _check_scan_size(scan: Path) -> None:
+    """A scan file of whole points, none empty (InputError naming it): a cut-off file fails now, not an epoch in."""
     size = scan.stat().st_size
     if size == 0 or size % POINT_BYTES:
         raise InputError(f"{scan}: size {size} bytes is not a whole number of {POINT_BYTES}-byte points "
                          "(a KITTI scan is float32 rows x, y, z, reflectance)")
+
+
+def _check_frame_files(folder: Path, fid: str) -> None:
+    """A frame's files as far as they can be checked without decoding them: the calibration's keys, a scan
+    of whole points, an image that starts and ends as a PNG or JPEG (InputError naming the file)."""
+    read_calib(folder / "calib" / f"{fid}.txt")
+    _check_scan_size(folder / "velodyne" / f"{fid}.bin")
     check_image_file(folder / "image_2" / f"{fid}.png")
 
 
@@ -314,9 +318,8 @@ def _check_drive_files(folder: Path, flag: str, ids: list[str], beams: int | Non
         for path, size in zip(paths[1:], sizes[1:], strict=True):
             check_map_size(path, size, paths[0], sizes[0])
         scan = raw_scan_path(folder, fid)
-        if scan is not None and (scan.stat().st_size == 0 or scan.stat().st_size % POINT_BYTES):
-            raise InputError(f"{scan}: size {scan.stat().st_size} bytes is not a whole number of {POINT_BYTES}-byte "
-                             "points (a KITTI scan is float32 rows x, y, z, reflectance)")
+        if scan is not None:
+            _check_scan_size(scan)
 
 
 def _check_depth_maps(folder: Path, flag: str, ids: list[str]) -> None:
@@ -348,7 +351,8 @@ def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val
                  val_ids: list[str], beams: int | None = 16) -> None:
     """Every frame file the run reads is there, before it trains: each frame's scan, image and calibration;
     its labels (``label_2/``) for the detector and joint tasks, whose targets and AP come from them. Depth
-    runs need no labels (the target is ``depth_2/ID.png`` when present, else the frame's own 64-line scan)
+    runs need no labels (the target is ``depth_2/ID.png`` when present, else the frame's stored scan, unthinned:
+    64 lines on KITTI, a 16-line sensor's own under ``--emulate-beams 0``)
     unless ``--car-weight`` weighs the labelled cars' pixels. A folder with ``depth_2/`` must hold the map of
     every frame whose depth target the run reads (a depth run's, a joint run's training frames), of its image's
     size (:func:`_check_depth_maps`).
@@ -366,7 +370,7 @@ def check_frames(config: TrainConfig, train_dir: Path, train_ids: list[str], val
         if drive and labels and (config.task != "depth" or ids is train_ids):
             raise InputError(f"{flag} {folder}: a depth-completion drive, which has no labelled cars; {needs} needs "
                              "the ground-truth boxes of an object folder (label_2/)")
-        for pattern in DRIVE_FILES if drive else FRAME_FILES:
+        for pattern in DRIVE_FILES if drive else FRAME_PATTERNS:
             missing = _missing(folder, pattern, ids)
             if missing is None:
                 continue

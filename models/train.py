@@ -50,7 +50,8 @@ at least 200 steps (``COMPILE_MIN_STEPS``) and, on the CPU, a C++ compiler is on
 the PATH; ``on``, ``off``). Compiling takes about a minute per network and
 process; Inductor fuses batch norm's backward pass with its neighbours, which
 eager PyTorch runs as separate memory-bound passes (44 % of an eager edge PIXOR
-step here). Validation and the joint task stay eager. Compiled and eager steps
+step here). Validation and the joint task stay eager (a joint run refuses
+``--compile on``). Compiled and eager steps
 compute the same function; their floating-point results differ in the last
 bits (fused reductions), so losses agree to a few decimals, not to the digit.
 """
@@ -88,6 +89,7 @@ from models.data import (
 from models.depth_net import load_resnet18_encoder
 from models.devices import (
     COMPILE_MIN_STEPS,
+    COMPILED_TASKS,
     CPU,
     autocast,
     resolve_compile,
@@ -170,7 +172,7 @@ class TrainConfig:
     emulate_beams: int = 16
     pseudo_dir: Path | None = None  # detector --input pseudo: cached dense depth PNGs of the training frames
     val_pseudo_dir: Path | None = None  # … of the validation frames (default: pseudo_dir, one folder for both)
-    depth_checkpoint: Path | None = None  # joint (and pseudo caching): trained depth.pt; depth: weights to start from
+    depth_checkpoint: Path | None = None  # joint: trained depth.pt; depth: weights to start from
     pixor_checkpoint: Path | None = None  # joint: trained pixor.pt; detector: weights to start from
     train_only: tuple[str, ...] = ()  # submodules to train (say "refine"); the rest frozen, batch norms included
     freeze_bn: bool = False  # batch-norm statistics stay as loaded (their scale and shift still train)
@@ -178,7 +180,7 @@ class TrainConfig:
     batch_size: int | None = None
     lr: float | None = None
     lr_step: int = 5  # depth and joint: multiply the rate by lr_gamma every lr_step epochs
-    depth_loss: str = "mse"  # depth and joint: mse (the paper) | l1 (models/reproduce.py says why)
+    depth_loss: str = "mse"  # depth and joint: mse (the paper) | l1 (why: losses.masked_l1, docs/models.md "Losses")
     car_weight: float = 1.0  # depth: the loss weight of the labelled cars' own pixels (models.data.car_pixels)
     lr_gamma: float = 0.5
     resnet18: Path | None = None  # depth: ImageNet ResNet-18 weights (torchvision's format) for the encoder
@@ -269,6 +271,10 @@ def check_flags_apply(config: TrainConfig) -> None:
          "it starts a depth run's encoder; a joint run starts from the trained --depth-checkpoint"),
         ("--resnet18", config.resnet18 is not None and config.depth_checkpoint is not None,
          "--depth-checkpoint gives every weight of the depth net already"),
+        ("--compile", config.compile == "on" and config.task not in COMPILED_TASKS,
+         "its per-frame soft BEV has no fixed shapes to compile for; it runs eager"),
+        ("--workers", config.workers != TrainConfig.workers and config.task == "joint",
+         "it loads its frames one by one in the training loop"),
     ]
     for flag, given, why in unused:
         if given:
@@ -793,7 +799,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="depth: loss weight of the labelled cars' own pixels (default 1: every pixel alike)")
     parser.add_argument("--max-train-frames", type=positive_int, metavar="N", help="use only the first N training frames")
     parser.add_argument("--max-val-frames", type=positive_int, metavar="N", help="use only the first N validation frames")
-    parser.add_argument("--workers", type=non_negative_int, default=0, metavar="N", help="data-loading processes (default 0)")
+    parser.add_argument("--workers", type=non_negative_int, default=0, metavar="N", help="depth and detector: data-loading processes (default 0)")
     parser.add_argument("--threads", type=positive_int, metavar="N", help="torch intra-op threads")
     parser.add_argument("--seed", type=non_negative_int, default=0,
                         help="seed of the initial weights, the augmentation and the data order (default 0)")
