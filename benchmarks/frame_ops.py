@@ -82,7 +82,8 @@ def timed(fn, repeats: int) -> dict:
 
 def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper", data: Path = KITTI) -> dict:
     """Time every non-network step on frame ``frame_id`` of ``data`` (a KITTI-layout folder with labels, whose
-    cars give the targets); returns {step: {p50, p90, min}} plus the baseline ratio."""
+    cars give the targets) under ``preset_name`` (a name or a preset file); returns {step: {p50, p90, min}} plus
+    the baseline ratio, and the preset: its name, its configuration and the file it was read from (or None)."""
     preset = get_preset(preset_name)
     frame = load_frame(data, frame_id)
     lidar16 = emulate_beams(frame.points, 16)
@@ -126,7 +127,8 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper",
     results["baseline: reference voxelize (64-line scan)"] = baseline
     ours = results["voxelize (64-line scan)"]["p50"]
     return {
-        "frame": frame_id, "preset": preset_name, "points_64": int(frame.points.shape[0]),
+        "frame": frame_id, "preset": preset.name, "preset_config": preset.to_dict(),
+        "preset_file": preset_name if is_preset_file(preset_name) else None, "points_64": int(frame.points.shape[0]),
         "pseudo_points": int(pseudo.shape[0]), "repeats": repeats,
         "machine": {**describe_cpu(), "system": platform.platform()},
         "steps_ms": results, "voxelize_speedup_vs_reference": baseline["p50"] / ours,

@@ -97,7 +97,7 @@ from pipeline.detector import Cancellation, Detector, RunCancelled
 from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, load_manifest, load_manifest_with_digest
-from pipeline.presets import get_preset
+from pipeline.presets import Preset, get_preset, is_preset_file
 from pipeline.provenance import code_version
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -382,8 +382,10 @@ def torch_twin(detector: Detector, checkpoints: Path | None) -> tuple[dict, str]
             return onnx_twin(source, names), f"the ONNX files' own{origin}, read back (models/onnx_weights.py)"
     with tempfile.TemporaryDirectory(prefix="lowres3d-torch-") as scratch:
         try:
-            networks = export(ExportConfig(preset=detector.preset.name, out=Path(scratch), parity=False,
-                                           checkpoints=checkpoints, networks=names)).networks
+            # The directory's own preset (its manifest's preset_config), handed over whole: a preset file's name is
+            # no registered preset's, and no file of it need be at hand.
+            networks = export(ExportConfig(preset=None, out=Path(scratch), parity=False, checkpoints=checkpoints,
+                                           networks=names), detector.preset).networks
         except (ValueError, FileNotFoundError) as exc:  # the exporter's word on a checkpoint that does not fit
             message = str(exc)  # the exporter's own messages name the flag already
             raise InputError(message if message.startswith("--checkpoints") else f"--checkpoints: {message}") from exc
@@ -933,6 +935,29 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     return report
 
 
+def check_models_preset(given: str, held: Preset, models: Path) -> None:
+    """InputError unless --preset ``given`` (a name or a preset file) is the preset ``held`` of the model directory
+    ``models``: another preset's name, or else the first field whose value differs (a preset file may reuse the
+    name with another configuration)."""
+    wanted = get_preset(given)
+    if wanted.name != held.name:
+        raise InputError(f"--preset {given}: {models} holds {held.name} models (leave --preset out with --models)")
+    now, then = _preset_fields(wanted), _preset_fields(held)
+    for name, value in now.items():
+        if then.get(name) != value:
+            raise InputError(f"--preset {given}: {name} {value!r}, but {models} holds {then.get(name)!r} (preset "
+                             f"{held.name!r}, another configuration under the same name; leave --preset out with "
+                             "--models)")
+
+
+def _preset_fields(preset: Preset) -> dict[str, object]:
+    """``preset`` as ``{"name": "edge", "bev.x_max": 70.4, …}``, the values as JSON holds them (tuples as lists)."""
+    fields: dict[str, object] = {}
+    for key, value in json.loads(json.dumps(preset.to_dict())).items():
+        fields.update({f"{key}.{inner}": v for inner, v in value.items()} if isinstance(value, dict) else {key: value})
+    return fields
+
+
 def _step(progress: bool, what: str) -> None:
     if progress:
         print(f"timing {what} …", file=sys.stderr, flush=True)
@@ -997,9 +1022,8 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     if precision and actual != precision:
         raise InputError(f"--precision {precision}, but {models} holds {actual} models")
     preset_name = detector.preset.name
-    # A preset file is compared by the name inside it, as the export just wrote it into the manifest.
-    if preset and get_preset(preset).name != preset_name:
-        raise InputError(f"--preset {preset}: {models} holds {preset_name} models (leave --preset out with --models)")
+    if preset:
+        check_models_preset(preset, detector.preset, models)
     if ops and any(p[0] != "CPUExecutionProvider" for p in detector.providers_in_use.values()):
         # Refused before minutes of timing: on CUDA the profiler's kernel times are the launches', not the GPU's
         # work; TensorRT runs each graph as one engine, with no operators to time.
@@ -1018,6 +1042,9 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
     scan = f"{beams}-line scan" if beams else "scan as stored"
     info = detector.manifest.get("precision_info") or {}
     report: dict = {"preset": preset_name, "models": described,
+                    # The preset itself: a preset file's name alone would not find it again.
+                    "preset_config": detector.preset.to_dict(),
+                    "preset_file": preset if preset and is_preset_file(preset) else None,
                     # Which model and which code were timed: the service's X-Model-ID, and the git commit.
                     "model_id": load_manifest_with_digest(detector.model_dir)[1], "code": code_version(),
                     "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 import statistics
 import sys
 import tempfile
@@ -48,7 +49,7 @@ from pipeline.cpu import cpu_label, usable_cpus
 from pipeline.detector import session_options
 from pipeline.errors import TORCH_MISSING
 from pipeline.graph_inputs import feeds_for
-from pipeline.presets import PRESETS, get_preset
+from pipeline.presets import PRESETS, Preset, get_preset, is_preset_file
 
 try:
     import torch
@@ -64,7 +65,7 @@ except ModuleNotFoundError as exc:
 class LatencyRow:
     """Latency of one network of one preset (milliseconds)."""
 
-    preset: str
+    preset: str  # the preset's name
     network: str
     parameters: int
     gflops: float
@@ -74,6 +75,7 @@ class LatencyRow:
     ort_max_ms: float
     repeats: int
     threads: int  # intra-op threads of each runtime: read back from the ONNX Runtime session, PyTorch set to it
+    preset_file: str | None = None  # the preset file it was read from, as --preset gave it; None: a registered name
 
     @property
     def speedup(self) -> float:
@@ -101,13 +103,21 @@ def _time_alternating(
     return times
 
 
+def export_folder(index: int, preset: Preset) -> str:
+    """The folder (one path component) preset number ``index`` is exported into: --preset may be a file's path
+    (absolute, or with ``..``), and a preset's name any text, neither of which may lead out of the scratch folder."""
+    return f"{index}-{re.sub(r'[^A-Za-z0-9_.-]', '_', preset.name)}"
+
+
 def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, bar: tqdm,
-                   threads: int | None = None) -> list[LatencyRow]:
-    """Export ``preset_name`` into ``workdir`` and time both networks, ONNX Runtime with ``threads`` intra-op
-    threads (None: PyTorch's count, so both runtimes have the same cores)."""
+                   threads: int | None = None, index: int = 0) -> list[LatencyRow]:
+    """Export ``preset_name`` (a name or a preset file) into a folder of its own in ``workdir`` (:func:`export_folder`)
+    and time both networks, ONNX Runtime with ``threads`` intra-op threads (None: PyTorch's count, so both
+    runtimes have the same cores)."""
     threads = threads or torch.get_num_threads()
-    result = export_run(ExportConfig(preset=preset_name, out=workdir / preset_name, parity=False))
-    inputs = kitti_inputs(get_preset(preset_name))
+    preset = get_preset(preset_name)
+    result = export_run(ExportConfig(preset=preset_name, out=workdir / export_folder(index, preset), parity=False))
+    inputs = kitti_inputs(preset)
     rows = []
     for network in ("depth", "pixor"):
         module = result.networks[network]
@@ -125,14 +135,14 @@ def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, ba
                 return module(*tensors)
 
         session_inputs = feeds_for(session, feeds)
-        bar.set_description(f"{preset_name} {network}")
+        bar.set_description(f"{preset.name} {network}")
         torch_ms, ort_ms = _time_alternating(
             eager, lambda session=session, feeds=session_inputs: session.run(None, feeds), repeats, block, bar
         )
         entry = result.manifest["networks"][network]
         rows.append(
             LatencyRow(
-                preset=preset_name,
+                preset=preset.name,
                 network=network,
                 parameters=entry["parameters"],
                 gflops=entry["flops"] / 1e9,
@@ -142,6 +152,7 @@ def measure_preset(preset_name: str, repeats: int, block: int, workdir: Path, ba
                 ort_max_ms=max(ort_ms),
                 repeats=repeats,
                 threads=session.get_session_options().intra_op_num_threads,
+                preset_file=preset_name if is_preset_file(preset_name) else None,
             )
         )
     return rows
@@ -157,8 +168,8 @@ def run(presets: list[str], repeats: int = 5, threads: int | None = None, progre
     with tempfile.TemporaryDirectory(prefix="lowres3d-latency-") as tmp, tqdm(
         total=len(presets) * 2 * 2 * repeats, disable=not progress, unit="run"
     ) as bar:
-        for name in presets:
-            rows.extend(measure_preset(name, repeats, block, Path(tmp), bar, threads))
+        for index, name in enumerate(presets):
+            rows.extend(measure_preset(name, repeats, block, Path(tmp), bar, threads, index))
     return rows
 
 
@@ -168,21 +179,25 @@ def hardware() -> str:
 
 
 def format_table(rows: list[LatencyRow]) -> str:
-    """Markdown table of the rows."""
+    """Markdown table of the rows: a preset by its name, and the file it was read from."""
     lines = [
         "| preset | network | params | GFLOP | PyTorch eager p50 (max) ms | ONNX Runtime p50 (max) ms | speed-up |",
         "|---|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
+        preset = f"{r.preset} ({r.preset_file})" if r.preset_file else r.preset
         lines.append(
-            f"| {r.preset} | {r.network} | {r.parameters / 1e6:.2f} M | {r.gflops:.2f} | "
+            f"| {preset} | {r.network} | {r.parameters / 1e6:.2f} M | {r.gflops:.2f} | "
             f"{r.torch_p50_ms:.1f} ({r.torch_max_ms:.1f}) | {r.ort_p50_ms:.1f} ({r.ort_max_ms:.1f}) | {r.speedup:.2f}× |"
         )
     return "\n".join(lines)
 
 
 def _preset_name(text: str) -> str:
-    """A preset name get_preset knows (argparse shows the ValueError's message)."""
+    """A preset name get_preset knows (argparse shows the ValueError's message); a preset file is checked after
+    parsing (:func:`main`), its faults said in one line."""
+    if is_preset_file(text):
+        return text
     try:
         get_preset(text)
     except ValueError as exc:
@@ -211,6 +226,12 @@ def main(argv: list[str] | None = None) -> int:
     add_no_progress(parser)
     args = parser.parse_args(argv)
     presets = args.preset or list(PRESETS)
+    for text in filter(is_preset_file, presets):
+        try:
+            get_preset(text)
+        except ValueError as exc:  # the file's fault, in one line: argparse's usage says nothing of it
+            print(f"error: argument --preset: {exc}", file=sys.stderr)
+            return 2
     rows = run(presets, args.repeats, args.threads, progress=show_progress(args.no_progress), block=args.block)
     print(
         f"{hardware()}; fp32, batch 1, CPUExecutionProvider (onnxruntime {ort.__version__}) and torch "

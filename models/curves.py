@@ -262,8 +262,12 @@ def recorded_info(run_dir: Path, history: list[dict]) -> RunInfo:
             raise InputError(f"{state_path}: no run configuration with its task and preset (not a state models.train "
                              "wrote?)")
         beams = config.get("emulate_beams", 16)
-        return RunInfo(config["task"], config["preset"], config.get("input_mode", "lidar16"),
-                       beams if isinstance(beams, int) else 16)
+        # The preset's name, as models.train titles the picture: --preset may have been a file's path. A run
+        # started before preset_config was recorded names it as --preset did.
+        started = config.get("preset_config")
+        name = started.get("name") if isinstance(started, dict) else None
+        return RunInfo(config["task"], name if isinstance(name, str) and name else config["preset"],
+                       config.get("input_mode", "lidar16"), beams if isinstance(beams, int) else 16)
     return RunInfo(task_of(history), "unknown (no state.pt)", input_mode=None)
 
 

@@ -150,10 +150,16 @@ def load_onnx_weights(network: nn.Module, path: str | Path, optional: tuple[str,
     state: dict[str, torch.Tensor] = {}
 
     def put(key: str, value: np.ndarray, like: torch.Tensor) -> None:
-        # Narrow convs padded with zero channels (pad_narrow_convs) are cut back to the network's shape.
-        value = value[tuple(slice(0, n) for n in like.shape)]
-        if value.shape != tuple(like.shape):
+        # Narrow convs padded with zero channels (pad_narrow_convs) are cut back to the network's shape; anything
+        # non-zero beyond it is no padding but weights of another network (a taller grid's PIXOR, say), which
+        # cut to this shape would run with some of its weights gone and the rest on the wrong channels.
+        cut = value[tuple(slice(0, n) for n in like.shape)]
+        if cut.shape != tuple(like.shape):
             raise ValueError(f"{path}: {key} has shape {value.shape}, the network's is {tuple(like.shape)}")
+        if cut.size != value.size and np.count_nonzero(value) != np.count_nonzero(cut):
+            raise ValueError(f"{path}: {key} has shape {value.shape}, the network's is {tuple(like.shape)}, and "
+                             "what lies beyond it is not the exporter's zero padding (a network of another preset?)")
+        value = cut
         state[key] = torch.from_numpy(np.array(value, dtype=np.float32)).to(like.dtype)  # a writable copy
 
     reference = network.state_dict()

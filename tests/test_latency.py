@@ -282,7 +282,13 @@ def test_a_preset_file_is_exported_and_timed(tmp_path):
         capture_output=True, text=True, timeout=600, check=False,
     )
     assert result.returncode == 0, result.stderr[-2000:]
-    assert json.loads((tmp_path / "t.json").read_text())["preset"] == "tiny-narrow"
+    report = json.loads((tmp_path / "t.json").read_text())
+    assert report["preset"] == "tiny-narrow"
+    # The preset itself and its file are recorded: the name alone finds no registered preset.
+    from pipeline.presets import get_preset
+
+    assert report["preset_config"] == json.loads(json.dumps(get_preset(str(preset_file)).to_dict()))
+    assert report["preset_config"]["decode"]["score_threshold"] == 0.4 and report["preset_file"] == str(preset_file)
 
 
 def test_what_latency_could_not_use_or_write_is_refused_before_timing(tmp_path, tiny_models, capsys):
