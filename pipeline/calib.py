@@ -253,6 +253,13 @@ def _check_calibration_values(calib: object, source: str) -> Calibration:
     for key, values, tol in zip(CALIBRATION_SHAPES, singular, tolerance, strict=True):
         if values[-1] <= max(tol, MIN_SINGULAR_VALUE):
             raise InputError(f"{source}: {key} is singular (its 3×3 block cannot be inverted): not a camera calibration")
+    # A rectified camera's P2 is K [I | t] with positive focal lengths. A negative one (a mirrored camera, or P2
+    # negated: the same projective map) passed every check above, and back-projection put the pseudo points
+    # behind the camera: no real rig's calibration, so refused rather than answered with boxes.
+    for axis, (row, col) in (("fx", (0, 0)), ("fy", (1, 1))):
+        if p2[row, col] <= 0:
+            raise InputError(f"{source}: P2's focal length {axis} = P2[{row},{col}] = {p2[row, col]:g} is not positive "
+                             "(a mirrored or negated projection matrix?): not a KITTI camera calibration")
     return calib
 
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import codecs
 import math
 import os
+import re
 import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -165,6 +166,20 @@ def read_text_file(path: str | Path, what: str, encoding: str = "ascii") -> str:
 
 
 # --------------------------------------------------------------------------- calibration
+# A number as KITTI's files (7.215377e+02) and other tools write it: ASCII digits, a sign, a point, an exponent;
+# or NaN and infinity, named as non-finite below. Python's float() also reads "٧٢١", "７２１" and "7_2_1" as 721,
+# which no other reader of the file would.
+_CALIB_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity)",
+                           re.IGNORECASE)
+
+
+def _calib_number(text: str) -> float:
+    """One number of a calibration line; ValueError naming it unless it is an ASCII decimal number."""
+    if not _CALIB_NUMBER.fullmatch(text):
+        raise ValueError(f"{text[:30]!r}; expected ASCII decimal numbers such as 7.215377e+02")
+    return float(text)
+
+
 def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
                   every_line_a_key: bool = True) -> dict[str, np.ndarray]:
     """The ``shapes`` keys of a calibration text's ``KEY: numbers`` lines, each checked with its line (numbers,
@@ -188,7 +203,7 @@ def _calib_values(text: str, source: object, shapes: dict[str, tuple[int, int]],
         if key not in shapes:
             continue  # keys not needed: P0, P1, P3, Tr_imu_to_velo; the raw files' other cameras, calib_time …
         try:
-            numbers = np.array([float(v) for v in rest.split()], dtype=np.float64)
+            numbers = np.array([_calib_number(v) for v in rest.split()], dtype=np.float64)
         except ValueError as exc:
             raise InputError(f"{source}, line {line_no}: {key} has a non-numeric value ({exc})") from exc
         shape = shapes[key]

@@ -83,6 +83,8 @@ _OPTIONS: list[tuple[str, type, object]] = [
     ("--trt-cache-dir", Path, "DIR"),
     ("--request-timeout-s", float, "S"),
     ("--receive-timeout-s", float, "S"),
+    ("--send-timeout-s", float, "S"),
+    ("--max-connections", int, "N"),
     ("--max-body-bytes", int, "BYTES"),
     ("--max-points", int, "N"),
     ("--max-image-pixels", int, "N"),
@@ -311,9 +313,10 @@ def uvicorn_config(settings: Settings, app: FastAPI) -> uvicorn.Config:
         app,
         host=settings.host,
         port=settings.port,
-        # h11 with a deadline on each request's head and the connection limit (service/protocol.py); the
-        # answers it gives itself are counted with the app's.
-        http=protocol_class(settings.receive_timeout_s, settings.connection_limit(), getattr(app.state, "metrics", None)),
+        # h11 with a deadline on each request's head and on sending, the limit on requests in progress and the
+        # cap on open connections (service/protocol.py); what it answers or closes itself is counted with the app's.
+        http=protocol_class(settings.receive_timeout_s, settings.connection_limit(), getattr(app.state, "metrics", None),
+                            socket_limit=settings.socket_limit(), send_timeout_s=settings.send_timeout_s),
         ws="none",  # no WebSocket route: an Upgrade request is answered as plain HTTP
         log_level=settings.log_level,  # uvicorn's loggers: the same level as the service's
         # A float: uvicorn waits in asyncio.timeout(), which takes fractions (int() made 0.9 s no grace at all).

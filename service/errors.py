@@ -8,12 +8,14 @@ request id and the trace goes to the log (see :mod:`service.middleware`).
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from fastapi.routing import APIRoute
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from pipeline.errors import InputError
@@ -111,6 +113,26 @@ def allowed_methods(request: Request, exc: StarletteHTTPException) -> list[str]:
     return [m.strip() for m in (exc.headers or {}).get("Allow", "").split(",") if m.strip()]
 
 
+# Starlette's words for a multipart part without a filename, a form field, past its size limit (1 MiB; Starlette
+# 0.38, FastAPI 0.112.2's, has none): raised while that part streams in, by a parser that does not say which part.
+_OVERSIZED_FIELD = re.compile(r"Part exceeded maximum size of (\d+)KB")
+
+
+def _part_names(request: Request) -> str:
+    """The multipart parts the request's route takes (``image, points, calib``), as service.deps.check_parts
+    names them."""
+    route = request.scope.get("route")
+    names = [field.alias for field in route.dependant.body_params] if isinstance(route, APIRoute) else []
+    return ", ".join(names) or "image, points, calib"
+
+
+def _oversized_field_message(request: Request, limit_kb: str) -> str:
+    """What a client that sent a large file as a text field (no ``filename=``; ``filename*=`` alone, which
+    multipart/form-data forbids, is none either) is told: every part of the service is a file."""
+    return (f"request body: a part sent as a form field (without filename=) is larger than {limit_kb} KB; "
+            f"send the parts {_part_names(request)} as files, each with a filename (curl -F points=@FILE)")
+
+
 def _http_message(request: Request, exc: StarletteHTTPException, allow: list[str]) -> str:
     """What the framework's own HTTP errors say, naming what was at fault (Starlette says "Not Found")."""
     asked = f"{request.method[:_SHOWN_CHARS]} {request.url.path[:_SHOWN_CHARS]}"
@@ -119,6 +141,9 @@ def _http_message(request: Request, exc: StarletteHTTPException, allow: list[str
     if exc.status_code == 405:
         return f"{asked}: method not allowed; this route answers {', '.join(allow)}"
     if exc.status_code == 400:  # FastAPI and Starlette raise it only when the body cannot be parsed
+        oversized = _OVERSIZED_FIELD.match(str(exc.detail))
+        if oversized:
+            return _oversized_field_message(request, oversized.group(1))
         return f"request body: not parsable as multipart/form-data ({exc.detail})"
     return str(exc.detail)
 

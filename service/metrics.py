@@ -5,8 +5,9 @@ the service's routes or "unmatched", HTTP's methods or "other"; 499 for a client
 request latency per route; per-stage latency of the detector; inference queue
 depth, in-flight frames and frames stopped on a worker; the warnings frames were answered with, by code
 (one of pipeline.checks.FRAME_WARNING_CODES or "other"), and those the loaded models carry (LOAD_WARNING_CODES);
-HTTP requests in flight; readiness; which model is loaded (``lowres3d_model_info``); and the process
-collector's memory and CPU (``process_resident_memory_bytes``, Linux).
+HTTP requests in flight; connections closed without an answer, by reason (CONNECTION_CLOSE_REASONS);
+readiness; which model is loaded (``lowres3d_model_info``); and the process collector's memory and CPU
+(``process_resident_memory_bytes``, Linux).
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ from pipeline.checks import FRAME_WARNING_CODES, LOAD_WARNING_CODES
 
 # The label of a warning code the service does not know (none is made today): the series stay bounded.
 OTHER_WARNING_CODE = "other"
+
+# Why service/protocol.py closed a connection without an answer: the reason label's values.
+CONNECTION_CLOSE_REASONS = ("head_timeout", "send_timeout", "over_limit")
 
 # Seconds: from a fast stage of a tiny model (~0.1 ms) to a paper-size frame on a CPU (~10 s).
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
@@ -85,6 +89,15 @@ class Metrics:
         )
         for code in LOAD_WARNING_CODES:
             self.model_warnings.labels(code=code).set(0)
+        # Connections the protocol closed without an answer (service/protocol.py): the reasons are its fixed set,
+        # every series at 0 from the start.
+        self.connections_closed = Counter(
+            "lowres3d_connections_closed", "connections closed by the service without an answer: head_timeout (sent "
+            "nothing within --receive-timeout-s), send_timeout (read none of an answer within --send-timeout-s), "
+            "over_limit (accepted beyond --max-connections)", ["reason"], registry=self.registry,
+        )
+        for reason in CONNECTION_CLOSE_REASONS:
+            self.connections_closed.labels(reason=reason)
         self.ready = Gauge("lowres3d_ready", "1 when models are loaded and warmed up", registry=self.registry)
         # Labels, one series: id (manifest.json's sha256), directory, preset, precision, format, weights,
         # training_data, two_stage, mirror_tta, providers, sha256_<file> (service/runtime.py sets them).

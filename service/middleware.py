@@ -14,7 +14,7 @@ instead, when its answer has not begun, and the cancellation goes on
 
 The layers inside answer before a byte of the body is read whenever they can:
 :class:`ConnectionLimitMiddleware` answers 503 to a request service/protocol.py
-found over the connection limit (probes and ``/metrics`` excepted);
+found over the limit on requests in progress (``Settings.connection_limit``; probes and ``/metrics`` excepted);
 :class:`AuthMiddleware` answers 401 on ``/v1/*`` without the token;
 :class:`BodyLimitMiddleware` answers 413 on a Content-Length over the limit, else
 counts body bytes as they arrive (so a chunked upload is cut off as soon as it
@@ -49,6 +49,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from pydantic import SecretStr
+from python_multipart.multipart import parse_options_header
 from starlette.datastructures import Headers
 from starlette.middleware.cors import CORSMiddleware as StarletteCORSMiddleware
 
@@ -69,7 +70,6 @@ Receive = Callable[[], Awaitable[Message]]
 Send = Callable[[Message], Awaitable[None]]
 ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
-_BOUNDARY = re.compile(r'boundary="?([^";]+)"?', re.IGNORECASE)
 CLIENT_CLOSED = 499  # nginx's "client closed request": the client left before its answer
 _ERROR_CODE_BYTES = 64 * 1024  # an error body read for its code in the log line (error bodies are small)
 _SHOWN_PATH_CHARS = 200  # of a request's target in its access line: a client may send kilobytes of it
@@ -77,12 +77,17 @@ _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 
 
 def _multipart_close(scope: Scope) -> bytes | None:
-    """The close delimiter ``--BOUNDARY--`` of a multipart/form-data body, None for any other body."""
+    """The close delimiter ``--BOUNDARY--`` of a multipart/form-data body, None for any other body.
+
+    The boundary is read by the function Starlette's multipart parser reads it with (python-multipart's
+    ``parse_options_header``, imported by Starlette 0.38 through its ``multipart`` alias: the same object), so the
+    two cannot disagree: a regular expression of our own did on legal headers (``boundary=b ; charset=utf-8``,
+    ``xboundary=a; boundary=b``) and refused whole bodies as cut off."""
     content_type = _header(scope, b"content-type") or ""
     if content_type.split(";", 1)[0].strip().lower() != "multipart/form-data":
         return None
-    match = _BOUNDARY.search(content_type)
-    return b"--" + match.group(1).encode("latin-1") + b"--" if match else None
+    boundary = parse_options_header(content_type)[1].get(b"boundary")
+    return b"--" + boundary + b"--" if boundary is not None else None
 
 
 def _header(scope: Scope, name: bytes) -> str | None:
@@ -436,8 +441,9 @@ class RequestContextMiddleware:
 
 
 class ConnectionLimitMiddleware:
-    """503 ``overloaded`` for a request service/protocol.py marked as over the connection limit, before its body
-    is read; the probes and ``/metrics`` are answered still (an orchestrator must not take overload for death)."""
+    """503 ``overloaded`` for a request service/protocol.py marked as over the limit on requests in progress, before
+    its body is read; the probes and ``/metrics`` are answered still (an orchestrator must not take overload for
+    death)."""
 
     def __init__(self, app: ASGIApp, open_paths: frozenset[str], linger: Linger) -> None:
         self.app = app
@@ -451,7 +457,7 @@ class ConnectionLimitMiddleware:
             await self.app(scope, receive, send)
             return
         await send_early_error(scope, receive, send, self.linger, 503, "overloaded",
-                               f"connections: more than the limit of {limit} open; retry later",
+                               f"requests: more than the limit of {limit} in progress; retry later",
                                [(b"retry-after", b"1"), (b"connection", b"close")])
 
 

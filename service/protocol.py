@@ -1,4 +1,4 @@
-"""uvicorn's HTTP/1.1 protocol (h11) with a deadline on a request's head and a limit on connections.
+"""uvicorn's HTTP/1.1 protocol (h11) with deadlines on a request's head and on sending, and limits on connections.
 
 uvicorn waits for a request's head (its request line and headers) without end: a client that opens a
 connection and sends half a header held it for ever. :func:`protocol_class` gives the protocol
@@ -7,11 +7,24 @@ opened (or after the previous answer on it) is answered 408 ``request_timeout`` 
 (one that sent nothing at all is closed without a word, as uvicorn's keep-alive timeout closes an idle one).
 The body's own deadline is service.middleware.BodyLimitMiddleware's.
 
-A request that arrives while more connections are open (or more requests in progress) than
-:meth:`service.settings.Settings.connection_limit` is marked in ``scope["state"]`` (uvicorn's own
+A request that arrives while more requests are in progress (their heads received, their answers not all
+sent) than :meth:`service.settings.Settings.connection_limit` is marked in ``scope["state"]`` (uvicorn's own
 ``limit_concurrency`` would answer it in plain text): service.middleware.ConnectionLimitMiddleware
 answers it 503 ``overloaded`` in the service's format before its body is read, the probes and
-``/metrics`` excepted.
+``/metrics`` excepted. Connections that have sent nothing do not count there (a client opening sockets
+would have locked every client out); open connections are bounded apart, by
+:meth:`service.settings.Settings.socket_limit` (``--max-connections``): one accepted beyond it is closed at
+once, so file descriptors cannot run out, with a WARNING the first time and then at most once a minute.
+
+An answer whose sending stalls (any byte of it left waiting in the server's buffer: the client reads none)
+for ``--send-timeout-s`` is cut off and its connection closed; a slow client that reads some goes on, as
+with nginx's ``send_timeout``. The connections closed without an answer, at the head deadline, the send
+deadline or the cap, are counted in ``lowres3d_connections_closed_total{reason}``, not logged one by one (a
+client could flood the log).
+
+A request framed twice, with a ``Content-Length`` and a ``Transfer-Encoding`` (read as chunked), is answered
+as usual and its connection then closed (``Connection: close``), as RFC 9112 §6.1 asks: a proxy in front
+may have read its body by the other header, and what follows on the connection cannot be trusted.
 
 A request h11 cannot parse (a malformed request line or header) is answered 400 ``bad_request`` in the
 service's JSON error shape with an ``X-Request-ID``, where uvicorn answers it in plain text. So is a body
@@ -38,6 +51,7 @@ if TYPE_CHECKING:
     from service.metrics import Metrics
 
 access_log = logging.getLogger("service.access")
+log = logging.getLogger(__name__)
 
 MALFORMED_REQUEST_MESSAGE = ("request: not valid HTTP/1.1 (a malformed request line or header, or a body framing h11 "
                              "cannot read); the connection is closed")
@@ -47,6 +61,7 @@ MALFORMED_BODY = "malformed_body"  # the scope["state"] key of a request whose b
 UNPARSED_ROUTE = "unparsed"  # the route label of an answer given before the request's head was read
 # The method label's values: HTTP's methods (RFC 9110, and PATCH); any other token a client sends is "other".
 METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "DELETE", "CONNECT", "OPTIONS", "TRACE", "PATCH"})
+OVER_SOCKET_LIMIT_WARNING_S = 60.0  # the least time between two warnings about connections closed at the cap
 
 
 def head_method(head: bytes) -> str:
@@ -81,24 +96,83 @@ def log_head_answer(metrics: Metrics | None, request_id: str, status: int, code:
                     UNPARSED_ROUTE, status, code, duration_ms, client or "unknown", why, extra=fields)
 
 
-def protocol_class(receive_timeout_s: float, connection_limit: int,
-                   metrics: Metrics | None = None) -> type[H11Protocol]:
+def count_closed(metrics: Metrics | None, reason: str) -> None:
+    """Count a connection closed without an answer (one of service.metrics.CONNECTION_CLOSE_REASONS)."""
+    if metrics is not None:
+        metrics.connections_closed.labels(reason=reason).inc()
+
+
+def framed_twice(headers: list[tuple[bytes, bytes]]) -> bool:
+    """Whether a request head (uvicorn's lower-cased headers) carries both a Content-Length and a
+    Transfer-Encoding: h11 reads the body as chunked, a proxy in front may have read it by its length."""
+    names = {name for name, _ in headers}
+    return b"content-length" in names and b"transfer-encoding" in names
+
+
+def closing_send(send: Any) -> Any:
+    """``send`` with ``Connection: close`` added to the answer's head (unless it says so already)."""
+
+    async def send_closing(message: Any) -> None:
+        if message["type"] == "http.response.start":
+            headers = list(message.get("headers", []))
+            if not any(bytes(name).lower() == b"connection" and bytes(value).lower() == b"close"
+                       for name, value in headers):
+                message = {**message, "headers": [*headers, (b"connection", b"close")]}
+        await send(message)
+
+    return send_closing
+
+
+class SocketLimitWarning:
+    """The WARNING about connections closed at the socket cap: the first, then at most one a minute saying how
+    many since (a line per connection would let any client flood the log)."""
+
+    def __init__(self, socket_limit: int) -> None:
+        self.socket_limit = socket_limit
+        self.last: float | None = None  # the loop's time of the last line
+        self.unsaid = 0  # connections closed since
+
+    def closed_one(self, now: float) -> None:
+        """One more connection closed at the cap; a line when the first, or a minute after the last."""
+        self.unsaid += 1
+        if self.last is not None and now - self.last < OVER_SOCKET_LIMIT_WARNING_S:
+            return
+        since = "" if self.last is None else f" ({self.unsaid} in the last {now - self.last:.0f} s)"
+        log.warning("connections: %d open, the limit (--max-connections): new ones are closed at once%s; "
+                    "lowres3d_connections_closed_total{reason=\"over_limit\"} counts them", self.socket_limit, since)
+        self.last, self.unsaid = now, 0
+
+
+def protocol_class(receive_timeout_s: float, connection_limit: int, metrics: Metrics | None = None,
+                   socket_limit: int | None = None, send_timeout_s: float | None = None) -> type[H11Protocol]:
     """The h11 protocol with these limits, for ``uvicorn.Config(http=...)`` (uvicorn builds one per connection);
-    ``metrics``: where the answers it gives itself are counted."""
+    ``metrics``: where the answers it gives itself, and the connections it closes, are counted.
+    ``socket_limit``: open connections at most (None: none); ``send_timeout_s``: how long sending may stall
+    (None: ``receive_timeout_s``)."""
+    send_timeout = receive_timeout_s if send_timeout_s is None else send_timeout_s
+    over_limit_warning = SocketLimitWarning(socket_limit or 0)  # shared by the connections, as the limit is
 
     class ServiceH11Protocol(H11Protocol):
-        """uvicorn's h11 protocol with a deadline on each request head and a mark for requests over the limit."""
+        """uvicorn's h11 protocol with deadlines on each request head and on sending, a mark for requests over
+        the limit, and a cap on open connections."""
 
         def __init__(self, *args: Any, **kwargs: Any) -> None:
             super().__init__(*args, **kwargs)
             self._head_timer: asyncio.TimerHandle | None = None
             self._head_since = 0.0  # the loop's time the head now awaited became due (connection, or last answer)
             self._head_start = b""  # its first bytes, for the method label of an answer to it (h11 drops them)
+            self._send_timer: asyncio.TimerHandle | None = None
+            self._send_left = 0  # bytes waiting to be sent when the send deadline was last armed
             inner = self.app
 
             async def app(scope: Any, receive: Any, send: Any) -> None:
-                # Counted as uvicorn counts for limit_concurrency: this connection and this request included.
-                if len(self.connections) > connection_limit or len(self.tasks) > connection_limit:
+                if scope["type"] == "http" and framed_twice(scope["headers"]):
+                    cycle = self.cycle  # this request's: h11 holds a pipelined head until its answer is sent
+                    if cycle is not None and cycle.scope is scope:
+                        cycle.keep_alive = False  # uvicorn closes the connection once the answer is sent
+                    send = closing_send(send)
+                # Requests in progress, this one included (uvicorn's tasks: one per request until answered).
+                if len(self.tasks) > connection_limit:
                     scope.setdefault("state", {})[OVER_CONNECTION_LIMIT] = connection_limit
                 await inner(scope, receive, send)
 
@@ -106,7 +180,23 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
+            if socket_limit is not None and len(self.connections) > socket_limit:
+                transport.close()  # nothing read or written: closed at once, its descriptor freed
+                count_closed(metrics, "over_limit")
+                over_limit_warning.closed_one(self.loop.time())
+                return
+            # Any byte left waiting to be sent pauses writing, which arms the send deadline: with asyncio's
+            # high-water mark (64 KiB) the rest of an answer under it, left after a close, would wait for ever.
+            transport.set_write_buffer_limits(high=0)
             self._arm_head_deadline()
+
+        def pause_writing(self) -> None:
+            super().pause_writing()
+            self._arm_send_deadline()
+
+        def resume_writing(self) -> None:
+            self._cancel_send_deadline()
+            super().resume_writing()
 
         def on_response_complete(self) -> None:
             super().on_response_complete()
@@ -119,6 +209,7 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
 
         def connection_lost(self, exc: Exception | None) -> None:
             self._cancel_head_deadline()
+            self._cancel_send_deadline()
             super().connection_lost(exc)
 
         def send_400_response(self, msg: str) -> None:
@@ -137,9 +228,7 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
             if request_state is None:
                 request_id = uuid.uuid4().hex
             else:  # the id the middleware gives the request, which may not have run yet (the body came with the head)
-                client_id = next((value for key, value in cycle.scope["headers"] if key == b"x-request-id"), None)
-                request_id = request_state.get("request_id") or request_id_for(
-                    client_id.decode("latin-1") if client_id is not None else None)
+                request_id = request_state.get("request_id") or self._request_id_ahead(cycle.scope)
             body = error_bytes("bad_request", MALFORMED_REQUEST_MESSAGE, request_id)
             headers = [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode()),
                        (b"x-request-id", request_id.encode()), (b"connection", b"close")]
@@ -151,6 +240,39 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
                 log_head_answer(metrics, request_id, 400, "bad_request", head_method(self._head_start),
                                 peer_text(self.client), self.loop.time() - self._head_since,
                                 "a request line or header HTTP/1.1 does not allow")
+
+        @staticmethod
+        def _request_id_ahead(scope: Any) -> str:
+            """The id of a request the middleware has not seen yet, made here and left where it will take it: in
+            the state, and as the request's X-Request-ID when the client sent none, or one not safe to echo (the
+            middleware makes its own from that header: the answer's id and the access line's would differ)."""
+            client_id = next((value for key, value in scope["headers"] if key == b"x-request-id"), None)
+            request_id = request_id_for(client_id.decode("latin-1") if client_id is not None else None)
+            scope.setdefault("state", {})["request_id"] = request_id
+            if client_id is None or client_id.decode("latin-1") != request_id:
+                scope["headers"] = [*((key, value) for key, value in scope["headers"] if key != b"x-request-id"),
+                                    (b"x-request-id", request_id.encode())]
+            return request_id
+
+        def _cancel_send_deadline(self) -> None:
+            if self._send_timer is not None:
+                self._send_timer.cancel()
+                self._send_timer = None
+
+        def _arm_send_deadline(self) -> None:
+            self._cancel_send_deadline()
+            self._send_left = self.transport.get_write_buffer_size()
+            self._send_timer = self.loop.call_later(send_timeout, self._send_overdue)
+
+        def _send_overdue(self) -> None:
+            self._send_timer = None
+            if self.transport.get_write_buffer_size() < self._send_left:
+                self._arm_send_deadline()  # the client reads, slowly: its answer goes on
+                return
+            # Not close(): it would wait for the buffer to drain, which it never does. uvicorn then sees the
+            # client gone; the request's task, waiting to send, ends.
+            self.transport.abort()
+            count_closed(metrics, "send_timeout")
 
         def _cancel_head_deadline(self) -> None:
             if self._head_timer is not None:
@@ -183,6 +305,8 @@ def protocol_class(receive_timeout_s: float, connection_limit: int,
                 log_head_answer(metrics, request_id, 408, "request_timeout", head_method(self._head_start),
                                 peer_text(self.client), self.loop.time() - self._head_since,
                                 f"its head not received within {receive_timeout_s:g} s, --receive-timeout-s")
+            else:  # nothing sent: no answer, and no line (a client could open connections by the thousand)
+                count_closed(metrics, "head_timeout")
             self.transport.close()
 
     return ServiceH11Protocol

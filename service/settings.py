@@ -25,8 +25,11 @@ from pipeline.detector import MAX_POINTS
 from pipeline.model_files import DEFAULT_MODELS
 
 ENV_PREFIX = "LOWRES3D_"
-# Connections beyond workers + queue: the probes, a metrics scrape, /v1/model, and clients being told 503.
+# Requests in progress beyond workers + queue: the probes, a metrics scrape, /v1/model, and clients being told 503.
 CONNECTION_HEADROOM = 16
+# Open connections allowed by default per request admitted at once: room for idle kept-alive ones (a balancer's
+# pool, a browser's six) and for clients between two requests, yet a bound on the process's file descriptors.
+SOCKETS_PER_REQUEST = 4
 # An origin as a browser sends it in the Origin header: scheme://host[:port], no path, no trailing slash.
 _ORIGIN = re.compile(r"^https?://[^/\s?#]+$")
 
@@ -63,6 +66,15 @@ class Settings(BaseSettings):
     receive_timeout_s: float = Field(
         30.0, gt=0, le=3600, description="how long a client may take to send a request's head, and then its body; "
         "beyond: 408 and the connection closed"
+    )
+    send_timeout_s: float = Field(
+        30.0, gt=0, le=3600, description="how long sending an answer may stall (the client reading none of it, the "
+        "server's buffer full) before the connection is closed"
+    )
+    max_connections: int | None = Field(
+        None, ge=2, le=1_000_000, description="open connections at most, idle ones included; one beyond is closed at "
+        f"once (default: {SOCKETS_PER_REQUEST} × (workers + queue size + {CONNECTION_HEADROOM})); keep it below the "
+        "open-file limit (ulimit -n)"
     )
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest request body; beyond: 413")
     max_points: int = Field(1_000_000, ge=1, le=MAX_POINTS, description="most points a scan may have; beyond: 422")
@@ -171,6 +183,18 @@ class Settings(BaseSettings):
                                       f"{self.workers} worker(s); give each worker one (--workers {len(ids)})")
         return self
 
+    @model_validator(mode="after")
+    def _sockets_above_requests(self) -> Settings:
+        """Room on the socket cap for every request the admission limit lets in, and one more to be told 503:
+        below it, a client over the limit would see its connection closed without an answer."""
+        if self.max_connections is not None and self.max_connections <= self.connection_limit():
+            raise PydanticCustomError(
+                "max_connections_low", f"--max-connections {self.max_connections}: at most "
+                f"{self.connection_limit()} requests are admitted at once (workers + queue size + "
+                f"{CONNECTION_HEADROOM}); give more connections than that, or leave it unset for "
+                f"{SOCKETS_PER_REQUEST} × as many")
+        return self
+
     def gpu_ids(self) -> list[int] | None:
         """``device_ids`` as numbers (None: not given)."""
         return None if self.device_ids is None else [int(part) for part in self.device_ids.split(",")]
@@ -197,9 +221,15 @@ class Settings(BaseSettings):
         return self.cors_origins.split(",") if self.cors_origins else []
 
     def connection_limit(self) -> int:
-        """Connections (and requests in progress) served at once: the pool's places plus headroom for probes;
-        a request beyond is answered 503 before its body is read (service/protocol.py)."""
+        """Requests in progress at once (their heads received, their answers not yet sent): the pool's places
+        plus headroom for probes; a request beyond is answered 503 before its body is read (service/protocol.py).
+        Connections that have sent no request do not count: :meth:`socket_limit` bounds those."""
         return self.workers + self.queue_size + CONNECTION_HEADROOM
+
+    def socket_limit(self) -> int:
+        """Open connections at once, idle ones included: ``max_connections``, or SOCKETS_PER_REQUEST × the
+        connection limit; a connection beyond is closed as soon as it is accepted (service/protocol.py)."""
+        return self.max_connections or SOCKETS_PER_REQUEST * self.connection_limit()
 
     def resolved_intra_op_threads(self) -> int:
         """The configured intra-op threads, or the usable CPUs divided among the workers (docs/service.md)."""

@@ -419,20 +419,23 @@ def test_a_refused_client_waiting_for_100_continue_is_answered_at_once(guarded: 
     assert json.loads(body)["error"]["code"] == "unauthorized"
 
 
-def test_connections_over_the_limit_are_refused_but_probes_answered(guarded: Server) -> None:
-    """With as many connections open as the limit (workers + queue + 16 = 18), a request is answered 503
-    overloaded before its body is read, and its connection closed; the probes and /metrics are still answered.
-    Once connections close, requests are served again."""
-    idle = [_raw_request(guarded, "") for _ in range(18)]
+def test_requests_over_the_limit_are_refused_but_probes_answered(guarded: Server) -> None:
+    """With as many requests in progress as the limit (workers + queue + 16 = 18; here uploads refused 401 whose
+    bodies the service waits for, up to 2 s), a request is answered 503 overloaded before its body is read, and
+    its connection closed; the probes and /metrics are still answered. Once they end, requests are served again.
+    (Idle sockets do not count: tests/test_service_connections_s49.py.)"""
+    upload = "POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\n"
+    held = [_raw_request(guarded, upload + "Content-Length: 5000000\n\n") for _ in range(18)]
     try:
-        head = f"POST /v1/detect HTTP/1.1\nHost: x\nContent-Type: multipart/form-data; boundary=b\n{AUTH}"
-        with _raw_request(guarded, head + "Content-Length: 5000000\n\n") as sock:
+        for sock in held:  # each refused at once, then lingering for the body never sent: in progress
+            assert _answer(sock, 5, whole=True)[0] == 401
+        with _raw_request(guarded, upload + AUTH + "Content-Length: 5000000\n\n") as sock:
             # The answer comes at once; the connection closes when the 5 MB never sent has been waited for (2 s),
-            # and by then the idle connections have been closed (their head deadline): check the others first.
+            # and by then the held requests have ended: check the others first.
             status, headers, body, _ = _answer(sock, 5, whole=True)
             assert status == 503, body
             error = json.loads(body)["error"]
-            assert error["code"] == "overloaded" and "connections: more than the limit of 18 open" in error["message"]
+            assert error["code"] == "overloaded" and "requests: more than the limit of 18 in progress" in error["message"]
             assert headers["retry-after"] == "1"
             for path in ("/healthz", "/readyz", "/metrics"):
                 assert httpx.get(f"{guarded.url}{path}", timeout=5).status_code == 200, path
@@ -440,7 +443,7 @@ def test_connections_over_the_limit_are_refused_but_probes_answered(guarded: Ser
             assert model.status_code == 503
             assert _answer(sock, RECEIVE_TIMEOUT_S + 3)[3], "the connection was not closed"
     finally:
-        for sock in idle:
+        for sock in held:
             sock.close()
     _wait_for(lambda: httpx.get(f"{guarded.url}/v1/model", timeout=5,
                                 headers={"Authorization": f"Bearer {GUARD_TOKEN}"}).status_code == 200,

@@ -15,7 +15,7 @@ _DESCRIPTIONS = {
     415: "the body is not multipart/form-data, or the image is not PNG/JPEG",
     422: "an input is invalid; the message names the field or part",
     500: "internal error; the answer carries only a request id, the log has the trace",
-    503: "the inference queue is full (refused before the body is read), too many connections are open, the models "
+    503: "the inference queue is full (refused before the body is read), too many requests are in progress, the models "
          "are not ready, or the service is shutting down (see Retry-After)",
     504: "the frame did not finish within the request timeout",
 }
