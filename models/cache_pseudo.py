@@ -75,6 +75,18 @@ def recorded_beams(cache: Path) -> int | None:
     return beams if isinstance(beams, int) else None
 
 
+def recorded_view(cache: Path) -> dict | None:
+    """The depth net's view ``cache``'s maps are in (crop_hw, input_scale, input_hw; None: an older record)."""
+    view = _read_record(cache).get("view")
+    return view if isinstance(view, dict) else None
+
+
+def recorded_preset(cache: Path) -> str | None:
+    """The preset of the model directory ``cache``'s maps were made with (None: no record)."""
+    preset = _read_record(cache).get("preset")
+    return preset if isinstance(preset, str) else None
+
+
 def check_sources(cache: Path, flag: str, data: Path, data_flag: str, ids: list[str], hint: str = "") -> None:
     """InputError naming the first of ``ids`` whose cached map was made from other files than ``data``'s."""
     made_from = recorded_sources(cache)
@@ -109,6 +121,11 @@ def run(data: Path, models: Path, out: Path, split_file: Path | None = None, bea
     depth_file = detector.manifest["networks"]["depth"]["file"]  # the maps depend on the depth net alone
     record = {"depth_sha256": detector.sha256[depth_file], "preset": detector.preset.name, "beams": beams}
     _check_record(out, record)
+    # Recorded, not compared above (the depth net's sha256 decides it, and older records lack it): which view of the
+    # image the maps are in, for models.train to check against its preset's (another view's calibration misplaces
+    # every pseudo point).
+    record["view"] = {"crop_hw": list(detector.preset.crop_hw), "input_scale": detector.preset.depth.input_scale,
+                      "input_hw": list(detector.preset.depth.input_hw)}
     check_sources(out, "--out", Path(data), "--data", ids, hint=" (give another --out)")
     record["frames"] = made_from = recorded_sources(out)
     computed = 0

@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from pipeline.presets import Preset, preset_from_dict
+from pipeline.presets import Preset, preset_from_dict, registered_preset
 
 log = logging.getLogger(__name__)
 
@@ -154,16 +154,34 @@ def _check_pseudo_range(checkpoint: Checkpoint, network: str, saved_config: dict
     depth = saved_config.get("depth") if isinstance(saved_config, dict) else None
     trained = depth.get("max_depth") if isinstance(depth, dict) else None
     if trained is not None and trained != preset.depth.max_depth:
+        way_out = (f"give --preset {checkpoint.preset}" if _is_registered(checkpoint.preset)
+                   else f"give the preset file it was trained with ({PRESET_FILE_HINT})")
         raise ValueError(f"{checkpoint.path}: its PIXOR learned on pseudo points up to {trained:g} m (preset "
                          f"{checkpoint.preset!r}); preset {preset.name!r} keeps them up to {preset.depth.max_depth:g} "
-                         f"m, so its BEV would hold points it never saw: give --preset {checkpoint.preset}")
+                         f"m, so its BEV would hold points it never saw: {way_out}")
 
 
-def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str, preset: Preset) -> None:
-    """Load ``checkpoint.state_dicts[network]`` into ``model`` after checking the preset matches.
+# How a user gets back the preset file a checkpoint (or an exported model) was trained with: the preset_config it
+# records is a whole preset as a preset file holds it (docs/models.md, "Adding a preset").
+PRESET_FILE_HINT = ("its preset_config, written to a .json file as it stands, is one: docs/models.md, "
+                    "\"Adding a preset\"")
 
-    Only the sections that give this network's weights their meaning are compared (see
-    ``NETWORK_SECTIONS``): a PIXOR stays valid when the preset's depth net changes.
+
+def _is_registered(name: str) -> bool:
+    """Whether a --preset of this name means a preset here (else it was a preset file's, or another copy's)."""
+    try:
+        registered_preset(name)
+    except ValueError:
+        return False
+    return True
+
+
+def check_preset_fits(checkpoint: Checkpoint, network: str, preset: Preset,
+                      sections: tuple[str, ...] | None = None) -> None:
+    """ValueError unless ``checkpoint``'s ``network`` was trained with ``preset`` as far as its weights mean:
+    the preset ``sections`` (default ``NETWORK_SECTIONS[network]``) are compared, and a PIXOR's pseudo range.
+
+    Also for an exported ``.onnx`` (its manifest's preset and preset_config, a checkpoint of no state dicts).
     """
     saved_config = checkpoint.preset_config
     try:  # a checkpoint from before a preset field existed holds that field's default
@@ -175,11 +193,23 @@ def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str,
         for section, fields in PSEUDO_RANGE_FIELDS.items():
             if isinstance(config.get(section), dict):
                 config[section] = {k: v for k, v in config[section].items() if k not in fields}
-    differing = [key for key in NETWORK_SECTIONS.get(network, tuple(wanted)) if saved.get(key) != wanted.get(key)]
+    compared = sections if sections is not None else NETWORK_SECTIONS.get(network, tuple(wanted))
+    differing = [key for key in compared if saved.get(key) != wanted.get(key)]
+    changed = [(f"{key}.{field}", saved[key].get(field), value) for key in differing
+               if isinstance(saved.get(key), dict) and isinstance(wanted.get(key), dict)
+               for field, value in wanted[key].items() if saved[key].get(field) != value]
+    fields = [f"{name}: {then!r} then, {now!r} now" for name, then, now in changed]
+    if differing and not _is_registered(checkpoint.preset):
+        # A preset file's: --preset cannot name it, and under the same name it is the file that was edited since
+        # (the earlier-lowres3d story below would send the user after a code change that never was).
+        first = (f"{changed[0][0]} {changed[0][1]!r} in the checkpoint, {changed[0][2]!r} in {preset.name!r}"
+                 if changed else ", ".join(differing))
+        raise ValueError(
+            f"{checkpoint.path}: trained with preset {checkpoint.preset!r}, not a registered one (a preset file's), "
+            f"whose preset_config differs from preset {preset.name!r} given ({first}): give the preset file it was "
+            f"trained with ({PRESET_FILE_HINT})"
+        )
     if differing and checkpoint.preset == preset.name:  # the preset itself changed since the checkpoint was made
-        fields = [f"{key}.{field}: {saved[key].get(field)!r} then, {value!r} now" for key in differing
-                  if isinstance(saved.get(key), dict) and isinstance(wanted.get(key), dict)
-                  for field, value in wanted[key].items() if saved[key].get(field) != value]
         raise ValueError(
             f"{checkpoint.path}: trained with preset {preset.name!r} as an earlier lowres3d defined it "
             f"({'; '.join(fields) or ', '.join(differing)}); this version builds another network under that name, "
@@ -192,6 +222,15 @@ def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str,
             f"with it, or a checkpoint trained with {preset.name}"
         )
     _check_pseudo_range(checkpoint, network, saved_config, preset)
+
+
+def load_network_weights(model: nn.Module, checkpoint: Checkpoint, network: str, preset: Preset) -> None:
+    """Load ``checkpoint.state_dicts[network]`` into ``model`` after checking the preset matches.
+
+    Only the sections that give this network's weights their meaning are compared (see
+    ``NETWORK_SECTIONS``): a PIXOR stays valid when the preset's depth net changes.
+    """
+    check_preset_fits(checkpoint, network, preset)
     if network not in checkpoint.state_dicts:
         raise ValueError(
             f"{checkpoint.path}: no {network!r} weights (it holds {', '.join(checkpoint.state_dicts) or 'none'})"

@@ -203,7 +203,12 @@ def cached_pseudo_depth(pseudo_dir: Path | None, frame: Frame, preset: Preset) -
     """A frame's cached dense depth (``models.cache_pseudo``) and the calibration of the view it is in."""
     if pseudo_dir is None:
         raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir)")
-    depth = read_depth_png(Path(pseudo_dir) / f"{frame.frame_id}.png")
+    path = Path(pseudo_dir) / f"{frame.frame_id}.png"
+    depth = read_depth_png(path)
+    if depth.shape != tuple(preset.depth.input_hw):  # another view: this view's calibration would misplace its pixels
+        h, w = preset.depth.input_hw
+        raise InputError(f"{path}: a cached {depth.shape[0]}×{depth.shape[1]} map, not the {h}×{w} view of "
+                         f"preset {preset.name!r}'s depth net; cache the maps again with a model of this preset")
     return depth, view_calibration(frame.image_hw, frame.calib, preset)
 
 

@@ -501,9 +501,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
     args = parser.parse_args(argv)
     if is_preset_file(args.preset):  # its stages name presets by adding suffixes (-no-gam, the LiDAR rows'): a name
-        parser.error(f"argument --preset: {args.preset}: the recipe takes a registered preset's name, not a preset "
-                     "file (its stages add suffixes to it); train a file's preset with models.train and export "
-                     "(docs/models.md, \"Adding a preset\")")
+        # One line, as models.train and export refuse a preset file's fault: not argparse's usage above it.
+        parser.exit(2, f"error: --preset {args.preset}: the recipe takes a registered preset's name, not a preset "
+                    "file (its stages add suffixes to it); train a file's preset with models.train and export "
+                    "(docs/models.md, \"Adding a preset\")\n")
     try:  # before anything is simulated or trained: a typo would otherwise surface an hour in
         preset = get_preset(args.preset)
     except ValueError as exc:

@@ -25,7 +25,14 @@ except ImportError:  # Windows: no advisory locks; a run folder is then not guar
 import numpy as np
 import torch
 
-from models.cache_pseudo import FRAME_FILES, check_sources, recorded_beams
+from models.cache_pseudo import (
+    FRAME_FILES,
+    RECORD,
+    check_sources,
+    recorded_beams,
+    recorded_preset,
+    recorded_view,
+)
 from models.checkpoint import save_atomic
 from models.data import CAR_CLASS, is_car
 from pipeline.beams import check_thinnable, emulate_beams
@@ -498,8 +505,10 @@ def check_64_lines(scan: Path) -> None:
                          "for a 16-line sensor's scans give --input lidar16 --emulate-beams 0") from None
 
 
-def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str]) -> None:
-    """``--input pseudo``: the cached dense depth map of every frame the run trains and validates on."""
+def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[str],
+                      preset: Preset | None = None) -> None:
+    """``--input pseudo``: the cached dense depth map of every frame the run trains and validates on, made from
+    the run's scans and (given ``preset``) in its depth net's view."""
     if config.task == "detector" and config.input_mode == "pseudo":
         if config.pseudo_dir is None:
             raise InputError("--input pseudo needs the cached dense depth maps (--pseudo-dir; "
@@ -522,3 +531,41 @@ def check_pseudo_maps(config: TrainConfig, train_ids: list[str], val_ids: list[s
                 raise InputError(f"{flag} {folder}: its maps were made with --emulate-beams {made_with} (cache.json), "
                                  f"this run thins its scans with --emulate-beams {config.emulate_beams}; cache them "
                                  f"with python -m models.cache_pseudo --emulate-beams {config.emulate_beams}")
+            if preset is not None:
+                check_pseudo_view(Path(folder), flag, ids[0] if ids else None, preset)
+
+
+def _view_text(crop_hw: object, input_scale: object, input_hw: object) -> str:
+    """A depth net's view as a message gives it: ``crop [352, 1216] × 0.25 = 88×304``."""
+    hw = list(input_hw) if isinstance(input_hw, (list, tuple)) else input_hw
+    shape = f"{hw[0]}×{hw[1]}" if isinstance(hw, list) and len(hw) == 2 else repr(hw)
+    return f"crop {list(crop_hw) if isinstance(crop_hw, (list, tuple)) else crop_hw!r} × {input_scale} = {shape}"
+
+
+def check_pseudo_view(folder: Path, flag: str, first_id: str | None, preset: Preset) -> None:
+    """InputError when ``folder``'s maps are in another view of the image than ``preset``'s depth net sees: the
+    run would place each pixel's depth with its own view's calibration (a quarter-scale cache read at half scale
+    put the points at azimuths −0.7…39° instead of −40…39°). The view ``cache.json`` records (since session 49),
+    else the first map's shape."""
+    wanted = {"crop_hw": list(preset.crop_hw), "input_scale": preset.depth.input_scale,
+              "input_hw": list(preset.depth.input_hw)}
+    made = recorded_view(folder)
+    if made is not None:
+        made = {key: list(v) if isinstance(v, (list, tuple)) else v for key, v in made.items()}
+        if all(made.get(key) == value for key, value in wanted.items()):
+            return
+        theirs = _view_text(made.get("crop_hw"), made.get("input_scale"), made.get("input_hw"))
+        where = f"{folder / RECORD}"
+    else:
+        if first_id is None:
+            return
+        path = folder / f"{first_id}.png"
+        hw = list(read_image_size(path))
+        if hw == wanted["input_hw"]:
+            return
+        theirs, where = f"{hw[0]}×{hw[1]}", str(path)
+    made_with = recorded_preset(folder)
+    by = f", made with preset {made_with!r}" if made_with else ""
+    raise InputError(f"{flag} {folder}: its maps are in the view {theirs} ({where}{by}); preset {preset.name!r} "
+                     f"sees {_view_text(**wanted)}, so every pseudo point would be misplaced: cache them again with "
+                     "python -m models.cache_pseudo from a --models directory of this preset")

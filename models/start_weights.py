@@ -12,7 +12,13 @@ from pathlib import Path
 import torch
 
 from models import build_pixor
-from models.checkpoint import load_checkpoint, load_network_weights
+from models.checkpoint import (
+    NETWORK_SECTIONS,
+    Checkpoint,
+    check_preset_fits,
+    load_checkpoint,
+    load_network_weights,
+)
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError, load_manifest
 from pipeline.presets import Preset, lidar_only, preset_from_dict
@@ -48,6 +54,7 @@ def load_start_weights(net: torch.nn.Module, name: str, path: Path, preset: Pres
         network, exported = _exported_as(path)
         if network not in (None, name):
             raise InputError(f"--{name}-checkpoint: {path} is the {network} network of {path.parent}, not the {name} one")
+        _check_exported_preset(path, name, preset, train_only)
         try:
             left = load_onnx_weights(net, path, optional=train_only)
         except ValueError as exc:  # a weight that does not fit; the manifest can say why
@@ -70,6 +77,26 @@ def _exported_as(path: Path) -> tuple[str | None, str | None]:
         return None, None
     network = next((n for n, entry in manifest.get("networks", {}).items() if entry.get("file") == path.name), None)
     return network, manifest.get("preset")
+
+
+def _check_exported_preset(path: Path, name: str, preset: Preset, train_only: tuple[str, ...]) -> None:
+    """The preset sections a checkpoint's load compares (models/checkpoint.py), from the manifest beside an
+    exported ``.onnx``: a grid or crop changed keeps every weight's shape, so the graph alone cannot tell.
+
+    With ``train_only`` the network's own section may differ: the submodules added since the export (a refine
+    head) start from initialisation, and the load checks the shapes of the rest.
+    """
+    try:
+        manifest = load_manifest(path.parent)
+    except ModelFileError:  # a lone .onnx: only its weights' shapes can be checked
+        return
+    if not isinstance(manifest.get("preset_config"), dict) or not isinstance(manifest.get("preset"), str):
+        return
+    training = manifest.get("networks", {}).get(name, {}).get("training")
+    exported = Checkpoint(preset=manifest["preset"], preset_config=manifest["preset_config"], state_dicts={},
+                          metadata=training if isinstance(training, dict) else {}, path=path)
+    sections = tuple(s for s in NETWORK_SECTIONS[name] if not (train_only and s == name))
+    check_preset_fits(exported, name, preset, sections)
 
 
 def _bev_channels(path: Path) -> int | None:

@@ -505,7 +505,7 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         check_same_frames(state, out, train_ids, val_ids)
     check_thinnable_scans(config, train_dir, train_ids, val_dir, val_ids)
     check_cars(config, train_dir, train_ids, val_dir, val_ids)
-    check_pseudo_maps(config, train_ids, val_ids)
+    check_pseudo_maps(config, train_ids, val_ids, preset)
     # The first line of a run that will train (a refused one stays one error line; the checks' own warnings,
     # such as no validation split, come before it): a wrong preset or input is seen now, not at export.
     info = RunInfo(config.task, preset.name, config.input_mode, config.emulate_beams)
@@ -545,6 +545,9 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
                              "give a new folder, or --resume it once that process has ended")
     recorded_config = {**_jsonable(asdict(config)), **frame_fingerprints(train_ids, val_ids),
                        "preset_config": preset.to_dict()}  # what --preset gave, compared on --resume
+    started = state.get("config") if state is not None and isinstance(state.get("config"), dict) else {}
+    if "preset" in started:  # a resume's --preset may spell the same preset otherwise (a copy of the file):
+        recorded_config["preset"] = started["preset"]  # the run's messages name the one it was started with
     if state is None:
         # The state before the first epoch, right after the folder is made: a run stopped in its first epoch
         # resumes (--resume) like any other, and the flags it was started with are there to compare.
