@@ -177,9 +177,10 @@ def _is_registered(name: str) -> bool:
 
 
 def check_preset_fits(checkpoint: Checkpoint, network: str, preset: Preset,
-                      sections: tuple[str, ...] | None = None) -> None:
+                      ignored: dict[str, tuple[str, ...]] | None = None) -> None:
     """ValueError unless ``checkpoint``'s ``network`` was trained with ``preset`` as far as its weights mean:
-    the preset ``sections`` (default ``NETWORK_SECTIONS[network]``) are compared, and a PIXOR's pseudo range.
+    the preset sections ``NETWORK_SECTIONS[network]`` are compared, but for the pseudo range's fields and the
+    ``ignored`` ones (section → fields), and a PIXOR's pseudo range.
 
     Also for an exported ``.onnx`` (its manifest's preset and preset_config, a checkpoint of no state dicts).
     """
@@ -190,10 +191,11 @@ def check_preset_fits(checkpoint: Checkpoint, network: str, preset: Preset,
         pass
     saved, wanted = _as_lists(saved_config), _as_lists(preset.to_dict())
     for config in (saved, wanted):
-        for section, fields in PSEUDO_RANGE_FIELDS.items():
-            if isinstance(config.get(section), dict):
-                config[section] = {k: v for k, v in config[section].items() if k not in fields}
-    compared = sections if sections is not None else NETWORK_SECTIONS.get(network, tuple(wanted))
+        for section in config:
+            left_out = PSEUDO_RANGE_FIELDS.get(section, ()) + (ignored or {}).get(section, ())
+            if left_out and isinstance(config.get(section), dict):
+                config[section] = {k: v for k, v in config[section].items() if k not in left_out}
+    compared = NETWORK_SECTIONS.get(network, tuple(wanted))
     differing = [key for key in compared if saved.get(key) != wanted.get(key)]
     changed = [(f"{key}.{field}", saved[key].get(field), value) for key in differing
                if isinstance(saved.get(key), dict) and isinstance(wanted.get(key), dict)

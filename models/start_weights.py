@@ -13,7 +13,6 @@ import torch
 
 from models import build_pixor
 from models.checkpoint import (
-    NETWORK_SECTIONS,
     Checkpoint,
     check_preset_fits,
     load_checkpoint,
@@ -79,12 +78,17 @@ def _exported_as(path: Path) -> tuple[str | None, str | None]:
     return network, manifest.get("preset")
 
 
+# The preset fields of the heads a --train-only run adds to an exported network (the depth net's full-resolution
+# refine head): the export has none, so they may differ; every other field of the network's section must not.
+TRAIN_ONLY_HEAD_FIELDS: dict[str, tuple[str, ...]] = {"depth": ("refine_channels", "refine_mode")}
+
+
 def _check_exported_preset(path: Path, name: str, preset: Preset, train_only: tuple[str, ...]) -> None:
     """The preset sections a checkpoint's load compares (models/checkpoint.py), from the manifest beside an
     exported ``.onnx``: a grid or crop changed keeps every weight's shape, so the graph alone cannot tell.
 
-    With ``train_only`` the network's own section may differ: the submodules added since the export (a refine
-    head) start from initialisation, and the load checks the shapes of the rest.
+    With ``train_only`` the fields of the head added since the export (TRAIN_ONLY_HEAD_FIELDS) may differ: it
+    starts from initialisation; the rest of the network's section must be the export's.
     """
     try:
         manifest = load_manifest(path.parent)
@@ -95,8 +99,7 @@ def _check_exported_preset(path: Path, name: str, preset: Preset, train_only: tu
     training = manifest.get("networks", {}).get(name, {}).get("training")
     exported = Checkpoint(preset=manifest["preset"], preset_config=manifest["preset_config"], state_dicts={},
                           metadata=training if isinstance(training, dict) else {}, path=path)
-    sections = tuple(s for s in NETWORK_SECTIONS[name] if not (train_only and s == name))
-    check_preset_fits(exported, name, preset, sections)
+    check_preset_fits(exported, name, preset, ignored=TRAIN_ONLY_HEAD_FIELDS if train_only else None)
 
 
 def _bev_channels(path: Path) -> int | None:
@@ -106,7 +109,9 @@ def _bev_channels(path: Path) -> int | None:
             from models.onnx_weights import read_onnx
 
             graph = read_onnx(path, load_external_data=False).graph
-            return graph.input[0].type.tensor_type.shape.dim[1].dim_value
+            # The lowered graphs take the BEV in channel pieces (bev[0:16], bev[16:19]): their sum is the grid's.
+            pieces = [i for i in graph.input if i.name.startswith("bev")] or list(graph.input[:1])
+            return sum(i.type.tensor_type.shape.dim[1].dim_value for i in pieces)
         return preset_from_dict(load_checkpoint(path).preset_config).bev.channels
     except (OSError, ValueError, KeyError, IndexError, AttributeError):
         return None

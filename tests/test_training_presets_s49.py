@@ -215,3 +215,41 @@ def test_a_resume_keeps_the_preset_spelling_the_run_was_started_with(one_frame: 
     argv[argv.index("--epochs") + 1] = "3"
     says = refused([*_with_preset(argv, other), "--resume"], capsys)
     assert f"but {tmp_path / 'run'} was started with --preset {first} (preset 'override'" in says, says
+
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_a_split_camera_pixor_starts_from_the_shipped_lidar_only_onnx() -> None:
+    """docs/models.md's camera PIXOR starts from the 16-line PIXOR: the shipped pixor.onnx takes its BEV in
+    channel pieces (bev[0:16], bev[16:19]), whose sum is the LiDAR grid's, so the split net is widened from it
+    (its pseudo channels at zero) instead of being refused as another preset's."""
+    import torch
+
+    from models.onnx_weights import load_onnx_weights
+    from models.start_weights import load_start_weights
+    from pipeline.presets import lidar_only
+
+    preset = get_preset("edge-split-near35")
+    net = build_pixor(preset)
+    load_start_weights(net, "pixor", REPO / "weights" / "edge-lidar16" / "pixor.onnx", preset)
+    lidar = build_pixor(lidar_only(preset))
+    load_onnx_weights(lidar, REPO / "weights" / "edge-lidar16" / "pixor.onnx")
+    first, lidar_first = net.stem[0][0].weight, lidar.stem[0][0].weight
+    channels = lidar_first.shape[1]
+    assert torch.equal(first[:, :channels], lidar_first) and not first[:, channels:].any()
+
+
+def test_a_train_only_start_compares_the_networks_section_but_the_added_head() -> None:
+    """--train-only refine on an exported depth net may add the refine head (its fields differ from the
+    export's), but not read the image in another view: that is still refused."""
+    from models import build_network
+    from models.start_weights import load_start_weights
+
+    onnx = REPO / "weights" / "edge" / "depth.onnx"
+    refine = get_preset("edge-refine")
+    load_start_weights(build_network("depth", refine), "depth", onnx, refine, train_only=("refine",))
+    quarter = replace(refine, name="quarter-refine",
+                      depth=replace(refine.depth, input_scale=0.25, input_hw=(88, 304)))
+    with pytest.raises(ValueError, match="whose depth configuration differs from the requested preset 'quarter-refine'"):
+        load_start_weights(build_network("depth", quarter), "depth", onnx, quarter, train_only=("refine",))
