@@ -31,7 +31,7 @@ from pipeline.checks import FRAME_WARNING_CODES, LOAD_WARNING_CODES
 OTHER_WARNING_CODE = "other"
 
 # Why service/protocol.py closed a connection without an answer: the reason label's values.
-CONNECTION_CLOSE_REASONS = ("head_timeout", "send_timeout", "over_limit")
+CONNECTION_CLOSE_REASONS = ("head_timeout", "send_timeout", "idle_evicted", "over_limit")
 
 # Seconds: from a fast stage of a tiny model (~0.1 ms) to a paper-size frame on a CPU (~10 s).
 LATENCY_BUCKETS = (0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0)
@@ -94,7 +94,8 @@ class Metrics:
         self.connections_closed = Counter(
             "lowres3d_connections_closed", "connections closed by the service without an answer: head_timeout (sent "
             "nothing within --receive-timeout-s), send_timeout (read none of an answer within --send-timeout-s), "
-            "over_limit (accepted beyond --max-connections)", ["reason"], registry=self.registry,
+            "idle_evicted (idle, closed to make room for a new one at --max-connections), over_limit (new, at the "
+            "cap with none idle)", ["reason"], registry=self.registry,
         )
         for reason in CONNECTION_CLOSE_REASONS:
             self.connections_closed.labels(reason=reason)

@@ -13,14 +13,18 @@ sent) than :meth:`service.settings.Settings.connection_limit` is marked in ``sco
 answers it 503 ``overloaded`` in the service's format before its body is read, the probes and
 ``/metrics`` excepted. Connections that have sent nothing do not count there (a client opening sockets
 would have locked every client out); open connections are bounded apart, by
-:meth:`service.settings.Settings.socket_limit` (``--max-connections``): one accepted beyond it is closed at
-once, so file descriptors cannot run out, with a WARNING the first time and then at most once a minute.
+:meth:`service.settings.Settings.socket_limit` (``--max-connections``, by default the open-file limit less a
+reserve): a connection accepted beyond it closes the one idle the longest (no request in progress, nothing
+left to send), so that idle sockets, a balancer's spares or a client holding sockets keep out neither new
+clients nor the probes; only when none is idle is the new one closed at once, with a WARNING the first time
+and then at most once a minute.
 
-An answer whose sending stalls (any byte of it left waiting in the server's buffer: the client reads none)
-for ``--send-timeout-s`` is cut off and its connection closed; a slow client that reads some goes on, as
-with nginx's ``send_timeout``. The connections closed without an answer, at the head deadline, the send
-deadline or the cap, are counted in ``lowres3d_connections_closed_total{reason}``, not logged one by one (a
-client could flood the log).
+An answer whose sending stalls (the client takes none of it: neither the transport's buffer nor the socket's
+send queue shrinks) for ``--send-timeout-s`` is cut off and its connection closed; a slow client that reads
+some goes on, as with nginx's ``send_timeout``. Its access line, written when the answer was handed over, says
+200: the count of cut answers is the metric's. The connections closed without an answer, at the head deadline,
+the send deadline or the cap, are counted in ``lowres3d_connections_closed_total{reason}``, not logged one by
+one (a client could flood the log).
 
 A request framed twice, with a ``Content-Length`` and a ``Transfer-Encoding`` (read as chunked), is answered
 as usual and its connection then closed (``Connection: close``), as RFC 9112 §6.1 asks: a proxy in front
@@ -38,6 +42,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import struct
 import uuid
 from typing import TYPE_CHECKING, Any
 
@@ -49,6 +54,14 @@ from service.logs import request_id_for
 
 if TYPE_CHECKING:
     from service.metrics import Metrics
+
+try:  # the socket's send queue (SIOCOUTQ is TIOCOUTQ's number): Linux, and Unix systems that share it
+    import fcntl
+    import termios
+
+    _OUTQ: int | None = termios.TIOCOUTQ
+except (ImportError, AttributeError):  # Windows, or a system without it: the transport's buffer alone
+    _OUTQ = None
 
 access_log = logging.getLogger("service.access")
 log = logging.getLogger(__name__)
@@ -123,23 +136,39 @@ def closing_send(send: Any) -> Any:
     return send_closing
 
 
+def unsent_bytes(transport: asyncio.BaseTransport) -> int:
+    """Bytes of the answers not yet taken by the client: those in the transport's buffer and, on Linux, those in
+    the socket's send queue (SIOCOUTQ: sent and not acknowledged, or not sent). The kernel's queue alone shows a
+    slow reader's progress: the transport hands it more only once much of a large send buffer is free."""
+    size = transport.get_write_buffer_size() if isinstance(transport, asyncio.WriteTransport) else 0
+    sock = transport.get_extra_info("socket")
+    if _OUTQ is None or sock is None:
+        return size
+    try:
+        return size + struct.unpack("i", fcntl.ioctl(sock.fileno(), _OUTQ, b"\0" * 4))[0]
+    except (OSError, ValueError):  # a socket closed meanwhile, or one the ioctl does not apply to
+        return size
+
+
 class SocketLimitWarning:
-    """The WARNING about connections closed at the socket cap: the first, then at most one a minute saying how
-    many since (a line per connection would let any client flood the log)."""
+    """The WARNING about new connections closed at the socket cap with no idle one to close in their place: the
+    first, then at most one a minute with how many since (a line per connection would let a client flood the
+    log)."""
 
     def __init__(self, socket_limit: int) -> None:
         self.socket_limit = socket_limit
         self.last: float | None = None  # the loop's time of the last line
-        self.unsaid = 0  # connections closed since
+        self.unsaid = 0  # new connections closed since that line
 
     def closed_one(self, now: float) -> None:
-        """One more connection closed at the cap; a line when the first, or a minute after the last."""
+        """One more new connection closed at the cap; a line when the first, or a minute after the last."""
         self.unsaid += 1
         if self.last is not None and now - self.last < OVER_SOCKET_LIMIT_WARNING_S:
             return
-        since = "" if self.last is None else f" ({self.unsaid} in the last {now - self.last:.0f} s)"
-        log.warning("connections: %d open, the limit (--max-connections): new ones are closed at once%s; "
-                    "lowres3d_connections_closed_total{reason=\"over_limit\"} counts them", self.socket_limit, since)
+        since = "" if self.last is None else f" ({self.unsaid} since the last such line, {now - self.last:.0f} s ago)"
+        log.warning("connections: %d open, the cap (--max-connections), none idle: a new connection was closed at "
+                    "once%s; lowres3d_connections_closed_total{reason=\"over_limit\"} counts them",
+                    self.socket_limit, since)
         self.last, self.unsaid = now, 0
 
 
@@ -181,14 +210,28 @@ def protocol_class(receive_timeout_s: float, connection_limit: int, metrics: Met
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
             if socket_limit is not None and len(self.connections) > socket_limit:
-                transport.close()  # nothing read or written: closed at once, its descriptor freed
-                count_closed(metrics, "over_limit")
-                over_limit_warning.closed_one(self.loop.time())
-                return
+                # Room is made by closing the connection idle the longest (a balancer's spare, a client between
+                # requests, or one that never sent a byte), so that neither idle sockets nor a client holding
+                # them keep new clients and the probes out; with none idle, the new one is closed at once.
+                idle = [c for c in self.connections
+                        if c is not self and isinstance(c, ServiceH11Protocol) and c.waiting_for_head()]
+                if idle:
+                    min(idle, key=lambda c: c._head_since).transport.close()
+                    count_closed(metrics, "idle_evicted")
+                else:
+                    transport.close()  # nothing read or written: closed at once, its descriptor freed
+                    count_closed(metrics, "over_limit")
+                    over_limit_warning.closed_one(self.loop.time())
+                    return
             # Any byte left waiting to be sent pauses writing, which arms the send deadline: with asyncio's
             # high-water mark (64 KiB) the rest of an answer under it, left after a close, would wait for ever.
             transport.set_write_buffer_limits(high=0)
             self._arm_head_deadline()
+
+        def waiting_for_head(self) -> bool:
+            """Whether the connection is idle: open, no request being answered, nothing left to send."""
+            return (not self.transport.is_closing() and (self.cycle is None or self.cycle.response_complete)
+                    and self._send_timer is None and self.transport.get_write_buffer_size() == 0)
 
         def pause_writing(self) -> None:
             super().pause_writing()
@@ -261,12 +304,12 @@ def protocol_class(receive_timeout_s: float, connection_limit: int, metrics: Met
 
         def _arm_send_deadline(self) -> None:
             self._cancel_send_deadline()
-            self._send_left = self.transport.get_write_buffer_size()
+            self._send_left = unsent_bytes(self.transport)
             self._send_timer = self.loop.call_later(send_timeout, self._send_overdue)
 
         def _send_overdue(self) -> None:
             self._send_timer = None
-            if self.transport.get_write_buffer_size() < self._send_left:
+            if unsent_bytes(self.transport) < self._send_left:
                 self._arm_send_deadline()  # the client reads, slowly: its answer goes on
                 return
             # Not close(): it would wait for the buffer to drain, which it never does. uvicorn then sees the

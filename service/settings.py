@@ -27,11 +27,23 @@ from pipeline.model_files import DEFAULT_MODELS
 ENV_PREFIX = "LOWRES3D_"
 # Requests in progress beyond workers + queue: the probes, a metrics scrape, /v1/model, and clients being told 503.
 CONNECTION_HEADROOM = 16
-# Open connections allowed by default per request admitted at once: room for idle kept-alive ones (a balancer's
-# pool, a browser's six) and for clients between two requests, yet a bound on the process's file descriptors.
-SOCKETS_PER_REQUEST = 4
+# File descriptors the process keeps for itself beside its connections (model files, logs, pipes, the event
+# loop's): the default cap on open connections is the open-file limit less these, so accept() never runs out.
+FD_RESERVE = 64
+# The default cap where the open-file limit is not known (Windows) or unlimited.
+DEFAULT_SOCKET_LIMIT = 4096
 # An origin as a browser sends it in the Origin header: scheme://host[:port], no path, no trailing slash.
 _ORIGIN = re.compile(r"^https?://[^/\s?#]+$")
+
+
+def open_file_limit() -> int | None:
+    """The process's open-file limit (the soft ``ulimit -n``); None where unknown (Windows) or unlimited."""
+    try:
+        import resource
+    except ImportError:
+        return None
+    soft, _ = resource.getrlimit(resource.RLIMIT_NOFILE)
+    return None if soft == resource.RLIM_INFINITY else soft
 
 
 class Settings(BaseSettings):
@@ -72,9 +84,9 @@ class Settings(BaseSettings):
         "server's buffer full) before the connection is closed"
     )
     max_connections: int | None = Field(
-        None, ge=2, le=1_000_000, description="open connections at most, idle ones included; one beyond is closed at "
-        f"once (default: {SOCKETS_PER_REQUEST} × (workers + queue size + {CONNECTION_HEADROOM})); keep it below the "
-        "open-file limit (ulimit -n)"
+        None, ge=2, le=1_000_000, description="open connections at most, idle ones included; one beyond closes the "
+        "connection idle the longest, or is closed itself when none is idle (default: the open-file limit, ulimit -n, "
+        f"less {FD_RESERVE}, at most {DEFAULT_SOCKET_LIMIT})"
     )
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest request body; beyond: 413")
     max_points: int = Field(1_000_000, ge=1, le=MAX_POINTS, description="most points a scan may have; beyond: 422")
@@ -185,14 +197,22 @@ class Settings(BaseSettings):
 
     @model_validator(mode="after")
     def _sockets_above_requests(self) -> Settings:
-        """Room on the socket cap for every request the admission limit lets in, and one more to be told 503:
-        below it, a client over the limit would see its connection closed without an answer."""
-        if self.max_connections is not None and self.max_connections <= self.connection_limit():
+        """Room on the socket cap for every request the admission limit lets in, and one more to be told 503
+        (below it, a client over the limit would see its connection closed without an answer); and within the
+        open-file limit, where accept() fails instead, with a traceback in the log for every try."""
+        if self.max_connections is None:
+            return self
+        if self.max_connections <= self.connection_limit():
             raise PydanticCustomError(
                 "max_connections_low", f"--max-connections {self.max_connections}: at most "
                 f"{self.connection_limit()} requests are admitted at once (workers + queue size + "
-                f"{CONNECTION_HEADROOM}); give more connections than that, or leave it unset for "
-                f"{SOCKETS_PER_REQUEST} × as many")
+                f"{CONNECTION_HEADROOM}); give more connections than that, or leave it unset")
+        files = open_file_limit()
+        if files is not None and self.max_connections > files - FD_RESERVE:
+            raise PydanticCustomError(
+                "max_connections_high", f"--max-connections {self.max_connections}: the open-file limit (ulimit -n) "
+                f"is {files}, and the process keeps {FD_RESERVE} of them for itself; give at most "
+                f"{files - FD_RESERVE}, or raise the limit")
         return self
 
     def gpu_ids(self) -> list[int] | None:
@@ -227,9 +247,14 @@ class Settings(BaseSettings):
         return self.workers + self.queue_size + CONNECTION_HEADROOM
 
     def socket_limit(self) -> int:
-        """Open connections at once, idle ones included: ``max_connections``, or SOCKETS_PER_REQUEST × the
-        connection limit; a connection beyond is closed as soon as it is accepted (service/protocol.py)."""
-        return self.max_connections or SOCKETS_PER_REQUEST * self.connection_limit()
+        """Open connections at once, idle ones included: ``max_connections``, or the open-file limit less
+        FD_RESERVE (at most DEFAULT_SOCKET_LIMIT), and always more than the connection limit; a connection beyond
+        closes the one idle the longest, or is closed itself (service/protocol.py)."""
+        if self.max_connections is not None:
+            return self.max_connections
+        files = open_file_limit()
+        room = DEFAULT_SOCKET_LIMIT if files is None else min(files - FD_RESERVE, DEFAULT_SOCKET_LIMIT)
+        return max(room, self.connection_limit() + 1)
 
     def resolved_intra_op_threads(self) -> int:
         """The configured intra-op threads, or the usable CPUs divided among the workers (docs/service.md)."""

@@ -145,21 +145,52 @@ def test_requests_in_progress_over_the_limit_are_still_refused(server: tuple[str
 
 
 # --------------------------------------------------------------------------- the socket cap
-def test_the_socket_cap_closes_the_next_connection_at_once(server: tuple[str, tuple[str, int]],
-                                                           caplog: pytest.LogCaptureFixture) -> None:
-    """With --max-connections connections open, the next one is closed at once (no descriptor held), counted
-    under over_limit, and said in one WARNING; once some close, connections are served again."""
+def test_at_the_socket_cap_a_new_connection_closes_the_one_idle_longest(server: tuple[str, tuple[str, int]],
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
+    """With --max-connections idle connections open (a client holding sockets, a balancer's spares), a new one
+    is served, a probe included: the connection idle the longest is closed to make room (idle_evicted), without
+    a WARNING, and the others stay open."""
     url, address = server
+    before = _metric(url, CLOSED.format("idle_evicted"))
+    with caplog.at_level(logging.WARNING, logger="service.protocol"), _idle(address, MAX_CONNECTIONS) as idle:
+        with socket.create_connection(address, timeout=5) as probe:
+            probe.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert probe.recv(65536).startswith(b"HTTP/1.1 200 "), "a probe at the cap was not answered"
+        assert _closed_by_server(idle[0], 2.0), "the connection idle the longest was kept open"
+        assert not _closed_by_server(idle[-1], 0.3), "a later idle connection was closed as well"
+    assert _metric(url, CLOSED.format("idle_evicted")) == before + 1
+    assert not [r for r in caplog.records if r.name == "service.protocol"]
+
+
+def test_at_the_socket_cap_with_none_idle_a_new_connection_is_closed(server: tuple[str, tuple[str, int]],
+                                                                    caplog: pytest.LogCaptureFixture) -> None:
+    """With --max-connections connections each with a request in progress (uploads answered early whose bodies
+    the service waits for, up to 2 s), none is idle: a new connection is closed at once (no descriptor held),
+    counted under over_limit, and said in one WARNING; once they end, connections are served again."""
+    url, address = server
+    head = (b"POST /v1/detect HTTP/1.1\r\nHost: x\r\nContent-Type: multipart/form-data; boundary=b\r\n"
+            b"Content-Length: 1000000\r\n\r\n")
     before = _metric(url, CLOSED.format("over_limit"))
-    with caplog.at_level(logging.WARNING, logger="service.protocol"), _idle(address, MAX_CONNECTIONS):
-        for _ in range(2):
-            with socket.create_connection(address, timeout=5) as extra:
-                extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
-                assert _closed_by_server(extra, 2.0), "a connection over the cap was kept open"
+    socks = [socket.create_connection(address, timeout=5) for _ in range(MAX_CONNECTIONS)]
+    try:
+        with caplog.at_level(logging.WARNING, logger="service.protocol"):
+            for sock in socks:
+                sock.sendall(head)
+            for sock in socks:  # each answered at once (401, or 503 past the limit), then lingering: in progress
+                assert sock.recv(65536).startswith((b"HTTP/1.1 401 ", b"HTTP/1.1 503 "))
+            for _ in range(2):
+                with socket.create_connection(address, timeout=5) as extra:
+                    extra.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n")
+                    assert _closed_by_server(extra, 1.0), "a connection over the cap was kept open"
+    finally:
+        for sock in socks:
+            sock.close()
     assert _metric(url, CLOSED.format("over_limit")) == before + 2
     warnings = [r.getMessage() for r in caplog.records if r.name == "service.protocol"]
-    assert len(warnings) == 1 and f"{MAX_CONNECTIONS} open, the limit (--max-connections)" in warnings[0], warnings
-    assert httpx.get(f"{url}/v1/model", headers=AUTH, timeout=5).status_code == 200
+    assert len(warnings) == 1 and f"{MAX_CONNECTIONS} open, the cap (--max-connections), none idle" in warnings[0], \
+        warnings
+    _wait_for(lambda: httpx.get(f"{url}/v1/model", headers=AUTH, timeout=5).status_code == 200,
+              "requests were not served again", 5)
 
 
 # --------------------------------------------------------------------------- deadlines
@@ -187,6 +218,26 @@ def test_a_client_that_never_reads_is_closed_at_the_send_deadline(server: tuple[
                 received += len(chunk)
         assert received < count * size  # cut off: not every answer came
     assert httpx.get(f"{url}/v1/model", headers=AUTH, timeout=5).status_code == 200
+
+
+def test_a_client_that_reads_slowly_is_not_cut_off(server: tuple[str, tuple[str, int]]) -> None:
+    """A client taking its answers at about 160 kB/s, far slower than the server sends: over 4 s (four send
+    deadlines) it is not cut off, since the socket's send queue shows its progress even while the transport's
+    own buffer waits for the kernel to take more (judged by that buffer alone, it was cut within a deadline)."""
+    url, address = server
+    size = len(httpx.get(f"{url}/openapi.json", timeout=5).content)
+    count = min(400, 12 * 1024 * 1024 // size + 1)
+    before = _metric(url, CLOSED.format("send_timeout"))
+    with socket.create_connection(address, timeout=5) as sock:
+        sock.sendall(b"GET /openapi.json HTTP/1.1\r\nHost: x\r\n\r\n" * count)
+        received, end = 0, time.monotonic() + 4 * SEND_TIMEOUT_S
+        while time.monotonic() < end:
+            chunk = sock.recv(16 * 1024)
+            assert chunk, f"cut off after {received} bytes"
+            received += len(chunk)
+            time.sleep(0.1)
+        assert received < count * size  # still answers to come: the deadline was in play throughout
+    assert _metric(url, CLOSED.format("send_timeout")) == before
 
 
 def test_a_connection_that_sends_nothing_is_counted_when_closed(server: tuple[str, tuple[str, int]]) -> None:
@@ -240,16 +291,34 @@ def test_a_malformed_chunk_has_one_request_id(server: tuple[str, tuple[str, int]
 
 
 # --------------------------------------------------------------------------- the settings
-def test_the_socket_cap_must_exceed_the_requests_admitted(tiny_models: Path) -> None:  # noqa: F811
-    """A cap at or under the limit on requests in progress would cut clients off where they should be told
-    503: refused at start, in one line naming the option; unset, it is 4 × that limit."""
+def test_the_socket_cap_lies_between_the_requests_admitted_and_the_open_file_limit(tiny_models: Path) -> None:  # noqa: F811
+    """A cap at or under the limit on requests in progress would cut clients off where they should be told 503,
+    and one over the open-file limit (less the process's own 64) makes accept() fail with a traceback per try:
+    both refused at start, in one line naming the option. Unset, it is the open-file limit less 64, at most 4096:
+    measured in a child whose limit is 100."""
+    import subprocess
+    import sys
+
     from pydantic import ValidationError
 
     from service.__main__ import settings_errors
 
-    assert Settings(models=tiny_models, workers=1, queue_size=2).socket_limit() == 4 * LIMIT
     assert Settings(models=tiny_models, workers=1, queue_size=2, max_connections=LIMIT + 1).socket_limit() == LIMIT + 1
     with pytest.raises(ValidationError) as refused:
         Settings(models=tiny_models, workers=1, queue_size=2, max_connections=LIMIT)
     (line,) = settings_errors(refused.value)
     assert f"--max-connections {LIMIT}: at most {LIMIT} requests are admitted at once" in line, line
+    child = ("import resource, sys\n"
+             "resource.setrlimit(resource.RLIMIT_NOFILE, (100, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))\n"
+             "from pydantic import ValidationError\n"
+             "from service.settings import Settings\n"
+             f"print(Settings(models={str(tiny_models)!r}, workers=1, queue_size=2).socket_limit())\n"
+             "try:\n"
+             f"    Settings(models={str(tiny_models)!r}, workers=1, queue_size=2, max_connections=37)\n"
+             "except ValidationError as exc:\n"
+             "    print(exc.errors()[0]['msg'])\n")
+    done = subprocess.run([sys.executable, "-c", child], capture_output=True, text=True, timeout=120, check=True,
+                          cwd=Path(__file__).resolve().parents[1])
+    default, message = done.stdout.splitlines()
+    assert default == "36"
+    assert "--max-connections 37: the open-file limit (ulimit -n) is 100" in message and "at most 36" in message
