@@ -97,7 +97,7 @@ from pipeline.detector import Cancellation, Detector, RunCancelled
 from pipeline.errors import TORCH_MISSING, InputError
 from pipeline.frame import Frame, frame_ids, load_frame
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, load_manifest, load_manifest_with_digest
-from pipeline.presets import Preset, get_preset, is_preset_file
+from pipeline.presets import Preset, get_preset, is_preset_file, preset_fields
 from pipeline.provenance import code_version
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -942,20 +942,12 @@ def check_models_preset(given: str, held: Preset, models: Path) -> None:
     wanted = get_preset(given)
     if wanted.name != held.name:
         raise InputError(f"--preset {given}: {models} holds {held.name} models (leave --preset out with --models)")
-    now, then = _preset_fields(wanted), _preset_fields(held)
+    now, then = preset_fields(wanted.to_dict()), preset_fields(held.to_dict())
     for name, value in now.items():
         if then.get(name) != value:
             raise InputError(f"--preset {given}: {name} {value!r}, but {models} holds {then.get(name)!r} (preset "
                              f"{held.name!r}, another configuration under the same name; leave --preset out with "
                              "--models)")
-
-
-def _preset_fields(preset: Preset) -> dict[str, object]:
-    """``preset`` as ``{"name": "edge", "bev.x_max": 70.4, …}``, the values as JSON holds them (tuples as lists)."""
-    fields: dict[str, object] = {}
-    for key, value in json.loads(json.dumps(preset.to_dict())).items():
-        fields.update({f"{key}.{inner}": v for inner, v in value.items()} if isinstance(value, dict) else {key: value})
-    return fields
 
 
 def _step(progress: bool, what: str) -> None:

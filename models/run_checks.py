@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import json
 import logging
 import os
 import random
@@ -47,6 +46,7 @@ from pipeline.kitti import (
     read_labels,
     read_velodyne,
 )
+from pipeline.presets import preset_fields
 
 if TYPE_CHECKING:
     from models.train import TrainConfig, TrainResult
@@ -209,24 +209,12 @@ def check_same_preset(preset: Preset, started: dict, given: str, out: Path) -> N
     """An InputError naming the first field in which ``preset`` (--preset ``given`` now) differs from the preset
     ``started`` (its ``to_dict()``) that the run in ``out`` recorded: its remaining epochs would train another grid
     or network under the first epochs' log and checkpoints."""
-    now, then = _preset_fields(preset.to_dict()), _preset_fields(started)
+    now, then = preset_fields(preset.to_dict()), preset_fields(started)
     for name, value in now.items():
         if name in then and then[name] != value:  # a field the run's record lacks (added since) is not compared
             raise InputError(f"--preset {given}: {name} {value!r}, but {out} was started with {then[name]!r} "
                              f"(preset {started.get('name')!r}; resume with the preset it was started with, "
                              "unchanged; only --epochs may change)")
-
-
-def _preset_fields(config: dict) -> dict[str, object]:
-    """A preset's ``to_dict()`` as ``{"name": "edge", "bev.x_max": 70.4, …}``, the values as JSON holds them
-    (tuples and lists alike)."""
-    fields: dict[str, object] = {}
-    for key, value in json.loads(json.dumps(config)).items():
-        if isinstance(value, dict):
-            fields.update({f"{key}.{field}": inner for field, inner in value.items()})
-        else:
-            fields[key] = value
-    return fields
 
 
 def frame_fingerprints(train_ids: list[str], val_ids: list[str]) -> dict[str, str | int]:

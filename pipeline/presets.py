@@ -448,6 +448,18 @@ def _check_not_registered(where: str, preset: Preset) -> None:
                          "give this one a name of its own")
 
 
+def preset_fields(config: dict) -> dict[str, object]:
+    """A preset's ``to_dict()`` as ``{"name": "edge", "bev.x_max": 70.4, …}``, the values as JSON holds them
+    (tuples and lists alike): two presets compared field by field, a difference named by its field."""
+    fields: dict[str, object] = {}
+    for key, value in json.loads(json.dumps(config)).items():
+        if isinstance(value, dict):
+            fields.update({f"{key}.{field}": inner for field, inner in value.items()})
+        else:
+            fields[key] = value
+    return fields
+
+
 def check_preset(preset: Preset) -> None:
     """ValueError naming each field of ``preset`` the networks or the pipeline cannot run as meant, with a value
     that would do; run on every preset taken by name or file for training and export (:func:`get_preset`).
