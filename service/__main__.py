@@ -61,7 +61,7 @@ from pipeline.cli import INTERRUPTED_STATUS, HelpFormatter, examples, interrupte
 from pipeline.errors import InputError
 from pipeline.model_files import ModelFileError, default_models_hint
 from service.logs import configure_logging, requested_log_format
-from service.settings import ENV_PREFIX, Settings
+from service.settings import ENV_PREFIX, Settings, option_name
 
 if TYPE_CHECKING:
     import uvicorn
@@ -140,12 +140,15 @@ def settings_errors(exc: ValidationError) -> list[str]:
     lines = []
     for error in exc.errors():
         name = str(error["loc"][0]) if error["loc"] else ""
-        named = f"--{name.replace('_', '-')} ({ENV_PREFIX}{name.upper()})" if name else "settings"
+        message = f"{error['msg'][:1].lower()}{error['msg'][1:]}"
+        if not name:  # a check across settings: its message names the settings itself (option_name)
+            lines.append(message)
+            continue
         value = error["input"]
         # The token is never echoed (logs are read by others); an empty value has nothing to show.
-        shown = name and name != "token" and not isinstance(value, dict) and str(value).strip()
+        shown = name != "token" and not isinstance(value, dict) and str(value).strip()
         given = f" {value}" if shown else ""
-        lines.append(f"{named}{given}: {error['msg'][:1].lower()}{error['msg'][1:]}")
+        lines.append(f"{option_name(name)}{given}: {message}")
     return lines
 
 

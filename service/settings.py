@@ -36,6 +36,11 @@ DEFAULT_SOCKET_LIMIT = 4096
 _ORIGIN = re.compile(r"^https?://[^/\s?#]+$")
 
 
+def option_name(field: str) -> str:
+    """A setting named both ways a user can give it: ``--max-connections (LOWRES3D_MAX_CONNECTIONS)``."""
+    return f"--{field.replace('_', '-')} ({ENV_PREFIX}{field.upper()})"
+
+
 def open_file_limit() -> int | None:
     """The process's open-file limit (the soft ``ulimit -n``); None where unknown (Windows) or unlimited."""
     try:
@@ -184,15 +189,16 @@ class Settings(BaseSettings):
         """Device ids only where they can be used: a GPU provider (or the best available, checked at load) and,
         for several GPUs, a session pair per worker."""
         ids = self.gpu_ids()
+        given = f"{option_name('device_ids')} {self.device_ids}"
         if ids and self.provider == "cpu":
-            raise PydanticCustomError("device_ids_cpu", f"--device-ids {self.device_ids} with --provider cpu: GPU ids "
-                                      "are for cuda or tensorrt")
+            raise PydanticCustomError("device_ids_cpu", f"{given} with --provider cpu: GPU ids are for cuda or "
+                                      "tensorrt")
         if ids and len(ids) > 1 and self.sessions == "shared":
-            raise PydanticCustomError("device_ids_shared", f"--device-ids {self.device_ids}: several GPUs need "
-                                      "--sessions per-worker (shared sessions run on one GPU)")
+            raise PydanticCustomError("device_ids_shared", f"{given}: several GPUs need --sessions per-worker "
+                                      "(shared sessions run on one GPU)")
         if ids and len(ids) > self.workers:  # a GPU no worker would use, unsaid
-            raise PydanticCustomError("device_ids_unused", f"--device-ids {self.device_ids}: {len(ids)} GPUs for "
-                                      f"{self.workers} worker(s); give each worker one (--workers {len(ids)})")
+            raise PydanticCustomError("device_ids_unused", f"{given}: {len(ids)} GPUs for {self.workers} worker(s); "
+                                      f"give each worker one (--workers {len(ids)})")
         return self
 
     @model_validator(mode="after")
@@ -204,13 +210,14 @@ class Settings(BaseSettings):
             return self
         if self.max_connections <= self.connection_limit():
             raise PydanticCustomError(
-                "max_connections_low", f"--max-connections {self.max_connections}: at most "
+                "max_connections_low", f"{option_name('max_connections')} {self.max_connections}: at most "
                 f"{self.connection_limit()} requests are admitted at once (workers + queue size + "
                 f"{CONNECTION_HEADROOM}); give more connections than that, or leave it unset")
         files = open_file_limit()
         if files is not None and self.max_connections > files - FD_RESERVE:
             raise PydanticCustomError(
-                "max_connections_high", f"--max-connections {self.max_connections}: the open-file limit (ulimit -n) "
+                "max_connections_high", f"{option_name('max_connections')} {self.max_connections}: the open-file limit "
+                f"(ulimit -n) "
                 f"is {files}, and the process keeps {FD_RESERVE} of them for itself; give at most "
                 f"{files - FD_RESERVE}, or raise the limit")
         return self

@@ -1347,11 +1347,11 @@ def test_gpu_ids_from_the_command_line_or_the_environment(monkeypatch: pytest.Mo
     assert settings_from_args([]).gpu_ids() is None
     monkeypatch.setenv("LOWRES3D_DEVICE_IDS", "1,0")
     assert settings_from_args(["--sessions", "per-worker", "--provider", "cuda"]).gpu_ids() == [1, 0]
-    for argv, line in (([], "--device-ids 1,0: several GPUs need --sessions per-worker"),
-                       (["--device-ids", "0", "--provider", "cpu"], ("--device-ids 0 with --provider cpu: GPU ids are "
+    for argv, line in (([], "--device-ids (LOWRES3D_DEVICE_IDS) 1,0: several GPUs need --sessions per-worker"),
+                       (["--device-ids", "0", "--provider", "cpu"], ("--device-ids (LOWRES3D_DEVICE_IDS) 0 with --provider cpu: GPU ids are "
                         "for cuda or tensorrt")),
                        (["--device-ids", "0,0"], "--device-ids (LOWRES3D_DEVICE_IDS) 0,0: a GPU id given twice"),
-                       (["--workers", "1", "--sessions", "per-worker"], "--device-ids 1,0: 2 GPUs for 1 worker(s)"),
+                       (["--workers", "1", "--sessions", "per-worker"], "--device-ids (LOWRES3D_DEVICE_IDS) 1,0: 2 GPUs for 1 worker(s)"),
                        (["--device-ids", "gpu0"], "--device-ids (LOWRES3D_DEVICE_IDS) gpu0: expected GPU ids from 0")):
         with pytest.raises(ValidationError) as caught:
             settings_from_args(argv)

@@ -307,7 +307,7 @@ def test_the_socket_cap_lies_between_the_requests_admitted_and_the_open_file_lim
     with pytest.raises(ValidationError) as refused:
         Settings(models=tiny_models, workers=1, queue_size=2, max_connections=LIMIT)
     (line,) = settings_errors(refused.value)
-    assert f"--max-connections {LIMIT}: at most {LIMIT} requests are admitted at once" in line, line
+    assert f"--max-connections (LOWRES3D_MAX_CONNECTIONS) {LIMIT}: at most {LIMIT} requests are admitted at once" in line, line
     child = ("import resource, sys\n"
              "resource.setrlimit(resource.RLIMIT_NOFILE, (100, resource.getrlimit(resource.RLIMIT_NOFILE)[1]))\n"
              "from pydantic import ValidationError\n"
@@ -321,4 +321,4 @@ def test_the_socket_cap_lies_between_the_requests_admitted_and_the_open_file_lim
                           cwd=Path(__file__).resolve().parents[1])
     default, message = done.stdout.splitlines()
     assert default == "36"
-    assert "--max-connections 37: the open-file limit (ulimit -n) is 100" in message and "at most 36" in message
+    assert "--max-connections (LOWRES3D_MAX_CONNECTIONS) 37: the open-file limit (ulimit -n) is 100" in message and "at most 36" in message
