@@ -20,19 +20,20 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from pipeline.errors import InputError
 
+# The code of an HTTPException, by status, each one of the documented table (service.schemas.ERROR_CODES).
+# Starlette and FastAPI raise 400 (a body they cannot parse), 404 and 405 here; not 403 (the bearer scheme has
+# auto_error=False) nor 406 (nothing negotiates content). The other entries give the service's own statuses their
+# codes; a status without one would be answered as http_<status>.
 _HTTP_CODES = {
     400: "bad_request",
     401: "unauthorized",
-    403: "forbidden",
     404: "not_found",
     405: "method_not_allowed",
-    406: "not_acceptable",
     408: "request_timeout",
     413: "body_too_large",
     415: "unsupported_media_type",
     422: "invalid_input",
     500: "internal_error",
-    503: "unavailable",
     504: "timeout",
 }
 

@@ -42,6 +42,7 @@ from pipeline.checks import (
 )
 from pipeline.errors import InputError
 from pipeline.kitti import (
+    _CALIB_NUMBER,
     JPEG_SCAN,
     PNG_SIGNATURE,
     POINT_BYTES,
@@ -51,6 +52,7 @@ from pipeline.kitti import (
     image_header_hw,
     parse_calib,
     parse_velodyne,
+    wider_rows_hint,
 )
 from service.errors import ServiceError
 from service.schemas import NonFinitePolicy
@@ -104,8 +106,6 @@ class FrameStamps:
 
 _DECIMAL_INTEGER = re.compile(r"[+-]?[0-9]+")
 _INT64_DIGITS = len(str(STAMP_NS_MAX))
-_DECIMAL_NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?|[+-]?(?:nan|inf|infinity)",
-                             re.IGNORECASE)
 
 
 def stamp_query(value: object) -> object:
@@ -124,7 +124,8 @@ def stamp_query(value: object) -> object:
         # Without the leading zeros: int() refuses a string of over 4,300 characters, zeros and all, with a
         # message about sys.set_int_max_str_digits.
         number = -int(digits or "0") if value.startswith("-") else int(digits or "0")
-    elif _DECIMAL_NUMBER.fullmatch(value):  # said as a float (seconds most likely); not '1_000' or ' 5'
+    # A decimal number as a calibration's are read: said as a float (seconds most likely); not '1_000' or ' 5'.
+    elif _CALIB_NUMBER.fullmatch(value):
         number = float(value)
     problem = stamp_problem(number)
     if problem is not None:
@@ -163,8 +164,9 @@ class DecodedFrame:
         return None if self.image is None else (int(self.image.shape[0]), int(self.image.shape[1]))
 
 
-def image_size(data: bytes) -> tuple[int, int]:
-    """(width, height) from a PNG or JPEG header without decoding; 415 for other formats."""
+def upload_image_hw(data: bytes) -> tuple[int, int]:
+    """(height, width), as :func:`pipeline.kitti.image_header_hw`, from a PNG or JPEG header without decoding;
+    415 for other formats."""
     if not data:
         raise InputError("image: the part is empty (0 bytes)")
     if not data.startswith((PNG_SIGNATURE, JPEG_SIGNATURE)):
@@ -176,12 +178,12 @@ def image_size(data: bytes) -> tuple[int, int]:
     height, width = hw
     if width == 0 or height == 0:
         raise InputError(f"image: the header says {width}×{height} pixels")
-    return width, height
+    return height, width
 
 
 def _check_image(data: bytes, max_image_pixels: int, crop_hw: tuple[int, int] | None) -> None:
     """The image checks that need no decoding: format, pixel count and crop from the header, a PNG's or JPEG's end."""
-    width, height = image_size(data)
+    height, width = upload_image_hw(data)
     if width * height > max_image_pixels:
         raise InputError(f"image: {width}×{height} pixels is more than the limit of {max_image_pixels} pixels")
     if crop_hw is not None and (height < crop_hw[0] or width < crop_hw[1]):
@@ -315,7 +317,7 @@ def _check_points(data: bytes, max_points: int) -> None:
     if len(data) % POINT_BYTES:
         raise InputError(
             f"points: size {len(data)} bytes is not a multiple of {POINT_BYTES} "
-            "(a KITTI scan is float32 rows x, y, z, reflectance)"
+            f"(a KITTI scan is float32 rows x, y, z, reflectance){wider_rows_hint(len(data))}"
         )
     count = len(data) // POINT_BYTES
     if count > max_points:

@@ -56,7 +56,8 @@ class Metrics:
             "lowres3d_http_requests_in_flight", "HTTP requests being handled", registry=self.registry
         )
         self.stage_latency = Histogram(
-            "lowres3d_stage_duration_seconds", "latency of each detection stage (total = queue + parse + detector)",
+            "lowres3d_stage_duration_seconds",
+            "latency of each detection stage (total = queue + parse + detector, + render on the picture routes)",
             ["stage"], buckets=LATENCY_BUCKETS, registry=self.registry,
         )
         self.queue_depth = Gauge(

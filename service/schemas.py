@@ -91,7 +91,9 @@ class ModelIdentityInfo(ModelRef):
 
     path: str = Field(description="the model directory's absolute path, after symbolic links")
     format: int = Field(description="the manifest's format version (`lowres3d-models/N`)", examples=[1])
-    weights: str = Field(description="`trained`, or which network is not", examples=["trained"])
+    weights: str = Field(description="the manifest's `weights`: `trained`, `initialised (untrained)`, or each "
+                         "network's state when they differ (`partially trained: depth trained, pixor initialised "
+                         "(untrained)`)", examples=["trained"])
     training_data: dict[str, str | None] = Field(
         description="each network's training data as its training record names it (null: not recorded)")
 

@@ -22,6 +22,7 @@ from pipeline.checks import MAX_SENSOR_SKEW_MS
 from pipeline.cli import gpu_ids
 from pipeline.cpu import usable_cpus
 from pipeline.detector import MAX_POINTS
+from pipeline.kitti import MAX_IMAGE_PIXELS
 from pipeline.model_files import DEFAULT_MODELS
 
 ENV_PREFIX = "LOWRES3D_"
@@ -96,7 +97,8 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(32 * 1024 * 1024, ge=1024, description="largest request body; beyond: 413")
     max_points: int = Field(1_000_000, ge=1, le=MAX_POINTS, description="most points a scan may have; beyond: 422")
     max_image_pixels: int = Field(
-        16 * 1024 * 1024, ge=1, description="most pixels an uploaded image may have (checked before decoding)"
+        16 * 1024 * 1024, ge=1, description="most pixels an uploaded image may have (checked before decoding; at "
+        f"most {MAX_IMAGE_PIXELS:,}, the decoder's own limit)"
     )
     token: SecretStr | None = Field(
         None, description="bearer token required on /v1/* when set (prefer the environment variable over --token)"
@@ -142,6 +144,17 @@ class Settings(BaseSettings):
         """Refuse an empty path: ``LOWRES3D_MODELS=`` left blank would become Path(""), the current directory."""
         if isinstance(value, str) and not value.strip():
             raise PydanticCustomError("empty_path", "empty; give a path (an empty one would be the current directory)")
+        return value
+
+    @field_validator("max_image_pixels")
+    @classmethod
+    def _image_pixels_decodable(cls, value: int) -> int:
+        """Refuse a limit above the decoder's (pipeline.kitti.MAX_IMAGE_PIXELS): an image between the two would
+        pass the check before the queue, wait for a worker, then be refused there as a damaged header."""
+        if value > MAX_IMAGE_PIXELS:
+            raise PydanticCustomError(
+                "max_image_pixels_high", f"more than {MAX_IMAGE_PIXELS:,}, the most pixels the decoder takes "
+                "(pipeline.kitti.MAX_IMAGE_PIXELS); give at most that")
         return value
 
     @field_validator("host", mode="before")

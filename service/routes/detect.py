@@ -227,8 +227,8 @@ def picture_title(identity: ModelIdentity, emulate_beams: int | None) -> str:
 
 
 def _picture_warnings(early: list[CodedWarning], decoding: list[str], detections: Detections) -> list[str]:
-    """The frame's warning codes (as X-Warnings carries them) for a picture's key, but the thinning asked for,
-    which its title says."""
+    """The frame's warning codes (as X-Warning-Codes carries them; X-Warnings the messages) for a picture's key,
+    but the thinning asked for, which its title says."""
     codes = [w.code for w in early] + list(decoding) + list(detections.warning_codes)
     return [c for c in codes if c != WarningCode.BEAMS_EMULATED]
 

@@ -29,7 +29,7 @@ _EXAMPLE_MESSAGES = {
     "body_too_large": "request body: larger than the limit of 33554432 bytes",
     "unsupported_media_type": "Content-Type: expected multipart/form-data with parts image, points (and calib), got "
                               "application/json",
-    "invalid_input": "emulate_beams: Input should be 4, 8, 16 or 32",
+    "invalid_input": "emulate_beams: Input should be 0, 4, 8, 16 or 32",
     "internal_error": "internal error; the server log has the details under request id 5f0c8e7a9b2d4c1e8f3a6b7c9d0e1f2a",
     "overloaded": "inference queue: full (6 frames admitted); retry later",
     "not_ready": "models are warming up",
