@@ -55,6 +55,10 @@ _MIN_POINTS_PER_SEGMENT = 200
 _GAP_RANGE_M = 20.0
 _GAP_DEG = 0.5
 _MOST_GAPS_OF_64_LINES = 1
+# Fewer far returns than this tell nothing: sampled that thinly a 64-line scan's elevations leave gaps too. Of
+# 200 random draws of 100 far returns from each of the five KITTI scans, 28 of 1,000 showed more than one gap
+# (684 of 1,000 at 50; none at 150), and no draw of 50 to 200 from their 16-line thinnings fewer than two.
+_FEWEST_FAR_RETURNS = 100
 
 
 @dataclass(frozen=True)
@@ -262,7 +266,7 @@ def beam_gaps(points: np.ndarray) -> int:
     within their 5th to 95th percentile: none for a 64-line scan's beams a third to half a degree apart, several
     for 16 lines (0 when too few returns are that far to tell)."""
     far = points[np.hypot(points[:, 0], points[:, 1]) > _GAP_RANGE_M]
-    if far.shape[0] < 100:
+    if far.shape[0] < _FEWEST_FAR_RETURNS:
         return 0
     elevation = np.sort(elevation_deg(far))
     low, high = elevation[int(0.05 * elevation.size)], elevation[int(0.95 * elevation.size)]

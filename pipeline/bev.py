@@ -90,8 +90,8 @@ def pseudo_bins(
     depth: np.ndarray,
     calib: Calibration,
     grid: BevGrid,
-    min_depth: float = 0.9,
-    max_depth: float = 80.0,
+    min_depth: float,
+    max_depth: float,
     stride: int = 1,
     max_height: float | None = None,
     max_jump: float | None = None,
@@ -266,7 +266,8 @@ class BevVoxelizer:
         ``np.ascontiguousarray(bev[:, ::-1])``, in a second reused buffer (overwritten by the next call).
 
         Written from the cells the frame set, as the BEV itself is: the grid is mostly empty, and copying
-        all of it (21 MB for the edge grid) took 3 ms a frame here, longer than the voxelization.
+        all of it (20.8 MB for the shipped edge-split grid, 37 × 400 × 352 float32; 10.7 MB for the plain edge
+        grid's 19 channels) took 3 ms a frame here on the edge-split grid, longer than the voxelization.
         """
         if self._mirror is None:
             self._mirror = self._zeros(self._out.shape, np.float32)
@@ -331,6 +332,7 @@ def voxelize_bev(points: np.ndarray, grid: BevGrid,
     pseudo: optional pseudo points, as (x, y, z) arrays or their bins (:meth:`BevVoxelizer.__call__`).
 
     The throwaway voxelizer's buffer is the result: no other call can overwrite it, so it needs no copy
-    (an edge BEV, 10.7 MB: 5.4 → 1.2 ms per call with glibc's default malloc, 2.0 → 1.2 ms in training).
+    (a plain edge BEV, 19 × 400 × 352 float32, 10.7 MB: 5.4 → 1.2 ms per call with glibc's default malloc,
+    2.0 → 1.2 ms in training).
     """
     return BevVoxelizer(grid)(points, pseudo)

@@ -16,11 +16,13 @@ The checks, in order (each needs the ones before it; those after a failure are r
             [0, 1], the boxes finite
 
 The frame is KITTI 000006 of the source checkout's tests/data (its 64-line scan thinned to the model's own line
-count), or --data DIR --frame ID. The last line gives the model's id, the sha256 of its manifest.json: what the
-service reports in /v1/model, in each answer's X-Model-ID header and in lowres3d_model_info. Exit status 0 when
-every check passes, 1 when one fails, 2 for an unusable command line (no such --models folder, a frame that
-cannot be read, an unwritable --json or one inside what the check reads). Runs on the runtime install: ONNX
-Runtime, no torch.
+count), or --data DIR --frame ID: a 64-line scan is thinned so too, and a scan with the model's line count already
+(a 16-line vehicle's own frame for a 16-line model) runs as stored, the vehicle's real input; a scan thinned to
+another count is refused (exit 2; --emulate-beams 0 runs any scan as stored). The last line gives the model's id,
+the sha256 of its manifest.json: what the service reports in /v1/model, in each answer's X-Model-ID header and in
+lowres3d_model_info. Exit status 0 when every check passes, 1 when one fails, 2 for an unusable command line (no
+such --models folder, a frame that cannot be read or is thinned to another line count, an unwritable --json or one
+inside what the check reads). Runs on the runtime install: ONNX Runtime, no torch.
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to
+from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to, recover_rings
 from pipeline.cli import (
     HelpFormatter,
     check_not_input,
@@ -46,6 +48,7 @@ from pipeline.cli import (
 from pipeline.detector import Detector, resolve_providers
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
+from pipeline.kitti import SAMPLE_DIR
 from pipeline.model_files import (
     MANIFEST_NAME,
     ModelFileError,
@@ -57,7 +60,6 @@ from pipeline.model_files import (
 )
 from pipeline.presets import Preset, preset_from_dict
 
-SAMPLE_DIR = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 SAMPLE_FRAME = "000006"
 CHECKS = ("manifest", "files", "sessions", "frame")
 SHOWN_PROBLEMS = 5  # the bad files the files check names, before "and N more"
@@ -149,11 +151,25 @@ def check_files(models: Path, manifest: dict) -> list[str]:
             for name in sorted(p.name for p in models.iterdir()) if name not in listed]
 
 
-def scan_lines(detector: Detector, emulate: int | None) -> int | None:
-    """The lines the bundled 64-line scan is thinned to: ``--emulate-beams`` (0: as stored), else the model's own."""
-    if emulate is not None:
-        return emulate or None
-    return lines_to_thin_to(detector.trained_lines) or None
+def frame_scan(detector: Detector, points: np.ndarray, emulate: int | None, source: Path) -> tuple[np.ndarray, str]:
+    """The scan the frame check runs, and how it was read: thinned to ``--emulate-beams`` (0: as stored), else to
+    the model's own line count (as stored for a 64-line model). A scan that cannot be thinned, being thinned
+    already, runs as stored when it has the model's lines (a vehicle's own frame: what the model will see); an
+    InputError naming ``source`` otherwise, as a frame unfit for the check is the command line's fault, not
+    the model's."""
+    beams = emulate if emulate is not None else lines_to_thin_to(detector.trained_lines)
+    if not beams:
+        return points, "as stored"
+    try:
+        return emulate_beams(points, beams), f"thinned to {beams} lines"
+    except InputError as exc:
+        why = str(exc)
+    rings = recover_rings(points)  # thinned already: how many lines, when its scan order tells (not out of order)
+    # A ring-ordered scan splits into one segment per ring, and one more when its first ring is cut at the wrap.
+    if emulate is None and rings.method == "azimuth-wrap" and beams <= rings.n_rings <= beams + 1:
+        return points, f"as stored: {beams} lines already, the model's own"
+    # The way out beams.check_scan_thinnable names for such a scan in the training and evaluation commands.
+    raise InputError(f"{source}: {why}; to check the model on a sensor's scans as they are, give --emulate-beams 0")
 
 
 def _finite(name: str, array: np.ndarray, shape: tuple[int, ...] | None = None) -> None:
@@ -165,9 +181,9 @@ def _finite(name: str, array: np.ndarray, shape: tuple[int, ...] | None = None) 
         raise CheckFailed(f"{name}: {bad} of {array.size} values are NaN or infinite")
 
 
-def check_frame(detector: Detector, frame: Frame, beams: int | None) -> str:
-    """Run one frame: each network's raw outputs, then the boxes; CheckFailed naming the output at fault."""
-    points = emulate_beams(frame.points, beams) if beams else frame.points
+def check_frame(detector: Detector, frame: Frame, points: np.ndarray, scan: str) -> str:
+    """Run one frame on its scan ``points`` (read as ``scan`` says, :func:`frame_scan`): each network's raw
+    outputs, then the boxes; CheckFailed naming the output at fault."""
     inputs = detector.network_inputs(frame.image, points, frame.calib)  # what detect() feeds each network
     preset = detector.preset
     if detector.two_stage:
@@ -186,14 +202,18 @@ def check_frame(detector: Detector, frame: Frame, beams: int | None) -> str:
     elapsed = (time.perf_counter() - tic) * 1e3
     _finite("boxes", result.boxes)
     _finite("scores", result.scores)
-    lines = f"thinned to {beams} lines" if beams else "as stored"
-    return (f"frame {frame.frame_id} (scan {lines}): {len(result.scores)} car(s), every output finite, "
+    return (f"frame {frame.frame_id} (scan {scan}): {len(result.scores)} car(s), every output finite, "
             f"{elapsed:.0f} ms")
+
+
+def frame_folder(config: CheckConfig) -> Path:
+    """The KITTI object folder the frame is read from: ``--data``, else the checkout's bundled frames."""
+    return config.data if config.data is not None else SAMPLE_DIR
 
 
 def read_frame(config: CheckConfig) -> Frame:
     """The frame to run; InputError when it cannot be read (the bundled one exists only in a source checkout)."""
-    data = config.data if config.data is not None else SAMPLE_DIR
+    data = frame_folder(config)
     if config.data is None and not data.is_dir():
         raise InputError(f"--data: the bundled frames ({data}) exist only in a source checkout; give --data DIR "
                          "--frame ID (a KITTI object folder)")
@@ -203,8 +223,8 @@ def read_frame(config: CheckConfig) -> Frame:
 def run(config: CheckConfig) -> CheckReport:
     """Every check on ``config.models``, stopping at the first that fails (the rest reported as skipped).
 
-    InputError for what is not the directory's fault: no such folder, a frame that cannot be read, a provider
-    this ONNX Runtime build does not offer."""
+    InputError for what is not the directory's fault: no such folder, a frame that cannot be read (or whose scan
+    is thinned to lines other than the model's), a provider this ONNX Runtime build does not offer."""
     models = Path(config.models)
     if not models.is_dir():
         raise InputError(f"--models {models}: {'not a folder' if models.exists() else 'no such folder'}")
@@ -248,8 +268,11 @@ def run(config: CheckConfig) -> CheckReport:
         check.detail = (", ".join(f"{name} on {providers[0]}" for name, providers in detector.providers_in_use.items())
                         + f"; graph inputs match preset {preset.name}")
         check = step("frame")
+        # Outside the try below: a frame the check cannot use as asked is no failure of the model (exit 2).
+        scan_file = frame_folder(config) / "velodyne" / f"{frame.frame_id}.bin"
+        points, scan = frame_scan(detector, frame.points, config.emulate_beams, scan_file)
         try:
-            check.detail = check_frame(detector, frame, scan_lines(detector, config.emulate_beams))
+            check.detail = check_frame(detector, frame, points, scan)
         except CheckFailed:
             raise
         except Exception as exc:  # an input error, or ONNX Runtime failing at its first run: a FAIL, not a traceback
@@ -293,7 +316,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--frame", default=SAMPLE_FRAME, metavar="ID", help=f"its frame id (default {SAMPLE_FRAME})")
     parser.add_argument("--emulate-beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
                         help="thin the scan to N lines first, 0 to run it as stored (default: the model's own line "
-                             "count, for a 64-line scan)")
+                             "count; a scan with that count already runs as stored)")
     parser.add_argument("--allow-untrained", action="store_true",
                         help="pass a directory exported without trained weights (latency tests; never a vehicle)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the report as JSON")

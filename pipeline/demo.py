@@ -30,13 +30,11 @@ from pipeline.boxes import labels_to_boxes
 from pipeline.cli import HelpFormatter, examples, quiet_interrupt, unwritable
 from pipeline.errors import InputError
 from pipeline.frame import load_frame
+from pipeline.kitti import SAMPLE_DIR
 from pipeline.model_files import DEFAULT_MODELS, ModelFileError, load_manifest
 from pipeline.preprocess import depth_inputs
 from pipeline.presets import get_preset
 from pipeline.render import depth_colours, draw_colour_scale, draw_label, render_bev, render_depth, write_png
-
-ROOT = Path(__file__).resolve().parents[1]
-SAMPLE_DIR = ROOT / "tests" / "data" / "kitti" / "training"
 
 
 def sparse_depth_picture(rgb: np.ndarray, sparse_depth: np.ndarray, max_depth: float = 80.0,

@@ -24,6 +24,9 @@ import numpy as np
 from pipeline.calib import CALIBRATION_SHAPES, Calibration, check_calibration, homogeneous_block
 from pipeline.errors import InputError
 
+# The real KITTI frames a source checkout bundles (tests/data, CC BY-NC-SA 3.0): the demo's and check_models'
+# default frame. An install from a wheel leaves them behind: each user checks the folder is there.
+SAMPLE_DIR = Path(__file__).resolve().parents[1] / "tests" / "data" / "kitti" / "training"
 POINT_BYTES = 16  # float32 x, y, z, reflectance
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"  # the first 8 bytes of every PNG file
 JPEG_START, JPEG_SCAN, JPEG_END = b"\xff\xd8", b"\xff\xda", b"\xff\xd9"  # start of image, of a scan, end of image
@@ -602,7 +605,8 @@ def check_header_size(data: bytes, source: str) -> tuple[int, int] | None:
 
 def check_image_file(path: str | Path) -> None:
     """InputError for an image file that is empty, neither PNG nor JPEG, or cut off before its end: what its
-    first and last bytes tell without decoding it (a training run checks every frame's so before it starts)."""
+    first and last bytes tell without decoding it, or all its bytes when the last hold no end marker (a training
+    run checks every frame's so before it starts)."""
     path = Path(path)
     try:
         with open(path, "rb") as handle:
@@ -616,9 +620,11 @@ def check_image_file(path: str | Path) -> None:
         raise InputError(f"{path}: empty image")
     if not head.startswith((PNG_SIGNATURE, JPEG_START)):
         raise InputError(f"{path}: not a PNG or JPEG image")
-    # A PNG's IEND may lie further back than the tail read (many bytes appended after it): then read it all.
-    whole = path.read_bytes() if head.startswith(PNG_SIGNATURE) and b"IEND" not in tail else head + tail
-    check_image_end(whole, str(path))
+    # With its end marker in the tail, the tail decides as the whole file would (any earlier scan starts before
+    # it). Without it the file is cut off, or ends further back (bytes appended after its end): read_image's rule
+    # on all of it then. (The tail alone passed a cut-off JPEG, whose one scan marker lies near its start.)
+    end = b"IEND" if head.startswith(PNG_SIGNATURE) else JPEG_END
+    check_image_end(head + tail if end in tail else path.read_bytes(), str(path))
 
 
 def _imdecode(data: bytes, flags: int, source: str) -> np.ndarray | None:

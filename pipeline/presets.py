@@ -490,8 +490,8 @@ def check_preset(preset: Preset) -> None:
     decode = preset.decode
     problems += [f"decode.{name} {value!r} must lie in [0, 1]" for name, value in
                  (("score_threshold", decode.score_threshold), ("nms_iou", decode.nms_iou)) if not 0 <= value <= 1]
-    problems += [f"decode.{name} has {len(value)} values: one per regression channel, 6 (dx, dy, cos, sin, log l, "
-                 "log w)" for name, value in (("reg_mean", decode.reg_mean), ("reg_std", decode.reg_std))
+    problems += [f"decode.{name} has {len(value)} values: one per regression channel, 6 (cos θ, sin θ, dx, dy, "
+                 "log w, log l)" for name, value in (("reg_mean", decode.reg_mean), ("reg_std", decode.reg_std))
                  if len(value) != 6]
     if decode.reg_std and min(decode.reg_std) <= 0:
         problems.append(f"decode.reg_std {list(decode.reg_std)} must be positive")

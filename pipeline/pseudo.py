@@ -8,6 +8,7 @@ points are merged in they keep their measured reflectance.
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -58,15 +59,20 @@ class RayTable:
 
 _TABLES: OrderedDict[tuple, RayTable] = OrderedDict()
 _TABLES_MAX = 16  # a deployment sees one or a few calibrations; KITTI one per drive
+# One Detector serves several threads (each with a stage thread that builds the tables beside the depth net),
+# and every Detector of a process shares this cache: it is changed under a lock, as calib's _PASSED is.
+_TABLES_LOCK = threading.Lock()
 
 
 def _cached(key: tuple, build: Callable[[], RayTable]) -> RayTable:
     """The table under key, built on first use (least recently built dropped past _TABLES_MAX)."""
     table = _TABLES.get(key)
     if table is None:
-        table = _TABLES[key] = build()  # a racing thread may build the same table: equal, harmless
-        while len(_TABLES) > _TABLES_MAX:
-            _TABLES.popitem(last=False)
+        table = build()  # outside the lock: a racing thread may build the same table, equal, harmless
+        with _TABLES_LOCK:  # two threads trimming at once could pop one entry too many, or from an empty dict
+            _TABLES[key] = table
+            while len(_TABLES) > _TABLES_MAX:
+                _TABLES.popitem(last=False)
     return table
 
 
@@ -102,8 +108,8 @@ def bin_rays(calib: Calibration, height: int, width: int, stride: int, grid: Bev
 def pseudo_xyz(
     depth: np.ndarray,
     calib: Calibration,
-    min_depth: float = 0.9,
-    max_depth: float = 80.0,
+    min_depth: float,
+    max_depth: float,
     stride: int = 1,
     max_height: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -112,7 +118,9 @@ def pseudo_xyz(
     calib: the calibration of this exact depth map (cropped and scaled as the
     map is). stride keeps every k-th row and column. Pixels outside
     [min_depth, max_depth] are dropped, and with max_height points higher than
-    that above the LiDAR (sky, tree tops: no cars up there). Three separate
+    that above the LiDAR (sky, tree tops: no cars up there). The depths have
+    no defaults: the preset's ``pseudo_limits`` give them (its models were
+    trained on what those keep). Three separate
     arrays, not an (N, 3) block: the voxelizer reads them column by column.
     """
     table = ray_table(calib, depth.shape[0], depth.shape[1], stride)
@@ -150,8 +158,8 @@ def depth_jumps(depth: np.ndarray, max_jump: float) -> np.ndarray:
 def depth_to_points(
     depth: np.ndarray,
     calib: Calibration,
-    min_depth: float = 0.9,
-    max_depth: float = 80.0,
+    min_depth: float,
+    max_depth: float,
     stride: int = 1,
     max_height: float | None = None,
 ) -> np.ndarray:

@@ -16,6 +16,12 @@ import numpy as np
 
 from pipeline.presets import BevGrid, DecodeConfig
 
+# Decoded log sizes are clipped to this before exp: sides from 0.05 to 20 m, wide around any car's (1.5–5 m).
+# A cell's regression is unbounded and exp overflows past 709: an infinite box's rotated IoU with any box, its
+# own copy included, comes out 0 (with NumPy warnings), so NMS would keep every one. export/port_spec.py
+# publishes the same range for ports.
+LOG_SIZE_CLIP = (-3.0, 3.0)
+
 
 @dataclass(frozen=True)
 class OutputGrid:
@@ -160,7 +166,7 @@ def decode_maps(
     cx = out.x_min + (cols + 0.5) * out.step
     cy = out.y_min + (rows + 0.5) * out.step
     boxes = np.column_stack([
-        cx + raw[2], cy + raw[3], np.exp(np.clip(raw[5], -3, 3)), np.exp(np.clip(raw[4], -3, 3)),
+        cx + raw[2], cy + raw[3], np.exp(np.clip(raw[5], *LOG_SIZE_CLIP)), np.exp(np.clip(raw[4], *LOG_SIZE_CLIP)),
         np.arctan2(raw[1], raw[0]),
     ])
     return boxes, flat_score[candidates].astype(np.float64)

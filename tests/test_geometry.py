@@ -84,8 +84,8 @@ def test_pseudo_points_reproduce_the_scan_they_came_from():
     ranges = np.hypot(pseudo[:, 0], pseudo[:, 1])
     assert ranges.max() < 81 and pseudo[:, 0].min() > 0
     # Subsampling and height limit.
-    assert depth_to_points(depth_map, frame.calib, stride=2).shape[0] < pseudo.shape[0] / 3
-    assert (depth_to_points(depth_map, frame.calib, max_height=0.5)[:, 2] <= 0.5).all()
+    assert depth_to_points(depth_map, frame.calib, 0.9, 80.0, stride=2).shape[0] < pseudo.shape[0] / 3
+    assert (depth_to_points(depth_map, frame.calib, 0.9, 80.0, max_height=0.5)[:, 2] <= 0.5).all()
     merged = merge_points(pseudo, frame.points)
     assert merged.shape[0] == pseudo.shape[0] + frame.points.shape[0]
 
