@@ -24,11 +24,9 @@ from pipeline.calib import sparse_depth_map
 from pipeline.kitti import RESULT_DECIMALS
 from pipeline.postprocess import _HEIGHT_RANGE, _HIGH_Q, _LOW_Q  # private, but the values the heights use
 from pipeline.presets import Preset, preset_from_dict
+from pipeline.targets import LOG_SIZE_CLIP  # decode_maps clips the log sizes so: boxes 0.05–20 m at most
 
 PORT_FORMAT = "lowres3d-port/1"
-# decode_maps (pipeline/targets.py) clips the log sizes before exp: boxes 0.05–20 m long or wide at most.
-# The code has no name for it; tests/test_porting.py checks the value against what decode_maps does.
-LOG_SIZE_CLIP = (-3.0, 3.0)
 REGRESSION_CHANNELS = ("cos_yaw", "sin_yaw", "dx", "dy", "log_w", "log_l")  # pipeline/targets.py
 # Mirror TTA (pipeline/detector.py, MIRRORED_TARGETS): the targets whose sign a left-right mirror flips.
 MIRROR_NEGATED = ("sin_yaw", "dy")
