@@ -152,6 +152,19 @@ def pr_points(result: KittiEvalResult, metric: str, iou: float, difficulty: str)
     return curve.recall, curve.precision[: curve.thresholds.size]
 
 
+def empty_chart_note(result: KittiEvalResult, difficulty: str, models: list[KittiEvalResult]) -> str | None:
+    """What a precision-recall chart with no point on any curve says instead (None when a curve has points): no
+    car of the class counted at this difficulty, or no detection matched one (no detections, or none on a car).
+    The devkit keeps a score threshold only where a detection matches a car, so an empty curve is one of the two."""
+    series = [(model, metric, iou) for model in models for metric, iou in _series(model)]
+    if any(model.curve(metric, iou, difficulty).thresholds.size for model, metric, iou in series):
+        return None
+    name = f"{result.class_name.lower()}s"
+    if all(model.curve(metric, iou, difficulty).n_ground_truth == 0 for model, metric, iou in series):
+        return f"no {name} labelled ({difficulty})"
+    return f"no detections on the labelled {name}: every AP is 0"
+
+
 def pr_figure(result: KittiEvalResult, difficulty: str, source: str | None = None,
               other: KittiEvalResult | None = None, names: tuple[str, str] = ("this", "other")):
     """The figure of one difficulty's precision-recall curves (not saved): a line per (metric, threshold) in
@@ -180,7 +193,11 @@ def pr_figure(result: KittiEvalResult, difficulty: str, source: str | None = Non
     ax.set(xlim=(0, 1.03), ylim=(0, 1.05), xlabel="recall tp / (tp + fn) at each of the devkit's score thresholds",
            ylabel="precision (interpolated:\nbest at this recall or above)", title=title + (f"\n{source}" if source else ""))
     ax.grid(alpha=0.3)
-    if result.metrics:  # beside the axes: inside, it covers the curves of a run with low recall
+    empty = empty_chart_note(result, difficulty, [model for model, _ in models])
+    if empty:  # said in the chart, not by an empty axis beside a legend of "AP 0.0"
+        ax.text(0.5, 0.5, empty, transform=ax.transAxes, ha="center", va="center", fontsize=10, color="0.3",
+                gid="empty_note")
+    elif result.metrics:  # beside the axes: inside, it covers the curves of a run with low recall
         legend_title = "metric @IoU (the devkit's AP$_{40}$)"
         if shared is not None and few_cars_note(shared):
             legend_title += "\n" + textwrap.fill(few_cars_note(shared), 36)

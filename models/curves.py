@@ -141,16 +141,19 @@ def _draw_losses(ax: Axes, history: list[dict]) -> None:
     """Training and validation loss per epoch, the learning rate on a second axis."""
     epochs, train = _series(history, "train_loss")
     _, val = _series(history, "val_loss")
-    ax.plot(epochs, train, "o-", color="#1f77b4", label="training loss (epoch mean)", gid="train_loss")
-    ax.plot(epochs, val, "s-", color="#ff7f0e", label="validation loss", gid="val_loss")
+    # Above the best epoch's line (zorder 2), which hid a one-epoch run's validation loss.
+    ax.plot(epochs, train, "o-", color="#1f77b4", label="training loss (epoch mean)", gid="train_loss", zorder=3)
+    ax.plot(epochs, val, "s-", color="#ff7f0e", label="validation loss", gid="val_loss", zorder=3)
     if _positive_span(train + val):
         ax.set_yscale("log")
     ax.set_ylabel("loss")
     ax.set_title("loss per epoch, learning rate (right)", fontsize=9, loc="left")
     rate = ax.twinx()
     _, lr = _series(history, "lr")
-    # The rate an epoch ran at, held across it: the schedule's halvings show as steps.
-    rate.plot(epochs, lr, "--", drawstyle="steps-mid", color="0.45", alpha=0.8, label="learning rate", gid="lr")
+    # The rate an epoch ran at, held across it: the schedule's halvings show as steps; a marker at each epoch, or
+    # a one-epoch run's rate (no step to draw) would not show at all.
+    rate.plot(epochs, lr, "d--", drawstyle="steps-mid", color="0.45", alpha=0.8, markersize=5,
+              label="learning rate", gid="lr")
     if all(v > 0 for v in lr if math.isfinite(v)) and any(math.isfinite(v) for v in lr):
         rate.set_yscale("log")
     rate.set_ylabel("learning rate", color="0.35")
@@ -163,7 +166,7 @@ def _draw_metrics(ax: Axes, task: str, history: list[dict]) -> None:
     """The validation metrics the task logs, on their own axes."""
     for (key, label, colour), style in zip(METRICS["depth" if task == "depth" else "detector"], MARKERS):
         epochs, values = _series(history, key)
-        ax.plot(epochs, values, style, color=colour, label=label, gid=key)
+        ax.plot(epochs, values, style, color=colour, label=label, gid=key, zorder=3)  # over the best line
     if task == "depth":
         ax.set_ylabel("validation error (mm)")
     else:
@@ -199,7 +202,8 @@ def draw(history: list[dict], info: RunInfo, run_dir: Path) -> Figure:
     _draw_metrics(bottom, task, history)
     _mark_best([top, bottom], task, best)
     bottom.legend(loc="best", fontsize=8)  # after the best line, which it lists
-    bottom.xaxis.set_major_locator(MaxNLocator(integer=True))
+    # Whole epochs only, a single one too (without min_n_ticks=1 a one-epoch run's axis read 0.5, 0.6, … 1.5).
+    bottom.xaxis.set_major_locator(MaxNLocator(integer=True, min_n_ticks=1))
     if history:
         first, last = history[0]["epoch"], history[-1]["epoch"]
         bottom.set_xlim(first - 0.5, last + 0.5)

@@ -63,6 +63,7 @@ def fit_text(text: str, width: int, scale: float = KEY_SCALE) -> str:
 
 
 _KEY_LINE_H, _KEY_SWATCH, _KEY_PAD = 18, 22, 6
+_KEY_STRIP_GAP = 3  # black rows between a BEV key's box and the line above the scene
 
 
 def key_box(picture_width: int, rows: list[KeyRow], corner: str = "top-left") -> tuple[int, int, int, int]:
@@ -140,8 +141,8 @@ def _free_spot(candidates: list[tuple[float, float]], text_wh: tuple[int, int], 
                taken: list[tuple[int, int, int, int]]) -> tuple[int, int]:
     """Where a label goes: the first of ``candidates`` (its text's left end and baseline), moved whole into the
     picture, whose box (the text and 2–3 pixels about it) meets none of ``taken`` (earlier labels, the sensor, the
-    key); the first one when every one does. Its box is added to ``taken``. A loop over a few candidates of a few
-    boxes: labels are one a box, tens at most."""
+    camera picture's key, the BEV's labelled cars); the first one when every one does. Its box is added to
+    ``taken``. A loop over a few candidates of a few boxes: labels are one a box, tens at most."""
     (text_w, text_h), (width, height) = text_wh, picture_wh
     spots = []
     for column, row in candidates:
@@ -199,9 +200,11 @@ def render_bev(
     pseudo: the camera's pseudo points, drawn in magenta under ``points`` (then the scan's own returns), so
     a sector the LiDAR lost shows. view: the camera's (calibration, image (rows, columns)): its field of view is
     drawn, and the detections whose centre it does not see (those a result file leaves out) dimmed on thin lines.
-    warnings: the frame's warning codes, for the key. legend: a key in the top-left corner (``title`` first,
-    the warnings, then what each colour is and which way is ahead) for pictures people look at; off for a
-    picture compared pixel by pixel."""
+    warnings: the frame's warning codes, for the key. legend: a key (``title`` first, the warnings, then what
+    each colour is and which way is ahead) for pictures people look at, in its own strip above the scene
+    (:func:`key_strip_height` rows, room for a warnings row kept), so it covers nothing: the scene is the
+    picture's last rows, as without the key, at ``metres_per_pixel``; off for a picture compared pixel by
+    pixel."""
     width = round((grid.y_max - grid.y_min) / metres_per_pixel)
     height = round((grid.x_max - grid.x_min) / metres_per_pixel)
 
@@ -226,8 +229,6 @@ def render_bev(
     rows = bev_key_rows(title, boxes is not None, gt_boxes is not None, pseudo is not None, view is not None,
                         warnings, split)
     taken = [(tip[0] - 8, tip[1] - 2, tip[0] + 8, tip[1] + 14)]  # the sensor
-    if legend:
-        taken.append(key_box(width, rows))
     # Range rings every 10 m help reading distances; labelled on the forward axis, where a box ahead is read.
     farthest = float(np.hypot(max(grid.x_max, -grid.x_min), max(grid.y_max, -grid.y_min)))
     for r in range(RING_STEP_M, int(farthest) + 1, RING_STEP_M):
@@ -244,20 +245,31 @@ def render_bev(
     # The sensor: a triangle pointing ahead, so the picture says which way is forward without the key.
     cv2.fillPoly(canvas, [np.array([tip, (tip[0] - 6, tip[1] + 12), (tip[0] + 6, tip[1] + 12)], np.int32)],
                  (255, 255, 255), cv2.LINE_AA)
-    # The key before the boxes: a car far ahead on the left lies under it (KITTI 000006's at 61 m), and a box
-    # drawn over the key's text still reads, where the key's black box over a detection hid it.
-    if legend:
-        draw_key(canvas, rows)
     _draw_bev_boxes(canvas, gt_boxes, None, None, grid, metres_per_pixel, taken)
     _draw_bev_boxes(canvas, boxes, scores, seen, grid, metres_per_pixel, taken, prediction=True)
-    return canvas
+    if not legend:
+        return canvas
+    # The key in a strip of its own above the scene: drawn on the scene, its black box (about 500 × 130 pixels
+    # with the service's title) hid all beyond 57 m on the left, the 60 and 70 m ring labels and a detection at
+    # 61 m with them. The strip keeps room for a warnings row the frame may lack, so a video's frames keep one size.
+    strip = np.zeros((key_strip_height(width, rows if warnings else [*rows, ("", None)]), width, 3), np.uint8)
+    draw_key(strip, rows)
+    strip[-1] = RING_BGR  # where the scene begins: its far edge
+    return np.vstack([strip, canvas])
+
+
+def key_strip_height(picture_width: int, rows: list[KeyRow]) -> int:
+    """Rows of the strip above a BEV scene that holds a key of ``rows`` (:func:`render_bev` with ``legend``):
+    the key's box, a gap, and a one-pixel line along the scene's far edge."""
+    return key_box(picture_width, rows)[3] + 1 + _KEY_STRIP_GAP + 1
 
 
 def _draw_bev_boxes(canvas: np.ndarray, drawn: np.ndarray | None, scores: np.ndarray | None,
                     seen: np.ndarray | None, grid: BevGrid, metres_per_pixel: float,
                     taken: list[tuple[int, int, int, int]], prediction: bool = False) -> None:
     """Boxes as outlines with a line from the centre to the front (the heading), in place: detections (with
-    their scores, dimmed where ``seen`` is False) or the labelled cars (dashed)."""
+    their scores, dimmed where ``seen`` is False, placed clear of ``taken``) or the labelled cars (dashed; their
+    extents join ``taken``)."""
     if drawn is None or len(drawn) == 0:
         return
     corners = _to_pixels(bev_corners(drawn), grid, metres_per_pixel)
@@ -272,6 +284,9 @@ def _draw_bev_boxes(canvas: np.ndarray, drawn: np.ndarray | None, scores: np.nda
                                np.stack([centre, front], axis=1)[:, None]], axis=1)
     if not prediction:
         _draw_segments(canvas, segments.reshape(-1, 2, 2), GROUND_TRUTH_BGR, "dashed")
+        # The detections' scores keep off the labelled cars (KITTI 000006's 0.53 sat on one).
+        taken += [(int(left), int(top), int(right), int(bottom))
+                  for (left, top), (right, bottom) in zip(corners.min(axis=1), corners.max(axis=1), strict=True)]
         return
     _draw_segments(canvas, segments[~inside].reshape(-1, 2, 2), OUTSIDE_VIEW_BGR, "thin")
     _draw_segments(canvas, segments[inside].reshape(-1, 2, 2), PREDICTION_BGR, "line")
@@ -471,24 +486,29 @@ def error_colours(n: int = 256) -> np.ndarray:
     return cv2.applyColorMap(np.linspace(0, 255, n).astype(np.uint8)[None], cv2.COLORMAP_INFERNO)[0]
 
 
+# The error map's pixels without ground truth: a mid grey, which the inferno colours (black, purple, orange,
+# yellow) never give, where black is no error.
+NO_TRUTH_BGR = (128, 128, 128)
+
+
 def render_depth_panel(image: np.ndarray, prediction: np.ndarray, ground_truth: np.ndarray,
                        max_depth: float = 80.0, max_error: float = 5.0, title: str | None = None) -> np.ndarray:
     """BGR uint8 picture of one depth-completion frame, stacked top to bottom: the camera crop (RGB),
     the predicted depth, the ground truth (black: none) and the absolute error where there is ground
-    truth (0 m dark to ``max_error`` bright), all at the ground truth's resolution, each labelled, each map
-    with its colour bar in the top-right corner. title: what the frame is (its id, the model), before the
-    camera row's label."""
+    truth (0 m dark to ``max_error`` bright; :data:`NO_TRUTH_BGR` grey where there is none), all at the ground
+    truth's resolution, each labelled, each map with its colour bar in the top-right corner. title: what the
+    frame is (its id, the model), before the camera row's label."""
     height, width = ground_truth.shape
     camera = cv2.cvtColor(cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2BGR)
     known = ground_truth > 0
     error = np.where(known, np.abs(prediction - ground_truth), 0.0)
     error_map = cv2.applyColorMap((255 * np.clip(error / max_error, 0, 1)).astype(np.uint8), cv2.COLORMAP_INFERNO)
-    error_map[~known] = 0
+    error_map[~known] = NO_TRUTH_BGR  # apart from the black of no error
     depth_scale = (depth_colours(max_depth), 0.0, max_depth, "m")
     rows = [(camera, f"{title}: camera" if title else "camera", None),
             (render_depth(prediction, max_depth), f"predicted depth (0-{max_depth:.0f} m)", depth_scale),
             (render_depth(ground_truth, max_depth), f"ground truth (0-{max_depth:.0f} m, black: none)", depth_scale),
-            (error_map, f"absolute error where ground truth exists (0-{max_error:.0f} m)",
+            (error_map, f"absolute error where ground truth exists (0-{max_error:.0f} m, grey: none)",
              (error_colours(), 0.0, max_error, "m")),]
     for row, _, scale in rows:
         if scale is not None:
@@ -568,11 +588,14 @@ class FrameVideo:
                 self.path.parent.mkdir(parents=True, exist_ok=True)
             except OSError as exc:
                 raise VideoError(exc.errno, exc.strerror, str(self.path)) from exc
-            self._size = (picture.shape[1], picture.shape[0])
+            self._size = (picture.shape[1] + picture.shape[1] % 2, picture.shape[0] + picture.shape[0] % 2)
             self._writer = cv2.VideoWriter(str(self._partial), cv2.VideoWriter.fourcc(*"mp4v"), self.fps, self._size)
             if not self._writer.isOpened():
                 raise VideoError(errno.EIO, f"OpenCV could not open an MP4 writer for {self._size[0]}×{self._size[1]} "
                                  "frames", str(self.path))
+        # Even sides: MPEG-4's 4:2:0 colour has one sample per 2×2 pixels, and OpenCV's writer drops an odd last
+        # row or column (the BEV picture with its key is 877 rows); one black row or column is added instead.
+        picture = np.pad(picture, ((0, picture.shape[0] % 2), (0, picture.shape[1] % 2), (0, 0)))
         self._writer.write(fit_into(picture, self._size))
         self.frames += 1
 

@@ -20,6 +20,7 @@ from pipeline.errors import InputError
 from pipeline.frame import load_frame
 from pipeline.kitti import read_depth_png, read_labels, write_depth_png
 from pipeline.provenance import code_version
+from pipeline.render import NO_TRUTH_BGR
 from simulation.run import RunConfig
 from simulation.run import run as simulate
 from tests.conftest import FRAMES, KITTI, lidar_only_models
@@ -234,7 +235,7 @@ def test_depth_metrics_on_real_depth_completion_frame(tiny_models, depth_complet
     crop = depth_crop(gt.shape).apply(gt)
     assert picture.shape == (4 * crop.shape[0], crop.shape[1], 3)
     error_panel = picture[3 * crop.shape[0]:]
-    assert (error_panel[40:][crop[40:] == 0] == 0).all()  # black where there is no ground truth
+    assert (error_panel[40:][crop[40:] == 0] == NO_TRUTH_BGR).all()  # grey where there is no ground truth
     assert outcome.mean.n_pixels == np.count_nonzero(depth_crop(gt.shape).apply(gt))
     assert outcome.layout == "depth-completion"
     m = outcome.mean

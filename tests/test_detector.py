@@ -788,8 +788,10 @@ def test_detect_command_on_a_raw_drive_with_a_video(tiny_models, tmp_path):
     bev = cv2.imread(str(tmp_path / "out" / "bev" / "0000000000.png"))
     camera = cv2.imread(str(tmp_path / "out" / "camera" / "0000000000.png"))
     assert video.get(cv2.CAP_PROP_FRAME_COUNT) == 2 and video.get(cv2.CAP_PROP_FPS) == 5
-    # Each video frame: the camera view scaled to the BEV picture's width, above the BEV picture.
+    # Each video frame: the camera view scaled to the BEV picture's width, above the BEV picture (an odd height
+    # padded to an even one, as MPEG-4 needs).
     stacked_height = bev.shape[0] + round(camera.shape[0] * bev.shape[1] / camera.shape[1])
+    stacked_height += stacked_height % 2
     assert (video.get(cv2.CAP_PROP_FRAME_WIDTH), video.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (bev.shape[1], stacked_height)
     assert not list(tmp_path.glob(".*partial*"))
 

@@ -46,12 +46,14 @@ def _has(picture: np.ndarray, bgr: tuple[int, int, int]) -> bool:
 
 def test_bev_key_says_what_the_colours_are_and_which_way_is_ahead():
     """With legend=True the top-left corner holds the title and a line of each colour drawn (the boxes are
-    elsewhere); without it the corner stays as the points left it."""
+    elsewhere); without it the corner stays as the points left it. The key is in a strip above the scene (on it,
+    it hid what lay beyond 57 m on the left): the scene below is the picture without the key."""
     grid = PRESETS["tiny"].bev
     points = np.zeros((0, 4), np.float32)
     keyed = render_bev(points, grid, BOX, np.array([0.9]), BOX, title="frame 000006, model edge", legend=True)
     plain = render_bev(points, grid, BOX, np.array([0.9]), BOX)
-    assert keyed.shape == plain.shape == (704, 800, 3)  # the key is drawn on the picture, not beside it
+    assert plain.shape == (704, 800, 3) and keyed.shape[1:] == plain.shape[1:] and keyed.shape[0] > 704
+    np.testing.assert_array_equal(keyed[-704:], plain)
     corner = keyed[:80, :300]
     assert _has(corner, PREDICTION_BGR) and _has(corner, GROUND_TRUTH_BGR)
     assert not _has(plain[:80, :300], PREDICTION_BGR) and not _has(plain[:80, :300], GROUND_TRUTH_BGR)
@@ -512,9 +514,10 @@ def test_detect_pictures_split_the_scan_from_pseudo_points_name_faults_and_count
     assert main(["--models", str(REPO / "weights" / "edge"), "--data", str(data), "--emulate-beams", "16",
                  "--out", str(out)]) == 0
     bev6 = cv2.imread(str(out / "bev" / "000006.png")).astype(int)
+    scene6 = bev6[-704:]  # below the key's strip
     blank = render_bev(np.zeros((0, 4), np.float32), get_preset("edge").bev)  # the rings and their labels
-    grey = (bev6[..., 0] == bev6[..., 1]) & (bev6[..., 1] == bev6[..., 2]) & (bev6 != blank).any(axis=2)
-    coloured = bev6.max(axis=2) - bev6.min(axis=2) > 15
+    grey = (scene6[..., 0] == scene6[..., 1]) & (scene6[..., 1] == scene6[..., 2]) & (scene6 != blank).any(axis=2)
+    coloured = scene6.max(axis=2) - scene6.min(axis=2) > 15
     rows, cols = np.mgrid[:704, :800]
     x, y = (704 - rows) * 0.1, (400 - cols) * 0.1  # the edge preset's grid at the picture's 0.1 m
     bearing = np.degrees(np.arctan2(y, x))

@@ -23,6 +23,7 @@ from pipeline.frame import load_frame
 from pipeline.presets import PRESETS, get_preset
 from pipeline.render import (
     GROUND_TRUTH_BGR,
+    NO_TRUTH_BGR,
     PREDICTION_BGR,
     FrameVideo,
     bev_key_rows,
@@ -314,7 +315,8 @@ def test_depth_colours_run_warm_near_to_blue_far_and_stay_blue_beyond_the_range(
 
 def test_depth_panel_error_row_uses_its_bars_colours_for_over_and_under_estimates():
     """The error row: zero error in the bar's first colour, 10 m too far or too near both in its last (over the
-    5 m it shows), black where there is no ground truth; the maps' rows show the prediction, then the truth."""
+    5 m it shows), grey where there is no ground truth (black was zero error's colour too); the maps' rows show
+    the prediction, then the truth."""
     height, width = 120, 600
     truth = np.full((height, width), 30.0, np.float32)
     truth[:, 500:] = 0.0  # no ground truth
@@ -327,7 +329,7 @@ def test_depth_panel_error_row_uses_its_bars_colours_for_over_and_under_estimate
     np.testing.assert_array_equal(error[:, 50], np.broadcast_to(error_colours()[0], error[:, 50].shape))
     for col in (250, 350):
         np.testing.assert_array_equal(error[:, col], np.broadcast_to(error_colours()[-1], error[:, col].shape))
-    assert (error[:, 510:] == 0).all()
+    assert (error[:, 510:] == NO_TRUTH_BGR).all()
     predicted, truth_row = panel[height + 40:2 * height], panel[2 * height + 40:3 * height]
     np.testing.assert_array_equal(predicted[:, 250], np.broadcast_to(render_depth(np.array([[40.0]]))[0, 0], (80, 3)))
     np.testing.assert_array_equal(truth_row[:, 250], np.broadcast_to(render_depth(np.array([[30.0]]))[0, 0], (80, 3)))
@@ -431,7 +433,8 @@ def test_demo_core_pictures_summary_and_key(tmp_path):
     lit = {}
     for lines in (64, 16):
         picture = cv2.imread(str(tmp_path / f"000006_bev_{lines}.png"))
-        lit[lines] = int(((picture != empty).any(axis=2) & (picture == picture[..., :1]).all(axis=2)).sum())
+        scene = picture[-empty.shape[0]:]  # below the key's strip
+        lit[lines] = int(((scene != empty).any(axis=2) & (scene == scene[..., :1]).all(axis=2)).sum())
         blue = (picture == GROUND_TRUTH_BGR).all(axis=2)
         blue[:80, :300] = False  # the key's swatch
         # A box's dashes (5-pixel gaps) joined into one outline: one outline per labelled car.
