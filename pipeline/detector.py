@@ -55,6 +55,7 @@ from pipeline.checks import (
     image_hw_of,
     reflectance_mismatch,
     road_level_mismatch,
+    scan_misses_image,
     stuck_range_fault,
     thin_scan_fault,
     view_mismatch,
@@ -184,6 +185,9 @@ class Detections:
     network ran (not part of ``total``'s sum). warnings: what was dropped or
     adjusted on the way. warning_codes: each warning's stable code
     (pipeline.checks.WarningCode), same length and order, for alerting.
+    points: None unless :meth:`Detector.detect` was asked to ``keep_points``; then float32 (M, 4) ``x, y, z,
+    reflectance`` in the LiDAR frame, the cloud PIXOR saw: the camera's pseudo points first, then the scan's.
+    pseudo_count: how many of ``points`` are pseudo points (0 without ``keep_points`` or for a LiDAR-only model).
     """
 
     boxes: np.ndarray
@@ -193,8 +197,8 @@ class Detections:
     overlapped_ms: dict[str, float] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     warning_codes: list[str] = field(default_factory=list)
-    points: np.ndarray | None = field(default=None, repr=False)  # the points PIXOR saw (for pictures)
-    pseudo_count: int = 0  # how many of ``points`` are the camera's pseudo points, which come first
+    points: np.ndarray | None = field(default=None, repr=False)  # the points PIXOR saw (keep_points; for pictures)
+    pseudo_count: int = 0  # how many of ``points`` are the camera's pseudo points, which come first (0: none kept)
 
     def add_warning(self, code: WarningCode, message: str) -> None:
         """Append a warning and its code (the two lists stay parallel)."""
@@ -230,8 +234,9 @@ def resolve_providers(requested: str | Sequence[str] | None = None, available: l
         for name in names:
             full = PROVIDER_ALIASES.get(name.lower(), name)
             if full not in available:
+                # Named as both callers give it: Detector's providers= argument and the commands' --provider.
                 raise InputError(
-                    f"--provider: {name} is not available in this ONNX Runtime build "
+                    f"provider {name!r} (providers=, --provider): not available in this ONNX Runtime build "
                     f"(available: {', '.join(available)})"
                 )
             chosen.append(full)
@@ -354,6 +359,17 @@ class Detector:
     they spin only inside a run), and with ``stage_threads`` 2 each thread that calls :meth:`detect` gets one
     stage thread, which ends when that thread does. :meth:`close` (or ``with Detector(...) as detector:``)
     releases the sessions and stops the stage threads at once, rather than when the last reference goes.
+
+    What a caller catches (each a subclass of the built-in named, with a one-line message naming the file, field or
+    argument at fault; anything else is a bug, not the input's fault):
+
+    - ``pipeline.errors.InputError`` (a ValueError): a frame or option it cannot use (:meth:`detect`'s image,
+      points, calib, score_threshold …), a provider this ONNX Runtime build lacks, a GPU session that cannot be made.
+    - ``pipeline.model_files.ModelFileError`` (a RuntimeError), from the constructor: a model directory that is
+      missing, incomplete, altered (a sha256 mismatch) or unusable (a graph ONNX Runtime cannot load).
+    - ``RuntimeError`` from :meth:`detect` (and the networks' runs) after :meth:`close`: "Detector(…) was closed;
+      make a new one".
+    - :class:`RunCancelled` from a frame stopped through its :class:`Cancellation`.
     """
 
     def __init__(
@@ -602,11 +618,11 @@ class Detector:
         return executor
 
     def _beside(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration,
-                image_hw: tuple[int, int]) -> Future:
+                image_hw: tuple[int, int], calib: Calibration) -> Future:
         """:meth:`_without_depth` submitted to the calling thread's stage thread."""
         executor = self._stage_thread()
         try:
-            return executor.submit(self._without_depth, voxelizer, points, view_calib, image_hw)
+            return executor.submit(self._without_depth, voxelizer, points, view_calib, image_hw, calib)
         except RuntimeError:
             # close() on another thread since this frame began has shut the executor down: say that, not the
             # executor's "cannot schedule new futures after shutdown".
@@ -665,19 +681,23 @@ class Detector:
                              self.preset.depth.max_depth)
 
     def frame_checks(self, points: np.ndarray, image_hw: tuple[int, int] | None = None,
-                     view_calib: Calibration | None = None) -> list[CodedWarning]:
+                     view_calib: Calibration | None = None, calib: Calibration | None = None) -> list[CodedWarning]:
         """The warnings, with their codes, :meth:`detect` gives a frame from its scan and view (all but the
-        voxelizer's counts): a LiDAR failing at run time (README, "Sensor faults": a scan stuck at one range, a blocked sector), then
-        the rig's mismatches (:meth:`rig_mismatches`). On the stage thread where there is one."""
+        voxelizer's counts): with ``calib`` and ``image_hw`` (the camera pipeline), a scan whose returns ahead
+        (almost) all miss the image (a LiDAR→camera transform in another frame, direction or unit); a LiDAR
+        failing at run time (README, "Sensor faults": a scan stuck at one range, a blocked sector), then the rig's
+        mismatches (:meth:`rig_mismatches`). On the stage thread where there is one."""
         stuck = stuck_range_fault(points)
         if stuck:  # a scan at one range has no beams, road or reflectance to compare: the rig's checks would misname it
             return coded((WarningCode.STUCK_RANGE, stuck),
                          (WarningCode.CAMERA_VIEW, self._view_mismatch(image_hw, view_calib)))
-        return [*coded((WarningCode.BLOCKED_SECTOR, blocked_sector_fault(points))),
+        misses = scan_misses_image(points, calib, image_hw) if calib is not None and image_hw is not None else None
+        return [*coded((WarningCode.CALIBRATION_MISFIT, misses),
+                       (WarningCode.BLOCKED_SECTOR, blocked_sector_fault(points))),
                 *self.rig_mismatches(points, image_hw, view_calib)]
 
     def _without_depth(self, voxelizer: BevVoxelizer, points: np.ndarray, view_calib: Calibration,
-                       image_hw: tuple[int, int]) -> tuple[dict[str, float], list[CodedWarning]]:
+                       image_hw: tuple[int, int], calib: Calibration) -> tuple[dict[str, float], list[CodedWarning]]:
         """The stages of a frame that need no depth: the view's rays (built once per calibration), the real
         points' half of the voxelization and :meth:`frame_checks` (timed as ``rig_checks``). Returns what each took,
         and the checks' warnings."""
@@ -689,7 +709,7 @@ class Detector:
         voxelizer.add_points(points)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
         tic = time.perf_counter()
-        warnings = self.frame_checks(points, image_hw, view_calib)
+        warnings = self.frame_checks(points, image_hw, view_calib, calib)
         timings["rig_checks"] = (time.perf_counter() - tic) * 1e3
         return timings, warnings
 
@@ -762,9 +782,11 @@ class Detector:
         """Detect cars in one frame.
 
         image: uint8 RGB (H, W, 3), required for a two-stage model. points:
-        (N, 4) float32 velodyne points, finite. calib: required for a
-        two-stage model; a warning when its principal point does not fit the
-        image's size. score_threshold: in [0, 1] (None: the model's default).
+        (N, 4) ``x, y, z, reflectance`` in the LiDAR frame, finite, reflectance in [0, 1]; any real dtype
+        (float64, integers: cast to float32), strided or read-only arrays taken as they are. calib: required for
+        a two-stage model; a warning (``calibration_misfit``) when its principal point does not fit the image's
+        size, or when (almost) none of the scan's returns ahead project into the image. score_threshold: in
+        [0, 1] (None: the model's default).
         emulate_to_beams: thin a 64-line scan to 32, 16, 8 or 4 lines first (None or 0: the scan as given).
         keep_points: also return the point cloud PIXOR saw (pseudo + real),
         for pictures; otherwise the pseudo points go from the depth map
@@ -821,9 +843,9 @@ class Detector:
             # so do the rig's checks (about 0.2 ms, off the frame's path there).
             beside: Future | None = None
             if self.stage_threads > 1:
-                beside = self._beside(voxelizer, points, view_calib, image.shape[:2])
+                beside = self._beside(voxelizer, points, view_calib, image.shape[:2], calib)
             else:
-                warnings += self.frame_checks(points, image.shape[:2], view_calib)
+                warnings += self.frame_checks(points, image.shape[:2], view_calib, calib)
             if depth is None:
                 tic = time.perf_counter()
                 try:
@@ -955,6 +977,10 @@ class Detector:
             raise InputError(f"points: expected shape (N, 4) x, y, z, reflectance; got {points.shape}, no "
                              "reflectance column: add the sensor's intensities scaled to [0, 1] (README, 'Your own "
                              "vehicle'; all zero runs, with a warning and fewer boxes)")
+        if points.ndim == 2 and points.shape[1] > 4:  # a driver's cloud with a ring, time or other field after them
+            raise InputError(f"points: expected shape (N, 4) x, y, z, reflectance; got {points.shape}: keep the "
+                             "first four columns if they are x, y, z and the intensity (scaled to [0, 1]): "
+                             "points[:, :4]")
         if points.ndim != 2 or points.shape[1] != 4:
             raise InputError(f"points: expected shape (N, 4) x, y, z, reflectance; got {points.shape}")
         if points.shape[0] == 0:
@@ -965,7 +991,10 @@ class Detector:
         # propagates) or an infinity among them is found as well; then they bound the coordinates.
         lowest, highest = points.min(), points.max()
         if not (np.isfinite(lowest) and np.isfinite(highest)):
-            raise InputError("points: NaN or infinite values (drop them first: pipeline.kitti.parse_velodyne does)")
+            # Refused, not dropped: an array is the caller's own (a file's or the service's scan decoding drops such
+            # rows and warns, nonfinite_dropped); the caller decides whether a frame with them is worth detecting.
+            raise InputError("points: NaN or infinite values; drop those rows first: "
+                             "points = points[np.isfinite(points).all(axis=1)]")
         # The BEV averages reflectance into a channel PIXOR learned on KITTI's [0, 1] scale: a driver's
         # 0–255 intensities would read as a wall of bright returns (about 100 made-up cars at score 1).
         low, high = float(points[:, 3].min()), float(points[:, 3].max())

@@ -187,7 +187,8 @@ def test_check_models_provider_this_build_lacks_is_the_command_lines_fault(model
     assert missing, f"this ONNX Runtime build offers every provider check_models takes: {offered}"
     assert main(["--models", str(models), "--provider", missing[0]]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"error: --provider: {missing[0]} is not available in this ONNX Runtime build")
+    assert err.startswith(f"error: provider '{missing[0]}' (providers=, --provider): not available in this ONNX "
+                          "Runtime build")
     assert err.endswith("\n") and len(err.splitlines()) == 1
 
 
