@@ -147,14 +147,7 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
     frame_ids = read_split_file(config.split_file) if config.split_file else None
     if config.first_frames is not None:
         frame_ids = first_frames(frame_ids or ground_truth_frames(config.gt_labels), config.first_frames)
-    if config.compare_pred_labels is not None and not Path(config.compare_pred_labels).is_dir():
-        raise InputError(f"--compare-pred-labels: {config.compare_pred_labels}: prediction label directory not found")
-    if config.gap_to_pred_labels is not None:
-        if config.compare_pred_labels is None:
-            raise InputError("--gap-to-pred-labels: give --compare-pred-labels too (the gap runs from that model "
-                             "up to this one)")
-        if not Path(config.gap_to_pred_labels).is_dir():
-            raise InputError(f"--gap-to-pred-labels: {config.gap_to_pred_labels}: prediction label directory not found")
+    _check_compared(config.compare_pred_labels, config.gap_to_pred_labels)
     labels = load_label_dirs(config.gt_labels, config.pred_labels, frame_ids, progress=config.progress,
                              missing_as_empty=config.missing_as_empty)
     if not any((d.types == config.class_name.lower()).any() for d in labels.detections):
@@ -238,6 +231,19 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
 # Lowest score below which a result folder looks complete. The precision-recall curve's tail needs the
 # low-score detections: accuracy.py's own runs keep scores above DEFAULT_SCORE_THRESHOLD, pipeline.detect above 0.5.
 CUT_SCORE = 0.1
+
+
+def _check_compared(compare: Path | None, gap_to: Path | None) -> None:
+    """The other models' result folders (--compare-pred-labels, --gap-to-pred-labels) exist, and a gap has its
+    lower end: checked once, before the evaluation (and, with --data, before the detector runs)."""
+    if compare is not None and not Path(compare).is_dir():
+        raise InputError(f"--compare-pred-labels: {compare}: prediction label directory not found")
+    if gap_to is not None:
+        if compare is None:
+            raise InputError("--gap-to-pred-labels: give --compare-pred-labels too (the gap runs from that model "
+                             "up to this one)")
+        if not Path(gap_to).is_dir():
+            raise InputError(f"--gap-to-pred-labels: {gap_to}: prediction label directory not found")
 
 
 def _warn_if_cut_at_a_score(labels: LabelSet, config: LabelEvalConfig) -> None:
@@ -491,7 +497,8 @@ def build_parser() -> argparse.ArgumentParser:
 # Flags (by dest) that only some modes read; main refuses them in the others.
 _RESULT_FILES = ("gt_labels", "pred_labels", "missing_as_empty")
 _RUN = ("data", "models", "provider")
-_DETECTION = ("input", "out", "score_threshold", "mirror_tta")  # --emulate-beams serves --depth too
+_DETECTION = ("input", "out", "score_threshold", "mirror_tta")
+_SCANS = ("emulate_beams",)  # how the scans are thinned: for the detector and for --depth
 _DEPTH_SOURCE = ("depth_dir",)  # the camera row's depth, or the maps --depth evaluates
 _AP = ("count_small_detections", "by_distance", "bootstrap", "seed", "interval", "compare_pred_labels",
        "gap_to_pred_labels")
@@ -531,7 +538,7 @@ def _refuse_flags_of_other_modes(parser: argparse.ArgumentParser, args: argparse
         refuse(_RESULT_FILES, "--data", "the detector writes the results and DATA/label_2 is the ground truth")
     else:
         mode = next((dest for dest in _RESULT_FILES if dest in given), None)
-        for dest in _RUN + _DETECTION + _DEPTH_SOURCE:
+        for dest in _RUN + _DETECTION + _SCANS + _DEPTH_SOURCE:
             if dest in given and mode is not None:
                 parser.error(f"argument {_flag(dest)}: not allowed with argument {_flag(mode)} "
                              "(result files are evaluated as they are; no model runs)")
@@ -618,14 +625,12 @@ def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, 
                              "--frames to leave it out")
     # Parsed now, not after the detector's run: one broken label file would otherwise cost the whole table.
     check_ground_truth(args.data / "label_2", scored[:first], progress=show_progress(args.no_progress))
-    if args.depth_dir is not None and not args.depth_dir.is_dir():
-        raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
-    if args.compare_pred_labels is not None:
-        if not args.compare_pred_labels.is_dir():
-            raise InputError(f"--compare-pred-labels: {args.compare_pred_labels}: prediction label directory not found")
-        if (out / "data").resolve() == args.compare_pred_labels.resolve():
-            raise InputError(f"--out {out}: the detector would overwrite the results of --compare-pred-labels "
-                             f"{args.compare_pred_labels}, which it is compared with")
+    _check_compared(args.compare_pred_labels, args.gap_to_pred_labels)
+    for flag, folder in (("--compare-pred-labels", args.compare_pred_labels),
+                         ("--gap-to-pred-labels", args.gap_to_pred_labels)):
+        if folder is not None and (out / "data").resolve() == folder.resolve():
+            raise InputError(f"--out {out}: the detector would overwrite the results of {flag} {folder}, which it is "
+                             "compared with")
 
 
 def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_file: Path | None,
@@ -645,9 +650,9 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
     try:
         _check_outputs(args, out)
         frames = read_split_file(split_file) if split_file else None
+        if args.depth_dir is not None and not args.depth_dir.is_dir():  # both modes read it
+            raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
         if args.depth:
-            if args.depth_dir is not None and not args.depth_dir.is_dir():
-                raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
             beams = 16 if args.emulate_beams is None else args.emulate_beams  # 0: a 16-line sensor's own, as stored
             outcome = run_depth(args.data, args.models, frames, beams=beams, provider=args.provider,
                                 progress=show_progress(args.no_progress), pictures=args.plots, depth_dir=args.depth_dir,
@@ -688,7 +693,8 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
             if args.json:
                 with _writing(args.json, "--json"):
                     args.json.parent.mkdir(parents=True, exist_ok=True)
-                    args.json.write_text(json.dumps({
+                    # A band without cars has no figure: null, not NaN (which strict JSON parsers refuse).
+                    args.json.write_text(json.dumps(_without_nan({
                         "run": {"data": str(args.data), "models": str(args.models),
                                 "depth_dir": None if args.depth_dir is None else str(args.depth_dir)},
                         "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
@@ -698,7 +704,7 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
                                   "car_median_abs_mm_by_band": cars,
                                   "car_points_in_box_by_band": in_box,
                                   "car_stray_points_in_box_by_band": stray},
-                    }, indent=1) + "\n", encoding="utf-8")
+                    }), indent=1, allow_nan=False) + "\n", encoding="utf-8")
             return 0
         _check_detection_inputs(args, frames, first, out)
         if first is not None:  # the first N ground-truth frames: the ones the evaluation below takes

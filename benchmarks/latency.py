@@ -115,7 +115,8 @@ PAPER = {"RTX 2080Ti": {"ms": 25.4, "fps": 39.8}, "DRIVE PX2": {"ms": 581.7, "fp
 
 # ----------------------------------------------------------------------------- frames
 def load_frames(data: Path, count: int, beams: int | None) -> list[Frame]:
-    """Up to ``count`` frames of a KITTI-layout folder (cycled when there are fewer), scans thinned to ``beams``."""
+    """The first ``count`` frames of a KITTI-layout folder (all of them when there are fewer; at least one), scans
+    thinned to ``beams``. The timed runs cycle through them when they need more (run_stream, _frames_on)."""
     ids = frame_ids(data)
     if not ids:
         raise InputError(f"--data {data}: no frames (no .bin scans in {Path(data) / 'velodyne'})")

@@ -16,6 +16,7 @@ Transposes with two threads (docs/measurements.md, session 25).
 from __future__ import annotations
 
 import json
+import sys
 import tempfile
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -23,6 +24,10 @@ from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
+
+# Run as a script (python benchmarks/X.py) its own folder is on sys.path, not the repository: put it there
+# before the repository's packages are imported, as benchmarks/latency.py does.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.cli import quiet_interrupt
 from pipeline.detector import session_options
@@ -175,7 +180,6 @@ def describe(name: str, profile: dict, shown: int = 6) -> str:
 def main(argv: list[str] | None = None) -> int:
     """Per-node times of each network of a model directory on one frame, slowest first."""
     import argparse
-    import sys
 
     from benchmarks.latency import BUNDLED, load_frames
     from pipeline.beams import BEAM_COUNTS, emulate_beams
@@ -241,7 +245,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # as benchmarks/latency.py: the repository's packages
     raise SystemExit(main())

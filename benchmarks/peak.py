@@ -11,6 +11,7 @@ session options as the detector, so "fraction of peak" compares like with like.
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,10 @@ import numpy as np
 import onnx
 import onnxruntime as ort
 from onnx import TensorProto, helper, numpy_helper
+
+# Run as a script (python benchmarks/X.py) its own folder is on sys.path, not the repository: put it there
+# before the repository's packages are imported, as benchmarks/latency.py does.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from pipeline.cli import quiet_interrupt
 from pipeline.detector import session_options
@@ -124,7 +129,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # as benchmarks/latency.py: the repository's packages
     raise SystemExit(main())

@@ -149,13 +149,26 @@ def car_depth_errors(prediction_m: np.ndarray, ground_truth_m: np.ndarray,
 def car_surface(ground_truth_m: np.ndarray, box: tuple[float, float, float, float], z: float
                 ) -> tuple[tuple[slice, slice], np.ndarray]:
     """A car's pixels: the window of its 2D box (left, top, right, bottom, clipped to the map) and, in it,
-    the pixels whose true depth lies within :data:`CAR_SURFACE_M` of the car's depth z."""
+    the pixels whose true depth lies within :data:`CAR_SURFACE_M` of the car's depth z.
+
+    The window holds the pixels whose centres (at integers, as :func:`box_in_view` places them) lie inside the
+    box, edges included: the simulator's box of 3 × 3 pixels, edges at centre ± 0.5, is those 9 pixels (until
+    session 50 a ring of one pixel around them too: 25). A box narrower than a pixel holds no centre across
+    that side; it keeps the one pixel its middle lies in. A box off the map gives an empty window."""
     height, width = ground_truth_m.shape
     left, top, right, bottom = box
-    window = (slice(max(int(np.floor(top)), 0), min(int(np.ceil(bottom)) + 1, height)),
-              slice(max(int(np.floor(left)), 0), min(int(np.ceil(right)) + 1, width)))
+    window = (_centres_inside(top, bottom, height), _centres_inside(left, right, width))
     truth = ground_truth_m[window]
     return window, (truth > 0) & (np.abs(truth - z) <= CAR_SURFACE_M)
+
+
+def _centres_inside(low: float, high: float, size: int) -> slice:
+    """The pixels 0 … size − 1 whose centres lie in [low, high]; without one, the pixel holding the middle."""
+    first, last = int(np.ceil(low)), int(np.floor(high))
+    if last < first:  # narrower than a pixel, between two centres
+        first = last = int(np.floor((low + high) / 2 + 0.5))
+    start = min(max(first, 0), size)
+    return slice(start, max(min(last + 1, size), start))
 
 
 CAR_BOX_MARGIN_M = 0.2  # a car pixel's point is on the car when it lies in the BEV box grown by this

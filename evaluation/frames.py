@@ -21,8 +21,8 @@ log = logging.getLogger(__name__)
 class LabelSet:
     """Ground truth and detections of the evaluated frames, in the same order.
 
-    missing_predictions: frame ids without a result file; they count as frames
-    without detections.
+    missing_predictions: frame ids without a result file, counted as frames without detections; empty
+    unless ``load_label_dirs`` was given ``missing_as_empty``, without which such a frame is refused.
     """
 
     frame_ids: tuple[str, ...]

@@ -21,7 +21,8 @@ Protocol, per metric (2D box, BEV, 3D), overlap threshold and difficulty:
    pair is a true positive; pairs involving an ignored side are discarded.
    Unassigned counted detections are false positives, except, in the 2D-box
    metric only, those covered by more than the threshold (intersection over
-   the detection's own area) by a DontCare region: those have no 3D extent.
+   the detection's own area) by a DontCare region (BEV and 3D do not use the
+   DontCare regions: they are 2D image areas without a 3D extent).
 4. Precision at each threshold, made monotone by the maximum over the later
    points; 11-point AP = mean of points 0, 4, ..., 40, 40-point AP = mean of
    points 1 ... 40.
@@ -388,9 +389,7 @@ def evaluate(
     """
     if len(ground_truth) != len(detections):
         raise ValueError(f"{len(ground_truth)} ground-truth frames but {len(detections)} detection frames")
-    for i, det in enumerate(detections):
-        if np.isnan(det.score).any():
-            raise ValueError(f"frame {i}: detections need a score (16th label field)")
+    _require_scores(detections)
     metrics = tuple(_default_metrics(detections, class_name) if metrics is None else metrics)
     unknown = set(metrics) - set(METRICS)
     if unknown:
@@ -410,6 +409,14 @@ def evaluate(
         class_name=class_name, n_frames=len(ground_truth), metrics=metrics,
         iou_thresholds=iou_thresholds, curves=tuple(curves),
     )
+
+
+def _require_scores(detections: Sequence[LabelArrays], where: str = "") -> None:
+    """ValueError naming the first frame with a detection without a score (NaN): the protocol ranks by score, and
+    unscored ones gave every AP 0 without a word (bootstrap, until session 50)."""
+    for i, det in enumerate(detections):
+        if np.isnan(det.score).any():
+            raise ValueError(f"{where}frame {i}: detections need a score (16th label field)")
 
 
 def evaluate_by_distance(ground_truth: Sequence[LabelArrays], detections: Sequence[LabelArrays],
@@ -809,6 +816,7 @@ def bootstrap(
     for i, detections in enumerate(detection_sets):
         if len(detections) != len(ground_truth):
             raise ValueError(f"detection set {i}: {len(detections)} frames, ground truth {len(ground_truth)}")
+        _require_scores(detections, f"detection set {i}, ")
     if metrics is None:
         found = [set(_default_metrics(d, class_name)) for d in detection_sets]
         metrics = tuple(m for m in METRICS if all(m in f for f in found))

@@ -1,4 +1,6 @@
-"""Every number the simulator uses, in one place: sensor, calibration, scene layout, labelling rules.
+"""The simulator's shared numbers: sensor, calibration, scene layout, labelling rules. How things look and
+scatter (materials, colours, shading, the return model's noise) stays beside the code that uses it
+(docs/simulation.md).
 
 Units are metres, degrees where the name says so, radians otherwise. The LiDAR
 frame is KITTI's velodyne frame (x forward, y left, z up) with the sensor at

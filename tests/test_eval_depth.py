@@ -49,7 +49,7 @@ def test_a_cars_window_holds_its_boxs_last_row_and_column_and_is_clipped_to_the_
     window, on_car = car_surface(truth, (2.0, 3.0, 5.0, 6.0), 20.0)
     assert window == (slice(3, 7), slice(2, 6)) and on_car.shape == (4, 4)  # rows 3 … 6, columns 2 … 5
     window, _ = car_surface(truth, (-2.5, -3.0, 4.2, 5.0), 20.0)
-    assert window == (slice(0, 6), slice(0, 6))  # from the map's edge, up to ceil(4.2) = 5 inclusive
+    assert window == (slice(0, 6), slice(0, 5))  # from the map's edge, up to the last centre inside, 4 (until s50 5)
     window, _ = car_surface(truth, (8.0, 7.0, 30.0, 25.0), 20.0)
     assert window == (slice(7, 10), slice(8, 12))
 

@@ -81,8 +81,10 @@ def test_car_pixels_are_the_cars_boxes_in_the_view_on_the_cars_depths():
               label("Pedestrian", (0, 0, 10, 10), 10.0)]
     frame = Frame("000000", None, np.zeros((0, 4), np.float32), None, labels, size_hw=(375, 1242))
     expected = np.zeros((h, w), bool)
-    expected[29:41, 19:40] = True  # first car's box (edges included) where the target is 10 m
-    expected[34:46, 40:61] = True  # second car's box where it is 20 m
+    # The pixels whose centres lie in each box, the box being the view box shifted by the offset (s − 1)/2 = −0.375
+    # (until session 50 also a ring of one pixel around it: [29:41, 19:40] and [34:46, 40:61]).
+    expected[30:40, 20:40] = True  # first car's box, 19.625 … 49.625 × 29.625 … 39.625, where the target is 10 m
+    expected[35:45, 40:60] = True  # second car's box, 29.625 … 59.625 × 34.625 … 44.625, where it is 20 m
     np.testing.assert_array_equal(car_pixels(frame, target, preset), expected)
 
 
