@@ -122,3 +122,15 @@ def test_a_reg_mean_of_five_values_is_refused_naming_the_channels_in_their_order
     with pytest.raises(ValueError, match=re.escape("decode.reg_mean has 5 values: one per regression channel, 6 "
                                                    "(cos θ, sin θ, dx, dy, log w, log l)")):
         check_preset(replace(edge, decode=replace(edge.decode, reg_mean=(0.0, 0.0, 0.0, 0.0, 0.49))))
+
+
+def test_check_models_names_the_warnings_of_a_frame_unlike_the_models_training(tmp_path: Path) -> None:
+    """A 64-line model on a 16-line vehicle's frame runs it as stored and passes (the files are sound), but the
+    frame line names the Detector's warnings, so whoever rolls the model out sees it does not fit the sensor; the
+    model's own frame names none."""
+    data = vehicle_frame(tmp_path / "vehicle", 16)
+    unlike = run(CheckConfig(models=WEIGHTS / "edge-lidar64", provider="cpu", data=data, frame=FRAME))
+    assert [c.status for c in unlike.checks] == ["pass"] * 4
+    assert re.search(r"; the frame's warnings: .*line_count", unlike.checks[3].detail), unlike.checks[3].detail
+    own = run(CheckConfig(models=WEIGHTS / "edge-lidar16", provider="cpu", data=data, frame=FRAME))
+    assert "warnings" not in own.checks[3].detail, own.checks[3].detail
