@@ -9,6 +9,7 @@ import itertools
 import shutil
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
@@ -25,7 +26,6 @@ from tests.conftest import KITTI
 from tests.test_evaluation_harness_mutants import _quarter_length_off
 from tests.test_kitti_eval import frames, obj
 
-plt = pytest.importorskip("matplotlib.pyplot")
 REPO = Path(__file__).resolve().parents[1]
 
 

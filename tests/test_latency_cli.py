@@ -9,8 +9,6 @@ import sys
 import time
 from pathlib import Path
 
-import pytest
-
 from pipeline.cpu import usable_cpus
 from tests.conftest import KITTI
 
@@ -67,7 +65,6 @@ def test_without_torch_what_needs_it_is_refused_in_one_line(tiny_models):
         assert done.stderr.startswith("error: this command needs PyTorch") and says in done.stderr
 
 
-@pytest.mark.skipif(not (SHIPPED / "manifest.json").is_file(), reason="weights/edge is not here")
 def test_without_models_it_times_the_shipped_model_and_needs_no_torch(tmp_path):
     """The README's figures are of weights/edge (preset edge-split-near35); latency.py without --models timed
     a fresh export of preset edge (untrained, another grid) and needed torch for it."""
@@ -80,7 +77,6 @@ def test_without_models_it_times_the_shipped_model_and_needs_no_torch(tmp_path):
     assert report["weights"] == manifest["weights"] and report["input"] == "16-line scan + camera"
 
 
-@pytest.mark.skipif(not (LIDAR64 / "manifest.json").is_file(), reason="weights/edge-lidar64 is not here")
 def test_a_64_line_lidar_only_model_is_labelled_and_timed_on_its_own_scans(tmp_path):
     """weights/edge-lidar64 was labelled "16-line scan + camera" and timed on 16-line scans, the Detector's
     warning about them dropped. Now its scans are kept as stored unless --beams says otherwise, and then the

@@ -31,8 +31,6 @@ ROOT = Path(__file__).resolve().parents[1]
 EDGE = ROOT / "weights" / "edge"
 ACCURACY = ROOT / "benchmarks" / "accuracy.py"
 
-pytestmark = pytest.mark.skipif(not (EDGE / "manifest.json").is_file(), reason="weights/edge is not here")
-
 
 @pytest.fixture(scope="module")
 def detector() -> Detector:

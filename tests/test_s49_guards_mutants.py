@@ -62,6 +62,32 @@ def test_any_connection_count_above_the_requests_starts_where_the_open_file_limi
     assert Settings(workers=1, queue_size=2, max_connections=100_000).socket_limit() == 100_000
 
 
+def test_open_file_limit_reads_an_unlimited_soft_limit_as_none(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``ulimit -n unlimited`` (RLIM_INFINITY) is no number of files: open_file_limit says None, and the socket cap
+    falls back to DEFAULT_SOCKET_LIMIT while any max_connections starts. The tests above replace open_file_limit
+    itself; here only ``resource.getrlimit`` is, because Linux will not set an unlimited open-file limit for real
+    (the soft limit cannot pass fs.nr_open, not even for root: setrlimit refuses RLIM_INFINITY)."""
+    import resource
+
+    monkeypatch.setattr(resource, "getrlimit", lambda which: (resource.RLIM_INFINITY, resource.RLIM_INFINITY))
+    assert settings_module.open_file_limit() is None
+    assert Settings(workers=1, queue_size=2).socket_limit() == DEFAULT_SOCKET_LIMIT
+    assert Settings(workers=1, queue_size=2, max_connections=100_000).socket_limit() == 100_000
+
+
+def test_socket_cap_under_a_high_open_file_limit_set_for_real() -> None:
+    """A soft ulimit -n of 10 000 (or this machine's hard limit, if lower), set in a child: open_file_limit reads
+    it, and the default cap is the limit less FD_RESERVE, at most DEFAULT_SOCKET_LIMIT (4096 wherever the hard
+    limit reaches 4161; here it is 20 000)."""
+    import resource
+
+    hard = resource.getrlimit(resource.RLIMIT_NOFILE)[1]
+    soft = 10_000 if hard == resource.RLIM_INFINITY else min(10_000, hard)
+    lines = _with_file_limit(soft, "from service.settings import Settings, open_file_limit\n"
+                                   "print(open_file_limit(), Settings(workers=1, queue_size=2).socket_limit())\n")
+    assert lines == [f"{soft} {min(soft - FD_RESERVE, DEFAULT_SOCKET_LIMIT)}"]
+
+
 @pytest.mark.parametrize("scale", [0.5, 1.0, 0.25])
 def test_box_in_view_lands_where_the_network_calibration_projects(scale: float) -> None:
     """A box's corners in the network's view are where the calibration the pipeline hands the network

@@ -23,9 +23,6 @@ BLOCKED = "points: no returns from azimuth"
 THIN = "points: only "
 STUCK = "points: 100% of the returns lie at one range"
 
-pytestmark = pytest.mark.skipif(not all((WEIGHTS / m / "manifest.json").is_file() for m in MODELS),
-                                reason="the shipped weights are not here")
-
 
 @pytest.fixture(scope="module")
 def detectors() -> dict[str, Detector]:

@@ -243,12 +243,29 @@ def test_a_split_camera_pixor_starts_from_the_shipped_lidar_only_onnx() -> None:
 def test_a_train_only_start_compares_the_networks_section_but_the_added_head() -> None:
     """--train-only refine on an exported depth net may add the refine head (its fields differ from the
     export's), but not read the image in another view: that is still refused."""
+    import torch
+
     from models import build_network
+    from models.onnx_weights import load_onnx_weights
     from models.start_weights import load_start_weights
 
     onnx = REPO / "weights" / "edge" / "depth.onnx"
     refine = get_preset("edge-refine")
-    load_start_weights(build_network("depth", refine), "depth", onnx, refine, train_only=("refine",))
+    net = build_network("depth", refine)
+    initial = {key: value.clone() for key, value in net.state_dict().items()}
+    load_start_weights(net, "depth", onnx, refine, train_only=("refine",))
+    # The export's weights went in: every tensor outside the added head is what the graph holds (read into a second
+    # net), and the encoder's convolutions are no longer their initialisation; the refine head kept its own.
+    exported = build_network("depth", refine)
+    assert load_onnx_weights(exported, onnx, optional=("refine",)) == ("refine",)
+    loaded, read = net.state_dict(), exported.state_dict()
+    outside = [key for key in loaded if not key.startswith("refine.")]
+    assert [key for key in outside if not torch.equal(loaded[key], read[key])] == []
+    # (Convolutions only: the graph's batch norms come folded in, so theirs are read back as the identity.)
+    encoder = [key for key in outside if key.startswith(("conv1_d.", "layer")) and loaded[key].dim() == 4]
+    assert encoder and not any(torch.equal(loaded[key], initial[key]) for key in encoder)
+    head = [key for key in loaded if key.startswith("refine.")]
+    assert head and all(torch.equal(loaded[key], initial[key]) for key in head)
     quarter = replace(refine, name="quarter-refine",
                       depth=replace(refine.depth, input_scale=0.25, input_hw=(88, 304)))
     with pytest.raises(ValueError, match="whose depth configuration differs from the requested preset 'quarter-refine'"):

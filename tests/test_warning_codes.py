@@ -28,8 +28,6 @@ from tests.test_own_rig import _other_camera, _raised
 from tests.test_service import FRAME, parts, service
 
 WEIGHTS = Path(__file__).resolve().parents[1] / "weights"
-shipped = pytest.mark.skipif(not all((WEIGHTS / m / "manifest.json").is_file() for m in ("edge", "edge-lidar16")),
-                             reason="the shipped weights are not here")
 
 # A frame as (image, points, calib), changed to trigger one warning.
 Inputs = tuple[np.ndarray, np.ndarray, Calibration]
@@ -117,7 +115,6 @@ def _message_of(result: Detections, code: WarningCode) -> str:
     return result.warnings[index]
 
 
-@shipped
 @pytest.mark.parametrize("code", list(TRIGGERS), ids=str)
 def test_each_frame_warning_carries_its_code(edge, kitti_frame, code):
     """An operator alerts on the code, not the text (which holds the frame's figures): each warning the
@@ -129,7 +126,6 @@ def test_each_frame_warning_carries_its_code(edge, kitti_frame, code):
     assert json.dumps(result.warning_codes) == json.dumps([str(c) for c in result.warning_codes])
 
 
-@shipped
 def test_a_clean_frame_has_no_codes_and_emulation_has_its_own(edge, kitti_frame):
     """The 16-line frame the model learned on carries no code; thinning a 64-line scan on request is coded
     ``beams_emulated`` (an operator filters it out), not ``line_count``."""
@@ -141,7 +137,6 @@ def test_a_clean_frame_has_no_codes_and_emulation_has_its_own(edge, kitti_frame)
 
 
 
-@shipped
 def test_the_line_count_warnings_advice_is_each_entry_points_own_spelling(edge, kitti_frame):
     """The warning for a 64-line scan given to a 16-line model says how to thin it in each entry point; the
     Detector's keyword it names (it once said emulate_beams=16, the service's, which Detector.detect refuses
@@ -153,7 +148,6 @@ def test_the_line_count_warnings_advice_is_each_entry_points_own_spelling(edge, 
     followed = edge.detect(kitti_frame.image, kitti_frame.points, kitti_frame.calib, emulate_to_beams=16)
     assert WarningCode.LINE_COUNT not in followed.warning_codes
 
-@shipped
 def test_codes_are_the_same_with_the_stage_thread_and_without(kitti_frame):
     """The rig's checks run beside the depth net on a second thread or in turn: the same codes either way."""
     image, points, calib = _blocked(kitti_frame)
@@ -163,7 +157,6 @@ def test_codes_are_the_same_with_the_stage_thread_and_without(kitti_frame):
     assert codes[0] == codes[1] == [WarningCode.BLOCKED_SECTOR, WarningCode.REFLECTANCE_SCALE]
 
 
-@shipped
 def test_a_lidar_only_model_codes_its_warnings_too(kitti_frame):
     """The LiDAR-only model runs the checks on its own path: a blocked sector and a thin scan are coded there."""
     lidar = Detector(WEIGHTS / "edge-lidar16")
