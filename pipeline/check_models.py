@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to, recover_rings
+from pipeline.checks import WarningCode
 from pipeline.cli import (
     HelpFormatter,
     check_not_input,
@@ -45,7 +46,6 @@ from pipeline.cli import (
     quiet_interrupt,
     write_text_file,
 )
-from pipeline.checks import WarningCode
 from pipeline.detector import Detector, resolve_providers
 from pipeline.errors import InputError
 from pipeline.frame import Frame, load_frame
