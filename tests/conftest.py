@@ -79,3 +79,18 @@ def lidar_only_models(tiny_models: Path, folder: Path) -> Path:
     manifest["files"] = {"pixor.onnx": manifest["files"]["pixor.onnx"]}
     (folder / "manifest.json").write_text(json.dumps(manifest))
     return folder
+
+
+def object_folder_with_depth(folder: Path, frame_id: str) -> Path:
+    """A KITTI object folder at ``folder`` (copies of the bundled frames) whose ``depth_2/`` holds ``frame_id``'s
+    64-line scan projected as its ground truth: what ``accuracy.py --depth`` reads, labels and all."""
+    from pipeline.calib import sparse_depth_map
+    from pipeline.frame import load_frame
+    from pipeline.kitti import write_depth_png
+
+    for sub in ("image_2", "velodyne", "calib", "label_2"):
+        shutil.copytree(KITTI / sub, folder / sub)
+    (folder / "depth_2").mkdir()
+    frame = load_frame(KITTI, frame_id)
+    write_depth_png(folder / "depth_2" / f"{frame_id}.png", sparse_depth_map(frame.points, frame.calib, frame.image_hw))
+    return folder

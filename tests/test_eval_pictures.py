@@ -6,7 +6,6 @@ model beside this one; and the car-depth plot's title and axis saying what it sh
 from __future__ import annotations
 
 import itertools
-import shutil
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -22,7 +21,6 @@ from evaluation.report import (
     series_colour,
     to_json,
 )
-from tests.conftest import KITTI
 from tests.test_evaluation_harness_mutants import _quarter_length_off
 from tests.test_kitti_eval import frames, obj
 
@@ -185,16 +183,9 @@ def test_the_depth_runs_car_plot_names_model_data_and_frames(tmp_path: Path, mon
     """``accuracy.py --depth --plots``: the car-depth plot's title named only the input; it names the model
     directory, the data folder and the frame count (the shipped edge model on frame 000006, no torch)."""
     from benchmarks import accuracy
-    from pipeline.calib import sparse_depth_map
-    from pipeline.frame import load_frame
-    from pipeline.kitti import write_depth_png
+    from tests.conftest import object_folder_with_depth
 
-    data = tmp_path / "data"
-    for sub in ("image_2", "velodyne", "calib", "label_2"):
-        shutil.copytree(KITTI / sub, data / sub)
-    (data / "depth_2").mkdir()
-    frame = load_frame(KITTI, "000006")
-    write_depth_png(data / "depth_2" / "000006.png", sparse_depth_map(frame.points, frame.calib, frame.image_hw))
+    data = object_folder_with_depth(tmp_path / "data", "000006")
     (tmp_path / "frames.txt").write_text("000006\n")
     calls = []
     real = accuracy.plot_car_depth

@@ -4,7 +4,6 @@ whose centres lie in its box, the bootstrap refuses unscored detections, and lab
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,10 +13,8 @@ from benchmarks.accuracy import main as accuracy
 from evaluation.depth_metrics import car_surface
 from evaluation.kitti_eval import bootstrap, evaluate
 from evaluation.labels import LabelArrays
-from pipeline.calib import sparse_depth_map
-from pipeline.frame import load_frame
-from pipeline.kitti import write_depth_png, write_labels
-from tests.conftest import KITTI
+from pipeline.kitti import write_labels
+from tests.conftest import KITTI, object_folder_with_depth
 from tests.test_kitti_eval import obj
 
 
@@ -28,12 +25,7 @@ def _refuse_constant(name: str) -> float:
 def test_depth_json_parses_strictly_with_null_for_bands_without_cars(tiny_models, tmp_path: Path, capsys) -> None:
     """Frame 000003's one moderate car is 13 m away: the 20–35 and 35–50 m bands have no car. Their figures were
     written as NaN, which no strict JSON parser reads; they are null now."""
-    data = tmp_path / "data"
-    for sub in ("image_2", "velodyne", "calib", "label_2"):
-        shutil.copytree(KITTI / sub, data / sub)
-    (data / "depth_2").mkdir()
-    frame = load_frame(KITTI, "000003")
-    write_depth_png(data / "depth_2" / "000003.png", sparse_depth_map(frame.points, frame.calib, frame.image_hw))
+    data = object_folder_with_depth(tmp_path / "data", "000003")
     frames = tmp_path / "frames.txt"
     frames.write_text("000003\n")
     out = tmp_path / "depth.json"
