@@ -434,7 +434,12 @@ class Detector:
                 # GPU 0, a failing GPU session on the CPU, with a printout only; later, a run that fails on the
                 # GPU would rebuild the session there for good. A GPU that fails says so instead.
                 model = str(path) if by_path else graphs[networks[name]["file"]]
-                self._sessions[name] = ort.InferenceSession(model, options, providers=entries, enable_fallback=0)
+                session = ort.InferenceSession(model, options, providers=entries, enable_fallback=0)
+                # ONNX Runtime 1.22 and older (the GPU image's) drop enable_fallback=0 in __init__ and turn the
+                # run-time fallback on again: turned off here too. A session they created on other providers
+                # than asked for shows in providers_in_use (the provider_fallback warning).
+                session.disable_fallback()
+                self._sessions[name] = session
             except Exception as exc:  # ORT raises its own exception types for unreadable graphs
                 reason = " ".join(str(exc).split())  # one line: some of ONNX Runtime's messages span several
                 # ONNX Runtime's words when it will not read a tensor's file: refuse_external_data missed one.

@@ -127,3 +127,21 @@ def test_a_ring_column_is_refused_with_the_slice_that_keeps_four(edge: Detector,
     assert message.endswith("points[:, :4]")
     assert np.array_equal(edge.detect(frame.image, with_ring[:, :4], frame.calib).boxes,
                           edge.detect(frame.image, lidar16, frame.calib).boxes)
+
+
+def test_sessions_run_without_onnx_runtimes_fallback_even_where_it_ignores_enable_fallback(monkeypatch) -> None:
+    """ONNX Runtime 1.22 (the GPU image's pin) sets the run-time fallback on in ``InferenceSession.__init__``
+    whatever ``enable_fallback`` says, so a failed GPU run would rebuild the session on the CPU for good. That
+    version cannot be installed beside this one: its ``__init__``'s behaviour is stood in for by turning the flag
+    back on after the real one, and the Detector's sessions must still have it off."""
+    import onnxruntime as ort
+
+    real_init = ort.InferenceSession.__init__
+
+    def as_in_1_22(self, *args, **kwargs) -> None:
+        real_init(self, *args, **kwargs)
+        self._enable_fallback = True
+
+    monkeypatch.setattr(ort.InferenceSession, "__init__", as_in_1_22)
+    with Detector(WEIGHTS / "edge", providers="cpu") as detector:
+        assert detector._sessions and not any(s._enable_fallback for s in detector._sessions.values())
