@@ -89,6 +89,8 @@ ENV PATH=/opt/venv/bin:$PATH \
 VOLUME ["/var/cache/lowres3d/tensorrt"]
 USER 10001
 EXPOSE 8000
+# No proxy: Docker passes the client's configured proxies (HTTP_PROXY, ~/.docker/config.json) into every
+# container, and urllib would send the probe of the container's own loopback to that proxy (never healthy).
 HEALTHCHECK --interval=30s --timeout=5s --start-period=60s --retries=3 \
-    CMD ["python", "-c", "import os, sys, urllib.request; url = 'http://127.0.0.1:%s/readyz' % os.environ.get('LOWRES3D_PORT', '8000'); sys.exit(0 if urllib.request.urlopen(url, timeout=4).status == 200 else 1)"]
+    CMD ["python", "-c", "import os, sys, urllib.request; url = 'http://127.0.0.1:%s/readyz' % os.environ.get('LOWRES3D_PORT', '8000'); opener = urllib.request.build_opener(urllib.request.ProxyHandler({})); sys.exit(0 if opener.open(url, timeout=4).status == 200 else 1)"]
 CMD ["python", "-m", "service"]
