@@ -56,6 +56,12 @@ class Calibration:
         return m
 
     @property
+    def velo_to_pixels_f32(self) -> np.ndarray:
+        """3×4 float32 projection velodyne → homogeneous pixels (u·d, v·d, d): for screening many points at
+        once, where float32's error at LiDAR ranges is far below a pixel."""
+        return (self.P2 @ self.velo_to_rect_matrix).astype(np.float32)
+
+    @property
     def rect_to_velo_matrix(self) -> np.ndarray:
         """4×4 transform rectified camera → velodyne (exact inverse)."""
         return np.linalg.inv(self.velo_to_rect_matrix)
@@ -337,9 +343,8 @@ def sparse_depth_map(
     # A float32 pass finds the points that can land in the image (most of a 360° scan cannot);
     # the exact float64 projection then runs on those alone. The 2-pixel and 1 cm margins are far
     # wider than float32's error at LiDAR ranges, so the result equals projecting every point.
-    project = (calib.P2 @ calib.velo_to_rect_matrix).astype(np.float32)  # 3×4, velodyne → image
     # (3, N): each coordinate a contiguous row, so the range tests below stream through memory.
-    su, sv, near = affine_rows(project, points[:, :3].astype(np.float32, copy=False).T)
+    su, sv, near = affine_rows(calib.velo_to_pixels_f32, points[:, :3].astype(np.float32, copy=False).T)
     candidates = np.flatnonzero(
         (near > min_depth - 0.01)
         & (su > -2.0 * near) & (su < (w + 2.0) * near)

@@ -205,11 +205,11 @@ def scan_misses_image(points: np.ndarray, calib: Calibration, image_hw: tuple[in
     LiDAR→camera transform is in another frame, direction or unit, and the depth net gets no sparse depth (or
     another scene's) and the pseudo points land elsewhere. Every SCAN_VIEW_SAMPLE-th point (about 40 µs for a
     16-line scan)."""
-    # One float32 3×4 matrix velodyne → pixels (homogeneous): a return lies in the image when u/d and v/d do, d > 0.
-    # Every sampled point is projected and the count taken over those ahead: cheaper than picking them out first.
-    project = (calib.P2 @ calib.velo_to_rect_matrix).astype(np.float32)
-    u, v, depth = affine_rows(project, points[::SCAN_VIEW_SAMPLE, :3].T)
-    ahead = points[::SCAN_VIEW_SAMPLE, 0] > AHEAD_M
+    # Homogeneous pixels: a return lies in the image when u/d and v/d do, d > 0. Every sampled point is projected
+    # and the count taken over those ahead: cheaper than picking them out first.
+    sample = points[::SCAN_VIEW_SAMPLE]
+    u, v, depth = affine_rows(calib.velo_to_pixels_f32, sample[:, :3].T)
+    ahead = sample[:, 0] > AHEAD_M
     count = int(np.count_nonzero(ahead))
     if count < FEWEST_AHEAD:
         return None
