@@ -3,6 +3,8 @@
 examples:
   python -m pipeline.check_models --models /srv/lowres3d/edge-v7
   python -m pipeline.check_models --models /srv/lowres3d/edge-v7 --provider tensorrt --json check.json
+  python -m pipeline.check_models --models /srv/lowres3d/edge-v7 --provider tensorrt \
+      --trt-cache-dir /var/cache/lowres3d/tensorrt
 
 The checks, in order (each needs the ones before it; those after a failure are reported as skipped):
 
@@ -11,7 +13,9 @@ The checks, in order (each needs the ones before it; those after a failure are r
   files     every file it lists is there, of its listed size and sha256 (the first five bad files named, then
             how many more)
   sessions  ONNX Runtime loads each graph on --provider (the provider really used, no silent fallback), and the
-            graphs' inputs and outputs (names, float32, shapes) are those of the manifest's preset
+            graphs' inputs and outputs (names, float32, shapes) are those of the manifest's preset; with
+            tensorrt the engines are built in --trt-cache-dir (default MODELS/trt_cache/): given the
+            service's cache, the check builds the engines the service will load, before its first frame
   frame     one real frame runs: each network's raw outputs finite and of the preset's shapes, the scores in
             [0, 1], the boxes finite
 
@@ -80,6 +84,7 @@ class CheckConfig:
     frame: str = SAMPLE_FRAME
     emulate_beams: int | None = None  # None: the model's own line count; 0: the scan as stored
     allow_untrained: bool = False
+    trt_cache_dir: Path | None = None  # TensorRT's engine cache; None: MODELS/trt_cache, as the service's default
 
 
 @dataclass
@@ -263,7 +268,7 @@ def run(config: CheckConfig) -> CheckReport:
         report.identity = model_identity(models, manifest, digest)
         check = step("sessions")
         try:
-            detector = Detector(models, providers=config.provider)
+            detector = Detector(models, providers=config.provider, trt_cache_dir=config.trt_cache_dir)
         except (ModelFileError, InputError) as exc:
             raise CheckFailed(str(exc)) from exc
         if detector.manifest != manifest:
@@ -312,7 +317,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                                      formatter_class=HelpFormatter, epilog=examples(
                                          "python -m pipeline.check_models --models /srv/lowres3d/edge-v7",
                                          "python -m pipeline.check_models --models DIR --provider tensorrt "
-                                         "--json check.json"))
+                                         "--json check.json",
+                                         "python -m pipeline.check_models --models DIR --provider tensorrt "
+                                         "--trt-cache-dir /var/cache/lowres3d/tensorrt"))
     parser.add_argument("--models", type=Path, required=True, metavar="DIR", help="the model directory to check")
     parser.add_argument("--provider", choices=("cpu", "cuda", "tensorrt"),
                         help="the execution provider the vehicles run (default: the best this ONNX Runtime offers)")
@@ -324,6 +331,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                              "count; a scan with that count already runs as stored)")
     parser.add_argument("--allow-untrained", action="store_true",
                         help="pass a directory exported without trained weights (latency tests; never a vehicle)")
+    parser.add_argument("--trt-cache-dir", type=Path, metavar="DIR",
+                        help="with --provider tensorrt, where TensorRT's engines are built and kept, as the "
+                             "service's flag: give the service's cache to build its engines ahead of its first "
+                             "frame (default: MODELS/trt_cache)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the report as JSON")
     return parser.parse_args(argv)
 
@@ -338,7 +349,8 @@ def main(argv: list[str] | None = None) -> int:
             check_not_input(args.json, "--json", {"--models": args.models,
                                                  "--data": SAMPLE_DIR if args.data is None else args.data})
         report = run(CheckConfig(models=args.models, provider=args.provider, data=args.data, frame=args.frame,
-                                 emulate_beams=args.emulate_beams, allow_untrained=args.allow_untrained))
+                                 emulate_beams=args.emulate_beams, allow_untrained=args.allow_untrained,
+                                 trt_cache_dir=args.trt_cache_dir))
     except InputError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

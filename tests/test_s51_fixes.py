@@ -1,0 +1,37 @@
+"""Session 51's fixes: check_models builds TensorRT's engines where the service keeps them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from pipeline import check_models
+from pipeline.detector import Detector
+from tests.test_rollout import WEIGHTS
+
+
+def test_check_models_hands_its_trt_cache_dir_to_the_models_sessions(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    """With --provider tensorrt the check built its engines in MODELS/trt_cache/ and had no flag to say otherwise;
+    its error for an unwritable cache named the service's --trt-cache-dir. The check now takes that flag and gives
+    it to the Detector, which builds the engines there (no TensorRT here: the CPU run shows the folder reaching
+    the real Detector, which the check then runs through every check)."""
+    given: list[Any] = []
+
+    class Recording(Detector):
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            given.append(kwargs.get("trt_cache_dir"))
+            super().__init__(*args, **kwargs)
+
+    monkeypatch.setattr(check_models, "Detector", Recording)
+    cache = tmp_path / "trt"
+    assert check_models.main(["--models", str(WEIGHTS / "edge-lidar16"), "--provider", "cpu",
+                              "--trt-cache-dir", str(cache)]) == 0
+    assert given == [cache]
+    assert capsys.readouterr().out.splitlines()[-1].startswith("passed: ")
+    given.clear()
+    assert check_models.main(["--models", str(WEIGHTS / "edge-lidar16"), "--provider", "cpu"]) == 0
+    assert given == [None]  # the Detector's default, MODELS/trt_cache, as the service's
+
