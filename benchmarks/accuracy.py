@@ -39,7 +39,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from itertools import pairwise
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from evaluation import DEFAULT_SCORE_THRESHOLD
 from evaluation.frames import (
@@ -95,6 +95,9 @@ from pipeline.frame import frame_ids
 from pipeline.model_files import load_manifest_with_digest
 from pipeline.provenance import code_version
 
+if TYPE_CHECKING:  # imported when a dataset mode runs: the harness loads OpenCV and ONNX Runtime
+    from evaluation.harness import DepthRun, DetectionRun
+
 log = logging.getLogger("accuracy")
 
 
@@ -144,15 +147,48 @@ class LabelEvalRun:
 
 def run(config: LabelEvalConfig) -> LabelEvalRun:
     """Load both label directories, evaluate, write the JSON and plots if asked."""
-    frame_ids = read_split_file(config.split_file) if config.split_file else None
-    if config.first_frames is not None:
-        frame_ids = first_frames(frame_ids or ground_truth_frames(config.gt_labels), config.first_frames)
+    frame_ids = _selected_frames(config)
     _check_compared(config.compare_pred_labels, config.gap_to_pred_labels)
     labels = load_label_dirs(config.gt_labels, config.pred_labels, frame_ids, progress=config.progress,
                              missing_as_empty=config.missing_as_empty)
     if not any((d.types == config.class_name.lower()).any() for d in labels.detections):
         log.warning("no %s detection in %s: every AP is 0", config.class_name, config.pred_labels)
     _warn_if_cut_at_a_score(labels, config)
+    evaluation = _evaluate_all(config, frame_ids, labels)
+    if config.json_path:
+        _write_json(config.json_path, _json_document(config, evaluation))
+    plot_paths = _plot(config, config.plots_dir, evaluation) if config.plots_dir else ()
+    return LabelEvalRun(
+        result=evaluation.result, table=_table(config, evaluation), by_distance=evaluation.by_distance,
+        spread=evaluation.spread, missing_predictions=labels.missing_predictions, json_path=config.json_path,
+        plot_paths=plot_paths,
+    )
+
+
+@dataclass(frozen=True)
+class _Evaluation:
+    """Every figure of a run: this model's evaluation (overall and per distance band), the compared models', the
+    bootstrap's spread, and the frames without a result file."""
+
+    result: KittiEvalResult
+    by_distance: dict[tuple[float, float], KittiEvalResult]
+    other: KittiEvalResult | None  # --compare-pred-labels'
+    other_by_distance: dict[tuple[float, float], KittiEvalResult]
+    upper: KittiEvalResult | None  # --gap-to-pred-labels'
+    spread: BootstrapResult | None
+    missing_predictions: tuple[str, ...]
+
+
+def _selected_frames(config: LabelEvalConfig) -> list[str] | None:
+    """The frame ids to evaluate: the split file's, cut to the first N; None for every ground-truth file."""
+    frame_ids = read_split_file(config.split_file) if config.split_file else None
+    if config.first_frames is not None:
+        frame_ids = first_frames(frame_ids or ground_truth_frames(config.gt_labels), config.first_frames)
+    return frame_ids
+
+
+def _evaluate_all(config: LabelEvalConfig, frame_ids: list[str] | None, labels: LabelSet) -> _Evaluation:
+    """This model's results evaluated, then the compared models' and the bootstrap, then the distance bands."""
     result = evaluate(
         labels.ground_truth, labels.detections, class_name=config.class_name,
         iou_thresholds=config.iou_thresholds, progress=config.progress,
@@ -164,49 +200,67 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
     other, other_labels, upper, spread = _compare_and_bootstrap(config, frame_ids, labels, result)
     by_distance = _by_distance(config, labels)
     other_by_distance = _by_distance(config, other_labels) if other_labels is not None else {}
-    if config.json_path:
-        document = to_json(result)
-        if by_distance:
-            document["by_distance"] = distance_json(by_distance)
-        if other_by_distance:
-            document["compared_by_distance"] = distance_json(other_by_distance)
+    return _Evaluation(result=result, by_distance=by_distance, other=other, other_by_distance=other_by_distance,
+                       upper=upper, spread=spread, missing_predictions=labels.missing_predictions)
+
+
+def _json_document(config: LabelEvalConfig, evaluation: _Evaluation) -> dict[str, Any]:
+    """The JSON document: the AP tables, what was compared, and what the figures are of."""
+    result, other, upper, spread = evaluation.result, evaluation.other, evaluation.upper, evaluation.spread
+    document = to_json(result)
+    if evaluation.by_distance:
+        document["by_distance"] = distance_json(evaluation.by_distance)
+    if evaluation.other_by_distance:
+        document["compared_by_distance"] = distance_json(evaluation.other_by_distance)
+    if spread is not None:
+        document["bootstrap"] = _spread_document(result, spread, other, upper is not None)
+    if other is not None:
+        document["compared_with"] = {"pred_labels": str(config.compare_pred_labels), **other.ap_table()}
+    if upper is not None:
+        document["gap_to"] = {"pred_labels": str(config.gap_to_pred_labels), **upper.ap_table()}
+        document["gap_share"] = gap_json(result, other, upper, spread)
         if spread is not None:
-            document["bootstrap"] = _spread_document(result, spread, other, upper is not None)
-        if other is not None:
-            document["compared_with"] = {"pred_labels": str(config.compare_pred_labels), **other.ap_table()}
-        if upper is not None:
-            document["gap_to"] = {"pred_labels": str(config.gap_to_pred_labels), **upper.ap_table()}
-            document["gap_share"] = gap_json(result, other, upper, spread)
-            if spread is not None:
-                document["gap_share"]["method"] = spread.method
-                document["gap_share"]["percentile_interval"] = gap_json(
-                    result, other, upper, replace(spread, method="percentile"))["interval"]
-        if config.depth_dir is not None:
-            document["depth_source"] = f"{config.depth_dir} (not the depth network)"
-        document["missing_predictions"] = list(labels.missing_predictions)
-        # What the figures are of, so a JSON file read later needs no command line beside it.
-        document["run"] = {"gt_labels": str(config.gt_labels), "pred_labels": str(config.pred_labels),
-                           "split_file": None if config.split_file is None else str(config.split_file),
-                           "first_frames": config.first_frames, **(config.detector or {}), "code": code_version()}
-        document["small_detections"] = "ignored (devkit)" if config.ignore_small_detections else "counted (diagnostic)"
-        with _writing(config.json_path, "--json"):
-            config.json_path.parent.mkdir(parents=True, exist_ok=True)
-            config.json_path.write_text(json.dumps(_without_nan(document), indent=1, allow_nan=False) + "\n",
-                                        encoding="utf-8")
-    plot_paths: tuple[Path, ...] = ()
-    if config.plots_dir:
-        with _writing(config.plots_dir, "--plots"):
-            source = config.source or f"{config.pred_labels} against {config.gt_labels}"
-            names = (_short_name(config.pred_labels), _short_name(config.compare_pred_labels))
-            plot_paths = tuple(plot_pr_curves(result, config.plots_dir, source, other, names))
-            if by_distance:
-                plot_paths += (plot_by_distance(by_distance, config.plots_dir / "ap_by_distance.png",
-                                                other_by_distance, names, source),)
+            document["gap_share"]["method"] = spread.method
+            document["gap_share"]["percentile_interval"] = gap_json(
+                result, other, upper, replace(spread, method="percentile"))["interval"]
+    if config.depth_dir is not None:
+        document["depth_source"] = f"{config.depth_dir} (not the depth network)"
+    document["missing_predictions"] = list(evaluation.missing_predictions)
+    # What the figures are of, so a JSON file read later needs no command line beside it.
+    document["run"] = {"gt_labels": str(config.gt_labels), "pred_labels": str(config.pred_labels),
+                       "split_file": None if config.split_file is None else str(config.split_file),
+                       "first_frames": config.first_frames, **(config.detector or {}), "code": code_version()}
+    document["small_detections"] = "ignored (devkit)" if config.ignore_small_detections else "counted (diagnostic)"
+    return document
+
+
+def _write_json(path: Path, document: dict[str, Any]) -> None:
+    """``document`` written to ``path`` (--json) as strict JSON, NaN as null."""
+    with _writing(path, "--json"):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(_without_nan(document), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+
+
+def _plot(config: LabelEvalConfig, plots_dir: Path, evaluation: _Evaluation) -> tuple[Path, ...]:
+    """The precision-recall curves (and AP by distance, with bands) as PNGs in ``plots_dir``; their paths."""
+    with _writing(plots_dir, "--plots"):
+        source = config.source or f"{config.pred_labels} against {config.gt_labels}"
+        names = (_short_name(config.pred_labels), _short_name(config.compare_pred_labels))
+        plot_paths = tuple(plot_pr_curves(evaluation.result, plots_dir, source, evaluation.other, names))
+        if evaluation.by_distance:
+            plot_paths += (plot_by_distance(evaluation.by_distance, plots_dir / "ap_by_distance.png",
+                                            evaluation.other_by_distance, names, source),)
+    return plot_paths
+
+
+def _table(config: LabelEvalConfig, evaluation: _Evaluation) -> str:
+    """The printed tables: AP, per distance band, the comparison or spread, the gap, and the notes above them."""
+    result, other, upper, spread = evaluation.result, evaluation.other, evaluation.upper, evaluation.spread
     table = format_table(result)
-    if by_distance:
-        table += "\n" + format_distance_table(by_distance)
-    if other_by_distance:
-        table += "\n" + format_distance_table(other_by_distance, str(config.compare_pred_labels))
+    if evaluation.by_distance:
+        table += "\n" + format_distance_table(evaluation.by_distance)
+    if evaluation.other_by_distance:
+        table += "\n" + format_distance_table(evaluation.other_by_distance, str(config.compare_pred_labels))
     if spread is not None:
         table += "\n" + format_spread(result, spread, other, str(config.compare_pred_labels))
     elif other is not None:
@@ -219,13 +273,10 @@ def run(config: LabelEvalConfig) -> LabelEvalRun:
                                    *_interval_notes(spread, upper is not None)])
     if not config.ignore_small_detections:
         table = "not the devkit protocol: detections with 2D boxes under the minimum height are counted\n" + table
-    if labels.missing_predictions:
-        table = (f"{len(labels.missing_predictions)} of {result.n_frames} frames have no result file, counted as "
+    if evaluation.missing_predictions:
+        table = (f"{len(evaluation.missing_predictions)} of {result.n_frames} frames have no result file, counted as "
                  "frames without detections (--missing-as-empty)\n" + table)
-    return LabelEvalRun(
-        result=result, table=table, by_distance=by_distance, spread=spread, missing_predictions=labels.missing_predictions,
-        json_path=config.json_path, plot_paths=plot_paths,
-    )
+    return table
 
 
 # Lowest score below which a result folder looks complete. The precision-recall curve's tail needs the
@@ -636,14 +687,9 @@ def _check_detection_inputs(args: argparse.Namespace, frames: list[str] | None, 
 def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_file: Path | None,
               first: int | None) -> int:
     """The dataset modes: run the networks, then evaluate."""
-    from evaluation.depth_metrics import CAR_BOX_MARGIN_M, car_errors_by_band, car_shares_by_band
-    from evaluation.harness import run_depth, run_detection
     from pipeline.model_files import ModelFileError
 
-    if args.data is None or args.models is None:
-        parser.error("--data DIR and --models DIR are both required to run the models")
-    if not args.depth and args.input is None:
-        parser.error("--input lidar64|lidar16|lidar16+camera is required with --data and --models")
+    _require_run_flags(parser, args)
     # By default a folder per model and input: one shared by every model let a second model's run replace the
     # first's result files without a word.
     out = None if args.depth else args.out or default_out(args.models, args.input)
@@ -653,86 +699,151 @@ def _main_run(parser: argparse.ArgumentParser, args: argparse.Namespace, split_f
         if args.depth_dir is not None and not args.depth_dir.is_dir():  # both modes read it
             raise InputError(f"--depth-dir {args.depth_dir}: directory not found")
         if args.depth:
-            beams = 16 if args.emulate_beams is None else args.emulate_beams  # 0: a 16-line sensor's own, as stored
-            outcome = run_depth(args.data, args.models, frames, beams=beams, provider=args.provider,
-                                progress=show_progress(args.no_progress), pictures=args.plots, depth_dir=args.depth_dir,
-                                first=first)
-            m = outcome.mean
-            print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
-            print(f"RMSE {m.rmse_mm:.1f} mm   MAE {m.mae_mm:.1f} mm   iRMSE {m.irmse_per_km:.2f} 1/km   "
-                  f"iMAE {m.imae_per_km:.2f} 1/km   ({m.n_pixels} pixels)")
-            print("median |error| by ground-truth depth: "
-                  + ", ".join(f"{band} m {mm:.0f} mm" for band, mm in m.median_abs_mm_by_band.items()))
-            cars = car_errors_by_band(outcome.car_errors) if outcome.car_errors else {}
-            if cars:
-                print("median |error| on the pixels of moderate cars, by the car's depth: "
-                      + ", ".join(f"{band} m {c['median_mm']:.0f} mm ({c['cars']} cars)" if c["cars"] else
-                                  f"{band} m no cars" for band, c in cars.items()))
-            in_box = car_shares_by_band(outcome.car_in_box) if outcome.car_in_box else {}
-            if in_box:
-                print(f"share of those pixels whose point lands in the car's BEV box (grown by {CAR_BOX_MARGIN_M} m), "
-                      "mean over cars: "
-                      + ", ".join(f"{band} m {c['mean_share']:.2f}" if c["cars"] else f"{band} m no cars"
-                                  for band, c in in_box.items()))
-            stray = car_shares_by_band(outcome.car_stray) if outcome.car_stray else {}
-            if stray:
-                print("share of the other pixels of each car's 2D box (road, background) whose point lands in that "
-                      "box too, mean over cars: "
-                      + ", ".join(f"{band} m {c['mean_share']:.3f}" if c["cars"] else f"{band} m no cars"
-                                  for band, c in stray.items()))
-            if args.plots:
-                print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
-                if outcome.car_errors:
-                    n = len(outcome.per_frame)
-                    depth_from = f"depth from {args.depth_dir} (not the depth network)" if args.depth_dir else args.models
-                    title = (f"depth on the moderate cars, {n} frame{'' if n == 1 else 's'}\n"
-                             f"{depth_from} ({outcome.input}) on {args.data}")
-                    picture = plot_car_depth(outcome.car_errors, outcome.car_in_box, args.plots / "car_depth.png",
-                                             title, CAR_BOX_MARGIN_M)
-                    print(f"plot (each car's error and share on the car against its distance): {picture}")
-            if args.json:
-                with _writing(args.json, "--json"):
-                    args.json.parent.mkdir(parents=True, exist_ok=True)
-                    # A band without cars has no figure: null, not NaN (which strict JSON parsers refuse).
-                    args.json.write_text(json.dumps(_without_nan({
-                        "run": {"data": str(args.data), "models": str(args.models),
-                                "depth_dir": None if args.depth_dir is None else str(args.depth_dir)},
-                        "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
-                        "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
-                                  "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
-                                  "median_abs_mm_by_band": m.median_abs_mm_by_band,
-                                  "car_median_abs_mm_by_band": cars,
-                                  "car_points_in_box_by_band": in_box,
-                                  "car_stray_points_in_box_by_band": stray},
-                    }), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+            _main_depth(args, frames, first)
             return 0
-        _check_detection_inputs(args, frames, first, out)
-        if first is not None:  # the first N ground-truth frames: the ones the evaluation below takes
-            frames = first_frames(ground_truth_frames(args.data / "label_2", frames), first)
-        detection = run_detection(args.data, args.models, args.input, out, frames, args.provider,
-                                  progress=show_progress(args.no_progress), score_threshold=args.score_threshold,
-                                  depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, beams=args.emulate_beams)
-        predictions = detection.results
-        outcome = run(LabelEvalConfig(
-            gt_labels=args.data / "label_2", pred_labels=predictions, split_file=split_file, first_frames=first,
-            json_path=args.json, plots_dir=args.plots, progress=show_progress(args.no_progress),
-            ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
-            depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed, interval=args.interval,
-            compare_pred_labels=args.compare_pred_labels, gap_to_pred_labels=args.gap_to_pred_labels,
-            missing_as_empty=bool(detection.skipped),
-            detector={"data": str(args.data), "models": str(args.models),
-                      "model_id": load_manifest_with_digest(args.models)[1], "input": args.input,
-                      "score_threshold": args.score_threshold, "mirror_tta": args.mirror_tta,
-                      **({} if args.emulate_beams is None else {"emulate_beams": args.emulate_beams}),
-                      "provider": args.provider or "best available"},
-            source=f"{args.models} ({args.input}) on {args.data}",
-        ))
+        detection, outcome = _detect_and_evaluate(args, out, frames, split_file, first)
     except (InputError, ModelFileError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    return _print_detection(args, detection, outcome)
+
+
+def _require_run_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """parser.error (exit 2) without --data and --models, or without --input outside --depth."""
+    if args.data is None or args.models is None:
+        parser.error("--data DIR and --models DIR are both required to run the models")
+    if not args.depth and args.input is None:
+        parser.error("--input lidar64|lidar16|lidar16+camera is required with --data and --models")
+
+
+# A figure per band of the cars' depth (evaluation.depth_metrics.CAR_BANDS_M): {band: {figure: value, "cars": n}}.
+_CarBands = dict[str, dict[str, float]]
+
+
+def _main_depth(args: argparse.Namespace, frames: list[str] | None, first: int | None) -> None:
+    """--depth: depth completion measured and printed, its pictures drawn (--plots) and its JSON written (--json)."""
+    from evaluation.harness import run_depth
+
+    beams = 16 if args.emulate_beams is None else args.emulate_beams  # 0: a 16-line sensor's own, as stored
+    outcome = run_depth(args.data, args.models, frames, beams=beams, provider=args.provider,
+                        progress=show_progress(args.no_progress), pictures=args.plots, depth_dir=args.depth_dir,
+                        first=first)
+    cars, in_box, stray = _car_bands(outcome)
+    _print_depth(outcome, cars, in_box, stray)
+    if args.plots:
+        _depth_pictures(args, outcome)
+    if args.json:
+        _write_json(args.json, _depth_document(args, outcome, cars, in_box, stray))
+
+
+def _car_bands(outcome: DepthRun) -> tuple[_CarBands, _CarBands, _CarBands]:
+    """The moderate cars' figures by their depth: median |error| on their pixels, the share of those landing in
+    their BEV box, and the share of the other pixels of their 2D box landing there too (empty without cars)."""
+    from evaluation.depth_metrics import car_errors_by_band, car_shares_by_band
+
+    cars = car_errors_by_band(outcome.car_errors) if outcome.car_errors else {}
+    in_box = car_shares_by_band(outcome.car_in_box) if outcome.car_in_box else {}
+    stray = car_shares_by_band(outcome.car_stray) if outcome.car_stray else {}
+    return cars, in_box, stray
+
+
+def _print_depth(outcome: DepthRun, cars: _CarBands, in_box: _CarBands, stray: _CarBands) -> None:
+    """The depth metrics, a line each: what was run, the means, by ground-truth depth, and the cars' bands."""
+    from evaluation.depth_metrics import CAR_BOX_MARGIN_M
+
+    m = outcome.mean
+    print(f"depth completion on {len(outcome.per_frame)} frame(s) ({outcome.layout}; input: {outcome.input})")
+    print(f"RMSE {m.rmse_mm:.1f} mm   MAE {m.mae_mm:.1f} mm   iRMSE {m.irmse_per_km:.2f} 1/km   "
+          f"iMAE {m.imae_per_km:.2f} 1/km   ({m.n_pixels} pixels)")
+    print("median |error| by ground-truth depth: "
+          + ", ".join(f"{band} m {mm:.0f} mm" for band, mm in m.median_abs_mm_by_band.items()))
+    if cars:
+        print("median |error| on the pixels of moderate cars, by the car's depth: "
+              + ", ".join(f"{band} m {c['median_mm']:.0f} mm ({c['cars']} cars)" if c["cars"] else
+                          f"{band} m no cars" for band, c in cars.items()))
+    if in_box:
+        print(f"share of those pixels whose point lands in the car's BEV box (grown by {CAR_BOX_MARGIN_M} m), "
+              "mean over cars: "
+              + ", ".join(f"{band} m {c['mean_share']:.2f}" if c["cars"] else f"{band} m no cars"
+                          for band, c in in_box.items()))
+    if stray:
+        print("share of the other pixels of each car's 2D box (road, background) whose point lands in that "
+              "box too, mean over cars: "
+              + ", ".join(f"{band} m {c['mean_share']:.3f}" if c["cars"] else f"{band} m no cars"
+                          for band, c in stray.items()))
+
+
+def _depth_pictures(args: argparse.Namespace, outcome: DepthRun) -> None:
+    """Where run_depth put the per-frame pictures, and car_depth.png (each car's error and share against its
+    distance) drawn when there are cars."""
+    from evaluation.depth_metrics import CAR_BOX_MARGIN_M
+
+    print(f"pictures (camera, prediction, ground truth, error): {args.plots}/depth_<id>.png")
+    if outcome.car_errors:
+        n = len(outcome.per_frame)
+        depth_from = f"depth from {args.depth_dir} (not the depth network)" if args.depth_dir else args.models
+        title = (f"depth on the moderate cars, {n} frame{'' if n == 1 else 's'}\n"
+                 f"{depth_from} ({outcome.input}) on {args.data}")
+        picture = plot_car_depth(outcome.car_errors, outcome.car_in_box, args.plots / "car_depth.png",
+                                 title, CAR_BOX_MARGIN_M)
+        print(f"plot (each car's error and share on the car against its distance): {picture}")
+
+
+def _depth_document(args: argparse.Namespace, outcome: DepthRun, cars: _CarBands, in_box: _CarBands,
+                    stray: _CarBands) -> dict[str, Any]:
+    """--depth's JSON document: what was run, on what input, and every figure printed."""
+    m = outcome.mean
+    # A band without cars has no figure: null, not NaN (which strict JSON parsers refuse; _write_json's job).
+    return {
+        "run": {"data": str(args.data), "models": str(args.models),
+                "depth_dir": None if args.depth_dir is None else str(args.depth_dir)},
+        "layout": outcome.layout, "input": outcome.input, "frames": len(outcome.per_frame),
+        "depth": {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
+                  "imae_per_km": m.imae_per_km, "pixels": m.n_pixels,
+                  "median_abs_mm_by_band": m.median_abs_mm_by_band,
+                  "car_median_abs_mm_by_band": cars,
+                  "car_points_in_box_by_band": in_box,
+                  "car_stray_points_in_box_by_band": stray},
+    }
+
+
+def _detect_and_evaluate(args: argparse.Namespace, out: Path, frames: list[str] | None, split_file: Path | None,
+                         first: int | None) -> tuple[DetectionRun, LabelEvalRun]:
+    """--data --input: what the evaluation reads checked, the detector run into ``out``, its results evaluated."""
+    from evaluation.harness import run_detection
+
+    _check_detection_inputs(args, frames, first, out)
+    if first is not None:  # the first N ground-truth frames: the ones the evaluation below takes
+        frames = first_frames(ground_truth_frames(args.data / "label_2", frames), first)
+    detection = run_detection(args.data, args.models, args.input, out, frames, args.provider,
+                              progress=show_progress(args.no_progress), score_threshold=args.score_threshold,
+                              depth_dir=args.depth_dir, mirror_tta=args.mirror_tta, beams=args.emulate_beams)
+    outcome = run(LabelEvalConfig(
+        gt_labels=args.data / "label_2", pred_labels=detection.results, split_file=split_file, first_frames=first,
+        json_path=args.json, plots_dir=args.plots, progress=show_progress(args.no_progress),
+        ignore_small_detections=not args.count_small_detections, distance_edges=args.by_distance,
+        depth_dir=args.depth_dir, bootstrap=args.bootstrap, seed=args.seed, interval=args.interval,
+        compare_pred_labels=args.compare_pred_labels, gap_to_pred_labels=args.gap_to_pred_labels,
+        missing_as_empty=bool(detection.skipped), detector=_detector_run(args),
+        source=f"{args.models} ({args.input}) on {args.data}",
+    ))
+    return detection, outcome
+
+
+def _detector_run(args: argparse.Namespace) -> dict[str, Any]:
+    """What made the result files, for the JSON's ``run``: the data, the models (and their digest) and the flags."""
+    return {"data": str(args.data), "models": str(args.models),
+            "model_id": load_manifest_with_digest(args.models)[1], "input": args.input,
+            "score_threshold": args.score_threshold, "mirror_tta": args.mirror_tta,
+            **({} if args.emulate_beams is None else {"emulate_beams": args.emulate_beams}),
+            "provider": args.provider or "best available"}
+
+
+def _print_detection(args: argparse.Namespace, detection: DetectionRun, outcome: LabelEvalRun) -> int:
+    """What ran on what, the table and the files written; exit code 1 when frames were skipped, else 0."""
     source = f", depth from {args.depth_dir} instead of the depth network" if args.depth_dir else ""
     source += ", PIXOR with mirror test-time augmentation" if args.mirror_tta else ""
-    print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames{source}), results in {predictions}")
+    print(f"{args.input} on {args.data} ({outcome.result.n_frames} frames{source}), results in {detection.results}")
     print(outcome.table)
     _print_written(outcome)
     if detection.skipped:  # the table is then not the model's score on this data: say so, and fail
