@@ -73,7 +73,7 @@ from pipeline.model_files import (
 )
 from pipeline.onnx_wire import WireError, external_tensors
 from pipeline.postprocess import boxes_from_maps
-from pipeline.preprocess import depth_inputs, depth_view, view_calibration
+from pipeline.preprocess import DepthInputs, depth_inputs, depth_view, view_calibration
 from pipeline.presets import Preset, preset_from_dict
 from pipeline.pseudo import bin_rays, depth_to_points, merge_points
 
@@ -217,6 +217,20 @@ class Detections:
         """Each box by name, best first: centre, size, yaw, its quaternion and score (e.g. one
         ``vision_msgs/Detection3D`` each, in the LiDAR's frame)."""
         return box_records(self.boxes, self.scores, self.label)
+
+
+@dataclass
+class _CameraStage:
+    """What the camera stage of :meth:`Detector.detect` hands on: the pseudo points in their BEV bins, the depth
+    map and its view's calibration (for ``keep_points``), whether the stage thread has written the real points
+    into the BEV already, what its stages took there, and the frame checks' warnings."""
+
+    pseudo: PseudoBins
+    dense: np.ndarray  # (H, W) metres in the depth net's view
+    view_calib: Calibration
+    points_voxelized: bool  # by the stage thread, beside the depth net
+    overlapped: dict[str, float]
+    warnings: list[CodedWarning]
 
 
 def resolve_providers(requested: str | Sequence[str] | None = None, available: list[str] | None = None) -> list[str]:
@@ -403,10 +417,8 @@ class Detector:
         self.model_dir = Path(model_dir)
         self.manifest = load_manifest(self.model_dir)
         graphs = self._read_graphs(verify)
-        try:
-            self.preset: Preset = preset_from_dict(self.manifest["preset_config"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise ModelFileError(f"{self.model_dir / 'manifest.json'}: {exc}") from exc
+        self.preset: Preset = self._manifest_preset()
+
         self.providers = resolve_providers(providers)
         self.device_id = device_id
         trt_options = None
@@ -414,50 +426,16 @@ class Detector:
             trt_options = tensorrt_options(self.manifest, Path(trt_cache_dir or self.model_dir / "trt_cache"))
         entries = session_providers(self.providers, device_id, trt_options)
         options = session_options(intra_op_threads)
-        networks = self.manifest.get("networks", {})
-        if "pixor" not in networks:
-            raise ModelFileError(f"{self.model_dir / 'manifest.json'}: no 'pixor' network listed")
+        networks = self._listed_networks()
         self.two_stage = "depth" in networks
-        self._sessions: dict[str, ort.InferenceSession] = {}
-        # CPU and CUDA get the very bytes whose sha256 was checked: no second read of a file that a copy may have
-        # replaced since, and no external data (the check covers only the listed files). TensorRT gets the path,
-        # as before: its engine cache is named after the model file (untested here from bytes), and the file is
-        # checked again once the session holds it.
-        by_path = "TensorrtExecutionProvider" in self.providers
-        if not by_path:
-            options.add_session_config_entry("session.model_external_initializers_file_folder_path", NO_EXTERNAL_DATA)
-        for name in ("depth", "pixor") if self.two_stage else ("pixor",):
-            path = self.model_dir / networks[name]["file"]
-            try:
-                # No fallback: on an error ONNX Runtime's Python layer would retry on CUDA and the CPU without
-                # the provider options (the device id, TensorRT's cache): a worker given GPU 1 would run on
-                # GPU 0, a failing GPU session on the CPU, with a printout only; later, a run that fails on the
-                # GPU would rebuild the session there for good. A GPU that fails says so instead.
-                model = str(path) if by_path else graphs[networks[name]["file"]]
-                session = ort.InferenceSession(model, options, providers=entries, enable_fallback=0)
-                # ONNX Runtime 1.22 and older (the GPU image's) drop enable_fallback=0 in __init__ and turn the
-                # run-time fallback on again: turned off here too. A session they created on other providers
-                # than asked for shows in providers_in_use (the provider_fallback warning).
-                session.disable_fallback()
-                self._sessions[name] = session
-            except Exception as exc:  # ORT raises its own exception types for unreadable graphs
-                reason = " ".join(str(exc).split())  # one line: some of ONNX Runtime's messages span several
-                # ONNX Runtime's words when it will not read a tensor's file: refuse_external_data missed one.
-                if "External data path" in reason:
-                    raise ModelFileError(f"{path}: the graph keeps tensors in another file (ONNX external data), "
-                                         "which no sha256 of the manifest covers; export it with its weights inside "
-                                         f"({reason})") from exc
-                gpu = next((p for p in self.providers if p in GPU_PROVIDERS), None)
-                if gpu is not None:  # the file's sha256 was checked: the likelier cause is the GPU side
-                    raise InputError(gpu_session_error(path, gpu, device_id, trt_options, exc)) from exc
-                raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({reason})") from exc
-        if by_path and verify:  # the file ONNX Runtime read by its path, checked again now that the session holds it
-            verify_sha256(self.model_dir, {"files": {f: self.manifest["files"][f] for f in graphs}})
+        self._sessions = self._open_sessions(graphs, entries, options, trt_options, verify)
+
         # Input names as each graph has them: a lowered PIXOR reads its BEV in channel pieces.
         self._input_names = {name: [i.name for i in session.get_inputs()] for name, session in self._sessions.items()}
         self._check_shapes()
         # After the shapes: an edited preset_config that no longer fits the graphs is named as such first.
         check_descriptions(self.manifest, self.preset.described(), self.model_dir / "manifest.json")
+
         self._local = threading.local()
         self._closing = threading.Lock()  # guards the stage threads' set against close() on another thread
         # Held weakly: the only strong reference to a stage thread's executor is its calling thread's local state,
@@ -466,22 +444,94 @@ class Detector:
         # left an idle stage thread behind for the Detector's life.) close() stops those still held.
         self._stage_executors: weakref.WeakSet[ThreadPoolExecutor] = weakref.WeakSet()
         self._closed = False
-        if stage_threads is None:
-            stage_threads = 2 if intra_op_threads != 1 and usable_cpus() >= 2 else 1
-        if stage_threads not in (1, 2):
-            raise InputError(f"stage_threads: 1 or 2, not {stage_threads}")
-        self.stage_threads = stage_threads
-        fallback = self._check_provider_loaded(explicit=bool(providers))
-        # About the weights and the precision on this machine, logged once at load (and shown by the
-        # service's /v1/model).
-        loaded = coded((WarningCode.UNTRAINED_WEIGHTS, self._untrained()), (WarningCode.PROVIDER_FALLBACK, fallback),
-                       (WarningCode.INT8_SATURATION, self._saturating_int8()),
-                       (WarningCode.FP16_ON_CPU, self._fp16_on_cpu()))
+        self.stage_threads = self._stage_thread_count(stage_threads, intra_op_threads)
+
+        loaded = self._load_checks(explicit=bool(providers))
         self.load_warnings: list[str] = [w.message for w in loaded]
         self.load_warning_codes: list[str] = [w.code for w in loaded]  # parallel to load_warnings
         for warning in self.load_warnings:
             log.warning(warning)
         self.trained_lines: int | None = trained_lines(networks["pixor"].get("training") or {})  # None: not recorded
+
+    def _manifest_preset(self) -> Preset:
+        """The preset the manifest carries (``preset_config``), or a ModelFileError naming the manifest."""
+        try:
+            return preset_from_dict(self.manifest["preset_config"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelFileError(f"{self.model_dir / 'manifest.json'}: {exc}") from exc
+
+    def _listed_networks(self) -> dict:
+        """The manifest's networks by name; a ModelFileError when it lists no PIXOR."""
+        networks = self.manifest.get("networks", {})
+        if "pixor" not in networks:
+            raise ModelFileError(f"{self.model_dir / 'manifest.json'}: no 'pixor' network listed")
+        return networks
+
+    def _open_sessions(self, graphs: dict[str, bytes], entries: list[str | tuple[str, dict]],
+                       options: ort.SessionOptions, trt_options: dict | None,
+                       verify: bool) -> dict[str, ort.InferenceSession]:
+        """An ONNX Runtime session for each network of the directory, by name; a ModelFileError for a graph ONNX
+        Runtime cannot load, an InputError for a GPU session it cannot create."""
+        networks = self.manifest["networks"]
+        # CPU and CUDA get the very bytes whose sha256 was checked: no second read of a file that a copy may have
+        # replaced since, and no external data (the check covers only the listed files). TensorRT gets the path,
+        # as before: its engine cache is named after the model file (untested here from bytes), and the file is
+        # checked again once the session holds it.
+        by_path = "TensorrtExecutionProvider" in self.providers
+        if not by_path:
+            options.add_session_config_entry("session.model_external_initializers_file_folder_path", NO_EXTERNAL_DATA)
+        sessions: dict[str, ort.InferenceSession] = {}
+        for name in ("depth", "pixor") if self.two_stage else ("pixor",):
+            path = self.model_dir / networks[name]["file"]
+            model = str(path) if by_path else graphs[networks[name]["file"]]  # every network's file is in graphs
+            sessions[name] = self._open_session(path, model, entries, options, trt_options)
+        if by_path and verify:  # the file ONNX Runtime read by its path, checked again now that the session holds it
+            verify_sha256(self.model_dir, {"files": {f: self.manifest["files"][f] for f in graphs}})
+        return sessions
+
+    def _open_session(self, path: Path, model: str | bytes, entries: list[str | tuple[str, dict]],
+                      options: ort.SessionOptions, trt_options: dict | None) -> ort.InferenceSession:
+        """One network's session on ``model`` (the graph's bytes, or with TensorRT its path), the errors named."""
+        try:
+            # No fallback: on an error ONNX Runtime's Python layer would retry on CUDA and the CPU without
+            # the provider options (the device id, TensorRT's cache): a worker given GPU 1 would run on
+            # GPU 0, a failing GPU session on the CPU, with a printout only; later, a run that fails on the
+            # GPU would rebuild the session there for good. A GPU that fails says so instead.
+            session = ort.InferenceSession(model, options, providers=entries, enable_fallback=0)
+            # ONNX Runtime 1.22 and older (the GPU image's) drop enable_fallback=0 in __init__ and turn the
+            # run-time fallback on again: turned off here too. A session they created on other providers
+            # than asked for shows in providers_in_use (the provider_fallback warning).
+            session.disable_fallback()
+            return session
+        except Exception as exc:  # ORT raises its own exception types for unreadable graphs
+            reason = " ".join(str(exc).split())  # one line: some of ONNX Runtime's messages span several
+            # ONNX Runtime's words when it will not read a tensor's file: refuse_external_data missed one.
+            if "External data path" in reason:
+                raise ModelFileError(f"{path}: the graph keeps tensors in another file (ONNX external data), "
+                                     "which no sha256 of the manifest covers; export it with its weights inside "
+                                     f"({reason})") from exc
+            gpu = next((p for p in self.providers if p in GPU_PROVIDERS), None)
+            if gpu is not None:  # the file's sha256 was checked: the likelier cause is the GPU side
+                raise InputError(gpu_session_error(path, gpu, self.device_id, trt_options, exc)) from exc
+            raise ModelFileError(f"{path}: ONNX Runtime cannot load it ({reason})") from exc
+
+    @staticmethod
+    def _stage_thread_count(stage_threads: int | None, intra_op_threads: int | None) -> int:
+        """``stage_threads`` checked (1 or 2, else an InputError); None: 2 when the networks may use two or more
+        threads and the process two or more CPUs."""
+        if stage_threads is None:
+            stage_threads = 2 if intra_op_threads != 1 and usable_cpus() >= 2 else 1
+        if stage_threads not in (1, 2):
+            raise InputError(f"stage_threads: 1 or 2, not {stage_threads}")
+        return stage_threads
+
+    def _load_checks(self, explicit: bool) -> list[CodedWarning]:
+        """About the weights and the precision on this machine, logged once at load (and shown by the
+        service's /v1/model); an InputError when a provider asked for by name (``explicit``) did not load."""
+        fallback = self._check_provider_loaded(explicit=explicit)
+        return coded((WarningCode.UNTRAINED_WEIGHTS, self._untrained()), (WarningCode.PROVIDER_FALLBACK, fallback),
+                     (WarningCode.INT8_SATURATION, self._saturating_int8()),
+                     (WarningCode.FP16_ON_CPU, self._fp16_on_cpu()))
 
     def _read_graphs(self, verify: bool) -> dict[str, bytes]:
         """The bytes of the networks' files, by file name, each read once and (``verify``) checked against its
@@ -803,7 +853,42 @@ class Detector:
         """
         timings: dict[str, float] = {}
         warnings: list[CodedWarning] = []  # split into Detections' two parallel lists at the end
-        start = time.perf_counter()
+        start = time.perf_counter()  # ``total`` counts from here, the checks of the inputs included
+        image, points, calib = self._checked_frame(image, points, calib, score_threshold, emulate_to_beams)
+        if image is not None and calib is not None:
+            warnings += coded((WarningCode.CALIBRATION_MISFIT, calibration_mismatch(image.shape[:2], calib)))
+        if emulate_to_beams:  # None or 0: the scan as given
+            points, emulated = self._emulate_beams(points, emulate_to_beams, timings, cancel)
+            warnings.append(emulated)
+        mismatch = self._line_count_mismatch(points.shape[0])
+        warnings += coded((WarningCode.LINE_COUNT, mismatch))
+
+        voxelizer = self._voxelizer()
+        camera: _CameraStage | None = None  # a LiDAR-only model's: no pseudo points
+        if self.two_stage:
+            camera = self._camera_stage(image, points, calib, depth, voxelizer, timings, cancel)
+            warnings += camera.warnings
+        elif depth is not None:
+            raise InputError("depth: this model has no depth network to replace (a LiDAR-only model directory)")
+        else:
+            warnings += self.frame_checks(points)
+
+        bev = self._voxelize(voxelizer, points, camera, timings)
+        warnings += self._grid_warnings(voxelizer, points.shape[0], mismatch)
+        score, regression = self._pixor(voxelizer, bev, timings, cancel)
+        boxes, scores = self._decode(score, regression, voxelizer, score_threshold, camera is not None, timings)
+        timings["total"] = (time.perf_counter() - start) * 1e3
+        cloud, made = self._kept_points(points, camera) if keep_points else (None, 0)
+        return Detections(boxes=boxes, scores=scores, timings_ms=timings,
+                          overlapped_ms={} if camera is None else camera.overlapped,
+                          warnings=[w.message for w in warnings], warning_codes=[w.code for w in warnings], points=cloud,
+                          pseudo_count=made)
+
+    def _checked_frame(self, image: np.ndarray | None, points: np.ndarray, calib: Calibration | None,
+                       score_threshold: float | None, emulate_to_beams: int | None,
+                       ) -> tuple[np.ndarray | None, np.ndarray, Calibration | None]:
+        """:meth:`detect`'s arguments checked (an InputError naming the one at fault; RuntimeError after
+        :meth:`close`): the image, the scan as float32 and the calibration as the stages take them."""
         self._check_open()
         check_options(score_threshold, emulate_to_beams)
         points = self._check_points(points)
@@ -811,111 +896,154 @@ class Detector:
             image = check_image(image)
         if calib is not None:
             calib = check_calibration(calib, "calib")
-            if image is not None:
-                misfit = calibration_mismatch(image.shape[:2], calib)
-                warnings += coded((WarningCode.CALIBRATION_MISFIT, misfit))
+        return image, points, calib
 
-        if emulate_to_beams:  # None or 0: the scan as given
-            tic = time.perf_counter()
-            before = points.shape[0]
-            points = emulate_beams(points, emulate_to_beams)
-            timings["emulate_beams"] = (time.perf_counter() - tic) * 1e3
-            warnings.append(CodedWarning(WarningCode.BEAMS_EMULATED,
-                                         f"emulated {emulate_to_beams} beams: kept {points.shape[0]} of {before} points"))
-            # The emulation is NumPy, not interrupted (about 0.5 s for a scan of a million points): a frame
-            # cancelled meanwhile stops here rather than going on to the depth net's inputs.
-            if cancel is not None and cancel.cancelled:
-                raise RunCancelled("the frame was cancelled during its beam emulation; stopped after it")
-
-        mismatch = self._line_count_mismatch(points.shape[0])
-        warnings += coded((WarningCode.LINE_COUNT, mismatch))
-
-        voxelizer = self._voxelizer()
-        overlapped: dict[str, float] = {}
-        pseudo: PseudoBins | None = None  # a LiDAR-only model's: none
-        if self.two_stage:
-            if image is None or calib is None:
-                raise InputError("image and calib: this model needs a camera image and a calibration")
-            tic = time.perf_counter()
-            if depth is None:
-                inputs = depth_inputs(image, points, calib, self.preset)
-                view_calib = inputs.calib
-            else:
-                given, view_calib = self._given_depth(depth, image, calib)
-            timings["prepare"] = (time.perf_counter() - tic) * 1e3
-            # With a second core, the stages that need no depth run beside the depth net, which has room for
-            # them (an edge frame's path 1.6 ms shorter on two cores: docs/measurements.md, session 28), and
-            # so do the rig's checks (about 0.2 ms, off the frame's path there).
-            beside: Future | None = None
-            if self.stage_threads > 1:
-                beside = self._beside(voxelizer, points, view_calib, image.shape[:2], calib)
-            else:
-                warnings += self.frame_checks(points, image.shape[:2], view_calib, calib)
-            if depth is None:
-                tic = time.perf_counter()
-                try:
-                    (dense,) = self._run("depth", ["depth"], {"rgb": inputs.rgb, "sparse_depth": inputs.sparse_depth},
-                                         cancel)
-                except BaseException:
-                    if beside is not None:  # the frame ends here: its half on the stage thread ends first
-                        wait([beside])
-                    raise
-                dense = dense[0, 0]
-                timings["depth_net"] = (time.perf_counter() - tic) * 1e3
-            else:
-                dense = given
-            limits = self.preset.pseudo_limits
-            # The view's rays in BEV bin units are built on a calibration's first frame and cached. Timed
-            # apart: a vehicle, with one calibration, builds them once; every synthetic frame has its own.
-            tic = time.perf_counter()
-            if beside is not None:
-                overlapped, rig_warnings = beside.result()  # the wait for them is the stage's time on the frame's path
-                warnings += rig_warnings
-            else:
-                self._ray_table(view_calib)
-            timings["ray_table"] = (time.perf_counter() - tic) * 1e3
-            tic = time.perf_counter()
-            pseudo = pseudo_bins(dense, view_calib, self.preset.bev, *limits,
-                                 max_jump=self.preset.decode.height_max_jump)
-            timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3
-        else:
-            if depth is not None:
-                raise InputError("depth: this model has no depth network to replace (a LiDAR-only model directory)")
-            beside = None
-            warnings += self.frame_checks(points)
-
+    def _emulate_beams(self, points: np.ndarray, lines: int, timings: dict[str, float],
+                       cancel: Cancellation | None) -> tuple[np.ndarray, CodedWarning]:
+        """A 64-line scan thinned to ``lines`` lines (``emulate_beams``) and the warning that says so;
+        RunCancelled when the frame was cancelled meanwhile."""
         tic = time.perf_counter()
-        if beside is None:
+        before = points.shape[0]
+        points = emulate_beams(points, lines)
+        timings["emulate_beams"] = (time.perf_counter() - tic) * 1e3
+        emulated = CodedWarning(WarningCode.BEAMS_EMULATED,
+                                f"emulated {lines} beams: kept {points.shape[0]} of {before} points")
+        # The emulation is NumPy, not interrupted (about 0.5 s for a scan of a million points): a frame
+        # cancelled meanwhile stops here rather than going on to the depth net's inputs.
+        if cancel is not None and cancel.cancelled:
+            raise RunCancelled("the frame was cancelled during its beam emulation; stopped after it")
+        return points, emulated
+
+    def _camera_stage(self, image: np.ndarray | None, points: np.ndarray, calib: Calibration | None,
+                      depth: np.ndarray | None, voxelizer: BevVoxelizer, timings: dict[str, float],
+                      cancel: Cancellation | None) -> _CameraStage:
+        """A two-stage model's pseudo points: the depth net's inputs (or the given depth map), the depth net
+        with the work that needs no depth beside it on the stage thread (or in turn, before it), then the
+        pseudo points' BEV bins."""
+        if image is None or calib is None:
+            raise InputError("image and calib: this model needs a camera image and a calibration")
+        prepared, view_calib = self._prepare(image, points, calib, depth, timings)
+        # With a second core, the stages that need no depth run beside the depth net, which has room for
+        # them (an edge frame's path 1.6 ms shorter on two cores: docs/measurements.md, session 28), and
+        # so do the rig's checks (about 0.2 ms, off the frame's path there).
+        beside: Future | None = None
+        warnings: list[CodedWarning] = []
+        if self.stage_threads > 1:
+            beside = self._beside(voxelizer, points, view_calib, image.shape[:2], calib)
+        else:
+            warnings = self.frame_checks(points, image.shape[:2], view_calib, calib)
+        dense = self._depth_map(prepared, beside, timings, cancel)
+        overlapped, rig_warnings = self._join_beside(beside, view_calib, timings)
+        pseudo = self._pseudo_points(dense, view_calib, timings)
+        return _CameraStage(pseudo=pseudo, dense=dense, view_calib=view_calib, points_voxelized=beside is not None,
+                            overlapped=overlapped, warnings=warnings + rig_warnings)
+
+    def _prepare(self, image: np.ndarray, points: np.ndarray, calib: Calibration, depth: np.ndarray | None,
+                 timings: dict[str, float]) -> tuple[DepthInputs | np.ndarray, Calibration]:
+        """The depth net's inputs, or with ``depth`` the given map checked and in the net's view (``prepare``),
+        and that view's calibration."""
+        tic = time.perf_counter()
+        prepared: DepthInputs | np.ndarray
+        if depth is None:
+            prepared = depth_inputs(image, points, calib, self.preset)
+            view_calib = prepared.calib
+        else:
+            prepared, view_calib = self._given_depth(depth, image, calib)
+        timings["prepare"] = (time.perf_counter() - tic) * 1e3
+        return prepared, view_calib
+
+    def _depth_map(self, prepared: DepthInputs | np.ndarray, beside: Future | None, timings: dict[str, float],
+                   cancel: Cancellation | None) -> np.ndarray:
+        """The (H, W) depth in the net's view: the depth net's on its inputs (``depth_net``), or a given map as it is.
+        When the net raises, the work ``beside`` it on the stage thread is waited for first."""
+        if not isinstance(prepared, DepthInputs):  # a given depth map: no network to run
+            return prepared
+        tic = time.perf_counter()
+        try:
+            (dense,) = self._run("depth", ["depth"], {"rgb": prepared.rgb, "sparse_depth": prepared.sparse_depth},
+                                 cancel)
+        except BaseException:
+            if beside is not None:  # the frame ends here: its half on the stage thread ends first
+                wait([beside])
+            raise
+        dense = dense[0, 0]
+        timings["depth_net"] = (time.perf_counter() - tic) * 1e3
+        return dense
+
+    def _join_beside(self, beside: Future | None, view_calib: Calibration,
+                     timings: dict[str, float]) -> tuple[dict[str, float], list[CodedWarning]]:
+        """The ``ray_table`` stage: the wait for the stage thread's work (what each of its stages took there, and
+        the frame checks' warnings), or without one the view's rays built here."""
+        overlapped: dict[str, float] = {}
+        rig_warnings: list[CodedWarning] = []
+        # The view's rays in BEV bin units are built on a calibration's first frame and cached. Timed
+        # apart: a vehicle, with one calibration, builds them once; every synthetic frame has its own.
+        tic = time.perf_counter()
+        if beside is not None:
+            overlapped, rig_warnings = beside.result()  # the wait for them is the stage's time on the frame's path
+        else:
+            self._ray_table(view_calib)
+        timings["ray_table"] = (time.perf_counter() - tic) * 1e3
+        return overlapped, rig_warnings
+
+    def _pseudo_points(self, dense: np.ndarray, view_calib: Calibration, timings: dict[str, float]) -> PseudoBins:
+        """The depth map back-projected straight to the BEV bins of its points (``pseudo_points``)."""
+        limits = self.preset.pseudo_limits
+        tic = time.perf_counter()
+        pseudo = pseudo_bins(dense, view_calib, self.preset.bev, *limits, max_jump=self.preset.decode.height_max_jump)
+        timings["pseudo_points"] = (time.perf_counter() - tic) * 1e3
+        return pseudo
+
+    def _voxelize(self, voxelizer: BevVoxelizer, points: np.ndarray, camera: _CameraStage | None,
+                  timings: dict[str, float]) -> np.ndarray:
+        """The BEV tensor of the real and the pseudo points (``voxelize``); the real points' half is done when
+        the stage thread did it beside the depth net."""
+        tic = time.perf_counter()
+        if camera is None or not camera.points_voxelized:
             voxelizer.add_points(points)
-        bev = voxelizer.add_pseudo(pseudo)
+        bev = voxelizer.add_pseudo(None if camera is None else camera.pseudo)
         timings["voxelize"] = (time.perf_counter() - tic) * 1e3
-        if voxelizer.points_in_grid < FEWEST_IN_GRID_SHARE * points.shape[0]:
+        return bev
+
+    def _grid_warnings(self, voxelizer: BevVoxelizer, count: int, line_mismatch: str | None) -> list[CodedWarning]:
+        """From the voxelizer's count of the scan's ``count`` points in the grid: a scan (almost) all outside the
+        detection range, else one too thin for the model (unless its line count was named already)."""
+        if voxelizer.points_in_grid < FEWEST_IN_GRID_SHARE * count:
             grid = self.preset.bev
-            warnings.append(CodedWarning(WarningCode.OUT_OF_RANGE,
+            return [CodedWarning(WarningCode.OUT_OF_RANGE,
                 f"points: almost none lie in the detection range, x {grid.x_min:g}…{grid.x_max:g} m forward, "
                 f"y {grid.y_min:g}…{grid.y_max:g} m, z {grid.z_min:g}…{grid.z_max:g} m in the velodyne frame: "
-                f"are they in metres, in that frame? ({voxelizer.points_in_grid} of {points.shape[0]} points)"))
-        elif not mismatch:  # the voxelizer's count, so free; a scan of fewer lines than trained is named above
-            warnings += coded((WarningCode.THIN_SCAN, thin_scan_fault(voxelizer.points_in_grid, self.trained_lines)))
+                f"are they in metres, in that frame? ({voxelizer.points_in_grid} of {count} points)")]
+        if not line_mismatch:  # the voxelizer's count, so free; a scan of fewer lines than trained is named above
+            return coded((WarningCode.THIN_SCAN, thin_scan_fault(voxelizer.points_in_grid, self.trained_lines)))
+        return []
+
+    def _pixor(self, voxelizer: BevVoxelizer, bev: np.ndarray, timings: dict[str, float],
+               cancel: Cancellation | None) -> tuple[np.ndarray, np.ndarray]:
+        """PIXOR's score and regression maps of the BEV (``pixor``), with mirror TTA averaged with the mirror's."""
         tic = time.perf_counter()
         score, regression = self._run("pixor", ["score", "regression"], {"bev": bev[None]}, cancel)
         timings["pixor"] = (time.perf_counter() - tic) * 1e3
         if self.mirror_tta:
             score, regression = self._with_mirror(voxelizer, score, regression, timings, cancel)
+        return score, regression
+
+    def _decode(self, score: np.ndarray, regression: np.ndarray, voxelizer: BevVoxelizer,
+                score_threshold: float | None, with_pseudo: bool,
+                timings: dict[str, float]) -> tuple[np.ndarray, np.ndarray]:
+        """The boxes and their scores from PIXOR's maps (``decode``), heights from the voxelizer's occupancy."""
         tic = time.perf_counter()
         boxes, scores = boxes_from_maps(score[0, 0], regression[0], voxelizer.height_occupancy, self.preset,
-                                        score_threshold, with_pseudo=pseudo is not None, mark=voxelizer.height_mark)
+                                        score_threshold, with_pseudo=with_pseudo, mark=voxelizer.height_mark)
         timings["decode"] = (time.perf_counter() - tic) * 1e3
-        timings["total"] = (time.perf_counter() - start) * 1e3
-        cloud, made = None, 0
-        if keep_points and pseudo is None:
-            cloud = points
-        elif keep_points:
-            camera_points = depth_to_points(dense, view_calib, *limits)
-            cloud, made = merge_points(camera_points, points), camera_points.shape[0]
-        return Detections(boxes=boxes, scores=scores, timings_ms=timings, overlapped_ms=overlapped,
-                          warnings=[w.message for w in warnings], warning_codes=[w.code for w in warnings], points=cloud,
-                          pseudo_count=made)
+        return boxes, scores
+
+    def _kept_points(self, points: np.ndarray, camera: _CameraStage | None) -> tuple[np.ndarray, int]:
+        """``keep_points``: the cloud PIXOR saw, the camera's pseudo points first, and how many of them there are."""
+        if camera is None:
+            return points, 0
+        camera_points = depth_to_points(camera.dense, camera.view_calib, *self.preset.pseudo_limits)
+        return merge_points(camera_points, points), camera_points.shape[0]
 
     def _with_mirror(self, voxelizer: BevVoxelizer, score: np.ndarray, regression: np.ndarray,
                      timings: dict[str, float], cancel: Cancellation | None = None) -> tuple[np.ndarray, np.ndarray]:
