@@ -65,7 +65,7 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 
@@ -952,6 +952,7 @@ def check_models_preset(given: str, held: Preset, models: Path) -> None:
 
 
 def _step(progress: bool, what: str) -> None:
+    """A line on stderr as a measurement starts (``what`` it times), where ``progress``."""
     if progress:
         print(f"timing {what} …", file=sys.stderr, flush=True)
 
@@ -961,45 +962,129 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
          precision: str | None, baseline: Path | None, worker_kind: str, peak_size: int, ops: bool,
          stage_threads: int | None, mirror_tta: bool, warnings: Warnings,
          score_threshold: float | None = None, device_ids: list[int] | None = None) -> dict:
-    """:func:`run`'s measurements."""
+    """:func:`run`'s measurements: the model directory, its Detectors and the frames first (a bad input is
+    refused before minutes of timing), then each measurement in turn, into the report."""
     cores = sorted(os.sched_getaffinity(0))[: usable_cpus()]  # a container's CPU quota bounds them too
-    scratch = None
-    torch_networks, torch_weights = None, ""
     if compare_torch:
         require_torch("--compare-torch times the PyTorch networks")
+    chosen = _models_to_time(preset, models, checkpoints, precision, data, frames)
+    detector, other = _load_detectors(chosen.path, baseline, provider, cores, stage_threads, mirror_tta, device_ids)
+    _check_detector(detector, chosen.path, precision, preset, ops)
+    twin = _pytorch_networks(detector, chosen, checkpoints) if compare_torch else None
+    beams = _beams_for(detector, beams)
+    source = FrameSource(data, max(frames, warmup), beams)
+    pool = source.load()
+    report = _report_head(preset, chosen.described, detector, device_ids, frames, len(pool), warmup,
+                          score_threshold, beams, data, mirror_tta)
+    on_cpu = all(p[0] == "CPUExecutionProvider" for p in detector.providers_in_use.values())
+
+    peaks = [_read_peak(progress, "before", len(cores), peak_size)]
+    _step(progress, f"the single stream: {frames} frames after {warmup} warm-up, {report['input']}")
+    stream = run_stream(detector, pool, frames, warmup, warnings, score_threshold)
+    report.update(stream_figures(stream))
+    report["stage_threads"] = detector.stage_threads
+    peaks.append(_read_peak(progress, "after", len(cores), peak_size))
+    # Measured before and after the stream, the best of each kind counts: a reading taken while something
+    # else ran reads low (here 88–190 GFLOP/s for the MatMul in seven runs on a shared machine), and the
+    # networks' share of the peak would rise with it.
+    peak = best_peak(peaks)
+    report.update(_peak_figures(peak, peaks, peak_size, warnings))
+    report["networks"] = _networks(detector, report["stages_ms"], peak, on_cpu, report["precision"], warnings)
+    if ops:
+        _add_operator_profiles(report["networks"], detector, pool[0], len(cores), peak.matmul_gflops)
+
+    report["throughput"] = None  # without --threads: no throughput run (the key is there for other tools)
+    _warn_unused_gpus(device_ids, threads, on_cpu, warnings)
+    if threads > 1:
+        report["throughput"] = _throughput(chosen.path, provider, source, pool, threads, frames, warmup, cores,
+                                           worker_kind, mirror_tta, warnings, score_threshold, device_ids,
+                                           report["fps_wall"], progress)
+    if twin is not None:
+        report.update(_torch_comparison(detector, chosen.path, twin, pool, frames, warmup, len(cores), stage_threads,
+                                        mirror_tta, warnings, score_threshold, progress))
+    if other is not None:
+        report.update(_baseline_comparison(detector, other, baseline, pool, frames, warmup, warnings,
+                                           score_threshold, progress))
+    report["machine"]["load_average_end"] = load_average()
+    report["definitions"] = DEFINITIONS
+    report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages, "overlapped": stream.overlapped}
+    if chosen.scratch is not None:
+        chosen.scratch.cleanup()
+    return report
+
+
+@dataclass
+class _ModelsToTime:
+    """The model directory a run times, what the report calls it, and what came with an export."""
+
+    path: Path
+    described: str
+    scratch: tempfile.TemporaryDirectory[str] | None = None  # holds an export or a conversion; removed at the end
+    torch_networks: dict | None = None  # an export's PyTorch modules, for --compare-torch
+    torch_weights: str = ""
+
+
+def _models_to_time(preset: str | None, models: Path | None, checkpoints: Path | None, precision: str | None,
+                    data: Path, frames: int) -> _ModelsToTime:
+    """The model directory :func:`run` times (its ``models``), converted to ``precision`` where that is asked."""
+    chosen, convert = _choose_models(preset, models, checkpoints, precision)
+    if convert and precision is not None:
+        chosen = _convert_models(chosen, precision, data, frames)
+    return chosen
+
+
+def _choose_models(preset: str | None, models: Path | None, checkpoints: Path | None,
+                   precision: str | None) -> tuple[_ModelsToTime, bool]:
+    """The model directory before any conversion, and whether to convert it to ``precision``: the shipped one
+    (its INT8 twin for int8, where it is there) when neither a directory, a preset nor checkpoints are given,
+    else the preset exported, else ``models`` as given (its precision checked, never converted)."""
     shipped = models is None and preset is None and checkpoints is None and (SHIPPED / "manifest.json").is_file()
     if shipped:
         shipped_int8 = precision == "int8" and (SHIPPED_INT8 / "manifest.json").is_file()
-        models = SHIPPED_INT8 if shipped_int8 else SHIPPED
-        described = str(models)
-        convert = precision not in (None, "fp32") and not shipped_int8
-    elif models is None:
-        require_torch(f"--preset {preset or DEFAULT_PRESET} is exported with PyTorch first (without --preset and "
-                      "--checkpoints the shipped weights/edge is timed, which needs none)")
-        from export.exporter import ExportConfig
-        from export.exporter import run as export
+        path = SHIPPED_INT8 if shipped_int8 else SHIPPED
+        return _ModelsToTime(path, str(path)), precision not in (None, "fp32") and not shipped_int8
+    if models is None:
+        return _export_preset(preset, checkpoints), precision not in (None, "fp32")
+    return _ModelsToTime(models, str(models)), False
 
+
+def _export_preset(preset: str | None, checkpoints: Path | None) -> _ModelsToTime:
+    """``preset`` (default :data:`DEFAULT_PRESET`) exported into a scratch directory, with ``checkpoints`` or
+    initialised weights (PyTorch: :class:`TorchMissing` without it)."""
+    require_torch(f"--preset {preset or DEFAULT_PRESET} is exported with PyTorch first (without --preset and "
+                  "--checkpoints the shipped weights/edge is timed, which needs none)")
+    from export.exporter import ExportConfig
+    from export.exporter import run as export
+
+    scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
+    models = Path(scratch.name) / "fp32"  # a reduced precision is converted beside it, not inside it
+    result = export(ExportConfig(preset=preset or DEFAULT_PRESET, out=models, parity=False, checkpoints=checkpoints))
+    return _ModelsToTime(models, f"exported ({checkpoints})" if checkpoints else "exported (initialised weights)",
+                         scratch, torch_networks=result.networks,  # the exported modules: the same weights on both sides
+                         torch_weights=str(checkpoints) if checkpoints else "initialised, the same as the ONNX files'")
+
+
+def _convert_models(chosen: _ModelsToTime, precision: str, data: Path, frames: int) -> _ModelsToTime:
+    """``chosen`` converted to ``precision`` beside it in the scratch directory, calibrated on the benchmark's
+    frames."""
+    from export.precision import convert_precision
+
+    scratch = chosen.scratch
+    if scratch is None:
         scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
-        models = Path(scratch.name) / "fp32"  # a reduced precision is converted beside it, not inside it
-        result = export(ExportConfig(preset=preset or DEFAULT_PRESET, out=models, parity=False, checkpoints=checkpoints))
-        torch_networks = result.networks  # the exported modules: the same weights on both sides
-        torch_weights = str(checkpoints) if checkpoints else "initialised, the same as the ONNX files'"
-        described = f"exported ({checkpoints})" if checkpoints else "exported (initialised weights)"
-        convert = precision not in (None, "fp32")
-    else:
-        described, convert = str(models), False
-    if convert:
-        from export.precision import convert_precision
+    reduced = Path(scratch.name) / precision
+    # INT8 as the shipped weights/edge-int8 is made (python -m export.precision --reduce-range): 7-bit
+    # weights, the same outputs on every x86 CPU; full 8-bit ones saturate on CPUs without VNNI (pipeline/cpu.py).
+    convert_precision(chosen.path, reduced, precision, data, calibration_frames=min(frames, 20),
+                      reduce_range=precision == "int8")
+    return replace(chosen, path=reduced, described=f"{chosen.described}, converted to {precision}", scratch=scratch)
 
-        if scratch is None:
-            scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
-        reduced = Path(scratch.name) / precision
-        # INT8 as the shipped weights/edge-int8 is made (python -m export.precision --reduce-range): 7-bit
-        # weights, the same outputs on every x86 CPU; full 8-bit ones saturate on CPUs without VNNI (pipeline/cpu.py).
-        convert_precision(models, reduced, precision, data, calibration_frames=min(frames, 20),
-                          reduce_range=precision == "int8")
-        models = reduced
-        described = f"{described}, converted to {precision}"
+
+def _load_detectors(models: Path, baseline: Path | None, provider: str | None, cores: list[int],
+                    stage_threads: int | None, mirror_tta: bool,
+                    device_ids: list[int] | None) -> tuple[Detector, Detector | None]:
+    """The single stream's Detector on every core and the first GPU, and the baseline's beside it (None without
+    ``baseline``); a baseline that reads another input than ``models`` is refused."""
     first_gpu = device_ids[0] if device_ids else None
     detector = Detector(models, providers=provider, intra_op_threads=len(cores), stage_threads=stage_threads,
                         mirror_tta=mirror_tta, device_id=first_gpu)
@@ -1011,10 +1096,15 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
         # The same frames would be another pipeline's input (and thinned for --models alone): no speed-up to say.
         raise InputError(f"--baseline {baseline}: {_reads(other)}, and {models} {_reads(detector)}: give a baseline "
                          "of the same input (its FP32 source, say)")
+    return detector, other
+
+
+def _check_detector(detector: Detector, models: Path, precision: str | None, preset: str | None, ops: bool) -> None:
+    """InputError, before any timing, where the loaded model directory is not the ``precision`` or ``preset``
+    asked for, or ``ops`` asks for operator times of a provider other than the CPU's."""
     actual = detector.manifest.get("precision", "fp32")
     if precision and actual != precision:
         raise InputError(f"--precision {precision}, but {models} holds {actual} models")
-    preset_name = detector.preset.name
     if preset:
         check_models_preset(preset, detector.preset, models)
     if ops and any(p[0] != "CPUExecutionProvider" for p in detector.providers_in_use.values()):
@@ -1022,79 +1112,105 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
         # work; TensorRT runs each graph as one engine, with no operators to time.
         raise InputError(f"--ops: ONNX Runtime's profiler times the operators of the CPU provider only (on a GPU "
                          f"its kernel times are the launches'; TensorRT runs an engine of its own); {GPU_PROFILER_HINT}")
-    if compare_torch and torch_networks is None:
-        # The PyTorch twin of a model directory is built for that directory's preset and networks, before
-        # any timing, so a mismatch is refused at once instead of after minutes of measurements.
-        torch_networks, torch_weights = torch_twin(detector, checkpoints)
-    trained_on = (detector.manifest["networks"]["pixor"].get("training") or {}).get("input")
+
+
+def _pytorch_networks(detector: Detector, chosen: _ModelsToTime, checkpoints: Path | None) -> tuple[dict, str]:
+    """``--compare-torch``'s PyTorch networks and where their weights come from: an export's own modules, else
+    the model directory's twin (:func:`torch_twin`)."""
+    if chosen.torch_networks is not None:
+        return chosen.torch_networks, chosen.torch_weights
+    # The PyTorch twin of a model directory is built for that directory's preset and networks, before
+    # any timing, so a mismatch is refused at once instead of after minutes of measurements.
+    return torch_twin(detector, checkpoints)
+
+
+def _beams_for(detector: Detector, beams: int | None) -> int | None:
+    """The line count to thin scans to (None: as stored): ``beams`` as given (0: as stored), or by default the
+    model's own."""
     if beams is None:  # the model's own: a 64-line model's scans as they are (KITTI's have 64), else its lines (16)
         beams = lines_to_thin_to(detector.trained_lines) or None
-    source = FrameSource(data, max(frames, warmup), beams or None)
-    pool = source.load()
+    return beams or None
 
+
+def _report_head(preset: str | None, described: str, detector: Detector, device_ids: list[int] | None,
+                 frames: int, distinct: int, warmup: int, score_threshold: float | None, beams: int | None,
+                 data: Path, mirror_tta: bool) -> dict:
+    """The report's first part: what was timed (model, code, input, frames, settings) and on what machine."""
+    trained_on = (detector.manifest["networks"]["pixor"].get("training") or {}).get("input")
     scan = f"{beams}-line scan" if beams else "scan as stored"
     info = detector.manifest.get("precision_info") or {}
-    report: dict = {"preset": preset_name, "models": described,
-                    # The preset itself: a preset file's name alone would not find it again.
-                    "preset_config": detector.preset.to_dict(),
-                    "preset_file": preset if preset and is_preset_file(preset) else None,
-                    # Which model and which code were timed: the service's X-Model-ID, and the git commit.
-                    "model_id": load_manifest_with_digest(detector.model_dir)[1], "code": code_version(),
-                    "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,
-                    "device_ids": device_ids,
-                    "precision": detector.manifest.get("precision", "fp32"),
-                    "quantization": {key: info[key] for key in ("weights", "reduce_range") if key in info},
-                    "frames": frames, "distinct_frames": len(pool), "warmup": warmup,
-                    "score_threshold": detector.preset.decode.score_threshold if score_threshold is None
-                    else score_threshold,
-                    "input": f"{scan} + camera" if detector.two_stage else
-                             f"{scan}, LiDAR only (PIXOR trained on {trained_on or 'an input not recorded'})",
-                    "beams": beams or None, "trained_on": trained_on,
-                    "data": str(data), "mirror_tta": mirror_tta, "machine": machine(), "versions": versions(),
-                    "paper": PAPER}
-    on_cpu = all(p[0] == "CPUExecutionProvider" for p in detector.providers_in_use.values())
-    _step(progress, f"the peak ({peak_size}² MatMul, 3×3 conv), before the stream")
-    peaks = [measure_peak(len(cores), matmul_n=peak_size)]
-    _step(progress, f"the single stream: {frames} frames after {warmup} warm-up, {report['input']}")
-    stream = run_stream(detector, pool, frames, warmup, warnings, score_threshold)
-    report.update(stream_figures(stream))
-    report["stage_threads"] = detector.stage_threads
+    return {"preset": detector.preset.name, "models": described,
+            # The preset itself: a preset file's name alone would not find it again.
+            "preset_config": detector.preset.to_dict(),
+            "preset_file": preset if preset and is_preset_file(preset) else None,
+            # Which model and which code were timed: the service's X-Model-ID, and the git commit.
+            "model_id": load_manifest_with_digest(detector.model_dir)[1], "code": code_version(),
+            "weights": detector.manifest.get("weights"), "provider": detector.providers_in_use,
+            "device_ids": device_ids,
+            "precision": detector.manifest.get("precision", "fp32"),
+            "quantization": {key: info[key] for key in ("weights", "reduce_range") if key in info},
+            "frames": frames, "distinct_frames": distinct, "warmup": warmup,
+            "score_threshold": detector.preset.decode.score_threshold if score_threshold is None
+            else score_threshold,
+            "input": f"{scan} + camera" if detector.two_stage else
+                     f"{scan}, LiDAR only (PIXOR trained on {trained_on or 'an input not recorded'})",
+            "beams": beams, "trained_on": trained_on,
+            "data": str(data), "mirror_tta": mirror_tta, "machine": machine(), "versions": versions(),
+            "paper": PAPER}
 
-    _step(progress, f"the peak ({peak_size}² MatMul, 3×3 conv), after the stream")
-    peaks.append(measure_peak(len(cores), matmul_n=peak_size))
-    # Measured before and after the stream, the best of each kind counts: a reading taken while something
-    # else ran reads low (here 88–190 GFLOP/s for the MatMul in seven runs on a shared machine), and the
-    # networks' share of the peak would rise with it.
-    peak = best_peak(peaks)
-    report["peak_gflops"] = peak.peak_gflops
-    report["peak_detail"] = {f"matmul_{peak_size}_gflops": peak.matmul_gflops, "matmul_size": peak_size,
-                             "conv3x3_256_gflops": peak.conv_gflops, "threads": peak.threads,
-                             "readings": [{"matmul_gflops": p.matmul_gflops, "conv3x3_256_gflops": p.conv_gflops}
-                                          for p in peaks],
-                             "provider": "CPUExecutionProvider"}
-    if (moved := peak_warning(peaks, peak_size)) is not None:
+
+def _read_peak(progress: bool, when: str, threads: int, size: int) -> PeakResult:
+    """One reading of the CPU's peak (benchmarks/peak.py), ``when`` ("before", "after") the stream."""
+    _step(progress, f"the peak ({size}² MatMul, 3×3 conv), {when} the stream")
+    return measure_peak(threads, matmul_n=size)
+
+
+def _peak_figures(peak: PeakResult, readings: list[PeakResult], size: int, warnings: Warnings) -> dict:
+    """The report's ``peak_gflops`` and ``peak_detail``: the best ``peak`` of the ``readings``; a warning where
+    the readings differ (:func:`peak_warning`)."""
+    figures = {"peak_gflops": peak.peak_gflops,
+               "peak_detail": {f"matmul_{size}_gflops": peak.matmul_gflops, "matmul_size": size,
+                               "conv3x3_256_gflops": peak.conv_gflops, "threads": peak.threads,
+                               "readings": [{"matmul_gflops": p.matmul_gflops, "conv3x3_256_gflops": p.conv_gflops}
+                                            for p in readings],
+                               "provider": "CPUExecutionProvider"}}
+    if (moved := peak_warning(readings, size)) is not None:
         warnings.add([moved])
-    report["networks"] = {}
+    return figures
+
+
+def _networks(detector: Detector, stages_ms: dict, peak: PeakResult, on_cpu: bool, precision: str,
+              warnings: Warnings) -> dict:
+    """The report's ``networks``: each network timed, its FLOPs, time and share of the peak
+    (:func:`network_figures`); a warning where an fp32 network ran above the peak."""
+    networks = {}
     for name, stages in (("depth", ("depth_net",)), ("pixor", ("pixor", "pixor_mirror"))):
-        if name in detector.manifest["networks"] and stages[0] in report["stages_ms"]:
+        if name in detector.manifest["networks"] and stages[0] in stages_ms:
             entry = detector.manifest["networks"][name]
             # The manifest counts the graph before its lowering for the CPU (zero-padded channels are no work);
             # the graph that runs multiplies a little more (an INT8 one's sub-pixel convolutions more still).
             # The peak is the CPU's: against a GPU's network time a share of it would mean nothing.
-            report["networks"][name] = network_figures(report["stages_ms"], stages, entry["flops"],
-                                                       count_flops(detector.model_dir / entry["file"]).total,
-                                                       peak if on_cpu else None)
-            achieved = report["networks"][name]["achieved_gflops_per_s"]
+            networks[name] = network_figures(stages_ms, stages, entry["flops"],
+                                             count_flops(detector.model_dir / entry["file"]).total,
+                                             peak if on_cpu else None)
+            achieved = networks[name]["achieved_gflops_per_s"]
             # The peak is fp32's: an INT8 network may run above it (VNNI does four multiply-adds where fp32 does one).
-            if on_cpu and report["precision"] == "fp32" and achieved > peak.peak_gflops:
+            if on_cpu and precision == "fp32" and achieved > peak.peak_gflops:
                 warnings.add([(f"{name}: {achieved:.0f} GFLOP/s, above the measured peak ({peak.peak_gflops:.0f}): "
                               "the peak read low (the machine was busy while it ran?); its share is not a figure")])
-    if ops:
-        for name, profile in profile_operators(detector, pool[0], len(cores), peak.matmul_gflops).items():
-            if name in report["networks"]:
-                report["networks"][name]["ops"] = profile
+    return networks
 
-    report["throughput"] = None  # without --threads: no throughput run (the key is there for other tools)
+
+def _add_operator_profiles(networks: dict, detector: Detector, frame: Frame, threads: int,
+                           matmul_gflops: float) -> None:
+    """``--ops``: each network's time per operator type into its entry of ``networks`` (``ops``)."""
+    for name, profile in profile_operators(detector, frame, threads, matmul_gflops).items():
+        if name in networks:
+            networks[name]["ops"] = profile
+
+
+def _warn_unused_gpus(device_ids: list[int] | None, threads: int, on_cpu: bool, warnings: Warnings) -> None:
+    """Warnings for GPU ids no worker uses, and for throughput workers that share a GPU."""
     gpus = sorted(set(device_ids or [0]))
     if device_ids and len(device_ids) > threads:
         unused = ", ".join(map(str, device_ids[threads:]))
@@ -1104,60 +1220,77 @@ def _run(preset: str | None, models: Path | None, provider: str | None, threads:
         shared_gpus = "GPU 0" if not device_ids else f"GPU{'s' if len(gpus) > 1 else ''} {', '.join(map(str, gpus))}"
         warnings.add([(f"--threads {threads}: the workers share {shared_gpus}, so on a box with more GPUs the "
                       "throughput is not the box's; give each its own with --device-ids (0,1 on two GPUs)")])
-    if threads > 1:
-        _step(progress, f"the throughput: 1 and {threads} {worker_kind} workers in 3 alternating rounds")
-        report["throughput"] = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
-                                              warmup, cores, mode=worker_kind, mirror_tta=mirror_tta, warnings=warnings,
-                                              score_threshold=score_threshold, device_ids=device_ids)
-        # The workers' fps against the single stream's, which had every core too: what the box gains by
-        # running frames side by side rather than one frame on all cores.
-        # Frames over wall time on both sides (report["fps"] is 1000 / the mean of detect's own times).
-        report["throughput"]["vs_single_stream"] = report["throughput"]["fps"] / report["fps_wall"]
-    if compare_torch:
-        import torch
 
-        _step(progress, "PyTorch eager against ONNX Runtime in alternating blocks")
-        torch.set_num_threads(len(cores))
-        paired, eager, ratios = run_paired(detector, torch_detector(models, torch_networks, stage_threads, mirror_tta), pool,
-                                           frames, warmup, warnings=warnings, score_threshold=score_threshold)
-        report["torch_end_to_end_ms"] = summarize(eager.end_to_end)
-        report["torch_stages_ms"] = summarize_stages(eager)
-        # Against the ONNX Runtime frames interleaved with the PyTorch ones, not the stream above.
-        report["paired_end_to_end_ms"] = summarize(paired.end_to_end)
-        report["paired_stages_ms"] = summarize_stages(paired)
-        # The median block's ratio: one block disturbed by a neighbour (PyTorch's threads suffer it far more than
-        # ONNX Runtime's) moves the means' ratio, here once 2.60× against 1.60× for the median block.
-        report["speedup_vs_torch_blocks"] = block_spread(ratios)
-        report["speedup_vs_torch"] = report["speedup_vs_torch_blocks"]["p50"]
-        report["speedup_vs_torch_of_means"] = report["torch_end_to_end_ms"]["mean"] / report["paired_end_to_end_ms"]["mean"]
-        if report["speedup_vs_torch_blocks"]["unstable"]:
-            warnings.add([unstable_warning("--compare-torch", report["speedup_vs_torch_blocks"])])
-        # The networks alone do not depend on the weights' values; the stages between them do (candidates to
-        # decode, pseudo points to bin), so where the twin has initialised weights only these compare like with like.
-        report["speedup_vs_torch_networks"] = {
-            stage: report["torch_stages_ms"][stage]["p50"] / report["paired_stages_ms"][stage]["p50"]
-            for stage in NETWORK_STAGES if stage in report["paired_stages_ms"]}
-        report["torch_weights"] = torch_weights
-    if other is not None:
-        _step(progress, f"the baseline {baseline} against it in alternating blocks")
-        paired, base, ratios = run_paired(detector, other, pool, frames, warmup, warnings=warnings,
-                                          score_threshold=score_threshold)
-        report["baseline"] = {"models": str(baseline), "precision": other.manifest.get("precision", "fp32"),
-                              "end_to_end_ms": summarize(base.end_to_end),
-                              "stages_ms": summarize_stages(base),
-                              "paired_end_to_end_ms": summarize(paired.end_to_end),
-                              "paired_stages_ms": summarize_stages(paired)}
-        report["speedup_vs_baseline_blocks"] = block_spread(ratios)
-        report["speedup_vs_baseline"] = report["speedup_vs_baseline_blocks"]["p50"]  # as speedup_vs_torch
-        report["speedup_vs_baseline_of_means"] = float(np.mean(base.end_to_end) / np.mean(paired.end_to_end))
-        if report["speedup_vs_baseline_blocks"]["unstable"]:
-            warnings.add([unstable_warning("--baseline", report["speedup_vs_baseline_blocks"])])
-    report["machine"]["load_average_end"] = load_average()
-    report["definitions"] = DEFINITIONS
-    report["_samples"] = {"end_to_end": stream.end_to_end, "stages": stream.stages, "overlapped": stream.overlapped}
-    if scratch is not None:
-        scratch.cleanup()
-    return report
+
+def _throughput(models: Path, provider: str | None, source: FrameSource, pool: list[Frame], threads: int,
+                frames: int, warmup: int, cores: list[int], worker_kind: str, mirror_tta: bool, warnings: Warnings,
+                score_threshold: float | None, device_ids: list[int] | None, fps_wall: float,
+                progress: bool) -> dict:
+    """The report's ``throughput``: 1 and ``threads`` workers in alternating rounds (:func:`run_throughput`),
+    and the workers' fps against the single stream's ``fps_wall``."""
+    _step(progress, f"the throughput: 1 and {threads} {worker_kind} workers in 3 alternating rounds")
+    throughput = run_throughput(models, provider, source, pool, threads, max(frames // threads, 2),
+                                warmup, cores, mode=worker_kind, mirror_tta=mirror_tta, warnings=warnings,
+                                score_threshold=score_threshold, device_ids=device_ids)
+    # The workers' fps against the single stream's, which had every core too: what the box gains by
+    # running frames side by side rather than one frame on all cores.
+    # Frames over wall time on both sides (report["fps"] is 1000 / the mean of detect's own times).
+    throughput["vs_single_stream"] = throughput["fps"] / fps_wall
+    return throughput
+
+
+def _torch_comparison(detector: Detector, models: Path, twin: tuple[dict, str], pool: list[Frame], frames: int,
+                      warmup: int, threads: int, stage_threads: int | None, mirror_tta: bool, warnings: Warnings, score_threshold: float | None, progress: bool) -> dict:
+    """``--compare-torch``: the report's ``torch_*``, ``paired_*`` and ``speedup_vs_torch*`` entries, from the
+    PyTorch eager ``twin`` (its networks, where their weights come from) and ``detector`` in alternating blocks
+    (:func:`run_paired`)."""
+    import torch
+
+    torch_networks, torch_weights = twin
+
+    _step(progress, "PyTorch eager against ONNX Runtime in alternating blocks")
+    torch.set_num_threads(threads)
+    paired, eager, ratios = run_paired(detector, torch_detector(models, torch_networks, stage_threads, mirror_tta), pool,
+                                       frames, warmup, warnings=warnings, score_threshold=score_threshold)
+    figures: dict = {"torch_end_to_end_ms": summarize(eager.end_to_end), "torch_stages_ms": summarize_stages(eager)}
+    # Against the ONNX Runtime frames interleaved with the PyTorch ones, not the stream above.
+    figures["paired_end_to_end_ms"] = summarize(paired.end_to_end)
+    figures["paired_stages_ms"] = summarize_stages(paired)
+    # The median block's ratio: one block disturbed by a neighbour (PyTorch's threads suffer it far more than
+    # ONNX Runtime's) moves the means' ratio, here once 2.60× against 1.60× for the median block.
+    figures["speedup_vs_torch_blocks"] = block_spread(ratios)
+    figures["speedup_vs_torch"] = figures["speedup_vs_torch_blocks"]["p50"]
+    figures["speedup_vs_torch_of_means"] = (figures["torch_end_to_end_ms"]["mean"]
+                                            / figures["paired_end_to_end_ms"]["mean"])
+    if figures["speedup_vs_torch_blocks"]["unstable"]:
+        warnings.add([unstable_warning("--compare-torch", figures["speedup_vs_torch_blocks"])])
+    # The networks alone do not depend on the weights' values; the stages between them do (candidates to
+    # decode, pseudo points to bin), so where the twin has initialised weights only these compare like with like.
+    figures["speedup_vs_torch_networks"] = {
+        stage: figures["torch_stages_ms"][stage]["p50"] / figures["paired_stages_ms"][stage]["p50"]
+        for stage in NETWORK_STAGES if stage in figures["paired_stages_ms"]}
+    figures["torch_weights"] = torch_weights
+    return figures
+
+
+def _baseline_comparison(detector: Detector, other: Detector, baseline: Path | None, pool: list[Frame], frames: int,
+                         warmup: int, warnings: Warnings, score_threshold: float | None, progress: bool) -> dict:
+    """``--baseline``: the report's ``baseline`` and ``speedup_vs_baseline*`` entries, from ``other`` (the
+    baseline's Detector) and ``detector`` in alternating blocks (:func:`run_paired`)."""
+    _step(progress, f"the baseline {baseline} against it in alternating blocks")
+    paired, base, ratios = run_paired(detector, other, pool, frames, warmup, warnings=warnings,
+                                      score_threshold=score_threshold)
+    figures: dict = {"baseline": {"models": str(baseline), "precision": other.manifest.get("precision", "fp32"),
+                                  "end_to_end_ms": summarize(base.end_to_end),
+                                  "stages_ms": summarize_stages(base),
+                                  "paired_end_to_end_ms": summarize(paired.end_to_end),
+                                  "paired_stages_ms": summarize_stages(paired)},
+                     "speedup_vs_baseline_blocks": block_spread(ratios)}
+    figures["speedup_vs_baseline"] = figures["speedup_vs_baseline_blocks"]["p50"]  # as speedup_vs_torch
+    figures["speedup_vs_baseline_of_means"] = float(np.mean(base.end_to_end) / np.mean(paired.end_to_end))
+    if figures["speedup_vs_baseline_blocks"]["unstable"]:
+        warnings.add([unstable_warning("--baseline", figures["speedup_vs_baseline_blocks"])])
+    return figures
 
 
 def latency_figure(report: dict):
@@ -1217,6 +1350,21 @@ def _governor_and_load(described: dict) -> str:
 
 
 def print_report(report: dict) -> None:
+    """The report on stdout: what was timed, the single stream, the peak and the networks, then the throughput
+    and the comparisons that ran."""
+    _print_stream(report)
+    _print_peak_and_networks(report)
+    if report.get("throughput"):
+        _print_throughput(report["throughput"])
+    if "speedup_vs_torch" in report:
+        _print_torch_comparison(report)
+    if "speedup_vs_baseline" in report:
+        _print_baseline_comparison(report)
+
+
+def _print_stream(report: dict) -> None:
+    """What was timed on what machine, and the single stream: end to end, each stage, the time between the
+    networks and the work beside the depth net."""
     e = report["end_to_end_ms"]
     tta = ", PIXOR with mirror TTA (two runs a frame)" if report.get("mirror_tta") else ""
     distinct = (f" ({report['distinct_frames']} distinct, cycled)" if report["distinct_frames"] < report["frames"]
@@ -1241,6 +1389,10 @@ def print_report(report: dict) -> None:
     if report.get("overlapped_ms"):
         beside = ", ".join(f"{stage} {s['p50']:.2f} ms" for stage, s in report["overlapped_ms"].items())
         print(f"  on the stage thread beside the depth net (p50; on the frame's path only as waited for): {beside}")
+
+
+def _print_peak_and_networks(report: dict) -> None:
+    """The CPU's peak and each network's FLOPs, time and share of it (``--ops``: its operators too)."""
     size = report["peak_detail"]["matmul_size"]
     readings = ", ".join(f"{r['matmul_gflops']:.0f} / {r['conv3x3_256_gflops']:.0f}"
                          for r in report["peak_detail"]["readings"])
@@ -1258,42 +1410,83 @@ def print_report(report: dict) -> None:
     for name, n in report["networks"].items():
         if "ops" in n:
             print(describe_ops(name, n["ops"]))
-    if report.get("throughput"):
-        t = report["throughput"]
-        per_round = ", ".join(f"{r:.2f}" for r in t["scaling_per_round"])
-        shares = [u["cpu_share"] for run in t["runs"] for u in run["per_worker"] if u["cpu_share"] is not None]
-        got = f"; the workers got {100 * min(shares):.0f}–{100 * max(shares):.0f} % of their cores" if shares else ""
-        print(f"{t['workers']} {t['mode']} workers, {t['cores_per_worker']} core(s) each: {t['fps']:.2f} fps vs one "
-              f"worker on one share {t['fps_one_worker']:.2f} fps → scaling {t['scaling']:.2f}× (medians of "
-              f"{t['rounds']} alternating rounds; per round {per_round}{got}); against the single stream on every "
-              f"core {t['vs_single_stream']:.2f}×")
-        cpu = t.get("cpu_ms_per_frame")
-        if cpu:
-            print(f"  a frame's CPU time: {cpu['one_worker']:.1f} ms with one worker, {cpu['all_workers']:.1f} ms with "
-                  f"{t['workers']} ({cpu['ratio']:.2f}×; with the workers on their full cores, scaling ≈ "
-                  f"{t['workers']} / that: above 1, the cores slowed each other down)")
-    if "speedup_vs_torch" in report:
-        b = report["speedup_vs_torch_blocks"]
-        print(f"PyTorch eager: mean {report['torch_end_to_end_ms']['mean']:.1f} ms vs ONNX Runtime "
-              f"{report['paired_end_to_end_ms']['mean']:.1f} ms in alternating blocks → ONNX Runtime "
-              f"{report['speedup_vs_torch']:.2f}× faster (the median block; {b['min']:.2f}–{b['max']:.2f}× over "
-              f"{b['blocks']} blocks; the means' ratio {report['speedup_vs_torch_of_means']:.2f}×)")
-        nets = ", ".join(f"{stage} {report['torch_stages_ms'][stage]['p50']:.1f} vs "
-                         f"{report['paired_stages_ms'][stage]['p50']:.1f} ms ({ratio:.2f}×)"
-                         for stage, ratio in report["speedup_vs_torch_networks"].items())
-        print(f"  networks alone (p50): {nets}; PyTorch weights: {report['torch_weights']}")
-    if "speedup_vs_baseline" in report:
-        base, b = report["baseline"], report["speedup_vs_baseline_blocks"]
-        nets = "".join(f", {stage} {base['stages_ms'][stage]['p50']:.1f} → {base['paired_stages_ms'][stage]['p50']:.1f} ms"
-                       for stage in NETWORK_STAGES if stage in base["stages_ms"])
-        print(f"baseline {base['models']} ({base['precision']}): mean {base['end_to_end_ms']['mean']:.1f} ms vs "
-              f"{base['paired_end_to_end_ms']['mean']:.1f} ms in alternating blocks → "
-              f"{report['speedup_vs_baseline']:.2f}× faster (the median block; {b['min']:.2f}–{b['max']:.2f}× over "
-              f"{b['blocks']} blocks; the means' ratio {report['speedup_vs_baseline_of_means']:.2f}×){nets} (p50)")
+
+
+def _print_throughput(t: dict) -> None:
+    """The throughput workers against one worker and against the single stream (the report's ``throughput``)."""
+    per_round = ", ".join(f"{r:.2f}" for r in t["scaling_per_round"])
+    shares = [u["cpu_share"] for run in t["runs"] for u in run["per_worker"] if u["cpu_share"] is not None]
+    got = f"; the workers got {100 * min(shares):.0f}–{100 * max(shares):.0f} % of their cores" if shares else ""
+    print(f"{t['workers']} {t['mode']} workers, {t['cores_per_worker']} core(s) each: {t['fps']:.2f} fps vs one "
+          f"worker on one share {t['fps_one_worker']:.2f} fps → scaling {t['scaling']:.2f}× (medians of "
+          f"{t['rounds']} alternating rounds; per round {per_round}{got}); against the single stream on every "
+          f"core {t['vs_single_stream']:.2f}×")
+    cpu = t.get("cpu_ms_per_frame")
+    if cpu:
+        print(f"  a frame's CPU time: {cpu['one_worker']:.1f} ms with one worker, {cpu['all_workers']:.1f} ms with "
+              f"{t['workers']} ({cpu['ratio']:.2f}×; with the workers on their full cores, scaling ≈ "
+              f"{t['workers']} / that: above 1, the cores slowed each other down)")
+
+
+def _print_torch_comparison(report: dict) -> None:
+    """``--compare-torch``: PyTorch eager against ONNX Runtime, end to end and the networks alone."""
+    b = report["speedup_vs_torch_blocks"]
+    print(f"PyTorch eager: mean {report['torch_end_to_end_ms']['mean']:.1f} ms vs ONNX Runtime "
+          f"{report['paired_end_to_end_ms']['mean']:.1f} ms in alternating blocks → ONNX Runtime "
+          f"{report['speedup_vs_torch']:.2f}× faster (the median block; {b['min']:.2f}–{b['max']:.2f}× over "
+          f"{b['blocks']} blocks; the means' ratio {report['speedup_vs_torch_of_means']:.2f}×)")
+    nets = ", ".join(f"{stage} {report['torch_stages_ms'][stage]['p50']:.1f} vs "
+                     f"{report['paired_stages_ms'][stage]['p50']:.1f} ms ({ratio:.2f}×)"
+                     for stage, ratio in report["speedup_vs_torch_networks"].items())
+    print(f"  networks alone (p50): {nets}; PyTorch weights: {report['torch_weights']}")
+
+
+def _print_baseline_comparison(report: dict) -> None:
+    """``--baseline``: the baseline directory against the one timed, end to end and each network."""
+    base, b = report["baseline"], report["speedup_vs_baseline_blocks"]
+    nets = "".join(f", {stage} {base['stages_ms'][stage]['p50']:.1f} → {base['paired_stages_ms'][stage]['p50']:.1f} ms"
+                   for stage in NETWORK_STAGES if stage in base["stages_ms"])
+    print(f"baseline {base['models']} ({base['precision']}): mean {base['end_to_end_ms']['mean']:.1f} ms vs "
+          f"{base['paired_end_to_end_ms']['mean']:.1f} ms in alternating blocks → "
+          f"{report['speedup_vs_baseline']:.2f}× faster (the median block; {b['min']:.2f}–{b['max']:.2f}× over "
+          f"{b['blocks']} blocks; the means' ratio {report['speedup_vs_baseline_of_means']:.2f}×){nets} (p50)")
 
 
 @quiet_interrupt("no report was written (--json and --plot are written at the end)")
 def main(argv: list[str] | None = None) -> int:
+    """The command: check the arguments, measure, print the report, write --json and --plot; 2 on an error."""
+    args = _parser().parse_args(argv)
+    try:
+        _check_args(args)
+        report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
+                     args.beams, args.compare_torch, args.checkpoints, precision=args.precision,
+                     baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops,
+                     stage_threads=args.stage_threads, mirror_tta=args.mirror_tta,
+                     score_threshold=args.score_threshold, device_ids=args.device_ids)
+    except (InputError, ModelFileError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except TorchMissing as exc:  # the runtime install: one line, as the other commands that need torch
+        print(f"{TORCH_MISSING}; {exc}", file=sys.stderr)
+        return 2
+    except ValueError as exc:  # get_preset's list of the valid names
+        print(f"error: --preset: {exc}", file=sys.stderr)
+        return 2
+    print_report(report)
+    try:  # the JSON first: it is the report; a picture that fails must not lose it
+        if args.json:
+            write_text_file(args.json, json.dumps({k: v for k, v in report.items() if k != "_samples"}, indent=2))
+        if args.plot:
+            plot(report, args.plot)
+            print(f"plot: {args.plot}")
+    except OSError as exc:
+        print(f"error: cannot write {exc.filename or ''} ({exc.strerror or exc})", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command's arguments (its --help)."""
     epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
         "python benchmarks/latency.py --threads 2 --json outputs/latency.json --plot outputs/latency.png")
     parser = argparse.ArgumentParser(prog="python benchmarks/latency.py", description=__doc__.split("\n\n")[0],
@@ -1352,53 +1545,31 @@ def main(argv: list[str] | None = None) -> int:
                         "for the shipped ones; the evaluation's 0.05 keeps 500 candidates for NMS: a slower decoding)")
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the report as JSON")
     parser.add_argument("--plot", type=Path, metavar="FILE", help="write the latency distribution per stage (box plots, log-scaled ms) as a picture: .png, .jpg, .pdf or .svg by the name (needs matplotlib)")
-    args = parser.parse_args(argv)
-    try:
-        # Checked first: a report that cannot be written is lost after minutes of timing.
-        if args.json is not None:
-            check_output(args.json, "--json")
-        if args.plot is not None:
-            check_figure(args.plot, "--plot")
-        read = {"--models": args.models or (SHIPPED if args.preset is None else None), "--baseline": args.baseline, "--checkpoints": args.checkpoints,
-                "--data": args.data}
-        for path, flag in ((args.json, "--json"), (args.plot, "--plot")):
-            if path is not None:  # a report named as a manifest or a frame's file would replace it
-                check_not_input(path, flag, read)
-        if args.models is None and args.preset is not None:
-            get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
-        if args.device_ids and args.provider not in ("cuda", "tensorrt"):
-            # Refused before minutes of timing; without --provider the best available might be the CPU anyway.
-            raise InputError(f"--device-ids {','.join(map(str, args.device_ids))}: GPU ids need --provider cuda "
-                             "or tensorrt")
-        if args.provider in ("cuda", "tensorrt") and args.warmup == 0:
-            # A GPU's first run builds its kernels (TensorRT its engine, for minutes): timed, it is the mean.
-            raise InputError(f"--warmup 0: with --provider {args.provider} the first frames build the GPU's kernels "
-                             "(TensorRT's engine takes minutes); give --warmup 1 or more")
-        report = run(args.preset, args.models, args.provider, args.threads, args.frames, args.warmup, args.data,
-                     args.beams, args.compare_torch, args.checkpoints, precision=args.precision,
-                     baseline=args.baseline, worker_kind=args.worker_kind, peak_size=args.peak_size, ops=args.ops,
-                     stage_threads=args.stage_threads, mirror_tta=args.mirror_tta,
-                     score_threshold=args.score_threshold, device_ids=args.device_ids)
-    except (InputError, ModelFileError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except TorchMissing as exc:  # the runtime install: one line, as the other commands that need torch
-        print(f"{TORCH_MISSING}; {exc}", file=sys.stderr)
-        return 2
-    except ValueError as exc:  # get_preset's list of the valid names
-        print(f"error: --preset: {exc}", file=sys.stderr)
-        return 2
-    print_report(report)
-    try:  # the JSON first: it is the report; a picture that fails must not lose it
-        if args.json:
-            write_text_file(args.json, json.dumps({k: v for k, v in report.items() if k != "_samples"}, indent=2))
-        if args.plot:
-            plot(report, args.plot)
-            print(f"plot: {args.plot}")
-    except OSError as exc:
-        print(f"error: cannot write {exc.filename or ''} ({exc.strerror or exc})", file=sys.stderr)
-        return 2
-    return 0
+    return parser
+
+
+def _check_args(args: argparse.Namespace) -> None:
+    """InputError (ValueError for a misspelt preset) for arguments refused before anything is exported or timed."""
+    # Checked first: a report that cannot be written is lost after minutes of timing.
+    if args.json is not None:
+        check_output(args.json, "--json")
+    if args.plot is not None:
+        check_figure(args.plot, "--plot")
+    read = {"--models": args.models or (SHIPPED if args.preset is None else None), "--baseline": args.baseline, "--checkpoints": args.checkpoints,
+            "--data": args.data}
+    for path, flag in ((args.json, "--json"), (args.plot, "--plot")):
+        if path is not None:  # a report named as a manifest or a frame's file would replace it
+            check_not_input(path, flag, read)
+    if args.models is None and args.preset is not None:
+        get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
+    if args.device_ids and args.provider not in ("cuda", "tensorrt"):
+        # Refused before minutes of timing; without --provider the best available might be the CPU anyway.
+        raise InputError(f"--device-ids {','.join(map(str, args.device_ids))}: GPU ids need --provider cuda "
+                         "or tensorrt")
+    if args.provider in ("cuda", "tensorrt") and args.warmup == 0:
+        # A GPU's first run builds its kernels (TensorRT its engine, for minutes): timed, it is the mean.
+        raise InputError(f"--warmup 0: with --provider {args.provider} the first frames build the GPU's kernels "
+                         "(TensorRT's engine takes minutes); give --warmup 1 or more")
 
 
 if __name__ == "__main__":
