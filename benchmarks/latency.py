@@ -936,11 +936,21 @@ def run(preset: str | None = None, models: Path | None = None, provider: str | N
     return report
 
 
+def _named_preset(given: str) -> Preset:
+    """The preset ``given`` names (a registered name or a preset file); an InputError with get_preset's word (the
+    valid names, or the file's fault) otherwise. Only this call's ValueError is the command line's: one from
+    anywhere else in a run is a defect, and keeps its traceback."""
+    try:
+        return get_preset(given)
+    except ValueError as exc:
+        raise InputError(f"--preset: {exc}") from exc
+
+
 def check_models_preset(given: str, held: Preset, models: Path) -> None:
     """InputError unless --preset ``given`` (a name or a preset file) is the preset ``held`` of the model directory
     ``models``: another preset's name, or else the first field whose value differs (a preset file may reuse the
     name with another configuration)."""
-    wanted = get_preset(given)
+    wanted = _named_preset(given)
     if wanted.name != held.name:
         raise InputError(f"--preset {given}: {models} holds {held.name} models (leave --preset out with --models)")
     now, then = preset_fields(wanted.to_dict()), preset_fields(held.to_dict())
@@ -1469,9 +1479,6 @@ def main(argv: list[str] | None = None) -> int:
     except TorchMissing as exc:  # the runtime install: one line, as the other commands that need torch
         print(f"{TORCH_MISSING}; {exc}", file=sys.stderr)
         return 2
-    except ValueError as exc:  # get_preset's list of the valid names
-        print(f"error: --preset: {exc}", file=sys.stderr)
-        return 2
     print_report(report)
     try:  # the JSON first: it is the report; a picture that fails must not lose it
         if args.json:
@@ -1561,7 +1568,7 @@ def _check_args(args: argparse.Namespace) -> None:
         if path is not None:  # a report named as a manifest or a frame's file would replace it
             check_not_input(path, flag, read)
     if args.models is None and args.preset is not None:
-        get_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
+        _named_preset(args.preset)  # the exporter's word on a misspelt preset, before anything is exported
     if args.device_ids and args.provider not in ("cuda", "tensorrt"):
         # Refused before minutes of timing; without --provider the best available might be the CPU anyway.
         raise InputError(f"--device-ids {','.join(map(str, args.device_ids))}: GPU ids need --provider cuda "

@@ -35,3 +35,23 @@ def test_check_models_hands_its_trt_cache_dir_to_the_models_sessions(tmp_path: P
     assert check_models.main(["--models", str(WEIGHTS / "edge-lidar16"), "--provider", "cpu"]) == 0
     assert given == [None]  # the Detector's default, MODELS/trt_cache, as the service's
 
+
+
+def test_latency_names_only_a_misspelt_preset_as_the_preset_flags_fault(monkeypatch: pytest.MonkeyPatch,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """latency.py's main turned any ValueError of a whole run into "error: --preset: …" and exit 2, so a defect
+    deep in a run read as a misspelt preset. Only get_preset's refusal says so now, with --models too (the held
+    preset's check); another ValueError keeps its traceback."""
+    from benchmarks import latency
+
+    for argv in (["--preset", "nonsense"], ["--models", str(WEIGHTS / "edge"), "--preset", "nonsense"]):
+        assert latency.main([*argv, "--frames", "1"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: --preset: unknown preset 'nonsense'; choose one of paper, edge, tiny"), err
+
+    def broken(*args: Any, **kwargs: Any) -> None:
+        raise ValueError("a defect inside the run")
+
+    monkeypatch.setattr(latency, "run", broken)
+    with pytest.raises(ValueError, match="a defect inside the run"):
+        latency.main(["--models", str(WEIGHTS / "edge"), "--frames", "1"])
