@@ -65,8 +65,10 @@ import json
 import logging
 import sys
 import time
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -456,8 +458,139 @@ def _append_log(log_path: Path, record: dict) -> None:
             raise
 
 
+@dataclass
+class _RunFolder:
+    """The run folder (``--out``) as the checks found it: the state it holds when the run resumes, and whether
+    this process holds its lock yet (a folder that did not exist is locked once made: :func:`_make_run_folder`)."""
+
+    out: Path
+    state: dict | None
+    locked: bool
+
+    @property
+    def state_path(self) -> Path:
+        """The run's training state: written before the first epoch and after each."""
+        return self.out / STATE_FILE
+
+    @property
+    def log_path(self) -> Path:
+        """The run's log: one JSON line per finished epoch."""
+        return self.out / "log.jsonl"
+
+
+@dataclass
+class _Frames:
+    """The frames the run trains and validates on (:func:`split_ids`, after ``--max-*-frames``)."""
+
+    train_dir: Path
+    train_ids: list[str]
+    val_dir: Path
+    val_ids: list[str]
+
+
+@dataclass
+class _Model:
+    """The task's networks on the run's device, and what trains them."""
+
+    networks: dict[str, torch.nn.Module]
+    trained: list[torch.nn.Module]  # with --train-only, the submodules that train; else empty (whole networks)
+    layout: torch.memory_format
+    optimizer: torch.optim.Optimizer
+    scheduler: torch.optim.lr_scheduler.ReduceLROnPlateau | torch.optim.lr_scheduler.StepLR
+    # The training forward passes, compiled or not (:func:`_training_forward`); validation calls the networks.
+    forward: dict[str, Callable[..., Any]] = field(default_factory=dict)
+
+
+@dataclass
+class _Data:
+    """What the epochs read: the frames, the lines their scans are thinned to (None: as stored) and the datasets
+    (a depth or detector run trains on one; a joint run loads its frames one by one; only a depth run validates
+    on one)."""
+
+    frames: _Frames
+    beams: int | None
+    train_set: DepthDataset | DepthCompletionDataset | DetectorDataset | None = None
+    val_set: DepthDataset | DepthCompletionDataset | None = None
+
+
+@dataclass
+class _Progress:
+    """Where the run stands: the epoch this invocation starts at, the best selection criterion so far, the
+    finished epochs' log records, and this invocation's first and last mean training loss."""
+
+    start_epoch: int = 0
+    best: float = float("inf")
+    history: list[dict] = field(default_factory=list)
+    first_loss: float = float("nan")
+    last_loss: float = float("nan")
+
+    def add_train_loss(self, loss: float) -> None:
+        """Note an epoch's mean training loss: the first of this invocation and the last so far."""
+        if np.isnan(self.first_loss):
+            self.first_loss = loss
+        self.last_loss = loss
+
+
 def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
-    """:func:`run` with ``guard`` holding the run folder's lock once it is taken."""
+    """:func:`run` with ``guard`` holding the run folder's lock once it is taken: the checks, the networks, the
+    run folder and its first state, the data, then each epoch (train, validate, log, keep the best weights, save
+    the state). The steps keep this order: the random generators draw in it, so a fixed seed repeats the run."""
+    config, device, preset = _settings(config)
+    # Every input is checked before anything is trained or written: --out is made only after the checks.
+    folder = _open_run_folder(config, preset, guard)
+    _check_joint_start(config)
+    frames = _checked_frames(config, folder, preset)
+    # The first line of a run that will train (a refused one stays one error line; the checks' own warnings,
+    # such as no validation split, come before it): a wrong preset or input is seen now, not at export.
+    info = RunInfo(config.task, preset.name, config.input_mode, config.emulate_beams)
+    log.info("%s", run_description(info, preset))
+    if folder.state is not None and folder.state["epoch"] >= config.epochs:  # nothing to train: the run stays as it is
+        return _nothing_left_to_train(config, folder.out, folder.state)
+    seed_everything(config.seed)
+
+    model = _build_model(config, preset, device, resumed=folder.state is not None)
+    progress = _restore_progress(folder, model, config.preset)
+    _make_run_folder(folder, guard)
+    recorded_config = _recorded_config(config, preset, frames, folder.state)
+    if folder.state is None:
+        # The state before the first epoch, right after the folder is made: a run stopped in its first epoch
+        # resumes (--resume) like any other, and the flags it was started with are there to compare.
+        _save_state(folder, model, 0, progress, recorded_config)
+    data = _build_data(config, preset, frames)
+    model.forward, compiled = _training_forward(config, model, data, device)
+    metadata_base = _checkpoint_metadata(config, preset, model.networks, frames.train_dir, frames.train_ids,
+                                         frames.val_dir, frames.val_ids, compiled)
+    # One line per epoch the state holds (a stale log in a folder without one would otherwise keep its lines).
+    _write_log(folder.log_path, progress.history)
+
+    for epoch in range(progress.start_epoch, config.epochs):
+        tic = time.perf_counter()
+        losses = _train_epoch(config, preset, device, model, data, epoch)
+        progress.add_train_loss(float(np.mean(losses)))
+        metrics = _validate(config, preset, device, model, data)
+        trained_at = _step_schedule(config.task, model, metrics)
+        record = _epoch_record(epoch, losses, trained_at, metrics, tic)
+        progress.history.append(record)
+        log.info("epoch %d: %s", epoch + 1,  # 4 significant digits: a learning rate of 5e-5 stays 5e-05
+                 {k: float(f"{v:.4g}") if isinstance(v, float) else v for k, v in record.items()})
+        criterion = selection_criterion(config.task, metrics)
+        if criterion < progress.best:
+            progress.best = criterion
+            _save_checkpoints(folder.out, preset, model.networks,
+                              {**metadata_base, "epoch": epoch + 1, "metrics": metrics})
+        # Best checkpoints, then the state, then the log line: stopped between two of them, the run resumes at
+        # this epoch and writes them again, and the log never shows an epoch the state does not hold.
+        _save_state(folder, model, epoch + 1, progress, recorded_config)
+        _append_log(folder.log_path, record)
+        after_epoch(folder.out, info)  # curves.png from the whole log (a resumed run's earlier epochs too)
+    return TrainResult(folder.out, _checkpoints(folder.out, model.networks), progress.history, progress.first_loss,
+                       progress.last_loss, epochs_before=progress.start_epoch, epochs=config.epochs)
+
+
+# ----------------------------------------------------------------------------- run: before the first epoch
+def _check_choices(config: TrainConfig) -> None:
+    """The task, the detector's input and the line count among the command's choices (argparse checks them on
+    the command line; a library caller's config is checked here), and every flag given one the task uses."""
     if config.task not in TASKS:
         raise InputError(f"task: {config.task!r} is not one of {', '.join(TASKS)}")
     if config.task == "detector" and config.input_mode not in DETECTOR_INPUTS:
@@ -466,6 +599,12 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         raise InputError(f"--emulate-beams: {config.emulate_beams} is not one of 0, "
                          f"{', '.join(map(str, BEAM_COUNTS))}")
     check_flags_apply(config)
+
+
+def _settings(config: TrainConfig) -> tuple[TrainConfig, torch.device, Preset]:
+    """The config checked and completed from the task's recipe, the process set up to train (allocator,
+    threads), and the device, arithmetic and preset the run uses."""
+    _check_choices(config)
     config = recipe(config)
     keep_freed_memory()  # a PIXOR epoch 16 % shorter: no mmap/munmap of the step's buffers (models/allocator.py)
     if config.threads:
@@ -476,103 +615,163 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
         preset = get_preset(config.preset)
     except ValueError as exc:
         raise InputError(f"--preset: {exc}") from None
-    # Every input is checked before anything is trained or written: --out is made only after the checks.
+    return config, device, preset
+
+
+def _open_run_folder(config: TrainConfig, preset: Preset, guard: contextlib.ExitStack) -> _RunFolder:
+    """``--out`` checked, locked if it exists already, and the state of the run it holds read when resumed."""
     out = Path(config.out)
     check_out(out)
     locked = out.is_dir()
     if locked:  # before its state is read: another process may be writing it
         guard.enter_context(run_lock(out))
+    return _RunFolder(out, _saved_state(config, out, preset), locked)
+
+
+def _saved_state(config: TrainConfig, out: Path, preset: Preset) -> dict | None:
+    """The state of the run in ``out`` that ``--resume`` continues, checked against this run's flags; None for
+    a new run. Refused: a run's folder without --resume, the command's --resume without one, and checkpoints
+    without a run's state."""
     state_path = out / STATE_FILE
-    state = None
     if config.resume and (state_path.exists() or config.strict_resume):
         if not state_path.is_file():
             raise InputError(f"{out}: nothing to resume (no {STATE_FILE}); leave out --resume to start a new run")
         state = load_state(state_path)
         check_resumable(config, state, out, preset)
-    elif state_path.exists():
+        return state
+    if state_path.exists():
         raise InputError(f"--out: {out} already holds a run ({STATE_FILE}); pass --resume to continue it")
-    elif not config.resume and (held := [f for f in CHECKPOINT_FILES.values() if (out / f).exists()]):
+    if not config.resume and (held := [f for f in CHECKPOINT_FILES.values() if (out / f).exists()]):
         # Checkpoints without a run's state (models.onnx_weights writes such folders): a new run would replace
         # one and leave the other beside it, for export --checkpoints to pair.
-        stopped = " (a run stopped in its first epoch, by a version that kept no state before it: remove the " \
+        first_epoch = " (a run stopped in its first epoch, by a version that kept no state before it: remove the " \
             "folder to start it again)" if (out / "log.jsonl").is_file() else ""
         raise InputError(f"--out: {out} already holds {' and '.join(held)} but no {STATE_FILE} (not a run to "
-                         f"resume){stopped}; give a new folder")
+                         f"resume){first_epoch}; give a new folder")
+    return None
+
+
+def _check_joint_start(config: TrainConfig) -> None:
+    """A joint run fine-tunes two trained networks: it needs both checkpoints."""
     if config.task == "joint" and (config.depth_checkpoint is None or config.pixor_checkpoint is None):
         raise InputError("joint: pass the trained --depth-checkpoint and --pixor-checkpoint to fine-tune")
+
+
+def _checked_frames(config: TrainConfig, folder: _RunFolder, preset: Preset) -> _Frames:
+    """The run's frames (:func:`split_ids`), checked to be those a resumed run started on, and to hold what the
+    task reads: scans that can be thinned, cars, cached pseudo depth maps."""
     train_dir, train_ids, val_dir, val_ids = split_ids(config)
-    if state is not None:  # the same flags may name other frames now (a split file edited, frames added)
-        check_same_frames(state, out, train_ids, val_ids)
+    if folder.state is not None:  # the same flags may name other frames now (a split file edited, frames added)
+        check_same_frames(folder.state, folder.out, train_ids, val_ids)
     check_thinnable_scans(config, train_dir, train_ids, val_dir, val_ids)
     check_cars(config, train_dir, train_ids, val_dir, val_ids)
     check_pseudo_maps(config, train_ids, val_ids, preset)
-    # The first line of a run that will train (a refused one stays one error line; the checks' own warnings,
-    # such as no validation split, come before it): a wrong preset or input is seen now, not at export.
-    info = RunInfo(config.task, preset.name, config.input_mode, config.emulate_beams)
-    log.info("%s", run_description(info, preset))
-    if state is not None and state["epoch"] >= config.epochs:  # nothing to train: the run stays as it is
-        _write_log(out / "log.jsonl", list(state["history"]))  # its last line, if a kill came before it
-        checkpoints = {name: out / f"{name}.pt" for name in state["networks"] if (out / f"{name}.pt").exists()}
-        return TrainResult(out, checkpoints, list(state["history"]), epochs_before=state["epoch"],
-                           epochs=config.epochs)
-    seed_everything(config.seed)
+    return _Frames(train_dir, train_ids, val_dir, val_ids)
 
-    networks = start_networks(config, preset, resumed=state is not None)
+
+def _checkpoints(out: Path, names: Iterable[str]) -> dict[str, Path]:
+    """The best-weights checkpoints the run folder holds, by network name."""
+    return {name: out / f"{name}.pt" for name in names if (out / f"{name}.pt").exists()}
+
+
+def _nothing_left_to_train(config: TrainConfig, out: Path, state: dict) -> TrainResult:
+    """A resumed run that has trained all its epochs: nothing trains, its log is rewritten from its state."""
+    _write_log(out / "log.jsonl", list(state["history"]))  # its last line, if a kill came before it
+    return TrainResult(out, _checkpoints(out, state["networks"]), list(state["history"]), epochs_before=state["epoch"],
+                       epochs=config.epochs)
+
+
+def _build_model(config: TrainConfig, preset: Preset, device: torch.device, resumed: bool) -> _Model:
+    """The task's networks from the weights they start from (drawn from the seed when none are given), moved to
+    ``device`` in the run's memory layout; Adam over the weights that train, and the task's rate schedule."""
+    networks = start_networks(config, preset, resumed=resumed)
     trained = freeze_except(networks, config.train_only)
     layout = run_layout(networks)
     for net in networks.values():
         net.to(device=device, memory_format=layout)
     parameters = [p for net in networks.values() for p in net.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(parameters, lr=config.lr)
+    scheduler: torch.optim.lr_scheduler.ReduceLROnPlateau | torch.optim.lr_scheduler.StepLR
     if config.task == "detector":
         scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=1)
     else:
         scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=config.lr_step, gamma=config.lr_gamma)
+    return _Model(networks, trained, layout, optimizer, scheduler)
 
-    start_epoch, best, history = 0, float("inf"), []
-    if state is not None:
-        restore_state(state, state_path, networks, optimizer, scheduler, config.preset)
-        start_epoch, best, history = state["epoch"], state["best"], list(state["history"])
-        log.info("resuming %s at epoch %d", out, start_epoch + 1)
+
+def _restore_progress(folder: _RunFolder, model: _Model, preset_name: str) -> _Progress:
+    """A new run's start, or a resumed run's: weights, optimizer, schedule and random generators restored from
+    its state, with its epoch, best criterion and log records."""
+    if folder.state is None:
+        return _Progress()
+    state = folder.state
+    restore_state(state, folder.state_path, model.networks, model.optimizer, model.scheduler, preset_name)
+    progress = _Progress(state["epoch"], state["best"], list(state["history"]))
+    log.info("resuming %s at epoch %d", folder.out, progress.start_epoch + 1)
+    return progress
+
+
+def _make_run_folder(folder: _RunFolder, guard: contextlib.ExitStack) -> None:
+    """``--out`` made if it is new, and then locked; refused if another process started a run in it meanwhile."""
     try:
-        out.mkdir(parents=True, exist_ok=True)
+        folder.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise InputError(f"--out: cannot create {out} ({exc.strerror or exc})") from None
-    if not locked:  # a folder this run has just made
-        guard.enter_context(run_lock(out))
-        if state is None and state_path.exists():  # another process made it too, and held it first
-            raise InputError(f"--out: {out} was started by another training process meanwhile ({STATE_FILE}); "
-                             "give a new folder, or --resume it once that process has ended")
-    recorded_config = {**_jsonable(asdict(config)), **frame_fingerprints(train_ids, val_ids),
-                       "preset_config": preset.to_dict()}  # what --preset gave, compared on --resume
+        raise InputError(f"--out: cannot create {folder.out} ({exc.strerror or exc})") from None
+    if not folder.locked:  # a folder this run has just made
+        guard.enter_context(run_lock(folder.out))
+        if folder.state is None and folder.state_path.exists():  # another process made it too, and held it first
+            raise InputError(f"--out: {folder.out} was started by another training process meanwhile "
+                             f"({STATE_FILE}); give a new folder, or --resume it once that process has ended")
+
+
+def _recorded_config(config: TrainConfig, preset: Preset, frames: _Frames, state: dict | None) -> dict:
+    """The run's settings as its state records them, for ``--resume`` to compare: the flags, the frames'
+    fingerprints and the preset's own settings."""
+    recorded = {**_jsonable(asdict(config)), **frame_fingerprints(frames.train_ids, frames.val_ids),
+                "preset_config": preset.to_dict()}  # what --preset gave, compared on --resume
     started = state.get("config") if state is not None and isinstance(state.get("config"), dict) else {}
     if "preset" in started:  # a resume's --preset may spell the same preset otherwise (a copy of the file):
-        recorded_config["preset"] = started["preset"]  # the run's messages name the one it was started with
-    if state is None:
-        # The state before the first epoch, right after the folder is made: a run stopped in its first epoch
-        # resumes (--resume) like any other, and the flags it was started with are there to compare.
-        save_state(state_path, networks, optimizer, scheduler, 0, best, history, recorded_config)
+        recorded["preset"] = started["preset"]  # the run's messages name the one it was started with
+    return recorded
 
+
+def _save_state(folder: _RunFolder, model: _Model, epoch: int, progress: _Progress, recorded_config: dict) -> None:
+    """The run's state after ``epoch`` epochs (0: before the first), whole or not at all (:func:`save_state`)."""
+    save_state(folder.state_path, model.networks, model.optimizer, model.scheduler, epoch, progress.best,
+               progress.history, recorded_config)
+
+
+def _build_data(config: TrainConfig, preset: Preset, frames: _Frames) -> _Data:
+    """The lines the run's scans are thinned to (said once) and the depth or detector task's datasets."""
     beams = emulated_lines(config)
     if thins_scans(config):  # which scans the run learns from, said once at its start
         log.info("scans: %s (--emulate-beams %d)", f"thinned to {beams} lines" if beams else "as stored",
                  config.emulate_beams)
+    data = _Data(frames, beams)
     if config.task == "depth":
-        train_set = depth_dataset(train_dir, train_ids, preset, augment=not config.quick, seed=config.seed,
-                                  car_weight=config.car_weight, beams=beams)
-        val_set = depth_dataset(val_dir, val_ids, preset, beams=beams)
+        data.train_set = depth_dataset(frames.train_dir, frames.train_ids, preset, augment=not config.quick,
+                                       seed=config.seed, car_weight=config.car_weight, beams=beams)
+        data.val_set = depth_dataset(frames.val_dir, frames.val_ids, preset, beams=beams)
     elif config.task == "detector":
-        train_set = DetectorDataset(train_dir, train_ids, preset, config.input_mode, config.pseudo_dir, beams,
-                                    augment=not config.quick, seed=config.seed)
+        data.train_set = DetectorDataset(frames.train_dir, frames.train_ids, preset, config.input_mode,
+                                         config.pseudo_dir, beams, augment=not config.quick, seed=config.seed)
+    return data
+
+
+def _training_forward(config: TrainConfig, model: _Model, data: _Data,
+                      device: torch.device) -> tuple[dict[str, Callable[..., Any]], bool]:
+    """The training forward passes by network name (the depth net's, PIXOR's logits), and whether --compile
+    compiles them (:func:`resolve_compile`)."""
     # The training forward passes, compiled or not; validation calls the networks themselves (eager).
+    networks = model.networks
     forward = {"depth": networks["depth"].forward} if "depth" in networks else {}
     if "pixor" in networks:
         forward["pixor"] = networks["pixor"].forward_logits
     # The whole run's steps, not the ones left: a resumed run must compile (or not) as it started.
-    steps = config.epochs * (len(train_set) // config.batch_size) if config.task != "joint" else 0
+    steps = config.epochs * (len(data.train_set) // config.batch_size) if config.task != "joint" else 0
     compiled = resolve_compile(config.compile, config.task, steps, device)
     if compiled:
-        if layout != torch.channels_last:
+        if model.layout != torch.channels_last:
             # Inductor would move convolutions to channels-last on its own, into the oneDNN defect that
             # run_layout avoids (the tiny preset's compiled backward aborted here): keep the layout chosen.
             from torch._inductor import config as inductor_config
@@ -580,97 +779,126 @@ def _run(config: TrainConfig, guard: contextlib.ExitStack) -> TrainResult:
             inductor_config.layout_optimization = False
         forward = {name: torch.compile(fn) for name, fn in forward.items()}
         log.info("torch.compile: %s (the first step compiles, about a minute)", ", ".join(forward))
-    first_loss = last_loss = float("nan")
-    metadata_base = _checkpoint_metadata(config, preset, networks, train_dir, train_ids, val_dir, val_ids,
-                                         compiled)
-    log_path = out / "log.jsonl"
-    # One line per epoch the state holds (a stale log in a folder without one would otherwise keep its lines).
-    _write_log(log_path, history)
-    for epoch in range(start_epoch, config.epochs):
-        tic = time.perf_counter()
-        for net in networks.values():
-            net.train(not trained)
-        for module in trained:  # with --train-only, only these leave eval mode (frozen batch norms stay put)
-            module.train()
-        if config.freeze_bn:
-            freeze_batch_norms(networks)
-        epoch_losses = []
-        if config.task == "joint":
-            order = np.random.default_rng((config.seed, epoch)).permutation(len(train_ids))
-            batches = [order[i : i + config.batch_size] for i in range(0, len(order), config.batch_size)]
-            bar = tqdm(batches, desc=f"joint epoch {epoch + 1}/{config.epochs}", disable=not config.progress)
-            for batch in bar:
-                optimizer.zero_grad()
-                total = 0.0
-                for index in batch:
-                    loss = joint_step(networks, preset, train_dir, train_ids[index], config.precision, device, layout,
-                                      config.depth_loss, beams)
-                    (loss / len(batch)).backward()
-                    total += loss.item() / len(batch)
-                optimizer.step()
-                epoch_losses.append(total)
-                bar.set_postfix(loss=f"{total:.4f}")
-        else:
-            train_set.epoch = epoch
-            batches = loader(train_set, config.batch_size, True, config.seed * 1000 + epoch, config.workers,
-                             train_set.inputs, layout)
-            bar = tqdm(batches, desc=f"{config.task} epoch {epoch + 1}/{config.epochs}", disable=not config.progress)
-            for batch in bar:
-                optimizer.zero_grad()
-                batch = [t.to(device, non_blocking=True) for t in batch]
-                if config.task == "depth":
-                    rgb, sparse, target, *weight = batch  # weight: with --car-weight
-                    with autocast(config.precision, device):
-                        prediction = forward["depth"](rgb.contiguous(memory_format=layout),
-                                                      sparse.contiguous(memory_format=layout))
-                    loss = DEPTH_LOSSES[config.depth_loss](prediction.float(), target, *weight)
-                else:
-                    bev, score_t, reg_t = batch
-                    with autocast(config.precision, device):
-                        logits, regression = forward["pixor"](bev.contiguous(memory_format=layout))
-                    loss = pixor_loss(logits.float(), regression.float(), score_t, reg_t).total
-                loss.backward()
-                optimizer.step()
-                epoch_losses.append(loss.item())
-                bar.set_postfix(loss=f"{loss.item():.4f}")
-        if not epoch_losses:
-            raise InputError(f"--data: no training batch (frames {len(train_ids)}, batch size {config.batch_size})")
-        if np.isnan(first_loss):
-            first_loss = float(np.mean(epoch_losses))
-        last_loss = float(np.mean(epoch_losses))
+    return forward, compiled
 
-        if config.task == "depth":
-            metrics = validate_depth(networks["depth"], val_set, device, config.depth_loss)
-        else:
-            metrics = validate_detector(networks["pixor"], preset, val_dir, val_ids, config.input_mode,
-                                        config.val_pseudo_dir or config.pseudo_dir,
-                                        networks.get("depth") if config.task == "joint" else None, device, beams)
-        trained_at = optimizer.param_groups[0]["lr"]  # the log's rate: the one this epoch ran, not the next one's
-        if config.task == "detector":
-            scheduler.step(metrics["val_loss"])
-        else:
-            scheduler.step()
-        record = {"epoch": epoch + 1, "train_loss": float(np.mean(epoch_losses)), "lr": trained_at,
-                  "seconds": round(time.perf_counter() - tic, 1),
-                  **{k: v for k, v in metrics.items() if k != "bev_ap"}}
-        history.append(record)
-        log.info("epoch %d: %s", epoch + 1,  # 4 significant digits: a learning rate of 5e-5 stays 5e-05
-                 {k: float(f"{v:.4g}") if isinstance(v, float) else v for k, v in record.items()})
-        criterion = selection_criterion(config.task, metrics)
-        improved = criterion < best
-        if improved:
-            best = criterion
-            for name, net in networks.items():
-                save_checkpoint(out / f"{name}.pt", preset, {name: net},  # save_checkpoint stores CPU tensors
-                                {**metadata_base, "epoch": epoch + 1, "metrics": metrics})
-        # Best checkpoints, then the state, then the log line: stopped between two of them, the run resumes at
-        # this epoch and writes them again, and the log never shows an epoch the state does not hold.
-        save_state(state_path, networks, optimizer, scheduler, epoch + 1, best, history, recorded_config)
-        _append_log(log_path, record)
-        after_epoch(out, info)  # curves.png from the whole log (a resumed run's earlier epochs too)
-    checkpoints = {name: out / f"{name}.pt" for name in networks if (out / f"{name}.pt").exists()}
-    return TrainResult(out, checkpoints, history, first_loss, last_loss, epochs_before=start_epoch,
-                       epochs=config.epochs)
+
+# ----------------------------------------------------------------------------- run: one epoch
+def _train_epoch(config: TrainConfig, preset: Preset, device: torch.device, model: _Model, data: _Data,
+                 epoch: int) -> list[float]:
+    """One epoch's training steps behind its progress bar: the loss of each batch. An epoch without a batch
+    is refused."""
+    _set_train_modes(config, model)
+    if config.task == "joint":
+        losses = _train_joint_epoch(config, preset, device, model, data, epoch)
+    else:
+        losses = _train_dataset_epoch(config, device, model, data.train_set, epoch)
+    if not losses:
+        raise InputError(f"--data: no training batch (frames {len(data.frames.train_ids)}, batch size "
+                         f"{config.batch_size})")
+    return losses
+
+
+def _set_train_modes(config: TrainConfig, model: _Model) -> None:
+    """Training mode for what trains (the whole networks, or --train-only's submodules), batch norms frozen
+    with --freeze-bn."""
+    for net in model.networks.values():
+        net.train(not model.trained)
+    for module in model.trained:  # with --train-only, only these leave eval mode (frozen batch norms stay put)
+        module.train()
+    if config.freeze_bn:
+        freeze_batch_norms(model.networks)
+
+
+def _train_joint_epoch(config: TrainConfig, preset: Preset, device: torch.device, model: _Model, data: _Data,
+                       epoch: int) -> list[float]:
+    """A joint epoch: the frames in an order drawn from (seed, epoch), a :func:`joint_step` each, one optimizer
+    step per batch of them; each batch's mean frame loss."""
+    frames = data.frames
+    order = np.random.default_rng((config.seed, epoch)).permutation(len(frames.train_ids))
+    batches = [order[i : i + config.batch_size] for i in range(0, len(order), config.batch_size)]
+    bar = tqdm(batches, desc=f"joint epoch {epoch + 1}/{config.epochs}", disable=not config.progress)
+    losses = []
+    for batch in bar:
+        model.optimizer.zero_grad()
+        total = 0.0
+        for index in batch:
+            loss = joint_step(model.networks, preset, frames.train_dir, frames.train_ids[index], config.precision,
+                              device, model.layout, config.depth_loss, data.beams)
+            (loss / len(batch)).backward()
+            total += loss.item() / len(batch)
+        model.optimizer.step()
+        losses.append(total)
+        bar.set_postfix(loss=f"{total:.4f}")
+    return losses
+
+
+def _train_dataset_epoch(config: TrainConfig, device: torch.device, model: _Model,
+                         train_set: DepthDataset | DepthCompletionDataset | DetectorDataset,
+                         epoch: int) -> list[float]:
+    """A depth or detector epoch: the dataset's batches (order and augmentation from the seed and the epoch),
+    one optimizer step each; each batch's loss."""
+    train_set.epoch = epoch
+    batches = loader(train_set, config.batch_size, True, config.seed * 1000 + epoch, config.workers,
+                     train_set.inputs, model.layout)
+    bar = tqdm(batches, desc=f"{config.task} epoch {epoch + 1}/{config.epochs}", disable=not config.progress)
+    losses = []
+    for batch in bar:
+        model.optimizer.zero_grad()
+        loss = _batch_loss(config, device, model, [t.to(device, non_blocking=True) for t in batch])
+        loss.backward()
+        model.optimizer.step()
+        losses.append(loss.item())
+        bar.set_postfix(loss=f"{loss.item():.4f}")
+    return losses
+
+
+def _batch_loss(config: TrainConfig, device: torch.device, model: _Model, batch: list[torch.Tensor]) -> torch.Tensor:
+    """A depth or detector batch's training loss: the forward pass in the run's arithmetic, the loss in fp32."""
+    layout = model.layout
+    if config.task == "depth":
+        rgb, sparse, target, *weight = batch  # weight: with --car-weight
+        with autocast(config.precision, device):
+            prediction = model.forward["depth"](rgb.contiguous(memory_format=layout),
+                                                sparse.contiguous(memory_format=layout))
+        return DEPTH_LOSSES[config.depth_loss](prediction.float(), target, *weight)
+    bev, score_t, reg_t = batch
+    with autocast(config.precision, device):
+        logits, regression = model.forward["pixor"](bev.contiguous(memory_format=layout))
+    return pixor_loss(logits.float(), regression.float(), score_t, reg_t).total
+
+
+def _validate(config: TrainConfig, preset: Preset, device: torch.device, model: _Model, data: _Data) -> dict:
+    """The epoch's validation metrics: depth RMSE/MAE and loss; detector and joint: loss and KITTI BEV AP."""
+    if config.task == "depth":
+        return validate_depth(model.networks["depth"], data.val_set, device, config.depth_loss)
+    return validate_detector(model.networks["pixor"], preset, data.frames.val_dir, data.frames.val_ids,
+                             config.input_mode, config.val_pseudo_dir or config.pseudo_dir,
+                             model.networks.get("depth") if config.task == "joint" else None, device, data.beams)
+
+
+def _step_schedule(task: str, model: _Model, metrics: dict) -> float:
+    """The rate's schedule advanced after an epoch (the detector's on its validation loss); the rate the epoch
+    trained at."""
+    trained_at = model.optimizer.param_groups[0]["lr"]  # the log's rate: the one this epoch ran, not the next one's
+    if task == "detector":
+        model.scheduler.step(metrics["val_loss"])
+    else:
+        model.scheduler.step()
+    return trained_at
+
+
+def _epoch_record(epoch: int, losses: list[float], trained_at: float, metrics: dict, tic: float) -> dict:
+    """The epoch's log line: its number, mean training loss, rate, seconds since ``tic`` and validation metrics
+    (without the whole ``bev_ap`` table)."""
+    return {"epoch": epoch + 1, "train_loss": float(np.mean(losses)), "lr": trained_at,
+            "seconds": round(time.perf_counter() - tic, 1),
+            **{k: v for k, v in metrics.items() if k != "bev_ap"}}
+
+
+def _save_checkpoints(out: Path, preset: Preset, networks: dict[str, torch.nn.Module], metadata: dict) -> None:
+    """Each network's weights as ``out/NAME.pt`` with ``metadata``, the format export --checkpoints reads."""
+    for name, net in networks.items():
+        save_checkpoint(out / f"{name}.pt", preset, {name: net}, metadata)  # save_checkpoint stores CPU tensors
 
 
 def _checkpoint_metadata(config: TrainConfig, preset: Preset, networks: dict[str, torch.nn.Module],
@@ -750,7 +978,8 @@ def _jsonable(value):
     return value
 
 
-def main(argv: list[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
+    """The command line; ``--help`` ends with the module docstring's details and an example."""
     epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
         "python -m models.train depth --data data/sim/train --val-data data/sim/val --preset edge --out runs/depth")
     parser = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n\n")[0],
@@ -820,7 +1049,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="a few frames and epochs: a smoke test")
     add_no_progress(parser, "no progress bars (drawn into a log too: a run of hours in the background, "
                     "nohup … > log, shows its epoch's progress there)")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m models.train``: 0 when the run has trained (or had nothing left to train), 2 on a refused
+    input or a failed write; stopped (Ctrl-C, SIGTERM), it says which epoch the run keeps."""
+    args = _parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     options = vars(args)
     # Unlike the frame-by-frame commands (show_progress: on a terminal only), a training run draws its bars into
