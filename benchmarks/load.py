@@ -388,6 +388,10 @@ class Schedule:
     window_s: float = 0.0
 
 
+# An open-loop request handed to a sender: the upload, when it was due and when it went out (perf_counter s).
+_Job = tuple[Upload, float, float]
+
+
 def drive_open_loop(
     url: str, rate_hz: float, max_in_flight: int, duration_s: float | None, source: RequestSource, headers: dict,
 ) -> tuple[list[Sample], float, Schedule]:
@@ -400,71 +404,122 @@ def drive_open_loop(
     from the send, it would hide it, as a closed loop does). One still waiting when ``duration_s`` ends is counted
     unsent, as are the later ones due before the end."""
     slots = threading.Semaphore(max_in_flight)
-    jobs: queue.Queue[tuple[Upload, float, float] | None] = queue.Queue()
+    jobs: queue.Queue[_Job | None] = queue.Queue()
     samples: list[Sample] = []
-    lock = threading.Lock()
     origin = time.perf_counter()
+    senders = _start_senders(url, headers, max_in_flight, jobs, slots, origin, samples)
+    deadline = origin + duration_s if duration_s is not None else None
+    schedule, last_sent = _dispatch(source, rate_hz, origin, deadline, slots, jobs)
+    _stop_senders(jobs, senders)
+    wall = time.perf_counter() - origin
+    schedule.window_s = _sending_window(schedule.due, rate_hz, duration_s, last_sent - origin)
+    return samples, wall, schedule
 
-    def sender() -> None:
-        with httpx.Client(timeout=120, headers=headers) as client:
-            while (job := jobs.get()) is not None:
-                upload, due, sent = job
-                try:
-                    status, timings = _post(client, url, upload)
-                    toc = time.perf_counter()
-                    with lock:
-                        samples.append(Sample(due - origin, (toc - due) * 1e3, status, upload.name, upload.broken,
-                                              timings, upload.points, (sent - due) * 1e3))
-                finally:
-                    slots.release()  # after the sample, so a finished run has every sample; always, or the run hangs
 
-    threads = [threading.Thread(target=sender, daemon=True) for _ in range(max_in_flight)]
+def _start_senders(url: str, headers: dict, count: int, jobs: queue.Queue[_Job | None], slots: threading.Semaphore,
+                   origin: float, samples: list[Sample]) -> list[threading.Thread]:
+    """Start ``count`` sender threads, each posting the jobs it takes and adding their samples to ``samples``."""
+    lock = threading.Lock()
+    threads = [
+        threading.Thread(target=_sender_loop, args=(url, headers, jobs, slots, origin, samples, lock), daemon=True)
+        for _ in range(count)
+    ]
     for thread in threads:
         thread.start()
-    end = origin + duration_s if duration_s is not None else math.inf
-    schedule = Schedule()
-    waited_until = -math.inf  # when the dispatcher last got a slot it had to wait for
-    last_sent = origin
-    index = 0
-    spent = False
-    while (due := origin + index / rate_hz) < end:
-        upload = source.take()  # read before its due time: the file read is not the request's latency
-        if upload is None:
-            spent = True
-            break
-        schedule.due += 1
-        index += 1
-        now = time.perf_counter()
-        if now < due:
-            time.sleep(due - now)
-        if slots.acquire(blocking=False):
-            # Behind schedule only because the dispatcher was still waiting for a slot at this one's due time.
-            late = due < waited_until
-        else:
-            late = True
-            left = max(0.0, end - time.perf_counter()) if duration_s is not None else None  # None: as long as it takes
-            if not slots.acquire(timeout=left):
-                schedule.unsent += 1  # the run ended with every slot still busy
-                break
-            waited_until = time.perf_counter()
-        last_sent = time.perf_counter()
-        schedule.sent += 1
-        schedule.late += late
-        jobs.put((upload, due, last_sent))
-    # Requests due before the end that the dispatcher never reached: counted, not silently left out.
-    while not spent and duration_s is not None and origin + index / rate_hz < end:
-        schedule.due += 1
-        schedule.unsent += 1
-        index += 1
+    return threads
+
+
+def _sender_loop(url: str, headers: dict, jobs: queue.Queue[_Job | None], slots: threading.Semaphore, origin: float,
+                 samples: list[Sample], lock: threading.Lock) -> None:
+    """One open-loop sender: posts each job it takes until it takes None, then frees the job's slot."""
+    with httpx.Client(timeout=120, headers=headers) as client:
+        while (job := jobs.get()) is not None:
+            upload, due, sent = job
+            try:
+                status, timings = _post(client, url, upload)
+                toc = time.perf_counter()
+                with lock:
+                    samples.append(Sample(due - origin, (toc - due) * 1e3, status, upload.name, upload.broken,
+                                          timings, upload.points, (sent - due) * 1e3))
+            finally:
+                slots.release()  # after the sample, so a finished run has every sample; always, or the run hangs
+
+
+def _stop_senders(jobs: queue.Queue[_Job | None], threads: list[threading.Thread]) -> None:
+    """Tell every sender to stop once the jobs before are sent, and wait for them: then every sample is in."""
     for _ in threads:
         jobs.put(None)
     for thread in threads:
         thread.join()
-    wall = time.perf_counter() - origin
-    scheduled_window = duration_s if duration_s is not None else schedule.due / rate_hz
+
+
+def _dispatch(source: RequestSource, rate_hz: float, origin: float, deadline: float | None,
+              slots: threading.Semaphore, jobs: queue.Queue[_Job | None]) -> tuple[Schedule, float]:
+    """Hand each request to a sender at its due time, every 1/``rate_hz`` s from ``origin`` until ``deadline``
+    (None: until the source is spent); the schedule kept (its window aside) and when the last request went out."""
+    end = deadline if deadline is not None else math.inf
+    schedule = Schedule()
+    waited_until = -math.inf  # when the dispatcher last got a slot it had to wait for
+    last_sent = origin
+    index = 0
+    while (due := origin + index / rate_hz) < end:
+        upload = source.take()  # read before its due time: the file read is not the request's latency
+        if upload is None:
+            return schedule, last_sent  # spent (--requests): every request went out, none is left unsent
+        schedule.due += 1
+        index += 1
+        _sleep_until(due)
+        late, waited_until = _take_slot(slots, due, waited_until, deadline)
+        if late is None:
+            schedule.unsent += 1  # the run ended with every slot still busy
+            break
+        last_sent = time.perf_counter()
+        schedule.sent += 1
+        schedule.late += late
+        jobs.put((upload, due, last_sent))
+    if deadline is not None:
+        # Requests due before the end that the dispatcher never reached: counted, not silently left out.
+        unreached = _due_before(end, origin, index, rate_hz)
+        schedule.due += unreached
+        schedule.unsent += unreached
+    return schedule, last_sent
+
+
+def _sleep_until(moment: float) -> None:
+    """Wait until ``moment`` (perf_counter s); at once if it has passed."""
+    now = time.perf_counter()
+    if now < moment:
+        time.sleep(moment - now)
+
+
+def _take_slot(slots: threading.Semaphore, due: float, waited_until: float,
+               deadline: float | None) -> tuple[bool | None, float]:
+    """Take a free sender for a request due at ``due``, waiting for one until ``deadline`` (None: as long as it
+    takes): whether the request goes out late (None: no sender freed in time), and when the dispatcher last got a
+    slot it had to wait for."""
+    if slots.acquire(blocking=False):
+        # Behind schedule only because the dispatcher was still waiting for a slot at this one's due time.
+        return due < waited_until, waited_until
+    left = max(0.0, deadline - time.perf_counter()) if deadline is not None else None  # None: as long as it takes
+    if not slots.acquire(timeout=left):
+        return None, waited_until
+    return True, time.perf_counter()
+
+
+def _due_before(end: float, origin: float, index: int, rate_hz: float) -> int:
+    """How many requests from the ``index``th on fall due before ``end``."""
+    count = 0
+    while origin + (index + count) / rate_hz < end:
+        count += 1
+    return count
+
+
+def _sending_window(due: int, rate_hz: float, duration_s: float | None, last_sent_s: float) -> float:
+    """The seconds the rates are taken over: the run's duration (a --requests run: its ``due`` requests' schedule),
+    or up to one interval after the last send (``last_sent_s``, s since the run began) when that is later."""
+    scheduled_window = duration_s if duration_s is not None else due / rate_hz
     # Late sends can stretch a --requests run past its schedule: the rate achieved is then over the longer window.
-    schedule.window_s = max(scheduled_window, last_sent - origin + 1 / rate_hz)
-    return samples, wall, schedule
+    return max(scheduled_window, last_sent_s + 1 / rate_hz)
 
 
 def thin_scans(data: Path, frames: list[str], beams: int, folder: Path) -> None:
@@ -572,62 +627,24 @@ def summarise(samples: list[Sample], wall_s: float, rss: dict[str, float], gauge
     good = [s for s in samples if not s.broken]
     broken = [s for s in samples if s.broken]
     ok = [s for s in good if s.status == "200"]
-    stages: dict[str, list[float]] = {}
-    for sample in ok:
-        for stage, ms in (sample.timings_ms or {}).items():
-            stages.setdefault(stage, []).append(ms)
+    stage_p50_ms = _stage_p50s(ok)
     rss_series = gauges.rss if gauges else []
     fds_series = gauges.fds if gauges else []
     windows = per_window(samples, rss_series, wall_s)
-    tenth = max(1, len(ok) // 10)
-    by_start = sorted(ok, key=lambda s: s.start_s)
-    # What the server did with the scans, from its own answers: it times an emulate_beams stage only when it thins.
-    thinning = {**context.thinning,
-                "points_sent_mean": float(np.mean([s.points for s in good])) if good else float("nan"),
-                "server_thinned_answers": sum("emulate_beams" in (s.timings_ms or {}) for s in ok)}
-    open_loop = {}
-    if context.rate_hz is not None and context.schedule is not None:
-        schedule = context.schedule
-        open_loop = {
-            "requested_rate_hz": context.rate_hz,
-            "achieved_rate_hz": schedule.sent / schedule.window_s if schedule.window_s > 0 else float("nan"),
-            "ok_rate_hz": len(ok) / schedule.window_s if schedule.window_s > 0 else float("nan"),
-            "max_in_flight": context.clients,
-            "window_s": round(schedule.window_s, 3),
-            "due": schedule.due, "sent": schedule.sent, "late_sends": schedule.late, "unsent": schedule.unsent,
-            "send_lag_ms": _percentiles([s.lag_ms for s in samples]),
-            # The same requests timed from when they went out: the difference is the wait for a slot.
-            "latency_from_send_ms": _percentiles([s.latency_ms - s.lag_ms for s in good]),
-        }
+    thinning = _thinning_done(context.thinning, good, ok)
+    open_loop = _open_loop_figures(samples, good, ok, context)
     machine = this_machine()
     return LoadResult(
         url=context.url, clients=context.clients, duration_s=round(wall_s, 2), requests=len(samples),
-        status_counts=dict(sorted(Counter(s.status for s in good).items())),
+        status_counts=_status_counts(good),
         throughput_ok_per_s=len(ok) / wall_s, throughput_all_per_s=len(samples) / wall_s,
-        latency_ms={
-            **{status: _percentiles([s.latency_ms for s in good if s.status == status])
-               for status in sorted({s.status for s in good})},
-            "all": _percentiles([s.latency_ms for s in good]),
-        },
-        stage_p50_ms={stage: float(np.median(values)) for stage, values in stages.items()},
+        latency_ms=_latency_by_status(good),
+        stage_p50_ms=stage_p50_ms,
         rss_mb=rss, rss_series=rss_series, fds_series=fds_series,
         frames_sent=len({s.upload for s in good}),
-        broken={
-            "sent": len(broken),
-            "statuses": {kind: dict(sorted(Counter(s.status for s in broken if s.upload == kind).items()))
-                         for kind in BROKEN_KINDS if any(s.upload == kind for s in broken)},
-            "answered_4xx": sum(s.status.startswith("4") for s in broken),
-        },
-        server_errors=sum((s.status.startswith("5") and s.status != "503") or s.status.startswith("error")
-                          for s in samples),
-        trend={
-            "rss_mb_per_hour": memory_trend(rss_series, wall_s),
-            "fds_first": fds_series[0][1] if fds_series else None,
-            "fds_last": fds_series[-1][1] if fds_series else None,
-            "fds_max": max((n for _, n in fds_series), default=None),
-            "p50_ms_first_tenth": float(np.median([s.latency_ms for s in by_start[:tenth]])) if ok else None,
-            "p50_ms_last_tenth": float(np.median([s.latency_ms for s in by_start[-tenth:]])) if ok else None,
-        },
+        broken=_broken_figures(broken),
+        server_errors=_server_errors(samples),
+        trend=_trend(ok, rss_series, fds_series, wall_s),
         windows=windows, server=context.server,
         mode="open-loop" if open_loop else "closed-loop",
         latency_from="schedule" if open_loop else "send",
@@ -639,6 +656,89 @@ def summarise(samples: list[Sample], wall_s: float, rss: dict[str, float], gauge
         client_cpu_cores=context.client_cpu_s / wall_s if wall_s > 0 else float("nan"),
         service_log=context.service_log,
     )
+
+
+def _stage_p50s(ok: list[Sample]) -> dict[str, float]:
+    """The server's p50 of each stage it timed, over the answered requests (stages in the order first seen)."""
+    stages: dict[str, list[float]] = {}
+    for sample in ok:
+        for stage, ms in (sample.timings_ms or {}).items():
+            stages.setdefault(stage, []).append(ms)
+    return {stage: float(np.median(values)) for stage, values in stages.items()}
+
+
+def _thinning_done(planned: dict, good: list[Sample], ok: list[Sample]) -> dict:
+    """Where the scans were to be thinned (``planned``), with the points the well-formed requests carried and how
+    many answers the server thinned."""
+    # What the server did with the scans, from its own answers: it times an emulate_beams stage only when it thins.
+    return {**planned,
+            "points_sent_mean": float(np.mean([s.points for s in good])) if good else float("nan"),
+            "server_thinned_answers": sum("emulate_beams" in (s.timings_ms or {}) for s in ok)}
+
+
+def _open_loop_figures(samples: list[Sample], good: list[Sample], ok: list[Sample], context: RunContext) -> dict:
+    """The open loop's rates (over its schedule's window), its schedule's counts and the send lag; empty for a
+    closed loop."""
+    if context.rate_hz is None or context.schedule is None:
+        return {}
+    schedule = context.schedule
+    return {
+        "requested_rate_hz": context.rate_hz,
+        "achieved_rate_hz": schedule.sent / schedule.window_s if schedule.window_s > 0 else float("nan"),
+        "ok_rate_hz": len(ok) / schedule.window_s if schedule.window_s > 0 else float("nan"),
+        "max_in_flight": context.clients,
+        "window_s": round(schedule.window_s, 3),
+        "due": schedule.due, "sent": schedule.sent, "late_sends": schedule.late, "unsent": schedule.unsent,
+        "send_lag_ms": _percentiles([s.lag_ms for s in samples]),
+        # The same requests timed from when they went out: the difference is the wait for a slot.
+        "latency_from_send_ms": _percentiles([s.latency_ms - s.lag_ms for s in good]),
+    }
+
+
+def _status_counts(samples: list[Sample]) -> dict[str, int]:
+    """How many of ``samples`` got each status, by status."""
+    return dict(sorted(Counter(s.status for s in samples).items()))
+
+
+def _latency_by_status(good: list[Sample]) -> dict[str, dict[str, float]]:
+    """The well-formed requests' latency percentiles per status, then of them all ("all")."""
+    return {
+        **{status: _percentiles([s.latency_ms for s in good if s.status == status])
+           for status in sorted({s.status for s in good})},
+        "all": _percentiles([s.latency_ms for s in good]),
+    }
+
+
+def _broken_figures(broken: list[Sample]) -> dict:
+    """The broken requests sent, their statuses per kind (the kinds sent, in BROKEN_KINDS' order) and how many were
+    answered 4xx."""
+    return {
+        "sent": len(broken),
+        "statuses": {kind: dict(sorted(Counter(s.status for s in broken if s.upload == kind).items()))
+                     for kind in BROKEN_KINDS if any(s.upload == kind for s in broken)},
+        "answered_4xx": sum(s.status.startswith("4") for s in broken),
+    }
+
+
+def _server_errors(samples: list[Sample]) -> int:
+    """The 5xx answers other than 503 and the transport errors, well-formed requests or not."""
+    return sum((s.status.startswith("5") and s.status != "503") or s.status.startswith("error") for s in samples)
+
+
+def _trend(ok: list[Sample], rss_series: list[tuple[float, float]], fds_series: list[tuple[float, float]],
+           wall_s: float) -> dict:
+    """How the run changed over time: the memory's slope, the open file descriptors (first, last, most) and the
+    p50 of the first and last tenth of the 200s in send order."""
+    tenth = max(1, len(ok) // 10)
+    by_start = sorted(ok, key=lambda s: s.start_s)
+    return {
+        "rss_mb_per_hour": memory_trend(rss_series, wall_s),
+        "fds_first": fds_series[0][1] if fds_series else None,
+        "fds_last": fds_series[-1][1] if fds_series else None,
+        "fds_max": max((n for _, n in fds_series), default=None),
+        "p50_ms_first_tenth": float(np.median([s.latency_ms for s in by_start[:tenth]])) if ok else None,
+        "p50_ms_last_tenth": float(np.median([s.latency_ms for s in by_start[-tenth:]])) if ok else None,
+    }
 
 
 def status_colour(key: str) -> str:
@@ -890,64 +990,112 @@ def run(
     send_beams, emulate_beams = thinning_plan(send_beams, emulate_beams)
     params = {"emulate_beams": emulate_beams} if emulate_beams else {}
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    where = "client" if send_beams else "server" if emulate_beams else "none"
-    thinning = {"where": where, "beams": send_beams or emulate_beams or None, "send_beams": send_beams,
-                "emulate_beams": emulate_beams, "points_stored_mean": stored_points_mean(data, frames)}
-
-    @contextmanager
-    def target() -> Iterator[str]:
-        if url is not None:
-            yield url.rstrip("/")
-        else:
-            log_path.parent.mkdir(parents=True, exist_ok=True)
-            with started_service(models, server_args or [], log_path) as started:
-                yield started
-
+    thinning = _thinning_planned(data, frames, send_beams, emulate_beams)
     # The thinned scans go to a temporary folder, read per request as the stored ones are: a folder of hundreds
     # of frames is not held in memory. Thinned before the service starts, so a scan that cannot be thinned
     # stops the run before anything runs.
     with tempfile.TemporaryDirectory(prefix="load-scans-") as scratch:
-        scans = None
-        if send_beams:
-            scans = Path(scratch)
-            thin_scans(data, frames, send_beams, scans)
-        with target() as base:
-            info = httpx.get(f"{base}/v1/model", headers=headers, timeout=10).json()
-            server = {
-                "preset": info["preset"], "workers": info["workers"], "sessions": info["sessions"],
-                "queue_size": info["queue_size"], "intra_op_threads": info.get("intra_op_threads"),
-                "mirror_tta": info.get("mirror_tta", False),
-                "providers": sorted({p for ps in info["providers_in_use"].values() for p in ps}),
-            }
-            rss = {"ready": server_rss_mb(base, headers)}
-            # Warm-up at full concurrency so every worker thread exists and has made its buffers.
-            drive(base, clients, None, RequestSource(data, frames, params, 3 * clients, scans=scans), headers,
-                  backoff_s)
-            rss["warm"] = server_rss_mb(base, headers)
-            schedule = None
-            # CPU of this process alone (every thread, the gauge scrapes too; not a service started here, a child):
-            # on a shared box, what the load generator took from the server.
-            cpu_start = time.process_time()
-            with GaugeSampler(base, headers) as gauges:
-                source = RequestSource(data, frames, params, requests, bad_every, scans)
-                if rate_hz is None:
-                    samples, wall = drive(base, clients, duration_s, source, headers, backoff_s)
-                else:
-                    samples, wall, schedule = drive_open_loop(base, rate_hz, clients, duration_s, source, headers)
-            client_cpu_s = time.process_time() - cpu_start
+        scans = _thinned_here(data, frames, send_beams, Path(scratch))
+        with _target(url, models, server_args or [], log_path) as base:
+            server = _server_info(base, headers)
+            warm_up = RequestSource(data, frames, params, 3 * clients, scans=scans)
+            rss = _memory_ready_and_warm(base, clients, warm_up, headers, backoff_s)
+            measured_requests = RequestSource(data, frames, params, requests, bad_every, scans)
+            measured = _measure(base, clients, rate_hz, duration_s, measured_requests, headers, backoff_s)
             rss["end"] = server_rss_mb(base, headers)
     context = RunContext(url=base, clients=clients, server=server, thinning=thinning, started_here=url is None,
-                         client_cpu_s=client_cpu_s, rate_hz=rate_hz, schedule=schedule,
+                         client_cpu_s=measured.client_cpu_s, rate_hz=rate_hz, schedule=measured.schedule,
                          service_log=str(log_path) if url is None else None)
-    result = summarise(samples, wall, rss, gauges, context)
-    if plot is not None and samples:
+    result = summarise(measured.samples, measured.wall_s, rss, measured.gauges, context)
+    if plot is not None and measured.samples:
         plot.parent.mkdir(parents=True, exist_ok=True)
-        load = (f"{rate_hz:g} Hz open loop, at most {clients} in flight" if rate_hz is not None
-                else f"{clients} clients")
-        plot_load(samples, result, plot, f"{load}, {server['workers']} worker(s), "
-                                         f"queue {server['queue_size']}, {server['preset']} models: "
-                                         f"{len(samples)} requests in {wall:.0f} s")
+        plot_load(measured.samples, result, plot,
+                  _plot_title(rate_hz, clients, server, len(measured.samples), measured.wall_s))
     return result
+
+
+def _thinning_planned(data: Path, frames: list[str], send_beams: int, emulate_beams: int) -> dict:
+    """Where the scans are to be thinned (client, server or none), to how many lines, and the points stored."""
+    where = "client" if send_beams else "server" if emulate_beams else "none"
+    return {"where": where, "beams": send_beams or emulate_beams or None, "send_beams": send_beams,
+            "emulate_beams": emulate_beams, "points_stored_mean": stored_points_mean(data, frames)}
+
+
+def _thinned_here(data: Path, frames: list[str], send_beams: int, scratch: Path) -> Path | None:
+    """The folder of the scans thinned here to ``send_beams`` lines (written into ``scratch``); None when they
+    are sent as stored (``send_beams`` 0)."""
+    if not send_beams:
+        return None
+    thin_scans(data, frames, send_beams, scratch)
+    return scratch
+
+
+@contextmanager
+def _target(url: str | None, models: Path, server_args: list[str], log_path: Path) -> Iterator[str]:
+    """The service's base URL: ``url`` (without a trailing slash), else one started here for the block's length."""
+    if url is not None:
+        yield url.rstrip("/")
+    else:
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        with started_service(models, server_args, log_path) as started:
+            yield started
+
+
+def _server_info(base: str, headers: dict[str, str]) -> dict:
+    """What the service says it runs (/v1/model): preset, workers, sessions, queue, threads, TTA and providers."""
+    info = httpx.get(f"{base}/v1/model", headers=headers, timeout=10).json()
+    return {
+        "preset": info["preset"], "workers": info["workers"], "sessions": info["sessions"],
+        "queue_size": info["queue_size"], "intra_op_threads": info.get("intra_op_threads"),
+        "mirror_tta": info.get("mirror_tta", False),
+        "providers": sorted({p for ps in info["providers_in_use"].values() for p in ps}),
+    }
+
+
+def _memory_ready_and_warm(base: str, clients: int, source: RequestSource, headers: dict[str, str],
+                           backoff_s: float) -> dict[str, float]:
+    """The server's resident memory (MB) when ready, and after ``source``'s requests (not measured)."""
+    rss = {"ready": server_rss_mb(base, headers)}
+    # Warm-up at full concurrency so every worker thread exists and has made its buffers.
+    drive(base, clients, None, source, headers, backoff_s)
+    rss["warm"] = server_rss_mb(base, headers)
+    return rss
+
+
+@dataclass
+class _Measured:
+    """The measured part of a run: its samples and wall time, the open loop's schedule (None: closed loop), the
+    server's gauges over it and the load generator's CPU seconds."""
+
+    samples: list[Sample]
+    wall_s: float
+    schedule: Schedule | None
+    gauges: GaugeSampler
+    client_cpu_s: float
+
+
+def _measure(base: str, clients: int, rate_hz: float | None, duration_s: float | None, source: RequestSource,
+             headers: dict[str, str], backoff_s: float) -> _Measured:
+    """Drive the load (closed loop, or open at ``rate_hz``) with ``source``'s requests, sampling the server's
+    gauges and timing this process's CPU meanwhile."""
+    schedule = None
+    # CPU of this process alone (every thread, the gauge scrapes too; not a service started here, a child):
+    # on a shared box, what the load generator took from the server.
+    cpu_start = time.process_time()
+    with GaugeSampler(base, headers) as gauges:
+        if rate_hz is None:
+            samples, wall = drive(base, clients, duration_s, source, headers, backoff_s)
+        else:
+            samples, wall, schedule = drive_open_loop(base, rate_hz, clients, duration_s, source, headers)
+    return _Measured(samples, wall, schedule, gauges, time.process_time() - cpu_start)
+
+
+def _plot_title(rate_hz: float | None, clients: int, server: dict, requests: int, wall_s: float) -> str:
+    """The plot's title: the load, the service's workers, queue and models, and the requests sent."""
+    load = (f"{rate_hz:g} Hz open loop, at most {clients} in flight" if rate_hz is not None
+            else f"{clients} clients")
+    return (f"{load}, {server['workers']} worker(s), queue {server['queue_size']}, {server['preset']} models: "
+            f"{requests} requests in {wall_s:.0f} s")
 
 
 def check_frames(data: Path, frames: list[str]) -> None:
@@ -977,6 +1125,34 @@ def check_outputs(args: argparse.Namespace, log: Path) -> None:
 
 @quiet_interrupt("no report was written (--json and --plot come at the end); a service it started is stopped")
 def main(argv: list[str] | None = None) -> int:
+    """The command line: check every flag and input before anything starts, run the load, report."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    send_beams, emulate_beams = _checked_load_flags(parser, args)
+    server_args = _server_args(args)
+    _check_service_flags(parser, args, server_args)
+    frames, log = _checked_inputs(parser, args)
+    try:
+        result = run(
+            url=args.url, models=args.models, clients=args.clients, duration_s=_duration_s(args),
+            requests=args.requests, data=args.data, frames=frames, emulate_beams=emulate_beams,
+            bad_every=args.bad_every, token=args.token, backoff_s=0.1 if args.backoff_s is None else args.backoff_s,
+            server_args=server_args, plot=args.plot, log_path=log, rate_hz=args.rate, send_beams=send_beams,
+        )
+    except InputError as exc:  # a scan --send-beams cannot thin (a thinned one already); nothing was started
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except httpx.TransportError as exc:  # nothing listening at --url, or it went away before the load began
+        where = f"--url {args.url}" if args.url else "the service started here"
+        print(f"error: {where}: cannot reach the service ({exc}); start it first (python -m service) "
+              "or leave --url out to start one here", file=sys.stderr)
+        return 2
+    _write_report(result, args.json, args.plot)
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line's flags, in --help's order."""
     parser = argparse.ArgumentParser(
         prog="python benchmarks/load.py",
         description="Load-test the lowres3d detection service on loopback (deliberately over capacity) or at --url: "
@@ -989,6 +1165,15 @@ def main(argv: list[str] | None = None) -> int:
                         "--bad-every 50"),
         formatter_class=HelpFormatter,
     )
+    _add_load_arguments(parser)
+    _add_request_arguments(parser)
+    _add_started_service_arguments(parser)
+    _add_output_arguments(parser)
+    return parser
+
+
+def _add_load_arguments(parser: argparse.ArgumentParser) -> None:
+    """Which service, and how much load: clients or a rate, for a duration or a number of requests."""
     parser.add_argument("--url", help="a running service (default: start one on 127.0.0.1 with --models)")
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, metavar="DIR",
                         help=f"model directory (default {DEFAULT_MODELS})")
@@ -1002,6 +1187,10 @@ def main(argv: list[str] | None = None) -> int:
     bound.add_argument("--duration", type=positive_float, metavar="S",
                        help="seconds of load (default 20 unless --requests)")
     bound.add_argument("--requests", type=positive_int, metavar="N", help="total requests instead of a duration")
+
+
+def _add_request_arguments(parser: argparse.ArgumentParser) -> None:
+    """What each request sends (frames, thinning, broken ones, token) and a closed-loop client's backoff."""
     parser.add_argument("--data", type=Path, default=KITTI, metavar="DIR",
                         help="KITTI object folder whose frames are sent in turn (default tests/data/kitti/training)")
     parser.add_argument("--frame", metavar="ID", help="send only this frame of --data")
@@ -1018,6 +1207,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="bearer token (default $LOWRES3D_TOKEN)")
     parser.add_argument("--backoff-s", type=float, metavar="S",
                         help="closed loop: a client's pause after a 503 (default 0.1)")
+
+
+def _add_started_service_arguments(parser: argparse.ArgumentParser) -> None:
+    """The flags passed on to a service started here."""
     parser.add_argument("--workers", type=int, metavar="N", help="started service: inference workers")
     parser.add_argument("--queue-size", type=int, metavar="N", help="started service: queue size")
     parser.add_argument("--sessions", choices=["shared", "per-worker"], help="started service: session mode")
@@ -1025,21 +1218,33 @@ def main(argv: list[str] | None = None) -> int:
                         help="started service: ONNX Runtime threads per session")
     parser.add_argument("--mirror-tta", action="store_true",
                         help="started service: PIXOR also on the mirrored BEV (python -m service --mirror-tta)")
+
+
+def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    """Where the JSON, the picture and a started service's log go."""
     parser.add_argument("--json", type=Path, metavar="FILE", help="write the result as JSON here")
     parser.add_argument("--plot", type=Path, metavar="FILE",
                         help="write a picture here (.png, .jpg, .pdf or .svg; needs matplotlib): latency histogram, "
                         "latency and memory over time")
     parser.add_argument("--log", type=Path, metavar="FILE",
                         help=f"started service: write its log here (default {DEFAULT_LOG}, under the working directory)")
-    args = parser.parse_args(argv)
+
+
+def _checked_load_flags(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[int, int]:
+    """--backoff-s checked against the loop, and the thinning plan: (lines thinned here, lines the server is asked
+    to thin to). A bad combination is a usage error."""
     if args.backoff_s is not None and args.rate is not None:
         parser.error("--backoff-s applies to the closed loop only: with --rate each request goes at its due time")
     if args.backoff_s is not None and not args.backoff_s >= 0:
         parser.error("--backoff-s must be 0 or more")
     try:
-        send_beams, emulate_beams = thinning_plan(args.send_beams, args.emulate_beams)
+        return thinning_plan(args.send_beams, args.emulate_beams)
     except InputError as exc:
         parser.error(str(exc))
+
+
+def _server_args(args: argparse.Namespace) -> list[str]:
+    """The started service's own flags among ours, as ``python -m service`` spells them."""
     server_args: list[str] = []
     for flag in ("workers", "queue_size", "sessions", "intra_op_threads"):
         value = getattr(args, flag)
@@ -1047,6 +1252,11 @@ def main(argv: list[str] | None = None) -> int:
             server_args += [f"--{flag.replace('_', '-')}", str(value)]
     if args.mirror_tta:
         server_args.append("--mirror-tta")
+    return server_args
+
+
+def _check_service_flags(parser: argparse.ArgumentParser, args: argparse.Namespace, server_args: list[str]) -> None:
+    """A started service's flags are refused with --url; without it, --models must be a directory."""
     if args.url and server_args:
         parser.error("--workers/--queue-size/--sessions/--intra-op-threads/--mirror-tta apply only to a service "
                      "started here")
@@ -1054,6 +1264,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--log applies only to a service started here (the one at --url logs where it was started)")
     if args.url is None and not args.models.is_dir():
         parser.error(f"--models: {args.models} is not a directory (export one with `python -m export`)")
+
+
+def _checked_inputs(parser: argparse.ArgumentParser, args: argparse.Namespace) -> tuple[list[str], Path]:
+    """The frames to send (each with its three files) and the started service's log path, with the outputs
+    checked: a usage error before anything starts."""
     try:
         if not (args.data / "velodyne").is_dir():
             raise InputError(f"--data {args.data}: not a KITTI object folder (no velodyne/ inside)")
@@ -1063,32 +1278,25 @@ def main(argv: list[str] | None = None) -> int:
         check_frames(args.data, frames)
         log = DEFAULT_LOG if args.log is None else args.log
         check_outputs(args, log)
+        return frames, log
     except InputError as exc:
         parser.error(str(exc))
-    duration = args.duration if args.duration is not None else (None if args.requests else 20.0)
-    try:
-        result = run(
-            url=args.url, models=args.models, clients=args.clients, duration_s=duration, requests=args.requests,
-            data=args.data, frames=frames, emulate_beams=emulate_beams, bad_every=args.bad_every, token=args.token,
-            backoff_s=0.1 if args.backoff_s is None else args.backoff_s, server_args=server_args, plot=args.plot,
-            log_path=log, rate_hz=args.rate, send_beams=send_beams,
-        )
-    except InputError as exc:  # a scan --send-beams cannot thin (a thinned one already); nothing was started
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except httpx.TransportError as exc:  # nothing listening at --url, or it went away before the load began
-        where = f"--url {args.url}" if args.url else "the service started here"
-        print(f"error: {where}: cannot reach the service ({exc}); start it first (python -m service) "
-              "or leave --url out to start one here", file=sys.stderr)
-        return 2
+
+
+def _duration_s(args: argparse.Namespace) -> float | None:
+    """--duration, else 20 s unless --requests bounds the run instead (None)."""
+    return args.duration if args.duration is not None else (None if args.requests else 20.0)
+
+
+def _write_report(result: LoadResult, json_path: Path | None, plot: Path | None) -> None:
+    """Print the report, write the JSON, and name each file written (the plot was drawn by :func:`run`)."""
     print(format_report(result))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(asdict(result), indent=2))
-        print(f"wrote {args.json}")
-    if args.plot:
-        print(f"wrote {args.plot}")
-    return 0
+    if json_path:
+        json_path.parent.mkdir(parents=True, exist_ok=True)
+        json_path.write_text(json.dumps(asdict(result), indent=2))
+        print(f"wrote {json_path}")
+    if plot:
+        print(f"wrote {plot}")
 
 
 if __name__ == "__main__":
