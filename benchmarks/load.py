@@ -781,6 +781,34 @@ def _mark_percentiles(histogram, latency_ms: list[float]) -> None:
                        bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.7, "pad": 1})
 
 
+# Tick values on a log axis, coarse to fine: the coarsest that puts two or more in view is taken.
+LOG_TICK_STEPS = ((1.0,), (1.0, 2.0, 5.0), (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8.0),
+                  (1.0, 1.2, 1.4, 1.6, 1.8, 2.0, 2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 6.0, 7.0, 8.0, 9.0))
+
+
+def log_ticks(low: float, high: float) -> list[float]:
+    """Tick values between ``low`` and ``high`` (> 0) for a log axis: powers of ten when two or more lie
+    between, else the coarsest finer steps that give two or more (latencies of 160-380 ms: 200, 300), else
+    the two ends to two significant digits."""
+    decades = range(math.floor(math.log10(low)), math.ceil(math.log10(high)) + 1)
+    for steps in LOG_TICK_STEPS:
+        ticks = [step * 10.0 ** k for k in decades for step in steps if low <= step * 10.0 ** k <= high]
+        if len(ticks) >= 2:
+            return ticks
+    return [float(f"{low:.2g}"), float(f"{high:.2g}")]
+
+
+def label_log_axis(axis, low: float, high: float) -> None:
+    """Labelled ticks from :func:`log_ticks` on a log axis spanning ``low``…``high``, as plain numbers. With
+    matplotlib's own, only powers of ten were labelled (the minor labels, which overlap, blanked): latencies
+    all within one decade had no label at all."""
+    from matplotlib import ticker
+
+    axis.set_major_locator(ticker.FixedLocator(log_ticks(low, high)))
+    axis.set_major_formatter(ticker.FuncFormatter(lambda value, _: f"{value:g}"))
+    axis.set_minor_formatter(ticker.NullFormatter())
+
+
 def load_figure(samples: list[Sample], result: LoadResult, title: str):
     """The figure of :func:`plot_load` (not saved)."""
     import matplotlib
@@ -796,7 +824,7 @@ def load_figure(samples: list[Sample], result: LoadResult, title: str):
     histogram.hist(list(groups.values()), bins=bins, stacked=True, color=[status_colour(k) for k in groups],
                    label=[f"{k} ({len(v)})" for k, v in groups.items()])
     histogram.set_xscale("log")
-    histogram.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())  # minor labels overlap on a log axis
+    label_log_axis(histogram.xaxis, float(bins[0]), float(bins[-1]))
     histogram.set_xlabel("latency (ms, client side, from the due time)" if result.latency_from == "schedule"
                          else "latency (ms, client side)")
     histogram.set_ylabel("requests")

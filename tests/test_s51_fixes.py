@@ -55,3 +55,21 @@ def test_latency_names_only_a_misspelt_preset_as_the_preset_flags_fault(monkeypa
     monkeypatch.setattr(latency, "run", broken)
     with pytest.raises(ValueError, match="a defect inside the run"):
         latency.main(["--models", str(WEIGHTS / "edge"), "--frames", "1"])
+
+
+def test_the_load_pictures_latency_axis_is_labelled_when_every_latency_lies_within_one_decade() -> None:
+    """The histogram's log axis labelled powers of ten only, the other labels blanked: a run whose latencies
+    all fell between 157 and 400 ms (a 15 s run of the edge model here) had an x axis without a number."""
+    from benchmarks.load import Sample, load_figure, summarise
+    from tests.test_bench_load import context
+
+    samples = [Sample(0.5 * i, latency, "200", "000000", timings_ms={"total": latency - 5.0})
+               for i, latency in enumerate([157.0, 181.0, 205.0, 236.0, 260.0, 300.0, 340.0, 380.0])]
+    result = summarise(samples, 4.0, {"ready": 400.0, "warm": 410.0, "end": 411.0}, None, context())
+    figure = load_figure(samples, result, "a run within one decade")
+    figure.canvas.draw()
+    histogram = figure.axes[0]
+    low, high = histogram.get_xlim()
+    shown = [(tick.get_loc(), tick.label1.get_text()) for tick in histogram.xaxis.get_major_ticks()
+             if low <= tick.get_loc() <= high and tick.label1.get_text()]
+    assert [text for _, text in shown] == ["200", "300"], shown
