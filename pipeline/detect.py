@@ -171,30 +171,57 @@ def run(
     (:func:`check_outputs_not_inputs`) and for ``emulate_beams`` on scans thinned already
     (:func:`check_thinnable_first_scan`).
     """
-    from pipeline.detector import Detector
+    from pipeline.detector import Detector  # ONNX Runtime loads as a run starts, not for --help
 
     frames_of = frame_source(data, drive, frames, image, points, calib, split_file)  # before any model loads
+    out = Path(out)
     inputs = {"--data": data, "--drive": drive, "--models": models, "--image": image, "--points": points,
               "--calib": calib, "--split-file": split_file, "--depth-dir": depth_dir}
-    check_outputs_not_inputs(Path(out), video, frames_of.ids, inputs)
+    _check_before_models(out, video, frames_of, inputs, emulate_beams, pictures, depth_dir)
+    movie = _probed_video(video, video_fps)
+    detector = Detector(models, providers=provider, mirror_tta=mirror_tta)
+    if depth_dir is not None and not detector.two_stage:
+        raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
+    _warn_of_earlier_outputs(out, frames_of.ids, pictures)
+    result = _detect_and_finish_video(detector, frames_of, out, depth_dir, score_threshold, emulate_beams, pictures,
+                                      progress, movie)
+    if movie is not None:
+        _warn_of_earlier_video(movie, video)
+    return result
+
+
+def _check_before_models(out: Path, video: Path | None, frames_of: FrameSource, inputs: dict[str, Path | None],
+                         emulate_beams: int | None, pictures: bool, depth_dir: Path | None) -> None:
+    """The InputErrors of :func:`run`'s arguments, before any model loads: outputs over inputs, scans thinned
+    already, --video without pictures, a missing --depth-dir, --out folders that cannot be written."""
+    check_outputs_not_inputs(out, video, frames_of.ids, inputs)
     if emulate_beams:
         check_thinnable_first_scan(frames_of, emulate_beams)
     if video is not None and not pictures:
         raise InputError("--video is made of the pictures: leave out --no-pictures")
     if depth_dir is not None and not Path(depth_dir).is_dir():  # else every frame would be skipped in turn
         raise InputError(f"--depth-dir {depth_dir}: directory not found")
-    out = Path(out)
     # The folders each frame writes into, before the models load (a file in the way used to be found only
     # after the first frame was detected).
     for folder in (out, out / "data", *((out / "bev", out / "camera") if pictures else ())):
         check_output(folder, "--out", directory=True)
-    movie = FrameVideo(video, video_fps) if video is not None else None
-    if movie is not None:  # a folder the video cannot be written into is refused before the models load
-        movie.probe()
-    detector = Detector(models, providers=provider, mirror_tta=mirror_tta)
-    if depth_dir is not None and not detector.two_stage:
-        raise InputError(f"--depth-dir: {models} is a LiDAR-only model directory; it uses no depth")
-    _warn_of_earlier_outputs(out, frames_of.ids, pictures)
+
+
+def _probed_video(video: Path | None, video_fps: float) -> FrameVideo | None:
+    """The --video being written (None without one), its folder tried first: a folder the video cannot be
+    written into is refused before the models load."""
+    if video is None:
+        return None
+    movie = FrameVideo(video, video_fps)
+    movie.probe()
+    return movie
+
+
+def _detect_and_finish_video(detector: Detector, frames_of: FrameSource, out: Path, depth_dir: Path | None,
+                             score_threshold: float | None, emulate_beams: int | None, pictures: bool,
+                             progress: bool, movie: FrameVideo | None) -> DetectResult:
+    """:func:`_detect_frames`, then the video put in place. On an error or Ctrl-C the exception carries, for
+    :func:`main`, how many frames have their files (``frames_written``) and whether the video was written."""
     result: DetectResult | None = None
     try:
         result = _detect_frames(detector, frames_of, out, depth_dir, score_threshold, emulate_beams, pictures,
@@ -209,10 +236,14 @@ def run(
             # main reads it: an interrupt may come just after the video was put in place
             exc.video_written = movie.written  # type: ignore[attr-defined]
         raise
-    if movie is not None and not movie.written and movie.path.is_file():
+    return result
+
+
+def _warn_of_earlier_video(movie: FrameVideo, video: Path | None) -> None:
+    """A warning when the run wrote no video (no frame was detected) but an earlier run's is at its path."""
+    if not movie.written and movie.path.is_file():
         log.warning("warning: --video %s: no frame was detected, so no video was written; the file there is an "
                     "earlier run's", video)
-    return result
 
 
 @dataclass
@@ -390,74 +421,144 @@ def _detect_frames(detector: Detector, frames_of: FrameSource, out: Path, depth_
     try:
         for fid in tqdm(ids, desc="detect", unit="frame", disable=not progress or len(ids) < 2):
             try:
-                frame = frames_of.load(fid)
-                detections = _detect_frame(detector, frame, frames_of.where(fid), depth_dir, score_threshold,
-                                           emulate_beams)
+                frame, detections = _load_and_detect(detector, frames_of, fid, depth_dir, score_threshold,
+                                                     emulate_beams)
             except InputError as exc:
                 if frames_of.single:  # one set of files: nothing else to do
                     raise
-                skipped[fid] = str(exc)
-                removed = _remove_earlier_outputs(out, fid)
-                also = f"; removed its {' and '.join(removed)} from an earlier run" if removed else ""
-                tqdm.write(f"error: {exc} (frame {fid} skipped{also})", file=sys.stderr)
+                skipped[fid] = _skip_frame(out, fid, exc)
                 continue
-            if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
-                detections.add_warning(WarningCode.NONFINITE_DROPPED, "points: dropped rows with NaN or infinite "
-                                       f"values ({frame.dropped_nonfinite} rows)")
-            # The frame's warnings but the thinning the run's own --emulate-beams asked for (a line on every frame,
-            # saying what the command line says). Every frame's are on record as it is detected (a run stopped
-            # midway keeps the frames done); the terminal names only the first frame of each kind and, at the end,
-            # each code's count.
-            mine = [(frame.frame_id, str(code), warning)
-                    for warning, code in zip(detections.warnings, detections.warning_codes, strict=True)
-                    if code != WarningCode.BEAMS_EMULATED]
-            for _, _, warning in mine:
-                kind = warning.rsplit(" (", 1)[0]  # each kind once (the trailing "(…)" holds the frame's figures)
-                if kind not in warned:
-                    warned.add(kind)
-                    tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
+            # Every frame's warnings are on record as it is detected (a run stopped midway keeps the frames done);
+            # the terminal names only the first frame of each kind and, at the end, each code's count.
+            mine = _warnings_to_record(frame.frame_id, detections)
+            _say_new_kinds(fid, mine, warned)
             _record_warnings(record, mine)
             said += mine
-            for stage, ms in detections.timings_ms.items():
-                totals[stage] = totals.get(stage, 0.0) + ms
-            (out / "data").mkdir(parents=True, exist_ok=True)
-            result = out / "data" / f"{frame.frame_id}.txt"
-            # Every source loads the image (so its size), and _detect_frame keeps the points PIXOR saw.
-            assert frame.image is not None and frame.image_hw is not None and detections.points is not None
-            objects = detections.to_objects(frame.calib, frame.image_hw)
-            write_labels(result, objects)
-            count += len(objects)  # what the result files hold: the boxes the camera sees
+            _add_timings(totals, detections.timings_ms)
+            result, cars = _write_result_file(out, frame, detections)
+            count += cars  # what the result files hold: the boxes the camera sees
             results.append(result)
             if pictures:
-                gt = None
-                labels = _labels_for_picture(frames_of.labels, fid) if frames_of.labels is not None else None
-                if labels:
-                    gt = labels_to_boxes([o for o in labels if o.type == "Car"], frame.calib)
-                title = picture_title(frame.frame_id, detector.model_dir, emulate_beams)
-                # The sensor faults and mismatches named on stderr, by code (the thinning asked for is in the title).
-                faults = [code for _, code, _ in mine]
-                scan, pseudo = split_scan_and_pseudo(detections.points, detections.pseudo_count)
-                bev = render_bev(scan, detector.preset.bev, detections.boxes, detections.scores, gt, title=title,
-                                 legend=True, pseudo=pseudo, view=(frame.calib, frame.image_hw), warnings=faults)
-                seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)  # the result file's boxes
-                camera = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
-                                       title=title, legend=True, warnings=faults)
-                for kind, picture in (("bev", bev), ("camera", camera)):
-                    (out / kind).mkdir(parents=True, exist_ok=True)
-                    path = out / kind / f"{frame.frame_id}.png"
-                    write_png(path, picture)
-                    images.append(path)
-                if video is not None:  # the camera view drawn again at the video's size, so its scores stay readable
-                    small = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
-                                          scale=camera_scale_in_stack(frame.image_hw, bev), legend=True,
-                                          warnings=faults)
-                    video.add(_captioned(stack_views(small, bev), frame.frame_id, len(objects)))
+                images += _draw_pictures(out, detector, frame, detections, frames_of.labels, emulate_beams, mine,
+                                         video, cars)
     except KeyboardInterrupt as exc:  # main says where the frames done are, or that there are none yet
         exc.frames_written = len(results)  # type: ignore[attr-defined]
         raise
     done = len(ids) - len(skipped)
     means = {stage: total / done for stage, total in totals.items()} if done else {}
     return DetectResult(list(ids), results, images, means, count, skipped, warnings=said)
+
+
+def _load_and_detect(detector: Detector, frames_of: FrameSource, fid: str, depth_dir: Path | None,
+                     score_threshold: float | None, emulate_beams: int | None) -> tuple[Frame, Detections]:
+    """Frame ``fid`` loaded and detected on (:func:`_detect_frame`), with a warning for the scan's rows dropped
+    as not finite; an InputError names the file or frame that cannot be used."""
+    frame = frames_of.load(fid)
+    detections = _detect_frame(detector, frame, frames_of.where(fid), depth_dir, score_threshold, emulate_beams)
+    if frame.dropped_nonfinite:  # as the service says it, so a broken driver does not go unnoticed
+        detections.add_warning(WarningCode.NONFINITE_DROPPED, "points: dropped rows with NaN or infinite "
+                               f"values ({frame.dropped_nonfinite} rows)")
+    return frame, detections
+
+
+def _skip_frame(out: Path, fid: str, exc: InputError) -> str:
+    """Skip a folder's or drive's unusable frame: remove its earlier run's outputs, say so on stderr (above the
+    progress bar); why it was skipped."""
+    from tqdm import tqdm
+
+    removed = _remove_earlier_outputs(out, fid)
+    also = f"; removed its {' and '.join(removed)} from an earlier run" if removed else ""
+    tqdm.write(f"error: {exc} (frame {fid} skipped{also})", file=sys.stderr)
+    return str(exc)
+
+
+def _warnings_to_record(frame_id: str, detections: Detections) -> list[tuple[str, str, str]]:
+    """The frame's warnings (frame id, code, message) but the thinning the run's own --emulate-beams asked for
+    (a line on every frame, saying what the command line says)."""
+    return [(frame_id, str(code), warning)
+            for warning, code in zip(detections.warnings, detections.warning_codes, strict=True)
+            if code != WarningCode.BEAMS_EMULATED]
+
+
+def _say_new_kinds(fid: str, warnings: list[tuple[str, str, str]], warned: set[str]) -> None:
+    """Print on stderr each of the frame's warnings of a kind not said yet, adding its kind to ``warned``."""
+    from tqdm import tqdm
+
+    for _, _, warning in warnings:
+        kind = warning.rsplit(" (", 1)[0]  # each kind once (the trailing "(…)" holds the frame's figures)
+        if kind not in warned:
+            warned.add(kind)
+            tqdm.write(f"warning: {fid}: {warning}", file=sys.stderr)  # above the progress bar, not in it
+
+
+def _add_timings(totals: dict[str, float], timings_ms: dict[str, float]) -> None:
+    """Add a frame's per-stage timings (ms) to the run's ``totals``."""
+    for stage, ms in timings_ms.items():
+        totals[stage] = totals.get(stage, 0.0) + ms
+
+
+def _write_result_file(out: Path, frame: Frame, detections: Detections) -> tuple[Path, int]:
+    """Write the frame's KITTI result file in ``out/data``: its path and its count of lines (the boxes the camera
+    sees)."""
+    (out / "data").mkdir(parents=True, exist_ok=True)
+    result = out / "data" / f"{frame.frame_id}.txt"
+    # Every source loads the image (so its size), and _detect_frame keeps the points PIXOR saw.
+    assert frame.image is not None and frame.image_hw is not None and detections.points is not None
+    objects = detections.to_objects(frame.calib, frame.image_hw)
+    write_labels(result, objects)
+    return result, len(objects)
+
+
+def _draw_pictures(out: Path, detector: Detector, frame: Frame, detections: Detections, labels: Path | None,
+                   emulate_beams: int | None, warnings: list[tuple[str, str, str]], video: FrameVideo | None,
+                   cars: int) -> list[Path]:
+    """Draw the frame's BEV and camera pictures (the labelled cars of ``labels``' folder too) and write them in
+    ``out``: their paths; add the frame to ``video``, captioned with its ``cars`` in view."""
+    assert frame.image is not None and frame.image_hw is not None  # as _write_result_file checked
+    gt = _ground_truth(labels, frame)
+    title = picture_title(frame.frame_id, detector.model_dir, emulate_beams)
+    # The sensor faults and mismatches named on stderr, by code (the thinning asked for is in the title).
+    faults = [code for _, code, _ in warnings]
+    bev = _render_bev(detector, frame, detections, gt, title, faults)
+    seen = in_camera_view(detections.boxes, frame.calib, frame.image_hw)  # the result file's boxes
+    camera = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
+                           title=title, legend=True, warnings=faults)
+    written = _write_pictures(out, frame.frame_id, {"bev": bev, "camera": camera})
+    if video is not None:  # the camera view drawn again at the video's size, so its scores stay readable
+        small = render_camera(frame.image, frame.calib, detections.boxes[seen], detections.scores[seen], gt,
+                              scale=camera_scale_in_stack(frame.image_hw, bev), legend=True, warnings=faults)
+        video.add(_captioned(stack_views(small, bev), frame.frame_id, cars))
+    return written
+
+
+def _ground_truth(labels: Path | None, frame: Frame) -> np.ndarray | None:
+    """The labelled cars of the frame in an object folder (``labels``), as boxes for its pictures; None when
+    there are none (no folder, no label file, a broken one, no object)."""
+    objects = _labels_for_picture(labels, frame.frame_id) if labels is not None else None
+    if not objects:
+        return None
+    return labels_to_boxes([o for o in objects if o.type == "Car"], frame.calib)
+
+
+def _render_bev(detector: Detector, frame: Frame, detections: Detections, gt: np.ndarray | None, title: str,
+                faults: list[str]) -> np.ndarray:
+    """The BEV picture: the points PIXOR saw (the scan's and the camera's pseudo points apart), the camera's
+    view, the boxes and scores, the labelled cars ``gt`` and the frame's warning codes in the key."""
+    assert detections.points is not None and frame.image_hw is not None  # as _write_result_file checked
+    scan, pseudo = split_scan_and_pseudo(detections.points, detections.pseudo_count)
+    return render_bev(scan, detector.preset.bev, detections.boxes, detections.scores, gt, title=title,
+                      legend=True, pseudo=pseudo, view=(frame.calib, frame.image_hw), warnings=faults)
+
+
+def _write_pictures(out: Path, frame_id: str, pictures: dict[str, np.ndarray]) -> list[Path]:
+    """Write each picture as ``out/KIND/ID.png`` (``pictures``: kind → picture); the paths, in that order."""
+    paths = []
+    for kind, picture in pictures.items():
+        (out / kind).mkdir(parents=True, exist_ok=True)
+        path = out / kind / f"{frame_id}.png"
+        write_png(path, picture)
+        paths.append(path)
+    return paths
 
 
 def _forget_warnings_of(record: Path, ids: set[str]) -> None:
@@ -590,6 +691,22 @@ def _where(source: str | dict[str, Path], field: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The ``python -m pipeline.detect`` command: its exit status."""
+    parser = _parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    if args.video_fps is not None and args.video is None:
+        parser.error("--video-fps sets the frame rate of --video: give --video FILE.mp4 too")
+    try:
+        # SIGTERM (a supervisor stopping the run) ends it as Ctrl-C does, so the partial video is removed.
+        with sigterm_as_interrupt():
+            return _run_and_report(args)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the frames done keep their files
+        return stopped(exc, _left_when_stopped(args, exc))
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command's arguments, in the order --help lists them: the inputs, how to detect, the outputs."""
     parser = argparse.ArgumentParser(
         prog="python -m pipeline.detect",
         description="Detect cars with a lowres3d model directory on KITTI-layout frames or a KITTI raw drive; "
@@ -600,6 +717,14 @@ def main(argv: list[str] | None = None) -> int:
                         "python -m pipeline.detect --image F.png --points F.bin --calib F.txt --out outputs/one"),
         formatter_class=HelpFormatter,
     )
+    _add_input_arguments(parser)
+    _add_detection_arguments(parser)
+    _add_output_arguments(parser)
+    return parser
+
+
+def _add_input_arguments(parser: argparse.ArgumentParser) -> None:
+    """The model directory and the frames: a folder, a raw drive (either with chosen frames) or one set of files."""
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, metavar="DIR",
                         help=f"model directory (default {DEFAULT_MODELS})")
     parser.add_argument("--data", type=Path, metavar="DIR",
@@ -616,6 +741,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--image", type=Path, metavar="F", help="camera image (PNG/JPEG), with --points and --calib")
     parser.add_argument("--points", type=Path, metavar="F", help="velodyne .bin scan")
     parser.add_argument("--calib", type=Path, metavar="F", help="KITTI calib .txt")
+
+
+def _add_detection_arguments(parser: argparse.ArgumentParser) -> None:
+    """How each frame is detected: the scan's thinning, the score threshold, the provider, the depth source."""
     parser.add_argument("--emulate-beams", type=int, metavar="N", choices=(0, *BEAM_COUNTS),
                         help=f"thin a 64-line scan to N lines first ({', '.join(map(str, BEAM_COUNTS))}; 0, the "
                         "default: the scans as stored, as a 16-line sensor's own; the flag of accuracy.py and "
@@ -630,6 +759,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mirror-tta", action="store_true",
                         help="also run PIXOR on the BEV mirrored left to right and average the maps: PIXOR's time "
                         "twice over for boxes more often right to IoU 0.7 (docs/models.md)")
+
+
+def _add_output_arguments(parser: argparse.ArgumentParser) -> None:
+    """What is written: the pictures, the video, the output folder, the progress bar."""
     parser.add_argument("--no-pictures", action="store_true", help="skip the BEV and camera-view PNGs")
     parser.add_argument("--video", type=Path, metavar="FILE.mp4",
                         help="also put the pictures (camera view above BEV), in frame order and captioned, into "
@@ -639,26 +772,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, required=True, metavar="DIR",
                         help="output folder (outside what the run reads; a new folder in --data will do)")
     add_no_progress(parser)
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(message)s")
-    if args.video_fps is not None and args.video is None:
-        parser.error("--video-fps sets the frame rate of --video: give --video FILE.mp4 too")
-    try:
-        # SIGTERM (a supervisor stopping the run) ends it as Ctrl-C does, so the partial video is removed.
-        with sigterm_as_interrupt():
-            return _run_and_report(args)
-    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the frames done keep their files
-        if args.video is None:
-            video = ""
-        elif getattr(exc, "video_written", False):
-            video = f"; the video {args.video} was written"
-        else:
-            video = f"; no video was written{' (the earlier one is kept)' if args.video.is_file() else ''}"
-        if getattr(exc, "frames_written", 0):
-            kept = f"the frames detected so far have their files in {args.out}"
-        else:  # stopped before any frame's result file was written: --out may not even exist yet
-            kept = f"no frame was detected yet, so this run wrote nothing in {args.out}"
-        return stopped(exc, f"{kept}{video}")
+
+
+def _left_when_stopped(args: argparse.Namespace, exc: KeyboardInterrupt) -> str:
+    """What a run stopped by Ctrl-C or SIGTERM leaves: the frames done (``exc.frames_written``) and the video
+    (``exc.video_written``), for :func:`pipeline.cli.stopped`'s line."""
+    if args.video is None:
+        video = ""
+    elif getattr(exc, "video_written", False):
+        video = f"; the video {args.video} was written"
+    else:
+        video = f"; no video was written{' (the earlier one is kept)' if args.video.is_file() else ''}"
+    if getattr(exc, "frames_written", 0):
+        kept = f"the frames detected so far have their files in {args.out}"
+    else:  # stopped before any frame's result file was written: --out may not even exist yet
+        kept = f"no frame was detected yet, so this run wrote nothing in {args.out}"
+    return f"{kept}{video}"
 
 
 def _run_and_report(args: argparse.Namespace) -> int:
