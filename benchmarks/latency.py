@@ -65,6 +65,8 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
@@ -364,6 +366,17 @@ class TorchSession:
         return [o.numpy() for o in outputs]
 
 
+@contextmanager
+def _checkpoints_refused() -> Iterator[None]:
+    """The exporter's word on --checkpoints that do not fit (another preset's, none in the folder) as the
+    command line's InputError: one line, exit 2, as ``python -m export`` says it."""
+    try:
+        yield
+    except (ValueError, FileNotFoundError) as exc:
+        message = str(exc)  # the exporter's own messages name the flag already
+        raise InputError(message if message.startswith("--checkpoints") else f"--checkpoints: {message}") from exc
+
+
 def torch_twin(detector: Detector, checkpoints: Path | None) -> tuple[dict, str]:
     """PyTorch eager networks of ``detector``'s model directory, and where their weights come from.
 
@@ -381,15 +394,11 @@ def torch_twin(detector: Detector, checkpoints: Path | None) -> tuple[dict, str]
         if source is not None:
             origin = "" if source is detector else f" of the FP32 directory it was converted from, {source.model_dir}"
             return onnx_twin(source, names), f"the ONNX files' own{origin}, read back (models/onnx_weights.py)"
-    with tempfile.TemporaryDirectory(prefix="lowres3d-torch-") as scratch:
-        try:
-            # The directory's own preset (its manifest's preset_config), handed over whole: a preset file's name is
-            # no registered preset's, and no file of it need be at hand.
-            networks = export(ExportConfig(preset=None, out=Path(scratch), parity=False, checkpoints=checkpoints,
-                                           networks=names), detector.preset).networks
-        except (ValueError, FileNotFoundError) as exc:  # the exporter's word on a checkpoint that does not fit
-            message = str(exc)  # the exporter's own messages name the flag already
-            raise InputError(message if message.startswith("--checkpoints") else f"--checkpoints: {message}") from exc
+    # The directory's own preset (its manifest's preset_config), handed over whole: a preset file's name is
+    # no registered preset's, and no file of it need be at hand.
+    with tempfile.TemporaryDirectory(prefix="lowres3d-torch-") as scratch, _checkpoints_refused():
+        networks = export(ExportConfig(preset=None, out=Path(scratch), parity=False, checkpoints=checkpoints,
+                                       networks=names), detector.preset).networks
     return networks, str(checkpoints) if checkpoints else "initialised (as the exporter initialises them)"
 
 
@@ -1068,7 +1077,9 @@ def _export_preset(preset: str | None, checkpoints: Path | None) -> _ModelsToTim
 
     scratch = tempfile.TemporaryDirectory(prefix="lowres3d-latency-")
     models = Path(scratch.name) / "fp32"  # a reduced precision is converted beside it, not inside it
-    result = export(ExportConfig(preset=preset or DEFAULT_PRESET, out=models, parity=False, checkpoints=checkpoints))
+    with _checkpoints_refused():
+        result = export(ExportConfig(preset=preset or DEFAULT_PRESET, out=models, parity=False,
+                                     checkpoints=checkpoints))
     return _ModelsToTime(models, f"exported ({checkpoints})" if checkpoints else "exported (initialised weights)",
                          scratch, torch_networks=result.networks,  # the exported modules: the same weights on both sides
                          torch_weights=str(checkpoints) if checkpoints else "initialised, the same as the ONNX files'")

@@ -124,7 +124,8 @@ LEFT_OUT = {
         "test_input_guards_mutants.py::test_a_pixor_that_learned_on_farther_pseudo_points_is_refused_under_a_nearer_range",
         "test_input_guards_mutants.py::test_a_state_from_before_the_frame_record_is_not_compared",
         "test_input_guards_mutants.py::test_a_run_with_its_own_validation_frames_resumes",
-        "test_s49_guards_mutants.py::test_export_folder_stays_one_numbered_component"),
+        "test_s49_guards_mutants.py::test_export_folder_stays_one_numbered_component",
+        "test_s51_fixes.py::test_latency_refuses_checkpoints_that_do_not_fit_in_one_line"),
     "the dev tools (mypy, hadolint, vermin, setuptools) and the lock": (
         "test_typing.py", "test_container.py", "test_packaging.py", "test_lock.py"),
     "the command family, torch's commands among them": ("test_commands.py", "test_docs_commands.py"),

@@ -73,3 +73,23 @@ def test_the_load_pictures_latency_axis_is_labelled_when_every_latency_lies_with
     shown = [(tick.get_loc(), tick.label1.get_text()) for tick in histogram.xaxis.get_major_ticks()
              if low <= tick.get_loc() <= high and tick.label1.get_text()]
     assert [text for _, text in shown] == ["200", "300"], shown
+
+
+def test_latency_refuses_checkpoints_that_do_not_fit_in_one_line(tmp_path: Path,
+                                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    """--checkpoints of another preset's run (or a folder without checkpoints) ended in a traceback of the
+    exporter's ValueError (FileNotFoundError) once main stopped reading every ValueError as the --preset flag's
+    fault; before that the first said "--preset", not the flag at fault. Both are one --checkpoints line now, exit
+    2, as python -m export says them."""
+    from benchmarks import latency
+    from models import build_pixor
+    from models.checkpoint import save_checkpoint
+    from pipeline.presets import get_preset
+
+    tiny = get_preset("tiny")
+    save_checkpoint(tmp_path / "tiny_run" / "pixor.pt", tiny, {"pixor": build_pixor(tiny)}, {"epochs": 1})
+    (tmp_path / "empty_run").mkdir()
+    for run, says in (("tiny_run", "trained with preset 'tiny'"), ("empty_run", "")):
+        assert latency.main(["--checkpoints", str(tmp_path / run), "--frames", "1", "--warmup", "1"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("error: --checkpoints") and err.count("\n") == 1 and says in err, err
