@@ -333,13 +333,88 @@ def uvicorn_config(settings: Settings, app: FastAPI) -> uvicorn.Config:
 def main(argv: list[str] | None = None) -> int:
     """Parse options, bind the address, load and check the models, serve until SIGTERM/SIGINT; the exit status."""
     note_signals()  # (again: for a caller other than python -m service)
-    import uvicorn
-
+    # Every module the service runs is imported here, before the settings: before logging is configured (it
+    # captures warnings) and before the model loading's signal handlers (a stop during the imports is noted).
     from service.app import create_app
     from service.memory import limit_malloc_arenas
     from service.metrics import Metrics
-    from service.middleware import install_log_filters
     from service.runtime import load_runtime
+
+    try:
+        settings = settings_from_args(argv)
+    except ValidationError as exc:  # the options again (a usage error would have exited above): the log format
+        return refuse_settings(exc, requested_log_format(vars(build_parser().parse_args(argv)), os.environ))
+    _start_logging(settings)
+    try:
+        sockets = bind_listeners(settings.host, settings.port)
+    except AddressError as exc:
+        log.error("cannot start: %s", exc)
+        return 2
+    _warn_if_exposed(sockets, settings.token is not None)
+    limit_malloc_arenas()  # before the worker threads exist (service/memory.py: the memory of a long run)
+    metrics = Metrics()
+    try:
+        with stop_on_signals_until_serving():
+            runtime = load_runtime(settings, metrics)
+            server = _server(uvicorn_config(settings, create_app(settings, runtime=runtime, metrics=metrics)))
+    except (ModelFileError, InputError) as exc:
+        _close_all(sockets)
+        return _refuse_models(exc, settings.models)
+    except StoppedBeforeServing as stopped:
+        _close_all(sockets)
+        return _start_stopped(stopped, settings.log_format)
+    server.run(sockets=sockets)  # uvicorn's own signal handlers from here on
+    return _exit_status(server, settings.log_format)
+
+
+def _start_logging(settings: Settings) -> None:
+    """The log as the settings ask, the service's filters on the libraries' loggers, then a warning for each
+    ``LOWRES3D_*`` variable that is no setting."""
+    from service.middleware import install_log_filters  # imported already (service.app imports it)
+
+    configure_logging(settings.log_level, settings.log_format)
+    install_log_filters()  # no traceback for a cancelled request; what clients cause at will at DEBUG
+    for line in unknown_env_warnings(os.environ):
+        log.warning(line)
+
+
+def _warn_if_exposed(sockets: list[socket.socket], token_set: bool) -> None:
+    """A warning when the bound sockets reach other machines and no token guards ``/v1/*``
+    (:func:`exposure_warning`)."""
+    if warning := exposure_warning([sock.getsockname()[0] for sock in sockets], sockets[0].getsockname()[1],
+                                   token_set):
+        log.warning(warning)
+
+
+def _close_all(sockets: list[socket.socket]) -> None:
+    """Close the bound sockets of a start that stops before serving."""
+    for sock in sockets:
+        sock.close()
+
+
+def _refuse_models(exc: ModelFileError | InputError, models: Path) -> int:
+    """Say why the model directory cannot be served, one line, and return exit status 2."""
+    hint = default_models_hint(models)
+    if hint and str(models) in str(exc):  # the default's absence itself: one line with the way out
+        log.error("cannot start: %s (or LOWRES3D_MODELS)", hint)
+    else:
+        log.error("cannot start: %s", exc)
+    return 2
+
+
+def _start_stopped(stopped: StoppedBeforeServing, log_format: str) -> int:
+    """Say that a SIGTERM or SIGINT stopped the start; the exit status (:func:`stopped_before_serving`)."""
+    said = f"{stopped} before serving: stopped while {stopped.during}; not started"
+    if stopped.signum == signal.SIGINT:  # Ctrl-C: one line and 130, as every command of the project
+        return interrupted_line(said, log_format)
+    log.info("%s", said)
+    return stopped_before_serving(stopped.signum)
+
+
+def _server(config: uvicorn.Config) -> uvicorn.Server:
+    """uvicorn's server for ``config``: it serves on the sockets main() bound, and acts on a signal noted
+    before it took the signals over."""
+    import uvicorn
 
     class Server(uvicorn.Server):
         """uvicorn's server on the sockets bound here; it logs where it listens, as uvicorn does for a host and
@@ -362,52 +437,18 @@ def main(argv: list[str] | None = None) -> int:
                 self.handle_exit(_pending_signals.pop(0), None)
             return await super().on_tick(counter)
 
-    try:
-        settings = settings_from_args(argv)
-    except ValidationError as exc:  # the options again (a usage error would have exited above): the log format
-        return refuse_settings(exc, requested_log_format(vars(build_parser().parse_args(argv)), os.environ))
-    configure_logging(settings.log_level, settings.log_format)
-    install_log_filters()  # no traceback for a cancelled request; what clients cause at will at DEBUG
-    for line in unknown_env_warnings(os.environ):
-        log.warning(line)
-    try:
-        sockets = bind_listeners(settings.host, settings.port)
-    except AddressError as exc:
-        log.error("cannot start: %s", exc)
-        return 2
-    if warning := exposure_warning([sock.getsockname()[0] for sock in sockets], sockets[0].getsockname()[1],
-                                   settings.token is not None):
-        log.warning(warning)
-    limit_malloc_arenas()  # before the worker threads exist (service/memory.py: the memory of a long run)
-    metrics = Metrics()
-    try:
-        with stop_on_signals_until_serving():
-            runtime = load_runtime(settings, metrics)
-            server = Server(uvicorn_config(settings, create_app(settings, runtime=runtime, metrics=metrics)))
-    except (ModelFileError, InputError) as exc:
-        for sock in sockets:
-            sock.close()
-        hint = default_models_hint(settings.models)
-        if hint and str(settings.models) in str(exc):  # the default's absence itself: one line with the way out
-            log.error("cannot start: %s (or LOWRES3D_MODELS)", hint)
-        else:
-            log.error("cannot start: %s", exc)
-        return 2
-    except StoppedBeforeServing as stopped:
-        for sock in sockets:
-            sock.close()
-        said = f"{stopped} before serving: stopped while {stopped.during}; not started"
-        if stopped.signum == signal.SIGINT:  # Ctrl-C: one line and 130, as every command of the project
-            return interrupted_line(said, settings.log_format)
-        log.info("%s", said)
-        return stopped_before_serving(stopped.signum)
-    server.run(sockets=sockets)  # uvicorn's own signal handlers from here on
+    return Server(config)
+
+
+def _exit_status(server: uvicorn.Server, log_format: str) -> int:
+    """The exit status once uvicorn has stopped: Ctrl-C's line and 130, the end by the signal that stopped it,
+    else 0, or 3 when it never started."""
     # uvicorn re-raises the signal that stopped it once its handlers are gone: noted here, ended on here.
     if _pending_signals:
         signum = _pending_signals[0]
         if signum == signal.SIGINT:  # Ctrl-C: one line and 130, as every command of the project
             return interrupted_line("the service has stopped; the requests in flight were let finish first "
-                                    "(up to --shutdown-timeout-s)", settings.log_format)
+                                    "(up to --shutdown-timeout-s)", log_format)
         return ended_by_signal(signum)
     return 0 if server.started else 3
 

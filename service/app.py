@@ -10,12 +10,14 @@ Detectors release their sessions and stage threads.
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
-from collections.abc import AsyncIterator, Iterable
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Callable, Iterable
+from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from typing import Any
 
-from fastapi import Depends, FastAPI
+from fastapi import APIRouter, Depends, FastAPI
+from starlette.routing import BaseRoute
 
 from service.deps import bearer_scheme, require_token
 from service.errors import install_error_handlers
@@ -63,6 +65,28 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     uvicorn starts, so a bad model directory fails fast); None loads them in the lifespan."""
     metrics = metrics or Metrics()
     in_flight = RequestsInFlight()
+    app = FastAPI(
+        title="lowres3d detection service",
+        version="0.1.0",
+        description=DESCRIPTION,
+        lifespan=_lifespan(settings, runtime, metrics, in_flight),
+        generate_unique_id_function=operation_id,
+    )
+    app.state.settings = settings
+    app.state.metrics = metrics
+    app.state.runtime = None
+    install_error_handlers(app)
+    _include_routes(app, settings)
+    _add_middleware(app, settings, metrics, in_flight)
+    install_schema(app, bearer_scheme(), functools.partial(_camera_model, app))
+    return app
+
+
+def _lifespan(settings: Settings, runtime: Runtime | None, metrics: Metrics,
+              in_flight: RequestsInFlight) -> Callable[[FastAPI], AbstractAsyncContextManager[None]]:
+    """The app's lifespan: at start-up the models (``runtime``, or loaded now), then their warm-up in the
+    background; at shutdown the warm-up stopped, the pool drained, the cut-off requests' answers let out, and
+    the models closed last."""
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -84,33 +108,35 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
             # Last, once nothing answers from the models any more (/v1/model reads their sessions' providers).
             await asyncio.to_thread(loaded.close)
 
-    app = FastAPI(
-        title="lowres3d detection service",
-        version="0.1.0",
-        description=DESCRIPTION,
-        lifespan=lifespan,
-        generate_unique_id_function=operation_id,
-    )
-    app.state.settings = settings
-    app.state.metrics = metrics
-    app.state.runtime = None
-    install_error_handlers(app)
+    return lifespan
+
+
+_PROTECTED_ROUTERS = (detect.router, model.router)  # /v1/*: behind the token, when one is set
+_OPEN_ROUTERS = (health.router, metrics_route.router)  # the probes and /metrics
+
+
+def _include_routes(app: FastAPI, settings: Settings) -> None:
+    """The service's routes (the protected ones with the token's dependency when a token is set), and each
+    route path's methods in ``app.state.route_methods``."""
     # /v1/* needs the bearer token when one is configured (and only then does the schema declare it):
     # AuthMiddleware checks it before the body is read, the dependency declares it in the schema (and checks
     # again); probes and metrics stay open for orchestrators and scrapers.
     auth = [Depends(require_token)] if settings.token is not None else []
-    protected, open_to_all = (detect.router, model.router), (health.router, metrics_route.router)
-    for router in protected:
+    for router in _PROTECTED_ROUTERS:
         app.include_router(router, dependencies=auth)
-    for router in open_to_all:
+    for router in _OPEN_ROUTERS:
         app.include_router(router)
+    app.state.route_methods = route_methods(_routes_of(*_PROTECTED_ROUTERS, *_OPEN_ROUTERS)
+                                            + list(app.routes))
+
+
+def _add_middleware(app: FastAPI, settings: Settings, metrics: Metrics, in_flight: RequestsInFlight) -> None:
+    """The middleware stack, added innermost first (Starlette wraps in reverse: added last, outermost)."""
     # Every route is a fixed path: the metrics label requests answered before routing (413s) by it, and
     # those to FastAPI's own routes (/openapi.json, /docs, /redoc), which do not name their route in the scope.
-    route_paths = frozenset(paths_of([route for router in (*protected, *open_to_all) for route in router.routes])
+    route_paths = frozenset(paths_of(_routes_of(*_PROTECTED_ROUTERS, *_OPEN_ROUTERS))
                             + paths_of(app.routes))  # FastAPI's own
-    open_paths = frozenset(paths_of([route for router in open_to_all for route in router.routes]))
-    app.state.route_methods = route_methods([route for router in (*protected, *open_to_all) for route in router.routes]
-                                            + list(app.routes))
+    open_paths = frozenset(paths_of(_routes_of(*_OPEN_ROUTERS)))
     detect_paths = frozenset(paths_of(detect.router.routes))
     # Added last = outermost. The request context wraps everything (but CORS, when configured: a 500 must carry
     # its headers too, or a browser's script cannot read it), so that every answer is counted and carries an id;
@@ -131,13 +157,16 @@ def create_app(settings: Settings, runtime: Runtime | None = None, metrics: Metr
     if settings.cors_origins:  # off by default: only a dashboard in a browser on another origin needs it
         app.add_middleware(CORSMiddleware, origins=settings.cors_origin_list())
 
-    def camera_model() -> bool:
-        """Whether the model needs the image; True before it loads (the shipped models are camera models)."""
-        loaded: Runtime | None = app.state.runtime
-        return loaded is None or loaded.detector.two_stage
 
-    install_schema(app, bearer_scheme(), camera_model)
-    return app
+def _routes_of(*routers: APIRouter) -> list[BaseRoute]:
+    """The routes of ``routers``, in order."""
+    return [route for router in routers for route in router.routes]
+
+
+def _camera_model(app: FastAPI) -> bool:
+    """Whether the model needs the image; True before it loads (the shipped models are camera models)."""
+    loaded: Runtime | None = app.state.runtime
+    return loaded is None or loaded.detector.two_stage
 
 
 def served_model_id(app: FastAPI) -> str | None:

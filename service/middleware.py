@@ -45,7 +45,7 @@ import logging
 import re
 import time
 from collections.abc import Awaitable, Callable, MutableMapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 from pydantic import SecretStr
@@ -309,6 +309,64 @@ class RequestsInFlight:
         return not self.count
 
 
+@dataclass
+class _Exchange:
+    """One request as :class:`RequestContextMiddleware` sees it: its id and method label, and what its answer
+    has been so far, noted by the ``receive`` and ``send`` the app is handed (:meth:`watched`,
+    :meth:`stamped`)."""
+
+    request_id: str
+    method: str  # method_label's: one of HTTP's, or "other"
+    status: int = 500
+    started: bool = False  # the answer's start went to the server: no other answer can replace it
+    client_gone: bool = False  # the server said the client disconnected before the answer began
+    code: str | None = None  # an error answer's code, for the log line
+    # The answer's, for the access line (X-Model-ID, X-Warning-Codes).
+    headers: dict[bytes, bytes] = field(default_factory=dict)
+
+    def watched(self, receive: Receive) -> Receive:
+        """``receive``, noting a disconnect that comes before the answer began (the client left)."""
+        async def receive_watched() -> Message:
+            message = await receive()
+            if message["type"] == "http.disconnect" and not self.started:
+                self.client_gone = True
+            return message
+
+        return receive_watched
+
+    def stamped(self, send: Send) -> Send:
+        """``send``, noting the answer's status, headers and error code; its start carries X-Request-ID."""
+        async def send_with_id(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                self._note_start(message)
+            elif self.status >= 400 and self.code is None and len(message.get("body", b"")) <= _ERROR_CODE_BYTES:
+                self._note_code(message)
+            await send(message)
+
+        return send_with_id
+
+    def _note_start(self, message: Message) -> None:
+        """The answer begins: its status and the headers the access line reads noted, X-Request-ID added."""
+        self.status = message["status"]
+        self.started = True
+        self.headers.update((bytes(key).lower(), bytes(value)) for key, value in message.get("headers", [])
+                            if bytes(key).lower() in (b"x-model-id", b"x-warning-codes"))
+        message["headers"] = [*message.get("headers", []), (b"x-request-id", self.request_id.encode())]
+
+    def _note_code(self, message: Message) -> None:
+        """An error answer's code, read from its body (when it is the service's JSON error)."""
+        with contextlib.suppress(ValueError, TypeError, AttributeError, KeyError):
+            self.code = str(json.loads(message.get("body", b""))["error"]["code"])
+
+    def settle(self, scope: Scope) -> None:
+        """The status and code as the client saw them, once the request has ended."""
+        if self.client_gone and (scope.get("state") or {}).get(MALFORMED_BODY):
+            # The protocol answered the body h11 could not read (service/protocol.py), then closed.
+            self.status, self.code, self.client_gone = 400, "bad_request", False
+        elif self.client_gone:  # whatever the app answered went nowhere
+            self.status, self.code = CLIENT_CLOSED, None
+
+
 class RequestContextMiddleware:
     """Request id, request metrics, one access line per request, a JSON 500 (trace logged, never returned) for
     unhandled errors, a JSON 503 for requests cancelled by the server's shutdown, and 499 in the metrics and
@@ -328,91 +386,83 @@ class RequestContextMiddleware:
         self.quiet_paths = quiet_paths
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """The request's phases: its id, the app with its answer watched, the answer of an unhandled error
+        or of a shutdown's cut-off, then (however it ended) its metrics and its access line."""
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         request_id = request_id_for(_header(scope, b"x-request-id"))
         scope.setdefault("state", {})["request_id"] = request_id
-        method = method_label(scope)
-        status = 500
-        started = False
-        client_gone = False  # the server said the client disconnected before the answer began
-        code: str | None = None  # an error answer's code, for the log line
-        answer_headers: dict[bytes, bytes] = {}  # the answer's, for the access line (X-Model-ID, X-Warning-Codes)
+        exchange = _Exchange(request_id, method_label(scope))
         context = REQUEST_ID.set(request_id)  # lines logged during this request on the loop name it
-
-        async def receive_watched() -> Message:
-            nonlocal client_gone
-            message = await receive()
-            if message["type"] == "http.disconnect" and not started:
-                client_gone = True
-            return message
-
-        async def send_with_id(message: Message) -> None:
-            nonlocal status, started, code
-            if message["type"] == "http.response.start":
-                status = message["status"]
-                started = True
-                answer_headers.update((bytes(key).lower(), bytes(value)) for key, value in message.get("headers", [])
-                                      if bytes(key).lower() in (b"x-model-id", b"x-warning-codes"))
-                message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
-            elif status >= 400 and code is None and len(message.get("body", b"")) <= _ERROR_CODE_BYTES:
-                with contextlib.suppress(ValueError, TypeError, AttributeError, KeyError):
-                    code = str(json.loads(message.get("body", b""))["error"]["code"])
-            await send(message)
-
         self.metrics.http_in_flight.inc()
         self.in_flight.count += 1
         tic = time.perf_counter()
         try:
-            await self.app(scope, receive_watched, send_with_id)
+            await self.app(scope, exchange.watched(receive), exchange.stamped(send))
         except asyncio.CancelledError:
-            # uvicorn cancels the requests still running when --shutdown-timeout-s runs out (and answers a plain
-            # 500 itself): answer in the service's format while the connection is still open, then let the
-            # cancellation go on. A frame already on a worker is stopped there; one still queued never runs.
-            route = _route_label(scope, self.route_paths)
-            if not started:
-                status, code = 503, "shutting_down"
-                log.warning("request %s (%s %s) cut off by the shutdown: answered 503 shutting_down",
-                            request_id, method, route)
-                # Best effort: the client may be gone, and nothing may replace the cancellation below.
-                with contextlib.suppress(Exception):
-                    await send_error(
-                        send, 503, "shutting_down",
-                        "the service shut down before this request finished; send it again (to another replica)",
-                        request_id, [(b"x-request-id", request_id.encode()), (b"retry-after", b"1"),
-                                     (b"connection", b"close")],
-                    )
-            else:  # the answer had begun: the client sees the connection close before the end of the body
-                log.warning("request %s (%s %s) cut off by the shutdown during its answer", request_id, method, route)
+            await self._answer_cut_off(scope, send, exchange)
             raise
         except Exception:
-            log.exception("internal error on %s %s (request id %s)", method, _route_label(scope, self.route_paths),
-                          request_id)
-            status, code = 500, "internal_error"
-            if not started:
-                await send_error(
-                    send, 500, "internal_error",
-                    f"internal error; the server log has the details under request id {request_id}", request_id,
-                    [(b"x-request-id", request_id.encode())],
-                )
+            log.exception("internal error on %s %s (request id %s)", exchange.method,
+                          _route_label(scope, self.route_paths), request_id)
+            await self._answer_internal_error(send, exchange)
         finally:
-            self.metrics.http_in_flight.dec()
-            self.in_flight.count -= 1
-            elapsed_s = time.perf_counter() - tic
-            label = _route_label(scope, self.route_paths)
-            if client_gone and (scope.get("state") or {}).get(MALFORMED_BODY):
-                # The protocol answered the body h11 could not read (service/protocol.py), then closed.
-                status, code, client_gone = 400, "bad_request", False
-            elif client_gone:  # whatever the app answered went nowhere
-                status, code = CLIENT_CLOSED, None
-            self.metrics.requests.labels(route=label, method=method, status=str(status)).inc()
-            self.metrics.request_latency.labels(route=label).observe(elapsed_s)
-            level = access_level(status, scope.get("path") in self.quiet_paths)
-            if access_log.isEnabledFor(level):
-                self._log_access(level, scope, request_id, method, label, status, code, client_gone, elapsed_s,
-                                 answer_headers)
+            self._count_and_log(scope, exchange, tic)
             REQUEST_ID.reset(context)
+
+    async def _answer_cut_off(self, scope: Scope, send: Send, exchange: _Exchange) -> None:
+        """A request cancelled by the server's shutdown: answered 503 ``shutting_down`` unless its answer had
+        begun; the caller lets the cancellation go on.
+
+        uvicorn cancels the requests still running when --shutdown-timeout-s runs out (and answers a plain 500
+        itself): answer in the service's format while the connection is still open, then let the cancellation
+        go on. A frame already on a worker is stopped there; one still queued never runs."""
+        request_id, method = exchange.request_id, exchange.method
+        route = _route_label(scope, self.route_paths)
+        if exchange.started:  # the client sees the connection close before the end of the body
+            log.warning("request %s (%s %s) cut off by the shutdown during its answer", request_id, method,
+                        route)
+            return
+        exchange.status, exchange.code = 503, "shutting_down"
+        log.warning("request %s (%s %s) cut off by the shutdown: answered 503 shutting_down",
+                    request_id, method, route)
+        # Best effort: the client may be gone, and nothing may replace the cancellation (the caller's raise).
+        with contextlib.suppress(Exception):
+            await send_error(
+                send, 503, "shutting_down",
+                "the service shut down before this request finished; send it again (to another replica)",
+                request_id, [(b"x-request-id", request_id.encode()), (b"retry-after", b"1"),
+                             (b"connection", b"close")],
+            )
+
+    async def _answer_internal_error(self, send: Send, exchange: _Exchange) -> None:
+        """An unhandled exception (its trace logged under the request id): a JSON 500 carrying only that id,
+        when the answer has not begun."""
+        request_id = exchange.request_id
+        exchange.status, exchange.code = 500, "internal_error"
+        if not exchange.started:
+            await send_error(
+                send, 500, "internal_error",
+                f"internal error; the server log has the details under request id {request_id}", request_id,
+                [(b"x-request-id", request_id.encode())],
+            )
+
+    def _count_and_log(self, scope: Scope, exchange: _Exchange, tic: float) -> None:
+        """The request has ended (``tic``: when it began): out of the in-flight counts, then counted, timed
+        and logged with the status its client saw."""
+        self.metrics.http_in_flight.dec()
+        self.in_flight.count -= 1
+        elapsed_s = time.perf_counter() - tic
+        label = _route_label(scope, self.route_paths)
+        exchange.settle(scope)
+        status = exchange.status
+        self.metrics.requests.labels(route=label, method=exchange.method, status=str(status)).inc()
+        self.metrics.request_latency.labels(route=label).observe(elapsed_s)
+        level = access_level(status, scope.get("path") in self.quiet_paths)
+        if access_log.isEnabledFor(level):
+            self._log_access(level, scope, exchange.request_id, exchange.method, label, status, exchange.code,
+                             exchange.client_gone, elapsed_s, exchange.headers)
 
     def _log_access(self, level: int, scope: Scope, request_id: str, method: str, route: str, status: int,
                     code: str | None, client_gone: bool, elapsed_s: float, headers: dict[bytes, bytes]) -> None:
@@ -501,75 +551,118 @@ class BodyLimitMiddleware:
                                         "(--receive-timeout-s); the connection is closed")
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        """The body's phases: its declared length checked, then the app run on a body counted and timed as it
+        arrives (:class:`_BodyWatch`), its answer replaced by the 413 or 408 when the body was refused."""
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
         request_id = (scope.get("state") or {}).get("request_id")
         connection_close = [(b"connection", b"close")]
-        declared = _header(scope, b"content-length")
-        if declared is not None and declared.strip().isdigit() and int(declared) > self.max_bytes:
+        if self._declared_too_large(scope):
             await send_error(send, 413, *self._too_large()[1:], request_id, connection_close)
             return
-
-        received = 0
-        body_done = False
-        refusal: tuple[int, str, str] | None = None  # the 413 or 408 that replaces the app's answer
-        app_started = False
-        deadline = time.monotonic() + self.receive_timeout_s
-        # python-multipart (and so Starlette) silently drops a part that the body ends in the middle of
-        # (its finalize() does not check for the close delimiter): a cut-off upload would lose its last
-        # part, and with --default-calib a lost calib would silently become the server's. Look for the close
-        # delimiter (CRLF--BOUNDARY--) in the whole stream: a boundary never occurs inside a part, so its first
-        # occurrence is the end, and anything after it (an epilogue, RFC 2046) is harmless.
-        close = _multipart_close(scope)
-        needle = b"\r\n" + close if close is not None else b""
-        carry = b"\r\n"  # as if a CRLF came before the body: a close delimiter at its very start counts too
-        closed = False
-
-        async def counting_receive() -> Message:
-            nonlocal received, body_done, refusal, carry, closed
-            if refusal is not None:
-                return {"type": "http.disconnect"}
-            if body_done:  # after the body only the end of the connection can come: no deadline
-                return await receive()
-            try:
-                message = await asyncio.wait_for(receive(), max(0.0, deadline - time.monotonic()))
-            # Both names: asyncio.TimeoutError is no builtin TimeoutError on Python 3.10 (the Jetson image).
-            except (TimeoutError, asyncio.TimeoutError):
-                refusal = self._too_slow()  # the app sees a client disconnect and stops reading
-                return {"type": "http.disconnect"}
-            if message["type"] == "http.request":
-                chunk = message.get("body", b"")
-                received += len(chunk)
-                if received > self.max_bytes:
-                    refusal = self._too_large()
-                    return {"type": "http.disconnect"}
-                if close is not None and not closed:
-                    window = carry + chunk
-                    closed = needle in window
-                    carry = window[-(len(needle) - 1):]
-                if not message.get("more_body", False):
-                    body_done = True
-                    if close is not None:
-                        ending = "empty" if received == 0 else "whole" if closed else "cut_off"
-                        scope.setdefault("state", {})["multipart_body"] = ending
-            return message
-
-        async def guarded_send(message: Message) -> None:
-            nonlocal app_started
-            if refusal is not None and not app_started:
-                return  # the app's answer to the "disconnect" is replaced by the 413 or 408 below
-            if message["type"] == "http.response.start":
-                app_started = True
-            await send(message)
-
+        body = _BodyWatch(self, scope, receive, send)
         try:
-            await self.app(scope, counting_receive, guarded_send)
+            await self.app(scope, body.receive, body.send)
         except Exception:
-            if refusal is None or app_started:
+            if body.refusal is None or body.app_started:
                 raise
-        if refusal is not None and not app_started:
-            await send_error(send, refusal[0], *refusal[1:], request_id, connection_close)
+        if body.refusal is not None and not body.app_started:
+            await send_error(send, body.refusal[0], *body.refusal[1:], request_id, connection_close)
+
+    def _declared_too_large(self, scope: Scope) -> bool:
+        """Whether the request's Content-Length is over the limit (refused before its body is read)."""
+        declared = _header(scope, b"content-length")
+        return declared is not None and declared.strip().isdigit() and int(declared) > self.max_bytes
+
+
+class _MultipartEnd:
+    """Whether a multipart/form-data body ends with its close delimiter, sought in its chunks as they pass.
+
+    python-multipart (and so Starlette) silently drops a part that the body ends in the middle of
+    (its finalize() does not check for the close delimiter): a cut-off upload would lose its last
+    part, and with --default-calib a lost calib would silently become the server's. Look for the close
+    delimiter (CRLF--BOUNDARY--) in the whole stream: a boundary never occurs inside a part, so its first
+    occurrence is the end, and anything after it (an epilogue, RFC 2046) is harmless."""
+
+    def __init__(self, close: bytes) -> None:
+        self.needle = b"\r\n" + close
+        # As if a CRLF came before the body: a close delimiter at its very start counts too.
+        self.carry = b"\r\n"
+        self.closed = False
+
+    def feed(self, chunk: bytes) -> None:
+        """Look at the body's next chunk (after the end of the one before, where the delimiter may begin)."""
+        if self.closed:
+            return
+        window = self.carry + chunk
+        self.closed = self.needle in window
+        self.carry = window[-(len(self.needle) - 1):]
+
+    def ending(self, received: int) -> str:
+        """How the body of ``received`` bytes ended, for ``scope["state"]["multipart_body"]``."""
+        return "empty" if received == 0 else "whole" if self.closed else "cut_off"
+
+
+class _BodyWatch:
+    """One request's body as :class:`BodyLimitMiddleware` lets the app read it: counted against the limit, on
+    a deadline, a multipart body's ending noted; and the app's answer, held back once the body is refused.
+
+    :meth:`receive` and :meth:`send` are what the app is handed in place of the server's."""
+
+    def __init__(self, limits: BodyLimitMiddleware, scope: Scope, receive: Receive, send: Send) -> None:
+        self.limits = limits
+        self.scope = scope
+        self.server_receive = receive
+        self.server_send = send
+        self.received = 0
+        self.body_done = False
+        self.refusal: tuple[int, str, str] | None = None  # the 413 or 408 that replaces the app's answer
+        self.app_started = False
+        self.deadline = time.monotonic() + limits.receive_timeout_s
+        close = _multipart_close(scope)
+        self.multipart = _MultipartEnd(close) if close is not None else None
+
+    async def receive(self) -> Message:
+        """The server's next message, or a disconnect once the body is refused (too slow, or too large)."""
+        if self.refusal is not None:
+            return {"type": "http.disconnect"}
+        if self.body_done:  # after the body only the end of the connection can come: no deadline
+            return await self.server_receive()
+        try:
+            message = await asyncio.wait_for(self.server_receive(),
+                                             max(0.0, self.deadline - time.monotonic()))
+        # Both names: asyncio.TimeoutError is no builtin TimeoutError on Python 3.10 (the Jetson image).
+        except (TimeoutError, asyncio.TimeoutError):
+            self.refusal = self.limits._too_slow()  # the app sees a client disconnect and stops reading
+            return {"type": "http.disconnect"}
+        if message["type"] == "http.request":
+            return self._counted(message)
+        return message
+
+    def _counted(self, message: Message) -> Message:
+        """A part of the body, counted (a disconnect in its place once past the limit); at its end, a
+        multipart body's ending noted in the scope's state."""
+        chunk = message.get("body", b"")
+        self.received += len(chunk)
+        if self.received > self.limits.max_bytes:
+            self.refusal = self.limits._too_large()
+            return {"type": "http.disconnect"}
+        if self.multipart is not None:
+            self.multipart.feed(chunk)
+        if not message.get("more_body", False):
+            self.body_done = True
+            if self.multipart is not None:
+                self.scope.setdefault("state", {})["multipart_body"] = self.multipart.ending(self.received)
+        return message
+
+    async def send(self, message: Message) -> None:
+        """The app's message to the server; none once the body is refused before the app's answer began."""
+        if self.refusal is not None and not self.app_started:
+            return  # the app's answer to the "disconnect" is replaced by the 413 or 408 (BodyLimitMiddleware)
+        if message["type"] == "http.response.start":
+            self.app_started = True
+        await self.server_send(message)
 
 
 class AdmissionMiddleware:
