@@ -1,15 +1,18 @@
 """How good the camera pipeline could be at a given resolution of the depth net's correction.
 
     python benchmarks/depth_bound.py --data data/sim/val --models weights/edge --factor 2 --out DIR
-    python benchmarks/accuracy.py --data data/sim/val --models weights/edge --input lidar16+camera \
+    python benchmarks/accuracy.py --data data/sim/val --models weights/edge --input lidar16+camera \\
         --depth-dir DIR/depth_2 --out RESULTS
 
 With PIXOR adapted to the bound (session 21): ``--cache`` writes the maps in the
 network's view, the layout ``python -m models.cache_pseudo`` writes, for the
-training and the validation frames, and ``python -m models.train detector
---input pseudo --pseudo-dir TRAIN_CACHE --val-pseudo-dir VAL_CACHE
---pixor-checkpoint weights/edge/pixor.onnx --freeze-bn --epochs 1 --lr 2e-5``
-fine-tunes the camera PIXOR on them (docs/measurements.md, session 21).
+training and the validation frames (TRAIN_CACHE and VAL_CACHE below), and this
+fine-tunes the camera PIXOR on them (docs/measurements.md, session 21; the
+shipped model's preset is edge-split-near35):
+
+    python -m models.train detector --input pseudo --preset edge-split-near35 \\
+        --data data/sim/train --val-data data/sim/val --pseudo-dir TRAIN_CACHE --val-pseudo-dir VAL_CACHE \\
+        --pixor-checkpoint weights/edge/pixor.onnx --freeze-bn --epochs 1 --lr 2e-5 --out RUN
 
 The edge depth net fills the 16-line scan inside its graph and predicts a
 correction to that filled map (docs/models.md). For each frame this writes the

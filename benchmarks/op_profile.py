@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
 
     from benchmarks.latency import BUNDLED, load_frames
-    from pipeline.beams import BEAM_COUNTS, emulate_beams
+    from pipeline.beams import BEAM_COUNTS, emulate_beams, lines_to_thin_to
     from pipeline.cli import HelpFormatter, examples, positive_int
     from pipeline.detector import Detector
     from pipeline.errors import InputError
@@ -204,9 +204,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--provider", choices=["cpu"], default="cpu",
                         help="execution provider: the CPU only (on CUDA ONNX Runtime's profiler times the kernels' "
                         f"launches, not the GPU's work, and TensorRT runs an engine of its own; {GPU_PROFILER_HINT})")
-    parser.add_argument("--emulate-beams", "--beams", dest="beams", type=int, default=16, choices=(0, *BEAM_COUNTS),
-                        metavar="N", help="thin the scan to N lines first (16, the default; 0: keep), as "
-                        "benchmarks/latency.py")  # --beams: its old spelling, kept for scripts (a hidden alias)
+    parser.add_argument("--emulate-beams", "--beams", dest="beams", type=int, choices=(0, *BEAM_COUNTS),
+                        metavar="N", help="thin the scan to N lines first, 0 to keep it as stored (default: the "
+                        "model's own line count, as benchmarks/latency.py: a 64-line model's scan as stored, 16 "
+                        "for the others)")  # --beams: its old spelling, kept for scripts (a hidden alias)
     parser.add_argument("--threads", type=positive_int, default=2, metavar="N",
                         help="ONNX Runtime's intra-op threads (default 2; latency.py's --threads are workers)")
     parser.add_argument("--runs", type=positive_int, default=20, metavar="N",
@@ -216,6 +217,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         detector = Detector(args.models, providers=args.provider, intra_op_threads=args.threads)
+        if args.beams is None:  # the model's own, as latency.py: a 64-line model's frames were not thinned
+            args.beams = lines_to_thin_to(detector.trained_lines)
         if args.frame is None:
             frame = load_frames(args.data, 1, args.beams or None)[0]
         else:

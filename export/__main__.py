@@ -46,8 +46,8 @@ def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Na
         prog="python -m export",
         description="Export a preset's depth-completion net and PIXOR to ONNX, check ONNX Runtime against "
         "PyTorch on a real KITTI frame and random inputs, and write manifest.json.",
-        epilog=examples("python -m export --preset edge-split-near35 --checkpoints runs/edge/camera --out weights/own",
-                        "python -m export --preset edge --checkpoints runs/edge/camera --precision int8 "
+        epilog=examples("python -m export --preset edge-split-near35 --checkpoints runs/edge/joint --out weights/own",
+                        "python -m export --checkpoints runs/edge/joint --precision int8 "
                         "--calibration-data data/sim/val --out weights/own-int8"),
         formatter_class=HelpFormatter,
     )

@@ -18,6 +18,7 @@ import os
 import re
 import signal
 import sys
+import textwrap
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -283,6 +284,18 @@ def quiet_interrupt(leaves: str) -> Callable[[Main], Main]:
     return decorate
 
 
+# Lines of --help are broken at spaces only: argparse's textwrap also breaks after a hyphen, which cut flags and
+# paths in two ("--pixor-" at a line's end, "checkpoint" on the next), and a copied command then failed.
+_WHOLE_WORDS = textwrap.TextWrapper(break_on_hyphens=False, break_long_words=False)
+
+
+def _wrapped(text: str, width: int, indent: str = "") -> str:
+    """``text``'s words in lines of at most ``width`` (a longer word alone on its line), each after ``indent``."""
+    wrapper = copy.copy(_WHOLE_WORDS)
+    wrapper.width, wrapper.initial_indent, wrapper.subsequent_indent = max(width, 1), indent, indent
+    return wrapper.fill(" ".join(text.split()))
+
+
 class HelpFormatter(argparse.HelpFormatter):
     """Every command's --help. The description and the epilog: each paragraph fitted to the terminal, but one
     with an indented line (an example, a synopsis, a list) as written, so an example stays one command a line.
@@ -297,8 +310,11 @@ class HelpFormatter(argparse.HelpFormatter):
             if any(line[:1].isspace() for line in lines):
                 paragraphs.append("\n".join(indent + line for line in lines))
             else:
-                paragraphs.append(super()._fill_text(paragraph, width, indent))
+                paragraphs.append(_wrapped(paragraph, width, indent))
         return "\n\n".join(paragraphs)
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        return _wrapped(text, width).splitlines()
 
     def _format_action_invocation(self, action: argparse.Action) -> str:
         shown = shown_spellings(action)

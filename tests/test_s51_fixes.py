@@ -93,3 +93,46 @@ def test_latency_refuses_checkpoints_that_do_not_fit_in_one_line(tmp_path: Path,
         assert latency.main(["--checkpoints", str(tmp_path / run), "--frames", "1", "--warmup", "1"]) == 2
         err = capsys.readouterr().err
         assert err.startswith("error: --checkpoints") and err.count("\n") == 1 and says in err, err
+
+
+@pytest.mark.parametrize("columns", ["60", "80"])
+def test_help_lines_break_at_spaces_only_so_a_flag_is_never_cut_in_two(columns: str,
+                                                                        monkeypatch: pytest.MonkeyPatch) -> None:
+    """argparse's wrapping also broke lines after a hyphen: depth_bound.py's help at 80 columns showed
+    "--pixor-" at a line's end and "checkpoint" on the next (models.train and check_models at other widths),
+    and a copied command failed. Every flag of every command now stands whole in its --help, and no line
+    ends in a word cut at its hyphen."""
+    import re
+
+    from pipeline.cli import shown_spellings
+    from tests.test_commands import FAMILY, _parser
+
+    monkeypatch.setenv("COLUMNS", columns)
+    for name in FAMILY:
+        parser = _parser(name, monkeypatch)
+        text = parser.format_help()
+        cut = [line for line in text.splitlines() if re.search(r"[A-Za-z]-$", line)]  # "16- and 64-line" is prose
+        assert not cut, (name, cut)
+        for action in parser._actions:  # the spellings --help shows (old ones are hidden aliases)
+            assert all(re.search(rf"(?<![\w-]){re.escape(flag)}(?![\w-])", text)
+                       for flag in shown_spellings(action)), (name, action.option_strings)
+
+
+@pytest.mark.parametrize(("model", "thinned_to"), [("edge-lidar64", []), ("edge-lidar16", [16])])
+def test_op_profile_thins_scans_for_the_models_own_line_count(model: str, thinned_to: list[int],
+                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """op_profile thinned every scan to 16 lines by default, "as benchmarks/latency.py", whose default is the
+    model's own line count: a 64-line model was profiled on a 16-line scan without a word. Now as latency.py."""
+    from benchmarks.op_profile import main
+    from pipeline import beams
+
+    calls: list[int] = []
+    real = beams.emulate_beams
+
+    def recording(points: Any, lines: int, *args: Any, **kwargs: Any) -> Any:
+        calls.append(lines)
+        return real(points, lines, *args, **kwargs)
+
+    monkeypatch.setattr(beams, "emulate_beams", recording)
+    assert main(["--models", str(WEIGHTS / model), "--frame", "000006", "--runs", "1", "--top", "1"]) == 0
+    assert calls == thinned_to
