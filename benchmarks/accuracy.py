@@ -274,8 +274,10 @@ def _table(config: LabelEvalConfig, evaluation: _Evaluation) -> str:
     if not config.ignore_small_detections:
         table = "not the devkit protocol: detections with 2D boxes under the minimum height are counted\n" + table
     if evaluation.missing_predictions:
+        # With --data the detector's skipped frames (named above the table) are counted so, without the flag.
+        why = "frames the detector skipped" if config.detector else "--missing-as-empty"
         table = (f"{len(evaluation.missing_predictions)} of {result.n_frames} frames have no result file, counted as "
-                 "frames without detections (--missing-as-empty)\n" + table)
+                 f"frames without detections ({why})\n" + table)
     return table
 
 

@@ -1070,9 +1070,11 @@ def _target(url: str | None, models: Path, server_args: list[str], log_path: Pat
 
 
 def _server_info(base: str, headers: dict[str, str]) -> dict:
-    """What the service says it runs (/v1/model): preset, workers, sessions, queue, threads, TTA and providers."""
+    """What the service says it runs (/v1/model): the model's id (its manifest's sha256, the X-Model-ID of each
+    answer), preset, workers, sessions, queue, threads, TTA and providers."""
     info = httpx.get(f"{base}/v1/model", headers=headers, timeout=10).json()
     return {
+        "model_id": info["identity"]["id"],
         "preset": info["preset"], "workers": info["workers"], "sessions": info["sessions"],
         "queue_size": info["queue_size"], "intra_op_threads": info.get("intra_op_threads"),
         "mirror_tta": info.get("mirror_tta", False),

@@ -713,7 +713,7 @@ def _parser() -> argparse.ArgumentParser:
         "write KITTI result lines (label_2 format + score) to OUT/data, BEV pictures to OUT/bev and the camera "
         "view with the boxes to OUT/camera.",
         epilog=examples("python -m pipeline.detect --data data/kitti/training --split-file "
-                        "data/kitti/ImageSets/val.txt --emulate-beams 16 --out outputs/val",
+                        "data/kitti/ImageSets/val.txt --emulate-beams 16 --score-threshold 0.05 --out outputs/val",
                         "python -m pipeline.detect --image F.png --points F.bin --calib F.txt --out outputs/one"),
         formatter_class=HelpFormatter,
     )

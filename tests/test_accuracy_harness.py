@@ -105,6 +105,9 @@ def test_a_skipped_frame_fails_the_evaluation_and_no_old_result_stands_in(tiny_m
     assert f"{data / 'velodyne' / '000006.bin'}" in result.stderr and "(frame 000006 skipped; removed its result file" in result.stderr
     assert "1 frame(s) skipped (each named above with its reason): 000006; the table counts their cars as missed" in result.stderr
     assert not stale.exists() and "Car AP" in result.stdout
+    # Counted without detections because the detector skipped it, not because of a flag the user never gave.
+    assert "counted as frames without detections (frames the detector skipped)" in result.stdout, result.stdout
+    assert "--missing-as-empty" not in result.stdout
     assert json.loads((tmp_path / "ap.json").read_text())["frames"] == 2
 
 

@@ -1,5 +1,6 @@
 """benchmarks/load.py against a real service it starts on 127.0.0.1 (tiny models, a few requests)."""
 
+import hashlib
 import json
 import shutil
 import socket
@@ -54,6 +55,8 @@ def test_load_test_drives_a_started_service_and_reports(tmp_path, tiny_models):
     assert "broken requests: 6 of 6 answered 4xx" in result.stdout
     assert len(report["windows"]) == 10 and report["trend"]["p50_ms_last_tenth"] > 0
     assert report["server"]["preset"] == "tiny"
+    # docs/models.md: the JSON names the model it drove, by its manifest's sha256 (the service's X-Model-ID).
+    assert report["server"]["model_id"] == hashlib.sha256((tiny_models / "manifest.json").read_bytes()).hexdigest()
     # --mirror-tta reached the started service: it says so, and its answers time PIXOR's second run.
     assert report["server"]["mirror_tta"] is True and "PIXOR with mirror TTA" in result.stdout
     assert {"pixor", "pixor_mirror", "mirror_merge"} <= set(report["stage_p50_ms"])
