@@ -162,11 +162,12 @@ def run(config: RunConfig) -> RunResult:
     """Generate and write the frames; returns what was written."""
     _check(config)
     out = Path(config.out)
-    for sub in SUBDIRS:
-        (out / sub).mkdir(parents=True, exist_ok=True)
     all_indices = list(range(config.start, config.start + config.frames))
     indices = [i for i in all_indices if not _complete(out, i)]
     _refuse_another_seeds_folder(out, config.seed, all_indices, indices)
+    # Made only now: a refused folder (real KITTI frames, another seed's) is left as it was, no empty depth_2/.
+    for sub in SUBDIRS:
+        (out / sub).mkdir(parents=True, exist_ok=True)
     try:  # now, not after the frames: a list folder that cannot be made would waste the run
         config.list_file.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

@@ -249,12 +249,14 @@ def test_a_folder_of_real_kitti_frames_is_never_written_over(kitti_dir: Path, tm
     folder = tmp_path / "kitti"
     shutil.copytree(kitti_dir, folder)
     before = {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+    folders = sorted(p for p in folder.rglob("*") if p.is_dir())
     done = subprocess.run([sys.executable, "-m", "simulation", "--out", str(folder), "--frames", "1", "--seed",
                            str(SEED), "--no-progress"], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 2 and "Traceback" not in done.stderr
     assert (f"{folder}: frame 000000 there is not the one seed {SEED} makes ({folder / 'calib' / '000000.txt'} "
             "differs)") in done.stderr
     assert {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()} == before
+    assert sorted(p for p in folder.rglob("*") if p.is_dir()) == folders  # no empty depth_2/ left in it either
 
 
 def test_a_frame_cut_off_by_a_killed_run_is_made_again(dataset: Path, tmp_path: Path) -> None:
