@@ -116,7 +116,10 @@ def build_parser() -> argparse.ArgumentParser:
         env = ENV_PREFIX + name.upper()
         default = info.default
         shown = ("on" if default else "off") if isinstance(default, bool) else default if default is not None else "none"
-        help_text = f"{info.description} (env {env}; default {shown})"
+        # An unset option whose description says what it then means (the best provider, MODELS/trt_cache) has that
+        # default only: "(default: GPU 0) (…; default none)" read as two.
+        said = default is None and "default" in (info.description or "")
+        help_text = f"{info.description} (env {env})" if said else f"{info.description} (env {env}; default {shown})"
         # Paths stay strings here: Settings refuses an empty one before making it a Path (Path("") is ".").
         kwargs: dict = {"type": str if kind is Path else kind, "default": argparse.SUPPRESS, "help": help_text}
         if kind is bool:  # --mirror-tta / --no-mirror-tta

@@ -52,14 +52,17 @@ def _help_of(flag: str) -> str:
     ("flag", "says"),
     [("--port", "--port PORT TCP port (0 = any free port) (env LOWRES3D_PORT; default 8000)"),
      ("--provider", "--provider {cpu,cuda,tensorrt}"),
-     ("--provider", "(env LOWRES3D_PROVIDER; default none)"),
+     ("--default-calib", "(env LOWRES3D_DEFAULT_CALIB; default none)"),
+     ("--provider", "TensorRT → CUDA → CPU) (env LOWRES3D_PROVIDER)"),
      ("--mirror-tta,", "(env LOWRES3D_MIRROR_TTA; default off)"),
      ("--log-format", "--log-format {text,json}")],
-    ids=["number", "choices", "no default", "switch off", "log format"],
+    ids=["number", "choices", "no default", "default in its description", "switch off", "log format"],
 )
 def test_help_names_each_options_variable_default_and_choices(flag: str, says: str) -> None:
     """Each option's help names its environment variable and its default as the operator reads it (``on``/``off``
-    for a switch, ``none`` for unset), and a closed set its choices."""
+    for a switch, ``none`` for unset), and a closed set its choices. An unset option whose description says what
+    it then means has that one default only: --provider read "(default: the best available, …) (…; default
+    none)"."""
     assert says in _help_of(flag)
 
 
