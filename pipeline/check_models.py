@@ -35,6 +35,8 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -230,6 +232,74 @@ def read_frame(config: CheckConfig) -> Frame:
     return load_frame(data, config.frame, with_labels=False)
 
 
+@contextmanager
+def _recorded(report: CheckReport, name: str) -> Iterator[Check]:
+    """One check's record, added to ``report`` as it starts: a FAIL (its detail set by :func:`run`) unless the
+    block ends without raising, when it is a PASS."""
+    check = Check(name, "fail", "")
+    report.checks.append(check)
+    yield check
+    check.status = "pass"
+
+
+def _manifest_check(check: Check, models: Path, allow_untrained: bool) -> tuple[dict, str, Preset]:
+    """The manifest check (:func:`check_manifest`), its detail what the models are and were trained on, its
+    warnings the tables a port needs that the manifest lacks; returns the manifest, its sha256 and its preset."""
+    manifest, digest, preset = check_manifest(models, allow_untrained)
+    training = sorted({str((e.get("training") or {}).get("data") or "unrecorded data")
+                       for e in manifest["networks"].values()})
+    check.detail = (f"{manifest.get('format', 'lowres3d-models/1')}, preset {preset.name}, "
+                    f"{manifest.get('precision', 'fp32')}, weights {manifest.get('weights', 'unrecorded')}, "
+                    f"trained on {', '.join(training)}")
+    check.warnings = [f"{models / MANIFEST_NAME}: no '{table}' table: a runtime other than this one (a port) "
+                      "reads the grid and constants there; export the models again to write it"
+                      for table in ("bev_grid", "normalisation") if table not in manifest]
+    return manifest, digest, preset
+
+
+def _files_check(check: Check, models: Path, manifest: dict, digest: str) -> ModelIdentity:
+    """The files check (:func:`check_files`), its detail each file's sha256 (its first 12 digits), its warnings
+    the files the manifest does not list; returns the model's identity, which the checked files make good."""
+    check.warnings = check_files(models, manifest)
+    check.detail = ", ".join(f"{name} {entry['sha256'][:12]}…" for name, entry in manifest["files"].items())
+    sized = all("bytes" in entry for entry in manifest["files"].values())  # older manifests list no sizes
+    check.detail += ": sizes and sha256s as listed" if sized else ": sha256s as listed"
+    return model_identity(models, manifest, digest)
+
+
+def _load_detector(models: Path, config: CheckConfig) -> Detector:
+    """The sessions check's first half: the Detector on ``config.provider``, which loads each graph and checks
+    its inputs and outputs against the manifest's preset; CheckFailed saying why it would not load."""
+    try:
+        return Detector(models, providers=config.provider, trt_cache_dir=config.trt_cache_dir)
+    except (ModelFileError, InputError) as exc:
+        raise CheckFailed(str(exc)) from exc
+
+
+def _sessions_check(check: Check, detector: Detector, models: Path, manifest: dict, preset: Preset) -> None:
+    """The sessions check's second half, on the loaded ``detector``: the manifest it read is the one checked, its
+    detail the provider each network runs on, its warnings the Detector's."""
+    if detector.manifest != manifest:
+        raise CheckFailed(f"{models}: the manifest changed during the check (a copy in progress?)")
+    check.warnings = list(detector.load_warnings)
+    check.detail = (", ".join(f"{name} on {providers[0]}" for name, providers in detector.providers_in_use.items())
+                    + f"; graph inputs match preset {preset.name}")
+
+
+def _frame_check(check: Check, detector: Detector, frame: Frame, config: CheckConfig) -> None:
+    """The frame check (:func:`check_frame`) on ``frame``'s scan read as :func:`frame_scan` says; any error of the
+    run a CheckFailed naming it. InputError (not a failure: exit 2) for a scan the check cannot use as asked."""
+    # Outside the try below: a frame the check cannot use as asked is no failure of the model (exit 2).
+    scan_file = frame_folder(config) / "velodyne" / f"{frame.frame_id}.bin"
+    points, scan = frame_scan(detector, frame.points, config.emulate_beams, scan_file)
+    try:
+        check.detail = check_frame(detector, frame, points, scan)
+    except CheckFailed:
+        raise
+    except Exception as exc:  # an input error, or ONNX Runtime failing at its first run: a FAIL, not a traceback
+        raise CheckFailed(f"the frame did not run ({type(exc).__name__}: {exc})") from exc
+
+
 def run(config: CheckConfig) -> CheckReport:
     """Every check on ``config.models``, stopping at the first that fails (the rest reported as skipped).
 
@@ -242,52 +312,16 @@ def run(config: CheckConfig) -> CheckReport:
     resolve_providers(config.provider)  # so is a provider this ONNX Runtime build does not offer at all
     report = CheckReport(models=str(models), checks=[])
     detector: Detector | None = None
-
-    def step(name: str) -> Check:
-        report.checks.append(Check(name, "fail", ""))
-        return report.checks[-1]
-
-    try:
-        check = step("manifest")
-        manifest, digest, preset = check_manifest(models, config.allow_untrained)
-        training = sorted({str((e.get("training") or {}).get("data") or "unrecorded data")
-                           for e in manifest["networks"].values()})
-        check.status, check.detail = "pass", (f"{manifest.get('format', 'lowres3d-models/1')}, preset {preset.name}, "
-                                              f"{manifest.get('precision', 'fp32')}, weights "
-                                              f"{manifest.get('weights', 'unrecorded')}, trained on "
-                                              f"{', '.join(training)}")
-        check.warnings = [f"{models / MANIFEST_NAME}: no '{table}' table: a runtime other than this one (a port) "
-                          "reads the grid and constants there; export the models again to write it"
-                          for table in ("bev_grid", "normalisation") if table not in manifest]
-        check = step("files")
-        check.warnings = check_files(models, manifest)
-        check.status = "pass"
-        check.detail = ", ".join(f"{name} {entry['sha256'][:12]}…" for name, entry in manifest["files"].items())
-        sized = all("bytes" in entry for entry in manifest["files"].values())  # older manifests list no sizes
-        check.detail += ": sizes and sha256s as listed" if sized else ": sha256s as listed"
-        report.identity = model_identity(models, manifest, digest)
-        check = step("sessions")
-        try:
-            detector = Detector(models, providers=config.provider, trt_cache_dir=config.trt_cache_dir)
-        except (ModelFileError, InputError) as exc:
-            raise CheckFailed(str(exc)) from exc
-        if detector.manifest != manifest:
-            raise CheckFailed(f"{models}: the manifest changed during the check (a copy in progress?)")
-        check.warnings = list(detector.load_warnings)
-        check.status = "pass"
-        check.detail = (", ".join(f"{name} on {providers[0]}" for name, providers in detector.providers_in_use.items())
-                        + f"; graph inputs match preset {preset.name}")
-        check = step("frame")
-        # Outside the try below: a frame the check cannot use as asked is no failure of the model (exit 2).
-        scan_file = frame_folder(config) / "velodyne" / f"{frame.frame_id}.bin"
-        points, scan = frame_scan(detector, frame.points, config.emulate_beams, scan_file)
-        try:
-            check.detail = check_frame(detector, frame, points, scan)
-        except CheckFailed:
-            raise
-        except Exception as exc:  # an input error, or ONNX Runtime failing at its first run: a FAIL, not a traceback
-            raise CheckFailed(f"the frame did not run ({type(exc).__name__}: {exc})") from exc
-        check.status = "pass"
+    try:  # the checks in CHECKS' order, each needing what the ones before it found
+        with _recorded(report, "manifest") as check:
+            manifest, digest, preset = _manifest_check(check, models, config.allow_untrained)
+        with _recorded(report, "files") as check:
+            report.identity = _files_check(check, models, manifest, digest)
+        with _recorded(report, "sessions") as check:
+            detector = _load_detector(models, config)
+            _sessions_check(check, detector, models, manifest, preset)
+        with _recorded(report, "frame") as check:
+            _frame_check(check, detector, frame, config)
     except CheckFailed as exc:
         report.checks[-1].detail = str(exc)
     finally:

@@ -205,30 +205,81 @@ def render_bev(
     (:func:`key_strip_height` rows, room for a warnings row kept), so it covers nothing: the scene is the
     picture's last rows, as without the key, at ``metres_per_pixel``; off for a picture compared pixel by
     pixel."""
-    width = round((grid.y_max - grid.y_min) / metres_per_pixel)
-    height = round((grid.x_max - grid.x_min) / metres_per_pixel)
-
-    def shade(cloud: np.ndarray) -> np.ndarray:
-        """(height, width) 0–1: log of the points a pixel holds, 1 from 19 on."""
-        pix = np.floor(_to_pixels(cloud[:, :2], grid, metres_per_pixel)).astype(np.int64)
-        ok = (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
-        density = np.bincount(pix[ok, 1] * width + pix[ok, 0], minlength=height * width).astype(np.float32)
-        return np.clip(np.log1p(density) / np.log(20.0), 0, 1).reshape(height, width)
-
-    scan = (shade(points) * 255).astype(np.uint8)
-    canvas = cv2.cvtColor(scan, cv2.COLOR_GRAY2BGR)
-    if pseudo is not None and len(pseudo):
-        camera = (shade(pseudo)[..., None] * np.array(PSEUDO_BGR, np.float32)).astype(np.uint8)
-        canvas = np.where((scan > 0)[..., None], canvas, camera)  # the scan on top
-    column, row = _to_pixels(np.array([0.0, 0.0]), grid, metres_per_pixel)
-    origin = (int(column), int(row))
-    tip = (origin[0], min(origin[1], height) - 14)
+    size = _scene_size(grid, metres_per_pixel)
+    canvas = _draw_points(points, pseudo, grid, metres_per_pixel, size)
+    origin, tip = _sensor_at(grid, metres_per_pixel, size[1])
     # The boxes the camera sees, as a result file keeps them (pipeline.boxes.in_camera_view).
     seen = in_camera_view(boxes, *view) if view is not None and boxes is not None else None
+    taken = [_sensor_box(tip)]  # what labels keep clear of; each label drawn joins it
+    _draw_range_rings(canvas, grid, metres_per_pixel, origin, taken)
+    if view is not None:
+        _draw_camera_view(canvas, view, grid, metres_per_pixel)
+    # Under the boxes, as the points and rings are: a box at the sensor stays whole.
+    _draw_sensor(canvas, tip)
+    # The labelled cars first: their extents join ``taken``, so the detections' scores keep off them.
+    _draw_bev_boxes(canvas, gt_boxes, None, None, grid, metres_per_pixel, taken)
+    _draw_bev_boxes(canvas, boxes, scores, seen, grid, metres_per_pixel, taken, prediction=True)
+    if not legend:
+        return canvas
     split = None if seen is None else (int(seen.sum()), int((~seen).sum()))
     rows = bev_key_rows(title, boxes is not None, gt_boxes is not None, pseudo is not None, view is not None,
                         warnings, split)
-    taken = [(tip[0] - 8, tip[1] - 2, tip[0] + 8, tip[1] + 14)]  # the sensor
+    return _under_key_strip(canvas, rows, bool(warnings))
+
+
+def _scene_size(grid: BevGrid, metres_per_pixel: float) -> tuple[int, int]:
+    """The BEV scene's (width, height) in pixels: the grid's y extent across, its x extent up."""
+    width = round((grid.y_max - grid.y_min) / metres_per_pixel)
+    height = round((grid.x_max - grid.x_min) / metres_per_pixel)
+    return width, height
+
+
+def _point_shade(cloud: np.ndarray, grid: BevGrid, metres_per_pixel: float, size: tuple[int, int]) -> np.ndarray:
+    """(height, width) 0–1: log of the points a pixel holds, 1 from 19 on."""
+    width, height = size
+    pix = np.floor(_to_pixels(cloud[:, :2], grid, metres_per_pixel)).astype(np.int64)
+    ok = (pix[:, 0] >= 0) & (pix[:, 0] < width) & (pix[:, 1] >= 0) & (pix[:, 1] < height)
+    density = np.bincount(pix[ok, 1] * width + pix[ok, 0], minlength=height * width).astype(np.float32)
+    return np.clip(np.log1p(density) / np.log(20.0), 0, 1).reshape(height, width)
+
+
+def _draw_points(points: np.ndarray, pseudo: np.ndarray | None, grid: BevGrid, metres_per_pixel: float,
+                 size: tuple[int, int]) -> np.ndarray:
+    """The scene's first layer, a new BGR picture of ``size``: the scan's points grey to white, and the camera's
+    ``pseudo`` points in magenta where the scan has none."""
+    scan = (_point_shade(points, grid, metres_per_pixel, size) * 255).astype(np.uint8)
+    canvas = cv2.cvtColor(scan, cv2.COLOR_GRAY2BGR)
+    if pseudo is not None and len(pseudo):
+        camera = (_point_shade(pseudo, grid, metres_per_pixel, size)[..., None]
+                  * np.array(PSEUDO_BGR, np.float32)).astype(np.uint8)
+        canvas = np.where((scan > 0)[..., None], canvas, camera)  # the scan on top
+    return canvas
+
+
+def _sensor_at(grid: BevGrid, metres_per_pixel: float, height: int) -> tuple[tuple[int, int], tuple[int, int]]:
+    """The sensor's pixel (the range rings' centre) and the tip of its triangle: 14 rows above the sensor, or above
+    the picture's bottom edge for a sensor on or below it (a grid from x = 0 forward, as the presets')."""
+    column, row = _to_pixels(np.array([0.0, 0.0]), grid, metres_per_pixel)
+    origin = (int(column), int(row))
+    return origin, (origin[0], min(origin[1], height) - 14)
+
+
+def _sensor_box(tip: tuple[int, int]) -> tuple[int, int, int, int]:
+    """The sensor's triangle (:func:`_draw_sensor`) with a margin, as (left, top, right, bottom)."""
+    return tip[0] - 8, tip[1] - 2, tip[0] + 8, tip[1] + 14
+
+
+def _draw_sensor(canvas: np.ndarray, tip: tuple[int, int]) -> None:
+    """The sensor, in place: a white triangle pointing ahead, so the picture says which way is forward without
+    the key."""
+    cv2.fillPoly(canvas, [np.array([tip, (tip[0] - 6, tip[1] + 12), (tip[0] + 6, tip[1] + 12)], np.int32)],
+                 (255, 255, 255), cv2.LINE_AA)
+
+
+def _draw_range_rings(canvas: np.ndarray, grid: BevGrid, metres_per_pixel: float, origin: tuple[int, int],
+                      taken: list[tuple[int, int, int, int]]) -> None:
+    """Range rings every ``RING_STEP_M`` about the sensor at ``origin``, in place, out to the grid's farthest
+    corner; each ring's label goes on the forward axis (:func:`_ring_label_at`) and its box joins ``taken``."""
     # Range rings every 10 m help reading distances; labelled on the forward axis, where a box ahead is read.
     farthest = float(np.hypot(max(grid.x_max, -grid.x_min), max(grid.y_max, -grid.y_min)))
     for r in range(RING_STEP_M, int(farthest) + 1, RING_STEP_M):
@@ -239,23 +290,27 @@ def render_bev(
         if at is not None:
             cv2.putText(canvas, f"{r} m", at, FONT, 0.4, RING_LABEL_BGR, 1, cv2.LINE_AA)
             taken.append((at[0], at[1] - text_h, at[0] + text_w, at[1] + 2))
-    if view is not None:
-        edges = _to_pixels(camera_view_edges(*view), grid, metres_per_pixel)
-        _draw_segments(canvas, np.rint(edges).astype(np.int32), VIEW_BGR, "thin")
-    # The sensor: a triangle pointing ahead, so the picture says which way is forward without the key.
-    cv2.fillPoly(canvas, [np.array([tip, (tip[0] - 6, tip[1] + 12), (tip[0] + 6, tip[1] + 12)], np.int32)],
-                 (255, 255, 255), cv2.LINE_AA)
-    _draw_bev_boxes(canvas, gt_boxes, None, None, grid, metres_per_pixel, taken)
-    _draw_bev_boxes(canvas, boxes, scores, seen, grid, metres_per_pixel, taken, prediction=True)
-    if not legend:
-        return canvas
+
+
+def _draw_camera_view(canvas: np.ndarray, view: tuple[Calibration, tuple[int, int]], grid: BevGrid,
+                      metres_per_pixel: float) -> None:
+    """The camera's field of view (``view``: its calibration and image (rows, columns)), in place: the left and
+    right edges of :func:`camera_view_edges` on thin grey lines."""
+    edges = _to_pixels(camera_view_edges(*view), grid, metres_per_pixel)
+    _draw_segments(canvas, np.rint(edges).astype(np.int32), VIEW_BGR, "thin")
+
+
+def _under_key_strip(scene: np.ndarray, rows: list[KeyRow], has_warnings: bool) -> np.ndarray:
+    """The scene under a strip of its own holding the key of ``rows``, with a grey line along the scene's far
+    edge."""
     # The key in a strip of its own above the scene: drawn on the scene, its black box (about 500 × 130 pixels
     # with the service's title) hid all beyond 57 m on the left, the 60 and 70 m ring labels and a detection at
     # 61 m with them. The strip keeps room for a warnings row the frame may lack, so a video's frames keep one size.
-    strip = np.zeros((key_strip_height(width, rows if warnings else [*rows, ("", None)]), width, 3), np.uint8)
+    width = scene.shape[1]
+    strip = np.zeros((key_strip_height(width, rows if has_warnings else [*rows, ("", None)]), width, 3), np.uint8)
     draw_key(strip, rows)
     strip[-1] = RING_BGR  # where the scene begins: its far edge
-    return np.vstack([strip, canvas])
+    return np.vstack([strip, scene])
 
 
 def key_strip_height(picture_width: int, rows: list[KeyRow]) -> int:
