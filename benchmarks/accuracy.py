@@ -443,6 +443,7 @@ def distance_edges(text: str) -> tuple[float, ...]:
 def build_parser() -> argparse.ArgumentParser:
     """Command-line flags; each mode is a flag group."""
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python benchmarks/accuracy.py",
         description="KITTI object evaluation (official devkit protocol): Car BEV / 3D / 2D-box AP, "
         "R40 and R11, easy / moderate / hard.",

@@ -133,7 +133,8 @@ def to_full_image(view: np.ndarray, image_hw: tuple[int, int], preset: Preset) -
 def main(argv: list[str] | None = None) -> int:
     epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
         "python benchmarks/depth_bound.py --data data/sim/val --models weights/edge --factor 2 --out outputs/bound2")
-    parser = argparse.ArgumentParser(prog="python benchmarks/depth_bound.py", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python benchmarks/depth_bound.py", description=__doc__.split("\n\n")[0],
                                      epilog=epilog, formatter_class=HelpFormatter)
     parser.add_argument("--data", type=Path, required=True, metavar="DIR",
                         help="KITTI-layout folder with the true depth in depth_2/ (the synthetic scenes)")

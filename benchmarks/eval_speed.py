@@ -133,7 +133,8 @@ def write_random_label_sets(out_dir: Path, n_frames: int, seed: int) -> tuple[Pa
 
 @quiet_interrupt("no timing was reported (--keep's label sets written so far stay)")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python benchmarks/eval_speed.py", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python benchmarks/eval_speed.py", description=__doc__.split("\n\n")[0],
                                      epilog=examples("python benchmarks/eval_speed.py --frames 3769 --repeats 3"),
                                      formatter_class=HelpFormatter)
     parser.add_argument("--frames", type=positive_int, default=3769, metavar="N",

@@ -137,7 +137,8 @@ def run(frame_id: str = "000006", repeats: int = 30, preset_name: str = "paper",
 
 @quiet_interrupt("no report was written (--json is written at the end)")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python benchmarks/frame_ops.py", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python benchmarks/frame_ops.py", description=__doc__.split("\n\n")[0],
                                      epilog=examples("python benchmarks/frame_ops.py --repeats 30 --json "
                                                      "outputs/frame_ops.json"),
                                      formatter_class=HelpFormatter)

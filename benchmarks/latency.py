@@ -1507,7 +1507,8 @@ def _parser() -> argparse.ArgumentParser:
     """The command's arguments (its --help)."""
     epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
         "python benchmarks/latency.py --threads 2 --json outputs/latency.json --plot outputs/latency.png")
-    parser = argparse.ArgumentParser(prog="python benchmarks/latency.py", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python benchmarks/latency.py", description=__doc__.split("\n\n")[0],
                                      formatter_class=HelpFormatter, epilog=epilog)
     parser.add_argument("--preset", metavar="P", help=f"export this preset (with initialised weights, or --checkpoints) and time it "
                                           f"instead of the shipped model (default {DEFAULT_PRESET}, the shipped "

@@ -1184,6 +1184,7 @@ def main(argv: list[str] | None = None) -> int:
 def _parser() -> argparse.ArgumentParser:
     """The command line's flags, in --help's order."""
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python benchmarks/load.py",
         description="Load-test the lowres3d detection service on loopback (deliberately over capacity) or at --url: "
         "throughput, p50/p99 latency, status counts, server memory and file descriptors over the run "

@@ -208,6 +208,7 @@ def _preset_name(text: str) -> str:
 @quiet_interrupt("no report was written")
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python benchmarks/network_latency.py",
         description="Per-network latency, ONNX Runtime vs PyTorch eager (fp32, CPU, batch 1, same weights and input).",
         epilog=examples("python benchmarks/network_latency.py --preset edge --preset paper --repeats 5"),

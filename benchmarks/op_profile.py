@@ -186,10 +186,11 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.cli import HelpFormatter, examples, positive_int
     from pipeline.detector import Detector
     from pipeline.errors import InputError
-    from pipeline.frame import load_frame
+    from pipeline.frame import load_frame, numbered_frame
     from pipeline.model_files import DEFAULT_MODELS, ModelFileError
 
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python benchmarks/op_profile.py",
         description="Time every kernel of a model directory's networks on one real frame with ONNX Runtime's "
         "profiler (the graph it runs, after its fusions and layout changes), slowest first, with each "
@@ -200,7 +201,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"model directory (default {DEFAULT_MODELS})")
     parser.add_argument("--data", type=Path, default=BUNDLED, metavar="DIR",
                         help="KITTI-layout folder (default: the bundled frames)")
-    parser.add_argument("--frame", metavar="ID", help="frame id in --data (default: its first)")
+    parser.add_argument("--frame", metavar="ID", help="frame id in --data, or its number (6 for 000006; default: "
+                        "its first)")
     parser.add_argument("--provider", choices=["cpu"], default="cpu",
                         help="execution provider: the CPU only (on CUDA ONNX Runtime's profiler times the kernels' "
                         f"launches, not the GPU's work, and TensorRT runs an engine of its own; {GPU_PROFILER_HINT})")
@@ -222,7 +224,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.frame is None:
             frame = load_frames(args.data, 1, args.beams or None)[0]
         else:
-            frame = load_frame(args.data, args.frame, with_labels=False)
+            frame = load_frame(args.data, numbered_frame(args.data, args.frame), with_labels=False)
             if args.beams:
                 frame.points = emulate_beams(frame.points, args.beams)
         for name, feeds in detector.network_inputs(frame.image, frame.points, frame.calib).items():

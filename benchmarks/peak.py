@@ -111,7 +111,8 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.cli import HelpFormatter, examples, positive_int
     from pipeline.cpu import usable_cpus
 
-    parser = argparse.ArgumentParser(prog="python benchmarks/peak.py",
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python benchmarks/peak.py",
                                      description="Measure ONNX Runtime's fp32 GFLOP/s on this machine: a 4096² MatMul "
                                      "and a 256-channel 3×3 convolution (the peak benchmarks/latency.py divides by).",
                                      epilog=examples("python benchmarks/peak.py --threads 2"),

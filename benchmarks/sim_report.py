@@ -261,7 +261,8 @@ DATA, SIM_DATA, PLOT = ("--data", "--kitti"), ("--sim-data", "--sim"), ("--plot"
 def main(argv: list[str] | None = None) -> int:
     epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
         "python benchmarks/sim_report.py --sim-data data/sim/val --frames 100 --plot outputs/sim_vs_kitti.png")
-    parser = argparse.ArgumentParser(prog="python benchmarks/sim_report.py", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python benchmarks/sim_report.py", description=__doc__.split("\n\n")[0],
                                      epilog=epilog, formatter_class=HelpFormatter)
     parser.add_argument(*DATA, dest="kitti", type=Path, default=ROOT / "tests" / "data" / "kitti" / "training",
                         metavar="DIR",

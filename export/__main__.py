@@ -43,6 +43,7 @@ with ctrl_c_held_while_loading(__name__ == "__main__"):  # an importer's Ctrl-C 
 
 def parse_args(argv: list[str] | None = None) -> tuple[ExportConfig, argparse.Namespace]:
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m export",
         description="Export a preset's depth-completion net and PIXOR to ONNX, check ONNX Runtime against "
         "PyTorch on a real KITTI frame and random inputs, and write manifest.json.",

@@ -292,7 +292,8 @@ def _check_against_detector(detector: Detector, writer: ArrayWriter, frame: Fram
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m export.golden", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python -m export.golden", description=__doc__.split("\n\n")[0],
                                      epilog=__doc__.split("\n\n", 1)[1],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--models", type=Path, default=DEFAULT_MODELS, metavar="DIR", help=f"model directory (default {DEFAULT_MODELS})")

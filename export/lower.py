@@ -116,7 +116,8 @@ def run(models: Path, out: Path | None = None, data: Path = DEFAULT_KITTI_DIR,
 def main(argv: list[str] | None = None) -> int:
     epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
         "python -m export.lower --models weights/own --out weights/own-relowered")
-    parser = argparse.ArgumentParser(prog="python -m export.lower", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python -m export.lower", description=__doc__.split("\n\n")[0],
                                      epilog=epilog, formatter_class=HelpFormatter)
     parser.add_argument("--models", type=Path, required=True, metavar="DIR",
                         help="FP32 model directory (manifest.json + ONNX files)")

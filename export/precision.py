@@ -359,6 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     )
 
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m export.precision", description="Convert an FP32 model directory to FP16 or INT8 (QDQ).",
         epilog=examples("python -m export.precision --models weights/edge --precision int8 --calibration-data "
                         "data/sim/val --out weights/own-int8"),

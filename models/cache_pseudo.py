@@ -204,6 +204,7 @@ def _write_record(out: Path, record: dict) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m models.cache_pseudo", description=__doc__.split("\n\n")[0], formatter_class=HelpFormatter,
         epilog=examples("python -m models.cache_pseudo --data data/sim/train --models weights/edge "
                         "--out runs/edge/pseudo-train"))

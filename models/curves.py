@@ -279,6 +279,7 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.cli import HelpFormatter, check_figure, examples, quiet_interrupt
 
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m models.curves", description=__doc__.split("\n\n")[0].split(": ", 1)[0] + ": draw it again.",
         epilog=__doc__.split("\n\n", 1)[1] + "\n" + examples("python -m models.curves runs/depth",
                                                              "python -m models.curves runs/depth --out depth.png"),

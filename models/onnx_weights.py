@@ -237,6 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     from pipeline.cli import HelpFormatter, examples
 
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m models.onnx_weights", formatter_class=HelpFormatter,
         description="Turn a model directory's ONNX files back into training checkpoints (depth.pt, pixor.pt).",
         epilog=examples("python -m models.onnx_weights --models weights/edge --out runs/own/camera"))

@@ -345,65 +345,91 @@ def _bars(config: ReproduceConfig) -> bool:
     return config.progress and config.lanes <= 1
 
 
-def run(config: ReproduceConfig) -> dict:
-    """All stages; returns the report (also written to OUT/table.json and OUT/table.md)."""
-    b, out = config.budget, config.out
-    check_paths(config)
-    out.mkdir(parents=True, exist_ok=True)
-    report: dict = {"preset": config.preset, "budget": asdict(b), "stages": {}, "seconds": {}}
-    started = time.perf_counter()
+class _StageClock:
+    """The seconds each stage took, in ``OUT/progress.json`` as each ends (and as each training job ends)."""
 
-    def stage(name: str) -> None:
-        report["seconds"][name] = round(time.perf_counter() - started - sum(report["seconds"].values()), 1)
-        (out / "progress.json").write_text(json.dumps(report["seconds"], indent=1))
+    def __init__(self, out: Path, seconds: dict[str, float]) -> None:
+        self.out, self.seconds, self.started = out, seconds, time.perf_counter()
+        self.training_done: list[str] = []
 
+    def stage_done(self, name: str) -> None:
+        """Record stage ``name`` as taking the time since the previous stage ended."""
+        self.seconds[name] = round(time.perf_counter() - self.started - sum(self.seconds.values()), 1)
+        (self.out / "progress.json").write_text(json.dumps(self.seconds, indent=1))
+
+    def job_done(self, name: str, _: dict) -> None:
+        """Add training job ``name`` to the finished ones (run_jobs' on_done)."""
+        self.training_done.append(name)
+        (self.out / "progress.json").write_text(json.dumps({**self.seconds, "training_done": self.training_done},
+                                                           indent=1))
+
+    def total(self) -> float:
+        """Seconds since the clock started."""
+        return round(time.perf_counter() - self.started, 1)
+
+
+def _simulate(config: ReproduceConfig) -> None:
+    """Simulate the validation set (seed 2), then the training set (seed 1); each resumes where it stopped."""
+    b = config.budget
     simulate(RunConfig(out=config.data / "val", frames=b.val_frames, seed=2, workers=config.sim_workers,
                        split="val", progress=config.progress))
     simulate(RunConfig(out=config.data / "train", frames=b.train_frames, seed=1, workers=config.sim_workers,
                        split="train", progress=config.progress))
-    stage("simulate")
 
-    done: list[str] = []
 
-    def job_done(name: str, _: dict) -> None:
-        done.append(name)
-        (out / "progress.json").write_text(json.dumps({**report["seconds"], "training_done": done}, indent=1))
+def _train_all(config: ReproduceConfig, clock: _StageClock) -> tuple[dict[str, dict], dict[str, dict]]:
+    """Every training stage, as jobs on ``config.lanes`` lanes: {job: result} and the timeline."""
+    return run_jobs(training_jobs(config), config.lanes, units=lambda: _epochs_logged(config.out),
+                    total_units=_epochs_planned(config.budget), on_done=clock.job_done, progress=config.progress)
 
-    results, timeline = run_jobs(training_jobs(config), config.lanes, units=lambda: _epochs_logged(out),
-                                 total_units=_epochs_planned(b), on_done=job_done, progress=config.progress)
-    report["stages"] = {name: results[name] for name in STAGE_REPORTS}
-    report["schedule"] = {"lanes": config.lanes, "jobs": timeline}
-    stage("training")
 
-    depth_models = out / "models" / "depth"  # exported by the cache_pseudo stage
+def _checkpoints_before_joint(out: Path) -> Path:
+    """The two-stage checkpoints before joint fine-tuning, copied to one folder: trained depth + pseudo-trained
+    PIXOR."""
+    folder = out / "checkpoints_before_joint"
+    folder.mkdir(exist_ok=True)
+    for name, run_dir in (("depth", "depth"), ("pixor", "pixor_pseudo")):
+        shutil.copy(out / run_dir / f"{name}.pt", folder / f"{name}.pt")
+    return folder
+
+
+def _export_all(config: ReproduceConfig) -> tuple[dict[str, Path], Path]:
+    """Export every model directory under ``OUT/models``: {table row: directory}, and the depth net's without
+    GAMs."""
+    out = config.out
     no_gam_models = _export(config, out / "depth_no_gam", out / "models" / "depth_no_gam", ("depth", "pixor"),
                             f"{config.preset}-no-gam")
     # The two-stage directory before joint fine-tuning: trained depth + pseudo-trained PIXOR.
     before = out / "models" / "camera_before_joint"
     before.mkdir(parents=True, exist_ok=True)
-    for name in ("depth", "pixor"):
-        source = out / ("depth" if name == "depth" else "pixor_pseudo") / f"{name}.pt"
-        (out / "checkpoints_before_joint").mkdir(exist_ok=True)
-        shutil.copy(source, out / "checkpoints_before_joint" / f"{name}.pt")
+    checkpoints_before = _checkpoints_before_joint(out)
     # Exported inside OUT and shipped to WEIGHTS at the end, together: a run that fails or is stopped
     # before then leaves the shipped directories as they were, not some of them new.
     directories = {
         "lidar64": _export(config, out / "pixor_lidar64", out / "models" / "lidar64", ("pixor",), config.lidar_preset),
         "lidar16": _export(config, out / "pixor_lidar16", out / "models" / "lidar16", ("pixor",), config.lidar_preset),
-        "lidar16+camera": _export(config, out / "checkpoints_before_joint", before, ("depth", "pixor")),
+        "lidar16+camera": _export(config, checkpoints_before, before, ("depth", "pixor")),
         "lidar16+camera (joint)": _export(config, out / "joint", out / "models" / "camera_joint", ("depth", "pixor")),
     }
-    stage("export")
+    return directories, no_gam_models
 
+
+def _detection_tables(config: ReproduceConfig, directories: dict[str, Path]
+                      ) -> tuple[dict[str, dict], dict[str, dict], dict[str, LabelSet]]:
+    """Each row's BEV AP table and 3D AP table on the validation set, and the labels they were read from."""
     table, table_3d, labels = {}, {}, {}
     for row, models in directories.items():
         mode = "lidar16+camera" if row.startswith("lidar16+camera") else row
         labels[row] = _detection_labels(config, models, mode, eval_folder(row))
         ap = evaluate(labels[row].ground_truth, labels[row].detections, metrics=("bev", "3d")).ap_table()
         table[row], table_3d[row] = ap["bev"], ap["3d"]
-    how_sure = _how_sure(config, labels)
+    return table, table_3d, labels
+
+
+def _depth_errors(config: ReproduceConfig, directories: dict[str, Path]) -> dict[str, dict]:
+    """Each depth net's errors on the validation set ({name: model directory} → {name: errors})."""
     depth_table = {}
-    for name, models in (("with GAMs", depth_models), ("without GAMs", no_gam_models)):
+    for name, models in directories.items():
         outcome = run_depth(config.data / "val", models, progress=config.progress)
         m = outcome.mean
         depth_table[name] = {"rmse_mm": m.rmse_mm, "mae_mm": m.mae_mm, "irmse_per_km": m.irmse_per_km,
@@ -411,16 +437,49 @@ def run(config: ReproduceConfig) -> dict:
                              "car_median_abs_mm_by_band": car_errors_by_band(outcome.car_errors),
                              "car_points_in_box_by_band": car_shares_by_band(outcome.car_in_box),
                              "car_stray_points_in_box_by_band": car_shares_by_band(outcome.car_stray)}
-    stage("evaluate")
+    return depth_table
 
+
+def _ship_better(config: ReproduceConfig, table: dict[str, dict], directories: dict[str, Path]) -> dict[str, str]:
+    """Ship the LiDAR-only directories and the better two-stage one as the product; the report's
+    ``shipped`` and ``shipped_from``."""
     # Ship the better two-stage directory (by BEV AP at IoU 0.7, moderate) as the product.
     joint_better = table["lidar16+camera (joint)"]["0.7"]["R40"][1] >= table["lidar16+camera"]["0.7"]["R40"][1]
     shipped_from = directories["lidar16+camera (joint)" if joint_better else "lidar16+camera"]
     shipped = _ship(config, {"product": shipped_from, "lidar64": directories["lidar64"],
                              "lidar16": directories["lidar16"]})
-    report.update({"bev_ap": table, "ap_3d": table_3d, **how_sure, "depth": depth_table, "shipped": shipped["product"],
-                   "shipped_from": "joint fine-tuning" if joint_better else "before joint fine-tuning"})
-    report["total_seconds"] = round(time.perf_counter() - started, 1)
+    return {"shipped": shipped["product"],
+            "shipped_from": "joint fine-tuning" if joint_better else "before joint fine-tuning"}
+
+
+def run(config: ReproduceConfig) -> dict:
+    """All stages; returns the report (also written to OUT/table.json and OUT/table.md)."""
+    out = config.out
+    check_paths(config)
+    out.mkdir(parents=True, exist_ok=True)
+    report: dict = {"preset": config.preset, "budget": asdict(config.budget), "stages": {}, "seconds": {}}
+    clock = _StageClock(out, report["seconds"])
+
+    _simulate(config)
+    clock.stage_done("simulate")
+
+    results, timeline = _train_all(config, clock)
+    report["stages"] = {name: results[name] for name in STAGE_REPORTS}
+    report["schedule"] = {"lanes": config.lanes, "jobs": timeline}
+    clock.stage_done("training")
+
+    directories, no_gam_models = _export_all(config)
+    clock.stage_done("export")
+
+    table, table_3d, labels = _detection_tables(config, directories)
+    how_sure = _how_sure(config, labels)
+    depth_models = out / "models" / "depth"  # exported by the cache_pseudo stage
+    depth_table = _depth_errors(config, {"with GAMs": depth_models, "without GAMs": no_gam_models})
+    clock.stage_done("evaluate")
+
+    shipped = _ship_better(config, table, directories)
+    report.update({"bev_ap": table, "ap_3d": table_3d, **how_sure, "depth": depth_table, **shipped})
+    report["total_seconds"] = clock.total()
     (out / "table.json").write_text(json.dumps(report, indent=1))
     (out / "table.md").write_text(format_table(report))
     return report

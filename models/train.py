@@ -982,7 +982,8 @@ def _parser() -> argparse.ArgumentParser:
     """The command line; ``--help`` ends with the module docstring's details and an example."""
     epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples(
         "python -m models.train depth --data data/sim/train --val-data data/sim/val --preset edge --out runs/depth")
-    parser = argparse.ArgumentParser(prog="python -m models.train", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python -m models.train", description=__doc__.split("\n\n")[0],
                                      epilog=epilog, formatter_class=HelpFormatter)
     parser.add_argument("task", choices=TASKS, help="what to train: depth, detector or joint (below)")
     parser.add_argument("--data", type=Path, required=True, metavar="DIR",

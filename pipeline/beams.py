@@ -442,6 +442,7 @@ def convert_folder(src: Path, dst: Path, beams: int, mode: str = "stride", progr
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m pipeline.beams",
         description="Emulate a low-resolution LiDAR: thin every KITTI velodyne scan in SRC_DIR to N lines "
         "and write it, with the same file name, into DST_DIR (the source is never modified).",

@@ -3,7 +3,7 @@
 examples:
   python -m pipeline.check_models --models /srv/lowres3d/edge-v7
   python -m pipeline.check_models --models /srv/lowres3d/edge-v7 --provider tensorrt --json check.json
-  python -m pipeline.check_models --models /srv/lowres3d/edge-v7 --provider tensorrt \
+  python -m pipeline.check_models --models /srv/lowres3d/edge-v7 --provider tensorrt \\
       --trt-cache-dir /var/cache/lowres3d/tensorrt
 
 The checks, in order (each needs the ones before it; those after a failure are reported as skipped):
@@ -54,7 +54,7 @@ from pipeline.cli import (
 )
 from pipeline.detector import Detector, resolve_providers
 from pipeline.errors import InputError
-from pipeline.frame import Frame, load_frame
+from pipeline.frame import Frame, load_frame, numbered_frame
 from pipeline.kitti import SAMPLE_DIR
 from pipeline.model_files import (
     MANIFEST_NAME,
@@ -229,7 +229,7 @@ def read_frame(config: CheckConfig) -> Frame:
     if config.data is None and not data.is_dir():
         raise InputError(f"--data: the bundled frames ({data}) exist only in a source checkout; give --data DIR "
                          "--frame ID (a KITTI object folder)")
-    return load_frame(data, config.frame, with_labels=False)
+    return load_frame(data, numbered_frame(data, config.frame), with_labels=False)
 
 
 @contextmanager
@@ -347,7 +347,8 @@ def render(report: CheckReport) -> str:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     description = "\n\n".join(part for part in __doc__.split("\n\n") if not part.startswith("examples:"))
-    parser = argparse.ArgumentParser(prog="python -m pipeline.check_models", description=description,
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python -m pipeline.check_models", description=description,
                                      formatter_class=HelpFormatter, epilog=examples(
                                          "python -m pipeline.check_models --models /srv/lowres3d/edge-v7",
                                          "python -m pipeline.check_models --models DIR --provider tensorrt "
@@ -359,7 +360,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="the execution provider the vehicles run (default: the best this ONNX Runtime offers)")
     parser.add_argument("--data", type=Path, metavar="DIR",
                         help="a KITTI object folder to take the frame from (default: the checkout's tests/data)")
-    parser.add_argument("--frame", default=SAMPLE_FRAME, metavar="ID", help=f"its frame id (default {SAMPLE_FRAME})")
+    parser.add_argument("--frame", default=SAMPLE_FRAME, metavar="ID",
+                        help=f"its frame id, or its number (6 for 000006; default {SAMPLE_FRAME})")
     parser.add_argument("--emulate-beams", type=int, choices=(0, *BEAM_COUNTS), metavar="N",
                         help="thin the scan to N lines first, 0 to run it as stored (default: the model's own line "
                              "count; a scan with that count already runs as stored)")

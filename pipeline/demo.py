@@ -127,7 +127,8 @@ def _models(args: argparse.Namespace) -> Path | None:
 
 @quiet_interrupt("the pictures and result files written so far stay in --out")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m pipeline.demo", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python -m pipeline.demo", description=__doc__.split("\n\n")[0],
                                      epilog=examples("python -m pipeline.demo --frame 000003 --out outputs/demo"),
                                      formatter_class=HelpFormatter)
     which = parser.add_mutually_exclusive_group()

@@ -708,6 +708,7 @@ def main(argv: list[str] | None = None) -> int:
 def _parser() -> argparse.ArgumentParser:
     """The command's arguments, in the order --help lists them: the inputs, how to detect, the outputs."""
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m pipeline.detect",
         description="Detect cars with a lowres3d model directory on KITTI-layout frames or a KITTI raw drive; "
         "write KITTI result lines (label_2 format + score) to OUT/data, BEV pictures to OUT/bev and the camera "

@@ -27,6 +27,7 @@ from pipeline.kitti import (
 DRIVE_IMAGES = Path("image_02") / "data"
 DRIVE_SCANS = Path("velodyne_points") / "data"
 RAW_CALIB_FILES = ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt")
+KITTI_ID_DIGITS = 6  # an object folder's frame ids: 000000 … 007480
 
 
 @dataclass
@@ -75,6 +76,17 @@ def read_split_file(path: str | Path) -> list[str]:
     if not ids:
         raise InputError(f"{path}: split file lists no frame ids")
     return ids
+
+
+def numbered_frame(data_dir: str | Path, frame: str) -> str:
+    """``--frame`` as the id of a scan in ``data_dir``/velodyne: as given, or a plain number with the zeros KITTI
+    names its frames with (``6`` → ``000006``), as ``pipeline.detect --frame`` takes it."""
+    velodyne = Path(data_dir) / "velodyne"
+    if frame.isdigit() and not (velodyne / f"{frame}.bin").is_file():
+        padded = frame.zfill(KITTI_ID_DIGITS)
+        if (velodyne / f"{padded}.bin").is_file():
+            return padded
+    return frame
 
 
 def frame_ids(data_dir: str | Path, split_file: str | Path | None = None) -> list[str]:

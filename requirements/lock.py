@@ -103,7 +103,8 @@ def differences(pins: dict[str, str], versions: dict[str, str]) -> list[str]:
 
 @quiet_interrupt("--out is as it was (written only at the end)")
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python requirements/lock.py", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python requirements/lock.py", description=__doc__.split("\n\n")[0],
                                      epilog=examples("python requirements/lock.py --check"),
                                      formatter_class=HelpFormatter)
     parser.add_argument("--check", action="store_true",

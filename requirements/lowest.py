@@ -159,7 +159,8 @@ def pytest_configure(config: Any) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Print the pins, one a line; 2 with one line naming the file when it cannot be read or pinned."""
-    parser = argparse.ArgumentParser(prog="python requirements/lowest.py", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python requirements/lowest.py", description=__doc__.split("\n\n")[0],
                                      epilog=examples("python requirements/lowest.py --python 3.10"),
                                      formatter_class=HelpFormatter)
     parser.add_argument("--python", type=python_version, metavar="X.Y",

@@ -103,6 +103,7 @@ _OPTIONS: list[tuple[str, type, object]] = [
 def build_parser() -> argparse.ArgumentParser:
     """The command line, generated from the Settings fields (help text and defaults included)."""
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m service",
         description="lowres3d detection service: FastAPI over the ONNX Runtime detector. Every option is also "
         f"an environment variable {ENV_PREFIX}<OPTION> (e.g. {ENV_PREFIX}QUEUE_SIZE); the command line wins.",

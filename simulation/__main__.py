@@ -23,6 +23,7 @@ from simulation.run import RunConfig, run
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
+        allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
         prog="python -m simulation",
         description="Generate synthetic driving frames in the KITTI object layout: image_2/*.png, "
         "velodyne/*.bin (64-line), calib/*.txt, label_2/*.txt and depth_2/*.png (dense depth, "
