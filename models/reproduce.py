@@ -1,6 +1,7 @@
 """Reproduce the shipped weights and the paper's table on synthetic scenes, from scratch.
 
     python -m models.reproduce [--out runs/edge] [--data data/sim] [--weights weights] [--lanes 2] [--quick]
+                               [--no-progress]
 
 Stages (each resumes where it stopped: rerun the same command after an interruption):
 
@@ -43,7 +44,8 @@ the camera row trailed the 16-line one). The product's model directory lands in
 ``WEIGHTS/edge`` (16-line + camera; the preset without the pseudo-only
 suffixes names it), with ``WEIGHTS/edge-lidar16`` and ``WEIGHTS/edge-lidar64``
 (PIXOR alone) for the table. ``--quick`` runs every stage on a handful of frames with the
-``tiny`` preset into ``OUT`` only, in a few minutes: a smoke test.
+``tiny`` preset into ``OUT`` only (its frames in ``OUT/data`` unless ``--data`` says), in a few minutes: a
+smoke test.
 """
 
 from __future__ import annotations
@@ -540,12 +542,13 @@ def format_table(report: dict) -> str:
 def main(argv: list[str] | None = None) -> int:
     epilog = __doc__.split("\n\n", 1)[1] + "\n" + examples("python -m models.reproduce --quick --out /tmp/reproduce",
                                                            "python -m models.reproduce --out runs/edge")
-    parser = argparse.ArgumentParser(prog="python -m models.reproduce", description=__doc__.split("\n\n")[0],
+    parser = argparse.ArgumentParser(allow_abbrev=False,  # a prefix is no flag: --frame is not --frames
+                                     prog="python -m models.reproduce", description=__doc__.split("\n\n")[0],
                                      epilog=epilog, formatter_class=HelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("runs/edge"), metavar="DIR",
                         help="run folder (default runs/edge)")
-    parser.add_argument("--data", type=Path, default=Path("data/sim"), metavar="DIR",
-                        help="synthetic data folder (default data/sim)")
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="synthetic data folder, simulated there first (default data/sim; --quick: OUT/data)")
     parser.add_argument("--weights", type=Path, default=None, metavar="DIR",
                         help="where the model directories ship, at the end of the run (default weights; "
                         "--quick: OUT/weights)")
@@ -558,6 +561,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--car-weight", type=positive_float, default=1.0,
                         help="depth nets: loss weight of the labelled cars' own pixels (default 1)")
     parser.add_argument("--quick", action="store_true", help="every stage on a few frames, tiny preset: a smoke test")
+    parser.add_argument("--no-progress", action="store_true",
+                        help="no progress bars (they are drawn into a log too: the recipe runs for hours in the "
+                        "background)")
     args = parser.parse_args(argv)
     if is_preset_file(args.preset):  # its stages name presets by adding suffixes (-no-gam, the LiDAR rows'): a name
         # One line, as models.train and export refuse a preset file's fault: not argparse's usage above it.
@@ -574,9 +580,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick and args.weights is not None:  # it would be ignored: a smoke test never ships
         parser.error("argument --weights: --quick writes its model directories to OUT/weights only")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
-    config = ReproduceConfig(out=args.out, data=args.data, weights=args.weights or Path("weights"), preset=args.preset,
-                             quick=args.quick, sim_workers=args.sim_workers,
-                             lanes=args.lanes)
+    # A smoke test keeps to OUT: its few frames went into the checkout's data/sim beside the real data sets.
+    data = args.data or (args.out / "data" if args.quick else Path("data/sim"))
+    config = ReproduceConfig(out=args.out, data=data, weights=args.weights or Path("weights"), preset=args.preset,
+                             quick=args.quick, sim_workers=args.sim_workers, lanes=args.lanes,
+                             progress=not args.no_progress)
     config.budget = replace(config.budget, depth_car_weight=args.car_weight)
     try:
         with sigterm_as_interrupt():  # pre-emption (SIGTERM) stops the job processes too, as Ctrl-C does

@@ -125,10 +125,14 @@ LEFT_OUT = {
         "test_input_guards_mutants.py::test_a_state_from_before_the_frame_record_is_not_compared",
         "test_input_guards_mutants.py::test_a_run_with_its_own_validation_frames_resumes",
         "test_s49_guards_mutants.py::test_export_folder_stays_one_numbered_component",
-        "test_s51_fixes.py::test_latency_refuses_checkpoints_that_do_not_fit_in_one_line"),
+        "test_s51_fixes.py::test_latency_refuses_checkpoints_that_do_not_fit_in_one_line",
+        "test_s51_fixes.py::test_reproduce_quick_keeps_its_frames_in_out_and_bars_can_be_hidden"),
     "the dev tools (mypy, hadolint, vermin, setuptools) and the lock": (
         "test_typing.py", "test_container.py", "test_packaging.py", "test_lock.py"),
-    "the command family, torch's commands among them": ("test_commands.py", "test_docs_commands.py"),
+    "the command family, torch's commands among them": (
+        "test_commands.py", "test_docs_commands.py",
+        "test_s51_fixes.py::test_help_lines_break_at_spaces_only_so_a_flag_is_never_cut_in_two",
+        "test_s51_fixes.py::test_no_command_reads_a_prefix_of_a_flag_as_the_flag"),
     "the timing benchmarks": ("test_latency.py", "test_latency_cli.py", "test_load.py", "test_bench_latency.py",
                               "test_bench_load.py", "test_bench_peak.py"),
 }

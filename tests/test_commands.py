@@ -107,8 +107,8 @@ SHARED_FLAGS = {"--models": {"DIR"}, "--data": {"DIR"}, "--out": {"DIR", "FILE"}
 OLD_SPELLINGS = {"--beams": "--emulate-beams", "--kitti": "--data", "--sim": "--sim-data", "--figure": "--plot",
                  "--kitti-dir": "--data"}
 # The commands that run over many frames (or runs) and draw progress bars.
-LONG = {"pipeline.detect", "pipeline.beams", "simulation", "models.train", "models.cache_pseudo", "accuracy",
-        "depth_bound", "network_latency", "sim_report"}
+LONG = {"pipeline.detect", "pipeline.beams", "simulation", "models.train", "models.reproduce", "models.cache_pseudo",
+        "accuracy", "depth_bound", "network_latency", "sim_report"}
 
 
 @pytest.mark.parametrize("name", FAMILY)

@@ -136,3 +136,60 @@ def test_op_profile_thins_scans_for_the_models_own_line_count(model: str, thinne
     monkeypatch.setattr(beams, "emulate_beams", recording)
     assert main(["--models", str(WEIGHTS / model), "--frame", "000006", "--runs", "1", "--top", "1"]) == 0
     assert calls == thinned_to
+
+
+def test_no_command_reads_a_prefix_of_a_flag_as_the_flag(monkeypatch: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """argparse takes any unambiguous prefix of a long flag: accuracy.py --frame 000003 evaluated the first three
+    frames (--frames 3), cache_pseudo and depth_bound likewise, and accuracy.py --plot FILE made a folder named
+    FILE (--plots DIR), each with exit 0. Every command now refuses a flag it does not have."""
+    from tests.test_commands import FAMILY, _parser
+
+    assert [name for name in FAMILY if _parser(name, monkeypatch).allow_abbrev] == []
+    from benchmarks.accuracy import main
+
+    for flag, value in (("--frame", "000003"), ("--plot", "plot.png")):
+        with pytest.raises(SystemExit) as refused:
+            main(["--data", "tests/data/kitti/training", "--models", str(WEIGHTS / "edge"), "--input",
+                  "lidar16+camera", flag, value])
+        assert refused.value.code == 2
+        assert f"unrecognized arguments: {flag} {value}" in capsys.readouterr().err
+
+
+def test_check_models_and_op_profile_take_a_frames_number_as_detect_does(capsys: pytest.CaptureFixture[str]) -> None:
+    """pipeline.detect --frame 6 runs 000006; check_models and op_profile looked for velodyne/6.bin and exited 2
+    ("cannot read"). They take the number too now, and an id as written still wins."""
+    from benchmarks.op_profile import main as op_profile
+    from pipeline.frame import numbered_frame
+    from tests.conftest import KITTI
+
+    assert check_models.main(["--models", str(WEIGHTS / "edge-lidar16"), "--data", str(KITTI), "--frame", "6"]) == 0
+    assert "PASS frame    frame 000006 " in capsys.readouterr().out
+    assert op_profile(["--models", str(WEIGHTS / "edge-lidar16"), "--data", str(KITTI), "--frame", "6", "--runs", "1",
+                       "--top", "1"]) == 0
+    assert "frame 000006" in capsys.readouterr().out
+    assert [numbered_frame(KITTI, frame) for frame in ("000006", "6", "06", "7", "x")] == [
+        "000006", "000006", "000006", "7", "x"]  # 7: no 000007 here, left for the reader to name
+
+
+@pytest.mark.parametrize(("argv", "data", "progress"), [
+    (["--quick", "--out", "OUT"], Path("OUT/data"), True),
+    (["--quick", "--out", "OUT", "--data", "D", "--no-progress"], Path("D"), False),
+    (["--out", "OUT"], Path("data/sim"), True),
+])
+def test_reproduce_quick_keeps_its_frames_in_out_and_bars_can_be_hidden(argv: list[str], data: Path, progress: bool,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """--quick, "a smoke test into OUT only", simulated its frames into the checkout's data/sim beside the real
+    data sets; and the recipe drew its progress bars into its log with no --no-progress to hide them, as
+    models.train and python -m simulation have. The run itself is stood in for: its config is what is checked."""
+    from models import reproduce
+
+    seen: list[Any] = []
+
+    def stand_in(config: Any) -> None:
+        seen.append(config)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(reproduce, "run", stand_in)
+    assert reproduce.main(argv) == 130
+    assert (seen[0].data, seen[0].progress) == (data, progress)
