@@ -778,6 +778,53 @@ def _by_id(frame_ids: Sequence[str] | None, n: int) -> np.ndarray:
     return np.argsort(np.asarray(frame_ids, dtype=str), kind="stable")
 
 
+def _check_bootstrap_inputs(ground_truth: Sequence[LabelArrays], detection_sets: Sequence[Sequence[LabelArrays]],
+                            resamples: int, method: str) -> None:
+    """Refuse what :func:`bootstrap` cannot draw from (ValueError naming the argument or detection set)."""
+    if resamples < 1:
+        raise ValueError(f"resamples must be at least 1, got {resamples}")
+    if method not in INTERVAL_METHODS:
+        raise ValueError(f"method must be one of {INTERVAL_METHODS}, got {method!r}")
+    for i, detections in enumerate(detection_sets):
+        if len(detections) != len(ground_truth):
+            raise ValueError(f"detection set {i}: {len(detections)} frames, ground truth {len(ground_truth)}")
+        _require_scores(detections, f"detection set {i}, ")
+
+
+def _common_metrics(detection_sets: Sequence[Sequence[LabelArrays]], class_name: str) -> tuple[str, ...]:
+    """The metrics every detection set can be scored on, in the order of ``METRICS``."""
+    found = [set(_default_metrics(d, class_name)) for d in detection_sets]
+    return tuple(m for m in METRICS if all(m in f for f in found))
+
+
+def _scored(tables: Sequence[_StepTables], weights: np.ndarray, cell: tuple[int, int, int]) -> np.ndarray:
+    """(sets, *cell) R40 AP of every detection set on the frames taken ``weights`` (F,) times each."""
+    return np.stack([_weighted_ap(t, weights).reshape(cell) for t in tables])
+
+
+def _drawn_ap(tables: Sequence[_StepTables], n: int, order: np.ndarray, cell: tuple[int, int, int],
+              resamples: int, rng: np.random.Generator, progress: bool) -> np.ndarray:
+    """(sets, resamples, *cell) AP on ``resamples`` draws of the ``n`` frames, ``n`` times with replacement;
+    a draw's k-th count goes to frame ``order[k]``."""
+    ap = np.zeros((len(tables), resamples, *cell))
+    for r in tqdm(range(resamples), desc="bootstrap", disable=not progress):
+        weights = np.zeros(n, dtype=np.int64)
+        weights[order] = np.bincount(rng.integers(0, n, n), minlength=n)
+        ap[:, r] = _scored(tables, weights, cell)
+    return ap
+
+
+def _jackknife_ap(tables: Sequence[_StepTables], n: int, order: np.ndarray, cell: tuple[int, int, int],
+                  progress: bool) -> np.ndarray:
+    """(sets, frames, *cell) AP on the ``n`` frames with each left out in turn, frame ``order[k]`` in sample k."""
+    left_out = np.zeros((len(tables), n, *cell))
+    for k, i in enumerate(tqdm(order, desc="jackknife", disable=not progress)):
+        weights = np.ones(n, dtype=np.int64)
+        weights[i] = 0
+        left_out[:, k] = _scored(tables, weights, cell)
+    return left_out
+
+
 def bootstrap(
     ground_truth: Sequence[LabelArrays],
     detection_sets: Sequence[Sequence[LabelArrays]],
@@ -809,18 +856,8 @@ def bootstrap(
     however they are listed (a split file's lines reversed gave other intervals); without ids, the frames are
     taken in the order given.
     """
-    if resamples < 1:
-        raise ValueError(f"resamples must be at least 1, got {resamples}")
-    if method not in INTERVAL_METHODS:
-        raise ValueError(f"method must be one of {INTERVAL_METHODS}, got {method!r}")
-    for i, detections in enumerate(detection_sets):
-        if len(detections) != len(ground_truth):
-            raise ValueError(f"detection set {i}: {len(detections)} frames, ground truth {len(ground_truth)}")
-        _require_scores(detections, f"detection set {i}, ")
-    if metrics is None:
-        found = [set(_default_metrics(d, class_name)) for d in detection_sets]
-        metrics = tuple(m for m in METRICS if all(m in f for f in found))
-    metrics = tuple(metrics)
+    _check_bootstrap_inputs(ground_truth, detection_sets, resamples, method)
+    metrics = _common_metrics(detection_sets, class_name) if metrics is None else tuple(metrics)
     iou_thresholds = tuple(float(t) for t in iou_thresholds)
     tables = [
         _step_tables([_prepare_frame(gt, det, class_name, metrics, ignore_small_detections, distance_range)
@@ -830,23 +867,8 @@ def bootstrap(
     n = len(ground_truth)
     order = _by_id(frame_ids, n)  # the k-th frame by id: the one each draw's k-th count goes to
     cell = (len(metrics), len(iou_thresholds), len(DIFFICULTIES))
-
-    def scored(weights: np.ndarray) -> np.ndarray:
-        return np.stack([_weighted_ap(t, weights).reshape(cell) for t in tables])
-
-    full = scored(np.ones(n, dtype=np.int64))
-    rng = np.random.default_rng(seed)
-    ap = np.zeros((len(detection_sets), resamples, *cell))
-    for r in tqdm(range(resamples), desc="bootstrap", disable=not progress):
-        weights = np.zeros(n, dtype=np.int64)
-        weights[order] = np.bincount(rng.integers(0, n, n), minlength=n)
-        ap[:, r] = scored(weights)
-    left_out = None
-    if jackknife:
-        left_out = np.zeros((len(detection_sets), n, *cell))
-        for k, i in enumerate(tqdm(order, desc="jackknife", disable=not progress)):
-            weights = np.ones(n, dtype=np.int64)
-            weights[i] = 0
-            left_out[:, k] = scored(weights)
+    full = _scored(tables, np.ones(n, dtype=np.int64), cell)
+    ap = _drawn_ap(tables, n, order, cell, resamples, np.random.default_rng(seed), progress)
+    left_out = _jackknife_ap(tables, n, order, cell, progress) if jackknife else None
     return BootstrapResult(metrics=metrics, iou_thresholds=iou_thresholds, ap=ap, seed=seed, full=full,
                            jackknife=left_out, method=method)
