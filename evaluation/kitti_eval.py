@@ -779,8 +779,12 @@ def _by_id(frame_ids: Sequence[str] | None, n: int) -> np.ndarray:
 
 
 def _check_bootstrap_inputs(ground_truth: Sequence[LabelArrays], detection_sets: Sequence[Sequence[LabelArrays]],
-                            resamples: int, method: str) -> None:
+                            resamples: int, method: str, frame_ids: Sequence[str] | None = None) -> None:
     """Refuse what :func:`bootstrap` cannot draw from (ValueError naming the argument or detection set)."""
+    if not detection_sets:  # NumPy's "need at least one array to stack" named nothing
+        raise ValueError("detection_sets: none given; give at least one list of a frame's detections per frame")
+    if isinstance(frame_ids, str):  # a str is a Sequence[str] of its characters: a broadcasting error followed
+        raise TypeError(f"frame_ids: one id per frame, not the string {frame_ids[:20]!r}")
     if resamples < 1:
         raise ValueError(f"resamples must be at least 1, got {resamples}")
     if method not in INTERVAL_METHODS:
@@ -856,7 +860,7 @@ def bootstrap(
     however they are listed (a split file's lines reversed gave other intervals); without ids, the frames are
     taken in the order given.
     """
-    _check_bootstrap_inputs(ground_truth, detection_sets, resamples, method)
+    _check_bootstrap_inputs(ground_truth, detection_sets, resamples, method, frame_ids)
     metrics = _common_metrics(detection_sets, class_name) if metrics is None else tuple(metrics)
     iou_thresholds = tuple(float(t) for t in iou_thresholds)
     tables = [

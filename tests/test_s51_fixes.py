@@ -193,3 +193,15 @@ def test_reproduce_quick_keeps_its_frames_in_out_and_bars_can_be_hidden(argv: li
     monkeypatch.setattr(reproduce, "run", stand_in)
     assert reproduce.main(argv) == 130
     assert (seen[0].data, seen[0].progress) == (data, progress)
+
+
+def test_bootstrap_names_an_empty_list_of_detection_sets_and_frame_ids_given_as_one_string() -> None:
+    """Found while refactoring bootstrap: no detection set ended in NumPy's "need at least one array to stack",
+    and frame_ids="abcde" (a str is a sequence of strs) in a broadcasting error; each names its argument now."""
+    from evaluation.kitti_eval import bootstrap
+    from tests.test_eval_intervals import frames, obj
+
+    with pytest.raises(ValueError, match="^detection_sets: none given"):
+        bootstrap(frames([obj()]), [], resamples=1)
+    with pytest.raises(TypeError, match="^frame_ids: one id per frame, not the string 'a'"):
+        bootstrap(frames([obj()]), [frames([obj(score=0.9)])], resamples=1, frame_ids="a")
