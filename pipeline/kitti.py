@@ -440,8 +440,18 @@ def format_label(obj: Object3D) -> str:
 
 def write_labels(path: str | Path, objects: Iterable[Object3D]) -> None:
     """Write KITTI label lines (an empty file for no objects, as KITTI results expect); an object with a field
-    that is not a finite number is refused (InputError) before the file is touched."""
-    Path(path).write_text("".join(format_label(o) + "\n" for o in objects), encoding="ascii")
+    that is not a finite number is refused (InputError) before the file is touched. The file appears whole or
+    not at all: written beside it and renamed over it, so Ctrl-C mid-write neither leaves an empty result a
+    reader takes for "no cars" nor cuts an earlier run's file."""
+    path = Path(path)
+    text = "".join(format_label(o) + "\n" for o in objects)
+    partial = path.with_name(path.name + ".part")
+    try:
+        partial.write_text(text, encoding="ascii")
+        os.replace(partial, path)
+    except BaseException:
+        partial.unlink(missing_ok=True)
+        raise
 
 
 # --------------------------------------------------------------------------- images and depth

@@ -205,3 +205,32 @@ def test_bootstrap_names_an_empty_list_of_detection_sets_and_frame_ids_given_as_
         bootstrap(frames([obj()]), [], resamples=1)
     with pytest.raises(TypeError, match="^frame_ids: one id per frame, not the string 'a'"):
         bootstrap(frames([obj()]), [frames([obj(score=0.9)])], resamples=1, frame_ids="a")
+
+
+def test_a_result_file_interrupted_mid_write_is_not_left_empty_or_cut(tmp_path: Path,
+                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
+    """write_labels wrote the result in place: Ctrl-C between opening and writing (seen by a reviewer, 1 in 6
+    tries of interrupting pipeline.detect as its first result appeared) left an empty data/000000.txt, read as
+    "no cars", while detect said it had written nothing; over an earlier run's file it cut that file. The file
+    is now written beside it and renamed over it: an interrupted write leaves the earlier file whole and no
+    partial file."""
+    from pipeline.kitti import read_labels, write_labels
+    from tests.conftest import KITTI
+
+    objects = read_labels(KITTI / "label_2" / "000006.txt")
+    result = tmp_path / "000006.txt"
+    write_labels(result, objects)
+    earlier = result.read_bytes()
+    real_write_text = Path.write_text
+
+    def interrupted_write(self: Path, *args: Any, **kwargs: Any) -> int:
+        self.open("w").close()  # opened (emptied), then Ctrl-C before a byte is written
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Path, "write_text", interrupted_write)
+    with pytest.raises(KeyboardInterrupt):
+        write_labels(result, objects[:1])
+    monkeypatch.setattr(Path, "write_text", real_write_text)
+    assert result.read_bytes() == earlier and sorted(p.name for p in tmp_path.iterdir()) == ["000006.txt"]
+    write_labels(result, objects[:1])
+    assert len(result.read_text().splitlines()) == 1
