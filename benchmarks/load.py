@@ -789,13 +789,25 @@ LOG_TICK_STEPS = ((1.0,), (1.0, 2.0, 5.0), (1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 6.0, 8
 def log_ticks(low: float, high: float) -> list[float]:
     """Tick values between ``low`` and ``high`` (> 0) for a log axis: powers of ten when two or more lie
     between, else the coarsest finer steps that give two or more (latencies of 160-380 ms: 200, 300), else
-    the two ends to two significant digits."""
+    two round values within the range (:func:`_round_ends`)."""
     decades = range(math.floor(math.log10(low)), math.ceil(math.log10(high)) + 1)
     for steps in LOG_TICK_STEPS:
         ticks = [step * 10.0 ** k for k in decades for step in steps if low <= step * 10.0 ** k <= high]
         if len(ticks) >= 2:
             return ticks
-    return [float(f"{low:.2g}"), float(f"{high:.2g}")]
+    return _round_ends(low, high)
+
+
+def _round_ends(low: float, high: float) -> list[float]:
+    """The first and the last value within ``low``…``high`` (> 0) at the fewest significant digits that part
+    them. The ends rounded as they were fell outside the axis: one request of 152 ms had ticks at 150 and 160 and
+    an axis without a number."""
+    for digits in range(2, 16):
+        unit = 10.0 ** (math.floor(math.log10(high)) - digits + 1)
+        first, last = math.ceil(low / unit) * unit, math.floor(high / unit) * unit
+        if first < last:  # formatted so that 0.1 + 0.005 reads 0.105, not 0.10500000000000001
+            return [float(f"{first:.{digits}g}"), float(f"{last:.{digits}g}")]
+    return [low, high]  # equal ends: no two values part them
 
 
 def label_log_axis(axis, low: float, high: float) -> None:

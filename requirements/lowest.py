@@ -126,7 +126,8 @@ LEFT_OUT = {
         "test_input_guards_mutants.py::test_a_run_with_its_own_validation_frames_resumes",
         "test_s49_guards_mutants.py::test_export_folder_stays_one_numbered_component",
         "test_s51_fixes.py::test_latency_refuses_checkpoints_that_do_not_fit_in_one_line",
-        "test_s51_fixes.py::test_reproduce_quick_keeps_its_frames_in_out_and_bars_can_be_hidden"),
+        "test_s51_fixes.py::test_reproduce_quick_keeps_its_frames_in_out_and_bars_can_be_hidden",
+        "test_s51_guards_mutants.py::test_the_torch_twin_refuses_a_folder_without_checkpoints_in_one_line"),
     "the dev tools (mypy, hadolint, vermin, setuptools) and the lock": (
         "test_typing.py", "test_container.py", "test_packaging.py", "test_lock.py"),
     "the command family, torch's commands among them": (
