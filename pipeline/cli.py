@@ -284,16 +284,12 @@ def quiet_interrupt(leaves: str) -> Callable[[Main], Main]:
     return decorate
 
 
-# Lines of --help are broken at spaces only: argparse's textwrap also breaks after a hyphen, which cut flags and
-# paths in two ("--pixor-" at a line's end, "checkpoint" on the next), and a copied command then failed.
-_WHOLE_WORDS = textwrap.TextWrapper(break_on_hyphens=False, break_long_words=False)
-
-
 def _wrapped(text: str, width: int, indent: str = "") -> str:
-    """``text``'s words in lines of at most ``width`` (a longer word alone on its line), each after ``indent``."""
-    wrapper = copy.copy(_WHOLE_WORDS)
-    wrapper.width, wrapper.initial_indent, wrapper.subsequent_indent = max(width, 1), indent, indent
-    return wrapper.fill(" ".join(text.split()))
+    """``text``'s words in lines of at most ``width`` (a longer word alone on its line), each after ``indent``.
+    Broken at spaces only: argparse's textwrap also breaks after a hyphen, which cut flags and paths in two
+    ("--pixor-" at a line's end, "checkpoint" on the next), and a copied command then failed."""
+    return textwrap.fill(" ".join(text.split()), max(width, 1), initial_indent=indent, subsequent_indent=indent,
+                         break_on_hyphens=False, break_long_words=False)
 
 
 class HelpFormatter(argparse.HelpFormatter):

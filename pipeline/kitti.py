@@ -443,11 +443,15 @@ def write_labels(path: str | Path, objects: Iterable[Object3D]) -> None:
     that is not a finite number is refused (InputError) before the file is touched. The file appears whole or
     not at all: written beside it and renamed over it, so Ctrl-C mid-write neither leaves an empty result a
     reader takes for "no cars" nor cuts an earlier run's file."""
-    path = Path(path)
-    text = "".join(format_label(o) + "\n" for o in objects)
+    _write_whole(Path(path), "".join(format_label(o) + "\n" for o in objects).encode("ascii"))
+
+
+def _write_whole(path: Path, data: bytes) -> None:
+    """``data`` as the file ``path``, whole or not at all: written beside it (``.part``) and renamed over it,
+    the partial file removed when the write stops (Ctrl-C, a full disk)."""
     partial = path.with_name(path.name + ".part")
     try:
-        partial.write_text(text, encoding="ascii")
+        partial.write_bytes(data)
         os.replace(partial, path)
     except BaseException:
         partial.unlink(missing_ok=True)
@@ -506,9 +510,7 @@ def write_depth_png(path: str | Path, depth_m: np.ndarray) -> None:
     encoded, png = cv2.imencode(".png", raw)
     if not encoded:
         raise InputError(f"{path}: could not encode the depth map as PNG")
-    partial = path.with_name(path.name + ".part")
-    partial.write_bytes(png.tobytes())
-    os.replace(partial, path)
+    _write_whole(path, png.tobytes())
 
 
 def check_image_end(data: bytes, source: str) -> None:

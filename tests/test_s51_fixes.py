@@ -221,16 +221,16 @@ def test_a_result_file_interrupted_mid_write_is_not_left_empty_or_cut(tmp_path: 
     result = tmp_path / "000006.txt"
     write_labels(result, objects)
     earlier = result.read_bytes()
-    real_write_text = Path.write_text
+    real_write_bytes = Path.write_bytes
 
     def interrupted_write(self: Path, *args: Any, **kwargs: Any) -> int:
         self.open("w").close()  # opened (emptied), then Ctrl-C before a byte is written
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(Path, "write_text", interrupted_write)
+    monkeypatch.setattr(Path, "write_bytes", interrupted_write)
     with pytest.raises(KeyboardInterrupt):
         write_labels(result, objects[:1])
-    monkeypatch.setattr(Path, "write_text", real_write_text)
+    monkeypatch.setattr(Path, "write_bytes", real_write_bytes)
     assert result.read_bytes() == earlier and sorted(p.name for p in tmp_path.iterdir()) == ["000006.txt"]
     write_labels(result, objects[:1])
     assert len(result.read_text().splitlines()) == 1
